@@ -1,0 +1,165 @@
+"""Geometry shared by the stages: pixel conventions, quaternions, the collinearity equation.
+
+Conventions (README.md, "Conventions"):
+
+- Pixel coordinates ``(x, y)``: x = column to the right, y = row downward, the
+  centre of the top-left pixel is ``(0, 0)``. Arrays of points have shape
+  ``(N, 2)`` with columns ``(x, y)``; images are indexed ``img[y, x]``.
+- Object space in mm, right-handed. Camera frame: z along the viewing
+  direction (source -> detector), x and y parallel to the image axes.
+- A pose is ``(q, T)``: ``q = (w, x, y, z)`` a unit quaternion rotating
+  object-space vectors into the camera frame, ``T`` the X-ray source (the
+  perspective centre) in object space, so ``p_cam = R(q) (P - T)``.
+- Interior orientation ``iop = (xp, yp, c)`` in px; the ideal (pinhole)
+  projection is ``x = xp + c * p_x / p_z``, ``y = yp + c * p_y / p_z``.
+- Distortion: a correction ``Δ`` on measured coordinates,
+  ``ideal = measured - Δ(measured)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stages.errors import ShapeError
+
+
+def rc_to_xy(points_rc: np.ndarray) -> np.ndarray:
+    """Swap ``(row, col)`` columns into ``(x, y)``; the inverse of :func:`xy_to_rc`.
+
+    Parameters
+    ----------
+    points_rc : (N, 2) ndarray
+        Points as ``(row, col)``, for example from scikit-image.
+
+    Returns
+    -------
+    points_xy : (N, 2) float64 ndarray, px
+    """
+    points_rc = np.asarray(points_rc, dtype=np.float64).reshape(-1, 2)
+    return points_rc[:, ::-1].copy()
+
+
+def xy_to_rc(points_xy: np.ndarray) -> np.ndarray:
+    """Swap ``(x, y)`` columns into ``(row, col)``."""
+    return rc_to_xy(points_xy)
+
+
+def check_points(name: str, points: np.ndarray, dim: int) -> np.ndarray:
+    """Return ``points`` as float64 of shape ``(N, dim)`` or raise naming ``name``."""
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != dim:
+        raise ShapeError(f"{name} must have shape (N, {dim}); got {arr.shape}")
+    return arr
+
+
+def quat_normalize(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion(s) ``(..., 4)`` with ``w >= 0``."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(..., 3, 3)`` of unit quaternions ``(..., 4)`` ``(w, x, y, z)``."""
+    q = quat_normalize(q)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    # shape (..., 3, 3)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion(s) ``(..., 4)`` of rotation matrices ``(..., 3, 3)``."""
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(R, dtype=np.float64)
+    xyzw = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
+    wxyz = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+    return quat_normalize(wxyz.reshape(R.shape[:-2] + (4,)))
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product ``a * b`` (apply ``b`` first, then ``a``)."""
+    aw, ax, ay, az = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
+    bw, bx, by, bz = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
+
+
+def rotvec_to_quat(rotvec: np.ndarray) -> np.ndarray:
+    """Unit quaternion(s) ``(..., 4)`` of rotation vectors ``(..., 3)`` (axis * angle, rad)."""
+    rotvec = np.asarray(rotvec, dtype=np.float64)
+    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+    half = 0.5 * angle
+    # sin(half)/angle -> 1/2 as angle -> 0
+    scale = np.where(angle > 1e-12, np.sin(half) / np.where(angle > 1e-12, angle, 1.0), 0.5)
+    return np.concatenate([np.cos(half), rotvec * scale], axis=-1)
+
+
+def to_camera(points_mm: np.ndarray, q: np.ndarray, source_mm: np.ndarray) -> np.ndarray:
+    """Object points ``(N, 3)`` into the camera frame of pose ``(q, T)``: ``R(q) (P - T)``."""
+    R = quat_to_matrix(q)
+    return (np.asarray(points_mm, dtype=np.float64) - np.asarray(source_mm, dtype=np.float64)) @ R.T
+
+
+def project(points_mm: np.ndarray, q: np.ndarray, source_mm: np.ndarray, iop: np.ndarray) -> np.ndarray:
+    """Ideal pinhole projection (the collinearity equation) of object points.
+
+    Parameters
+    ----------
+    points_mm : (N, 3) float64 ndarray, mm
+        Object-space points.
+    q : (4,) float64 ndarray
+        Unit quaternion ``(w, x, y, z)`` rotating object vectors into the camera frame.
+    source_mm : (3,) float64 ndarray, mm
+        X-ray source (perspective centre) in object space.
+    iop : (3,) float64 ndarray, px
+        ``(xp, yp, c)``.
+
+    Returns
+    -------
+    points_xy : (N, 2) float64 ndarray, px
+        Ideal (undistorted) image coordinates.
+
+    Examples
+    --------
+    >>> project(np.array([[0.0, 0.0, 100.0]]), np.array([1.0, 0, 0, 0]), np.zeros(3), np.array([512.0, 512.0, 4000.0]))
+    array([[512., 512.]])
+    """
+    p_cam = to_camera(check_points("points_mm", points_mm, 3), q, source_mm)
+    xp, yp, c = np.asarray(iop, dtype=np.float64)
+    return np.column_stack([xp + c * p_cam[:, 0] / p_cam[:, 2], yp + c * p_cam[:, 1] / p_cam[:, 2]])
+
+
+def similarity_fit(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares 7-parameter similarity ``dst ≈ s R src + t`` (Umeyama).
+
+    Returns
+    -------
+    scale : float
+    R : (3, 3) float64 ndarray
+    t : (3,) float64 ndarray
+    """
+    src = check_points("src", src, 3)
+    dst = check_points("dst", dst, 3)
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.diag([1.0, 1.0, d])
+    R = U @ D @ Vt
+    scale = float(np.trace(np.diag(S) @ D) / (a**2).sum(1).mean())
+    return scale, R, mu_d - scale * R @ mu_s

@@ -1,0 +1,243 @@
+"""Frame and table readers and writers: the only place where stages' data meets files.
+
+Frames reach the stages as :class:`stages.artifacts.Radiograph` (float32,
+larger = brighter) with their source bit depth and metadata beside them.
+
+- DICOM (single and multi-frame) via pydicom; the modality LUT is applied and
+  MONOCHROME1 is inverted to MONOCHROME2.
+- TIFF, PNG and other stills via OpenImageIO.
+- Video (``.avi``, ``.mp4``, ``.mov``, ``.mkv``) via OpenCV.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from stages.artifacts import Phantom, Radiograph
+from stages.errors import InputError
+
+VIDEO_SUFFIXES = {".avi", ".mp4", ".mov", ".mkv", ".m4v", ".wmv"}
+DICOM_SUFFIXES = {".dcm", ".ima", ".dicom"}
+
+
+def _is_dicom(path: Path) -> bool:
+    if path.suffix.lower() in DICOM_SUFFIXES:
+        return True
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(128)
+            return fh.read(4) == b"DICM"
+    except OSError:
+        return False
+
+
+def read_frames(path: str | os.PathLike) -> list[Radiograph]:
+    """Read every frame of an image, DICOM or video file.
+
+    Raises
+    ------
+    InputError
+        The file is missing, unreadable or holds no monochrome frame.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    try:
+        if _is_dicom(path):
+            return _read_dicom(path)
+        if path.suffix.lower() in VIDEO_SUFFIXES:
+            return _read_video(path)
+        return _read_still(path)
+    except InputError:
+        raise
+    except Exception as exc:  # library errors differ by format; name the file
+        raise InputError(f"{path}: cannot read as an image ({type(exc).__name__}: {exc})") from exc
+
+
+def _read_dicom(path: Path) -> list[Radiograph]:
+    import pydicom
+    from pydicom.pixels import apply_modality_lut
+
+    ds = pydicom.dcmread(path)
+    if "PixelData" not in ds:
+        raise InputError(f"{path}: DICOM file has no pixel data")
+    pixels = apply_modality_lut(ds.pixel_array, ds).astype(np.float32)
+    n_frames = int(getattr(ds, "NumberOfFrames", 1) or 1)
+    frames = pixels.reshape((n_frames,) + pixels.shape[-2:]) if pixels.ndim >= 2 else pixels
+    if frames.ndim != 3:
+        raise InputError(f"{path}: expected monochrome frames; got pixel array of shape {pixels.shape}")
+    bit_depth = int(getattr(ds, "BitsStored", 16))
+    if str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2")) == "MONOCHROME1":
+        frames = float(2**bit_depth - 1) - frames
+    meta = {
+        "format": "dicom",
+        "modality": str(getattr(ds, "Modality", "")),
+        "photometric": str(getattr(ds, "PhotometricInterpretation", "")),
+    }
+    for tag in ("PixelSpacing", "ImagerPixelSpacing", "DistanceSourceToDetector", "FieldOfViewDimensions"):
+        if tag in ds and ds.data_element(tag).value not in (None, ""):
+            value = ds.data_element(tag).value
+            meta[tag] = [float(v) for v in value] if isinstance(value, (list, tuple, pydicom.multival.MultiValue)) else float(value)
+    return [Radiograph(np.ascontiguousarray(f), bit_depth, str(path), i, meta) for i, f in enumerate(frames)]
+
+
+def _read_still(path: Path) -> list[Radiograph]:
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(f"{path}: cannot read as an image ({oiio.geterror()})")
+    try:
+        frames = []
+        subimage = 0
+        while inp.seek_subimage(subimage, 0):
+            spec = inp.spec()
+            pixels = inp.read_image(spec.format)
+            if pixels is None:
+                raise InputError(f"{path}: cannot decode subimage {subimage} ({inp.geterror()})")
+            frames.append(_still_to_radiograph(path, subimage, spec, pixels))
+            subimage += 1
+    finally:
+        inp.close()
+    return frames
+
+
+def _still_to_radiograph(path: Path, index: int, spec, pixels: np.ndarray) -> Radiograph:
+    pixels = np.asarray(pixels)
+    if pixels.ndim == 3:
+        if spec.nchannels not in (1, 2, 3, 4):
+            raise InputError(f"{path}: unsupported channel count {spec.nchannels}")
+        # grey + alpha, or RGB(A) converted with Rec. 601 luma
+        pixels = pixels[..., 0] if spec.nchannels <= 2 else pixels[..., :3] @ np.array([0.299, 0.587, 0.114])
+    native_bits = pixels.dtype.itemsize * 8 if np.issubdtype(pixels.dtype, np.integer) else 32
+    bits = spec.get_int_attribute("oiio:BitsPerSample", native_bits) or native_bits
+    image = pixels.astype(np.float32)
+    if np.issubdtype(pixels.dtype, np.integer) and bits < native_bits:
+        # OIIO rescales fewer stored bits to the container's full range; undo it
+        image = np.round(image * ((2**bits - 1) / (2**native_bits - 1))).astype(np.float32)
+    meta = {"format": spec.get_string_attribute("oiio:Format", "") or path.suffix.lstrip(".").lower()}
+    return Radiograph(image, int(bits), str(path), index, meta)
+
+
+def _read_video(path: Path) -> list[Radiograph]:
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise InputError(f"{path}: cannot open as a video")
+    frames = []
+    try:
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            grey = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+            bits = 16 if grey.dtype == np.uint16 else 8
+            frames.append(Radiograph(grey.astype(np.float32), bits, str(path), len(frames), {"format": "video"}))
+    finally:
+        cap.release()
+    if not frames:
+        raise InputError(f"{path}: video holds no decodable frame")
+    return frames
+
+
+def atomic_write(path: str | os.PathLike, writer) -> None:
+    """Call ``writer(tmp_path)`` then rename the temporary file onto ``path``.
+
+    The temporary file sits in the same directory (same file system) and keeps
+    the suffix, so format detection by extension still works; it is removed if
+    ``writer`` fails, so nothing half-written is ever left under ``path``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        writer(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_still(path: str | os.PathLike, image: np.ndarray, *, bit_depth: int = 16) -> None:
+    """Write a monochrome image atomically with OpenImageIO, in the dtype given.
+
+    ``image`` is written as-is (uint8, uint16 or float32); ``bit_depth`` is
+    only recorded (for example 12 for 12-bit data in a 16-bit container) when
+    the format can carry it without rescaling.
+    """
+    import OpenImageIO as oiio
+
+    image = np.ascontiguousarray(image)
+    fmt = {np.dtype(np.uint8): "uint8", np.dtype(np.uint16): "uint16", np.dtype(np.float32): "float"}.get(image.dtype)
+    if fmt is None:
+        raise InputError(f"write_still: unsupported dtype {image.dtype} for {path}")
+
+    def _write(tmp):
+        out = oiio.ImageOutput.create(tmp)
+        if out is None:
+            raise InputError(f"{path}: no writer for this format ({oiio.geterror()})")
+        spec = oiio.ImageSpec(image.shape[1], image.shape[0], 1, fmt)
+        if not out.open(tmp, spec) or not out.write_image(image):
+            raise InputError(f"{path}: write failed ({out.geterror()})")
+        out.close()
+
+    atomic_write(path, _write)
+
+
+def read_phantom(path: str | os.PathLike, *, lattice: str = "", pitch_mm: float = 0.0) -> Phantom:
+    """Read a phantom CSV ``id,x,y,z[,diameter][,role]`` (mm).
+
+    Raises
+    ------
+    InputError
+        Missing file, missing column, or a value that is not a number, naming the line.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: phantom file not found")
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        header = [h.strip() for h in (reader.fieldnames or [])]
+        missing = [c for c in ("id", "x", "y", "z") if c not in header]
+        if missing:
+            raise InputError(f"{path}: phantom CSV needs columns id,x,y,z[,diameter][,role]; missing {','.join(missing)}")
+        ids, xyz, diam, role = [], [], [], []
+        for line_no, row in enumerate(reader, start=2):
+            row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
+            try:
+                ids.append(int(row["id"]))
+                xyz.append([float(row["x"]), float(row["y"]), float(row["z"])])
+                diam.append(float(row["diameter"]) if row.get("diameter") else np.nan)
+            except ValueError as exc:
+                raise InputError(f"{path}:{line_no}: not a number ({exc})") from exc
+            role.append(row.get("role", ""))
+    if not ids:
+        raise InputError(f"{path}: phantom CSV has no beads")
+    try:
+        return Phantom(np.array(ids), np.array(xyz), np.array(diam), np.array(role), lattice, pitch_mm)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from exc
+
+
+def write_csv(path: str | os.PathLike, header: list[str], rows) -> None:
+    """Write a CSV table atomically (floats with 6 decimals)."""
+
+    def fmt(v):
+        return f"{v:.6f}" if isinstance(v, (float, np.floating)) else str(v)
+
+    def _write(tmp):
+        with open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(header)
+            for row in rows:
+                w.writerow([fmt(v) for v in row])
+
+    atomic_write(path, _write)
