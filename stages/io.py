@@ -59,6 +59,41 @@ def read_frames(path: str | os.PathLike) -> list[Radiograph]:
         raise InputError(f"{path}: cannot read as an image ({type(exc).__name__}: {exc})") from exc
 
 
+def count_frames(path: str | os.PathLike) -> int:
+    """Number of frames in a file, from its header where the format allows it.
+
+    Raises
+    ------
+    InputError
+        The file is missing or unreadable.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    try:
+        if _is_dicom(path):
+            import pydicom
+
+            ds = pydicom.dcmread(path, stop_before_pixels=True)
+            return int(getattr(ds, "NumberOfFrames", 1) or 1)
+        if path.suffix.lower() in VIDEO_SUFFIXES:
+            return len(_read_video(path))
+        import OpenImageIO as oiio
+
+        inp = oiio.ImageInput.open(str(path))
+        if inp is None:
+            raise InputError(f"{path}: cannot read as an image ({oiio.geterror()})")
+        n = 0
+        while inp.seek_subimage(n, 0):
+            n += 1
+        inp.close()
+        return n
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(f"{path}: cannot read as an image ({type(exc).__name__}: {exc})") from exc
+
+
 def _read_dicom(path: Path) -> list[Radiograph]:
     import pydicom
     from pydicom.pixels import apply_modality_lut
@@ -185,7 +220,7 @@ def write_still(path: str | os.PathLike, image: np.ndarray, *, bit_depth: int = 
         if out is None:
             raise InputError(f"{path}: no writer for this format ({oiio.geterror()})")
         spec = oiio.ImageSpec(image.shape[1], image.shape[0], 1, fmt)
-        if not out.open(tmp, spec) or not out.write_image(image):
+        if not out.open(tmp, spec) or not out.write_image(image.reshape(image.shape[0], image.shape[1], 1)):
             raise InputError(f"{path}: write failed ({out.geterror()})")
         out.close()
 

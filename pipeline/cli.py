@@ -1,0 +1,181 @@
+"""fluorocal: calibrate X-ray fluoroscopes from radiographs of a bead phantom.
+
+Commands:
+  run CONFIG            detect, centroid, label, adjust and learn; write the calibration
+  inspect CONFIG [STAGE]  what each stage produced (cached / stale / missing)
+  cache clean CONFIG    delete the project's artifact cache
+  simulate OUTDIR       write a synthetic data set with ground truth and a config
+  detect FILE...        detect and centroid beads in single frames (debugging)
+
+A project is a TOML file (see README.md, "Config"); paths in it are relative
+to it. Artifacts are cached in .fluorocal/ beside the config: a second run
+with nothing changed recomputes nothing.
+
+Exit codes: 0 success, 1 unexpected failure, 2 bad input (file, config key,
+argument), 130 interrupted. Add --debug for a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from pathlib import Path
+
+#: optional command modules: pipeline/cmd_<name>.py exposing add_parser(subparsers) and run(args)
+COMMAND_MODULES = ("simulate", "detect", "label", "adjust", "undistort")
+
+log = logging.getLogger("fluorocal")
+
+
+def _command_modules():
+    here = Path(__file__).parent
+    for name in COMMAND_MODULES:
+        if (here / f"cmd_{name}.py").is_file():
+            yield importlib.import_module(f"pipeline.cmd_{name}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="fluorocal", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars, warnings and errors only")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser("run", help="run the calibration pipeline of a project", description="Run every stage of a project (cached stages are not recomputed) and write its outputs.")
+    p.add_argument("config", type=Path, help="project TOML file")
+    p.add_argument("--force", action="append", default=[], metavar="STAGE", help="recompute STAGE and everything downstream (repeatable)")
+    p.add_argument("--until", metavar="STAGE", help="stop after STAGE (default: run all stages)")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("inspect", help="show what each stage produced", description="Table of stages: key, status (cached / stale / missing), size and summary; with STAGE, that stage's artifacts.")
+    p.add_argument("config", type=Path, help="project TOML file")
+    p.add_argument("stage", nargs="?", help="a stage name (default: all stages)")
+    p.add_argument("--frame", type=int, metavar="N", help="with STAGE: write the debug overlay of frame N (0-based, over all systems)")
+    p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("cache", help="manage the artifact cache", description="Manage a project's artifact cache.")
+    cache_sub = p.add_subparsers(dest="cache_command", metavar="ACTION", required=True)
+    c = cache_sub.add_parser("clean", help="delete a project's cache", description="Delete the project's artifact cache (or, with --stale, only entries the current config no longer uses).")
+    c.add_argument("config", type=Path, help="project TOML file")
+    c.add_argument("--stale", action="store_true", help="keep entries the current config uses (default: delete all)")
+    c.set_defaults(func=cmd_cache_clean)
+
+    for module in _command_modules():
+        module.add_parser(sub)
+    return parser
+
+
+def _load(config_path: Path):
+    from pipeline.config import load_config
+    from pipeline.graph import stage_params_classes
+
+    return load_config(config_path, stage_params_allowed=stage_params_classes())
+
+
+def _runner(args, **kw):
+    from pipeline.cache import ArtifactCache
+    from pipeline.graph import default_stages
+    from pipeline.run import Runner
+
+    config = _load(args.config)
+    return Runner(config, default_stages(), ArtifactCache(config.cache_dir), progress=not args.quiet, **kw)
+
+
+def cmd_run(args) -> int:
+    from pipeline.export import export_outputs
+
+    runner = _runner(args, force=args.force, until=args.until)
+    report = runner.run()
+    for line in report.lines():
+        log.info(line)
+    written = export_outputs(runner)
+    for path in written:
+        log.info("wrote %s", path)
+    return 0
+
+
+def cmd_inspect(args) -> int:
+    runner = _runner(args)
+    rows = runner.status()
+    if args.stage:
+        return _inspect_stage(runner, args.stage, args.frame)
+    print(f"{'stage':<10} {'key':<12} {'status':<8} {'entries':>9} {'size':>10}  summary")
+    for r in rows:
+        print(f"{r['stage']:<10} {r['key']:<12} {r['status']:<8} {r['cached']:>4}/{r['n']:<4} {_human(r['bytes']):>10}  {r['summary']}")
+    return 0
+
+
+def _inspect_stage(runner, stage: str, frame: int | None) -> int:
+    from stages.errors import InputError
+
+    if stage not in runner.by_name:
+        raise InputError(f"unknown stage {stage!r}; stages are {', '.join(runner.by_name)}")
+    per_frame = runner.by_name[stage].per_frame
+    units = range(len(runner.units)) if per_frame else [None]
+    if frame is not None:
+        if not per_frame or not 0 <= frame < len(runner.units):
+            raise InputError(f"--frame must be in 0..{len(runner.units) - 1} for per-frame stage {stage!r}")
+        units = [frame]
+    for u in units:
+        key = runner.keys[(stage, u)]
+        where = runner.units[u].label if u is not None else "project"
+        manifest = runner.cache.manifest(stage, key)
+        if manifest is None:
+            print(f"{where}: missing (run `fluorocal run` first)")
+            continue
+        entry = runner.cache.entry_dir(stage, key)
+        files = ", ".join(str(entry / f) for f in manifest["files"] if not f.endswith(".npz"))
+        print(f"{where}: {manifest['summary']}  [{entry}]" + (f"  {files}" if files else ""))
+    if frame is not None:
+        from pipeline.overlay import write_stage_overlay
+
+        path = write_stage_overlay(runner, stage, frame)
+        print(f"overlay: {path}")
+    return 0
+
+
+def cmd_cache_clean(args) -> int:
+    from pipeline.cache import ArtifactCache
+
+    config = _load(args.config)
+    cache = ArtifactCache(config.cache_dir)
+    if args.stale:
+        runner = _runner(args)
+        removed = cache.clean(keep={(stage, key) for (stage, _), key in runner.keys.items()})
+    else:
+        removed = cache.clean()
+    log.info("removed %d cache entries from %s", removed, config.cache_dir)
+    return 0
+
+
+def _human(n: int) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return str(n)
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.debug else (logging.WARNING if args.quiet else logging.INFO), format="%(message)s")
+    for noisy in ("PIL", "matplotlib"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+    from stages.errors import CalibError
+
+    try:
+        return int(args.func(args) or 0)
+    except CalibError as exc:
+        if args.debug:
+            raise
+        print(f"fluorocal: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("fluorocal: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,241 @@
+"""Project configuration: TOML validated into frozen dataclasses.
+
+Every error names the file and the key, and says what was expected, e.g.
+``proj.toml: [[systems]] #1 "A": key 'pixel_pitch': expected a number (mm); got "0.25mm"``.
+Paths in the file are relative to the config file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import glob
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from stages.errors import InputError
+
+SCHEMES = ("knn", "knn+iop", "knn+smooth", "knn+iop+smooth", "none", "polynomial")
+
+
+class ConfigError(InputError):
+    """The project configuration is invalid; the message names the key."""
+
+
+@dataclass(frozen=True)
+class PhantomConfig:
+    file: Path | None = None
+    lattice: str = ""
+    pitch_mm: float = 0.0
+
+
+@dataclass(frozen=True)
+class SystemConfig:
+    name: str
+    frames: tuple[Path, ...]
+    source_image_distance_mm: float
+    pixel_pitch_mm: float
+
+
+@dataclass(frozen=True)
+class Config:
+    """A validated project configuration.
+
+    ``stage_params`` maps a stage name to the raw table of its section
+    (``[detect]``, ``[centroid]``, ...); it is turned into the stage's
+    ``Params`` by :func:`params_from_dict` when the stage graph is built.
+    """
+
+    path: Path
+    phantom: PhantomConfig
+    systems: tuple[SystemConfig, ...]
+    scheme: str = "knn+iop+smooth"
+    output_dir: Path = Path("out")
+    cache_dir: Path = Path(".fluorocal")
+    stage_params: dict = field(default_factory=dict)
+
+    @property
+    def root(self) -> Path:
+        return self.path.parent
+
+
+def _where(path: Path, section: str, key: str) -> str:
+    return f"{path.name}: {section}key '{key}'"
+
+
+def _expect(value, kind, what: str, path: Path, section: str, key: str):
+    ok = isinstance(value, kind) and not (kind in ((int, float), float) and isinstance(value, bool))
+    if not ok:
+        raise ConfigError(f"{_where(path, section, key)}: expected {what}; got {value!r}")
+    return value
+
+
+def _reject_unknown(table: dict, allowed: set[str], path: Path, section: str) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ConfigError(f"{_where(path, section, unknown[0])}: unknown key; allowed keys are {', '.join(sorted(allowed))}")
+
+
+def _resolve_frames(value, root: Path, path: Path, section: str) -> tuple[Path, ...]:
+    if isinstance(value, str):
+        matches = sorted(glob.glob(str(root / value)))
+        if not matches:
+            raise ConfigError(f"{_where(path, section, 'frames')}: no file matches {value!r} (relative to {root})")
+        return tuple(Path(m) for m in matches)
+    if isinstance(value, list) and value and all(isinstance(v, str) for v in value):
+        files = tuple(root / v for v in value)
+        missing = [str(f) for f in files if not f.is_file()]
+        if missing:
+            raise ConfigError(f"{_where(path, section, 'frames')}: file not found: {missing[0]}")
+        return files
+    raise ConfigError(f"{_where(path, section, 'frames')}: expected a glob string or a non-empty list of files; got {value!r}")
+
+
+def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
+    section = "[phantom] "
+    _expect(table, dict, "a table [phantom]", path, "", "phantom")
+    _reject_unknown(table, {"file", "lattice", "pitch"}, path, section)
+    if "file" in table:
+        f = root / _expect(table["file"], str, "a file name", path, section, "file")
+        if not f.is_file():
+            raise ConfigError(f"{_where(path, section, 'file')}: phantom file not found: {f}")
+        return PhantomConfig(file=f)
+    lattice = _expect(table.get("lattice"), str, 'a phantom "file", or "lattice" = "hex" | "square"', path, section, "lattice")
+    if lattice not in ("hex", "square"):
+        raise ConfigError(f"{_where(path, section, 'lattice')}: expected \"hex\" or \"square\"; got {lattice!r}")
+    pitch = float(_expect(table.get("pitch"), (int, float), "a positive number (mm)", path, section, "pitch"))
+    if pitch <= 0:
+        raise ConfigError(f"{_where(path, section, 'pitch')}: expected a positive number (mm); got {pitch}")
+    return PhantomConfig(lattice=lattice, pitch_mm=pitch)
+
+
+def _system(table: dict, i: int, root: Path, path: Path) -> SystemConfig:
+    name = table.get("name", f"#{i + 1}")
+    section = f"[[systems]] #{i + 1} "
+    _reject_unknown(table, {"name", "frames", "source_image_distance", "pixel_pitch"}, path, section)
+    _expect(table.get("name"), str, "a name such as \"A\"", path, section, "name")
+    numbers = {}
+    for key, unit in (("source_image_distance", "mm"), ("pixel_pitch", "mm")):
+        v = _expect(table.get(key), (int, float), f"a positive number ({unit})", path, section, key)
+        if v <= 0:
+            raise ConfigError(f"{_where(path, section, key)}: expected a positive number ({unit}); got {v}")
+        numbers[key] = float(v)
+    frames = _resolve_frames(table.get("frames"), root, path, section)
+    return SystemConfig(name, frames, numbers["source_image_distance"], numbers["pixel_pitch"])
+
+
+def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | None = None) -> Config:
+    """Read and validate a project TOML file.
+
+    Parameters
+    ----------
+    path : str or Path
+    stage_params_allowed : dict of str to dataclass type, optional
+        Stage sections allowed in the file (``[detect]`` ...) and their
+        ``Params`` classes, used to reject unknown keys early.
+
+    Raises
+    ------
+    ConfigError
+        Missing file, TOML syntax error, unknown key, wrong type or value; the
+        message names the file and key.
+    """
+    path = Path(path).resolve()
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path.name}: not valid TOML ({exc})") from exc
+    stage_params_allowed = stage_params_allowed or {}
+    _reject_unknown(data, {"phantom", "systems", "calibration", "output", "cache"} | set(stage_params_allowed), path, "")
+    root = path.parent
+    if "phantom" not in data:
+        raise ConfigError(f"{path.name}: key 'phantom': missing; add a [phantom] table with file = \"phantom.csv\"")
+    phantom = _phantom(data["phantom"], root, path)
+    systems_raw = data.get("systems")
+    if not isinstance(systems_raw, list) or not systems_raw or len(systems_raw) > 2:
+        raise ConfigError(f"{path.name}: key 'systems': expected one or two [[systems]] tables; got {systems_raw!r}")
+    systems = tuple(_system(t, i, root, path) for i, t in enumerate(systems_raw))
+    names = [s.name for s in systems]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{path.name}: [[systems]] key 'name': names must differ; got {names}")
+
+    calibration = data.get("calibration", {})
+    _reject_unknown(calibration, {"scheme"}, path, "[calibration] ")
+    scheme = calibration.get("scheme", "knn+iop+smooth")
+    if scheme not in SCHEMES:
+        raise ConfigError(f"{_where(path, '[calibration] ', 'scheme')}: expected one of {', '.join(SCHEMES)}; got {scheme!r}")
+
+    output = data.get("output", {})
+    _reject_unknown(output, {"dir"}, path, "[output] ")
+    out_dir = root / _expect(output.get("dir", "out"), str, "a directory name", path, "[output] ", "dir")
+    cache = data.get("cache", {})
+    _reject_unknown(cache, {"dir"}, path, "[cache] ")
+    cache_dir = root / _expect(cache.get("dir", ".fluorocal"), str, "a directory name", path, "[cache] ", "dir")
+
+    stage_params = {}
+    for stage, cls in stage_params_allowed.items():
+        if stage in data:
+            table = _expect(data[stage], dict, f"a table [{stage}]", path, "", stage)
+            params_from_dict(cls, table, where=f"{path.name}: [{stage}] ")
+            stage_params[stage] = table
+    return Config(path, phantom, systems, scheme, out_dir, cache_dir, stage_params)
+
+
+def params_from_dict(cls: type, table: dict, *, where: str = ""):
+    """Build a frozen ``Params`` dataclass from a dict, rejecting unknown keys and wrong types.
+
+    Examples
+    --------
+    >>> @dataclass(frozen=True)
+    ... class P:
+    ...     radius_px: float = 3.0
+    >>> params_from_dict(P, {"radius_px": 4})
+    P(radius_px=4.0)
+    """
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    hints = typing.get_type_hints(cls)
+    values = {}
+    for key, value in table.items():
+        if key not in fields:
+            raise ConfigError(f"{where}key '{key}': unknown; allowed keys are {', '.join(sorted(fields))}")
+        values[key] = _coerce(value, hints[key], f"{where}key '{key}'")
+    return cls(**values)
+
+
+def _coerce(value, hint, where: str):
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        for option in typing.get_args(hint):
+            try:
+                return _coerce(value, option, where)
+            except ConfigError:
+                continue
+        raise ConfigError(f"{where}: expected {hint}; got {value!r}")
+    if hint is type(None):
+        if value is None:
+            return None
+        raise ConfigError(f"{where}: expected nothing; got {value!r}")
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+    elif hint is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+    elif hint is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+    elif hint is str:
+        if isinstance(value, str):
+            return value
+    elif origin is tuple:
+        if isinstance(value, list):
+            args = typing.get_args(hint)
+            inner = args[0] if args else object
+            return tuple(_coerce(v, inner, where) if inner is not object and inner is not Ellipsis else v for v in value)
+    elif hint is object or hint is typing.Any:
+        return value
+    raise ConfigError(f"{where}: expected {getattr(hint, '__name__', hint)}; got {value!r}")

@@ -1,0 +1,251 @@
+"""Execution of the stage graph over a project's frames, with the artifact cache.
+
+Keys are computed for every (stage, frame) first, from the frames' content
+hashes up; only entries missing from the cache (or forced) are computed, and
+an upstream artifact is read only when something downstream must be
+recomputed. A corrupt entry found on reading is recomputed with a warning.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import sys
+import time
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+from pipeline.cache import ArtifactCache, artifact_key, file_sha256
+from pipeline.config import Config, params_from_dict
+from pipeline.graph import SOURCES, Stage, check_graph, downstream
+from stages.errors import CalibError, InputError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FrameUnit:
+    """One frame of one system: the unit per-frame stages run on."""
+
+    system: int
+    exposure: int
+    path: Path
+    index: int
+    key: str
+    file_sha256: str
+
+    @property
+    def label(self) -> str:
+        return f"{self.path.name}" + (f"[{self.index}]" if self.index else "")
+
+
+@dataclass
+class RunReport:
+    """What a run did: per stage, how many artifacts were computed and how many came from the cache."""
+
+    computed: dict = field(default_factory=dict)
+    cached: dict = field(default_factory=dict)
+    seconds: dict = field(default_factory=dict)
+
+    @property
+    def total_computed(self) -> int:
+        return sum(self.computed.values())
+
+    def lines(self) -> list[str]:
+        out = []
+        for name in self.cached:
+            c, k = self.computed.get(name, 0), self.cached[name]
+            took = f" in {self.seconds.get(name, 0.0):.2f} s" if c else ""
+            out.append(f"{name}: {c} computed{took}, {k} cached")
+        if not self.total_computed:
+            out.append(f"nothing recomputed: all {sum(self.cached.values())} artifacts were cached")
+        return out
+
+
+def frame_units(config: Config) -> list[FrameUnit]:
+    """Every frame of every system, in sorted file order; the key is the file's content hash and frame index."""
+    from stages.io import count_frames
+
+    units = []
+    for s, system in enumerate(config.systems):
+        exposure = 0
+        for path in system.frames:
+            digest = file_sha256(path)
+            for i in range(count_frames(path)):
+                key = hashlib.sha256(f"{digest}:{i}".encode()).hexdigest()
+                units.append(FrameUnit(s, exposure, Path(path), i, key, digest))
+                exposure += 1
+    return units
+
+
+@lru_cache(maxsize=2)
+def _read_file_frames(path: Path, content_sha256: str):
+    """All frames of a file; the content hash keeps an edited file from being served stale."""
+    from stages.io import read_frames
+
+    return read_frames(path)
+
+
+def stage_params(stage: Stage, config: Config, system: int | None):
+    """The stage's Params from its config section, with system-dependent fields filled in."""
+    params = params_from_dict(stage.params_cls, config.stage_params.get(stage.name, {}), where=f"{config.path.name}: [{stage.name}] ")
+    if system is not None and stage.system_params:
+        sys_cfg = config.systems[system]
+        params = dataclasses.replace(params, **{f: getattr(sys_cfg, a) for f, a in stage.system_params.items()})
+    return params
+
+
+class Runner:
+    """Runs ``stages`` over ``config``'s frames with ``cache``.
+
+    Parameters
+    ----------
+    force : set of str
+        Stages to recompute even when cached (their downstream stages follow).
+    until : str, optional
+        Last stage to run.
+    progress : bool
+        Show progress bars (on a terminal).
+    """
+
+    def __init__(self, config: Config, stages: list[Stage], cache: ArtifactCache, *, force=(), until=None, progress=True):
+        check_graph(stages)
+        names = [s.name for s in stages]
+        unknown = [n for n in list(force) + ([until] if until else []) if n not in names]
+        if unknown:
+            raise InputError(f"unknown stage {unknown[0]!r}; stages are {', '.join(names)}")
+        if until:
+            stages = stages[: names.index(until) + 1]
+        self.config, self.stages, self.cache = config, stages, cache
+        self.by_name = {s.name: s for s in stages}
+        self.force = downstream(stages, set(force)) if force else set()
+        self.progress = progress
+        self.units = frame_units(config)
+        self.phantom_key = self._phantom_key()
+        self.keys: dict[tuple[str, int | None], str] = {}
+        self.memory: dict[tuple[str, int | None], object] = {}
+        self.report = RunReport()
+        self._plan()
+
+    # --- keys ---------------------------------------------------------------------------------
+
+    def _phantom_key(self) -> str:
+        ph = self.config.phantom
+        content = file_sha256(ph.file) if ph.file else ""
+        return hashlib.sha256(f"{content}:{ph.lattice}:{ph.pitch_mm}".encode()).hexdigest()
+
+    def _input_key(self, name: str, unit: int | None) -> list[str]:
+        if name == "frame":
+            return [self.units[unit].key]
+        if name == "phantom":
+            return [self.phantom_key]
+        if self.by_name[name].per_frame and unit is None:
+            return [self.keys[(name, u)] for u in range(len(self.units))]
+        return [self.keys[(name, unit if self.by_name[name].per_frame else None)]]
+
+    def _plan(self) -> None:
+        for stage in self.stages:
+            for unit in self._stage_units(stage):
+                inputs = [k for name in stage.inputs for k in self._input_key(name, unit)]
+                if not stage.per_frame:  # the grouping of frames is part of what a gathering stage sees
+                    inputs.append(repr([(u.system, u.exposure) for u in self.units]) + repr([s.name for s in self.config.systems]))
+                params = stage_params(stage, self.config, None if unit is None else self.units[unit].system)
+                self.keys[(stage.name, unit)] = artifact_key(stage.name, stage.version, params, inputs)
+
+    def _stage_units(self, stage: Stage) -> list[int | None]:
+        return list(range(len(self.units))) if stage.per_frame else [None]
+
+    # --- execution ----------------------------------------------------------------------------
+
+    def run(self) -> RunReport:
+        from tqdm import tqdm
+
+        for stage in self.stages:
+            todo = [u for u in self._stage_units(stage) if stage.name in self.force or not self.cache.has(stage.name, self.keys[(stage.name, u)])]
+            self.report.cached[stage.name] = len(self._stage_units(stage)) - len(todo)
+            self.report.computed[stage.name] = 0
+            bar = tqdm(todo, desc=f"{stage.name:>9}", unit="frame" if stage.per_frame else "run", leave=False, disable=not (self.progress and sys.stderr.isatty()) or not todo)
+            for unit in bar:
+                self._compute(stage, unit)
+            log.info(
+                "%s: %d computed, %d cached", stage.name, self.report.computed[stage.name], self.report.cached[stage.name]
+            )
+        if not self.report.total_computed:
+            log.info("nothing recomputed: all %d artifacts were cached", sum(self.report.cached.values()))
+        return self.report
+
+    def get(self, name: str, unit: int | None):
+        """The artifact of ``name`` for ``unit`` (a frame index, or None for per-project stages)."""
+        if name == "frame":
+            u = self.units[unit]
+            return _read_file_frames(u.path, u.file_sha256)[u.index]
+        if name == "phantom":
+            return self._phantom()
+        stage = self.by_name[name]
+        slot = (name, unit if stage.per_frame else None)
+        if slot in self.memory:
+            return self.memory[slot]
+        if name not in self.force:
+            artifact = self.cache.load(name, self.keys[slot])
+            if artifact is not None:
+                self.memory[slot] = artifact
+                return artifact
+        return self._compute(stage, slot[1])
+
+    def _phantom(self):
+        from stages.artifacts import Phantom
+        from stages.io import read_phantom
+
+        ph = self.config.phantom
+        if ph.file:
+            return read_phantom(ph.file, lattice=ph.lattice, pitch_mm=ph.pitch_mm)
+        return Phantom([], [], [], [], ph.lattice, ph.pitch_mm)
+
+    def _inputs(self, stage: Stage, unit: int | None) -> list:
+        inputs = []
+        for i, name in enumerate(stage.inputs):
+            per_frame_input = name == "frame" or (name not in SOURCES and self.by_name[name].per_frame)
+            if unit is None and per_frame_input:
+                artifacts = [self.get(name, u) for u in range(len(self.units))]
+                inputs.append(stage.gather(self.units, artifacts, self.config) if i == 0 else artifacts)
+            else:
+                inputs.append(self.get(name, unit))
+        return inputs
+
+    def _compute(self, stage: Stage, unit: int | None):
+        slot = (stage.name, unit)
+        params = stage_params(stage, self.config, None if unit is None else self.units[unit].system)
+        inputs = self._inputs(stage, unit)
+        t0 = time.perf_counter()
+        try:
+            artifact = stage.func(*inputs, params)
+        except CalibError as exc:
+            where = f"{self.units[unit].label}: " if unit is not None else ""
+            raise type(exc)(f"{where}{stage.name}: {exc}") from exc
+        took = time.perf_counter() - t0
+        provenance = {"stage_version": stage.version, "params": dataclasses.asdict(params), "inputs": list(stage.inputs), "wall_seconds": took}
+        if unit is not None:
+            provenance["frame"] = {"file": str(self.units[unit].path), "index": self.units[unit].index}
+        self.cache.store(stage.name, self.keys[slot], artifact, provenance=provenance)
+        self.memory[slot] = artifact
+        self.report.computed[stage.name] = self.report.computed.get(stage.name, 0) + 1
+        self.report.seconds[stage.name] = self.report.seconds.get(stage.name, 0.0) + took
+        return artifact
+
+    def status(self) -> list[dict]:
+        """Per stage: key(s), status (cached / stale / missing) and size, without computing anything."""
+        rows = []
+        for stage in self.stages:
+            keys = [self.keys[(stage.name, u)] for u in self._stage_units(stage)]
+            present = [k for k in keys if self.cache.has(stage.name, k)]
+            others = set(self.cache.keys(stage.name)) - set(keys)
+            status = "cached" if len(present) == len(keys) else ("stale" if others or present else "missing")
+            size = sum(self.cache.size_bytes(stage.name, k) for k in present)
+            summary = ""
+            if present:
+                manifest = self.cache.manifest(stage.name, present[-1])
+                summary = (manifest or {}).get("summary", "")
+            rows.append({"stage": stage.name, "key": keys[0][:12] if keys else "", "n": len(keys), "cached": len(present), "status": status, "bytes": size, "summary": summary})
+        return rows

@@ -1,0 +1,67 @@
+"""Config validation: every error names the file and the key, and says what was expected."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pytest
+
+from pipeline.config import ConfigError, load_config, params_from_dict
+from tests.pipeline.toy import make_project
+
+
+@dataclass(frozen=True)
+class DetectLike:
+    min_diameter_px: float = 6.0
+    polarity: str = "auto"
+
+
+def test_valid_config_resolves_paths_relative_to_file(tmp_path):
+    cfg = load_config(make_project(tmp_path))
+    assert [f.name for f in cfg.systems[0].frames] == ["f0.tif", "f1.tif", "f2.tif"]
+    assert cfg.phantom.file == tmp_path / "phantom.csv"
+    assert cfg.cache_dir == tmp_path / ".fluorocal" and cfg.output_dir == tmp_path / "out"
+    assert cfg.systems[0].pixel_pitch_mm == 0.25 and cfg.scheme == "knn+iop+smooth"
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda t: t + "\nbogus = 1\n", r"key 'bogus': unknown key"),
+        (lambda t: t.replace("pixel_pitch = 0.25", 'pixel_pitch = "0.25mm"'), r"\[\[systems\]\] #1 key 'pixel_pitch': expected a positive number \(mm\)"),
+        (lambda t: t.replace("pixel_pitch = 0.25", "pixel_pitch = -1"), r"key 'pixel_pitch': expected a positive number"),
+        (lambda t: t.replace("frames/*.tif", "nothing/*.tif"), r"key 'frames': no file matches 'nothing/\*.tif'"),
+        (lambda t: t.replace('"phantom.csv"', '"missing.csv"'), r"\[phantom\] key 'file': phantom file not found"),
+        (lambda t: t + '\n[calibration]\nscheme = "magic"\n', r"\[calibration\] key 'scheme': expected one of knn"),
+        (lambda t: t + "\n[detect]\nmin_diameter = 3\n", r"\[detect\] key 'min_diameter': unknown; allowed keys are min_diameter_px, polarity"),
+        (lambda t: t + '\n[detect]\nmin_diameter_px = "big"\n', r"\[detect\] key 'min_diameter_px': expected float"),
+        (lambda t: t.replace('name = "A"', 'name = "A"\ncolour = "red"'), r"#1 key 'colour': unknown key"),
+        (lambda t: t + "\n[[systems", r"not valid TOML"),
+    ],
+)
+def test_errors_name_the_key(tmp_path, edit, match):
+    path = make_project(tmp_path)
+    path.write_text(edit(path.read_text()))
+    with pytest.raises(ConfigError, match=match) as info:
+        load_config(path, stage_params_allowed={"detect": DetectLike})
+    assert "\n" not in str(info.value)
+    assert str(info.value).startswith("project.toml")
+
+
+def test_missing_config_file(tmp_path):
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "nope.toml")
+
+
+def test_grid_phantom_needs_lattice_and_pitch(tmp_path):
+    path = make_project(tmp_path)
+    path.write_text(path.read_text().replace('file = "phantom.csv"', 'lattice = "hex"'))
+    with pytest.raises(ConfigError, match=r"\[phantom\] key 'pitch'"):
+        load_config(path)
+    path.write_text(path.read_text().replace('lattice = "hex"', 'lattice = "hex"\npitch = 5.0'))
+    assert load_config(path).phantom.pitch_mm == 5.0
+
+
+def test_params_from_dict_coerces_ints_to_floats_and_keeps_defaults():
+    p = params_from_dict(DetectLike, {"min_diameter_px": 8})
+    assert p == DetectLike(min_diameter_px=8.0) and isinstance(p.min_diameter_px, float)

@@ -1,0 +1,82 @@
+"""Frame readers: DICOM (real ARCADIS frames, MONOCHROME1), TIFF bit depths, video; clear errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pydicom
+import pytest
+
+from stages.errors import InputError
+from stages.io import count_frames, read_frames, read_phantom, write_still
+
+
+def test_real_arcadis_dicom_reads_as_12_bit(arcadis_dir):
+    path = arcadis_dir / "beads_centered_0.dcm"
+    (frame,) = read_frames(path)
+    raw = pydicom.dcmread(path).pixel_array
+    assert frame.image.dtype == np.float32 and frame.image.shape == (1024, 1024)
+    assert frame.bit_depth == 12 and frame.metadata["modality"] == "XA"
+    assert np.array_equal(frame.image, raw.astype(np.float32))  # no rescale tags: modality LUT is identity
+    assert count_frames(path) == 1
+
+
+def test_monochrome1_and_multiframe_dicom(arcadis_dir, tmp_path):
+    ds = pydicom.dcmread(arcadis_dir / "grid_centered_0.dcm")
+    raw = ds.pixel_array[:64, :48].copy()
+    ds.PhotometricInterpretation = "MONOCHROME1"
+    ds.Rows, ds.Columns, ds.NumberOfFrames = 64, 48, 2
+    ds.PixelData = np.stack([raw, raw // 2]).astype(np.uint16).tobytes()
+    ds.RescaleSlope, ds.RescaleIntercept = 2, 10
+    ds.save_as(tmp_path / "mf.dcm")
+    frames = read_frames(tmp_path / "mf.dcm")
+    assert len(frames) == 2 == count_frames(tmp_path / "mf.dcm")
+    # modality LUT first (2 v + 10), then MONOCHROME1 inverted against the 12-bit full scale
+    np.testing.assert_array_equal(frames[0].image, 4095 - (2.0 * raw + 10))
+    np.testing.assert_array_equal(frames[1].image, 4095 - (2.0 * (raw // 2) + 10))
+
+
+@pytest.mark.parametrize("dtype, bits", [(np.uint8, 8), (np.uint16, 16), (np.float32, 32)])
+def test_tiff_round_trip_keeps_values_and_depth(tmp_path, dtype, bits):
+    img = (np.arange(30 * 20).reshape(30, 20) % 250).astype(dtype)
+    write_still(tmp_path / "a.tif", img)
+    (frame,) = read_frames(tmp_path / "a.tif")
+    np.testing.assert_array_equal(frame.image, img.astype(np.float32))
+    assert frame.bit_depth == bits
+
+
+def test_png_and_video(tmp_path):
+    import cv2
+
+    img = (np.arange(32 * 24).reshape(24, 32) % 200).astype(np.uint8)
+    write_still(tmp_path / "a.png", img)
+    np.testing.assert_array_equal(read_frames(tmp_path / "a.png")[0].image, img)
+    writer = cv2.VideoWriter(str(tmp_path / "v.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (32, 24), isColor=False)
+    for k in range(3):
+        writer.write(np.full((24, 32), 50 * (k + 1), np.uint8))
+    writer.release()
+    frames = read_frames(tmp_path / "v.avi")
+    assert len(frames) == 3
+    # MJPG is lossy: flat frames come back within a few DN
+    assert [round(float(f.image.mean()) / 50) for f in frames] == [1, 2, 3]
+
+
+def test_unreadable_files_name_the_file(tmp_path):
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(b"not an image")
+    with pytest.raises(InputError, match="bad.tif: cannot read"):
+        read_frames(bad)
+    with pytest.raises(InputError, match="nope.dcm: no such file"):
+        read_frames(tmp_path / "nope.dcm")
+
+
+def test_phantom_csv(tmp_path):
+    p = tmp_path / "p.csv"
+    p.write_text("id,x,y,z,diameter,role\n1,0,0,0,3.5,\n2,1,2,3,5,marker\n")
+    ph = read_phantom(p)
+    assert ph.n_beads == 2 and list(ph.role) == ["", "marker"] and ph.xyz_mm[1].tolist() == [1, 2, 3]
+    p.write_text("id,x,y\n1,0,0\n")
+    with pytest.raises(InputError, match="missing z"):
+        read_phantom(p)
+    p.write_text("id,x,y,z\n1,0,zero,0\n")
+    with pytest.raises(InputError, match=r"p.csv:2: not a number"):
+        read_phantom(p)
