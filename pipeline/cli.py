@@ -128,7 +128,7 @@ def _inspect_stage(runner, stage: str, frame: int | None) -> int:
         files = ", ".join(str(entry / f) for f in manifest["files"] if not f.endswith(".npz"))
         print(f"{where}: {manifest['summary']}  [{entry}]" + (f"  {files}" if files else ""))
     if frame is not None:
-        from pipeline.overlay import write_stage_overlay
+        from pipeline.inspect import write_stage_overlay
 
         path = write_stage_overlay(runner, stage, frame)
         print(f"overlay: {path}")

@@ -276,3 +276,71 @@ def write_csv(path: str | os.PathLike, header: list[str], rows) -> None:
                 w.writerow([fmt(v) for v in row])
 
     atomic_write(path, _write)
+
+
+def _to_source_dtype(radiograph: Radiograph) -> np.ndarray:
+    """Round and clip a frame back to the integer type of its bit depth (float32 for float sources)."""
+    if radiograph.bit_depth > 16:
+        return radiograph.image.astype(np.float32)
+    dtype = np.uint8 if radiograph.bit_depth <= 8 else np.uint16
+    return np.clip(np.rint(radiograph.image), 0, 2**radiograph.bit_depth - 1).astype(dtype)
+
+
+def write_frames_like(source: str | os.PathLike, frames: list[Radiograph], out_path: str | os.PathLike) -> None:
+    """Write ``frames`` to ``out_path`` in the format, bit depth and metadata of ``source``, atomically.
+
+    DICOM: the source's data set is copied with new pixel data (uncompressed),
+    a new SOP Instance UID and a derivation note. Stills: the same type via
+    OpenImageIO. Video: the same container and codec via OpenCV.
+    """
+    source, out_path = Path(source), Path(out_path)
+    if _is_dicom(source):
+        _write_dicom_like(source, frames, out_path)
+    elif source.suffix.lower() in VIDEO_SUFFIXES:
+        _write_video_like(source, frames, out_path)
+    else:
+        if len(frames) != 1:
+            raise InputError(f"{source}: writing {len(frames)} frames to a still image is not supported")
+        write_still(out_path, _to_source_dtype(frames[0]))
+
+
+def _write_dicom_like(source: Path, frames: list[Radiograph], out_path: Path) -> None:
+    import pydicom
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    ds = pydicom.dcmread(source)
+    pixels = np.stack([_to_source_dtype(f) for f in frames])
+    if str(getattr(ds, "PhotometricInterpretation", "")) == "MONOCHROME1":
+        pixels = (2 ** frames[0].bit_depth - 1 - pixels.astype(np.int64)).astype(pixels.dtype)
+    slope, intercept = float(getattr(ds, "RescaleSlope", 1) or 1), float(getattr(ds, "RescaleIntercept", 0) or 0)
+    if (slope, intercept) != (1.0, 0.0):  # store raw values so the modality LUT gives the output back
+        pixels = np.clip(np.rint((pixels - intercept) / slope), 0, 2 ** int(ds.BitsStored) - 1).astype(np.uint16)
+    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds.PixelData = (pixels[0] if len(frames) == 1 else pixels).astype(np.uint16 if ds.BitsAllocated == 16 else np.uint8).tobytes()
+    if len(frames) > 1:
+        ds.NumberOfFrames = len(frames)
+    ds.SOPInstanceUID = generate_uid()
+    ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
+    ds.DerivationDescription = "geometric distortion corrected by fluorocal"
+    ds.ImageType = ["DERIVED", "SECONDARY"] + list(getattr(ds, "ImageType", [])[2:])
+    atomic_write(out_path, lambda tmp: ds.save_as(tmp, enforce_file_format=True))
+
+
+def _write_video_like(source: Path, frames: list[Radiograph], out_path: Path) -> None:
+    import cv2
+
+    cap = cv2.VideoCapture(str(source))
+    fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
+    fourcc = int(cap.get(cv2.CAP_PROP_FOURCC)) or cv2.VideoWriter_fourcc(*"MJPG")
+    cap.release()
+    h, w = frames[0].shape
+
+    def _write(tmp):
+        writer = cv2.VideoWriter(tmp, fourcc, fps, (w, h), isColor=False)
+        if not writer.isOpened():
+            raise InputError(f"{out_path}: cannot open a video writer for this codec")
+        for f in frames:
+            writer.write(np.clip(np.rint(f.image), 0, 255).astype(np.uint8))
+        writer.release()
+
+    atomic_write(out_path, _write)
