@@ -101,14 +101,17 @@ def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
         f = root / _expect(table["file"], str, "a file name", path, section, "file")
         if not f.is_file():
             raise ConfigError(f"{_where(path, section, 'file')}: phantom file not found: {f}")
-        return PhantomConfig(file=f)
+        if "lattice" not in table:
+            return PhantomConfig(file=f)
+    else:
+        f = None
     lattice = _expect(table.get("lattice"), str, 'a phantom "file", or "lattice" = "hex" | "square"', path, section, "lattice")
     if lattice not in ("hex", "square"):
         raise ConfigError(f"{_where(path, section, 'lattice')}: expected \"hex\" or \"square\"; got {lattice!r}")
     pitch = float(_expect(table.get("pitch"), (int, float), "a positive number (mm)", path, section, "pitch"))
     if pitch <= 0:
         raise ConfigError(f"{_where(path, section, 'pitch')}: expected a positive number (mm); got {pitch}")
-    return PhantomConfig(lattice=lattice, pitch_mm=pitch)
+    return PhantomConfig(file=f, lattice=lattice, pitch_mm=pitch)
 
 
 def _system(table: dict, i: int, root: Path, path: Path) -> SystemConfig:

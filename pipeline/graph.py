@@ -14,7 +14,7 @@ instant.
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 SOURCES = ("frame", "phantom")
@@ -40,9 +40,10 @@ class Stage:
     gather : callable, optional
         For a per-project stage: ``gather(units, artifacts, context)`` turns the
         per-frame artifacts of the first input into one artifact.
-    system_params : dict of str to str
-        Params fields filled from the frame's system config
-        (``{"source_image_distance_mm": "source_image_distance_mm"}``).
+    context : callable, optional
+        ``context(config, unit, units) -> dict`` of Params fields the pipeline
+        fills from the project (the system's geometry, the frame's size, the
+        scheme); ``unit`` is the frame (None for a per-project stage).
     """
 
     name: str
@@ -52,7 +53,7 @@ class Stage:
     inputs: tuple[str, ...]
     per_frame: bool = True
     gather: Callable | None = None
-    system_params: dict = field(default_factory=dict)
+    context: Callable | None = None
 
 
 #: the project's stages in execution order: (stage name, module, entry function, Params class, inputs)

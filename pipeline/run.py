@@ -35,6 +35,7 @@ class FrameUnit:
     index: int
     key: str
     file_sha256: str
+    size_px: tuple[int, int] = (0, 0)
 
     @property
     def label(self) -> str:
@@ -66,16 +67,17 @@ class RunReport:
 
 def frame_units(config: Config) -> list[FrameUnit]:
     """Every frame of every system, in sorted file order; the key is the file's content hash and frame index."""
-    from stages.io import count_frames
+    from stages.io import probe_frames
 
     units = []
     for s, system in enumerate(config.systems):
         exposure = 0
         for path in system.frames:
             digest = file_sha256(path)
-            for i in range(count_frames(path)):
+            n_frames, size = probe_frames(path)
+            for i in range(n_frames):
                 key = hashlib.sha256(f"{digest}:{i}".encode()).hexdigest()
-                units.append(FrameUnit(s, exposure, Path(path), i, key, digest))
+                units.append(FrameUnit(s, exposure, Path(path), i, key, digest, size))
                 exposure += 1
     return units
 
@@ -88,12 +90,11 @@ def _read_file_frames(path: Path, content_sha256: str):
     return read_frames(path)
 
 
-def stage_params(stage: Stage, config: Config, system: int | None):
-    """The stage's Params from its config section, with system-dependent fields filled in."""
+def stage_params(stage: Stage, config: Config, unit: FrameUnit | None, units: list[FrameUnit]):
+    """The stage's Params from its config section, with the fields its context fills from the project."""
     params = params_from_dict(stage.params_cls, config.stage_params.get(stage.name, {}), where=f"{config.path.name}: [{stage.name}] ")
-    if system is not None and stage.system_params:
-        sys_cfg = config.systems[system]
-        params = dataclasses.replace(params, **{f: getattr(sys_cfg, a) for f, a in stage.system_params.items()})
+    if stage.context is not None:
+        params = dataclasses.replace(params, **stage.context(config, unit, units))
     return params
 
 
@@ -151,7 +152,7 @@ class Runner:
                 inputs = [k for name in stage.inputs for k in self._input_key(name, unit)]
                 if not stage.per_frame:  # the grouping of frames is part of what a gathering stage sees
                     inputs.append(repr([(u.system, u.exposure) for u in self.units]) + repr([s.name for s in self.config.systems]))
-                params = stage_params(stage, self.config, None if unit is None else self.units[unit].system)
+                params = stage_params(stage, self.config, None if unit is None else self.units[unit], self.units)
                 self.keys[(stage.name, unit)] = artifact_key(stage.name, stage.version, params, inputs)
 
     def _stage_units(self, stage: Stage) -> list[int | None]:
@@ -216,7 +217,7 @@ class Runner:
 
     def _compute(self, stage: Stage, unit: int | None):
         slot = (stage.name, unit)
-        params = stage_params(stage, self.config, None if unit is None else self.units[unit].system)
+        params = stage_params(stage, self.config, None if unit is None else self.units[unit], self.units)
         inputs = self._inputs(stage, unit)
         t0 = time.perf_counter()
         try:

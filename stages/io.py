@@ -59,8 +59,8 @@ def read_frames(path: str | os.PathLike) -> list[Radiograph]:
         raise InputError(f"{path}: cannot read as an image ({type(exc).__name__}: {exc})") from exc
 
 
-def count_frames(path: str | os.PathLike) -> int:
-    """Number of frames in a file, from its header where the format allows it.
+def probe_frames(path: str | os.PathLike) -> tuple[int, tuple[int, int]]:
+    """Number of frames in a file and their size ``(width, height)`` px, from the header where possible.
 
     Raises
     ------
@@ -75,23 +75,30 @@ def count_frames(path: str | os.PathLike) -> int:
             import pydicom
 
             ds = pydicom.dcmread(path, stop_before_pixels=True)
-            return int(getattr(ds, "NumberOfFrames", 1) or 1)
+            return int(getattr(ds, "NumberOfFrames", 1) or 1), (int(ds.Columns), int(ds.Rows))
         if path.suffix.lower() in VIDEO_SUFFIXES:
-            return len(_read_video(path))
+            frames = _read_video(path)
+            return len(frames), (frames[0].shape[1], frames[0].shape[0])
         import OpenImageIO as oiio
 
         inp = oiio.ImageInput.open(str(path))
         if inp is None:
             raise InputError(f"{path}: cannot read as an image ({oiio.geterror()})")
+        size = (inp.spec().width, inp.spec().height)
         n = 0
         while inp.seek_subimage(n, 0):
             n += 1
         inp.close()
-        return n
+        return n, size
     except InputError:
         raise
     except Exception as exc:
         raise InputError(f"{path}: cannot read as an image ({type(exc).__name__}: {exc})") from exc
+
+
+def count_frames(path: str | os.PathLike) -> int:
+    """Number of frames in a file (see :func:`probe_frames`)."""
+    return probe_frames(path)[0]
 
 
 def _read_dicom(path: Path) -> list[Radiograph]:
@@ -181,6 +188,12 @@ def _read_video(path: Path) -> list[Radiograph]:
     return frames
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write(path: str | os.PathLike, writer) -> None:
     """Call ``writer(tmp_path)`` then rename the temporary file onto ``path``.
 
@@ -194,6 +207,7 @@ def atomic_write(path: str | os.PathLike, writer) -> None:
     os.close(fd)
     try:
         writer(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the file the usual permissions
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

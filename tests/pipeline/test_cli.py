@@ -14,7 +14,7 @@ def test_bad_config_key_is_one_line_exit_2(tmp_path, capsys):
     cfg.write_text(cfg.read_text() + "\nbogus = 1\n")
     assert main(["run", str(cfg)]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("fluorocal: error: project.toml: key 'bogus'") and "\n" not in err
+    assert err.startswith("fluorocal: error: project.toml: [[systems]] #1 key 'bogus': unknown key") and "\n" not in err
     assert "Traceback" not in err
     assert not (tmp_path / "out").exists() and not (tmp_path / ".fluorocal").exists()
 
