@@ -1,0 +1,242 @@
+"""Synthetic bundle-adjustment problems and a scipy reference solver (shared by tests and benchmarks/adjust.py).
+
+Geometry: beads on four vertical faces of a cube (edge ``cube_mm``), seen by
+a fluoroscope with the source ``distance_mm`` from the cube's centre, principal
+distance ``c = 4400 px`` (SID 1100 mm at 0.25 mm pixels), a 1024 x 1024 image.
+The phantom turns on a turntable (angle about the vertical object y axis) and
+is tilted by up to ``tilt_deg`` about the horizontal axis and shifted by a few
+mm between exposures: pure turntable motion (all rotations about one axis) is
+a critical motion for self-calibration (the principal point's y and the tilt
+are then inseparable), which the real acquisition avoided by moving the cube.
+A second system (biplanar) views the same epochs from ``rop_deg`` around the
+vertical axis.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages._geometry import project, quat_multiply, quat_to_matrix, rotvec_to_quat
+from stages.adjust import Orientation
+from stages.artifacts import Observations
+
+IMAGE_PX = 1024
+
+
+@dataclass(frozen=True)
+class Synthetic:
+    """A synthetic acquisition: truth, noisy observations and a perturbed start."""
+
+    observations: Observations
+    ids: np.ndarray
+    xyz_true_mm: np.ndarray
+    nominal_mm: np.ndarray
+    truth: Orientation
+    initial: Orientation
+    ideal_px: np.ndarray  # noise-free projections, (N, 2)
+
+
+def _rot_quat(rotvec) -> np.ndarray:
+    return rotvec_to_quat(np.asarray(rotvec, dtype=np.float64))
+
+
+def cube_phantom(n_beads: int, rng: np.random.Generator, cube_mm: float = 120.0) -> np.ndarray:
+    """``(n_beads, 3)`` mm: beads on the four faces x = ±h and z = ±h, |other| < 0.9 h."""
+    h = cube_mm / 2
+    face = np.arange(n_beads) % 4
+    a = rng.uniform(-0.9 * h, 0.9 * h, n_beads)
+    b = rng.uniform(-0.9 * h, 0.9 * h, n_beads)
+    sign = np.where(face % 2 == 0, 1.0, -1.0) * h
+    x = np.where(face < 2, sign, a)
+    z = np.where(face < 2, a, sign)
+    return np.column_stack([x, b, z])
+
+
+def make_problem(
+    *,
+    n_beads: int = 200,
+    n_exposures: int = 12,
+    n_systems: int = 1,
+    noise_px: float = 0.05,
+    visible_fraction: float = 1.0,
+    tilt_deg: float = 15.0,
+    distance_mm: float = 950.0,
+    iop_px=(512.0, 512.0, 4400.0),
+    rop_deg: float = 90.0,
+    nominal_error_mm: float = 0.3,
+    start_error: float = 1.0,
+    seed: int = 0,
+) -> Synthetic:
+    """A seeded synthetic problem; ``start_error`` scales the perturbation of the start values."""
+    rng = np.random.default_rng(seed)
+    xyz = cube_phantom(n_beads, rng)
+    ids = np.arange(100, 100 + n_beads, dtype=np.int64)
+    angles = np.linspace(0, 2 * np.pi, n_exposures, endpoint=False) + rng.uniform(-0.05, 0.05, n_exposures)
+    tilts = np.deg2rad(tilt_deg) * np.sin(np.arange(n_exposures) * 2.4 + 0.3)
+    q = np.array([quat_multiply(_rot_quat([t, 0, 0]), _rot_quat([0, a, 0])) for t, a in zip(tilts, angles)])
+    offset = np.column_stack([rng.uniform(-10, 10, n_exposures), rng.uniform(-15, 15, n_exposures), distance_mm + rng.uniform(-20, 20, n_exposures)])
+    R = quat_to_matrix(q)
+    src = -np.einsum("mji,mj->mi", R, offset)
+    iop = np.tile(np.asarray(iop_px, dtype=np.float64), (n_systems, 1))
+    rop_q = np.tile([1.0, 0, 0, 0], (n_systems, 1))
+    rop_t = np.zeros((n_systems, 3))
+    for s in range(1, n_systems):
+        iop[s] += [6.0, -4.0, 30.0]
+        rop_q[s] = quat_multiply(_rot_quat([0.02, 0, 0.01]), _rot_quat([0, np.deg2rad(rop_deg), 0]))
+        Rr = quat_to_matrix(rop_q[s])
+        centre = np.array([0.0, 0.0, distance_mm])
+        rop_t[s] = centre - Rr.T @ (centre + [3.0, -2.0, 40.0])
+    truth = Orientation(iop_px=iop, exposure=np.arange(n_exposures), q_cam_from_obj=q, source_mm=src, rop_q=rop_q, rop_source_mm=rop_t,
+                        system_names=tuple("AB"[:n_systems]))
+    rows = []
+    for s in range(n_systems):
+        qs, Ts = truth.poses(s)
+        for j in range(n_exposures):
+            xy = project(xyz, qs[j], Ts[j], iop[s])
+            inside = np.all((xy > 5) & (xy < IMAGE_PX - 6), axis=1) & (rng.random(n_beads) < visible_fraction)
+            k = np.flatnonzero(inside)
+            rows.append((np.full(len(k), s), np.full(len(k), j), ids[k], xy[k]))
+    system, exposure, bead, ideal = (np.concatenate(c) for c in zip(*rows))
+    n = len(system)
+    xy = ideal + rng.normal(0, noise_px, (n, 2))
+    obs = Observations(system=system, exposure=exposure, bead_id=bead, xy_px=xy, sigma_px=np.tile([noise_px, noise_px, 0.0], (n, 1)),
+                       system_names=tuple("AB"[:n_systems]))
+    f = start_error
+    q0 = np.array([quat_multiply(_rot_quat(rng.normal(0, f * 0.005, 3)), qq) for qq in q])
+    initial = Orientation(
+        iop_px=iop + f * np.array([8.0, -6.0, -60.0]),
+        exposure=truth.exposure,
+        q_cam_from_obj=q0,
+        source_mm=src + rng.normal(0, f * 3.0, src.shape),
+        rop_q=np.array([quat_multiply(_rot_quat(rng.normal(0, f * 0.005, 3)), qq) if s else qq for s, qq in enumerate(rop_q)]),
+        rop_source_mm=rop_t + (np.arange(n_systems) > 0)[:, None] * rng.normal(0, f * 3.0, (n_systems, 3)),
+        system_names=truth.system_names,
+    )
+    nominal = xyz + rng.normal(0, nominal_error_mm, xyz.shape)
+    return Synthetic(obs, ids, xyz, nominal, truth, initial, ideal)
+
+
+def aligned_error_mm(estimate_mm: np.ndarray, truth_mm: np.ndarray) -> np.ndarray:
+    """Per point 3D error (mm) after the least-squares 7-parameter similarity of the estimate onto the truth."""
+    from stages._geometry import similarity_fit
+
+    s, R, t = similarity_fit(estimate_mm, truth_mm)
+    return np.linalg.norm(s * estimate_mm @ R.T + t - truth_mm, axis=1)
+
+
+# --------------------------------------------------------------------------- scipy reference
+
+
+class ScipyProblem:
+    """The same model for ``scipy.optimize.least_squares``: rotation vectors, whitened residuals, datum rows.
+
+    Parameters ``x = [points (3n), per epoch (rotvec (3), T (3)), IOP (3 per system, if free), per system >= 1
+    (ROP rotvec (3), b (3))]``. Rotations are ``R = exp(ω) R_start``. The 7 datum rows
+    ``D^T (P - P_nominal)`` are exact at the optimum (they act only in the gauge directions).
+    """
+
+    def __init__(self, syn: Synthetic, estimate_iop: bool = True, corrections_px=None):
+        from stages._ba import datum_directions
+
+        obs = syn.observations
+        self.n, self.m, self.S = len(syn.ids), len(syn.initial.exposure), syn.initial.n_systems
+        self.pt = np.searchsorted(syn.ids, obs.bead_id)
+        self.ep = np.searchsorted(syn.initial.exposure, obs.exposure)
+        self.sy = obs.system
+        corr = np.zeros((len(obs), 2)) if corrections_px is None else corrections_px
+        self.meas = obs.xy_px - corr
+        self.sig = obs.sigma_px[:, :2]
+        self.nominal = syn.nominal_mm
+        self.datum = datum_directions(syn.nominal_mm).reshape(-1, 7)
+        self.estimate_iop = estimate_iop
+        self.init = syn.initial
+        self.R0 = quat_to_matrix(syn.initial.q_cam_from_obj)
+        self.Rr0 = quat_to_matrix(syn.initial.rop_q)
+        self.n_iop = 3 * self.S if estimate_iop else 0
+
+    def x0(self) -> np.ndarray:
+        i = self.init
+        poses = np.column_stack([np.zeros((self.m, 3)), i.source_mm])
+        parts = [self.nominal.ravel(), poses.ravel()]
+        if self.estimate_iop:
+            parts.append(i.iop_px.ravel())
+        parts.append(np.column_stack([np.zeros((self.S - 1, 3)), i.rop_source_mm[1:]]).ravel())
+        return np.concatenate(parts)
+
+    def unpack(self, x):
+        from scipy.spatial.transform import Rotation
+
+        n3, m6 = 3 * self.n, 6 * self.m
+        P = x[:n3].reshape(-1, 3)
+        poses = x[n3 : n3 + m6].reshape(-1, 6)
+        R = Rotation.from_rotvec(poses[:, :3]).as_matrix() @ self.R0
+        iop = x[n3 + m6 : n3 + m6 + self.n_iop].reshape(-1, 3) if self.estimate_iop else self.init.iop_px
+        rop = x[n3 + m6 + self.n_iop :].reshape(-1, 6)
+        Rr = np.concatenate([np.eye(3)[None], Rotation.from_rotvec(rop[:, :3]).as_matrix() @ self.Rr0[1:]]) if self.S > 1 else np.eye(3)[None]
+        b = np.concatenate([np.zeros((1, 3)), rop[:, 3:]])
+        return P, R, poses[:, 3:], iop, Rr, b
+
+    def residuals(self, x, datum_weight: float = 1.0):
+        P, R, T, iop, Rr, b = self.unpack(x)
+        pa = np.einsum("nij,nj->ni", R[self.ep], P[self.pt] - T[self.ep])
+        p = np.einsum("nij,nj->ni", Rr[self.sy], pa - b[self.sy])
+        f = iop[self.sy, :2] + iop[self.sy, 2:] * p[:, :2] / p[:, 2:]
+        e = ((self.meas - f) / self.sig).ravel()
+        return np.concatenate([e, datum_weight * self.datum.T @ (P - self.nominal).ravel()])
+
+    def sparsity(self):
+        from scipy.sparse import lil_matrix
+
+        N = len(self.pt)
+        nx = len(self.x0())
+        A = lil_matrix((2 * N + 7, nx), dtype=np.int8)
+        rows = np.arange(N)
+        n3, m6 = 3 * self.n, 6 * self.m
+        for k in range(2):
+            r = 2 * rows + k
+            for a in range(3):
+                A[r, 3 * self.pt + a] = 1
+            for a in range(6):
+                A[r, n3 + 6 * self.ep + a] = 1
+            if self.estimate_iop:
+                for a in range(3):
+                    A[r, n3 + m6 + 3 * self.sy + a] = 1
+            sel = self.sy > 0
+            for a in range(6):
+                A[r[sel], n3 + m6 + self.n_iop + 6 * (self.sy[sel] - 1) + a] = 1
+        A[2 * N :, :n3] = 1
+        return A.tocsr()
+
+
+# --------------------------------------------------------------------------- pycolmap (benchmark only)
+
+
+def pycolmap_reconstruction(syn: Synthetic, xy_px: np.ndarray):
+    """The same observations as a pycolmap Reconstruction (one SIMPLE_PINHOLE camera per system; monoplanar only).
+
+    COLMAP puts the top-left pixel's corner at (0, 0), so 0.5 px is added to the
+    image coordinates and the principal point.
+    """
+    import pycolmap
+
+    obs = syn.observations
+    init = syn.initial
+    rec = pycolmap.Reconstruction()
+    xp, yp, c = init.iop_px[0]
+    cam = pycolmap.Camera(camera_id=1, model="SIMPLE_PINHOLE", width=IMAGE_PX, height=IMAGE_PX, params=[c, xp + 0.5, yp + 0.5])
+    rec.add_camera_with_trivial_rig(cam)
+    point_ids = {}
+    for i, b in enumerate(syn.ids):
+        point_ids[int(b)] = rec.add_point3D(syn.nominal_mm[i], pycolmap.Track())
+    R = quat_to_matrix(init.q_cam_from_obj)
+    for j, e in enumerate(init.exposure):
+        sel = np.flatnonzero(obs.exposure == e)
+        pts = pycolmap.Point2DList([pycolmap.Point2D(xy_px[k] + 0.5) for k in sel])
+        image = pycolmap.Image(name=f"{e}", points2D=pts, camera_id=1, image_id=j + 1)
+        t = -R[j] @ init.source_mm[j]
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(np.column_stack([R[j], t])))
+        for n, k in enumerate(sel):
+            rec.add_observation(point_ids[int(obs.bead_id[k])], pycolmap.TrackElement(j + 1, n))
+    return rec

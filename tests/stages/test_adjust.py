@@ -1,0 +1,508 @@
+"""Tests of the robust bundle adjustment (stages/adjust.py, stages/_ba.py).
+
+Synthetic problems come from tests/stages/ba_synthetic.py: beads on four faces
+of a 120 mm cube, a tilted turntable ring of exposures at ~950 mm from the
+source, c = 4400 px, 1024² images, 0.05 px Gaussian noise unless stated.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pytest
+
+from stages import _ba
+from stages._geometry import quat_to_matrix, similarity_fit
+from stages.adjust import VERSION, Adjustment, AdjustParams, Orientation, _prepare, adjust_bundle
+from stages.artifacts import Observations, Phantom
+from stages.errors import EstimationError, InputError, ShapeError
+from tests.stages.ba_synthetic import ScipyProblem, aligned_error_mm, make_problem
+
+NOISE_PX = 0.05
+
+
+def _solve(syn, **params) -> Adjustment:
+    return adjust_bundle(syn.observations, (syn.ids, syn.nominal_mm), syn.initial, params=AdjustParams(**params))
+
+
+def _with_xy(obs: Observations, xy: np.ndarray, bead_id=None) -> Observations:
+    return Observations(obs.system, obs.exposure, obs.bead_id if bead_id is None else bead_id, xy, obs.sigma_px, obs.system_names)
+
+
+def _rms(a) -> float:
+    return float(np.sqrt(np.mean(np.square(a))))
+
+
+@pytest.fixture(scope="module")
+def mono():
+    return make_problem(n_beads=200, n_exposures=14, seed=1)
+
+
+@pytest.fixture(scope="module")
+def mono_result(mono):
+    return _solve(mono)
+
+
+@pytest.fixture(scope="module")
+def biplanar():
+    return make_problem(n_beads=160, n_exposures=10, n_systems=2, seed=2)
+
+
+# --------------------------------------------------------------------------- shape / smoke
+
+
+def test_version_and_output_shapes(mono, mono_result):
+    res, obs = mono_result, mono.observations
+    n, m = len(mono.ids), len(mono.initial.exposure)
+    assert VERSION == 1
+    assert res.xyz_mm.shape == res.xyz_std_mm.shape == (n, 3) and res.xyz_cov_mm2.shape == (n, 3, 3)
+    assert res.iop_px.shape == res.iop_std_px.shape == (1, 3)
+    assert res.q_cam_from_obj.shape == (m, 4) and res.source_mm.shape == (m, 3) and res.pose_std.shape == (m, 6)
+    for name in ("residual_px", "standardized_residual", "redundancy"):
+        assert getattr(res, name).shape == (len(obs), 2)
+    assert res.weight.shape == res.inlier.shape == res.used.shape == (len(obs),)
+    assert res.usable and res.converged and res.used.all()
+    assert res.xyz_mm.flags.writeable is False
+    # the cost history is monotone (every accepted step and every σ² update lowers it)
+    assert np.all(np.diff(res.cost_history) <= 1e-9 * np.abs(res.cost_history[:-1]).max())
+
+
+def test_orientation_poses_compose_rop(biplanar):
+    """System B's pose = ROP composed with A's: the projection through poses(1) matches the camera frame of _ba."""
+    truth = biplanar.truth
+    q_b, T_b = truth.poses(1)
+    R_a = quat_to_matrix(truth.q_cam_from_obj[3])
+    R_r = quat_to_matrix(truth.rop_q[1])
+    P = biplanar.xyz_true_mm[:5]
+    p_expected = (R_r @ (R_a @ (P - truth.source_mm[3]).T - truth.rop_source_mm[1][:, None])).T
+    p_got = (quat_to_matrix(q_b[3]) @ (P - T_b[3]).T).T
+    np.testing.assert_allclose(p_got, p_expected, atol=1e-9)
+
+
+# --------------------------------------------------------------------------- residuals and Jacobians
+
+
+def _tiny_problem(sigma, correction):
+    """One bead at (10, -20, 0) mm seen from a source at (0, 0, -1000) mm, identity rotation, c = 4400 px."""
+    problem, _ = _ba.build_problem(
+        np.array([0]), np.array([0]), np.array([0]), np.array([[557.0, 423.5]]) - correction, np.array([sigma]),
+        np.array([[10.0, -20.0, 0.0]]), 1, 1, np.array([True]), "points",
+    )
+    state = _ba.State(np.array([[10.0, -20.0, 0.0]]), np.array([[1.0, 0, 0, 0]]), np.array([[0.0, 0, -1000]]),
+                      np.array([[512.0, 512.0, 4400.0]]), np.array([[1.0, 0, 0, 0]]), np.zeros((1, 3)))
+    return problem, state
+
+
+def test_residuals_at_hand_computed_point():
+    # p_cam = (10, -20, 1000): projection (512 + 4400 * 0.01, 512 - 4400 * 0.02) = (556, 424);
+    # ideal = (557, 423.5) - Δ(0.5, 0.25) = (556.5, 423.25); residual (0.5, -0.75) px
+    problem, state = _tiny_problem([0.1, 0.2, 0.0], np.array([[0.5, 0.25]]))
+    r, e = _ba.residuals(state, problem)
+    np.testing.assert_array_equal(r, [[0.5, -0.75]])
+    np.testing.assert_allclose(e, [[5.0, -3.75]], rtol=1e-15)
+    # correlated: e2 = (r2 - ρ σy/σx r1) / (σy sqrt(1 - ρ²)) = (-0.75 - 0.5) / (0.2 * sqrt(0.75))
+    problem, state = _tiny_problem([0.1, 0.2, 0.5], np.array([[0.5, 0.25]]))
+    r, e = _ba.residuals(state, problem)
+    np.testing.assert_allclose(e, [[5.0, -1.25 / (0.2 * math.sqrt(0.75))]], rtol=1e-14)
+    C = np.array([[0.01, 0.5 * 0.1 * 0.2], [0.5 * 0.1 * 0.2, 0.04]])
+    assert (e**2).sum() == pytest.approx(float(r[0] @ np.linalg.solve(C, r[0])), rel=1e-13)
+
+
+def test_residuals_match_geometry_project(biplanar):
+    """The adjustment's model reproduces stages/_geometry.project through Orientation.poses for both systems."""
+    prep = _prepare(biplanar.observations, (biplanar.ids, biplanar.xyz_true_mm), biplanar.truth, None, AdjustParams())
+    state = _ba.State(biplanar.xyz_true_mm.copy(), *(np.array(a) for a in (biplanar.truth.q_cam_from_obj, biplanar.truth.source_mm,
+                      biplanar.truth.iop_px, biplanar.truth.rop_q, biplanar.truth.rop_source_mm)))
+    r, _ = _ba.residuals(state, prep.problem)
+    noise = biplanar.observations.xy_px - biplanar.ideal_px
+    np.testing.assert_allclose(r, noise[prep.used][prep.perm], atol=1e-9)
+
+
+@pytest.mark.parametrize("eliminate", ["points", "poses"])
+def test_analytic_jacobian_matches_central_differences(biplanar, eliminate):
+    """Every Jacobian block against central differences through the local parametrisation.
+
+    Step h = 1e-6 in each parameter's unit (mm, rad, px): the truncation error is
+    O(h² |e'''|) ~ 1e-8 and the rounding error eps |e| / h ~ 1e-16 * 1e3 / 1e-6 = 1e-7
+    (|e| up to ~1e3 whitened at the perturbed start), against entries up to ~1e5
+    (4400 px/rad / 0.05 px): a tolerance of 1e-6 relative to the largest entry
+    plus 1e-5 absolute leaves margin while catching any sign or index error.
+    """
+    sigma = biplanar.observations.sigma_px.copy()
+    sigma[:, 1] *= 1.5
+    sigma[:, 2] = 0.3
+    obs = Observations(biplanar.observations.system, biplanar.observations.exposure, biplanar.observations.bead_id,
+                       biplanar.observations.xy_px, sigma, biplanar.observations.system_names)
+    prep = _prepare(obs, (biplanar.ids, biplanar.nominal_mm), biplanar.initial, None, AdjustParams(schur=eliminate))
+    problem, state = prep.problem, prep.state
+    e0, J_point, J_pose, J_glob = _ba.linearize(state, problem)
+    h = 1e-6
+
+    def fd(d_points, d_poses, d_glob):
+        ep = _ba.residuals(_ba.apply_step(state, problem, d_points, d_poses, d_glob), problem)[1]
+        em = _ba.residuals(_ba.apply_step(state, problem, -d_points, -d_poses, -d_glob), problem)[1]
+        return (ep - em) / (2 * h)
+
+    zp, zc, zg = np.zeros((problem.n_points, 3)), np.zeros((problem.n_poses, 6)), np.zeros(problem.n_globals)
+    checks = []
+    for i, k in [(0, 0), (7, 1), (33, 2)]:
+        d = zp.copy()
+        d[i, k] = h
+        sel = problem.point_idx == i
+        checks.append((fd(d, zc, zg)[sel], J_point[sel, :, k]))
+    for j in (0, 5):
+        for k in range(6):
+            d = zc.copy()
+            d[j, k] = h
+            sel = problem.pose_idx == j
+            checks.append((fd(zp, d, zg)[sel], J_pose[sel, :, k]))
+    for s in range(2):
+        for k, col in enumerate(problem.gcol[s]):
+            if col < 0:
+                continue
+            d = zg.copy()
+            d[col] = h
+            sel = problem.sys_idx == s
+            checks.append((fd(zp, zc, d)[sel], J_glob[sel, :, k]))
+    assert len(checks) == 3 + 12 + 3 + 9
+    for numeric, analytic in checks:
+        scale = np.abs(analytic).max()
+        np.testing.assert_allclose(analytic, numeric, rtol=0, atol=1e-6 * scale + 1e-5)
+
+
+# --------------------------------------------------------------------------- ground truth
+
+
+def test_clean_solve_matches_own_covariance(mono, mono_result):
+    """0.05 px noise: the 3D error after a similarity to the truth is within 10 % of the predicted RMS; IOP within 3σ."""
+    res = mono_result
+    err = aligned_error_mm(res.xyz_mm, mono.xyz_true_mm)
+    predicted = math.sqrt(np.einsum("nii->n", res.xyz_cov_mm2).mean())
+    assert _rms(err) == pytest.approx(predicted, rel=0.10)
+    assert np.all(np.abs(res.iop_px - mono.truth.iop_px) <= 3 * res.iop_std_px)
+    assert res.sigma0 == pytest.approx(1.0, rel=0.05)  # sigma_px is the true noise
+    assert (~res.inlier).mean() < 0.002  # Gaussian data: outliers only by chance (r² > 26 at ν = 4)
+
+
+def test_biplanar_recovers_rop(biplanar):
+    res = _solve(biplanar)
+    assert res.usable
+    truth = biplanar.truth
+    assert np.all(np.abs(res.iop_px - truth.iop_px) <= 3 * res.iop_std_px)
+    assert np.all(np.abs(res.rop_source_mm[1] - truth.rop_source_mm[1]) <= 3 * res.rop_std[1, 3:])
+    R_err = quat_to_matrix(res.rop_q[1]) @ quat_to_matrix(truth.rop_q[1]).T
+    angle_err = np.array([R_err[2, 1] - R_err[1, 2], R_err[0, 2] - R_err[2, 0], R_err[1, 0] - R_err[0, 1]]) / 2
+    assert np.all(np.abs(angle_err) <= 3 * res.rop_std[1, :3])
+    assert _rms(aligned_error_mm(res.xyz_mm, biplanar.xyz_true_mm)) < 0.01
+    assert res.n_parameters == 3 * len(biplanar.ids) + 6 * 10 + 2 * 3 + 6
+
+
+def test_least_squares_matches_scipy():
+    """ν = inf gives the least-squares optimum: the same answer as scipy.optimize.least_squares to 1e-6 relative."""
+    from scipy.optimize import least_squares
+
+    syn = make_problem(n_beads=40, n_exposures=6, seed=4)
+    res = _solve(syn, nu=math.inf, function_tolerance=1e-12, parameter_tolerance=1e-14)
+    ref = ScipyProblem(syn)
+    sol = least_squares(ref.residuals, ref.x0(), jac="3-point", method="trf", x_scale="jac", ftol=1e-15, xtol=1e-15, gtol=1e-15)
+    P, R, T, iop, _, _ = ref.unpack(sol.x)
+    assert np.abs(ref.residuals(sol.x)[-7:]).max() < 1e-6  # the datum rows (mm) hold: they act only on the gauge
+    np.testing.assert_allclose(res.xyz_mm, P, rtol=0, atol=1e-6 * np.abs(P).max())
+    np.testing.assert_allclose(res.iop_px, iop, rtol=1e-6)
+    np.testing.assert_allclose(res.source_mm, T, rtol=0, atol=1e-6 * np.abs(T).max())
+    np.testing.assert_allclose(quat_to_matrix(res.q_cam_from_obj), R, atol=1e-6)
+
+
+def test_outliers_and_swapped_labels_are_flagged(mono, mono_result):
+    """5 % gross errors (5–50 px) and 1 % swapped labels: >= 95 % flagged, accuracy within 10 % of the clean solve."""
+    rng = np.random.default_rng(11)
+    obs = mono.observations
+    n = len(obs)
+    xy = obs.xy_px.copy()
+    gross = rng.choice(n, int(0.05 * n), replace=False)
+    xy[gross] += rng.uniform(5, 50, (len(gross), 2)) * rng.choice([-1, 1], (len(gross), 2))
+    bead = obs.bead_id.copy()
+    rest = np.setdiff1d(np.arange(n), gross)
+    swapped = []
+    for j in rng.permutation(np.unique(obs.exposure)):
+        cand = rng.permutation(rest[obs.exposure[rest] == j])
+        for a, b in zip(cand[0::2], cand[1::2]):
+            if len(swapped) >= int(0.01 * n):
+                break
+            # only swaps that move the label by more than 5 px count as corrupted
+            if np.linalg.norm(xy[a] - xy[b]) > 5:
+                bead[a], bead[b] = bead[b], bead[a]
+                swapped += [a, b]
+    corrupted = np.r_[gross, swapped]
+    res = adjust_bundle(_with_xy(obs, xy, bead), (mono.ids, mono.nominal_mm), mono.initial)
+    assert res.usable
+    assert (~res.inlier[corrupted]).mean() >= 0.95
+    clean_err = _rms(aligned_error_mm(mono_result.xyz_mm, mono.xyz_true_mm))
+    assert _rms(aligned_error_mm(res.xyz_mm, mono.xyz_true_mm)) <= 1.10 * clean_err
+    assert np.all(np.abs(res.iop_px - mono_result.iop_px) <= 1.0 * mono_result.iop_std_px)
+    assert (~res.inlier).sum() <= len(corrupted) * 1.05 + 5  # few clean observations lost
+
+
+# --------------------------------------------------------------------------- properties
+
+
+def test_gauge_and_parameter_counts(mono, mono_result):
+    res = mono_result
+    n, m, n_obs = len(mono.ids), len(mono.initial.exposure), len(mono.observations)
+    assert res.n_parameters == 3 * n + 6 * m + 3
+    assert res.dof == 2 * n_obs - (res.n_parameters - 7)  # 7 datum constraints
+    assert res.redundancy.sum() == pytest.approx(res.dof, rel=1e-9)
+    assert np.all((res.redundancy > 0) & (res.redundancy < 1 + 1e-9))
+
+
+def test_inner_constraints_hold(mono_result, mono):
+    """No translation, rotation or scale of the estimated points relative to the nominal ones (to first order)."""
+    D = _ba.datum_directions(mono.nominal_mm).reshape(-1, 7)
+    delta = (mono_result.xyz_mm - mono.nominal_mm).ravel()
+    assert np.abs(D.T @ delta).max() < 1e-9 * len(mono.ids)
+    s, R, t = similarity_fit(mono.nominal_mm, mono_result.xyz_mm)
+    assert abs(s - 1) < 1e-5 and np.abs(t).max() < 0.05
+
+
+def test_fixed_iop_and_rop_are_bit_identical(mono):
+    res = _solve(mono, estimate_iop=False)
+    assert np.array_equal(res.iop_px, mono.initial.iop_px)
+    assert np.array_equal(res.rop_q, mono.initial.rop_q) and np.array_equal(res.rop_source_mm, mono.initial.rop_source_mm)
+    assert np.all(res.iop_std_px == 0)
+    assert res.n_parameters == 3 * len(mono.ids) + 6 * len(mono.initial.exposure)
+
+
+def test_schur_orderings_agree(biplanar):
+    a = _solve(biplanar, schur="points", function_tolerance=1e-10)
+    b = _solve(biplanar, schur="poses", function_tolerance=1e-10)
+    np.testing.assert_allclose(a.xyz_mm, b.xyz_mm, atol=1e-7)
+    np.testing.assert_allclose(a.iop_px, b.iop_px, atol=1e-6)
+    np.testing.assert_allclose(a.xyz_std_mm, b.xyz_std_mm, rtol=1e-6)
+    np.testing.assert_allclose(a.redundancy, b.redundancy, atol=1e-6)  # t-weights move with the 1e-10 stop
+
+
+@pytest.mark.parametrize("n_systems", [1, 2])
+def test_perturbing_any_parameter_increases_cost(n_systems):
+    """±0.2σ in any point coordinate (every 7th bead), pose, IOP or ROP parameter raises the cost at the optimum."""
+    syn = make_problem(n_beads=60, n_exposures=8, n_systems=n_systems, seed=6)
+    params = AdjustParams(function_tolerance=1e-11, parameter_tolerance=1e-14)
+    res = adjust_bundle(syn.observations, (syn.ids, syn.nominal_mm), syn.initial, params=params)
+    prep = _prepare(syn.observations, (syn.ids, syn.nominal_mm), res.orientation, None, params)
+    problem = prep.problem
+    state = _ba.State(res.xyz_mm.copy(), res.q_cam_from_obj.copy(), res.source_mm.copy(), res.iop_px.copy(), res.rop_q.copy(),
+                      res.rop_source_mm.copy())
+    scale2 = res.t_scale**2
+
+    def cost(st):
+        e = _ba.residuals(st, problem)[1]
+        return _ba.t_cost((e * e).sum(1), res.nu, scale2)
+
+    c0 = cost(state)
+    zp, zc, zg = np.zeros((problem.n_points, 3)), np.zeros((problem.n_poses, 6)), np.zeros(problem.n_globals)
+    cases = []
+    for i in range(0, problem.n_points, 7):
+        for k in range(3):
+            d = zp.copy()
+            d[i, k] = 0.2 * res.xyz_std_mm[i, k]
+            cases.append((d, zc, zg))
+    for j in range(problem.n_poses):
+        for k in range(6):
+            d = zc.copy()
+            d[j, k] = 0.2 * res.pose_std[j, k]
+            cases.append((zp, d, zg))
+    for sys_ in range(n_systems):
+        std = np.r_[res.iop_std_px[sys_], res.rop_std[sys_]]
+        for k, col in enumerate(problem.gcol[sys_]):
+            if col >= 0:
+                d = zg.copy()
+                d[col] = 0.2 * std[k]
+                cases.append((zp, zc, d))
+    assert len(cases) == 3 * len(range(0, problem.n_points, 7)) + 6 * problem.n_poses + problem.n_globals
+    for dp, dc, dg in cases:
+        for sign in (1, -1):
+            assert cost(_ba.apply_step(state, problem, sign * dp, sign * dc, sign * dg)) > c0
+
+
+def test_covariance_matches_monte_carlo():
+    """Predicted covariance vs 40 noisy repetitions (ν = 4 on Gaussian data, so the sandwich factor matters).
+
+    With 40 runs a variance is known to about ±22 % (1σ, sqrt(2/39)): the IOP
+    eigenvalue ratios must lie within about 2σ of 1 and the major axis of the
+    (xp, yp) ellipse within 15 degrees (it is elongated 5:1, so its angle is
+    well determined). The 3n = 180 point coordinates average the trace to a
+    few %, so it gets ±20 %.
+    """
+    syn = make_problem(n_beads=60, n_exposures=8, seed=3)
+    rng = np.random.default_rng(5)
+    iops, pts, pts_pred, iop_pred = [], [], [], []
+    for _ in range(40):
+        xy = syn.ideal_px + rng.normal(0, NOISE_PX, syn.ideal_px.shape)
+        res = adjust_bundle(_with_xy(syn.observations, xy), (syn.ids, syn.nominal_mm), syn.initial)
+        iops.append(res.iop_px[0])
+        iop_pred.append(res.iop_cov_px2[0])
+        pts.append(res.xyz_mm.ravel())
+        pts_pred.append(np.einsum("nii->", res.xyz_cov_mm2))
+    emp = np.cov(np.array(iops).T)
+    pred = np.mean(iop_pred, axis=0)
+    w_emp, v_emp = np.linalg.eigh(emp)
+    w_pred, v_pred = np.linalg.eigh(pred)
+    assert np.all((w_emp / w_pred > 0.55) & (w_emp / w_pred < 1.6)), w_emp / w_pred
+    e_emp, ax_emp = np.linalg.eigh(emp[:2, :2])
+    e_pred, ax_pred = np.linalg.eigh(pred[:2, :2])
+    cos = abs(float(ax_emp[:, 1] @ ax_pred[:, 1]))
+    assert np.degrees(np.arccos(min(cos, 1.0))) < 15
+    trace_ratio = np.array(pts).var(0, ddof=1).sum() / np.mean(pts_pred)
+    assert 0.8 < trace_ratio < 1.2, trace_ratio
+
+
+# --------------------------------------------------------------------------- errors and degenerate input
+
+
+def test_input_errors(mono):
+    obs, start = mono.observations, mono.initial
+    nominal = (mono.ids, mono.nominal_mm)
+    with pytest.raises(ShapeError, match=r"corrections_px must have shape \(\d+, 2\)"):
+        adjust_bundle(obs, nominal, start, np.zeros((3, 2)))
+    with pytest.raises(InputError, match="bead_id not in the nominal"):
+        adjust_bundle(obs, (mono.ids[1:], mono.nominal_mm[1:]), start)
+    with pytest.raises(InputError, match="exposure not in initial.exposure"):
+        adjust_bundle(obs, nominal, Orientation(start.iop_px, start.exposure[1:], start.q_cam_from_obj[1:], start.source_mm[1:]))
+    with pytest.raises(InputError, match="system"):
+        adjust_bundle(obs, nominal, Orientation(np.tile(start.iop_px, (2, 1)), start.exposure, start.q_cam_from_obj, start.source_mm))
+    with pytest.raises(InputError, match="nu must be > 0"):
+        AdjustParams(nu=0)
+    with pytest.raises(InputError, match="unknown adjust parameter"):
+        AdjustParams.from_dict({"nu": 4, "loss": "cauchy"})
+    with pytest.raises(InputError, match="schur"):
+        AdjustParams(schur="cameras")
+    with pytest.raises(InputError, match="must be an Observations"):
+        adjust_bundle(obs.xy_px, nominal, start)
+
+
+def test_empty_and_too_few_exposures(mono):
+    obs = mono.observations
+    nominal = (mono.ids, mono.nominal_mm)
+    empty = Observations(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros((0, 2)), np.zeros((0, 3)))
+    with pytest.raises(InputError, match="min_exposures = 3"):
+        adjust_bundle(empty, nominal, mono.initial)
+    keep = obs.exposure < 2
+    two = Observations(obs.system[keep], obs.exposure[keep], obs.bead_id[keep], obs.xy_px[keep], obs.sigma_px[keep])
+    with pytest.raises(InputError, match="at least min_exposures = 3 frames.*got 2"):
+        adjust_bundle(two, nominal, mono.initial)
+
+
+def test_all_exposures_from_one_pose(mono):
+    """Five frames from the same pose: no bead's depth is determined -> a clear EstimationError."""
+    obs = mono.observations
+    keep = obs.exposure == 0
+    n = int(keep.sum())
+    rng = np.random.default_rng(0)
+    same = Observations(np.zeros(5 * n), np.repeat(np.arange(5), n), np.tile(obs.bead_id[keep], 5),
+                        np.tile(obs.xy_px[keep], (5, 1)) + rng.normal(0, NOISE_PX, (5 * n, 2)), np.tile(obs.sigma_px[keep], (5, 1)))
+    start = Orientation(mono.initial.iop_px, np.arange(5), np.tile(mono.initial.q_cam_from_obj[0], (5, 1)),
+                        np.tile(mono.initial.source_mm[0], (5, 1)))
+    with pytest.raises(EstimationError, match="one pose"):
+        adjust_bundle(same, (mono.ids, mono.nominal_mm), start)
+
+
+def test_bead_seen_once_is_dropped_with_message(mono, caplog):
+    obs = mono.observations
+    lone = mono.ids[5]
+    first = np.flatnonzero(obs.bead_id == lone)[0]
+    keep = (obs.bead_id != lone) | (np.arange(len(obs)) == first)
+    sub = Observations(obs.system[keep], obs.exposure[keep], obs.bead_id[keep], obs.xy_px[keep], obs.sigma_px[keep])
+    with caplog.at_level(logging.INFO, logger="stages.adjust"):
+        res = adjust_bundle(sub, Phantom(mono.ids, mono.nominal_mm, np.full(len(mono.ids), np.nan), np.full(len(mono.ids), "")), mono.initial)
+    assert "dropping 1 observation(s) of 1 bead(s)" in caplog.text
+    i_lone = int(np.flatnonzero(sub.bead_id == lone)[0])
+    assert not res.used[i_lone] and not res.inlier[i_lone] and res.weight[i_lone] == 0
+    assert lone not in res.bead_id and len(res.bead_id) == len(mono.ids) - 1
+    assert res.usable and np.all(np.isfinite(res.residual_px))
+
+
+def test_points_behind_the_source_are_rejected(mono):
+    start = mono.initial
+    # sources mirrored through the phantom's centre: every bead now lies behind its source
+    flipped = Orientation(start.iop_px, start.exposure, start.q_cam_from_obj, -start.source_mm)
+    with pytest.raises(EstimationError, match="behind the X-ray source"):
+        adjust_bundle(mono.observations, (mono.ids, mono.nominal_mm), flipped, params=AdjustParams(min_ray_angle_deg=0.0))
+
+
+def test_estimate_nu_on_heavy_tails():
+    """Student-t (ν = 3) noise: the estimated ν is small; Gaussian noise: it is large."""
+    syn = make_problem(n_beads=80, n_exposures=8, seed=8)
+    rng = np.random.default_rng(3)
+    n = len(syn.ideal_px)
+    t_noise = NOISE_PX * rng.standard_normal((n, 2)) / np.sqrt(rng.chisquare(3, n) / 3)[:, None]
+    heavy = adjust_bundle(_with_xy(syn.observations, syn.ideal_px + t_noise), (syn.ids, syn.nominal_mm), syn.initial,
+                          params=AdjustParams(estimate_nu=True))
+    light = _solve(syn, estimate_nu=True)
+    assert 1.5 < heavy.nu < 6
+    assert light.nu > 20
+
+
+# --------------------------------------------------------------------------- grid plates
+
+
+def _plate_problem(n_frames=4, seed=0):
+    """A 30 x 30 square grid plate (5 mm pitch) seen under 4 perspective homographies, 0.05 px noise."""
+    rng = np.random.default_rng(seed)
+    g = np.arange(-15, 15) * 5.0
+    X, Y = np.meshgrid(g, g)
+    xyz = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    ids = np.arange(len(xyz))
+    rows, Hs = [], []
+    for f in range(n_frames):
+        H = np.array([[6.0, 0.3, 512], [-0.2, 6.1, 500], [1e-4, -2e-4, 1.0]]) + rng.normal(0, [[0.05, 0.05, 5], [0.05, 0.05, 5], [5e-5, 5e-5, 0]])
+        p = np.c_[xyz[:, :2], np.ones(len(xyz))] @ H.T
+        rows.append(p[:, :2] / p[:, 2:])
+        Hs.append(H / H[2, 2])
+    ideal = np.concatenate(rows)
+    n = len(ideal)
+    obs = Observations(np.zeros(n), np.repeat(np.arange(n_frames), len(xyz)), np.tile(ids, n_frames),
+                       ideal + rng.normal(0, NOISE_PX, (n, 2)), np.tile([NOISE_PX, NOISE_PX, 0.0], (n, 1)))
+    return obs, (ids, xyz), np.array(Hs), ideal
+
+
+def test_plate_homographies_recover_truth_and_flag_outliers():
+    from stages.adjust import adjust_plate
+
+    obs, nominal, H_true, ideal = _plate_problem()
+    rng = np.random.default_rng(1)
+    xy = obs.xy_px.copy()
+    bad = rng.choice(len(xy), len(xy) // 20, replace=False)
+    xy[bad] += rng.uniform(5, 50, (len(bad), 2)) * rng.choice([-1, 1], (len(bad), 2))
+    res = adjust_plate(_with_xy(obs, xy), nominal)
+    assert res.usable and res.homography.shape == (4, 3, 3)
+    np.testing.assert_allclose(res.homography, H_true, rtol=1e-3, atol=1e-6)
+    assert (~res.inlier[bad]).mean() >= 0.99
+    clean = np.setdiff1d(np.arange(len(xy)), bad)
+    assert _rms(res.residual_px[clean]) == pytest.approx(NOISE_PX, rel=0.1)
+    assert res.dof == 2 * len(xy) - 8 * 4
+    assert res.redundancy.sum() == pytest.approx(res.dof, rel=1e-9)
+    assert res.sigma0 == pytest.approx(1.0, rel=0.1)
+    # Δ enters as ideal = measured - Δ: shifting observations and corrections together changes nothing
+    shifted = adjust_plate(_with_xy(obs, xy + 3.0), nominal, np.full((len(xy), 2), 3.0))
+    np.testing.assert_allclose(shifted.homography, res.homography, rtol=1e-9, atol=1e-12)
+
+
+def test_plate_errors():
+    from stages.adjust import adjust_plate
+
+    obs, nominal, _, _ = _plate_problem(n_frames=1)
+    with pytest.raises(ShapeError, match="corrections_px"):
+        adjust_plate(obs, nominal, np.zeros((2, 2)))
+    few = Observations(obs.system[:3], obs.exposure[:3], obs.bead_id[:3], obs.xy_px[:3], obs.sigma_px[:3])
+    with pytest.raises(InputError, match="no frame has >= 6 observations"):
+        adjust_plate(few, nominal)
+
+
+def test_warm_start_reaches_the_same_solution_faster(mono, mono_result):
+    """The learning loop restarts from the previous solution: same optimum, fewer iterations."""
+    res = adjust_bundle(mono.observations, (mono.ids, mono.nominal_mm), mono_result.orientation,
+                        start_points=(mono_result.bead_id, mono_result.xyz_mm))
+    assert res.iterations < mono_result.iterations
+    np.testing.assert_allclose(res.xyz_mm, mono_result.xyz_mm, atol=0.05 * mono_result.xyz_std_mm.min())
+    np.testing.assert_allclose(res.iop_px, mono_result.iop_px, atol=0.05 * mono_result.iop_std_px.min())
