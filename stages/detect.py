@@ -1,0 +1,596 @@
+"""Bead detection: candidate blobs in a radiograph, each accepted or rejected with a reason.
+
+The stage finds the image intensifier's field of view, flattens the
+background and thresholds each blob at half its own contrast, so that it is
+scale-aware and insensitive to vignetting, the heel effect and anatomy:
+
+1. **Field of view.** The bright disc (round or octagonal) of the intensifier
+   is thresholded at half its median level on a copy reduced to about 256 px;
+   the convex hull of the largest region is the field of view.
+2. **Log domain.** X-ray attenuation is multiplicative, so ``L = ln(I + 1)``
+   turns vignetting, the heel effect and overlying anatomy into additive,
+   slowly varying or step-like terms, and gives every steel bead the same
+   contrast whatever lies over it.
+3. **Polarity** (``"auto"``): the sign of the heavier tail of ``L`` minus its
+   running median (dark steel beads on an open field, or bright holes of a
+   grid plate).
+4. **Flattening.** A grey-level black (dark beads) or white (bright holes)
+   top-hat with a square larger than the largest bead keeps only the blobs
+   smaller than the square; it leaves ramps and straight steps (bone edges,
+   the plate of a grid phantom) at zero, because a flat symmetric closing or
+   opening restores monotone edges.
+5. **Blobs.** The top-hat, smoothed at a sixth of the smallest expected
+   diameter, is thresholded where the intensity has changed by half of the
+   change at its local maximum (half-maximum regions, one per bead whatever
+   its contrast); each region's area and second moments give its diameter,
+   roundness and an initial centre. A region too large or not round (a bead
+   on a pedestal of anatomy about its own width) is measured again at 85 %.
+6. **Rejection.** ``"fov_edge"`` (cut by the field-of-view edge),
+   ``"size"``, ``"merged"`` (two touching beads: an elongated region as wide
+   as one bead and up to two beads long), ``"not_round"`` and ``"faint"``
+   (contrast below an absolute floor, a signal-to-noise floor, or a fraction
+   of the median bead contrast in the frame).
+
+With ``min_diameter_px = max_diameter_px = 0`` the expected diameter range is
+estimated from the frame itself, on a 2x-reduced copy, from the round, strong
+blobs found with a generous top-hat. When the smallest expected bead is at
+least 10 px wide, steps 4-6 also run on a 2x-reduced copy (the candidates'
+centres need only be good to a few tenths of a pixel: the centroid stage
+refines them).
+
+Coordinates follow ``stages/_geometry.py``: ``(x, y)`` with x = column, y = row,
+the centre of the top-left pixel at ``(0, 0)``.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages._geometry import xy_to_rc
+from stages.artifacts import SCHEMA_VERSION, Radiograph, check_shape, freeze
+from stages.errors import InputError, ShapeError
+
+VERSION = 1
+
+log = logging.getLogger(__name__)
+
+POLARITIES = ("auto", "dark", "bright")
+
+#: rejection reasons, in the order they are tested (the first that applies is reported)
+REASONS = ("fov_edge", "size", "merged", "not_round", "faint")
+
+#: largest bead diameter the automatic estimate looks for, px
+_MAX_ESTIMATE_DIAMETER_PX = 48.0
+
+
+class EmptyFrameWarning(UserWarning):
+    """A frame gave no accepted bead (blank, saturated or bead-free); the artifact is empty."""
+
+
+@dataclass(frozen=True)
+class DetectParams:
+    """Parameters of :func:`detect_beads`.
+
+    Attributes
+    ----------
+    polarity : {"auto", "dark", "bright"}
+        ``"dark"``: beads darker than their surroundings (steel beads);
+        ``"bright"``: brighter (holes of a grid plate); ``"auto"`` (default):
+        decided per frame from the heavier tail of the flattened log image.
+    min_diameter_px, max_diameter_px : float
+        Expected bead diameter range, px. Both 0 (default): estimated from the
+        frame. Otherwise ``0 < min_diameter_px <= max_diameter_px``.
+    min_contrast : float
+        Absolute floor on a blob's log contrast ``ln(I_background / I_bead)``
+        (about the fractional attenuation for small values). Default 0.05.
+    min_snr : float
+        Floor on the score: log contrast over the frame's pixel noise in the
+        log image. Default 8.
+    min_relative_contrast : float
+        Floor on a blob's contrast as a fraction of the median contrast of the
+        frame's otherwise acceptable blobs. Default 0.6.
+    min_axis_ratio : float
+        Minor over major axis of the blob's half-maximum region below which it
+        is not round (a bead seen obliquely stays above 0.85). Default 0.7.
+    min_fill : float
+        Area of the half-maximum region over the area of its moment ellipse;
+        a disc gives 1, a triangle 0.83, a ring or an L much less. Default 0.88.
+    fov_margin_px : float
+        A bead must lie this far, beyond its own radius, inside the field of
+        view (the intensifier's edge is blurred over a few px). Default 2.
+    """
+
+    polarity: str = "auto"
+    min_diameter_px: float = 0.0
+    max_diameter_px: float = 0.0
+    min_contrast: float = 0.05
+    min_snr: float = 8.0
+    min_relative_contrast: float = 0.6
+    min_axis_ratio: float = 0.7
+    min_fill: float = 0.88
+    fov_margin_px: float = 2.0
+
+    def __post_init__(self):
+        if self.polarity not in POLARITIES:
+            raise InputError(f"polarity must be one of {POLARITIES}; got {self.polarity!r}")
+        lo, hi = self.min_diameter_px, self.max_diameter_px
+        if not ((lo == 0 and hi == 0) or (0 < lo <= hi)):
+            raise InputError(f"min_diameter_px, max_diameter_px must both be 0 (estimate) or 0 < min <= max; got {lo}, {hi}")
+        for name in ("min_contrast", "min_snr", "min_relative_contrast", "fov_margin_px"):
+            if not getattr(self, name) >= 0:
+                raise InputError(f"{name} must be >= 0; got {getattr(self, name)}")
+        for name in ("min_axis_ratio", "min_fill"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise InputError(f"{name} must be in [0, 1]; got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class BeadCandidates:
+    """Candidate beads of one frame, accepted or rejected with a reason.
+
+    Attributes
+    ----------
+    xy_px : (N, 2) float64 ndarray, px
+        Centre of each candidate's half-maximum region, ``(x, y)``.
+    radius_px : (N,) float64 ndarray, px
+        Radius of the disc of the same area as the half-maximum region.
+    contrast : (N,) float64 ndarray
+        Peak log contrast ``ln(I_background / I_bead)`` (sign-corrected for
+        bright beads), after smoothing.
+    score : (N,) float64 ndarray
+        ``contrast`` over the frame's pixel noise in the log image (an SNR).
+    accepted : (N,) bool ndarray
+    reason : (N,) str ndarray
+        ``""`` where accepted, else one of :data:`REASONS`.
+    polarity : str
+        ``"dark"`` or ``"bright"`` (``"auto"`` resolved).
+    fov_center_xy_px : tuple of float, px
+        Centre ``(x, y)`` of the smallest circle around the field of view.
+    fov_radius_px : float, px
+        Its radius (an octagonal field lies inside it; candidates are tested
+        against the field's own outline).
+    diameter_px : float, px
+        Median diameter of the accepted beads (0 when none).
+    source : str
+    frame_index : int
+    """
+
+    xy_px: np.ndarray
+    radius_px: np.ndarray
+    contrast: np.ndarray
+    score: np.ndarray
+    accepted: np.ndarray
+    reason: np.ndarray
+    polarity: str
+    fov_center_xy_px: tuple = (0.0, 0.0)
+    fov_radius_px: float = 0.0
+    diameter_px: float = 0.0
+    source: str = ""
+    frame_index: int = 0
+    schema_version: int = SCHEMA_VERSION
+
+    def __post_init__(self):
+        object.__setattr__(self, "xy_px", np.asarray(self.xy_px, dtype=np.float64).reshape(-1, 2))
+        for name in ("radius_px", "contrast", "score"):
+            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64).reshape(-1))
+        object.__setattr__(self, "accepted", np.asarray(self.accepted, dtype=bool).reshape(-1))
+        object.__setattr__(self, "reason", np.asarray(self.reason, dtype="<U16").reshape(-1))
+        object.__setattr__(self, "fov_center_xy_px", tuple(float(v) for v in self.fov_center_xy_px))
+        n = len(self.xy_px)
+        for name in ("radius_px", "contrast", "score", "accepted", "reason"):
+            check_shape(name, getattr(self, name), (n,))
+        if not np.all(np.isfinite(self.xy_px)):
+            raise ShapeError("xy_px holds non-finite coordinates")
+        if np.any(self.accepted != (self.reason == "")):
+            raise ShapeError("reason must be '' exactly where accepted is True")
+        if self.polarity not in ("dark", "bright"):
+            raise InputError(f"polarity must be 'dark' or 'bright'; got {self.polarity!r}")
+        freeze(self)
+
+    def __len__(self) -> int:
+        return len(self.xy_px)
+
+    @property
+    def n_accepted(self) -> int:
+        return int(self.accepted.sum())
+
+
+def detect_beads(radiograph: Radiograph, params: DetectParams) -> BeadCandidates:
+    """Find candidate beads in one frame.
+
+    Parameters
+    ----------
+    radiograph : Radiograph
+        The frame (float32, larger = brighter).
+    params : DetectParams
+
+    Returns
+    -------
+    BeadCandidates
+        Every blob of a plausible size, accepted or rejected with a reason.
+        A blank, saturated or bead-free frame gives no accepted candidate and
+        an :class:`EmptyFrameWarning` naming the frame.
+
+    Examples
+    --------
+    >>> yy, xx = np.mgrid[0:128, 0:128]
+    >>> image = np.where((xx - 60.3) ** 2 + (yy - 70.6) ** 2 < 8.0**2, 150.0, 1400.0)
+    >>> found = detect_beads(Radiograph(image, 12), DetectParams())
+    >>> found.polarity, found.n_accepted, np.round(found.xy_px[found.accepted], 0).tolist()
+    ('dark', 1, [[60.0, 71.0]])
+    """
+    import cv2
+
+    image = radiograph.image
+    name = f"{radiograph.source or '<array>'}[{radiograph.frame_index}]"
+    fov = _field_of_view(image)
+    if fov is None:
+        return _empty(radiograph, params, name, "no field of view (blank frame)")
+    hull_xy, fov_mask = fov
+    (cx, cy), fov_radius = cv2.minEnclosingCircle(hull_xy.astype(np.float32))
+    noise = _pixel_noise(image, fov_mask)
+    polarity = params.polarity if params.polarity != "auto" else _polarity(image, fov_mask)
+    height, width = image.shape
+    # the log of a 2x-reduced copy: for the size estimate, and for finding beads of 10 px and more
+    half_log = _log_image(cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA))
+    half_mask = cv2.resize(fov_mask, (width // 2, height // 2), interpolation=cv2.INTER_NEAREST)
+    if params.max_diameter_px > 0:
+        d_min, d_max = params.min_diameter_px, params.max_diameter_px
+    else:
+        estimate = _estimate_diameter_range(half_log, half_mask, polarity, noise, params)
+        if estimate is None:
+            return _empty(radiograph, params, name, "no bead-like blob (bead-free or saturated frame)", polarity, (cx, cy), fov_radius)
+        d_min, d_max = estimate
+
+    if d_min >= _REDUCE_FROM_DIAMETER_PX and min(height, width) >= 128:
+        blobs, reason = _blobs(half_log, half_mask, polarity, d_min / 2, d_max / 2, noise, params)
+        # a reduced pixel i covers full pixels 2i and 2i + 1: its centre is at 2i + 0.5
+        blobs["xy_px"] = 2 * blobs["xy_px"] + 0.5
+        for key in ("radius_px", "minor_diameter_px"):
+            blobs[key] = 2 * blobs[key]
+    else:
+        blobs, reason = _blobs(_log_image(image), fov_mask, polarity, d_min, d_max, noise, params)
+    blobs, reason = _keep_reportable(blobs, reason, hull_xy, d_min, d_max, params)
+    accepted = reason == ""
+    if not accepted.any():
+        warnings.warn(f"{name}: no bead accepted ({len(reason)} candidates rejected)", EmptyFrameWarning, stacklevel=2)
+    diameter = float(np.median(2 * blobs["radius_px"][accepted])) if accepted.any() else 0.0
+    log.debug("%s: %d/%d candidates accepted, polarity %s, diameter %.1f px", name, accepted.sum(), len(reason), polarity, diameter)
+    return BeadCandidates(
+        xy_px=blobs["xy_px"],
+        radius_px=blobs["radius_px"],
+        contrast=blobs["contrast"],
+        score=blobs["contrast"] / noise,
+        accepted=accepted,
+        reason=reason,
+        polarity=polarity,
+        fov_center_xy_px=(cx, cy),
+        fov_radius_px=float(fov_radius),
+        diameter_px=diameter,
+        source=radiograph.source,
+        frame_index=radiograph.frame_index,
+    )
+
+
+def _empty(radiograph, params, name, why, polarity=None, fov_center=(0.0, 0.0), fov_radius=0.0) -> BeadCandidates:
+    warnings.warn(f"{name}: {why}; no bead candidates", EmptyFrameWarning, stacklevel=3)
+    return BeadCandidates(
+        xy_px=np.empty((0, 2)),
+        radius_px=np.empty(0),
+        contrast=np.empty(0),
+        score=np.empty(0),
+        accepted=np.empty(0, dtype=bool),
+        reason=np.empty(0, dtype="<U16"),
+        polarity=polarity or (params.polarity if params.polarity != "auto" else "dark"),
+        fov_center_xy_px=fov_center,
+        fov_radius_px=float(fov_radius),
+        source=radiograph.source,
+        frame_index=radiograph.frame_index,
+    )
+
+
+def _field_of_view(image: np.ndarray):
+    """Outline and mask of the intensifier's bright field.
+
+    Returns
+    -------
+    hull_xy : (K, 2) float64 ndarray, px
+        Convex outline of the field, ``(x, y)``.
+    mask : (H, W) uint8 ndarray
+        1 inside the outline.
+
+    or ``None`` when the frame has no bright region (blank).
+    """
+    import cv2
+
+    height, width = image.shape
+    # about 256 px across is plenty for an outline good to a reduced pixel
+    factor = max(1, min(height, width) // 256)
+    small = cv2.resize(image, (width // factor, height // factor), interpolation=cv2.INTER_AREA) if factor > 1 else image
+    bright_level = float(np.percentile(small, 99))
+    if not bright_level > 0:
+        return None
+    # a fifth of the bright level separates the field from the dark surround (below a grid plate, the
+    # vignetted rim and dense anatomy); the edge is then put at half the field's median level
+    rough = small > 0.2 * bright_level
+    inside = (small > 0.5 * float(np.median(small[rough]))).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(inside, connectivity=8)
+    if n < 2:
+        return None
+    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    contours, _ = cv2.findContours((labels == largest).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    hull_small = cv2.convexHull(np.concatenate(contours)).reshape(-1, 2).astype(np.float64)
+    # a reduced pixel i covers full pixels [f*i, f*i + f - 1], centred on f*i + (f-1)/2
+    hull_xy = factor * hull_small + (factor - 1) / 2
+    hull_xy = np.clip(hull_xy, 0, [width - 1, height - 1])
+    mask = np.zeros((height, width), np.uint8)
+    cv2.fillConvexPoly(mask, np.round(hull_xy).astype(np.int32), 1)
+    return hull_xy, mask
+
+
+def _log_image(image: np.ndarray) -> np.ndarray:
+    """``ln(max(I, 0) + 1)``, float32, (H, W)."""
+    import cv2
+
+    return cv2.log(np.maximum(image, 0) + np.float32(1))
+
+
+def _pixel_noise(image: np.ndarray, fov_mask: np.ndarray) -> float:
+    """Robust per-pixel noise sigma of the log image inside the field (MAD of horizontal differences)."""
+    # every 4th row and pair of columns is plenty for a median
+    sample = _log_image(np.ascontiguousarray(image[::4]))
+    diff = np.abs(sample[:, 1::4] - sample[:, 0:-1:4][:, : sample[:, 1::4].shape[1]])[fov_mask[::4, 1::4] > 0]
+    if diff.size == 0:
+        return 1e-3
+    # the difference of two independent pixels has sqrt(2) times their noise; 1.4826 turns a MAD into a sigma
+    return max(float(1.4826 * np.median(diff) / np.sqrt(2)), 1e-4)
+
+
+def _polarity(image: np.ndarray, fov_mask: np.ndarray) -> str:
+    """``"dark"`` or ``"bright"``: which tail of the log image minus its running median is heavier.
+
+    Beads are a small fraction of the field (or, for a grid plate, a minority
+    against the plate); the median tracks the majority, so the beads form the
+    heavier tail of the residual.
+    """
+    import cv2
+
+    # every 4th pixel: a sample of the intensities (averaging would mix a grid plate's holes into it)
+    small = _log_image(np.ascontiguousarray(image[::4, ::4]))
+    inside = cv2.erode(np.ascontiguousarray(fov_mask[::4, ::4]), np.ones((5, 5), np.uint8))
+    # medianBlur takes large kernels only on 8-bit data: 30 levels per unit of ln(I) is enough to compare tails
+    quantised = np.clip(small * 30, 0, 255).astype(np.uint8)
+    residual = quantised.astype(np.int16) - cv2.medianBlur(quantised, 15).astype(np.int16)
+    values = residual[inside > 0]
+    if values.size == 0:
+        return "dark"
+    low, high = np.percentile(values, [0.2, 99.8])
+    return "dark" if -low >= high else "bright"
+
+
+def _tophat(log_image: np.ndarray, fov_mask: np.ndarray, polarity: str, square_px: int) -> np.ndarray:
+    """Polarity-signed top-hat (bead contrast positive), zero outside the field; float32 (H, W)."""
+    import cv2
+
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (square_px, square_px))
+    op = cv2.MORPH_BLACKHAT if polarity == "dark" else cv2.MORPH_TOPHAT
+    return cv2.morphologyEx(log_image, op, kernel) * fov_mask.astype(np.float32)
+
+
+def _odd(value: float) -> int:
+    return int(2 * np.ceil((value - 1) / 2) + 1)
+
+
+def _flatten(log_image, fov_mask, polarity, d_min, d_max):
+    """Smoothed top-hat (bead contrast positive, log units) and its running maximum over a bead's width.
+
+    Returns
+    -------
+    smooth, local_peak : (H, W) float32 ndarray
+    """
+    import cv2
+
+    # the square must reach past the bead and its blurred skirt (a few px each side) from any point inside it
+    tophat = _tophat(log_image, fov_mask, polarity, _odd(1.25 * d_max + 8))
+    smooth = cv2.GaussianBlur(tophat, (0, 0), max(1.0, d_min / 6))
+    local_peak = cv2.dilate(smooth, np.ones((_odd(d_max),) * 2, np.uint8))
+    return smooth, local_peak
+
+
+def _level(local_peak: np.ndarray, fraction: float, polarity: str) -> np.ndarray:
+    """The log contrast at which the *intensity* has changed by ``fraction`` of a bead's full change; (H, W) float32.
+
+    A bead of peak log contrast ``P`` changes the intensity by a factor
+    ``exp(-P)`` (dark) or ``exp(P)`` (bright); the level ``q`` of that change in
+    intensity lies at ``-ln(1 - q (1 - exp(-P)))`` or ``ln(1 + q (exp(P) - 1))``.
+    Thresholding there (not at ``q P``) puts a blurred bead's half-maximum
+    contour on its outline, as in the intensity image.
+    """
+    import cv2
+
+    peak = np.minimum(local_peak, np.float32(20))
+    if polarity == "dark":
+        return -cv2.log(1 - np.float32(fraction) * (1 - cv2.exp(-peak)))
+    return cv2.log(1 + np.float32(fraction) * (cv2.exp(peak) - 1))
+
+
+def _pixel_index(points_xy: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``(row, col)`` of the pixel containing each point, clipped to the image; (N, 2) int64."""
+    return np.clip(np.round(xy_to_rc(points_xy)).astype(np.int64), 0, np.array(shape) - 1)
+
+
+def _regions(smooth, local_peak, fraction: float, floor: float, polarity: str) -> tuple[dict, np.ndarray]:
+    """Regions above ``fraction`` of their local peak in intensity (peaks below ``floor`` ignored), measured.
+
+    Returns
+    -------
+    blobs : dict of ndarray
+        ``xy_px`` (N, 2) px; ``radius_px`` (N,) px (equal-area disc);
+        ``contrast`` (N,) log contrast at the centre; ``axis_ratio`` (N,)
+        minor/major of the moment ellipse; ``fill`` (N,) area over
+        moment-ellipse area; ``minor_diameter_px`` (N,) px.
+    labels : (H, W) int32 ndarray
+        Region ``i`` is labelled ``i + 1``; 0 is background.
+    """
+    import cv2
+
+    region = ((smooth >= _level(local_peak, fraction, polarity)) & (local_peak >= floor)).astype(np.uint8)
+    n, labels, stats, centres = cv2.connectedComponentsWithStats(region, connectivity=8, ltype=cv2.CV_32S)
+    n_blobs = n - 1
+    area = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)
+    # cv2 centroids are the mean (col, row) = (x, y) of each region's pixel centres
+    mean_xy = centres[1:].reshape(-1, 2)
+    found = cv2.findNonZero(region)
+    # shape (K, 2): (x, y) of every region pixel
+    pixel_xy = found.reshape(-1, 2) if found is not None else np.empty((0, 2), np.int32)
+    lab = labels[pixel_xy[:, 1], pixel_xy[:, 0]] - 1
+    dx, dy = pixel_xy[:, 0] - mean_xy[lab, 0], pixel_xy[:, 1] - mean_xy[lab, 1]
+    # second moments of each region; a pixel is a unit square, which adds 1/12 px^2 along each axis
+    sxx = np.bincount(lab, dx * dx, n_blobs) / np.maximum(area, 1) - 1 / 12
+    syy = np.bincount(lab, dy * dy, n_blobs) / np.maximum(area, 1) - 1 / 12
+    sxy = np.bincount(lab, dx * dy, n_blobs) / np.maximum(area, 1)
+    half_trace, root = (sxx + syy) / 2, np.sqrt(((sxx - syy) / 2) ** 2 + sxy**2)
+    lam_max, lam_min = np.maximum(half_trace + root, 1e-6), np.maximum(half_trace - root, 1e-6)
+    # a round bead peaks at its centre; elsewhere the value at the centre is a lower bound that rejects oddly shaped blobs
+    centre_rc = _pixel_index(mean_xy, labels.shape)
+    contrast = smooth[centre_rc[:, 0], centre_rc[:, 1]].astype(np.float64)
+    blobs = {
+        "xy_px": mean_xy,
+        "radius_px": np.sqrt(area / np.pi),
+        "contrast": contrast,
+        "axis_ratio": np.sqrt(lam_min / lam_max),
+        # a disc of radius R has both moments R^2/4, so its moment ellipse has area 4 pi sqrt(l1 l2) = pi R^2
+        "fill": area / (4 * np.pi * np.sqrt(lam_min * lam_max)),
+        "minor_diameter_px": 4 * np.sqrt(lam_min),
+    }
+    return blobs, labels
+
+
+#: beads at least this wide (px) are found on a 2x-reduced copy: 4x fewer pixels, and the centroid stage refines
+_REDUCE_FROM_DIAMETER_PX = 10.0
+
+
+def _blobs(log_image, fov_mask, polarity, d_min, d_max, noise, params: DetectParams) -> tuple[dict, np.ndarray]:
+    """Candidate blobs and their rejection reasons.
+
+    Each blob is first measured at half its local peak. A blob too large or
+    not round there (a bead on a pedestal of anatomy of about its own width)
+    is measured again at 85 % of its peak: the round regions of a plausible
+    size inside it replace it, their radii widened by the median difference
+    of the half-maximum and 85 % radii of the frame's clean beads.
+
+    Returns
+    -------
+    blobs : dict of ndarray
+        As :func:`_regions`.
+    reason : (N,) str ndarray
+    """
+    smooth, local_peak = _flatten(log_image, fov_mask, polarity, d_min, d_max)
+    # only blobs whose peak clears the absolute floors become regions (a top-hat of pure noise is itself positive)
+    floor = max(params.min_contrast, params.min_snr * noise)
+    half, half_labels = _regions(smooth, local_peak, 0.5, floor, polarity)
+    reason = _reasons(half, d_min, d_max, noise, params)
+    retry = np.isin(reason, ("size", "not_round"))
+    if not retry.any():
+        return half, reason
+    core, _ = _regions(smooth, local_peak, 0.85, floor, polarity)
+    core_rc = _pixel_index(core["xy_px"], half_labels.shape)
+    # shape (M,): the half-maximum blob each core lies in (-1: none)
+    parent = half_labels[core_rc[:, 0], core_rc[:, 1]] - 1
+    has_parent = parent >= 0
+    clean = reason == ""
+    core_of_clean = has_parent & clean[np.maximum(parent, 0)]
+    # the 85 % contour lies inside the half-maximum one by about the edge's blur width, whatever the size
+    widen = float(np.median(half["radius_px"][parent[core_of_clean]] - core["radius_px"][core_of_clean])) if core_of_clean.any() else 0.0
+    # the size test on the core itself (smaller than its outline), then its radius widened to the outline's
+    core_reason = _reasons(core, max(d_min - 2 * widen, 0.0), d_max, noise, params, typical_contrast=_typical_contrast(half, clean))
+    core["radius_px"] = core["radius_px"] + widen
+    rescued = has_parent & retry[np.maximum(parent, 0)] & (core_reason == "")
+    if not rescued.any():
+        return half, reason
+    replaced = np.zeros(len(reason), bool)
+    replaced[parent[rescued]] = True
+    blobs = {k: np.concatenate([v[~replaced], core[k][rescued]]) for k, v in half.items()}
+    return blobs, np.concatenate([reason[~replaced], core_reason[rescued]])
+
+
+def _fov_clearance(points_xy: np.ndarray, hull_xy: np.ndarray) -> np.ndarray:
+    """Distance (px) from each point to the edge of the convex field outline, negative outside; (N,).
+
+    Inside a convex polygon the distance to its outline is the smallest
+    distance to the lines through its edges.
+    """
+    start, end = hull_xy, np.roll(hull_xy, -1, axis=0)
+    edge = end - start
+    length = np.hypot(edge[:, 0], edge[:, 1])
+    keep = length > 0
+    start, edge, length = start[keep], edge[keep], length[keep]
+    to_centre = hull_xy.mean(axis=0) - start[0]
+    inward = 1.0 if edge[0, 0] * to_centre[1] - edge[0, 1] * to_centre[0] >= 0 else -1.0
+    # shape (N, K): signed distance of each point to each edge line, positive on the inner side
+    cross = edge[None, :, 0] * (points_xy[:, None, 1] - start[None, :, 1]) - edge[None, :, 1] * (points_xy[:, None, 0] - start[None, :, 0])
+    return (inward * cross / length).min(axis=1) if len(length) else np.full(len(points_xy), np.inf)
+
+
+def _typical_contrast(blobs: dict, plausible: np.ndarray) -> float:
+    return float(np.median(blobs["contrast"][plausible])) if plausible.any() else 0.0
+
+
+def _reasons(blobs: dict, d_min, d_max, noise, params: DetectParams, typical_contrast: float | None = None) -> np.ndarray:
+    """The first rejection reason (other than the field of view) that applies to each blob; (N,) str, ``""`` if none."""
+    diameter = 2 * blobs["radius_px"]
+    reason = np.full(len(diameter), "", dtype="<U16")
+    elongated = (blobs["axis_ratio"] < params.min_axis_ratio) | (blobs["fill"] < params.min_fill)
+    # two touching beads: as wide as one bead, 1.3 to 2.4 beads' area
+    area_over_minor_disc = (diameter / np.maximum(blobs["minor_diameter_px"], 1e-6)) ** 2
+    merged = elongated & (area_over_minor_disc >= 1.3) & (area_over_minor_disc <= 2.4) & (blobs["minor_diameter_px"] >= d_min) & (blobs["minor_diameter_px"] <= d_max)
+    absolute_faint = (blobs["contrast"] < params.min_contrast) | (blobs["contrast"] < params.min_snr * noise)
+    in_size = (diameter >= d_min) & (diameter <= d_max)
+    if typical_contrast is None:
+        typical_contrast = _typical_contrast(blobs, in_size & ~elongated & ~absolute_faint)
+    faint = absolute_faint | (blobs["contrast"] < params.min_relative_contrast * typical_contrast)
+    # the first condition listed wins: fill the array from the last to the first
+    reason[faint] = "faint"
+    reason[elongated & ~merged] = "not_round"
+    reason[merged] = "merged"
+    reason[~in_size & ~merged] = "size"
+    return reason
+
+
+def _keep_reportable(blobs: dict, reason: np.ndarray, hull_xy, d_min, d_max, params: DetectParams) -> tuple[dict, np.ndarray]:
+    """Mark blobs cut by the field's edge, and drop those that are plainly background."""
+    reason = reason.copy()
+    clearance = _fov_clearance(blobs["xy_px"], hull_xy)
+    reason[clearance < blobs["radius_px"] + params.fov_margin_px] = "fov_edge"
+    diameter = 2 * blobs["radius_px"]
+    # blobs far from the bead size, or faint and of the wrong size, are background, not candidates worth reporting
+    keep = (diameter >= 0.5 * d_min) & (diameter <= 2 * d_max) & ~((reason == "faint") & ((diameter < d_min) | (diameter > d_max)))
+    return {k: v[keep] for k, v in blobs.items()}, reason[keep]
+
+
+def _estimate_diameter_range(half_log, half_mask, polarity, noise, params: DetectParams):
+    """Expected bead diameter range ``(min, max)`` in full-frame px, from the round strong blobs of the 2x-reduced log image.
+
+    Returns ``None`` when there is no such blob.
+    """
+    # averaging 2x2 pixels halves white noise
+    smooth, local_peak = _flatten(half_log, half_mask, polarity, 2.0, _MAX_ESTIMATE_DIAMETER_PX / 2)
+    blobs, _ = _regions(smooth, local_peak, 0.5, max(params.min_contrast, params.min_snr * noise / 2), polarity)
+    diameter = 2 * 2 * blobs["radius_px"]
+    strong = (blobs["contrast"] >= max(params.min_contrast, params.min_snr * noise / 2)) & (diameter >= 4)
+    round_ = (blobs["axis_ratio"] >= params.min_axis_ratio) & (blobs["fill"] >= params.min_fill)
+    good = strong & round_
+    if not good.any():
+        return None
+    # the typical bead: the median diameter of the round blobs whose contrast is near the strongest ones'
+    contrast = blobs["contrast"][good]
+    d = diameter[good]
+    beadlike = contrast >= 0.5 * np.percentile(contrast, 90)
+    typical = float(np.median(d[beadlike]))
+    near = d[beadlike][(d[beadlike] >= 0.5 * typical) & (d[beadlike] <= 2.5 * typical)]
+    # the reduced copy measures diameters a little small (its pixels average the blurred edges)
+    return max(3.0, 0.6 * min(typical, near.min())), 1.5 * max(typical, near.max())
