@@ -66,3 +66,40 @@ def render_overlay(radiograph, candidates, centroids=None) -> np.ndarray:
             if not ok:
                 cv2.putText(out, why, (int(x + a + 2), int(y + 4)), font, 0.8, colour, 1, cv2.LINE_AA)
     return out
+
+
+def render_label_overlay(radiograph, centroids, labels):
+    """Draw the labelling of one frame over it.
+
+    Parameters
+    ----------
+    radiograph : stages.artifacts.Radiograph
+    centroids : stages.centroid.Centroids
+        The detections ``labels`` was computed from.
+    labels : stages.label.Labels
+
+    Returns
+    -------
+    (H, W, 3) uint8 ndarray
+        BGR image: labelled detections green with their bead id, ambiguous orange, unmatched red,
+        rejected grey; the labelling summary in the top-left corner.
+    """
+    import cv2
+    import numpy as np
+
+    from stages.label import STATUS_AMBIGUOUS, STATUS_LABELLED, STATUS_UNMATCHED
+
+    out = cv2.cvtColor(stretch_to_uint8(radiograph.image), cv2.COLOR_GRAY2BGR)
+    colours = {STATUS_LABELLED: (60, 220, 60), STATUS_AMBIGUOUS: (0, 165, 255), STATUS_UNMATCHED: (60, 60, 255)}
+    ids = dict(zip(labels.det_index.tolist(), labels.bead_id.tolist()))
+    font = cv2.FONT_HERSHEY_PLAIN
+    for k, ((x, y), r, status) in enumerate(zip(centroids.xy_px, centroids.minor_px, labels.detection_status)):
+        if not np.all(np.isfinite([x, y])):
+            continue
+        colour = colours.get(int(status), (150, 150, 150))
+        radius = int(round(r)) if np.isfinite(r) and r > 0 else 4
+        cv2.circle(out, (int(round(x)), int(round(y))), radius, colour, 1, cv2.LINE_AA)
+        if k in ids:
+            cv2.putText(out, str(ids[k]), (int(x + radius + 1), int(y + 4)), font, 0.8, colour, 1, cv2.LINE_AA)
+    cv2.putText(out, labels.summary()[:120], (8, 16), font, 1.0, (255, 255, 255), 1, cv2.LINE_AA)
+    return out

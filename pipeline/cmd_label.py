@@ -1,0 +1,177 @@
+"""`fluorocal label DETECTIONS.csv`: give detected beads their phantom ids, outside any project (debugging).
+
+Input: the CSV written by `fluorocal detect` (columns
+file,frame,x,y,sigma_x,sigma_y,rho,major,minor[,angle,fit_rmse,score][,ok]; px,
+x right, y down, top-left pixel centre at 0,0; major/minor are semi-axes).
+Frames are labelled in sorted (file, frame) order; a frame whose labelling fails
+is reported on stderr and left out of the output.
+
+A 3D phantom needs --phantom (CSV id,x,y,z[,diameter][,role], mm) and the rough
+geometry --sid and --pixel-pitch; the pose comes from the marker beads (role
+"marker", larger than the others), from --seeds, or from the previous frame.
+A grid plate needs --lattice and --pitch instead; its ids encode the lattice
+indices, id = (i + 5000) * 10000 + (j + 5000).
+
+Seeds CSV: id,x,y[,file,frame] (px): a few beads identified by hand. Without
+file/frame columns they apply to the first frame.
+
+Output CSV: file,frame,id,x,y,sigma_x,sigma_y,rho (one row per labelled
+detection). With --overlay DIR, a PNG per frame (read from the detections'
+file column) with each detection drawn by status: labelled green with its id,
+ambiguous orange, unmatched red, rejected grey.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def add_parser(subparsers) -> None:
+    """Register the ``label`` subcommand."""
+    p = subparsers.add_parser("label", help="label detections with phantom bead ids (debugging)", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("detections", type=Path, metavar="DETECTIONS.csv", help="detections from `fluorocal detect`")
+    p.add_argument("--phantom", type=Path, metavar="CSV", help="phantom CSV id,x,y,z[,diameter][,role] (mm); required unless --lattice")
+    p.add_argument("--lattice", choices=("hex", "square"), help="grid plate lattice instead of a phantom CSV (default: none)")
+    p.add_argument("--pitch", type=float, default=0.0, metavar="MM", help="grid plate hole pitch in mm (default: 0, required with --lattice)")
+    p.add_argument("--sid", type=float, default=0.0, metavar="MM", help="source-image distance in mm, approximate (required for a 3D phantom)")
+    p.add_argument("--pixel-pitch", type=float, default=0.0, metavar="MM", help="detector pixel pitch in mm, approximate (required for a 3D phantom)")
+    p.add_argument("--image-size", type=int, nargs=2, metavar=("W", "H"), help="frame size in px; the principal point is its centre (default: centre of the detections)")
+    p.add_argument("--seeds", type=Path, metavar="CSV", help="seeds id,x,y[,file,frame] (default: none)")
+    p.add_argument("--out", type=Path, required=True, metavar="CSV", help="labels CSV to write")
+    p.add_argument("--overlay", type=Path, metavar="DIR", help="write a PNG per frame with the ids drawn (default: none)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    """Label every frame of the detections file; return the exit code."""
+    from stages.artifacts import Phantom
+    from stages.errors import InputError
+    from stages.io import read_phantom, write_csv
+    from stages.label import LabelParams, label_sequence
+
+    frames = _read_detections(args.detections)
+    if args.lattice:
+        if not args.pitch > 0:
+            raise InputError("--pitch must be > 0 mm with --lattice")
+        phantom = Phantom([], [], [], [], args.lattice, args.pitch)
+    elif args.phantom is None:
+        raise InputError("give --phantom CSV (3D phantom) or --lattice and --pitch (grid plate)")
+    else:
+        phantom = read_phantom(args.phantom)
+        if not (args.sid > 0 and args.pixel_pitch > 0):
+            raise InputError("--sid and --pixel-pitch (mm, > 0) are needed to label a 3D phantom")
+    keys = sorted(frames)
+    seeds = _read_seeds(args.seeds, keys) if args.seeds else {}
+    params = LabelParams(
+        source_image_distance_mm=args.sid, pixel_pitch_mm=args.pixel_pitch, image_size_px=tuple(args.image_size or ()),
+    )
+    by_file: dict[str, list] = {}
+    for key in keys:
+        by_file.setdefault(key[0], []).append(key)
+    rows, n_failed = [], 0
+    for file, file_keys in by_file.items():
+        labels = label_sequence([frames[k] for k in file_keys], phantom, params, {i: seeds[k] for i, k in enumerate(file_keys) if k in seeds})
+        for (f, frame), lab in zip(file_keys, labels):
+            where = f"{f}[{frame}]"
+            if not lab.ok:
+                n_failed += 1
+                log.warning("%s: %s", where, lab.summary())
+                if args.overlay:
+                    _write_overlay(args.overlay / f"{Path(f).stem}_{frame:03d}_labels.png", f, frame, frames[(f, frame)], lab)
+                continue
+            log.info("%s: %s", where, lab.summary())
+            if args.overlay:
+                _write_overlay(args.overlay / f"{Path(f).stem}_{frame:03d}_labels.png", f, frame, frames[(f, frame)], lab)
+            header, table = lab.to_table()
+            rows.extend([f, frame, *r] for r in table)
+    write_csv(args.out, ["file", "frame", *header], rows)
+    log.info("wrote %d labels from %d of %d frames to %s", len(rows), len(keys) - n_failed, len(keys), args.out)
+    return 0
+
+
+def _read_detections(path: Path) -> dict:
+    """``{(file, frame): Centroids}`` from a detections CSV."""
+    import numpy as np
+
+    from stages.centroid import Centroids
+    from stages.errors import InputError
+
+    need = ("file", "frame", "x", "y", "sigma_x", "sigma_y", "rho", "major", "minor")
+    grouped: dict = {}
+    for line_no, row in _csv_rows(path, need):
+        try:
+            key = (row["file"], int(row["frame"]))
+            values = [float(row[c]) for c in need[2:]]
+        except ValueError as exc:
+            raise InputError(f"{path}:{line_no}: not a number ({exc})") from exc
+        ok = row.get("ok", "1").strip().lower() not in ("0", "false", "no")
+        grouped.setdefault(key, []).append(values + [float(ok)])
+    if not grouped:
+        raise InputError(f"{path}: detections CSV has no rows")
+    out = {}
+    for key, values in grouped.items():
+        a = np.array(values)
+        n = len(a)
+        ok = a[:, 7].astype(bool) & np.all(np.isfinite(a[:, :7]), axis=1)
+        out[key] = Centroids(
+            a[:, 0:2], a[:, 2], a[:, 3], a[:, 4], a[:, 5], a[:, 6], np.zeros(n), np.zeros(n), np.zeros(n, np.int64), np.zeros(n),
+            ok, np.where(ok, "", "input"), np.arange(n), key[0], key[1],
+        )
+    return out
+
+
+def _read_seeds(path: Path, keys: list) -> dict:
+    """``{(file, frame): ((id, x, y), ...)}``; rows without file/frame go to the first frame."""
+    from stages.errors import InputError
+
+    seeds: dict = {}
+    for line_no, row in _csv_rows(path, ("id", "x", "y")):
+        try:
+            seed = (float(int(row["id"])), float(row["x"]), float(row["y"]))
+            key = (row["file"], int(row["frame"])) if row.get("file") else keys[0]
+        except ValueError as exc:
+            raise InputError(f"{path}:{line_no}: not a number ({exc})") from exc
+        if key not in keys:
+            raise InputError(f"{path}:{line_no}: frame {key} is not in the detections")
+        seeds.setdefault(key, []).append(seed)
+    return {k: tuple(v) for k, v in seeds.items()}
+
+
+def _csv_rows(path: Path, need: tuple):
+    from stages.errors import InputError
+
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        header = [h.strip() for h in (reader.fieldnames or [])]
+        missing = [c for c in need if c not in header]
+        if missing:
+            raise InputError(f"{path}: missing column(s) {','.join(missing)}")
+        for line_no, row in enumerate(reader, start=2):
+            yield line_no, {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
+
+
+def _write_overlay(path: Path, file: str, frame_index: int, centroids, labels) -> None:
+    import cv2
+
+    from stages.errors import InputError
+    from stages.io import atomic_write, read_frames
+
+    frames = read_frames(file)
+    if not 0 <= frame_index < len(frames):
+        raise InputError(f"{file}: has no frame {frame_index} for the overlay")
+    from pipeline.overlay import render_label_overlay
+
+    image = render_label_overlay(frames[frame_index], centroids, labels)
+
+    def _write(tmp):
+        if not cv2.imwrite(tmp, image):
+            raise InputError(f"{path}: cannot write the overlay PNG")
+
+    atomic_write(path, _write)

@@ -1,0 +1,35 @@
+"""Debug overlays for ``fluorocal inspect CONFIG STAGE --frame N``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from stages.errors import InputError
+from stages.io import atomic_write
+
+
+def write_stage_overlay(runner, stage: str, frame: int) -> Path:
+    """Draw the overlay of a per-frame stage for frame ``frame`` into ``<output>/overlays/`` and return its path.
+
+    Computes (and caches) what the overlay needs if it is not cached yet.
+    """
+    import cv2
+
+    from pipeline.overlay import render_label_overlay, render_overlay
+
+    radiograph = runner.get("frame", frame)
+    if stage == "detect":
+        image = render_overlay(radiograph, runner.get("detect", frame))
+    elif stage == "centroid":
+        image = render_overlay(radiograph, runner.get("detect", frame), runner.get("centroid", frame))
+    elif stage == "label":
+        image = render_label_overlay(radiograph, runner.get("centroid", frame), runner.get("label", frame))
+    else:
+        raise InputError(f"stage {stage!r} has no per-frame overlay; use detect, centroid or label")
+    unit = runner.units[frame]
+    path = Path(runner.config.output_dir) / "overlays" / f"{stage}_{runner.config.systems[unit.system].name}_{unit.exposure:04d}.png"
+    ok, png = cv2.imencode(".png", image)
+    if not ok:
+        raise InputError(f"{path}: PNG encoding failed")
+    atomic_write(path, lambda tmp: Path(tmp).write_bytes(png.tobytes()))
+    return path

@@ -1,0 +1,496 @@
+"""Tests of stages/label.py: cube phantoms from markers, seeds and a prior pose; grid plates; failures.
+
+Ground truth comes from the simulator's geometry (``simulate(render=False)``):
+the distorted outline centre of every visible bead, turned into detection-like
+centroids by :func:`detections_from_truth` (heavily overlapping beads merge into
+one blob or vanish, as a detector would make of them). One rendered frame goes
+through detect and centroid as well.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from stages._geometry import project, quat_to_matrix, rotvec_to_quat
+from stages.artifacts import Phantom
+from stages.centroid import Centroids
+from stages.errors import InputError
+from stages.label import (
+    STATUS_AMBIGUOUS,
+    STATUS_LABELLED,
+    STATUS_REJECTED,
+    Labels,
+    LabelParams,
+    label_beads,
+    label_sequence,
+    lattice_id,
+    lattice_index,
+    lattice_xyz_mm,
+)
+from stages.simulate import SimulateParams, simulate
+
+
+def make_centroids(xy_px, diameter_px, *, sigma_px=0.05, major_px=None) -> Centroids:
+    """A Centroids artifact of round detections at ``xy_px`` with apparent diameters ``diameter_px``."""
+    xy_px = np.asarray(xy_px, dtype=np.float64).reshape(-1, 2)
+    n = len(xy_px)
+    minor = np.broadcast_to(np.asarray(diameter_px, dtype=np.float64) / 2, (n,))
+    major = minor if major_px is None else np.asarray(major_px, dtype=np.float64)
+    return Centroids(
+        xy_px, np.full(n, sigma_px), np.full(n, sigma_px), np.zeros(n), major, minor, np.zeros(n), np.full(n, 0.05),
+        np.full(n, 40, np.int64), np.full(n, 50.0), np.ones(n, bool), np.full(n, ""), np.arange(n),
+    )
+
+
+def detections_from_truth(ft, rng, *, noise_px=0.05, dropout=0.01, merged_keep=0.5, n_false=1, image_size_px=1024):
+    """Detection-like centroids of one simulated frame, and the true bead id of each (-1: not one bead).
+
+    Beads whose outlines overlap by more than touching (centres closer than their mean diameter) merge
+    into one blob, kept with probability ``merged_keep`` at the area-weighted centre with the larger
+    minor axis; touching beads get 4x the centroid noise; beads at the field edge are not detected;
+    ``dropout`` of the rest are missed; ``n_false`` spurious detections are added away from the beads.
+    """
+    xy0, d0 = ft.outline_xy_px, ft.diameter_px
+    n = len(xy0)
+    pairs = cKDTree(xy0).query_pairs(float(d0.max()), output_type="ndarray")
+    dist = np.linalg.norm(xy0[pairs[:, 0]] - xy0[pairs[:, 1]], axis=1)
+    mean_d = 0.5 * (d0[pairs[:, 0]] + d0[pairs[:, 1]])
+    merge = pairs[dist < mean_d]
+    touching = np.zeros(n, bool)
+    touching[pairs[dist < 1.15 * mean_d].ravel()] = True
+    _, comp = connected_components(coo_matrix((np.ones(len(merge)), (merge[:, 0], merge[:, 1])), shape=(n, n)), directed=False)
+    xy, ids, minor, major = [], [], [], []
+    for c in np.unique(comp):
+        m = np.flatnonzero(comp == c)
+        if ft.field_edge[m].any():
+            continue
+        if len(m) == 1:
+            if rng.random() < dropout:
+                continue
+            i = m[0]
+            xy.append(xy0[i] + rng.normal(scale=noise_px * (4 if touching[i] else 1), size=2))
+            ids.append(ft.ids[i])
+            size = d0[i] * rng.uniform(0.97, 1.03)
+            minor.append(size / 2)
+            major.append(size / 2)
+        elif rng.random() < merged_keep:
+            w = d0[m] ** 2
+            xy.append((xy0[m] * w[:, None]).sum(0) / w.sum())
+            ids.append(-1)
+            minor.append(d0[m].max() / 2)
+            major.append((np.ptp(xy0[m], axis=0).max() + d0[m].max()) / 2)
+    xy, ids, minor, major = np.array(xy).reshape(-1, 2), np.array(ids, np.int64), np.array(minor), np.array(major)
+    if n_false:
+        # spurious blobs (dust, noise) away from every bead: one on a missed bead would be labelled as it
+        r = rng.uniform(0, 0.45 * image_size_px, 50 * n_false)
+        a = rng.uniform(0, 2 * np.pi, 50 * n_false)
+        spurious = image_size_px / 2 + np.column_stack([r * np.cos(a), r * np.sin(a)])
+        spurious = spurious[cKDTree(xy0).query(spurious)[0] > d0.max()][:n_false]
+        n_false = len(spurious)
+        xy = np.vstack([xy, spurious])
+        ids = np.append(ids, np.full(n_false, -1))
+        minor = np.append(minor, np.full(n_false, np.median(minor)))
+        major = np.append(major, np.full(n_false, np.median(minor)))
+    perm = rng.permutation(len(xy))
+    return make_centroids(xy[perm], 2 * minor[perm], sigma_px=noise_px, major_px=major[perm]), ids[perm]
+
+
+def unambiguous_ids(ft, factor: float = 1.0) -> np.ndarray:
+    """Ids of visible beads away from the field edge with no other outline centre within ``factor`` mean diameters."""
+    xy0, d0 = ft.outline_xy_px, ft.diameter_px
+    d, i = cKDTree(xy0).query(xy0, k=2)
+    clear = d[:, 1] >= factor * 0.5 * (d0 + d0[i[:, 1]])
+    return ft.ids[clear & ~ft.field_edge]
+
+
+def without_roles(phantom: Phantom) -> Phantom:
+    return Phantom(phantom.ids, phantom.xyz_mm, phantom.diameter_mm, np.full(phantom.n_beads, ""))
+
+
+def seeds_from_truth(ft, rng, n=6, click_noise_px=1.0):
+    """``n`` unambiguous beads spread over the frame, as a user would click them (1 px off)."""
+    clear = unambiguous_ids(ft)
+    pos = {t: k for k, t in enumerate(ft.ids)}
+    pick = clear[np.linspace(0, len(clear) - 1, n).astype(int)]
+    return tuple((float(i), *(ft.outline_xy_px[pos[i]] + rng.normal(scale=click_noise_px, size=2))) for i in pick)
+
+
+@pytest.fixture(scope="module")
+def sim():
+    """Two systems, three exposures each, default cube and strong distortion: geometry and truth only."""
+    return simulate(SimulateParams(n_frames=3, n_systems=2, seed=11), render=False)
+
+
+@pytest.fixture(scope="module")
+def params(sim):
+    p = sim.params
+    return LabelParams(source_image_distance_mm=p.source_image_distance_mm, pixel_pitch_mm=p.pixel_pitch_mm, image_size_px=(p.image_size_px, p.image_size_px))
+
+
+def all_frames(sim):
+    return [ft for per_system in sim.truth.frames for ft in per_system]
+
+
+def check_against_truth(lab: Labels, ids: np.ndarray, ft, *, min_fraction: float):
+    """No wrong label; ``min_fraction`` of the unambiguous, detected beads labelled."""
+    assert lab.ok, lab.reason
+    assert np.array_equal(ids[lab.det_index], lab.bead_id), "a detection got another bead's id"
+    eligible = np.intersect1d(unambiguous_ids(ft), ids)
+    assert np.isin(eligible, lab.bead_id).mean() >= min_fraction
+
+
+# --------------------------------------------------------------------------------------------
+# shapes, parameters, errors
+# --------------------------------------------------------------------------------------------
+
+
+def test_params_are_validated():
+    with pytest.raises(InputError, match="gate_bead_diameters"):
+        LabelParams(gate_bead_diameters=0)
+    with pytest.raises(InputError, match="seeds"):
+        LabelParams(seeds=((1.0, 2.0),))
+    with pytest.raises(InputError, match="image_size_px"):
+        LabelParams(image_size_px=(1024,))
+
+
+def test_3d_phantom_needs_geometry(sim):
+    c = make_centroids(np.zeros((5, 2)), 20.0)
+    with pytest.raises(InputError, match="source_image_distance_mm"):
+        label_beads(c, sim.phantom, LabelParams())
+
+
+def test_unknown_seed_id_raises(sim, params):
+    ft = sim.truth.frames[0][0]
+    c, _ = detections_from_truth(ft, np.random.default_rng(0))
+    with pytest.raises(InputError, match="seeds"):
+        label_beads(c, sim.phantom, LabelParams(source_image_distance_mm=1100, pixel_pitch_mm=0.25, seeds=((99999.0, 1.0, 2.0),) * 4))
+
+
+def test_empty_frame_fails_with_shapes(sim, params):
+    lab = label_beads(make_centroids(np.empty((0, 2)), 20.0), sim.phantom, params)
+    assert not lab.ok and "usable detections" in lab.reason
+    assert lab.xy_px.shape == (0, 2) and lab.sigma_px.shape == (0, 3) and lab.detection_status.shape == (0,)
+    assert lab.summary().startswith("labelling failed")
+    assert lab.to_table() == (["id", "x", "y", "sigma_x", "sigma_y", "rho"], [])
+
+
+def test_lattice_ids_round_trip():
+    ij = np.array([[0, 0], [-40, 17], [123, -999]])
+    assert np.array_equal(lattice_index(lattice_id(ij)), ij)
+    # hexagonal neighbours are one pitch apart
+    xyz = lattice_xyz_mm(np.array([[0, 0], [1, 0], [0, 1], [-1, 1]]), "hex", 2.5)
+    assert np.allclose(np.linalg.norm(xyz[1:] - xyz[0], axis=1), 2.5)
+
+
+# --------------------------------------------------------------------------------------------
+# cube phantom, ground truth
+# --------------------------------------------------------------------------------------------
+
+
+def test_markers_label_simulated_frames(sim, params):
+    rng = np.random.default_rng(1)
+    for ft in all_frames(sim):
+        c, ids = detections_from_truth(ft, rng)
+        lab = label_beads(c, sim.phantom, params)
+        # >= 97 %: the labeller also leaves out borderline pairs (1.00-1.05 diameters apart) whose predicted
+        # outlines, from the nominal phantom and a low-order distortion fit, come out just below one diameter
+        check_against_truth(lab, ids, ft, min_fraction=0.97)
+        assert lab.pose_source == "markers"
+        # the labelling pose is close to the truth (the nominal phantom and the assumed IOP differ from the true ones)
+        angle = 2 * np.degrees(np.arccos(min(1.0, abs(float(np.dot(lab.q, ft.q))))))
+        assert angle < 1.0
+        assert lab.rms_corrected_px < 1.5 < lab.rms_px  # the strong distortion is visible, and absorbed
+        status = lab.detection_status
+        assert (status == STATUS_LABELLED).sum() == lab.n_labelled == len(lab)
+        # merged blobs are elongated: rejected as detections of one bead; every other detection is counted once
+        elongated = c.major_px / c.minor_px > params.max_axis_ratio
+        assert np.array_equal(status == STATUS_REJECTED, elongated)
+        assert lab.n_labelled + lab.n_ambiguous + lab.n_unmatched == len(c) - elongated.sum()
+
+
+def test_rough_geometry(sim, params):
+    """Source-image distance and pixel pitch 8 % and 5 % off (c 12 % off): c is refined while labelling."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(13)
+    rough = replace(params, source_image_distance_mm=0.92 * params.source_image_distance_mm, pixel_pitch_mm=1.05 * params.pixel_pitch_mm)
+    for ft in (sim.truth.frames[0][2], sim.truth.frames[1][2]):
+        c, ids = detections_from_truth(ft, rng)
+        lab = label_beads(c, sim.phantom, rough)
+        check_against_truth(lab, ids, ft, min_fraction=0.97)
+        true_c = sim.truth.systems[ft.system].iop_px[2]
+        assert abs(lab.iop[2] / true_c - 1) < 0.05  # from 12 % off to within a few %: depth of the cube is limited
+
+
+def test_ambiguous_beads_are_left_out(sim, params):
+    """No labelled detection has another bead's true outline within 0.9 mean diameters."""
+    rng = np.random.default_rng(2)
+    ft = sim.truth.frames[1][0]
+    c, ids = detections_from_truth(ft, rng, merged_keep=1.0)
+    lab = label_beads(c, sim.phantom, params)
+    assert lab.ok and lab.n_ambiguous > 0
+    assert not np.any(ids[lab.detection_status == STATUS_LABELLED] < 0), "a merged blob was labelled"
+    pos = {t: k for k, t in enumerate(ft.ids)}
+    tree = cKDTree(ft.outline_xy_px)
+    for b in lab.bead_id:
+        k = pos[b]
+        d, j = tree.query(ft.outline_xy_px[k], k=2)
+        assert d[1] >= 0.9 * 0.5 * (ft.diameter_px[k] + ft.diameter_px[j[1]])
+
+
+def test_two_or_fewer_markers(sim, params):
+    """Fewer than three marker detections: neighbouring beads complete the pose; never a wrong label."""
+    rng = np.random.default_rng(12)
+    markers = sim.phantom.ids[sim.phantom.role == "marker"]
+    n_ok = {2: 0, 1: 0, 0: 0}
+    for ft in sim.truth.frames[0][:2]:
+        c, ids = detections_from_truth(ft, rng)
+        found = np.flatnonzero(np.isin(ids, markers))
+        for n_left in (2, 1, 0):
+            keep = np.ones(len(ids), bool)
+            keep[found[n_left:]] = False
+            sub = make_centroids(c.xy_px[keep], 2 * c.minor_px[keep], major_px=c.major_px[keep])
+            lab = label_beads(sub, sim.phantom, params)
+            if lab.ok:
+                n_ok[n_left] += 1
+                check_against_truth(lab, ids[keep], ft, min_fraction=0.97)
+            else:
+                assert lab.n_labelled == 0 and lab.reason
+    assert n_ok[2] == 2  # two markers are enough on the default cube
+
+
+def test_hand_built_overlapping_pair_is_ambiguous():
+    """A small 3D phantom where two beads project onto each other: both are excluded, the rest labelled."""
+    rng = np.random.default_rng(3)
+    g = np.arange(-2, 3) * 12.0
+    front = np.array([[x, y, -30.0] for x in g for y in g])
+    back = front[:, :] + [6.0, 6.0, 60.0]
+    xyz = np.vstack([front, back])
+    diameter = np.full(len(xyz), 3.0)
+    role = np.full(len(xyz), "", dtype="<U6")
+    marker = [0, 4, 20, 30, 38]
+    diameter[marker], role[marker] = 5.0, "marker"
+    q = rotvec_to_quat(np.array([0.1, -0.2, 0.05]))
+    source = -quat_to_matrix(q).T @ np.array([3.0, -4.0, 700.0])
+    # bead 150 (index 50) sits 50 mm behind bead 112 (index 12) on the same ray from the source
+    ray = (xyz[12] - source) / np.linalg.norm(xyz[12] - source)
+    xyz = np.vstack([xyz, xyz[12] + 50.0 * ray])
+    diameter, role = np.append(diameter, 3.0), np.append(role, "")
+    phantom = Phantom(np.arange(len(xyz)) + 100, xyz, diameter, role)
+    iop = np.array([511.5, 511.5, 4000.0])
+    xy = project(xyz, q, source, iop)
+    z = (xyz - source) @ quat_to_matrix(q)[2]
+    size = iop[2] * diameter / z
+    keep = np.ones(len(xyz), bool)
+    keep[50] = False  # the pair is one blob in the image, detected at bead 112's place
+    c = make_centroids(xy[keep] + rng.normal(scale=0.05, size=(keep.sum(), 2)), size[keep])
+    lab = label_beads(c, phantom, LabelParams(source_image_distance_mm=1000, pixel_pitch_mm=0.25, image_size_px=(1024, 1024), min_labelled=6))
+    assert lab.ok, lab.reason
+    assert 112 not in lab.bead_id and 150 not in lab.bead_id
+    assert lab.detection_status[12] == STATUS_AMBIGUOUS
+    assert np.array_equal(lab.bead_id, phantom.ids[np.flatnonzero(keep)][lab.det_index])
+    assert lab.n_labelled == keep.sum() - 1
+
+
+def test_seeds_without_markers(sim, params):
+    rng = np.random.default_rng(4)
+    phantom = without_roles(sim.phantom)
+    for ft in sim.truth.frames[0]:
+        c, ids = detections_from_truth(ft, rng)
+        no_seeds = label_beads(c, phantom, params)
+        assert not no_seeds.ok and "marker" in no_seeds.reason and len(no_seeds) == 0
+        lab = label_beads(c, phantom, LabelParams(**{**params.__dict__, "seeds": seeds_from_truth(ft, rng)}))
+        check_against_truth(lab, ids, ft, min_fraction=0.97)
+        assert lab.pose_source == "seeds"
+
+
+def test_three_seeds(sim, params):
+    """Three seeds: the P3P solutions are told apart on all beads."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(14)
+    ft = sim.truth.frames[1][2]
+    c, ids = detections_from_truth(ft, rng)
+    lab = label_beads(c, without_roles(sim.phantom), replace(params, seeds=seeds_from_truth(ft, rng, n=3, click_noise_px=0.5)))
+    check_against_truth(lab, ids, ft, min_fraction=0.97)
+
+
+def test_prior_pose_near_and_far(sim, params):
+    """A prior close to the frame's pose labels it; one several rows off is refused, not followed."""
+    rng = np.random.default_rng(5)
+    phantom = without_roles(sim.phantom)
+    ft = sim.truth.frames[1][1]
+    c, ids = detections_from_truth(ft, rng)
+    near = (ft.q, ft.source_mm + [1.0, -1.0, 0.5])
+    lab = label_beads(c, phantom, params, prior_pose=near)
+    check_against_truth(lab, ids, ft, min_fraction=0.97)
+    assert lab.pose_source == "prior"
+    far = (ft.q, ft.source_mm + [0.0, 0.0, 12.0])  # 12 mm along the walls' vertical axis: three rows off
+    refused = label_beads(c, phantom, params, prior_pose=far)
+    assert not refused.ok
+    assert refused.n_labelled == 0
+
+
+def test_random_points_fail(sim, params):
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(100, 900, (400, 2))
+    size = np.where(rng.random(400) < 0.02, 30.0, 20.0)
+    lab = label_beads(make_centroids(xy, size), sim.phantom, params)
+    assert not lab.ok and lab.n_labelled == 0
+    assert lab.n_unmatched == 400
+
+
+def test_sequence_propagates_seeds(sim, params):
+    """Frames of a sequence without markers: the first is seeded, the next ones follow from small motions."""
+    rng = np.random.default_rng(7)
+    phantom = without_roles(sim.phantom)
+    ft = sim.truth.frames[0][0]
+    c0, ids0 = detections_from_truth(ft, rng)
+    # the "next frames": the same view with the detections shifted by 2 and 4 px (small motion)
+    shifted = [make_centroids(c0.xy_px + s, 2 * c0.minor_px, major_px=c0.major_px) for s in (2.0, 4.0)]
+    labs = label_sequence([c0, *shifted], phantom, params, {0: seeds_from_truth(ft, rng)})
+    assert [lab.pose_source for lab in labs] == ["seeds", "prior", "prior"]
+    for lab in labs:
+        assert lab.ok and np.array_equal(ids0[lab.det_index], lab.bead_id)
+
+
+def test_rendered_frame_through_detection():
+    """One rendered frame through detect and centroid: every label agrees with the nearest true outline."""
+    from stages.centroid import CentroidParams, centroid_beads
+    from stages.detect import DetectParams, detect_beads
+
+    p = SimulateParams(n_frames=1, seed=5)
+    data = simulate(p)
+    radiograph, ft = data.frames[0][0], data.truth.frames[0][0]
+    c = centroid_beads(radiograph, detect_beads(radiograph, DetectParams()), CentroidParams())
+    lab = label_beads(c, data.phantom, LabelParams(source_image_distance_mm=p.source_image_distance_mm, pixel_pitch_mm=p.pixel_pitch_mm, image_size_px=(p.image_size_px,) * 2))
+    assert lab.ok, lab.reason
+    d, i = cKDTree(ft.outline_xy_px).query(lab.xy_px)
+    # the nearest true outline is unmistakable (a few centroids of crowded beads are 1-2 px off) and is the label
+    assert np.all(d < 0.25 * ft.diameter_px[i])
+    assert np.array_equal(ft.ids[i], lab.bead_id)
+    assert lab.n_labelled >= 0.9 * c.ok.sum()
+
+
+# --------------------------------------------------------------------------------------------
+# grid plates
+# --------------------------------------------------------------------------------------------
+
+
+def test_simulated_grid_has_no_slips():
+    """The lattice indices are an exact lattice map of the true hole positions (no slip anywhere)."""
+    p = SimulateParams(phantom="grid", n_frames=1, seed=2)
+    data = simulate(p, render=False)
+    ft = data.truth.frames[0][0]
+    rng = np.random.default_rng(8)
+    c, ids = detections_from_truth(ft, rng, n_false=0)
+    lab = label_beads(c, data.phantom, LabelParams())
+    assert lab.ok and lab.n_labelled >= 0.98 * len(c)
+    true_xy = data.phantom.xyz_mm[np.searchsorted(data.phantom.ids, ids[lab.det_index]), :2]
+    # nominal plate coordinates = similarity of the labelled lattice coordinates (a lattice symmetry + shift)
+    A = np.column_stack([lab.object_xyz_mm[:, :2], np.ones(len(lab))])
+    coef, *_ = np.linalg.lstsq(A, true_xy, rcond=None)
+    assert np.abs(A @ coef - true_xy).max() < 1e-6
+
+
+def homography_radial_rms(object_xy: np.ndarray, image_xy: np.ndarray, centre_xy: np.ndarray) -> float:
+    """RMS (px) of a homography followed by a two-term radial distortion about ``centre_xy``, fitted by least squares."""
+    import cv2
+    from scipy.optimize import least_squares
+
+    H, _ = cv2.findHomography(object_xy, image_xy, 0)
+    scale = float(np.abs(image_xy - centre_xy).max())
+
+    def model(p):
+        h = cv2.perspectiveTransform(object_xy[None], np.append(p[:8], 1.0).reshape(3, 3))[0]
+        d = h - centre_xy
+        r2 = (d**2).sum(1) / scale**2
+        return centre_xy + d * (1 + p[8] * r2 + p[9] * r2**2)[:, None]
+
+    fit = least_squares(lambda p: (model(p) - image_xy).ravel(), np.append((H / H[2, 2]).ravel()[:8], [0.0, 0.0]), x_scale="jac")
+    return float(np.sqrt(np.mean(np.sum((model(fit.x) - image_xy) ** 2, axis=1))))
+
+
+@pytest.mark.parametrize("name", ["grid_centered_0", "grid_orbit_30"])
+def test_real_grid_frames(arcadis_dir, name):
+    from stages.centroid import CentroidParams, centroid_beads
+    from stages.detect import DetectParams, detect_beads
+    from stages.io import read_frames
+
+    radiograph = read_frames(arcadis_dir / f"{name}.dcm")[0]
+    c = centroid_beads(radiograph, detect_beads(radiograph, DetectParams(polarity="bright")), CentroidParams())
+    lab = label_beads(c, Phantom([], [], [], [], "hex", 2.0), LabelParams())
+    assert lab.ok and c.ok.sum() > 3000
+    assert lab.n_labelled >= 0.98 * c.ok.sum()
+    assert len(np.unique(lab.bead_id)) == len(lab)
+    # a slip would leave residuals of a whole hole spacing (~15 px); distortion beyond radial leaves < 1 px
+    rms = homography_radial_rms(lab.object_xyz_mm[:, :2], lab.xy_px, np.array([511.5, 511.5]))
+    assert rms < 1.0
+
+
+def test_square_grid_with_gaps_and_distortion():
+    """A square plate seen through a pincushion with a hole-free patch and a round field: no slip across the gap."""
+    rng = np.random.default_rng(9)
+    ij = np.array([(i, j) for i in range(-40, 41) for j in range(-40, 41)])
+    xy = 511.5 + 13.0 * (ij @ np.array([[np.cos(0.2), np.sin(0.2)], [-np.sin(0.2), np.cos(0.2)]]))
+    r2 = np.sum((xy - 511.5) ** 2, axis=1) / 480.0**2
+    xy = 511.5 + (xy - 511.5) * (1 + 0.03 * r2)[:, None]  # ~15 px of pincushion at the rim
+    keep = (np.linalg.norm(xy - 511.5, axis=1) < 470) & (np.linalg.norm(xy - [650, 400], axis=1) > 25)
+    keep &= rng.random(len(xy)) > 0.02
+    xy, ij = xy[keep] + rng.normal(scale=0.05, size=(keep.sum(), 2)), ij[keep]
+    lab = label_beads(make_centroids(xy, 6.0), Phantom([], [], [], [], "square", 1.0), LabelParams())
+    assert lab.ok and lab.n_labelled >= 0.99 * len(xy)
+    got = lattice_index(lab.bead_id)
+    truth = ij[lab.det_index]
+    # the indices differ from the truth by a lattice symmetry and a shift, the same everywhere
+    A = np.column_stack([got, np.ones(len(got))])
+    coef, *_ = np.linalg.lstsq(A, truth.astype(float), rcond=None)
+    assert np.abs(A @ coef - truth).max() < 1e-9
+
+
+def test_cli_label(tmp_path, sim):
+    """`fluorocal label` on a detections CSV: the labels CSV holds the right ids; a missing file is a one-line error."""
+    from pipeline.cli import main
+    from stages.io import write_csv
+
+    rng = np.random.default_rng(10)
+    ft = sim.truth.frames[0][1]
+    c, ids = detections_from_truth(ft, rng)
+    header = "file,frame,x,y,sigma_x,sigma_y,rho,major,minor,angle,fit_rmse,score".split(",")
+    rows = [["a.tif", 0, *c.xy_px[i], c.sigma_x[i], c.sigma_y[i], c.rho[i], c.major_px[i], c.minor_px[i], 0.0, 0.05, 9.0] for i in range(len(c))]
+    write_csv(tmp_path / "det.csv", header, rows)
+    ph = without_roles(sim.phantom)
+    write_csv(tmp_path / "phantom.csv", ["id", "x", "y", "z", "diameter"], [[int(i), *x, d] for i, x, d in zip(ph.ids, ph.xyz_mm, ph.diameter_mm)])
+    write_csv(tmp_path / "seeds.csv", ["id", "x", "y"], [[int(s[0]), s[1], s[2]] for s in seeds_from_truth(ft, rng)])
+    p = sim.params
+    argv = ["-q", "label", str(tmp_path / "det.csv"), "--phantom", str(tmp_path / "phantom.csv"), "--sid", str(p.source_image_distance_mm),
+            "--pixel-pitch", str(p.pixel_pitch_mm), "--seeds", str(tmp_path / "seeds.csv"), "--out", str(tmp_path / "labels.csv")]
+    assert main(argv) == 0
+    import csv
+
+    with open(tmp_path / "labels.csv") as fh:
+        out = list(csv.DictReader(fh))
+    assert len(out) > 200
+    d, i = cKDTree(c.xy_px).query([[float(r["x"]), float(r["y"])] for r in out])
+    assert d.max() < 1e-5  # 6 decimals in the CSV
+    assert np.array_equal(ids[i], [int(r["id"]) for r in out])
+    assert main(["-q", "label", str(tmp_path / "missing.csv"), "--lattice", "hex", "--pitch", "2", "--out", str(tmp_path / "x.csv")]) == 2
+
+
+def test_label_overlay(sim, params):
+    from pipeline.overlay import render_label_overlay
+    from stages.artifacts import Radiograph
+
+    rng = np.random.default_rng(15)
+    ft = sim.truth.frames[0][0]
+    c, _ = detections_from_truth(ft, rng)
+    lab = label_beads(c, sim.phantom, params)
+    image = render_label_overlay(Radiograph(np.full((1024, 1024), 1000.0, np.float32), 12), c, lab)
+    assert image.shape == (1024, 1024, 3) and image.dtype == np.uint8
+    x, y = np.round(c.xy_px[lab.det_index[0]]).astype(int)
+    patch = image[y - 15 : y + 16, x - 15 : x + 16].astype(int)
+    assert np.any(patch[..., 1] - patch[..., 2] > 100)  # a green (labelled) outline around the first label
