@@ -246,8 +246,16 @@ def montage(data, *, n_max: int = 4, tile_px: int = 256):
             frames = data.frames[s]
             if frames:
                 picks.append(frames[(k * len(frames)) // per_system])
+    return tile_row(picks[:n_max], tile_px=tile_px)
+
+
+def tile_row(frames, *, tile_px: int = 256):
+    """Frames side by side as one 8-bit image, each downscaled to ``tile_px`` square and contrast-stretched."""
+    import cv2
+    import numpy as np
+
     tiles = []
-    for frame in picks[:n_max]:
+    for frame in frames:
         img = frame.image
         lo, hi = np.percentile(img, [1, 99.5])
         tile = cv2.resize(img, (tile_px, tile_px), interpolation=cv2.INTER_AREA)
