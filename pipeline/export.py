@@ -1,18 +1,37 @@
 """Outputs of ``fluorocal run`` in the project's output directory.
 
+- ``<stage>.csv`` for each per-frame stage that has a table (detections,
+  centroids, labels), over all frames;
+- ``calibration.json`` with ``field_<system>.npz`` (:mod:`pipeline.calibration`);
+- ``object_points.csv`` (id,x,y,z,sx,sy,sz mm);
+- ``observations.csv`` (system, file, exposure, id, x, y, σx, σy, ρ, the
+  correction Δ, the residuals and the inlier flag);
+- ``report.md`` with its PNG plots.
+
 Every file is written atomically (temporary name, then rename), so an
 interrupted run never leaves a half-written output.
 """
 
 from __future__ import annotations
 
+import time
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
-from stages.io import write_csv
+import numpy as np
+
+from stages.io import atomic_write, write_csv
 
 
 def export_outputs(runner) -> list[Path]:
-    """Write each per-frame stage's table over all frames as ``<stage>.csv``; return the paths."""
+    """Write every output the run's stages support; return the paths written."""
+    written = _stage_tables(runner)
+    if "learn" in runner.by_name:
+        written += export_calibration(runner)
+    return written
+
+
+def _stage_tables(runner) -> list[Path]:
     out_dir = Path(runner.config.output_dir)
     written = []
     for stage in runner.stages:
@@ -24,7 +43,7 @@ def export_outputs(runner) -> list[Path]:
             if not hasattr(artifact, "to_table"):
                 break
             h, r = artifact.to_table()
-            header = ["system", "file", "frame"] + list(h)
+            header = ["system", "file", "exposure"] + list(h)
             name = runner.config.systems[unit.system].name
             rows.extend([name, unit.path.name, unit.exposure, *row] for row in r)
         if header is not None:
@@ -32,3 +51,134 @@ def export_outputs(runner) -> list[Path]:
             write_csv(path, header, rows)
             written.append(path)
     return written
+
+
+def _fluorocal_version() -> str:
+    try:
+        return version("fluorocal")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _rms(residual: np.ndarray) -> float:
+    """RMS per coordinate, px."""
+    return float(np.sqrt(np.mean(residual**2))) if len(residual) else float("nan")
+
+
+def calibration_from_result(runner, result):
+    """The :class:`Calibration` of a learning result, with the statistics of the solve."""
+    from pipeline.calibration import Calibration, SystemCalibration
+
+    adj = result.adjustment
+    names = [s.name for s in runner.config.systems]
+    sizes = [next(u.size_px for u in runner.units if u.system == s) for s in range(len(names))]
+    systems = [
+        SystemCalibration(name, tuple(sizes[s]), adj.iop_px[s], adj.iop_std_px[s], adj.rop_q[s], adj.rop_source_mm[s], result.fields[s])
+        for s, name in enumerate(names)
+    ]
+    exposures = {int(e): (q, t) for e, q, t in zip(adj.exposure, adj.q_cam_from_obj, adj.source_mm)}
+    meta = {
+        "fluorocal_version": _fluorocal_version(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "config": str(runner.config.path),
+        "scheme": result.scheme,
+        "conventions": "README.md#conventions: px with the top-left pixel centre at (0, 0), x right, y down; "
+        "ideal = measured - Δ(measured); q (w, x, y, z) rotates object vectors into the camera frame",
+        "statistics": {
+            "sigma0": float(adj.sigma0),
+            "nu": float(adj.nu),
+            "n_observations": int(len(adj.inlier)),
+            "n_inliers": int(adj.inlier.sum()),
+            "n_outliers": int((adj.used & ~adj.inlier).sum()),
+            "n_unused": int((~adj.used).sum()),
+            "rms_px_in_sample": _rms(adj.residual_px[adj.inlier]),
+            "iterations": len(result.history) - 1,
+            "converged": bool(result.converged),
+            "stop_reason": result.stop_reason,
+            "wall_time_s": float(result.wall_time_s),
+        },
+    }
+    return Calibration(systems, exposures, meta)
+
+
+def export_calibration(runner) -> list[Path]:
+    """Write the calibration, its tables and its report."""
+    from pipeline.gather import observations_from_labels
+
+    out_dir = Path(runner.config.output_dir)
+    result = runner.get("learn", None)
+    labels = [runner.get("label", u) for u in range(len(runner.units))]
+    obs = observations_from_labels(runner.units, labels, runner.config)
+    adj = result.adjustment
+    cal = calibration_from_result(runner, result)
+    written = cal.save(out_dir / "calibration.json")
+
+    sx, sy, sz = adj.xyz_std_mm.T
+    rows = [[int(i), *map(float, p), float(a), float(b), float(c)] for i, p, a, b, c in zip(adj.bead_id, adj.xyz_mm, sx, sy, sz)]
+    write_csv(out_dir / "object_points.csv", ["id", "x", "y", "z", "sx", "sy", "sz"], rows)
+    written.append(out_dir / "object_points.csv")
+
+    files = {(u.system, u.exposure): u.path.name for u in runner.units}
+    names = obs.system_names
+    rows = [
+        [names[s], files[(s, e)], int(e), int(i), float(x), float(y), float(sg[0]), float(sg[1]), float(sg[2]), float(d[0]), float(d[1]), float(v[0]), float(v[1]), int(inl)]
+        for s, e, i, (x, y), sg, d, v, inl in zip(obs.system, obs.exposure, obs.bead_id, obs.xy_px, obs.sigma_px, result.corrections_px, adj.residual_px, adj.inlier)
+    ]
+    header = ["system", "file", "exposure", "id", "x", "y", "sigma_x", "sigma_y", "rho", "delta_x", "delta_y", "residual_x", "residual_y", "inlier"]
+    write_csv(out_dir / "observations.csv", header, rows)
+    written.append(out_dir / "observations.csv")
+    written += write_report(out_dir, runner, obs, result, cal)
+    return written
+
+
+def write_report(out_dir: Path, runner, obs, result, cal) -> list[Path]:
+    """``report.md`` and its plots: residuals before/after, the learned fields, convergence, per-frame RMS."""
+    from pipeline import report
+
+    adj = result.adjustment
+    before = getattr(result, "initial_residual_px", None)
+    lines = [
+        "# fluorocal calibration report",
+        "",
+        f"Config: `{runner.config.path}`; scheme `{result.scheme}`; made by `fluorocal run` (fluorocal {cal.meta['fluorocal_version']}).",
+        "All figures are in-sample (the training frames) unless marked otherwise.",
+        "",
+        "| system | frames | observations | inliers | outliers | RMS before (px) | RMS after (px) | xp (px) | yp (px) | c (px) | max Δ (px) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    plots = []
+    for s, name in enumerate(obs.system_names):
+        sel = obs.system == s
+        inl = sel & adj.inlier
+        size = cal.systems[name].image_size_px
+        rms_before = _rms(before[inl]) if before is not None else float("nan")
+        n_frames = sum(1 for u in runner.units if u.system == s)
+        iop, iop_sd = cal.systems[name].iop_px, cal.systems[name].iop_std_px
+        max_delta = float(np.linalg.norm(result.fields[s].delta_px, axis=-1).max())
+        lines.append(
+            f"| {name} | {n_frames} | {int(sel.sum())} | {int(inl.sum())} | {int((sel & adj.used & ~adj.inlier).sum())} | {rms_before:.3f} | {_rms(adj.residual_px[inl]):.3f} "
+            f"| {iop[0]:.2f} ± {iop_sd[0]:.2f} | {iop[1]:.2f} ± {iop_sd[1]:.2f} | {iop[2]:.1f} ± {iop_sd[2]:.1f} | {max_delta:.2f} |"
+        )
+        panels = ([("before: no correction", obs.xy_px[inl], before[inl])] if before is not None else []) + [("after: calibrated", obs.xy_px[inl], adj.residual_px[inl])]
+        plots.append(report.residual_maps(out_dir / f"residuals_{name}.png", panels, size))
+        plots.append(report.field_map(out_dir / f"field_{name}.png", result.fields[s], f"learned correction Δ, system {name}"))
+        labels, rms_b, rms_a = [], [], []
+        for u in (u for u in runner.units if u.system == s):
+            f = inl & (obs.exposure == u.exposure)
+            if f.any():
+                labels.append(u.path.stem)
+                rms_b.append(_rms(before[f]) if before is not None else np.nan)
+                rms_a.append(_rms(adj.residual_px[f]))
+        plots.append(report.frame_rms(out_dir / f"frames_{name}.png", labels, np.array(rms_b), np.array(rms_a)))
+    plots.append(report.convergence(out_dir / "convergence.png", result.history))
+    st = cal.meta["statistics"]
+    lines += [
+        "",
+        f"Adjustment: σ0 = {st['sigma0']:.3f}, ν = {st['nu']:.1f}, {st['n_outliers']} outlier(s) flagged, {st['n_unused']} observation(s) not estimable; "
+        f"{st['iterations']} iteration(s) of the alternation, {'converged' if st['converged'] else 'not converged'} ({st['stop_reason']}), {st['wall_time_s']:.1f} s.",
+        "",
+    ]
+    lines += [f"![{p.stem}]({p.name})" for p in plots]
+    path = out_dir / "report.md"
+    atomic_write(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
+    return plots + [path]

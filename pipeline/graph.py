@@ -42,8 +42,11 @@ class Stage:
         per-frame artifacts of the first input into one artifact.
     context : callable, optional
         ``context(config, unit, units) -> dict`` of Params fields the pipeline
-        fills from the project (the system's geometry, the frame's size, the
-        scheme); ``unit`` is the frame (None for a per-project stage).
+        fills from the project (the system's geometry, the frame's size);
+        ``unit`` is the frame (None for a per-project stage).
+    extras : callable, optional
+        ``extras(config, units) -> dict`` of further frozen parameter objects
+        passed to ``func`` as keyword arguments (and hashed into the key).
     """
 
     name: str
@@ -54,27 +57,65 @@ class Stage:
     per_frame: bool = True
     gather: Callable | None = None
     context: Callable | None = None
+    extras: Callable | None = None
 
 
-#: the project's stages in execution order: (stage name, module, entry function, Params class, inputs)
+def _label_context(config, unit, units) -> dict:
+    system = config.systems[unit.system]
+    return {
+        "source_image_distance_mm": system.source_image_distance_mm,
+        "pixel_pitch_mm": system.pixel_pitch_mm,
+        "image_size_px": tuple(unit.size_px),
+    }
+
+
+def _learn_extras(config, units) -> dict:
+    from pipeline.config import params_from_dict
+    from stages.adjust import AdjustParams
+    from stages.learn import CalibrationSetup
+
+    sizes, guesses = [], []
+    for s, system in enumerate(config.systems):
+        w, h = next(u.size_px for u in units if u.system == s)
+        sizes.append((w, h))
+        guesses.append(((w - 1) / 2, (h - 1) / 2, system.source_image_distance_mm / system.pixel_pitch_mm))
+    adjust = params_from_dict(AdjustParams, config.stage_params.get("adjust", {}), where=f"{config.path.name}: [adjust] ")
+    return {"setup": CalibrationSetup(scheme=config.scheme, image_size_px=tuple(sizes), iop_guess_px=tuple(guesses)), "adjust": adjust}
+
+
+def _gather_observations(units, labels, config):
+    from pipeline.gather import observations_from_labels
+
+    return observations_from_labels(units, labels, config)
+
+
+#: the project's stages in execution order: (stage name, module, entry function, Params class, inputs, options)
 REGISTRY = (
-    ("detect", "stages.detect", "detect_beads", "DetectParams", ("frame",)),
-    ("centroid", "stages.centroid", "centroid_beads", "CentroidParams", ("frame", "detect")),
+    ("detect", "stages.detect", "detect_beads", "DetectParams", ("frame",), {}),
+    ("centroid", "stages.centroid", "centroid_beads", "CentroidParams", ("frame", "detect"), {}),
+    ("label", "stages.label", "label_beads", "LabelParams", ("centroid", "phantom"), {"context": _label_context}),
+    ("learn", "stages.learn", "learn_calibration", "LearnParams", ("label", "phantom"), {"per_frame": False, "gather": _gather_observations, "extras": _learn_extras}),
 )
+
+#: config sections that are not a stage of their own, and their Params class
+EXTRA_SECTIONS = {"adjust": ("stages.adjust", "AdjustParams")}
 
 
 def default_stages() -> list[Stage]:
     """The stages of a calibration, in topological order."""
     stages = []
-    for name, module, entry, params, inputs in REGISTRY:
+    for name, module, entry, params, inputs, options in REGISTRY:
         mod = importlib.import_module(module)
-        stages.append(Stage(name, getattr(mod, entry), getattr(mod, params), int(mod.VERSION), inputs))
+        stages.append(Stage(name, getattr(mod, entry), getattr(mod, params), int(mod.VERSION), inputs, **options))
     return stages
 
 
 def stage_params_classes() -> dict[str, type]:
-    """Config section name -> Params class, for validating ``[detect]`` etc."""
-    return {s.name: s.params_cls for s in default_stages()}
+    """Config section name -> Params class, for validating ``[detect]``, ``[adjust]`` etc."""
+    sections = {s.name: s.params_cls for s in default_stages()}
+    for section, (module, cls) in EXTRA_SECTIONS.items():
+        sections[section] = getattr(importlib.import_module(module), cls)
+    return sections
 
 
 def downstream(stages: list[Stage], names: set[str]) -> set[str]:

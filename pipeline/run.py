@@ -153,7 +153,8 @@ class Runner:
                 if not stage.per_frame:  # the grouping of frames is part of what a gathering stage sees
                     inputs.append(repr([(u.system, u.exposure) for u in self.units]) + repr([s.name for s in self.config.systems]))
                 params = stage_params(stage, self.config, None if unit is None else self.units[unit], self.units)
-                self.keys[(stage.name, unit)] = artifact_key(stage.name, stage.version, params, inputs)
+                extras = stage.extras(self.config, self.units) if stage.extras else {}
+                self.keys[(stage.name, unit)] = artifact_key(stage.name, stage.version, {"params": params, **extras}, inputs)
 
     def _stage_units(self, stage: Stage) -> list[int | None]:
         return list(range(len(self.units))) if stage.per_frame else [None]
@@ -218,10 +219,11 @@ class Runner:
     def _compute(self, stage: Stage, unit: int | None):
         slot = (stage.name, unit)
         params = stage_params(stage, self.config, None if unit is None else self.units[unit], self.units)
+        extras = stage.extras(self.config, self.units) if stage.extras else {}
         inputs = self._inputs(stage, unit)
         t0 = time.perf_counter()
         try:
-            artifact = stage.func(*inputs, params)
+            artifact = stage.func(*inputs, params, **extras)
         except CalibError as exc:
             where = f"{self.units[unit].label}: " if unit is not None else ""
             raise type(exc)(f"{where}{stage.name}: {exc}") from exc

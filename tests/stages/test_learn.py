@@ -1,0 +1,419 @@
+"""Tests of stages/learn.py: the kNN regression, its cross-validation, the gridded field, the alternation."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from stages.errors import InputError, ShapeError
+from stages.learn import (
+    CorrectionField,
+    KnnModel,
+    LearnParams,
+    PointwiseField,
+    cross_validate_k,
+    cross_validate_smoothness,
+    fit_grid_field,
+    fit_grid_with_points,
+    fit_knn_field,
+    grid_nodes,
+)
+
+W, H = 256, 192
+
+
+def smooth_field(xy):
+    """A radial + sigmoid-like field of about 1.5 px, gradient well below 1 (no folding)."""
+    x = (xy[:, 0] - W / 2) / (W / 2)
+    y = (xy[:, 1] - H / 2) / (H / 2)
+    r2 = x * x + y * y
+    return np.column_stack([1.2 * x * r2 + 0.3 * np.sin(2.5 * y), 1.2 * y * r2 - 0.2 * np.cos(2 * x)])
+
+
+def sample(rng, n, sigma_px, field=smooth_field):
+    xy = rng.uniform(-0.5, [W - 0.5, H - 0.5], (n, 2))
+    return xy, field(xy) + rng.normal(0, sigma_px, (n, 2)), np.full((n, 2), sigma_px**2)
+
+
+# ---------------------------------------------------------------------------------------------
+# shapes, errors, degenerate input
+# ---------------------------------------------------------------------------------------------
+
+
+def test_grid_nodes_cover_image_with_at_most_spacing():
+    xn, yn = grid_nodes(W, H, 16.0)
+    assert xn[0] == -0.5 and xn[-1] == W - 0.5 and yn[0] == -0.5 and yn[-1] == H - 0.5
+    assert np.diff(xn).max() <= 16.0 + 1e-12 and np.diff(yn).max() <= 16.0 + 1e-12
+
+
+def test_empty_queries_keep_shape():
+    f = CorrectionField.constant(W, H, (0.1, 0.2))
+    assert f.correction_at(np.empty((0, 2))).shape == (0, 2)
+    assert f.undistort_points(np.empty((0, 2))).shape == (0, 2)
+    assert f.distort_points(np.empty((0, 2))).shape == (0, 2)
+    model = KnnModel(np.zeros((3, 2)), np.ones((3, 2)), np.ones((3, 2)), 2)
+    assert model.correction_at(np.empty((0, 2))).shape == (0, 2)
+
+
+def test_errors_name_the_argument():
+    rng = np.random.default_rng(0)
+    xy, r, var = sample(rng, 50, 0.1)
+    with pytest.raises(ShapeError, match="residuals_px"):
+        fit_knn_field(xy, r[:, :1], var, LearnParams(), image_size=(W, H))
+    with pytest.raises(InputError, match="residual_var_px2"):
+        fit_knn_field(xy, r, -var, LearnParams(), image_size=(W, H))
+    with pytest.raises(ShapeError, match="xy_px"):
+        CorrectionField.constant(W, H).correction_at(np.zeros((4, 3)))
+    with pytest.raises(InputError, match="n_folds"):
+        LearnParams(n_folds=1)
+    with pytest.raises(InputError, match="acceleration"):
+        LearnParams(acceleration="anderson", smooth=False)
+    with pytest.raises(InputError, match="unknown learn parameter"):
+        LearnParams.from_dict({"k": 3})
+
+
+def test_tiny_training_set_clips_k_grid():
+    # 12 points, 10 folds: training folds hold 10 points, so k <= 10 only
+    rng = np.random.default_rng(1)
+    xy, r, var = sample(rng, 12, 0.1)
+    cv = cross_validate_k(xy, r, var, k_grid=(1, 5, 10, 50), n_folds=10, seed=0)
+    assert cv.k_grid.tolist() == [1, 5, 10]
+
+
+# ---------------------------------------------------------------------------------------------
+# ground truth
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("smooth", [True, False])
+def test_constant_field_recovered_exactly(smooth):
+    # noise-free constant residuals: any weighted mean of them is the constant (to rounding)
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(0, [W, H], (500, 2))
+    r = np.tile([0.7, -0.4], (500, 1))
+    field, cv = fit_knn_field(xy, r, np.full(500, 0.01), LearnParams(smooth=smooth), image_size=(W, H))
+    q = rng.uniform(0, [W, H], (100, 2))
+    np.testing.assert_allclose(field.correction_at(q), np.tile([0.7, -0.4], (100, 1)), atol=1e-12)
+
+
+def test_smooth_field_recovered_within_noise_bound():
+    # 20000 points over 256x192 px: the field varies little over a kNN neighbourhood, so
+    # the error is dominated by the averaged noise sigma/sqrt(k), plus the interpolation and
+    # neighbourhood bias that the CV trades against it. Bound: 3 sigma/sqrt(k) RMS, interior only.
+    rng = np.random.default_rng(3)
+    sigma = 0.1
+    xy, r, var = sample(rng, 20000, sigma)
+    field, cv = fit_knn_field(xy, r, var, LearnParams(), image_size=(W, H))
+    q = rng.uniform([16, 16], [W - 16, H - 16], (4000, 2))
+    rms = np.sqrt(np.mean((field.correction_at(q) - smooth_field(q)) ** 2))
+    assert rms < 3 * sigma / np.sqrt(cv.k), (rms, cv.k)
+    # the out-of-fold RMS is the noise (the model's own error is small beside it)
+    assert sigma <= cv.cv_rms_px < 1.1 * sigma
+    # the per-node uncertainty is of the size of the actual error (within a factor 3)
+    interior = field.sigma_px[2:-2, 2:-2]
+    assert rms / 3 < np.median(interior) < 3 * rms
+
+
+def test_cv_picks_larger_k_for_noisier_data():
+    rng = np.random.default_rng(4)
+    ks = []
+    for sigma in (0.01, 0.05, 0.2, 0.8):
+        xy, r, var = sample(rng, 8000, sigma)
+        ks.append(cross_validate_k(xy, r, var, k_grid=LearnParams().k_grid, n_folds=10, seed=0).k)
+    assert ks == sorted(ks) and ks[-1] > 4 * ks[0], ks
+
+
+def test_cv_never_picks_k1_on_noise():
+    # pure noise: the best predictor is the global mean, i.e. the largest k
+    rng = np.random.default_rng(5)
+    xy, r, var = sample(rng, 3000, 0.3, field=lambda xy: np.zeros_like(xy))
+    cv = cross_validate_k(xy, r, var, k_grid=(1, 3, 10, 30, 100, 300), n_folds=10, seed=0)
+    assert cv.k == 300
+    # the in-sample fit with k=1 would have zero cost; out of fold it costs twice the noise
+    assert cv.cv_cost[0] > 3.5  # ≈ 2 components x (1 + 1)
+
+
+def test_equation3_weighting_a_high_variance_point_barely_moves_the_field():
+    # a 10 px "residual" with variance 1e4 x the others beside 9 unit-weight zeros:
+    # inverse-variance weighted mean = 10 / (1 + 9e4) px
+    xy = np.array([[50.0, 50.0]] + [[50.0 + dx, 50.0 + dy] for dx in (-1, 0, 1) for dy in (-1, 0, 1)])
+    r = np.zeros((10, 2))
+    r[0] = 10.0
+    var = np.ones((10, 2))
+    var[0] = 1e4
+    model = KnnModel(xy, r, 1.0 / var, 10)
+    g = model.correction_at(np.array([[50.0, 50.0]]))
+    np.testing.assert_allclose(g, [[10.0 / (1 + 9e4)] * 2], rtol=1e-9)
+    unweighted = KnnModel(xy, r, np.ones((10, 2)), 10).correction_at(np.array([[50.0, 50.0]]))
+    np.testing.assert_allclose(unweighted, [[1.0, 1.0]])
+
+
+def test_mask_false_far_from_data():
+    rng = np.random.default_rng(6)
+    xy = rng.uniform([0, 0], [W / 2, H], (2000, 2))  # data only in the left half
+    r = np.zeros((2000, 2))
+    field, _ = fit_knn_field(xy, r, np.ones(2000), LearnParams(), image_size=(W, H))
+    xn = field.x_nodes_px
+    assert field.support[:, xn < W / 2 - 8].all()
+    assert not field.support[:, xn > W / 2 + 2 * 16 + 1].any()
+    assert field.support_at(np.array([[10.0, 10.0], [W - 10.0, 10.0]])).tolist() == [True, False]
+
+
+def test_gridded_least_squares_recovers_the_field_without_kNN_blur():
+    # 20000 points, 17 x 13 nodes: ~90 observations per node, so the node noise is about
+    # sigma / sqrt(90 / 4) (each point spreads over 4 nodes); bound 3x that, interior only
+    rng = np.random.default_rng(9)
+    sigma = 0.1
+    xy, r, var = sample(rng, 20000, sigma)
+    params = LearnParams()
+    cv = cross_validate_smoothness(xy, r, var, image_size=(W, H), params=params)
+    field = fit_grid_field(xy, r, var, params, image_size=(W, H), tau_px=cv.tau_px, cv_rms_px=cv.cv_rms_px)
+    q = rng.uniform([16, 16], [W - 16, H - 16], (4000, 2))
+    rms = np.sqrt(np.mean((field.correction_at(q) - smooth_field(q)) ** 2))
+    assert rms < 3 * sigma / np.sqrt(20000 / field.delta_px[..., 0].size / 4), rms
+    knn, _ = fit_knn_field(xy, r, var, params, image_size=(W, H))
+    assert rms < np.sqrt(np.mean((knn.correction_at(q) - smooth_field(q)) ** 2))
+
+
+def test_joint_grid_and_points_separates_field_from_point_shifts():
+    # noise-free residuals = an affine field (the smoothness prior's null space, so unbiased)
+    # + each bead's 3D shift seen through a random 2x3 Jacobian: both are recovered
+    rng = np.random.default_rng(10)
+    n_beads, per_bead = 150, 30
+    bead = np.repeat(np.arange(n_beads), per_bead)
+    xy = rng.uniform(-0.5, [W - 0.5, H - 0.5], (len(bead), 2))
+    J = rng.normal(0, 5.0, (len(bead), 2, 3))
+    dP = rng.normal(0, 0.05, (n_beads, 3))
+
+    def affine(p):
+        return np.column_stack([0.2 + 0.002 * p[:, 0] - 0.001 * p[:, 1], -0.1 + 0.0015 * p[:, 1]])
+
+    r = affine(xy) + np.einsum("nij,nj->ni", J, dP[bead])
+    base = CorrectionField.constant(W, H)
+    field = fit_grid_with_points(xy, r, np.ones((len(bead), 2)), bead, J, LearnParams(), image_size=(W, H), tau_px=1.0, base=base, cv_rms_px=0.0)
+    q = rng.uniform(0, [W - 1, H - 1], (500, 2))
+    np.testing.assert_allclose(field.correction_at(q), affine(q), atol=1e-4)
+    # the field alone (no point shifts) cannot explain the residuals: it absorbs part of J dP
+    alone = fit_grid_field(xy, r, np.ones((len(bead), 2)), LearnParams(), image_size=(W, H), tau_px=1.0)
+    assert np.abs(alone.correction_at(q) - affine(q)).max() > 10 * 1e-4
+
+
+def test_affine_shape_modes_ignore_similarities_and_see_stretches():
+    from stages._geometry import quat_to_matrix
+    from stages.learn import _affine_shape_modes
+
+    rng = np.random.default_rng(12)
+    nominal = rng.uniform(-50, 50, (200, 3))
+    R = quat_to_matrix(np.array([0.9, 0.1, -0.3, 0.2]))
+    moved = 1.02 * nominal @ R.T + [5.0, -3.0, 7.0]
+    B, gap = _affine_shape_modes(moved, nominal)
+    np.testing.assert_allclose(B.T @ B, np.eye(5), atol=1e-12)
+    # a similarity is no shape change
+    assert np.abs(gap).max() < 1e-9
+    # a 0.2 % horizontal stretch is seen: its traceless part (2/3 of it) displaces points by ~0.1 %
+    stretched = moved * [1.002, 1.002, 1.0]
+    _, gap = _affine_shape_modes(stretched, nominal)
+    assert np.linalg.norm(gap) > 0.5 * 0.002 * np.linalg.norm(moved[:, :2] - moved[:, :2].mean(0)) / 2
+
+
+# ---------------------------------------------------------------------------------------------
+# properties of the field
+# ---------------------------------------------------------------------------------------------
+
+
+def _bumpy_grid_field():
+    xn, yn = grid_nodes(W, H, 16.0)
+    xx, yy = np.meshgrid(xn, yn)
+    nodes = np.column_stack([xx.ravel(), yy.ravel()])
+    delta = smooth_field(nodes).reshape(len(yn), len(xn), 2)
+    # a local bump of 0.5 px: the field's gradient stays well below 1
+    delta += 0.5 * np.exp(-((xx - 60) ** 2 + (yy - 90) ** 2) / (2 * 20.0**2))[..., None]
+    return CorrectionField(xn, yn, delta, np.zeros(xx.shape), np.ones(xx.shape, bool), W, H)
+
+
+@settings(deadline=None, derandomize=True, max_examples=60)
+@given(
+    st.lists(
+        st.tuples(st.floats(-0.5, W - 0.5, allow_nan=False, width=64), st.floats(-0.5, H - 0.5, allow_nan=False, width=64)),
+        min_size=1,
+        max_size=20,
+    )
+)
+def test_distort_undistort_round_trip(points):
+    field = _bumpy_grid_field()
+    ideal = np.array(points)
+    back = field.undistort_points(field.distort_points(ideal))
+    assert np.max(np.abs(back - ideal)) < 1e-3
+
+
+def test_round_trip_pointwise_field():
+    rng = np.random.default_rng(7)
+    xy, r, var = sample(rng, 3000, 0.05)
+    model, _ = fit_knn_field(xy, r, var, LearnParams(smooth=False), image_size=(W, H))
+    field = PointwiseField((model,), W, H)
+    ideal = rng.uniform(20, 170, (200, 2))
+    # kNN predictions are piecewise constant: the fixed point is exact where it exists
+    back = field.undistort_points(field.distort_points(ideal))
+    assert np.median(np.abs(back - ideal)) < 1e-3
+
+
+def test_identity_field_remap_is_the_pixel_grid():
+    field = CorrectionField.constant(W, H)
+    map_x, map_y = field.remap_maps()
+    assert map_x.dtype == np.float32 and map_x.shape == (H, W)
+    yy, xx = np.mgrid[0:H, 0:W]
+    np.testing.assert_array_equal(map_x, xx)
+    np.testing.assert_array_equal(map_y, yy)
+    img = np.random.default_rng(8).uniform(0, 4095, (H, W)).astype(np.float32)
+    out = cv2.remap(img, map_x, map_y, interpolation=cv2.INTER_LINEAR)
+    np.testing.assert_array_equal(out, img)
+
+
+def test_remap_maps_are_distort_points_of_pixel_centres():
+    field = _bumpy_grid_field()
+    map_x, map_y = field.remap_maps(64, 48)
+    centres = np.array([[0.0, 0.0], [63.0, 47.0], [20.0, 30.0]])
+    src = field.distort_points(centres)
+    got = np.column_stack([map_x[centres[:, 1].astype(int), centres[:, 0].astype(int)], map_y[centres[:, 1].astype(int), centres[:, 0].astype(int)]])
+    np.testing.assert_allclose(got, src, atol=1e-4)  # float32 storage of ~100 px values
+
+
+def test_constant_extension_outside_the_grid():
+    field = _bumpy_grid_field()
+    inside = field.correction_at(np.array([[-0.5, 50.0], [W - 0.5, H - 0.5]]))
+    outside = field.correction_at(np.array([[-40.0, 50.0], [W + 30, H + 30]]))
+    np.testing.assert_array_equal(inside, outside)
+
+
+def test_add_accumulates_on_the_same_grid():
+    a = CorrectionField.constant(W, H, (0.1, 0.2))
+    b = CorrectionField.constant(W, H, (0.3, -0.1))
+    np.testing.assert_allclose(a.add(b).correction_at(np.array([[5.0, 5.0]])), [[0.4, 0.1]])
+    with pytest.raises(InputError, match="same grid"):
+        a.add(CorrectionField.constant(W, H, spacing_px=32.0))
+
+
+# ---------------------------------------------------------------------------------------------
+# the alternation, end to end on simulator geometry
+# ---------------------------------------------------------------------------------------------
+
+E2E_SIZE = 512
+E2E_NOISE_PX = 0.05
+
+
+@pytest.fixture(scope="module")
+def simulated():
+    """Simulator geometry: true distorted outline centres + 0.05 px noise, 14 exposures, 512 px, strong distortion."""
+    from stages._geometry import quat_multiply, quat_normalize, rotvec_to_quat
+    from stages.adjust import Orientation
+    from stages.artifacts import Observations
+    from stages.simulate import SimulateParams, simulate
+
+    params = SimulateParams(n_frames=14, image_size_px=E2E_SIZE, distortion="strong", seed=3)
+    data = simulate(params, render=False)
+    frames = data.truth.frames[0]
+    keep = [~(f.overlap | f.field_edge) for f in frames]
+    rng = np.random.default_rng(11)
+    xy = np.concatenate([f.outline_xy_px[k] for f, k in zip(frames, keep)])
+    obs = Observations(
+        np.zeros(len(xy)),
+        np.concatenate([np.full(k.sum(), f.exposure) for f, k in zip(frames, keep)]),
+        np.concatenate([f.ids[k] for f, k in zip(frames, keep)]),
+        xy + rng.normal(0, E2E_NOISE_PX, xy.shape),
+        np.tile([E2E_NOISE_PX, E2E_NOISE_PX, 0.0], (len(xy), 1)),
+    )
+    acq = data.truth.acquisition
+    n = params.n_frames
+    # start values as labelling would give them: poses within ~0.6 deg and 3 mm, IOP from the nominal geometry
+    q = quat_normalize(quat_multiply(np.array([rotvec_to_quat(v) for v in rng.normal(0, 0.01, (n, 3))]), acq.q[0]))
+    iop = [[(E2E_SIZE - 1) / 2, (E2E_SIZE - 1) / 2, acq.systems[0].iop_px[2] * 1.01]]
+    initial = Orientation(iop, np.arange(n), q, acq.source_mm[0] + rng.normal(0, 3, (n, 3)))
+    return obs, data.phantom, initial, acq.systems[0].distortion, params.fov_radius_px
+
+
+def _field_error_modulo_homography(correction_at, distortion, pts):
+    """RMS px between learned and true ideal coordinates after the best homography (it absorbs IOP and pose)."""
+    true_ideal = distortion.undistort(pts)
+    learned = pts - correction_at(pts)
+    H, _ = cv2.findHomography(learned, true_ideal, 0)
+    return float(np.sqrt(np.mean(np.sum((cv2.perspectiveTransform(learned[None], H)[0] - true_ideal) ** 2, axis=1))))
+
+
+@pytest.mark.slow
+def test_alternation_learns_the_field_and_lowers_the_cost(simulated):
+    from stages.learn import calibrate
+
+    obs, phantom, initial, distortion, fov_radius_px = simulated
+    res = calibrate(obs, phantom, initial, image_size=(E2E_SIZE, E2E_SIZE), scheme="knn+iop+smooth", params=LearnParams(max_iterations=6))
+    hist = res.history
+    assert hist[0].phase == "adjust" and len(hist) >= 3
+    # the adjustment's cost (eq. 2) falls at every iteration: each Δ removes systematic residual
+    cost_adjust = [h.cost_adjust for h in hist]
+    assert all(b < a for a, b in zip(cost_adjust, cost_adjust[1:])), cost_adjust
+    assert hist[-1].cost_total < hist[0].cost_total
+    # the inlier residual RMS falls from the uncorrected value towards the noise (0.05 px)
+    assert hist[-1].rms_px < 0.5 * hist[0].rms_px
+    # the field approaches the truth modulo a homography, where the observations cover the image
+    field = res.fields[0]
+    g = np.linspace(0, E2E_SIZE - 1, 48)
+    pts = np.column_stack([a.ravel() for a in np.meshgrid(g, g)])
+    c = (E2E_SIZE - 1) / 2
+    pts = pts[(np.hypot(pts[:, 0] - c, pts[:, 1] - c) < 0.8 * fov_radius_px) & field.support_at(pts)]
+    before = _field_error_modulo_homography(lambda p: np.zeros_like(p), distortion, pts)
+    after = _field_error_modulo_homography(field.correction_at, distortion, pts)
+    # six plain iterations of the paper's loop recover only part of the field: the loop converges
+    # slowly (issue 7: still improving after 60 iterations); measured here 0.55 -> 0.31 px
+    assert after < 0.7 * before, (before, after)
+    assert res.corrections_px.shape == (len(obs), 2)
+    np.testing.assert_allclose(res.corrections_px, field.correction_at(obs.xy_px), atol=1e-12)
+
+
+@pytest.mark.slow
+def test_joint_grid_refinement_gets_closer_to_the_truth(simulated):
+    from stages.learn import calibrate
+
+    obs, phantom, initial, distortion, fov_radius_px = simulated
+    params = LearnParams(max_iterations=2, acceleration="anderson", refine="grid+points", refine_iterations=4, affine_datum=True)
+    res = calibrate(obs, phantom, initial, image_size=(E2E_SIZE, E2E_SIZE), scheme="knn+iop+smooth", params=params)
+    assert [h.phase for h in res.history] == ["adjust", "knn", "knn"] + ["grid"] * 4
+    field = res.fields[0]
+    g = np.linspace(0, E2E_SIZE - 1, 48)
+    pts = np.column_stack([a.ravel() for a in np.meshgrid(g, g)])
+    c = (E2E_SIZE - 1) / 2
+    pts = pts[(np.hypot(pts[:, 0] - c, pts[:, 1] - c) < 0.8 * fov_radius_px) & field.support_at(pts)]
+    before = _field_error_modulo_homography(lambda p: np.zeros_like(p), distortion, pts)
+    after = _field_error_modulo_homography(field.correction_at, distortion, pts)
+    # measured 0.55 -> 0.16 px with 3 + 6 iterations; the residual error sits in components a
+    # deformation of the free phantom nearly mimics (14 exposures determine them weakly)
+    assert after < 0.4 * before, (before, after)
+    # in sample the residuals reach the noise: 0.05 px times sqrt(redundancy ~0.8)
+    assert res.history[-1].rms_px < 1.5 * E2E_NOISE_PX
+
+
+@pytest.mark.slow
+def test_scheme_none_and_unsmoothed_knn(simulated):
+    from stages.learn import calibrate
+
+    obs, phantom, initial, _, _ = simulated
+    none = calibrate(obs, phantom, initial, image_size=(E2E_SIZE, E2E_SIZE), scheme="none")
+    assert len(none.history) == 1 and not np.any(none.corrections_px)
+    params = LearnParams(max_iterations=2, acceleration="overrelax", relaxation=1.3)
+    knn = calibrate(obs, phantom, initial, image_size=(E2E_SIZE, E2E_SIZE), scheme="knn", params=params)
+    # IOP held at the start values: the field absorbs them
+    np.testing.assert_array_equal(knn.adjustment.iop_px, initial.iop_px)
+    assert knn.pointwise is not None and len(knn.pointwise[0].terms) == 2
+    # the over-relaxed steps are stored scaled, so the stored field reproduces the corrections used
+    np.testing.assert_allclose(knn.corrections_px, knn.field(0).correction_at(obs.xy_px), atol=1e-9)
+    assert knn.fields[0].support.any() and not knn.fields[0].support.all()
+    assert knn.history[-1].rms_px < knn.history[0].rms_px
+
+
+def test_unknown_scheme_is_an_input_error(simulated):
+    from stages.learn import calibrate
+
+    obs, phantom, initial, _, _ = simulated
+    with pytest.raises(InputError, match="scheme"):
+        calibrate(obs, phantom, initial, image_size=(E2E_SIZE, E2E_SIZE), scheme="magic")
