@@ -86,12 +86,14 @@ def cmd_run(args) -> int:
     from pipeline.export import export_outputs
 
     runner = _runner(args, force=args.force, until=args.until)
-    report = runner.run()
-    for line in report.lines():
-        log.info(line)
+    runner.run()
     written = export_outputs(runner)
-    for path in written:
-        log.info("wrote %s", path)
+    log.info("wrote %d file(s) to %s", len(written), runner.config.output_dir)
+    report = Path(runner.config.output_dir) / "report.md"
+    if report in written:
+        table = [line for line in report.read_text().splitlines() if line.startswith("|")]
+        print("\n".join(table))
+        print(f"report: {report}")
     return 0
 
 

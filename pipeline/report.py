@@ -19,12 +19,11 @@ def _figure(n_panels: int = 1, *, width: float = 5.0, height: float = 4.6):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, n_panels, figsize=(width * n_panels, height), squeeze=False)
+    fig, axes = plt.subplots(1, n_panels, figsize=(width * n_panels, height), squeeze=False, layout="constrained")
     return plt, fig, axes[0]
 
 
 def _save(plt, fig, path: Path) -> Path:
-    fig.tight_layout()
     atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=90, format="png"))
     plt.close(fig)
     return path

@@ -171,11 +171,8 @@ class Runner:
             bar = tqdm(todo, desc=f"{stage.name:>9}", unit="frame" if stage.per_frame else "run", leave=False, disable=not (self.progress and sys.stderr.isatty()) or not todo)
             for unit in bar:
                 self._compute(stage, unit)
-            log.info(
-                "%s: %d computed, %d cached", stage.name, self.report.computed[stage.name], self.report.cached[stage.name]
-            )
-        if not self.report.total_computed:
-            log.info("nothing recomputed: all %d artifacts were cached", sum(self.report.cached.values()))
+        for line in self.report.lines():
+            log.info(line)
         return self.report
 
     def get(self, name: str, unit: int | None):
