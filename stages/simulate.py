@@ -224,15 +224,6 @@ class SimulateParams:
             if isinstance(value, float) and not (np.isfinite(value) and value >= 0):
                 raise InputError(f"{f.name} must be a finite number >= 0; got {value}")
 
-    @classmethod
-    def from_dict(cls, values: dict) -> SimulateParams:
-        """Build from a dict, rejecting unknown keys (naming them)."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise InputError(f"unknown SimulateParams keys: {', '.join(unknown)}")
-        return cls(**values)
-
     @property
     def pixel_pitch_mm(self) -> float:
         """Detector pixel pitch (mm)."""
