@@ -5,11 +5,11 @@ imaging system, the image size, the interior orientation and the name of the
 ``.npz`` file beside it with the learned correction field on its grid; the
 relative orientation of a biplanar pair; each training exposure's pose; the
 scheme and the statistics of the solve. README.md, "Calibration file",
-documents every key.
+documents every key. Usage::
 
->>> from pipeline import Calibration                      # doctest: +SKIP
->>> cal = Calibration.load("out/calibration.json")        # doctest: +SKIP
->>> cal.undistort_points("A", [[512.3, 100.7]])           # doctest: +SKIP
+    from pipeline import Calibration
+    cal = Calibration.load("out/calibration.json")
+    ideal_xy = cal.undistort_points("A", [[512.3, 100.7]])
 """
 
 from __future__ import annotations
