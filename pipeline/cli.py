@@ -21,6 +21,7 @@ import argparse
 import importlib
 import logging
 import sys
+import warnings
 from pathlib import Path
 
 #: optional command modules: pipeline/cmd_<name>.py exposing add_parser(subparsers) and run(args)
@@ -159,12 +160,18 @@ def _human(n: int) -> str:
     return str(n)
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"fluorocal: warning: {message}", file=sys.stderr)
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.debug else (logging.WARNING if args.quiet else logging.INFO), format="%(message)s")
-    for noisy in ("PIL", "matplotlib"):
-        logging.getLogger(noisy).setLevel(logging.WARNING)
+    for noisy in ("PIL", "matplotlib", "stages.adjust"):  # the adjustment's per-solve lines are for --debug
+        logging.getLogger(noisy).setLevel(logging.DEBUG if args.debug and noisy.startswith("stages") else logging.WARNING)
+    if not args.debug:
+        warnings.showwarning = _show_warning
     from stages.errors import CalibError
 
     try:
