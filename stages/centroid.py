@@ -83,13 +83,13 @@ class CentroidParams:
     Attributes
     ----------
     edge_sigma_px : float
-        Scale of the derivative-of-Gaussian filters, px, for beads of radius
-        ``4 edge_sigma_px`` and more. Default 1.5 (larger averages more noise,
-        smaller lets a neighbour's edge pull less). When the frame's median
-        candidate radius ``R`` is smaller, ``max(R / 4, min_edge_sigma_px)``
-        is used: for beads of 6-10 px, whose neighbours are often only 2-4 px
-        away, the pull of a neighbour's edge outweighs the noise (simulated
-        6 px beads: 0.072 px RMS at 1.5 px, 0.036 px at 1 px).
+        Scale of the derivative-of-Gaussian filters, px. Default 1.5 (larger
+        averages more noise, smaller lets a neighbour's edge pull less). In a
+        crowded frame, where the median gap from a bead's outline to its
+        nearest neighbour's is under ``4 edge_sigma_px``, a quarter of that gap
+        is used (at least ``min_edge_sigma_px``): there the pull of a
+        neighbour's edge outweighs the noise (simulated 6 px beads 2-4 px
+        apart: 0.072 px RMS at 1.5 px, 0.036 px at 1 px).
     min_edge_sigma_px : float
         Smallest filter scale, px. Default 1.0.
     annulus_fraction : float
@@ -135,7 +135,6 @@ class CentroidParams:
     """
 
     edge_sigma_px: float = 1.5
-    min_edge_sigma_px: float = 1.0
     annulus_fraction: float = 0.3
     min_annulus_px: float = 3.0
     min_gradient_fraction: float = 0.5
@@ -148,6 +147,7 @@ class CentroidParams:
     max_rmse_px: float = 0.3
     n_arcs: int = 6
     neighbour_margin_px: float = 6.0
+    min_edge_sigma_px: float = 1.0
 
     def __post_init__(self):
         for name in ("edge_sigma_px", "min_edge_sigma_px", "annulus_fraction", "min_annulus_px", "outlier_sigma", "max_axis_ratio", "max_rmse_px", "neighbour_margin_px"):
@@ -280,9 +280,11 @@ def centroid_beads(radiograph: Radiograph, candidates: BeadCandidates, params: C
     if n == 0:
         return _result(candidates, index, np.empty((0, 2)), np.empty((0, 5)), np.empty((0, 2, 2)), np.empty(0), np.empty(0, np.int64), np.empty(0, "<U16"))
 
-    points_xy, owner = _edge_points(radiograph.image, centre0, radius0, candidates.polarity, params)
     # every blob the detector saw, accepted or not, can bend the edges of a bead next to it
-    points_xy, owner = _drop_near_neighbours(points_xy, owner, index, candidates.xy_px, candidates.radius_px, params)
+    near = _neighbours(index, candidates.xy_px, candidates.radius_px, params)
+    sigma_px = _edge_sigma(index, near, candidates.xy_px, candidates.radius_px, params)
+    points_xy, owner = _edge_points(radiograph.image, centre0, radius0, candidates.polarity, sigma_px, params)
+    points_xy, owner = _drop_near_neighbours(points_xy, owner, index, near, candidates.xy_px, candidates.radius_px, params)
     params_fit, rmse, n_inliers, covariance = _fit_ellipses(points_xy, owner, centre0, radius0, params)
     reason = _fit_reasons(params_fit, centre0, radius0, n_inliers, covariance, params)
     reason[(reason == "") & ~(rmse <= params.max_rmse_px)] = "rmse"
@@ -363,13 +365,14 @@ def _gaussian_gradient(image: np.ndarray, sigma_px: float) -> tuple[np.ndarray, 
 
 
 def _annulus_owners(shape, centre0, r_out) -> np.ndarray:
-    """Image of each bead's search disc, labelled bead + 1 (0 elsewhere and on the frame's border); (H, W) int32.
+    """Image of each bead's search disc, labelled bead + 1 (0 elsewhere and on the frame's border); (H, W) uint16 or int32.
 
     Smaller beads are drawn last, so they keep the pixels where annuli overlap.
     """
     import cv2
 
-    owner_image = np.zeros(shape, np.int32)
+    # 16-bit labels where they suffice: half the memory to fill and compare
+    owner_image = np.zeros(shape, np.uint16 if len(centre0) < 2**16 - 1 else np.int32)
     centre_int = np.round(centre0).astype(int).tolist()
     outer = (np.ceil(r_out) + 1).astype(int).tolist()
     # filled discs are fast to draw (thick circles are polygons); a bead's inside is left to the radius test
@@ -380,8 +383,62 @@ def _annulus_owners(shape, centre0, r_out) -> np.ndarray:
     return owner_image
 
 
-def _edge_points(image, centre0, radius0, polarity, params: CentroidParams):
+def _neighbours(index, all_xy, all_radius, params: CentroidParams) -> np.ndarray:
+    """Up to 7 other blobs near each fitted bead, nearest first, padded with ``M`` (no blob); (n, K) int64.
+
+    Near: close enough for its outline to reach a point of the bead's search annulus.
+    """
+    from scipy.spatial import cKDTree
+
+    n_blobs = len(all_xy)
+    if n_blobs < 2:
+        return np.full((len(index), 1), n_blobs)
+    # a point of bead i lies within R_i (1 + annulus_fraction) + min_annulus_px of its centre
+    point_reach = all_radius.max() * (1 + params.annulus_fraction) + params.min_annulus_px
+    distance, near = cKDTree(all_xy).query(all_xy[index], k=min(n_blobs, 8), distance_upper_bound=point_reach + all_radius.max() + params.neighbour_margin_px)
+    near = np.where(np.isfinite(distance) & (near != index[:, None]), near, n_blobs)
+    # each row's blobs nearest first (the bead itself, at distance 0, is now padding)
+    order = np.argsort(np.where(near < n_blobs, distance, np.inf), axis=1, kind="stable")
+    return np.take_along_axis(near, order, axis=1)
+
+
+def _edge_sigma(index, near, all_xy, all_radius, params: CentroidParams) -> float:
+    """Scale (px) of the edge filter for a frame: ``edge_sigma_px``, narrowed to a quarter of the typical gap between neighbouring outlines.
+
+    A neighbour's edge pulls the gradient maxima of a bead over about twice
+    the filter's scale; where beads are crowded (the median gap from a fitted
+    bead's outline to its nearest neighbour's is small), a narrower filter
+    lets it pull less, at the cost of more noise. Never below
+    ``min_edge_sigma_px``.
+
+    Parameters
+    ----------
+    index : (n,) int64 ndarray
+        Rows of ``all_xy`` that are fitted.
+    near : (n, K) int64 ndarray
+        :func:`_neighbours` of each (``len(all_xy)``: none within reach).
+    all_xy : (M, 2) float64 ndarray, px
+    all_radius : (M,) float64 ndarray, px
+    """
+    nearest = near[:, 0]
+    has = nearest < len(all_xy)
+    gap = np.full(len(index), np.inf)
+    gap[has] = np.hypot(*(all_xy[nearest[has]] - all_xy[index[has]]).T) - all_radius[index[has]] - all_radius[nearest[has]]
+    return float(np.clip(np.median(gap) / 4, params.min_edge_sigma_px, params.edge_sigma_px)) if len(gap) else params.edge_sigma_px
+
+
+def _edge_points(image, centre0, radius0, polarity, sigma_px: float, params: CentroidParams):
     """Sub-pixel edge points around every bead.
+
+    Parameters
+    ----------
+    image : (H, W) float32 ndarray
+    centre0 : (n, 2) float64 ndarray, px
+    radius0 : (n,) float64 ndarray, px
+    polarity : {"dark", "bright"}
+    sigma_px : float
+        Scale of the edge filter (:func:`_edge_sigma`), px.
+    params : CentroidParams
 
     Returns
     -------
@@ -395,7 +452,6 @@ def _edge_points(image, centre0, radius0, polarity, params: CentroidParams):
     # the beads alone: a flat closing (opening) also removes steps such as a phantom wall's edge next to a
     # bead, which would otherwise pull the gradient maxima on that side
     square_px = odd_size(1.25 * 2 * radius0.max() + 8)
-    sigma_px = min(params.edge_sigma_px, max(float(np.median(radius0)) / 4, params.min_edge_sigma_px))
     gx, gy = _gaussian_gradient(image - background(image, polarity, square_px, reduce=True), sigma_px)
     magnitude = cv2.magnitude(gx, gy)
 
@@ -416,7 +472,7 @@ def _edge_points(image, centre0, radius0, polarity, params: CentroidParams):
     horizontal = np.abs(gx_p) >= np.abs(gy_p)
     step = np.where(horizontal, 1, width)
     before, after = magnitude.ravel()[flat - step], magnitude.ravel()[flat + step]
-    owner = owner_image.ravel()[flat] - 1
+    owner = owner_image.ravel()[flat].astype(np.int64) - 1
     # radial direction from the candidate centre; the gradient of a dark bead points outward, of a bright one inward
     ux, uy = found_xy[:, 0] - centre0[owner, 0], found_xy[:, 1] - centre0[owner, 1]
     sign = 1.0 if polarity == "dark" else -1.0
@@ -447,7 +503,7 @@ def _edge_points(image, centre0, radius0, polarity, params: CentroidParams):
     return np.column_stack([x[keep], y[keep]]), owner[keep]
 
 
-def _drop_near_neighbours(points_xy, owner, index, all_xy, all_radius, params: CentroidParams):
+def _drop_near_neighbours(points_xy, owner, index, near, all_xy, all_radius, params: CentroidParams):
     """Drop edge points within reach of another blob's outline.
 
     A neighbouring outline closer than a few smoothing lengths pulls the
@@ -463,21 +519,14 @@ def _drop_near_neighbours(points_xy, owner, index, all_xy, all_radius, params: C
         Row of the fitted beads (``index``) each point belongs to, sorted.
     index : (n,) int64 ndarray
         Rows of ``all_xy`` that are fitted.
+    near : (n, K) int64 ndarray
+        :func:`_neighbours` of each fitted bead.
     all_xy : (M, 2) float64 ndarray, px
         Centres of every candidate blob.
     all_radius : (M,) float64 ndarray, px
     """
-    from scipy.spatial import cKDTree
-
     if len(all_xy) < 2 or len(points_xy) == 0:
         return points_xy, owner
-    # a point of bead i lies within R_i (1 + annulus_fraction) + min_annulus_px of its centre
-    point_reach = all_radius.max() * (1 + params.annulus_fraction) + params.min_annulus_px
-    tree = cKDTree(all_xy)
-    # shape (M, K): up to K other blobs near each blob, padded with M (no blob)
-    k = min(len(all_xy), 8)
-    dist, near = tree.query(all_xy[index], k=k, distance_upper_bound=point_reach + all_radius.max() + params.neighbour_margin_px)
-    near = np.where(np.isfinite(dist) & (near != index[:, None]), near, len(all_xy))
     crowded_bead = np.any(near < len(all_xy), axis=1)
     keep = np.ones(len(owner), bool)
     check = crowded_bead[owner]

@@ -106,7 +106,7 @@ def test_sharp_noise_free_discs(diameter_px):
 def test_blurred_noisy_discs(diameter_px, bound_px):
     # real-frame conditions: edges blurred by sigma 1.5 px (10-90 % over 3.8 px), 16 DN noise on a
     # 1400 DN field with 30 % vignetting, 12-bit integers. The targets: 0.03 px RMS for beads of
-    # 10 px and more, 0.05 px for 6-10 px (measured on these frames: 0.035, 0.024, 0.018, 0.017 px)
+    # 10 px and more, 0.05 px for 6-10 px (measured on these frames: 0.024, 0.025, 0.017, 0.015 px)
     pitch = max(2.5 * diameter_px, 20)
     centres = bead_grid((384, 384), pitch, pitch, seed=int(diameter_px))
     image = render_beads((384, 384), centres, diameter_px / 2, blur_sigma_px=1.5, noise_dn=16, vignetting=0.3, dtype=np.uint16, seed=2)
@@ -224,7 +224,7 @@ def real_beads(arcadis_dir):
 
 @pytest.mark.parametrize("name, max_rmse_px", [("beads_centered_0.dcm", 0.05), ("beads_tilt_15.dcm", 0.05), ("spine_beads_centered_0.dcm", 0.1)])
 def test_real_beads_fit_well(real_beads, name, max_rmse_px):
-    # the paper reports 0.06 +- 0.01 px ellipse-fit RMSE; measured here 0.026, 0.025 and (over bone) 0.058 px
+    # the paper reports 0.06 +- 0.01 px ellipse-fit RMSE; measured here 0.026, 0.025 and (over bone) 0.057 px
     candidates, beads = real_beads(name)
     assert beads.ok.all() and len(beads) == candidates.n_accepted
     assert np.median(beads.fit_rmse_px) < max_rmse_px
@@ -256,7 +256,7 @@ def simulated():
 
 def test_simulator_small_beads():
     # the simulator's scene on a 320-px image: beads about 5.9 px across, many only 2-4 px from a neighbour
-    # (the edge filter narrows to a quarter of the radius, so that a neighbour's edge pulls less).
+    # (the edge filter narrows to a quarter of the typical gap, so that a neighbour's edge pulls less).
     # The target for 6-10 px: RMS <= 0.05 px (measured 0.027 px on this frame, 0.036 px on two).
     # Recall is lower than for larger beads: a bead 2-3 px from a neighbour can be left with too few edge
     # points once those facing the neighbour are dropped (measured 99.3 % here)
