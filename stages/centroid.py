@@ -231,6 +231,13 @@ class Centroids:
     def __len__(self) -> int:
         return len(self.xy_px)
 
+    def summary(self) -> str:
+        """One line: fitted beads, failures, median fit RMSE and centre sigma."""
+        ok = self.ok
+        rmse = float(np.median(self.fit_rmse_px[ok])) if ok.any() else float("nan")
+        sigma = float(np.median(np.hypot(self.sigma_x[ok], self.sigma_y[ok]))) if ok.any() else float("nan")
+        return f"{int(ok.sum())} fitted, {int((~ok).sum())} failed; median fit RMSE {rmse:.3f} px, centre sigma {sigma:.3f} px"
+
     @property
     def sigma_px(self) -> np.ndarray:
         """``(sigma_x, sigma_y, rho)`` per bead, (N, 3) float64, as :class:`~stages.artifacts.Observations` stores it."""

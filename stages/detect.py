@@ -199,6 +199,12 @@ class BeadCandidates:
     def n_accepted(self) -> int:
         return int(self.accepted.sum())
 
+    def summary(self) -> str:
+        """One line: accepted candidates, rejections by reason, polarity and bead size."""
+        reasons, counts = np.unique(self.reason[~self.accepted], return_counts=True)
+        rejected = ", ".join(f"{n} {r}" for r, n in zip(reasons, counts)) or "none"
+        return f"{self.n_accepted} accepted, rejected: {rejected}; {self.polarity} beads ~{self.diameter_px:.1f} px"
+
 
 def detect_beads(radiograph: Radiograph, params: DetectParams) -> BeadCandidates:
     """Find candidate beads in one frame.
