@@ -128,18 +128,16 @@ def _read_detections(path: Path) -> dict:
 def _read_seeds(path: Path, keys: list) -> dict:
     """``{(file, frame): ((id, x, y), ...)}``; rows without file/frame go to the first frame."""
     from stages.errors import InputError
+    from stages.io import read_seeds
 
-    seeds: dict = {}
-    for line_no, row in _csv_rows(path, ("id", "x", "y")):
-        try:
-            seed = (float(int(row["id"])), float(row["x"]), float(row["y"]))
-            key = (row["file"], int(row["frame"])) if row.get("file") else keys[0]
-        except ValueError as exc:
-            raise InputError(f"{path}:{line_no}: not a number ({exc})") from exc
-        if key not in keys:
-            raise InputError(f"{path}:{line_no}: frame {key} is not in the detections")
-        seeds.setdefault(key, []).append(seed)
-    return {k: tuple(v) for k, v in seeds.items()}
+    by_name = {(Path(f).name, i): (f, i) for f, i in keys}
+    out = {}
+    for key, seeds in read_seeds(path).items():
+        key = keys[0] if key == ("", 0) else by_name.get(key)
+        if key is None:
+            raise InputError(f"{path}: a seeded frame is not in the detections")
+        out[key] = out.get(key, ()) + seeds
+    return out
 
 
 def _csv_rows(path: Path, need: tuple):

@@ -37,6 +37,7 @@ class SystemConfig:
     frames: tuple[Path, ...]
     source_image_distance_mm: float
     pixel_pitch_mm: float
+    seeds: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -117,7 +118,7 @@ def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
 def _system(table: dict, i: int, root: Path, path: Path) -> SystemConfig:
     name = table.get("name", f"#{i + 1}")
     section = f"[[systems]] #{i + 1} "
-    _reject_unknown(table, {"name", "frames", "source_image_distance", "pixel_pitch"}, path, section)
+    _reject_unknown(table, {"name", "frames", "source_image_distance", "pixel_pitch", "seeds"}, path, section)
     _expect(table.get("name"), str, "a name such as \"A\"", path, section, "name")
     numbers = {}
     for key, unit in (("source_image_distance", "mm"), ("pixel_pitch", "mm")):
@@ -126,7 +127,12 @@ def _system(table: dict, i: int, root: Path, path: Path) -> SystemConfig:
             raise ConfigError(f"{_where(path, section, key)}: expected a positive number ({unit}); got {v}")
         numbers[key] = float(v)
     frames = _resolve_frames(table.get("frames"), root, path, section)
-    return SystemConfig(name, frames, numbers["source_image_distance"], numbers["pixel_pitch"])
+    seeds = None
+    if "seeds" in table:
+        seeds = root / _expect(table["seeds"], str, "a CSV file of id,x,y[,file,frame] seeds", path, section, "seeds")
+        if not seeds.is_file():
+            raise ConfigError(f"{_where(path, section, 'seeds')}: seeds file not found: {seeds}")
+    return SystemConfig(name, frames, numbers["source_image_distance"], numbers["pixel_pitch"], seeds)
 
 
 def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | None = None) -> Config:

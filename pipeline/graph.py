@@ -14,6 +14,7 @@ instant.
 from __future__ import annotations
 
 import importlib
+from functools import lru_cache
 from dataclasses import dataclass
 from typing import Callable
 
@@ -62,11 +63,23 @@ class Stage:
 
 def _label_context(config, unit, units) -> dict:
     system = config.systems[unit.system]
-    return {
+    context = {
         "source_image_distance_mm": system.source_image_distance_mm,
         "pixel_pitch_mm": system.pixel_pitch_mm,
         "image_size_px": tuple(unit.size_px),
     }
+    if system.seeds is not None:
+        seeds = _seeds(system.seeds)
+        first = unit.exposure == 0
+        context["seeds"] = seeds.get((unit.path.name, unit.index), ()) + (seeds.get(("", 0), ()) if first else ())
+    return context
+
+
+@lru_cache(maxsize=8)
+def _seeds(path):
+    from stages.io import read_seeds
+
+    return read_seeds(path)
 
 
 def _learn_extras(config, units) -> dict:

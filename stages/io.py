@@ -276,6 +276,37 @@ def read_phantom(path: str | os.PathLike, *, lattice: str = "", pitch_mm: float 
         raise InputError(f"{path}: {exc}") from exc
 
 
+def read_seeds(path: str | os.PathLike) -> dict:
+    """Manual seeds ``id,x,y[,file[,frame]]`` (px): ``{(file name or "", frame): ((id, x, y), ...)}``.
+
+    Rows without a file belong to the first frame of the sequence (key ``("", 0)``).
+
+    Raises
+    ------
+    InputError
+        Missing file or column, or a value that is not a number, naming the line.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: seeds file not found")
+    seeds: dict = {}
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        header = [h.strip() for h in (reader.fieldnames or [])]
+        missing = [c for c in ("id", "x", "y") if c not in header]
+        if missing:
+            raise InputError(f"{path}: seeds CSV needs columns id,x,y[,file,frame]; missing {','.join(missing)}")
+        for line_no, row in enumerate(reader, start=2):
+            row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
+            try:
+                seed = (float(int(row["id"])), float(row["x"]), float(row["y"]))
+                key = (Path(row["file"]).name, int(row.get("frame") or 0)) if row.get("file") else ("", 0)
+            except ValueError as exc:
+                raise InputError(f"{path}:{line_no}: not a number ({exc})") from exc
+            seeds.setdefault(key, []).append(seed)
+    return {k: tuple(v) for k, v in seeds.items()}
+
+
 def write_csv(path: str | os.PathLike, header: list[str], rows) -> None:
     """Write a CSV table atomically (floats with 6 decimals)."""
 
