@@ -36,6 +36,7 @@ def test_valid_config_resolves_paths_relative_to_file(tmp_path):
         (lambda t: t + "\n[detect]\nmin_diameter = 3\n", r"\[detect\] key 'min_diameter': unknown; allowed keys are min_diameter_px, polarity"),
         (lambda t: t + '\n[detect]\nmin_diameter_px = "big"\n', r"\[detect\] key 'min_diameter_px': expected float"),
         (lambda t: t.replace('name = "A"', 'name = "A"\ncolour = "red"'), r"#1 key 'colour': unknown key"),
+        (lambda t: t.replace('name = "A"', 'name = "A"\nseeds = "seeds.csv"'), r"#1 key 'seeds': seeds file not found"),
         (lambda t: t + "\n[[systems", r"not valid TOML"),
     ],
 )
