@@ -22,9 +22,16 @@ and the interior orientation):
   outlines lie within about one bead diameter of another bead's are ambiguous
   (front and back faces of the cube overlap in the X-ray) and are left out,
   together with the detections they absorb. A labelling is accepted only if
-  it explains most detections with small residuals, puts marker-sized
-  detections on markers, and (from another frame's pose) did not move beyond
-  the gate: a periodic layout could otherwise slip by a row unnoticed.
+  it explains most detections with small residuals and puts marker-sized
+  detections on markers. From another frame's pose (a sequence), the
+  orientation is taken as roughly right but the position is searched: every
+  detection-bead pair votes for the shift of the phantom across the beam that
+  would put the bead on the detection, over the whole image and a few depths;
+  the peaks of the vote are labelled, and the best labelling is kept only if
+  no distinct one (a periodic layout one row off) explains the frame about as
+  well. In a sequence (:func:`label_sequence`), a frame that still fails is
+  searched over turns about the turntable axis estimated from the frames
+  already labelled.
 - **Grid plates** (``phantom.lattice`` ``"hex"`` or ``"square"``): the holes
   are indexed on their lattice by topology, growing outward from a hole near
   the centre with local lattice vectors re-estimated at every hole, so that
@@ -49,7 +56,7 @@ from stages._geometry import matrix_to_quat, quat_to_matrix, rotvec_to_quat, to_
 from stages.artifacts import SCHEMA_VERSION, Phantom, check_shape, freeze
 from stages.errors import InputError
 
-VERSION = 1
+VERSION = 2
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +94,22 @@ _MIN_DEPTH_SPREAD = 0.02
 _C_ITERATIONS = 2
 # cost of a forbidden pair in the assignment: larger than any sum of gated distances
 _FORBIDDEN = 1e9
+# from another frame's pose: peaks of the shift vote kept as starts, sought among this many of the strongest bins
+_N_PEAKS = 8
+_N_PEAK_BINS = 300
+# ... starts labelled (best coarse score first) until one is acceptable
+_MAX_STARTS = 6
+# ... and another start is labelled in full when its screen count reaches this fraction of the labelling's
+_SCREEN_RIVAL = 0.85
+# the phantom's distance from the source may change by this fraction between neighbouring frames
+_MAX_DEPTH_CHANGE = 0.05
+# detections voting (evenly thinned) when depths or turns are compared, and turns searched in full
+_N_DEPTH_DETECTIONS = 80
+_N_TURN_DETECTIONS = 120
+_N_TURNS = 4
+_N_TURN_CANDIDATES = 12
+# the turntable axis is estimated from the sequence once its labelled frames span this turn
+_MIN_AXIS_TURN_DEG = 3.0
 
 
 @dataclass(frozen=True)
@@ -340,8 +363,10 @@ def label_beads(centroids, phantom: Phantom, params: LabelParams, prior_pose: tu
         ``source_image_distance_mm`` and ``pixel_pitch_mm`` must be set for a 3D phantom.
     prior_pose : (q, source_mm), optional
         An approximate pose, e.g. the previous frame's of a sequence; tried when the markers give no acceptable
-        labelling (ignored when seeds are given). It is trusted only if the labelling converges within the
-        assignment gate of it: a periodic bead layout could otherwise slip by a row.
+        labelling (ignored when seeds are given). Its orientation is taken as roughly right, its position not:
+        the phantom's shift across the beam is searched over the whole image and its distance over a few %,
+        every clear peak is labelled, and the best labelling is kept only if no distinct one explains the
+        frame about as well (a periodic bead layout could otherwise slip by a row).
 
     Returns
     -------
@@ -354,6 +379,11 @@ def label_beads(centroids, phantom: Phantom, params: LabelParams, prior_pose: tu
         A 3D phantom without ``source_image_distance_mm`` and ``pixel_pitch_mm``, a phantom of fewer than 4
         beads, a grid plate without a valid lattice or pitch, or seeds naming beads the phantom lacks.
     """
+    return _label_frame(centroids, phantom, params, prior_pose)
+
+
+def _label_frame(centroids, phantom: Phantom, params: LabelParams, prior_pose=None, turntable_axis=None) -> Labels:
+    """:func:`label_beads`, with the turntable axis (camera frame) of a sequence when it is known."""
     det = _Detections.from_centroids(centroids)
     iop = _assumed_iop(det, centroids, params, need_c=not phantom.lattice)
     if phantom.lattice:
@@ -364,7 +394,7 @@ def label_beads(centroids, phantom: Phantom, params: LabelParams, prior_pose: tu
         return _label_grid(det, phantom, params, iop)
     if phantom.n_beads < 4:
         raise InputError(f"phantom must have at least 4 beads; got {phantom.n_beads}")
-    return _label_cube(det, phantom, params, iop, prior_pose)
+    return _label_cube(det, phantom, params, iop, prior_pose, turntable_axis)
 
 
 def label_sequence(
@@ -374,8 +404,11 @@ def label_sequence(
 
     Frames with seeds (``seeds_by_frame[i]``, ``(id, x_px, y_px)`` triples) are labelled from them; the
     others from the markers and from the pose of the nearest labelled frame before them (a forward
-    pass), then, for frames still unlabelled, of the nearest one after them (a backward pass). Each
-    frame is still accepted or rejected on its own evidence.
+    pass), then, for frames still unlabelled, of the nearest one after them (a backward pass). The
+    neighbour's position is searched over the whole image (see :func:`label_beads`); a frame that
+    still fails is searched over turns about the turntable axis, estimated from the labelled frames'
+    orientations (before they span a few degrees: the image's vertical axis). Each frame is still
+    accepted or rejected on its own evidence.
 
     Parameters
     ----------
@@ -391,8 +424,6 @@ def label_sequence(
     tuple of Labels
         One per frame, in order.
     """
-    from dataclasses import replace
-
     seeds_by_frame = dict(seeds_by_frame or {})
     n = len(centroids_seq)
     bad = [i for i in seeds_by_frame if not 0 <= i < n]
@@ -400,25 +431,51 @@ def label_sequence(
         raise InputError(f"seeds_by_frame names frames {bad} outside 0..{n - 1}")
     base = replace(params, seeds=())
     out: list[Labels | None] = [None] * n
+    rotations: dict[int, np.ndarray] = {}  # frame -> R (object to camera) of the labelled frames
 
     def run(i, prior):
         seeds = tuple(tuple(s) for s in seeds_by_frame.get(i, ()))
         if seeds:
             return label_beads(centroids_seq[i], phantom, replace(base, seeds=seeds))
-        return label_beads(centroids_seq[i], phantom, base, prior)
+        axis = _turntable_axis(list(rotations.values())) if prior is not None else None
+        return _label_frame(centroids_seq[i], phantom, base, prior, axis)
+
+    def keep(i):
+        if out[i].ok and not phantom.lattice:
+            rotations[i] = quat_to_matrix(out[i].q)
+            return (out[i].q, out[i].source_mm)
+        return None
 
     prior = None
     for i in range(n):
         out[i] = run(i, prior)
-        if out[i].ok and not phantom.lattice:
-            prior = (out[i].q, out[i].source_mm)
+        prior = keep(i) or prior
     prior = None
     for i in reversed(range(n)):
         if not out[i].ok and prior is not None:
             out[i] = run(i, prior)
-        if out[i].ok and not phantom.lattice:
-            prior = (out[i].q, out[i].source_mm)
+        prior = keep(i) or prior
     return tuple(out)
+
+
+def _turntable_axis(rotations: list) -> np.ndarray | None:
+    """The axis (camera frame) about which the phantom turns between the labelled frames of a sequence.
+
+    A turntable turns the phantom about an axis fixed in the lab, hence in the camera frame of a
+    system: ``R_j R_i^T`` is a turn about it. The axis is the principal direction of the rotation
+    vectors of every labelled frame relative to the first, once they span at least
+    ``_MIN_AXIS_TURN_DEG``; before that, the image's vertical axis (a turntable seen by a horizontal
+    beam, the usual setup). None without a labelled frame.
+    """
+    from scipy.spatial.transform import Rotation
+
+    if not rotations:
+        return None
+    Rs = np.asarray(rotations)
+    rotvecs = Rotation.from_matrix(Rs @ Rs[0].T).as_rotvec()
+    if np.degrees(np.linalg.norm(rotvecs, axis=1).max()) < _MIN_AXIS_TURN_DEG:
+        return np.array([0.0, 1.0, 0.0])
+    return np.linalg.eigh(rotvecs.T @ rotvecs)[1][:, -1]
 
 
 # --- inputs ------------------------------------------------------------------------------------
@@ -671,7 +728,9 @@ class _Frame:
     height: float
 
 
-def _label_cube(det: _Detections, phantom: Phantom, params: LabelParams, iop: np.ndarray, prior_pose) -> Labels:
+def _label_cube(
+    det: _Detections, phantom: Phantom, params: LabelParams, iop: np.ndarray, prior_pose, turntable_axis=None
+) -> Labels:
     from scipy.spatial import cKDTree
 
     # a sphere projects to a nearly round outline: an elongated blob is overlapping beads, not one of them
@@ -712,12 +771,17 @@ def _label_cube(det: _Detections, phantom: Phantom, params: LabelParams, iop: np
 
     reason = "no pose hypothesis converged"
     for source, poses, scores in groups:
+        if source == "prior":
+            best, why = _label_from_prior(frame, *poses[0], turntable_axis)
+            if best is None:
+                reason = why
+                continue
+            best["source"] = source
+            return _labels_from_result(frame, best)
         best = None
         for i, (R, T) in enumerate(poses):
             result = _iterate(frame, R, T)
             ok, why = (False, "the labelling diverged") if result is None else _acceptable(frame, result)
-            if ok and source == "prior":
-                ok, why = _close_to_prior(frame, result, R, T)
             if ok:
                 result["source"] = source
                 best = result
@@ -728,16 +792,28 @@ def _label_cube(det: _Detections, phantom: Phantom, params: LabelParams, iop: np
         # a distinct pose that explains the detections about as well means the markers do not fix the pose
         rival_start = scores is not None and i + 1 < len(poses) and scores[i + 1] >= _RIVAL_SCORE * scores[i]
         rival = _iterate(frame, *poses[i + 1]) if rival_start else None
-        if rival is not None and _acceptable(frame, rival)[0] and rival["n_labelled"] >= _RIVAL_LABELS * best["n_labelled"]:
-            same = dict(zip(rival["det"].tolist(), rival["bead"].tolist()))
-            agree = np.mean([same.get(d) == b for d, b in zip(best["det"].tolist(), best["bead"].tolist())])
-            if agree < 0.9:
-                if rival["n_labelled"] > best["n_labelled"]:
-                    best, rival = rival, best
-                why = f"two poses explain the frame about equally well ({best['n_labelled']} vs {rival['n_labelled']} labels)"
-                return _failed(det, iop, why, source)
+        if rival is not None and _acceptable(frame, rival)[0] and _rivals(best, rival):
+            if rival["n_labelled"] > best["n_labelled"]:
+                best, rival = rival, best
+            why = f"two poses explain the frame about equally well ({best['n_labelled']} vs {rival['n_labelled']} labels)"
+            return _failed(det, iop, why, source)
         return _labels_from_result(frame, best)
     return _failed(det, iop, reason, groups[-1][0] if groups else "")
+
+
+def _rivals(best: dict, other: dict) -> bool:
+    """True if ``other`` labels about as many detections as ``best``, mostly with other ids."""
+    if other["n_labelled"] < _RIVAL_LABELS * best["n_labelled"]:
+        return False
+    return _agreement(best, other) < 0.9
+
+
+def _agreement(a: dict, b: dict) -> float:
+    """Fraction of ``a``'s labelled detections that ``b`` gives the same bead."""
+    if not len(a["det"]):
+        return 0.0
+    same = dict(zip(b["det"].tolist(), b["bead"].tolist()))
+    return float(np.mean([same.get(d) == k for d, k in zip(a["det"].tolist(), a["bead"].tolist())]))
 
 
 def _typical_spacing(xy: np.ndarray) -> float:
@@ -771,23 +847,258 @@ def _acceptable(frame: _Frame, result: dict) -> tuple[bool, str]:
     return True, ""
 
 
-def _close_to_prior(frame: _Frame, result: dict, R0: np.ndarray, T0: np.ndarray) -> tuple[bool, str]:
-    """A labelling started from another frame's pose is trusted only if the pose barely moved.
+# --- from another frame's pose: a global search over the phantom's shift (and turn) -------------
 
-    A phantom's bead layout is often periodic: a start one row off converges to a labelling one row
-    off that fits as well as the right one. Within the assignment gate of the start it cannot slip.
+
+def _label_from_prior(frame: _Frame, R0: np.ndarray, T0: np.ndarray, axis: np.ndarray | None) -> tuple[dict | None, str]:
+    """Label a frame from a neighbouring frame's pose ``(R0, T0)``; ``(result, "")`` or ``(None, reason)``.
+
+    The neighbouring pose fixes the orientation roughly (a turntable step) but not the position: the
+    phantom may have moved by several bead rows across the beam and by a few % of its distance along
+    it, and a start one row off converges to a labelling one row off that fits about as well. So the
+    position is searched over the whole image (:func:`_shift_starts`), the best peaks are labelled, and
+    the best labelling is kept only if no distinct one explains the frame about as well
+    (:func:`_best_start`). When that fails and the sequence's turntable ``axis`` (camera frame) is
+    known, the search is repeated over turns of the phantom about that axis (:func:`_turn_starts`).
     """
-    xyz = frame.phantom.xyz_mm[result["bead"]]
-    before = _project_cam((xyz - T0) @ R0.T, frame.iop)
-    after = _project_cam((xyz - result["T"]) @ result["R"].T, result["iop"])
-    moved = float(np.median(np.linalg.norm(after - before, axis=1)))
-    limit = frame.params.gate_bead_diameters * frame.diam_ref_px
-    if moved > limit:
-        return False, (
-            f"the beads moved {moved:.1f} px from the previous frame's pose (more than the {limit:.1f} px gate): "
-            "a periodic slip cannot be ruled out"
-        )
-    return True, ""
+    rays = _rays(frame, frame.det_xy)
+    best, why = _best_start(frame, _shift_starts(frame, R0, T0, rays))
+    if best is not None or axis is None:
+        return best, why
+    return _best_start(frame, _turn_starts(frame, R0, T0, axis))
+
+
+def _rays(frame: _Frame, xy: np.ndarray) -> np.ndarray:
+    """``(x, y) / z`` in camera coordinates of the rays through image points ``xy`` (pinhole)."""
+    return (xy - frame.iop[:2]) / frame.iop[2]
+
+
+def _depth_steps(frame: _Frame, depth_mm: float) -> np.ndarray:
+    """Changes of the phantom's distance from the source (mm) to try: up to ``_MAX_DEPTH_CHANGE`` of it,
+    in steps that move the detection farthest from the principal point by one assignment gate."""
+    r_max = float(np.max(np.linalg.norm(frame.det_xy - frame.iop[:2], axis=1), initial=1.0))
+    step = frame.params.gate_bead_diameters * frame.diam_ref_px * depth_mm / max(r_max, 1.0)
+    n = int(np.ceil(_MAX_DEPTH_CHANGE * depth_mm / step))
+    return np.arange(-n, n + 1) * step
+
+
+def _shift_starts(frame: _Frame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, n_keep: int = 0) -> list:
+    """Start poses ``[(R, T, votes)]``: the pose moved to where many beads meet detections, best first.
+
+    Each of :func:`_depth_steps` is tried; at each, every pair of a detection and a bead votes for the
+    shift across the beam that puts the bead on the detection's ray (:func:`_shift_votes`). The depth
+    whose strongest peak gathers the most votes of a thinned set of detections (``_N_DEPTH_DETECTIONS``)
+    is kept, and the vote of all detections there gives its peaks (``n_keep``, default
+    ``_N_PEAKS``): the peaks of a periodic layout, one period apart, must all be labelled to be told
+    apart.
+    """
+    depth = float(np.median((frame.phantom.xyz_mm - T) @ R[2]))
+    thin = rays[np.linspace(0, len(rays) - 1, _N_DEPTH_DETECTIONS).astype(int)] if len(rays) > _N_DEPTH_DETECTIONS else rays
+    steps = _depth_steps(frame, depth)
+    best_dz = steps[int(np.argmax([_shift_strength(frame, R, T - dz * R[2], thin) for dz in steps]))]
+    return _shift_peaks(frame, R, T - best_dz * R[2], rays, n_keep or _N_PEAKS)
+
+
+def _shift_votes(frame: _Frame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, *, bin_gates: float = 0.5, box: int = 3):
+    """The vote for shifts of pose ``(R, T)`` across the beam; None without beads in front of the source.
+
+    Every pair of a detection (``rays``) and a bead votes for the shift (camera x, y at the bead's depth,
+    mm) that puts the bead on the detection's ray. Votes are binned at ``bin_gates`` assignment gates.
+
+    Returns
+    -------
+    hist : (H, W) int64 ndarray
+        Votes per bin.
+    votes : (H, W) int64 ndarray
+        Votes summed over ``box`` x ``box`` bins (starting at the bin, or for an odd box, centred on it).
+    lo : (2,) float64 ndarray
+        Index of bin ``[0, 0]`` (shift / bin size, floored).
+    bin_mm : float
+    """
+    p_cam = (frame.phantom.xyz_mm - T) @ R.T
+    p_cam = p_cam[p_cam[:, 2] > 0]
+    if len(p_cam) < 4 or not len(rays):
+        return None
+    bin_mm = bin_gates * frame.params.gate_bead_diameters * frame.diam_ref_px * float(np.median(p_cam[:, 2])) / frame.iop[2]
+    # shape (D, B) each: the shift (in bins) that moves bead b onto detection d's ray, at b's depth
+    z = p_cam[:, 2] / bin_mm
+    fx = rays[:, 0:1] * z - p_cam[:, 0] / bin_mm
+    fy = rays[:, 1:2] * z - p_cam[:, 1] / bin_mm
+    lo = np.floor([fx.min(), fy.min()])
+    ix, iy = (fx - lo[0]).astype(np.int64), (fy - lo[1]).astype(np.int64)
+    shape = (int(ix.max()) + 1, int(iy.max()) + 1)
+    ix *= shape[1]
+    ix += iy
+    hist = np.bincount(ix.ravel(), minlength=shape[0] * shape[1]).reshape(shape)
+    padded = np.pad(hist, ((box // 2, box - 1 - box // 2),) * 2)
+    # separable box sum
+    rows = sum(padded[a : a + shape[0]] for a in range(box))
+    votes = sum(rows[:, b : b + shape[1]] for b in range(box))
+    return hist, votes, lo, bin_mm
+
+
+def _shift_strength(frame: _Frame, R: np.ndarray, T: np.ndarray, rays: np.ndarray) -> float:
+    """Votes of the strongest peak of :func:`_shift_votes`, on a coarser grid (bins of a gate, 2 x 2 sums;
+    for comparing depths and turns, 4x faster), 0 without one."""
+    vote = _shift_votes(frame, R, T, rays, bin_gates=1.0, box=2)
+    return 0.0 if vote is None else float(vote[1].max())
+
+
+def _shift_peaks(frame: _Frame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, n_keep: int) -> list:
+    """The ``n_keep`` strongest peaks ``[(R, T, votes)]`` of :func:`_shift_votes`, at least 3 bins apart,
+    each located at the vote-weighted mean of its 3 x 3 bins."""
+    vote = _shift_votes(frame, R, T, rays)
+    if vote is None:
+        return []
+    hist, votes, lo, bin_mm = vote
+    shape = votes.shape
+    votes = votes.ravel()
+    # greedy non-maximum suppression among the strongest bins
+    top = np.argpartition(-votes, min(_N_PEAK_BINS, len(votes) - 1))[:_N_PEAK_BINS]
+    top = top[np.argsort(-votes[top], kind="stable")]
+    kept: list[tuple[int, int]] = []
+    out = []
+    for k in top:
+        if votes[k] <= 0 or len(kept) == n_keep:
+            break
+        i, j = divmod(int(k), shape[1])
+        if any(abs(i - a) <= 2 and abs(j - b) <= 2 for a, b in kept):
+            continue
+        kept.append((i, j))
+        i0, j0 = max(i - 1, 0), max(j - 1, 0)
+        win = hist[i0 : i + 2, j0 : j + 2].astype(np.float64)
+        ii, jj = np.meshgrid(np.arange(i0, i0 + win.shape[0]), np.arange(j0, j0 + win.shape[1]), indexing="ij")
+        centre = (np.array([(ii * win).sum(), (jj * win).sum()]) / win.sum() + lo + 0.5) * bin_mm
+        out.append((R, T - R.T @ np.array([centre[0], centre[1], 0.0]), float(votes[k])))
+    return out
+
+
+def _turn_starts(frame: _Frame, R0: np.ndarray, T0: np.ndarray, axis: np.ndarray) -> list:
+    """Start poses ``[(R, T, votes)]`` turned about ``axis`` (camera frame) over the full circle.
+
+    The phantom is turned about the axis through its centre, in steps that move the beads farthest
+    from the axis by two assignment gates. Each turn is scored by the strongest peak of its shift vote
+    on a coarse grid and a thinned set of detections (:func:`_shift_strength`, the prior's depth); the
+    ``_N_TURN_CANDIDATES`` best local maxima over the angle are re-scored on the fine grid with all
+    detections (:func:`_shift_votes`) at half-step offsets, and the ``_N_TURNS`` best get the full search of
+    :func:`_shift_starts`. All their peaks are returned, best first: a phantom that looks alike after
+    a turn (a cube after a quarter turn) must show both.
+    """
+    import cv2
+
+    xyz = frame.phantom.xyz_mm
+    centre = xyz.mean(0)
+    p_centre = R0 @ (centre - T0)
+    axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    rel = (xyz - centre) @ R0.T
+    radius = float(np.max(np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)))
+    gate_mm = frame.params.gate_bead_diameters * frame.diam_ref_px * p_centre[2] / frame.iop[2]
+    n_steps = int(np.clip(np.ceil(np.pi * radius / gate_mm), 8, 360))
+    step = 2 * np.pi / n_steps
+    rays = _rays(frame, frame.det_xy)
+
+    def turned(angle):
+        turn, _ = cv2.Rodrigues(axis * angle)
+        R = turn @ R0
+        return R, centre - R.T @ p_centre
+
+    def strength(angle):
+        vote = _shift_votes(frame, *turned(angle), rays)
+        return 0.0 if vote is None else float(vote[1].max())
+
+    thin = rays[np.linspace(0, len(rays) - 1, _N_TURN_DETECTIONS).astype(int)] if len(rays) > _N_TURN_DETECTIONS else rays
+    scan = np.array([_shift_strength(frame, *turned(a), thin) for a in np.arange(n_steps) * step])
+    local = np.flatnonzero((scan >= np.roll(scan, 1)) & (scan >= np.roll(scan, -1)))
+    refined = []
+    for k in local[np.argsort(-scan[local], kind="stable")][: _N_TURN_CANDIDATES]:
+        angles = (k + np.array([-0.5, 0.0, 0.5])) * step
+        scores = [strength(a) for a in angles]
+        refined.append((max(scores), angles[int(np.argmax(scores))]))
+    refined.sort(key=lambda s: -s[0])
+    starts = [s for _, a in refined[:_N_TURNS] for s in _shift_starts(frame, *turned(a), rays)]
+    return sorted(starts, key=lambda s: -s[2])
+
+
+def _best_start(frame: _Frame, starts: list) -> tuple[dict | None, str]:
+    """Label from the starts, best coarse score first; the best labelling, unless a rival matches it.
+
+    Starts are labelled until one is acceptable. A periodic layout gives a start one period off almost
+    the same coarse score, so every other start is then checked: moved as that labelling moved from its
+    start, and re-aligned by the median offset of its matches, it is counted with the labelling's model
+    (pose, ``c``, correction) and the final gate (:func:`_screen`); those that reach
+    ``_SCREEN_RIVAL`` of the labelling's own count, with detection sizes that fit the beads (a slip
+    that puts markers on ordinary beads is no rival), are labelled in full, and the best labelling is kept
+    only if no distinct acceptable one comes within ``_RIVAL_LABELS`` of it.
+    """
+    if not starts:
+        return None, "no shift of the previous frame's pose brings beads onto the detections"
+    scores = np.array([_coarse_score(frame, R, T) for R, T, _ in starts])
+    order = np.argsort(-scores, kind="stable")
+    reason = "no shift of the previous frame's pose gives an acceptable labelling"
+    best, k_best = None, -1
+    for k in order[:_MAX_STARTS]:
+        result = _iterate(frame, starts[k][0], starts[k][1])
+        ok, why = (False, "the labelling diverged") if result is None else _acceptable(frame, result)
+        if ok:
+            best, k_best = result, k
+            break
+        reason = f"from the previous frame's pose, shifted: {why}"
+    if best is None:
+        return None, reason
+    # the rigid motion that took the start to the labelling's pose, in camera coordinates: p -> A p + b
+    R0, T0, _ = starts[k_best]
+    A = best["R"] @ R0.T
+    b = best["R"] @ (T0 - best["T"])
+    own, _ = _screen(frame, best, best["R"], best["T"])
+    accepted = [best]
+    for k in order:
+        if k == k_best:
+            continue
+        R = A @ starts[k][0]
+        T = starts[k][1] - R.T @ b
+        n, sizes_ok = _screen(frame, best, R, T, _SCREEN_RIVAL * own)
+        if n < _SCREEN_RIVAL * own or not sizes_ok:
+            continue
+        result = _iterate(frame, *starts[k][:2])
+        if result is None or not _acceptable(frame, result)[0]:
+            continue
+        if all(_agreement(result, other) < 0.9 for other in accepted):
+            accepted.append(result)
+    accepted.sort(key=lambda r: -r["n_labelled"])
+    best = accepted[0]
+    for other in accepted[1:]:
+        if _rivals(best, other):
+            return None, (
+                f"two shifts of the previous frame's pose explain the frame about equally well "
+                f"({best['n_labelled']} vs {other['n_labelled']} labels)"
+            )
+    return best, ""
+
+
+def _screen(frame: _Frame, result: dict, R: np.ndarray, T: np.ndarray, min_count: float = 0.0) -> tuple[int, bool]:
+    """Beads that pose ``(R, T)`` puts within the final gate of a detection, under ``result``'s model, and
+    whether their detections' sizes fit them (:func:`_sizes_consistent`; checked only for ``min_count``
+    beads or more, True below).
+
+    The pose is first moved across the image by the median offset of the detections within the
+    assignment gate of its predictions (twice), so that a start a little off its peak counts in full.
+    """
+    p = frame.params
+    sub = replace(frame, iop=result["iop"])
+    vis, ideal, diam = _visible(sub, R, T)
+    if not len(vis):
+        return 0
+    pred = result["corr"].apply(ideal[vis])
+    for _ in range(2):
+        d, j = frame.det_tree.query(pred, distance_upper_bound=p.gate_bead_diameters * frame.diam_ref_px)
+        hit = np.isfinite(d)
+        if hit.sum() < 3:
+            return int(hit.sum()), True
+        pred = pred + np.median(frame.det_xy[j[hit]] - pred[hit], axis=0)
+    d, j = frame.det_tree.query(pred)
+    close = d <= p.final_gate_bead_diameters * diam[vis]
+    n = int(close.sum())
+    return n, n < min_count or _sizes_consistent(sub, R, T, vis[close], j[close])
 
 
 def _visible(frame: _Frame, R: np.ndarray, T: np.ndarray):
@@ -946,7 +1257,7 @@ def _iterate(frame: _Frame, R: np.ndarray, T: np.ndarray) -> dict | None:
         "n_labelled": len(beads), "n_ambiguous": int(ambig.sum()),
         "rms_px": float(np.sqrt(np.mean(pin**2))) if len(pin) else np.nan,
         "rms_corrected_px": float(np.sqrt(np.mean(resid[lab] ** 2))) if lab.any() else np.nan,
-        "sizes_consistent": _sizes_consistent(frame, R, T, beads, dets),
+        "sizes_consistent": _sizes_consistent(frame, R, T, beads, dets), "corr": corr,
     }
 
 

@@ -9,6 +9,8 @@ through detect and centroid as well.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.sparse import coo_matrix
@@ -320,7 +322,7 @@ def test_three_seeds(sim, params):
 
 
 def test_prior_pose_near_and_far(sim, params):
-    """A prior close to the frame's pose labels it; one several rows off is refused, not followed."""
+    """A prior close to the frame's pose labels it; so does one several rows off, by the shift search."""
     rng = np.random.default_rng(5)
     phantom = without_roles(sim.phantom)
     ft = sim.truth.frames[1][1]
@@ -329,10 +331,30 @@ def test_prior_pose_near_and_far(sim, params):
     lab = label_beads(c, phantom, params, prior_pose=near)
     check_against_truth(lab, ids, ft, min_fraction=0.97)
     assert lab.pose_source == "prior"
-    far = (ft.q, ft.source_mm + [0.0, 0.0, 12.0])  # 12 mm along the walls' vertical axis: three rows off
-    refused = label_beads(c, phantom, params, prior_pose=far)
-    assert not refused.ok
-    assert refused.n_labelled == 0
+    # 30 mm along the walls' vertical axis (several rows off), 15 mm across and 20 mm along the beam
+    R = quat_to_matrix(ft.q)
+    far = (ft.q, ft.source_mm + [0.0, 0.0, 30.0] + R.T @ [15.0, 0.0, 20.0])
+    lab = label_beads(c, phantom, params, prior_pose=far)
+    check_against_truth(lab, ids, ft, min_fraction=0.97)
+
+
+def test_prior_pose_on_a_periodic_patch_is_refused(sim, params):
+    """Detections of an inner patch of the cube only, without markers: shifts by a row fit as well.
+
+    The patch is a periodic lattice without edges, so the shift search finds rival labellings a period
+    apart; the frame must be refused (never labelled one row off).
+    """
+    rng = np.random.default_rng(15)
+    phantom = Phantom(sim.phantom.ids, sim.phantom.xyz_mm, np.full(sim.phantom.n_beads, 3.5), np.full(sim.phantom.n_beads, ""))
+    ft = sim.truth.frames[0][1]
+    c, ids = detections_from_truth(ft, rng, n_false=0)
+    inner = np.all(np.abs(c.xy_px - np.median(c.xy_px, axis=0)) < 120, axis=1)
+    sub = make_centroids(c.xy_px[inner], 2 * c.minor_px[inner], major_px=c.major_px[inner])
+    R = quat_to_matrix(ft.q)
+    far = (ft.q, ft.source_mm + R.T @ [0.0, 12.0, 0.0])
+    lab = label_beads(sub, phantom, replace(params, min_labelled=8), prior_pose=far)
+    assert not lab.ok and "equally well" in lab.reason, lab.reason
+    assert lab.n_labelled == 0
 
 
 def test_random_points_fail(sim, params):
@@ -356,6 +378,25 @@ def test_sequence_propagates_seeds(sim, params):
     assert [lab.pose_source for lab in labs] == ["seeds", "prior", "prior"]
     for lab in labs:
         assert lab.ok and np.array_equal(ids0[lab.det_index], lab.bead_id)
+
+
+def test_sequence_seeded_on_one_frame_follows_turns_and_jumps():
+    """The paper's manual seeding: seeds on the first frame only, no markers, a turntable sequence.
+
+    Between exposures the phantom turns by 7.5 or 82 degrees and moves by up to 30 mm in height and
+    20 mm sideways (several bead rows): every frame is found from its neighbour by the shift and turn
+    search, with no wrong label.
+    """
+    sim4 = simulate(SimulateParams(n_frames=8, n_systems=1, seed=11), render=False)
+    p = sim4.params
+    params = LabelParams(source_image_distance_mm=p.source_image_distance_mm, pixel_pitch_mm=p.pixel_pitch_mm, image_size_px=(p.image_size_px, p.image_size_px))
+    rng = np.random.default_rng(16)
+    fts = sim4.truth.frames[0]
+    dets = [detections_from_truth(ft, rng) for ft in fts]
+    labs = label_sequence([c for c, _ in dets], without_roles(sim4.phantom), params, {0: seeds_from_truth(fts[0], rng)})
+    assert [lab.pose_source for lab in labs] == ["seeds"] + ["prior"] * 7
+    for (c, ids), lab, ft in zip(dets, labs, fts):
+        check_against_truth(lab, ids, ft, min_fraction=0.97)
 
 
 def test_rendered_frame_through_detection():
