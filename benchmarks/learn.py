@@ -43,18 +43,39 @@ from stages.learn import LearnParams, calibrate  # noqa: E402
 
 NOISE_PX = 0.05
 
+#: the paper's loop as written (learn from the adjustment's inliers, no gauge, every solve in full)
+PLAIN = {"training": "inliers", "field_gauge": "none", "fast_intermediate": False}
+
 METHODS = {
     # name: (scheme, LearnParams overrides)
     "none": ("none", {}),
-    "knn": ("knn", {}),
-    "knn+iop": ("knn+iop", {}),
-    "knn+smooth": ("knn+smooth", {}),
-    "knn+iop+smooth": ("knn+iop+smooth", {}),
-    "ours: anderson + grid refine": ("knn+iop+smooth", {"acceleration": "anderson", "refine": "grid", "max_iterations": 3}),
-    "ours: anderson + joint grid+points refine": ("knn+iop+smooth", {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3}),
+    "knn": ("knn", PLAIN),
+    "knn+iop": ("knn+iop", PLAIN),
+    "knn+smooth": ("knn+smooth", PLAIN),
+    "knn+iop+smooth": ("knn+iop+smooth", PLAIN),
+    "ours: anderson + grid refine": ("knn+iop+smooth", {**PLAIN, "acceleration": "anderson", "refine": "grid", "max_iterations": 3}),
+    "ours: anderson + joint grid+points refine": ("knn+iop+smooth", {**PLAIN, "acceleration": "anderson", "refine": "grid+points", "max_iterations": 3}),
     "ours: same + affine datum": (
         "knn+iop+smooth",
+        {**PLAIN, "acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True},
+    ),
+    # the defaults: local outlier test, field gauge, fast intermediate solves
+    "ours: same + local outliers + gauge + fast solves": (
+        "knn+iop+smooth",
         {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True},
+    ),
+    # ablations of the defaults
+    "ours defaults without gauge": (
+        "knn+iop+smooth",
+        {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True, "field_gauge": "none"},
+    ),
+    "ours defaults with full intermediate solves": (
+        "knn+iop+smooth",
+        {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True, "fast_intermediate": False},
+    ),
+    "ours defaults with inlier training": (
+        "knn+iop+smooth",
+        {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True, "training": "inliers"},
     ),
 }
 

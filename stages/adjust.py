@@ -131,6 +131,12 @@ class AdjustParams:
         reduced system), ``"points"`` or ``"poses"``.
     min_inlier_fraction : float
         ``usable`` requires at least this fraction of inliers (default 0.5).
+    compute_covariance : bool
+        Compute the parameters' covariance and the observations' redundancy
+        numbers (default True). False skips the dense inverse (about two
+        thirds of a warm-started solve): standard deviations are then zero and
+        every observation gets the mean redundancy ``dof / 2N`` (the learning
+        loop's intermediate solves use this).
     """
 
     nu: float = 4.0
@@ -149,6 +155,7 @@ class AdjustParams:
     min_ray_angle_deg: float = 1.0
     schur: str = "auto"
     min_inlier_fraction: float = 0.5
+    compute_covariance: bool = True
 
     def __post_init__(self):
         object.__setattr__(self, "nu_bounds", tuple(float(b) for b in self.nu_bounds))
@@ -726,14 +733,21 @@ def _summarise(observations, prepared: _Prepared, solved, initial, params) -> Ad
     r_px, e = _ba.residuals(state, problem)
     s = (e * e).sum(1)
     w = _ba.t_weights(s, solved.nu, solved.scale2)
-    cov = _ba.covariance(state, problem, w)
     n_used = problem.n_obs
     u = problem.n_free - 7
     dof = 2 * n_used - u
     if dof <= 0:
         raise EstimationError(f"no redundancy: {2 * n_used} observations for {u} parameters")
+    if params.compute_covariance:
+        cov = _ba.covariance(state, problem, w)
+        hat = cov.hat
+    else:
+        # no inverse: zero cofactors, and the mean redundancy for every observation (hat = (1 - r̄)/w I)
+        ng = problem.n_globals
+        cov = _ba.Covariance(np.zeros((problem.n_points, 3, 3)), np.zeros((problem.n_poses, 6, 6)), np.zeros((ng, ng)), None)
+        hat = ((1.0 - dof / (2.0 * n_used)) / w)[:, None, None] * np.eye(2)
 
-    red, std_res, sigma0, inlier = _observation_statistics(r_px, s, w, cov.hat, problem.linv, params.outlier_weight)
+    red, std_res, sigma0, inlier = _observation_statistics(r_px, s, w, hat, problem.linv, params.outlier_weight)
 
     if math.isinf(solved.nu):
         c_h = float(s.sum() / dof)

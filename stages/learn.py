@@ -40,6 +40,17 @@ Beyond the paper (``LearnParams.acceleration`` and ``LearnParams.refine``)
   object points (:func:`fit_grid_with_points`), which removes most of the
   coupling that makes the plain alternation slow (the free phantom absorbs
   part of the field at every adjustment).
+- ``LearnParams.training="local"``: learn from every observation the
+  adjustment used, less those the field itself cannot explain, instead of the
+  adjustment's inliers (which, before the distortion is modelled, exclude the
+  strongly distorted rim, so the rim is never learned and the loop stalls).
+- ``LearnParams.field_gauge="orientation"``: remove from the field, after
+  every update, what the IOP and a common rotation of the poses reproduce
+  exactly (an 8-parameter homography's 4 to 6 orientation directions), so the
+  IOP cannot drift along this gauge (they become the best pinhole over the
+  observed area).
+- ``LearnParams.fast_intermediate``: intermediate adjustments without the
+  covariance and with a short, looser LM; only the final solve in full.
 """
 
 from __future__ import annotations
@@ -129,6 +140,44 @@ class LearnParams:
         only). In a free network these deformations trade off against an
         image aspect ratio or shear of the field through weak perspective
         effects only; see :func:`fit_grid_with_points`.
+    training : str
+        Which observations each regression learns from. ``"inliers"``: the
+        adjustment's inliers (the paper). ``"local"`` (default): every
+        observation the adjustment used, less those the fitted field itself
+        cannot explain (squared standardised misfit above ``outlier_chi2``
+        times its median / ln 4, the robust scale of a 2-D Gaussian), refitted
+        without them. While the distortion is still unmodelled the
+        adjustment's t-weights flag the strongly distorted rim of the field as
+        outliers, so an inlier-only regression never learns the rim and the
+        loop stalls; gross errors (mislabels), unlike distortion, are not
+        shared by their neighbours, which is what the local test uses. With
+        ``"local"`` the joint refinement also weights observations by their
+        variances only, not their t-weights.
+    field_gauge : str
+        ``"orientation"`` (default): after every update, remove from each
+        system's field its least-squares component (over the observations)
+        that the orientation parameters reproduce exactly: an image rotation
+        and the two "keystone" fields of a common rotation of every pose
+        (absorbed, biplanar, by the ROP), and, when the IOP are estimated, a
+        principal-point shift and a principal-distance scaling. These trade
+        one for one between field and adjustment; left free they let the
+        IOP (and the alternation's fixed point) drift without bound, as on a
+        turntable set. The IOP then are the best pinhole over the observed
+        area, and the field the departure from it. ``"none"``: the paper (the
+        field keeps whatever the loop leaves in it).
+    outlier_chi2 : float
+        Threshold of the local outlier test of ``training="local"`` (default
+        23: a 2-D Gaussian exceeds it with probability 1e-5).
+    fast_intermediate : bool
+        Solve the loop's intermediate adjustments without the covariance and
+        redundancy numbers (each observation gets the mean redundancy), with
+        ``function_tolerance`` at least 1e-3 and at most 10 iterations (they
+        are warm-started), and only the final solve in full (default True).
+        False: every solve with the given AdjustParams (the paper's loop).
+
+    The paper's four schemes as written: ``acceleration="none"``,
+    ``refine="none"``, ``training="inliers"``, ``field_gauge="none"``,
+    ``fast_intermediate=False``.
     """
 
     k_grid: tuple = _DEFAULT_K_GRID
@@ -148,6 +197,10 @@ class LearnParams:
     smoothness_folds: int = 5
     refine_iterations: int = 15
     affine_datum: bool = False
+    training: str = "local"
+    field_gauge: str = "orientation"
+    outlier_chi2: float = 23.0
+    fast_intermediate: bool = True
 
     def __post_init__(self):
         object.__setattr__(self, "k_grid", tuple(sorted({int(k) for k in self.k_grid})))
@@ -174,6 +227,12 @@ class LearnParams:
             raise InputError(f"relaxation must lie in (0, 2); got {self.relaxation}")
         if self.max_iterations < 1:
             raise InputError(f"max_iterations must be >= 1; got {self.max_iterations}")
+        if self.training not in ("inliers", "local"):
+            raise InputError(f"training must be 'inliers' or 'local'; got {self.training!r}")
+        if self.field_gauge not in ("none", "orientation"):
+            raise InputError(f"field_gauge must be 'none' or 'orientation'; got {self.field_gauge!r}")
+        if not self.outlier_chi2 > 0:
+            raise InputError(f"outlier_chi2 must be > 0; got {self.outlier_chi2}")
 
     @classmethod
     def from_dict(cls, values: dict) -> "LearnParams":
@@ -1149,14 +1208,14 @@ def calibrate(
     n_obs = len(xy)
     rows = [np.flatnonzero(observations.system == s) for s in range(n_systems)]
     corrections = np.zeros((n_obs, 2))
-    run = _adjuster(observations, phantom, initial, adjust_params, estimate_iop)
+    run = _adjuster(observations, phantom, initial, adjust_params, estimate_iop, fast=params.fast_intermediate)
     nominal_ids, nominal_xyz = _nominal_pair(phantom)
     id_order = np.argsort(nominal_ids)
 
     def lookup(ids):
         return id_order[np.searchsorted(nominal_ids, ids, sorter=id_order)]
 
-    adj = run(corrections, None)
+    adj = run(corrections, None, final=not learn)
     initial_residual = adj.residual_px
     out = _adjustment_outcome(adj, observations.sigma_px)
     history = [IterationRecord(0, "adjust", out.cost, 0.0, out.cost, (), out.rms_px, 0.0)]
@@ -1173,6 +1232,31 @@ def calibrate(
     taus: list = [None] * n_systems
     cvs: list = [None] * n_systems
     anderson = _Anderson(params.anderson_depth)
+
+    def fit_system(s, sel, adj, out, phase):
+        """One regression step of system ``s`` on observations ``sel``: the update and the rows used."""
+        r, var = out.residuals_px[sel], out.residual_var_px2[sel]
+        if phase == "grid":
+            if taus[s] is None:
+                cvs[s] = cross_validate_smoothness(xy[sel], r, var, image_size=sizes[s], params=params, base_px=grids[s].delta_px)
+                taus[s] = cvs[s].tau_px
+                logger.info("system %s: gridded refinement, smoothness tau %.3g px (CV)", observations.system_names[s], taus[s])
+            if params.refine == "grid+points":
+                bead, J = _point_jacobians(adj, observations, sel)
+                t_weight = adj.weight[sel, None] if params.training == "inliers" else 1.0
+                w_obs = t_weight / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
+                shape = (adj.xyz_mm, nominal_xyz[lookup(adj.bead_id)]) if params.affine_datum else None
+                model = fit_grid_with_points(
+                    xy[sel], r, w_obs, bead, J, params, image_size=sizes[s], tau_px=taus[s], base=grids[s],
+                    cv_rms_px=cvs[s].cv_rms_px, shape_mm=shape, max_cg_iterations=_LOOP_CG_ITERATIONS,
+                )
+            else:
+                model = fit_grid_field(xy[sel], r, var, params, image_size=sizes[s], tau_px=taus[s], cv_rms_px=cvs[s].cv_rms_px, base=grids[s])
+        else:
+            model, cvs[s] = fit_knn_field(xy[sel], r, var, replace(params, k_grid=_restricted_k_grid(params.k_grid, k_prev[s])), image_size=sizes[s])
+            k_prev[s] = cvs[s].k
+        return model, sel
+
     phase = "knn"
     phase_start = 1
     converged, stop = False, f"maximum number of iterations ({params.max_iterations}) reached"
@@ -1182,28 +1266,26 @@ def calibrate(
         fit_cost = 0.0
         updates = []
         for s in range(n_systems):
-            sel = rows[s][out.inlier[rows[s]]]
+            if params.training == "local":
+                sel = rows[s][adj.used[rows[s]]]
+            else:
+                sel = rows[s][out.inlier[rows[s]]]
             if len(sel) < params.n_folds:
                 raise EstimationError(f"system {observations.system_names[s]} has {len(sel)} inlier observations; the regression needs at least {params.n_folds}")
-            r, var = out.residuals_px[sel], out.residual_var_px2[sel]
-            if phase == "grid":
-                if taus[s] is None:
-                    cvs[s] = cross_validate_smoothness(xy[sel], r, var, image_size=sizes[s], params=params, base_px=grids[s].delta_px)
-                    taus[s] = cvs[s].tau_px
-                    logger.info("system %s: gridded refinement, smoothness tau %.3g px (CV)", observations.system_names[s], taus[s])
-                if params.refine == "grid+points":
-                    bead, J = _point_jacobians(adj, observations, sel)
-                    w_obs = adj.weight[sel, None] / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
-                    shape = (adj.xyz_mm, nominal_xyz[lookup(adj.bead_id)]) if params.affine_datum else None
-                    model = fit_grid_with_points(
-                        xy[sel], r, w_obs, bead, J, params, image_size=sizes[s], tau_px=taus[s], base=grids[s],
-                        cv_rms_px=cvs[s].cv_rms_px, shape_mm=shape,
-                    )
-                else:
-                    model = fit_grid_field(xy[sel], r, var, params, image_size=sizes[s], tau_px=taus[s], cv_rms_px=cvs[s].cv_rms_px, base=grids[s])
+            if params.training == "local":
+                # gross errors are what the field cannot explain: fit to all, test every
+                # observation against the fitted field, refit without the misfits
+                candidates = sel
+                model, _ = fit_system(s, candidates, adj, out, phase)
+                r, var = out.residuals_px[candidates], out.residual_var_px2[candidates]
+                z2 = np.sum((r - model.correction_at(xy[candidates])) ** 2 / var, axis=1)
+                keep = z2 <= params.outlier_chi2 * max(float(np.median(z2)) / (2 * np.log(2)), 1e-300)
+                sel = candidates[keep] if keep.sum() >= params.n_folds else candidates
+                if len(sel) < len(candidates):
+                    model, _ = fit_system(s, sel, adj, out, phase)
             else:
-                model, cvs[s] = fit_knn_field(xy[sel], r, var, replace(params, k_grid=_restricted_k_grid(params.k_grid, k_prev[s])), image_size=sizes[s])
-                k_prev[s] = cvs[s].k
+                model, sel = fit_system(s, sel, adj, out, phase)
+            r, var = out.residuals_px[sel], out.residual_var_px2[sel]
             fit_cost += float(np.sum((r - model.correction_at(xy[sel])) ** 2 / var))
             updates.append(model)
 
@@ -1218,6 +1300,8 @@ def calibrate(
             else:
                 x_new = x + dx
             grids = _split_nodes(grids, updates, x_new)
+            if params.field_gauge != "none":
+                grids = [_gauge_fixed(g, xy[rows[s]], adj.iop_px[s], estimate_iop) for s, g in enumerate(grids)]
             for s in range(n_systems):
                 corrections[rows[s]] = grids[s].correction_at(xy[rows[s]])
         else:
@@ -1226,7 +1310,7 @@ def calibrate(
                 pointwise[s] = pointwise[s].add(updates[s].scaled(factor))
                 corrections[rows[s]] += factor * updates[s].correction_at(xy[rows[s]])
 
-        adj = run(corrections, adj)
+        adj = run(corrections, adj, final=False)
         out = _adjustment_outcome(adj, observations.sigma_px)
         total = out.cost + fit_cost
         step = float(np.max(np.abs(corrections - old))) if n_obs else 0.0
@@ -1250,6 +1334,9 @@ def calibrate(
                 stop = f"maximum number of refinement iterations ({params.refine_iterations}) reached"
             break
 
+    if params.fast_intermediate:
+        # the final solve, warm-started, with the covariance and redundancy numbers
+        adj = run(corrections, adj, final=True)
     if smooth:
         fields, pw = tuple(grids), None
     else:
@@ -1264,6 +1351,46 @@ def calibrate(
         logger.warning("scheme %s: the final adjustment is not usable (%s)", scheme, adj.stop_reason)
     logger.info("scheme %s: %s after %d iterations (%.1f s, of which %.1f s in the adjustment)", scheme, stop, iteration, wall, run.seconds)
     return LearnResult(scheme, fields, pw, corrections, adj, tuple(history), tuple(cvs), converged, stop, wall, run.seconds, initial_residual)
+
+
+def _gauge_basis(xy_px, iop_px, with_iop: bool) -> np.ndarray:
+    """Image displacement fields ``(n, 2, K)`` px the orientation parameters reproduce exactly (to first order).
+
+    A common rotation of every pose about the camera axes (absorbed, in a
+    biplanar set, by the ROP) displaces the image by ``c ω × ...``: a rotation
+    about the principal point and two "keystone" fields
+    ``(c + x'²/c, x'y'/c)``, ``(x'y'/c, c + y'²/c)`` (``x' = x - xp``). With
+    the IOP estimated, a shift of the principal point (the two translations)
+    and of the principal distance (a scaling about the principal point) too.
+    """
+    xp, yp, c = (float(v) for v in iop_px)
+    u, v = xy_px[:, 0] - xp, xy_px[:, 1] - yp
+    cols = [np.stack([-v, u], 1), np.stack([c + u * u / c, u * v / c], 1), np.stack([u * v / c, c + v * v / c], 1)]
+    if with_iop:
+        one, zero = np.ones_like(u), np.zeros_like(u)
+        cols += [np.stack([one, zero], 1), np.stack([zero, one], 1), np.stack([u, v], 1)]
+    return np.stack(cols, 2)
+
+
+def _gauge_fixed(field: "CorrectionField", xy_px: np.ndarray, iop_px, with_iop: bool) -> "CorrectionField":
+    """The field less its least-squares component (at the observations) that the orientation reproduces.
+
+    These components trade exactly against the adjustment's parameters (see
+    :func:`_gauge_basis`): left in the field they make the alternation's
+    fixed point, and the IOP, drift; removed, the adjustment carries them.
+    """
+    B = _gauge_basis(xy_px, iop_px, with_iop)
+    scale = np.sqrt(np.mean(B**2, axis=(0, 1)))
+    A = (B / scale).transpose(0, 1, 2).reshape(-1, B.shape[2])
+    coef, *_ = np.linalg.lstsq(A, field.correction_at(xy_px).reshape(-1), rcond=None)
+    nodes = field.nodes_px
+    at_nodes = (_gauge_basis(nodes, iop_px, with_iop) / scale).reshape(-1, B.shape[2]) @ coef
+    return field.with_delta(field.delta_px - at_nodes.reshape(field.delta_px.shape))
+
+
+#: conjugate-gradient cap of the joint field-and-points step inside the loop: an inexact inner
+#: solve is enough, since the next iteration starts from the new residuals
+_LOOP_CG_ITERATIONS = 100
 
 
 def _split_nodes(grids, updates, x_new):
@@ -1313,7 +1440,7 @@ def _nominal_pair(phantom) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(ids, dtype=np.int64), np.asarray(xyz, dtype=np.float64)
 
 
-def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool):
+def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool, fast: bool = False):
     """``run(corrections_px, previous) -> Adjustment``: the adjustment with Δ held constant.
 
     ``previous`` is None (start from ``initial``) or a previous
@@ -1326,21 +1453,26 @@ def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool)
     """
     from stages.adjust import AdjustParams, Orientation, adjust_bundle
 
-    params = replace(adjust_params if adjust_params is not None else AdjustParams(), estimate_iop=estimate_iop)
+    final_params = replace(adjust_params if adjust_params is not None else AdjustParams(), estimate_iop=estimate_iop)
+    # intermediate solves: no covariance, a looser cost tolerance (0.045 sigma steps) and fewer iterations
+    fast_params = replace(
+        final_params, compute_covariance=False, function_tolerance=max(final_params.function_tolerance, 1e-3),
+        max_iterations=min(final_params.max_iterations, 10),
+    )
     ids, nominal_xyz = _nominal_pair(phantom)
 
     order = np.argsort(ids)
 
-    def run(corrections_px, previous):
+    def run(corrections_px, previous, final=True):
         t0 = time.perf_counter()
         try:
-            return solve(corrections_px, previous)
+            return solve(corrections_px, previous, final_params if (final or not fast) else fast_params)
         finally:
             run.seconds += time.perf_counter() - t0
 
     run.seconds = 0.0
 
-    def solve(corrections_px, previous):
+    def solve(corrections_px, previous, params):
         if previous is None:
             return adjust_bundle(observations, (ids, nominal_xyz), initial, corrections_px, params)
         xyz = nominal_xyz.copy()
@@ -1519,7 +1651,7 @@ def fit_grid_with_points(
     op = LinearOperator((2 * n_nodes, 2 * n_nodes), matvec=lambda v: Nvv @ v - Nvp @ apply_pp_inv(Npv @ v), dtype=np.float64)
     lu = splu(Nvv)
     pre = LinearOperator((2 * n_nodes, 2 * n_nodes), matvec=lu.solve, dtype=np.float64)
-    v, info = cg(op, rhs, rtol=1e-8, maxiter=max_cg_iterations, M=pre)
+    v, info = cg(op, rhs, rtol=1e-6, maxiter=max_cg_iterations, M=pre)
     if info > 0:
         logger.info("joint field-and-points step: CG stopped after %d iterations short of its tolerance", info)
     return _grid_result(xn, yn, np.column_stack([v[:n_nodes], v[n_nodes:]]), A, xy, cv_rms_px, params, (width, height))

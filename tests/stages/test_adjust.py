@@ -506,3 +506,16 @@ def test_warm_start_reaches_the_same_solution_faster(mono, mono_result):
     assert res.iterations < mono_result.iterations
     np.testing.assert_allclose(res.xyz_mm, mono_result.xyz_mm, atol=0.05 * mono_result.xyz_std_mm.min())
     np.testing.assert_allclose(res.iop_px, mono_result.iop_px, atol=0.05 * mono_result.iop_std_px.min())
+
+
+def test_skipping_the_covariance_keeps_the_estimate(mono, mono_result):
+    # the learning loop's intermediate solves skip the dense inverse: same estimate, mean redundancy
+    fast = _solve(mono, compute_covariance=False)
+    np.testing.assert_allclose(fast.xyz_mm, mono_result.xyz_mm, atol=1e-9)
+    np.testing.assert_allclose(fast.iop_px, mono_result.iop_px, atol=1e-9)
+    assert not fast.xyz_std_mm.any() and not fast.iop_std_px.any()
+    red = fast.redundancy[fast.used]
+    np.testing.assert_allclose(red, fast.dof / (2 * fast.used.sum()))
+    np.testing.assert_allclose(red.mean(), mono_result.redundancy[mono_result.used].mean(), rtol=1e-9)
+    assert abs(fast.sigma0 / mono_result.sigma0 - 1) < 0.05
+    np.testing.assert_array_equal(fast.inlier, mono_result.inlier)

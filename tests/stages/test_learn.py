@@ -417,3 +417,44 @@ def test_unknown_scheme_is_an_input_error(simulated):
     obs, phantom, initial, _, _ = simulated
     with pytest.raises(InputError, match="scheme"):
         calibrate(obs, phantom, initial, image_size=(E2E_SIZE, E2E_SIZE), scheme="magic")
+
+
+# ---------------------------------------------------------------------------------------------
+# beyond the paper: the field's gauge and the local outlier test
+# ---------------------------------------------------------------------------------------------
+
+
+def test_gauge_removes_what_the_orientation_reproduces_and_keeps_the_rest():
+    from stages.learn import _gauge_basis, _gauge_fixed
+
+    rng = np.random.default_rng(4)
+    iop = (130.0, 90.0, 900.0)
+    xy = rng.uniform(0, [W, H], (600, 2))
+    # a principal-point shift, a scale, an image rotation and a keystone: all orientation
+    coef = np.array([0.002, -0.001, 0.0015, 0.4, -0.3, 0.01])
+    nodes = CorrectionField.constant(W, H).nodes_px
+    gauge = (_gauge_basis(nodes, iop, True) @ coef).reshape(-1, 2)
+    field = CorrectionField.constant(W, H).with_delta(gauge.reshape(CorrectionField.constant(W, H).delta_px.shape))
+    fixed = _gauge_fixed(field, xy, iop, with_iop=True)
+    assert np.abs(fixed.correction_at(xy)).max() < 1e-3 * np.abs(field.correction_at(xy)).max()
+    # with the IOP held, a scaling (a principal distance error) stays in the field: no rotation of
+    # the poses reproduces it (a shift does: a common pan or tilt of every pose)
+    scale = field.with_delta((0.004 * (nodes - iop[:2])).reshape(field.delta_px.shape))
+    kept = _gauge_fixed(scale, xy, iop, with_iop=False).correction_at(xy)
+    # (only its mean over the observations goes, a shift: they are not centred on the principal point)
+    assert np.sqrt(np.mean((kept - scale.correction_at(xy)) ** 2)) < 0.1 * np.sqrt(np.mean(scale.correction_at(xy) ** 2))
+    # a radial field loses only its projection: applying the gauge twice changes (almost) nothing more
+    radial = field.with_delta(smooth_field(nodes).reshape(field.delta_px.shape))
+    once = _gauge_fixed(radial, xy, iop, with_iop=True)
+    twice = _gauge_fixed(once, xy, iop, with_iop=True)
+    np.testing.assert_allclose(twice.delta_px, once.delta_px, atol=1e-3)  # bilinear vs quadratic basis
+    assert np.sqrt(np.mean(once.correction_at(xy) ** 2)) > 0.3
+
+
+def test_new_options_are_validated():
+    with pytest.raises(InputError, match="training"):
+        LearnParams(training="all")
+    with pytest.raises(InputError, match="field_gauge"):
+        LearnParams(field_gauge="homography")
+    with pytest.raises(InputError, match="outlier_chi2"):
+        LearnParams(outlier_chi2=0)
