@@ -55,6 +55,15 @@ from pathlib import Path
 
 FORMATS = {"tiff": ".tif", "dicom": ".dcm"}
 
+#: the accelerated loop (README.md, "Config"): a few kNN steps, then the gridded field refined jointly with the points
+RECOMMENDED_LEARN = (
+    "[learn]",
+    'acceleration = "anderson"',
+    'refine = "grid+points"',
+    "affine_datum = true",
+    "max_iterations = 3",
+)
+
 
 def add_parser(subparsers) -> None:
     """Register the ``simulate`` subcommand."""
@@ -229,7 +238,7 @@ def _config_text(data, suffix: str) -> str:
             f"source_image_distance = {p.source_image_distance_mm:g}   # mm, approximate (nominal; the truth differs by up to 1 %)",
             f"pixel_pitch = {p.pixel_pitch_mm:g}              # mm at the detector",
         ]
-    lines += ["", "[calibration]", 'scheme = "knn+iop+smooth"', "", "[output]", 'dir = "out"', ""]
+    lines += ["", "[calibration]", 'scheme = "knn+iop+smooth"', "", *RECOMMENDED_LEARN, "", "[output]", 'dir = "out"', ""]
     return "\n".join(lines)
 
 
