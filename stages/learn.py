@@ -1109,6 +1109,14 @@ class LearnResult:
     adjust_time_s: float = 0.0
     initial_residual_px: np.ndarray | None = None
 
+    def summary(self) -> str:
+        """One line: scheme, in-sample RMS before and after, iterations and how the loop stopped."""
+        adj = self.adjustment
+        inl = adj.inlier
+        after = float(np.sqrt(np.mean(adj.residual_px[inl] ** 2))) if inl.any() else float("nan")
+        before = float(np.sqrt(np.mean(self.initial_residual_px[inl] ** 2))) if self.initial_residual_px is not None and inl.any() else float("nan")
+        return f"{self.scheme}: in-sample RMS {before:.3f} -> {after:.3f} px, {len(self.history) - 1} iterations, {self.stop_reason}"
+
     def field(self, system: int):
         """The correction to apply to new observations of ``system`` (exact kNN sum when unsmoothed)."""
         return self.pointwise[system] if self.pointwise is not None else self.fields[system]
