@@ -17,7 +17,6 @@ from pathlib import Path
 
 from stages.errors import InputError
 
-SCHEMES = ("knn", "knn+iop", "knn+smooth", "knn+iop+smooth", "none", "polynomial")
 
 
 class ConfigError(InputError):
@@ -175,8 +174,11 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     calibration = data.get("calibration", {})
     _reject_unknown(calibration, {"scheme"}, path, "[calibration] ")
     scheme = calibration.get("scheme", "knn+iop+smooth")
+    from stages.learn import SCHEMES
+
     if scheme not in SCHEMES:
-        raise ConfigError(f"{_where(path, '[calibration] ', 'scheme')}: expected one of {', '.join(SCHEMES)}; got {scheme!r}")
+        hint = " (the global polynomial model is not available yet)" if scheme == "polynomial" else ""
+        raise ConfigError(f"{_where(path, '[calibration] ', 'scheme')}: expected one of {', '.join(SCHEMES)}; got {scheme!r}{hint}")
 
     output = data.get("output", {})
     _reject_unknown(output, {"dir"}, path, "[output] ")
