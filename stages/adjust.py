@@ -179,15 +179,6 @@ class AdjustParams:
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0; got {getattr(self, name)}")
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "AdjustParams":
-        """Params from a mapping; unknown keys raise :class:`InputError` naming them."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise InputError(f"unknown adjust parameter(s) {unknown}; expected some of {sorted(known)}")
-        return cls(**d)
-
 
 # --------------------------------------------------------------------------- orientation
 

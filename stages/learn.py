@@ -234,15 +234,6 @@ class LearnParams:
         if not self.outlier_chi2 > 0:
             raise InputError(f"outlier_chi2 must be > 0; got {self.outlier_chi2}")
 
-    @classmethod
-    def from_dict(cls, values: dict) -> "LearnParams":
-        """Build from a config mapping, rejecting unknown keys."""
-        known = set(cls.__dataclass_fields__)
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise InputError(f"unknown learn parameter(s): {', '.join(unknown)}; known: {', '.join(sorted(known))}")
-        return cls(**values)
-
     @property
     def support_radius(self) -> float:
         """Support radius in px (``support_radius_px`` or twice the grid spacing)."""

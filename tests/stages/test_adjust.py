@@ -17,6 +17,7 @@ from stages import _ba
 from stages._geometry import quat_to_matrix, similarity_fit
 from stages.adjust import VERSION, Adjustment, AdjustParams, Orientation, _prepare, adjust_bundle
 from stages.artifacts import Observations, Phantom
+from pipeline.config import params_from_dict
 from stages.errors import EstimationError, InputError, ShapeError
 from tests.stages.ba_synthetic import ScipyProblem, aligned_error_mm, make_problem
 
@@ -373,8 +374,8 @@ def test_input_errors(mono):
         adjust_bundle(obs, nominal, Orientation(np.tile(start.iop_px, (2, 1)), start.exposure, start.q_cam_from_obj, start.source_mm))
     with pytest.raises(InputError, match="nu must be > 0"):
         AdjustParams(nu=0)
-    with pytest.raises(InputError, match="unknown adjust parameter"):
-        AdjustParams.from_dict({"nu": 4, "loss": "cauchy"})
+    with pytest.raises(InputError, match="key 'loss': unknown"):
+        params_from_dict(AdjustParams, {"nu": 4, "loss": "cauchy"})  # config tables become Params in the pipeline
     with pytest.raises(InputError, match="schur"):
         AdjustParams(schur="cameras")
     with pytest.raises(InputError, match="must be an Observations"):
