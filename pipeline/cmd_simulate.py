@@ -244,8 +244,6 @@ def _config_text(data, suffix: str) -> str:
 
 def montage(data, *, n_max: int = 4, tile_px: int = 256):
     """Up to ``n_max`` frames side by side (8-bit, each ``tile_px`` square); both systems when biplanar."""
-    import cv2
-    import numpy as np
 
     picks = []
     n_sys = len(data.frames)
