@@ -1,11 +1,16 @@
 """fluorocal: calibrate X-ray fluoroscopes from radiographs of a bead phantom.
 
 Commands:
-  run CONFIG            detect, centroid, label, adjust and learn; write the calibration
-  inspect CONFIG [STAGE]  what each stage produced (cached / stale / missing)
-  cache clean CONFIG    delete the project's artifact cache
-  simulate OUTDIR       write a synthetic data set with ground truth and a config
-  detect FILE...        detect and centroid beads in single frames (debugging)
+  run CONFIG              detect, centroid, label, then adjust and learn; write the calibration
+  inspect CONFIG [STAGE]  what each stage produced (cached / stale / missing), overlays
+  cache clean CONFIG      delete the project's artifact cache
+  undistort INPUT...      undistort frames with a calibration, keeping format and bit depth
+  simulate OUTDIR         write a synthetic data set with ground truth and a config
+  detect FILE...          detect and centroid beads in single frames (debugging)
+  label DETECTIONS.csv    label detections against a phantom (debugging)
+  adjust                  the robust bundle adjustment alone, from CSV files (debugging)
+
+Quick start: `fluorocal simulate demo && fluorocal run demo/fluorocal.toml`.
 
 A project is a TOML file (see README.md, "Config"); paths in it are relative
 to it. Artifacts are cached in .fluorocal/ beside the config: a second run
