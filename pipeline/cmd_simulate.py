@@ -135,7 +135,7 @@ def write_dataset(data, outdir: Path, *, fmt: str = "tiff", replace: bool = Fals
     import numpy as np
 
     from stages.errors import InputError
-    from stages.io import atomic_write, write_csv
+    from stages.io import atomic_write, write_csv, write_still
     from stages.simulate import truth_to_dict
 
     if fmt not in FORMATS:
@@ -152,7 +152,7 @@ def write_dataset(data, outdir: Path, *, fmt: str = "tiff", replace: bool = Fals
             path = outdir / "frames" / data.system_names[s] / f"frame_{k:03d}{suffix}"
             pixels = frame.image.astype(np.uint16)
             if fmt == "tiff":
-                _write_tiff(path, pixels)
+                write_still(path, pixels, attributes={"DateTime": _TIFF_DATETIME, "compression": "zip"})
             else:
                 atomic_write(path, lambda tmp, s=s, k=k, pixels=pixels: _dicom_dataset(data, s, k, pixels).save_as(tmp, enforce_file_format=True))
             written.append(path)
@@ -180,34 +180,6 @@ def write_dataset(data, outdir: Path, *, fmt: str = "tiff", replace: bool = Fals
 
 #: TIFF DateTime written into every frame, so that the same seed gives the same bytes
 _TIFF_DATETIME = "2026:01:01 12:00:00"
-
-
-def _write_tiff(path: Path, pixels) -> None:
-    """16-bit TIFF like :func:`stages.io.write_still`, but with a fixed DateTime tag.
-
-    ``write_still`` lets OpenImageIO stamp the current time, which would break
-    "same seed, same bytes". (Values stay 0..4095 in the 16-bit container;
-    OIIO cannot record 12 stored bits without rescaling the samples.)
-    """
-    import numpy as np
-    import OpenImageIO as oiio
-
-    from stages.errors import InputError
-    from stages.io import atomic_write
-
-    def _write(tmp):
-        out = oiio.ImageOutput.create(tmp)
-        if out is None:
-            raise InputError(f"{path}: no TIFF writer ({oiio.geterror()})")
-        spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], 1, "uint16")
-        spec.attribute("DateTime", _TIFF_DATETIME)
-        spec.attribute("compression", "zip")
-        # OIIO reads a 2D array with the wrong strides: pass (H, W, 1), as write_still does
-        if not out.open(tmp, spec) or not out.write_image(np.ascontiguousarray(pixels).reshape(pixels.shape[0], pixels.shape[1], 1)):
-            raise InputError(f"{path}: write failed ({out.geterror()})")
-        out.close()
-
-    atomic_write(path, _write)
 
 
 def _write_text(path: Path, text: str) -> Path:

@@ -215,12 +215,12 @@ def atomic_write(path: str | os.PathLike, writer) -> None:
         raise
 
 
-def write_still(path: str | os.PathLike, image: np.ndarray, *, bit_depth: int = 16) -> None:
+def write_still(path: str | os.PathLike, image: np.ndarray, *, attributes: dict | None = None) -> None:
     """Write a monochrome image atomically with OpenImageIO, in the dtype given.
 
-    ``image`` is written as-is (uint8, uint16 or float32); ``bit_depth`` is
-    only recorded (for example 12 for 12-bit data in a 16-bit container) when
-    the format can carry it without rescaling.
+    ``image`` is written as-is (uint8, uint16 or float32). ``attributes`` are
+    OpenImageIO spec attributes, e.g. a fixed ``DateTime`` so that the same
+    pixels give the same bytes (OpenImageIO stamps the current time otherwise).
     """
     import OpenImageIO as oiio
 
@@ -234,6 +234,9 @@ def write_still(path: str | os.PathLike, image: np.ndarray, *, bit_depth: int = 
         if out is None:
             raise InputError(f"{path}: no writer for this format ({oiio.geterror()})")
         spec = oiio.ImageSpec(image.shape[1], image.shape[0], 1, fmt)
+        for name, value in (attributes or {}).items():
+            spec.attribute(name, value)
+        # OIIO misreads a 2-D array's strides: pass (H, W, 1)
         if not out.open(tmp, spec) or not out.write_image(image.reshape(image.shape[0], image.shape[1], 1)):
             raise InputError(f"{path}: write failed ({out.geterror()})")
         out.close()
