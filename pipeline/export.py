@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.report import rms_px
 from stages.io import atomic_write, write_csv
 
 
@@ -60,11 +61,6 @@ def _fluorocal_version() -> str:
         return "unknown"
 
 
-def _rms(residual: np.ndarray) -> float:
-    """RMS per coordinate, px."""
-    return float(np.sqrt(np.mean(residual**2))) if len(residual) else float("nan")
-
-
 def calibration_from_result(runner, result):
     """The :class:`Calibration` of a learning result, with the statistics of the solve."""
     from pipeline.calibration import Calibration, SystemCalibration
@@ -91,7 +87,7 @@ def calibration_from_result(runner, result):
             "n_inliers": int(adj.inlier.sum()),
             "n_outliers": int((adj.used & ~adj.inlier).sum()),
             "n_unused": int((~adj.used).sum()),
-            "rms_px_in_sample": _rms(adj.residual_px[adj.inlier]),
+            "rms_px_in_sample": rms_px(adj.residual_px[adj.inlier]),
             "iterations": len(result.history) - 1,
             "converged": bool(result.converged),
             "stop_reason": result.stop_reason,
@@ -151,12 +147,12 @@ def write_report(out_dir: Path, runner, obs, result, cal) -> list[Path]:
         sel = obs.system == s
         inl = sel & adj.inlier
         size = cal.systems[name].image_size_px
-        rms_before = _rms(before[inl]) if before is not None else float("nan")
+        rms_before = rms_px(before[inl]) if before is not None else float("nan")
         n_frames = sum(1 for u in runner.units if u.system == s)
         iop, iop_sd = cal.systems[name].iop_px, cal.systems[name].iop_std_px
         max_delta = float(np.linalg.norm(result.fields[s].delta_px, axis=-1).max())
         lines.append(
-            f"| {name} | {n_frames} | {int(sel.sum())} | {int(inl.sum())} | {int((sel & adj.used & ~adj.inlier).sum())} | {rms_before:.3f} | {_rms(adj.residual_px[inl]):.3f} "
+            f"| {name} | {n_frames} | {int(sel.sum())} | {int(inl.sum())} | {int((sel & adj.used & ~adj.inlier).sum())} | {rms_before:.3f} | {rms_px(adj.residual_px[inl]):.3f} "
             f"| {iop[0]:.2f} ± {iop_sd[0]:.2f} | {iop[1]:.2f} ± {iop_sd[1]:.2f} | {iop[2]:.1f} ± {iop_sd[2]:.1f} | {max_delta:.2f} |"
         )
         panels = ([("before: no correction", obs.xy_px[inl], before[inl])] if before is not None else []) + [("after: calibrated", obs.xy_px[inl], adj.residual_px[inl])]
@@ -167,8 +163,8 @@ def write_report(out_dir: Path, runner, obs, result, cal) -> list[Path]:
             f = inl & (obs.exposure == u.exposure)
             if f.any():
                 labels.append(u.path.stem)
-                rms_b.append(_rms(before[f]) if before is not None else np.nan)
-                rms_a.append(_rms(adj.residual_px[f]))
+                rms_b.append(rms_px(before[f]) if before is not None else np.nan)
+                rms_a.append(rms_px(adj.residual_px[f]))
         plots.append(report.frame_rms(out_dir / f"frames_{name}.png", labels, np.array(rms_b), np.array(rms_a)))
     plots.append(report.convergence(out_dir / "convergence.png", result.history))
     st = cal.meta["statistics"]

@@ -13,6 +13,11 @@ import numpy as np
 from stages.io import atomic_write
 
 
+def rms_px(residual_px: np.ndarray) -> float:
+    """RMS per coordinate of ``(N, 2)`` residuals, px (NaN when empty)."""
+    return float(np.sqrt(np.mean(residual_px**2))) if len(residual_px) else float("nan")
+
+
 def _figure(n_panels: int = 1, *, width: float = 5.0, height: float = 4.6):
     import matplotlib
 
@@ -45,7 +50,7 @@ def residual_maps(path: Path, panels: list[tuple[str, np.ndarray, np.ndarray]], 
     vmax = max((np.percentile(np.linalg.norm(r, axis=1), 99) for _, _, r in panels if len(r)), default=1.0)
     for ax, (title, xy, res) in zip(axes, panels):
         mag = np.linalg.norm(res, axis=1)
-        rms = np.sqrt(np.mean(np.sum(res**2, axis=1) / 2)) if len(res) else float("nan")
+        rms = rms_px(res)
         sc = ax.scatter(xy[:, 0], xy[:, 1], c=mag, s=2, cmap="viridis", vmin=0, vmax=vmax)
         step = max(len(xy) // 1500, 1)
         ax.quiver(xy[::step, 0], xy[::step, 1], res[::step, 0], res[::step, 1], angles="xy", color="k", width=0.002, scale=vmax * 25)

@@ -126,6 +126,7 @@ class Runner:
         self.units = frame_units(config)
         self.phantom_key = self._phantom_key()
         self.keys: dict[tuple[str, int | None], str] = {}
+        self.params: dict[tuple[str, int | None], tuple] = {}  # (Params, extras) of each slot, as hashed
         self.memory: dict[tuple[str, int | None], object] = {}
         self.report = RunReport()
         self._plan()
@@ -154,6 +155,7 @@ class Runner:
                     inputs.append(repr([(u.system, u.exposure) for u in self.units]) + repr([s.name for s in self.config.systems]))
                 params = stage_params(stage, self.config, None if unit is None else self.units[unit], self.units)
                 extras = stage.extras(self.config, self.units) if stage.extras else {}
+                self.params[(stage.name, unit)] = (params, extras)
                 self.keys[(stage.name, unit)] = artifact_key(stage.name, stage.version, {"params": params, **extras}, inputs)
 
     def _stage_units(self, stage: Stage) -> list[int | None]:
@@ -215,8 +217,7 @@ class Runner:
 
     def _compute(self, stage: Stage, unit: int | None):
         slot = (stage.name, unit)
-        params = stage_params(stage, self.config, None if unit is None else self.units[unit], self.units)
-        extras = stage.extras(self.config, self.units) if stage.extras else {}
+        params, extras = self.params[slot]
         inputs = self._inputs(stage, unit)
         t0 = time.perf_counter()
         try:

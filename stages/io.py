@@ -96,11 +96,6 @@ def probe_frames(path: str | os.PathLike) -> tuple[int, tuple[int, int]]:
         raise InputError(f"{path}: cannot read as an image ({type(exc).__name__}: {exc})") from exc
 
 
-def count_frames(path: str | os.PathLike) -> int:
-    """Number of frames in a file (see :func:`probe_frames`)."""
-    return probe_frames(path)[0]
-
-
 def _read_dicom(path: Path) -> list[Radiograph]:
     import pydicom
     from pydicom.pixels import apply_modality_lut

@@ -7,7 +7,7 @@ import pydicom
 import pytest
 
 from stages.errors import InputError
-from stages.io import count_frames, read_frames, read_phantom, write_still
+from stages.io import probe_frames, read_frames, read_phantom, write_still
 
 
 def test_real_arcadis_dicom_reads_as_12_bit(arcadis_dir):
@@ -17,7 +17,7 @@ def test_real_arcadis_dicom_reads_as_12_bit(arcadis_dir):
     assert frame.image.dtype == np.float32 and frame.image.shape == (1024, 1024)
     assert frame.bit_depth == 12 and frame.metadata["modality"] == "XA"
     assert np.array_equal(frame.image, raw.astype(np.float32))  # no rescale tags: modality LUT is identity
-    assert count_frames(path) == 1
+    assert probe_frames(path) == (1, (1024, 1024))
 
 
 def test_monochrome1_and_multiframe_dicom(arcadis_dir, tmp_path):
@@ -29,7 +29,7 @@ def test_monochrome1_and_multiframe_dicom(arcadis_dir, tmp_path):
     ds.RescaleSlope, ds.RescaleIntercept = 2, 10
     ds.save_as(tmp_path / "mf.dcm")
     frames = read_frames(tmp_path / "mf.dcm")
-    assert len(frames) == 2 == count_frames(tmp_path / "mf.dcm")
+    assert len(frames) == 2 and probe_frames(tmp_path / "mf.dcm") == (2, (48, 64))
     # modality LUT first (2 v + 10), then MONOCHROME1 inverted against the 12-bit full scale
     np.testing.assert_array_equal(frames[0].image, 4095 - (2.0 * raw + 10))
     np.testing.assert_array_equal(frames[1].image, 4095 - (2.0 * (raw // 2) + 10))
