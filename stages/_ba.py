@@ -19,12 +19,16 @@ Parameters and their local updates
   the relative orientation (ROP) ``R_s <- exp([δφ]x) R_s`` and
   ``b_s += δb``, where system ``s``'s camera frame is
   ``p_s = R_s (p_0 - b_s)`` and ``p_0 = R_j (P - T_j)`` is the reference camera
-  frame, so ``b_s`` is system ``s``'s source in the reference camera frame.
+  frame, so ``b_s`` is system ``s``'s source in the reference camera frame;
+- per system, optionally, the 7 additional parameters (APs) of the global
+  polynomial distortion model of :mod:`stages._polynomial` (px), ``+= δ``:
+  the ideal coordinates are then ``meas_px - Δ_AP(xy_px; xp, yp)``.
 
-A row of the globals vector is one free IOP or ROP parameter; per
-observation the 9 global columns are ``(xp, yp, c, δφ (3), δb (3))`` of its
-system and :attr:`Problem.gcol` maps them into the globals vector (``-1``
-for fixed or absent ones).
+A row of the globals vector is one free IOP, ROP or AP parameter; per
+observation the global columns are ``(xp, yp, c)``, then ``(δφ (3), δb (3))``
+with several systems, then the 7 APs when estimated, of its system, and
+:attr:`Problem.gcol` maps them into the globals vector (``-1`` for fixed or
+absent ones).
 """
 
 from __future__ import annotations
@@ -37,12 +41,13 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
+from stages import _polynomial
 from stages._geometry import quat_multiply, quat_normalize, quat_to_matrix, rotvec_to_quat
 from stages.errors import EstimationError
 
 log = logging.getLogger(__name__)
 
-N_GLOBAL_COLS = 9  # per observation: IOP (3) + ROP rotation (3) + ROP translation (3)
+N_GLOBAL_COLS = 9  # per observation: IOP (3) + ROP rotation (3) + ROP translation (3); the APs follow
 _CHUNK = 32768  # observations per chunk in the covariance pass (bounds memory)
 _MU_MIN, _MU_MAX = 1e-12, 1e16  # Marquardt damping range
 _MU_NUMERICAL = 1e6  # damping beyond which a failing step means the optimum is reached
@@ -66,6 +71,8 @@ class State:
         System ``s`` camera from reference camera; identity for ``s = 0``.
     rop_source_mm : (S, 3) float64 ndarray, mm
         Source of system ``s`` in the reference camera frame; zero for ``s = 0``.
+    ap_px : (S, 7) float64 ndarray or None, px
+        Additional parameters (:mod:`stages._polynomial`); None: all zero.
     """
 
     points_mm: np.ndarray
@@ -74,6 +81,7 @@ class State:
     iop_px: np.ndarray
     rop_q: np.ndarray
     rop_source_mm: np.ndarray
+    ap_px: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- problem
@@ -94,9 +102,9 @@ class Problem:
     linv : (N, 3) float64 ndarray
         ``(l11, l21, l22)`` of the lower-triangular ``L^-1`` with ``C = L L^T``.
     n_points, n_poses, n_systems, n_globals : int
-    gcol : (S, 9) or (1, 3) int64 ndarray
-        Column of each per-observation global parameter in the globals vector, -1 if fixed
-        (one system: only the 3 IOP columns).
+    gcol : (S, G_o) int64 ndarray
+        Column of each per-observation global parameter in the globals vector, -1 if fixed:
+        3 IOP, then 6 ROP with several systems, then 7 APs when estimated.
     datum : (n, 3, 7) float64 ndarray
         Inner-constraint directions (translation, rotation, scale) at the nominal points.
     eliminate : str
@@ -110,6 +118,10 @@ class Problem:
     ek_flat : tuple
         Per system ``(selection or None, flat indices)`` of each observation's
         ``be x bk`` coupling block in ``B`` laid out ``(ne, be, r)``.
+    ap_xy_px : (N, 2) float64 ndarray or None, px
+        Measured coordinates (before any correction), where the APs are evaluated; None without APs.
+    ap_radius_px : (S,) float64 ndarray or None, px
+        Reference radius ``r0`` of each system's AP model; None: no APs.
     """
 
     point_idx: np.ndarray
@@ -137,10 +149,22 @@ class Problem:
     ks_k: np.ndarray
     ks_s: np.ndarray
     ek_flat: tuple
+    ap_xy_px: np.ndarray | None = None
+    ap_radius_px: np.ndarray | None = None
 
     @property
     def n_obs(self) -> int:
         return len(self.point_idx)
+
+    @property
+    def n_ap(self) -> int:
+        """Additional parameters per system (0 or 7)."""
+        return 0 if self.ap_radius_px is None else _polynomial.N_AP
+
+    @property
+    def ap_start(self) -> int:
+        """First AP column of :attr:`gcol` (after the IOP and, with several systems, the ROP)."""
+        return _ap_start(self.n_systems)
 
     @property
     def be(self) -> int:
@@ -167,6 +191,11 @@ class Problem:
     def n_free(self) -> int:
         """Number of free parameters (before the 7 datum constraints)."""
         return 3 * self.n_points + 6 * self.n_poses + self.n_globals
+
+
+def _ap_start(n_systems: int) -> int:
+    """First AP column of :attr:`Problem.gcol`."""
+    return N_GLOBAL_COLS if n_systems > 1 else 3
 
 
 def whitening(sigma_px: np.ndarray) -> np.ndarray:
@@ -225,8 +254,14 @@ def build_problem(
     n_systems: int,
     iop_free: np.ndarray,
     eliminate: str,
+    *,
+    xy_px: np.ndarray | None = None,
+    ap_radius_px: np.ndarray | None = None,
 ) -> tuple[Problem, np.ndarray]:
     """Sort the observations and set up indices, whitening, parameter columns and the datum.
+
+    ``ap_radius_px`` ``(S,)`` (px) adds every system's 7 APs to the globals,
+    evaluated at the measured coordinates ``xy_px`` ``(N, 2)`` (default ``meas_px``).
 
     Returns
     -------
@@ -251,15 +286,19 @@ def build_problem(
     ks_key = k_sorted * n_sys_keys + sys_idx[k_order]
     ks_starts = _segments(ks_key)
 
-    gcol = -np.ones((n_systems, N_GLOBAL_COLS if n_systems > 1 else 3), dtype=np.int64)
+    n_ap = 0 if ap_radius_px is None else _polynomial.N_AP
+    ap_start = _ap_start(n_systems)
+    gcol = -np.ones((n_systems, ap_start + n_ap), dtype=np.int64)
     n_globals = 0
     for s in range(n_systems):
         if iop_free[s]:
             gcol[s, :3] = np.arange(n_globals, n_globals + 3)
             n_globals += 3
         if s > 0:
-            gcol[s, 3:] = np.arange(n_globals, n_globals + 6)
+            gcol[s, 3:N_GLOBAL_COLS] = np.arange(n_globals, n_globals + 6)
             n_globals += 6
+        gcol[s, ap_start:] = np.arange(n_globals, n_globals + n_ap)
+        n_globals += n_ap
 
     be, bk = (3, 6) if eliminate == "points" else (6, 3)
     n_kept = (n_poses if eliminate == "points" else n_points) * bk + n_globals
@@ -295,6 +334,8 @@ def build_problem(
         ks_k=k_sorted[ks_starts],
         ks_s=sys_idx[k_order][ks_starts],
         ek_flat=tuple(ek_flat),
+        ap_xy_px=None if n_ap == 0 else (meas_px if xy_px is None else xy_px)[perm],
+        ap_radius_px=None if n_ap == 0 else np.asarray(ap_radius_px, dtype=np.float64).reshape(n_systems),
     )
     return problem, perm
 
@@ -344,14 +385,43 @@ def residuals(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     return _residuals_from_camera(state, problem, p)
 
 
-def _residuals_from_camera(state: State, problem: Problem, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _residuals_from_camera(state: State, problem: Problem, p: np.ndarray, ap_basis: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     z = p[:, 2]
     if not np.all(z > 1e-6):
         raise FloatingPointError("point at or behind the source")
     iop = state.iop_px[problem.sys_idx]
     f = iop[:, :2] + iop[:, 2:3] * p[:, :2] / z[:, None]
     r = problem.meas_px - f
+    if problem.n_ap:
+        B = _ap_basis(state, problem) if ap_basis is None else ap_basis
+        r -= np.einsum("nij,nj->ni", B, ap_values(state, problem)[problem.sys_idx])
     return r, whiten(problem.linv, r)
+
+
+def ap_values(state: State, problem: Problem) -> np.ndarray:
+    """The APs ``(S, n_ap)`` px of ``state`` (zeros where the state holds none)."""
+    return np.zeros((problem.n_systems, problem.n_ap)) if state.ap_px is None else state.ap_px
+
+
+def _ap_basis(state: State, problem: Problem, *, derivatives: bool = False):
+    """The AP design matrix ``(N, 2, 7)`` at every observation (and its ``u``, ``v`` derivatives), see :func:`stages._polynomial.basis`."""
+    s = problem.sys_idx
+    return _polynomial.basis(problem.ap_xy_px, state.iop_px[s, :2], problem.ap_radius_px[s], derivatives=derivatives)
+
+
+def _ap_columns(state: State, problem: Problem, basis: tuple, J_glob: np.ndarray) -> None:
+    """Fill the AP columns of ``J_glob`` and add the APs' dependence on the principal point to its ``xp``, ``yp`` columns.
+
+    ``ideal = meas - B(u, v) a`` with ``u = (x - xp) / r0``, ``v = (y - yp) / r0``:
+    ``∂e/∂a = -L^-1 B`` and ``∂e/∂xp`` gains ``L^-1 (∂B/∂u a) / r0`` (``yp``: ``∂B/∂v``).
+    """
+    B, dB_du, dB_dv = basis
+    s = problem.sys_idx
+    a = ap_values(state, problem)[s]
+    inv_r0 = 1.0 / problem.ap_radius_px[s, None]
+    J_glob[:, :, problem.ap_start :] = -whiten(problem.linv, B)
+    J_glob[:, :, 0] += whiten(problem.linv, np.einsum("nij,nj->ni", dB_du, a) * inv_r0)
+    J_glob[:, :, 1] += whiten(problem.linv, np.einsum("nij,nj->ni", dB_dv, a) * inv_r0)
 
 
 def linearize(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -365,12 +435,13 @@ def linearize(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarray, n
         ``∂e/∂P`` (per mm).
     J_pose : (N, 2, 6) float64 ndarray
         ``∂e/∂(δθ, T)`` (per rad, per mm) of the epoch's reference pose.
-    J_glob : (N, 2, 9) float64 ndarray
-        ``∂e/∂(xp, yp, c, δφ, b)`` of the observation's system; ``(N, 2, 3)`` (IOP only)
-        with one system.
+    J_glob : (N, 2, G_o) float64 ndarray
+        ``∂e/∂(xp, yp, c, δφ, b, APs)`` of the observation's system, the columns of
+        :attr:`Problem.gcol` (``δφ, b`` only with several systems, the APs only when estimated).
     """
     p, p_ref, R_pose, R_rop = camera_points(state, problem)
-    _, e = _residuals_from_camera(state, problem, p)
+    basis = _ap_basis(state, problem, derivatives=True) if problem.n_ap else None
+    _, e = _residuals_from_camera(state, problem, p, None if basis is None else basis[0])
     l11, l21, l22 = (problem.linv[:, i] for i in range(3))
     iz = 1.0 / p[:, 2]
     u, v = p[:, 0] * iz, p[:, 1] * iz
@@ -404,9 +475,11 @@ def linearize(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarray, n
     J_glob[:, 1, 0] = -l21
     J_glob[:, 1, 1] = -l22
     J_glob[:, 1, 2] = -(l21 * u + l22 * v)
-    if n_g > 3:
+    if problem.n_systems > 1:
         _cross_rows(p, Jp, J_glob[:, :, 3:6])
         np.negative(K, out=J_glob[:, :, 6:9])
+    if basis is not None:
+        _ap_columns(state, problem, basis, J_glob)
     return e, J_point, J_pose, J_glob
 
 
@@ -477,6 +550,21 @@ def _outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.matmul(a.transpose(0, 2, 1), b)
 
 
+def _segment_grams(J: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """``Σ J_n^T J_n`` over each run of observations ``starts[i]:starts[i+1]`` of ``J (N, 2, c)`` -> ``(runs, c, c)``.
+
+    One BLAS product per run: the runs (one per kept block and system) are few
+    and long, where a batched per-observation product would be memory bound.
+    """
+    flat = J.reshape(-1, J.shape[2])
+    bounds = 2 * np.r_[starts, len(J)]
+    out = np.empty((len(starts), J.shape[2], J.shape[2]))
+    for i in range(len(starts)):
+        seg = flat[bounds[i] : bounds[i + 1]]
+        out[i] = seg.T @ seg
+    return out
+
+
 def _atb(a: np.ndarray, e: np.ndarray) -> np.ndarray:
     """Per observation ``a^T e`` for ``(N, 2, I)`` and ``(N, 2)`` -> ``(N, I)``."""
     return a[:, 0, :] * e[:, :1] + a[:, 1, :] * e[:, 1:]
@@ -534,7 +622,8 @@ def triggs_corrected(J: np.ndarray, ew: np.ndarray, t: np.ndarray, nu: float) ->
     d = (nu - t) / (nu + t)
     alpha = np.where(d > 0, 1.0 - np.sqrt(np.clip(d, 0.0, 1.0)), 0.0)
     n_dir = ew / np.maximum(np.linalg.norm(ew, axis=1, keepdims=True), 1e-300)
-    return J - (alpha[:, None] * n_dir)[:, :, None] * _atb(J, n_dir)[:, None, :]
+    along = np.einsum("nij,ni->nj", J, n_dir) * alpha[:, None]
+    return J - np.einsum("ni,nj->nij", n_dir, along)
 
 
 def gradient(problem: Problem, J: np.ndarray, ew: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -566,17 +655,17 @@ def assemble(problem: Problem, J: np.ndarray, ew: np.ndarray, J_hessian: np.ndar
     b_e, b_y = gradient(problem, J, ew)
     if J_hessian is not None:
         J = J_hessian
-    OE = _outer(J[:, :, :be], J)  # shape (N, be, nt): eliminated rows
-    Jk = J[problem.k_order, :, be:]
-    OK = _outer(Jk, Jk)  # shape (N, bk + ng, bk + ng), sorted by kept block
     kk = be + bk
-
+    OE = _outer(J[:, :, :be], J)  # shape (N, be, nt): eliminated rows
     A = np.add.reduceat(OE[:, :, :be], problem.e_starts, axis=0)
-    B = np.zeros(ne * be * r)
     EK = OE[:, :, be:kk].reshape(len(J), -1)
-    for sel, flat in problem.ek_flat:
+    B = np.zeros(ne * be * r)
+    for i, (sel, flat) in enumerate(problem.ek_flat):
         # within one system each (eliminated, kept) pair is observed at most once
-        B[flat] += EK[sel].ravel() if sel is not None else EK.ravel()
+        if i == 0:
+            B[flat] = EK[sel].ravel() if sel is not None else EK.ravel()
+        else:
+            B[flat] += EK[sel].ravel()
     B = B.reshape(ne, be, r)
     Eg = np.add.reduceat(OE[:, :, kk:], problem.es_starts, axis=0)
     gcols = _gcols(problem, nk * bk, r + 1)
@@ -589,10 +678,11 @@ def assemble(problem: Problem, J: np.ndarray, ew: np.ndarray, J_hessian: np.ndar
 
     rg = r + 1  # the extra last column collects fixed globals and is dropped
     Hyy = np.zeros((rg, rg))
-    KK = np.add.reduceat(OK[:, :bk, :bk], problem.k_starts, axis=0)
+    KS = _segment_grams(J[problem.k_order, :, be:], problem.ks_starts)  # shape (n_ks, bk + ng, bk + ng)
+    KK = np.add.reduceat(KS[:, :bk, :bk], _segments(problem.ks_k), axis=0)
     blk = np.arange(nk)[:, None] * bk + np.arange(bk)
     Hyy[blk[:, :, None], blk[:, None, :]] = KK
-    KS = np.add.reduceat(OK[:, :, bk:], problem.ks_starts, axis=0)  # shape (n_ks, bk + ng, ng)
+    KS = KS[:, :, bk:]
     Kg = KS[:, :bk]
     rows = problem.ks_k[:, None, None] * bk + np.arange(bk)[None, :, None]
     cols = gcols[problem.ks_s][:, None, :]
@@ -673,14 +763,8 @@ def reduced_system(problem: Problem, normal: Normal, mu: float) -> tuple:
 
 
 def _gram(G: np.ndarray) -> np.ndarray:
-    """``G^T G`` through the symmetric rank-k BLAS update (half the flops of a GEMM)."""
-    if G.size == 0:
-        return np.zeros((G.shape[1], G.shape[1]))
-    # dsyrk fills the upper triangle (C order: of the transpose); mirror it in place
-    full = scipy.linalg.blas.dsyrk(1.0, G, trans=1)
-    lower = np.tril_indices(len(full), -1)
-    full[lower] = full.T[lower]
-    return full
+    """``G^T G`` (NumPy hands ``A.T @ A`` to the symmetric rank-k BLAS update, half the flops of a GEMM)."""
+    return G.T @ G
 
 
 @dataclass(frozen=True)
@@ -739,14 +823,17 @@ def apply_step(state: State, problem: Problem, d_points, d_poses, d_glob) -> Sta
     iop = state.iop_px.copy()
     rop_q = state.rop_q.copy()
     rop_t = state.rop_source_mm.copy()
-    g = np.r_[d_glob, 0.0]
+    ap = ap_values(state, problem).copy() if problem.n_ap else state.ap_px
+    g = np.r_[d_glob, 0.0]  # fixed globals (-1) read the trailing zero
     for s in range(problem.n_systems):
         cols = problem.gcol[s]
         if cols[0] >= 0:
             iop[s] += g[cols[:3]]
-        if len(cols) > 3 and cols[3] >= 0:
+        if problem.n_systems > 1 and cols[3] >= 0:
             rop_q[s] = quat_normalize(quat_multiply(rotvec_to_quat(g[cols[3:6]]), rop_q[s]))
             rop_t[s] += g[cols[6:9]]
+        if problem.n_ap:
+            ap[s] += g[cols[problem.ap_start :]]
     return State(
         points_mm=state.points_mm + d_points,
         q=quat_normalize(quat_multiply(rotvec_to_quat(d_poses[:, :3]), state.q)),
@@ -754,6 +841,7 @@ def apply_step(state: State, problem: Problem, d_points, d_poses, d_glob) -> Sta
         iop_px=iop,
         rop_q=rop_q,
         rop_source_mm=rop_t,
+        ap_px=ap,
     )
 
 
@@ -968,19 +1056,22 @@ def covariance(state: State, problem: Problem, w: np.ndarray) -> Covariance:
     hat = np.empty((problem.n_obs, 2, 2))
     # J Q J^T = JE A^-1 JE^T + (U - V) Z^-1 (U - V)^T with U = JE F_e, V = [JK, Jg] on the kept columns
     PE = cov_e - Ainv  # F Z^-1 F^T per eliminated block
+    # the kept columns of an observation depend only on its (kept block, system): gather Z^-1 once per pair
+    n_sys = problem.n_systems
+    pair_cols = np.concatenate([np.repeat(np.arange(nk), n_sys)[:, None] * bk + np.arange(bk), gcols[np.tile(np.arange(n_sys), nk)]], axis=1)
+    pair_valid = pair_cols >= 0
+    pair_cols = np.where(pair_valid, pair_cols, 0)
+    pair_Z = Zinv[pair_cols[:, :, None], pair_cols[:, None, :]]
     for lo in range(0, problem.n_obs, _CHUNK):
         sl = slice(lo, lo + _CHUNK)
-        ei, ki, si = problem.e_idx[sl], problem.k_idx[sl], problem.sys_idx[sl]
+        ei, pair = problem.e_idx[sl], problem.k_idx[sl] * n_sys + problem.sys_idx[sl]
         je, jk, jg = JE[sl], JK[sl], J_glob[sl]
-        cols = np.concatenate([ki[:, None] * bk + np.arange(bk), gcols[si]], axis=1)
-        valid = cols >= 0
-        cols_c = np.where(valid, cols, 0)
-        jv = np.concatenate([jk, jg], axis=2) * valid[:, None, :]
+        cols_c = pair_cols[pair]
+        jv = np.concatenate([jk, jg], axis=2) * pair_valid[pair][:, None, :]
         t1 = je @ (Ainv[ei] + PE[ei]) @ je.transpose(0, 2, 1)
         rows = ei[:, None, None] * be + np.arange(be)[None, :, None]
         FZc = FZ.reshape(ne * be, r + 7)[rows, cols_c[:, None, :]]  # (n, be, kc)
         t2 = je @ FZc @ jv.transpose(0, 2, 1)
-        Zc = Zinv[cols_c[:, :, None], cols_c[:, None, :]]
-        t3 = jv @ Zc @ jv.transpose(0, 2, 1)
+        t3 = jv @ pair_Z[pair] @ jv.transpose(0, 2, 1)
         hat[sl] = t1 - t2 - t2.transpose(0, 2, 1) + t3
     return Covariance(points=cov_points, poses=cov_poses, globals_=cov_g, hat=hat)
