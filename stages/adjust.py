@@ -116,7 +116,9 @@ class AdjustParams:
     parameter_tolerance : float
         Stop when the step norm is below this times the parameter norm (default 1e-10).
     initial_damping : float
-        Initial Marquardt damping μ of ``H + μ diag(H)`` (default 1e-4).
+        Initial Marquardt damping μ of ``H + μ diag(H)`` (default 1e-6: the
+        Gauss–Newton step is usually good from labelling's start values; a
+        rejected step raises μ).
     min_exposures : int
         Fewest frames (system, exposure) the adjustment accepts (default 3).
     min_beads_per_exposure : int
@@ -148,7 +150,7 @@ class AdjustParams:
     max_iterations: int = 100
     function_tolerance: float = 1e-5
     parameter_tolerance: float = 1e-10
-    initial_damping: float = 1e-4
+    initial_damping: float = 1e-6
     min_exposures: int = 3
     min_beads_per_exposure: int = 6
     min_exposures_per_bead: int = 2
