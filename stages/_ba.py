@@ -257,11 +257,13 @@ def build_problem(
     *,
     xy_px: np.ndarray | None = None,
     ap_radius_px: np.ndarray | None = None,
+    ap_free: np.ndarray | None = None,
 ) -> tuple[Problem, np.ndarray]:
     """Sort the observations and set up indices, whitening, parameter columns and the datum.
 
     ``ap_radius_px`` ``(S,)`` (px) adds every system's 7 APs to the globals,
-    evaluated at the measured coordinates ``xy_px`` ``(N, 2)`` (default ``meas_px``).
+    evaluated at the measured coordinates ``xy_px`` ``(N, 2)`` (default ``meas_px``);
+    those where the mask ``ap_free`` ``(7,)`` is False are held at their state values.
 
     Returns
     -------
@@ -297,8 +299,10 @@ def build_problem(
         if s > 0:
             gcol[s, 3:N_GLOBAL_COLS] = np.arange(n_globals, n_globals + 6)
             n_globals += 6
-        gcol[s, ap_start:] = np.arange(n_globals, n_globals + n_ap)
-        n_globals += n_ap
+        if n_ap:
+            free = np.flatnonzero(np.ones(n_ap, bool) if ap_free is None else ap_free)
+            gcol[s, ap_start + free] = np.arange(n_globals, n_globals + len(free))
+            n_globals += len(free)
 
     be, bk = (3, 6) if eliminate == "points" else (6, 3)
     n_kept = (n_poses if eliminate == "points" else n_points) * bk + n_globals
