@@ -20,7 +20,15 @@ from pathlib import Path
 
 import numpy as np
 
-from stages._geometry import check_points, project, quat_multiply, quat_normalize, quat_to_matrix
+from stages._geometry import (
+    check_points,
+    image_rays,
+    intersect_rays,
+    project,
+    quat_multiply,
+    quat_normalize,
+    quat_to_matrix,
+)
 from stages.errors import ArtifactError, InputError
 from stages.io import atomic_write
 from stages.learn import CorrectionField
@@ -177,16 +185,9 @@ class Calibration:
         """
         s = self._system(system)
         ideal = self.undistort_points(system, xy)
-        xp, yp, c = s.iop_px
-        d_cam = np.column_stack([(ideal[:, 0] - xp) / c, (ideal[:, 1] - yp) / c, np.ones(len(ideal))])
-        if exposure is None:
-            R = quat_to_matrix(s.rop_q)  # system camera from reference camera
-            origin = s.rop_source_mm
-        else:
-            q, origin = self.pose(system, exposure)
-            R = quat_to_matrix(q)
-        d = d_cam @ R  # R^T d for each row
-        return origin, d / np.linalg.norm(d, axis=1, keepdims=True)
+        # the ROP is the system's pose in the reference camera frame
+        q, origin = (s.rop_q, s.rop_source_mm) if exposure is None else self.pose(system, exposure)
+        return image_rays(ideal, s.iop_px, q, origin)
 
     def intersect(self, observations: dict, *, exposure: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Multi-ray spatial intersection of corresponding points seen by several systems.
@@ -212,12 +213,4 @@ class Calibration:
         n = {len(d) for _, d in rays}
         if len(n) != 1:
             raise InputError(f"every system must give the same number of points; got {sorted(n)}")
-        A = np.zeros((n.pop(), 3, 3))
-        b = np.zeros((len(A), 3))
-        for origin, d in rays:
-            P = np.eye(3) - d[:, :, None] * d[:, None, :]  # projector orthogonal to each ray
-            A += P
-            b += P @ origin
-        xyz = np.linalg.solve(A, b[..., None])[..., 0]
-        miss = np.sqrt(np.mean([np.sum(((np.eye(3) - d[:, :, None] * d[:, None, :]) @ (xyz - o)[..., None])[..., 0] ** 2, 1) for o, d in rays], axis=0))
-        return xyz, miss
+        return intersect_rays(rays)

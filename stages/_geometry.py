@@ -144,12 +144,21 @@ def project(points_mm: np.ndarray, q: np.ndarray, source_mm: np.ndarray, iop: np
     return np.column_stack([xp + c * p_cam[:, 0] / p_cam[:, 2], yp + c * p_cam[:, 1] / p_cam[:, 2]])
 
 
-def similarity_fit(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+def similarity_fit(src: np.ndarray, dst: np.ndarray, *, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
     """Least-squares 7-parameter similarity ``dst ≈ s R src + t`` (Umeyama).
+
+    Parameters
+    ----------
+    src, dst : (N, 3) float64 ndarray
+        Corresponding points.
+    with_scale : bool
+        False fits the 6-parameter rigid transform (``s = 1``), for example
+        when the scale of ``src`` is itself under test (default True).
 
     Returns
     -------
     scale : float
+        1.0 when ``with_scale`` is False.
     R : (3, 3) float64 ndarray
     t : (3,) float64 ndarray
     """
@@ -161,5 +170,76 @@ def similarity_fit(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray,
     d = np.sign(np.linalg.det(U @ Vt))
     D = np.diag([1.0, 1.0, d])
     R = U @ D @ Vt
-    scale = float(np.trace(np.diag(S) @ D) / (a**2).sum(1).mean())
+    # the least-squares rotation does not depend on the scale, so the rigid fit shares it
+    scale = float(np.trace(np.diag(S) @ D) / (a**2).sum(1).mean()) if with_scale else 1.0
     return scale, R, mu_d - scale * R @ mu_s
+
+
+def image_rays(ideal_xy_px: np.ndarray, iop_px: np.ndarray, q: np.ndarray, source_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rays from the source through ideal (undistorted) image points, in the frame the pose is given in.
+
+    Parameters
+    ----------
+    ideal_xy_px : (N, 2) float64 ndarray, px
+    iop_px : (3,) float64 ndarray, px
+        ``(xp, yp, c)``.
+    q : (4,) float64 ndarray
+        Rotation frame -> camera; ``(q, source_mm)`` is a pose (``p_cam = R(q) (P - T)``).
+        For a biplanar rig frame: the ROP ``(rop_q, rop_source_mm)``.
+    source_mm : (3,) float64 ndarray, mm
+        The source (perspective centre) in that frame.
+
+    Returns
+    -------
+    origin_mm : (3,) float64 ndarray, mm
+    directions : (N, 3) float64 ndarray
+        Unit vectors: the points are ``origin + λ d``, λ > 0.
+
+    Examples
+    --------
+    >>> o, d = image_rays(np.array([[612.0, 512.0]]), np.array([512.0, 512.0, 1000.0]), np.array([1.0, 0, 0, 0]), np.zeros(3))
+    >>> np.round(d * np.sqrt(1.01), 6)
+    array([[0.1, 0. , 1. ]])
+    """
+    ideal = check_points("ideal_xy_px", ideal_xy_px, 2)
+    xp, yp, c = np.asarray(iop_px, dtype=np.float64)
+    d_cam = np.column_stack([(ideal[:, 0] - xp) / c, (ideal[:, 1] - yp) / c, np.ones(len(ideal))])
+    d = d_cam @ quat_to_matrix(q)  # R^T d for each row
+    return np.asarray(source_mm, dtype=np.float64), d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def intersect_rays(rays) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares intersection of corresponding rays (the point nearest to all of them).
+
+    Parameters
+    ----------
+    rays : sequence of (origin, directions)
+        Per view, ``origin`` (3,) or (N, 3) mm and unit ``directions`` (N, 3),
+        the N rays of the N points; at least two views.
+
+    Returns
+    -------
+    xyz_mm : (N, 3) float64 ndarray, mm
+        Minimises the sum of squared distances to the rays (for two rays: the
+        midpoint of their common perpendicular).
+    miss_mm : (N,) float64 ndarray, mm
+        RMS distance of the point from its rays.
+
+    Examples
+    --------
+    >>> x_axis, y_axis = np.array([[1.0, 0, 0]]), np.array([[0.0, 1, 0]])
+    >>> xyz, miss = intersect_rays([(np.zeros(3), x_axis), (np.array([0.0, 0, 1]), y_axis)])
+    >>> xyz, miss
+    (array([[0. , 0. , 0.5]]), array([0.5]))
+    """
+    n = len(rays[0][1])
+    A = np.zeros((n, 3, 3))
+    b = np.zeros((n, 3))
+    # projectors orthogonal to each ray, shape (N, 3, 3)
+    projectors = [np.eye(3) - d[:, :, None] * d[:, None, :] for _, d in rays]
+    for (origin, _), P in zip(rays, projectors):
+        A += P
+        b += np.einsum("nij,nj->ni", P, np.broadcast_to(origin, (n, 3)))
+    xyz = np.linalg.solve(A, b[..., None])[..., 0]
+    miss2 = [np.sum(np.einsum("nij,nj->ni", P, xyz - origin) ** 2, axis=1) for (origin, _), P in zip(rays, projectors)]
+    return xyz, np.sqrt(np.mean(miss2, axis=0))
