@@ -43,6 +43,7 @@ ARGS = _parse() if __name__ == "__main__" else None
 if ARGS is not None:
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = ARGS.threads
+    os.environ.setdefault("GLOG_minloglevel", "2")  # pycolmap's per-run log lines
 
 import json  # noqa: E402
 import math  # noqa: E402
