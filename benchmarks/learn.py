@@ -49,6 +49,8 @@ PLAIN = {"training": "inliers", "field_gauge": "none", "fast_intermediate": Fals
 METHODS = {
     # name: (scheme, LearnParams overrides)
     "none": ("none", {}),
+    # the expert method the paper compares with: global radial + decentring + affinity model in the adjustment
+    "polynomial": ("polynomial", {}),
     "knn": ("knn", PLAIN),
     "knn+iop": ("knn+iop", PLAIN),
     "knn+smooth": ("knn+smooth", PLAIN),
@@ -63,6 +65,11 @@ METHODS = {
     "ours: same + local outliers + gauge + fast solves": (
         "knn+iop+smooth",
         {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True},
+    ),
+    # the recommended [learn] block: the same with the smoothness prior's order chosen by CV with its weight
+    "ours: same + prior order by CV": (
+        "knn+iop+smooth",
+        {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True, "smoothness_orders": (2, 3, 4)},
     ),
     # ablations of the defaults
     "ours defaults without gauge": (

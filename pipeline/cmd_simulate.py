@@ -56,11 +56,13 @@ from pathlib import Path
 FORMATS = {"tiff": ".tif", "dicom": ".dcm"}
 
 #: the accelerated loop (README.md, "Config"): a few kNN steps, then the gridded field refined jointly with the points
+#: (its smoothness prior's order and weight chosen by cross-validation)
 RECOMMENDED_LEARN = (
     "[learn]",
     'acceleration = "anderson"',
     'refine = "grid+points"',
     "affine_datum = true",
+    "smoothness_orders = [2, 3, 4]",
     "max_iterations = 3",
 )
 

@@ -177,8 +177,7 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     from stages.learn import SCHEMES
 
     if scheme not in SCHEMES:
-        hint = " (the global polynomial model is not available yet)" if scheme == "polynomial" else ""
-        raise ConfigError(f"{_where(path, '[calibration] ', 'scheme')}: expected one of {', '.join(SCHEMES)}; got {scheme!r}{hint}")
+        raise ConfigError(f"{_where(path, '[calibration] ', 'scheme')}: expected one of {', '.join(SCHEMES)}; got {scheme!r}")
 
     output = data.get("output", {})
     _reject_unknown(output, {"dir"}, path, "[output] ")

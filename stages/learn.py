@@ -28,7 +28,9 @@ Pieces
   model or its gridded resampling).
 - :func:`calibrate`: the alternation with :func:`stages.adjust.adjust_bundle`
   and its schemes (``none``, ``knn``, ``knn+iop``, ``knn+smooth``,
-  ``knn+iop+smooth``).
+  ``knn+iop+smooth``), and ``polynomial``: the expert method the paper
+  compares with, a global radial + decentring (+ affinity) model estimated
+  in the adjustment (:mod:`stages._polynomial`), sampled onto the same grid.
 
 Beyond the paper (``LearnParams.acceleration`` and ``LearnParams.refine``)
 -------------------------------------------------------------------------
@@ -63,6 +65,7 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import KDTree
 
+from stages import _polynomial
 from stages.artifacts import check_shape, freeze
 from stages.errors import EstimationError, InputError, ShapeError
 
@@ -70,10 +73,13 @@ logger = logging.getLogger(__name__)
 
 VERSION = 1
 
-#: calibration schemes: the paper's four, the adjustment alone, and the accelerated smoothed kNN
-SCHEMES = ("none", "knn", "knn+iop", "knn+smooth", "knn+iop+smooth")
+#: calibration schemes: the adjustment alone, the paper's four, and the global polynomial model in the adjustment
+SCHEMES = ("none", "knn", "knn+iop", "knn+smooth", "knn+iop+smooth", "polynomial")
 
 _DEFAULT_K_GRID = (1, 2, 3, 4, 6, 8, 11, 16, 23, 32, 45, 64, 90, 128, 181, 256)
+
+#: forward-difference stencils of the smoothness prior's orders
+_DIFFERENCE_STENCILS = {1: (-1.0, 1.0), 2: (1.0, -2.0, 1.0), 3: (-1.0, 3.0, -3.0, 1.0), 4: (1.0, -4.0, 6.0, -4.0, 1.0)}
 
 
 @dataclass(frozen=True)
@@ -123,14 +129,24 @@ class LearnParams:
         the same with the field estimated jointly with the object points
         (:func:`fit_grid_with_points`). Both need ``smooth``.
     tau_grid_px : tuple of float
-        Candidate smoothness priors (px, standard deviation of a node's second
-        difference) for the refinement, chosen by cross-validation (default
+        Candidate smoothness priors (px, standard deviation of a node's
+        difference of the prior's order, second by default) for the
+        refinement, chosen by cross-validation (default
         0.03, 0.1, 0.3, 1, 3 px; the prior acts on the total field, whose
         strong radial part has second differences of ~0.1 px at a 16 px
         spacing near the rim of a 1024 px image, so smaller values bias it).
     smoothness_folds : int
         Folds of that cross-validation (default 5: it runs once per system and
         each fold costs a sparse factorisation per candidate).
+    smoothness_orders : tuple of int
+        Candidate orders ``m`` of the difference prior (default ``(2,)``: the
+        thin-plate energy, second differences). The prior penalises the
+        discrete ``m``-th order energy ``Σ_a C(m, a) (∂^m Δ / ∂x^(m-a) ∂y^a)²``
+        (null space: the polynomials of degree below ``m``); a higher order
+        assumes a smoother field and biases its large-scale, strong part
+        (the radial distortion) less, so it can smooth the noise harder. With
+        several candidates the cross-validation chooses the order together
+        with ``τ`` (each order costs ``len(tau_grid_px)`` candidates more).
     refine_iterations : int
         Cap on the alternation's iterations with the gridded least-squares field (default 15).
     affine_datum : bool
@@ -195,6 +211,7 @@ class LearnParams:
     refine: str = "none"
     tau_grid_px: tuple = (0.03, 0.1, 0.3, 1.0, 3.0)
     smoothness_folds: int = 5
+    smoothness_orders: tuple[int, ...] = (2,)
     refine_iterations: int = 15
     affine_datum: bool = False
     training: str = "local"
@@ -223,6 +240,9 @@ class LearnParams:
         object.__setattr__(self, "tau_grid_px", tuple(float(t) for t in self.tau_grid_px))
         if not self.tau_grid_px or min(self.tau_grid_px) <= 0:
             raise InputError(f"tau_grid_px must hold positive values; got {self.tau_grid_px}")
+        object.__setattr__(self, "smoothness_orders", tuple(sorted({int(m) for m in self.smoothness_orders})))
+        if not self.smoothness_orders or not set(self.smoothness_orders) <= set(_DIFFERENCE_STENCILS):
+            raise InputError(f"smoothness_orders must hold orders among {tuple(_DIFFERENCE_STENCILS)}; got {self.smoothness_orders}")
         if not 0 < self.relaxation < 2:
             raise InputError(f"relaxation must lie in (0, 2); got {self.relaxation}")
         if self.max_iterations < 1:
@@ -386,7 +406,8 @@ class CvReport:
 
 
 def cross_validate_k(
-    xy_px: np.ndarray, residuals_px: np.ndarray, residual_var_px2: np.ndarray, *, k_grid, n_folds: int, seed: int
+    xy_px: np.ndarray, residuals_px: np.ndarray, residual_var_px2: np.ndarray, *, k_grid, n_folds: int, seed: int,
+    neighbour_cache: dict | None = None,
 ) -> CvReport:
     """Choose ``k`` by shuffled K-fold cross-validation of the equation-3 cost.
 
@@ -402,6 +423,11 @@ def cross_validate_k(
     n_folds : int
     seed : int
         Seed of the shuffling of the observations into folds.
+    neighbour_cache : dict, optional
+        Filled with each fold's neighbour indices, and reused by a later call
+        on the same coordinates, folds and at most as many neighbours (they
+        depend on the coordinates only, not on the residuals: the
+        alternation's iterations share them).
 
     Returns
     -------
@@ -426,13 +452,19 @@ def cross_validate_k(
     ks = np.array([k for k in sorted(set(int(k) for k in k_grid)) if k <= n_train_min], dtype=np.int64)
     if len(ks) == 0:
         raise InputError(f"k_grid {tuple(k_grid)} has no candidate <= the training fold size {n_train_min}")
+    cache = neighbour_cache if neighbour_cache is not None else {}
+    if not (cache.get("n_folds") == n_folds and cache.get("seed") == seed and cache.get("k", 0) >= ks[-1] and np.array_equal(cache.get("xy"), xy)):
+        cache.clear()
+        cache.update(xy=xy.copy(), n_folds=n_folds, seed=seed, k=int(ks[-1]), idx=[])
+        for test in folds:
+            train = np.setdiff1d(np.arange(n), test, assume_unique=True)
+            _, idx = KDTree(xy[train]).query(xy[test], k=int(ks[-1]))
+            cache["idx"].append(idx.reshape(len(test), -1).astype(np.int32))
     cost = np.zeros(len(ks))
     sq = np.zeros(len(ks))
-    for test in folds:
+    for test, idx in zip(folds, cache["idx"]):
         train = np.setdiff1d(np.arange(n), test, assume_unique=True)
-        _, idx = KDTree(xy[train]).query(xy[test], k=int(ks[-1]))
-        idx = idx.reshape(len(test), -1)
-        g = _weighted_neighbour_means(r[train], w[train], idx, ks)  # shape (n_test, K, 2)
+        g = _weighted_neighbour_means(r[train], w[train], idx[:, : ks[-1]], ks)  # shape (n_test, K, 2)
         err = r[test][:, None, :] - g
         cost += np.sum(w[test][:, None, :] * err**2, axis=(0, 2))
         sq += np.sum(err**2, axis=(0, 2))
@@ -761,6 +793,8 @@ def fit_knn_field(
     params: LearnParams,
     *,
     image_size: tuple[int, int],
+    cv: CvReport | None = None,
+    neighbour_cache: dict | None = None,
 ) -> tuple[CorrectionField | KnnModel, CvReport]:
     """Learn the deterministic part of the residuals: one kNN regression step.
 
@@ -776,6 +810,12 @@ def fit_knn_field(
     params : LearnParams
     image_size : (int, int)
         ``(width, height)`` of the image in px.
+    cv : CvReport, optional
+        A cross-validation already run on (nearly) the same observations: its
+        ``k`` and out-of-fold RMS are used and none is run (the refit after
+        the local outlier test, which drops a few observations).
+    neighbour_cache : dict, optional
+        Passed to :func:`cross_validate_k`.
 
     Returns
     -------
@@ -796,8 +836,9 @@ def fit_knn_field(
     """
     xy, r, var = _check_training(xy_px, residuals_px, residual_var_px2)
     width, height = (int(s) for s in image_size)
-    cv = cross_validate_k(xy, r, var, k_grid=params.k_grid, n_folds=params.n_folds, seed=params.seed)
-    logger.debug("kNN cross-validation over %d points:\n%s", len(xy), cv.table())
+    if cv is None:
+        cv = cross_validate_k(xy, r, var, k_grid=params.k_grid, n_folds=params.n_folds, seed=params.seed, neighbour_cache=neighbour_cache)
+        logger.debug("kNN cross-validation over %d points:\n%s", len(xy), cv.table())
     model = KnnModel(xy, r, 1.0 / var, cv.k)
     if not params.smooth:
         return model, cv
@@ -813,21 +854,38 @@ def fit_knn_field(
 # ---------------------------------------------------------------------------------------------
 
 
-def _second_differences(n_y: int, n_x: int):
-    """Sparse ``D`` ``(n_d, n_y * n_x)``: second differences along x and y and the (√2-weighted) cross difference.
+def _difference_operator(n_y: int, n_x: int, order: int):
+    """Sparse ``D`` whose ``|D v|²`` is the discrete ``order``-th order energy of node values ``v``.
 
-    ``|D v|²`` is the discrete thin-plate energy of node values ``v`` (row-major,
-    x fastest); its null space is the affine fields.
+    The rows are the mixed differences ``Δx^(m-a) Δy^a v`` weighted by
+    ``sqrt(C(m, a))``, ``a = 0 .. m`` (row-major ``v``, x fastest): for
+    ``m = 2`` the thin-plate energy (second differences along x and y and the
+    √2-weighted cross difference). Its null space is the polynomials of total
+    degree below ``m``.
     """
+    from math import comb
+
     from scipy.sparse import diags, identity, kron, vstack
 
-    def d2(n):
-        return diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(max(n - 2, 0), n))
+    def diff(n, k):
+        if k == 0:
+            return identity(n)
+        c = _DIFFERENCE_STENCILS[k]
+        return diags(list(c), list(range(k + 1)), shape=(max(n - k, 0), n))
 
-    def d1(n):
-        return diags([-1.0, 1.0], [0, 1], shape=(n - 1, n))
+    return vstack([np.sqrt(comb(order, a)) * kron(diff(n_y, a), diff(n_x, order - a)) for a in range(order + 1)]).tocsr()
 
-    return vstack([kron(identity(n_y), d2(n_x)), kron(d2(n_y), identity(n_x)), np.sqrt(2.0) * kron(d1(n_y), d1(n_x))]).tocsr()
+
+def _factor_spd(M):
+    """Sparse LU of a symmetric positive definite matrix: a symmetric fill-reducing ordering, no pivoting.
+
+    Several times faster than SuperLU's default (COLAMD, partial pivoting) on
+    the grid's normal matrices, whose band widens with the prior's order; an
+    SPD matrix needs no pivoting for stability.
+    """
+    from scipy.sparse.linalg import splu
+
+    return splu(M.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
 
 def _grid_solve(A, DtD, w, r, tau_px, base=None):
@@ -837,19 +895,34 @@ def _grid_solve(A, DtD, w, r, tau_px, base=None):
     on the total field, so the alternation's fixed point is the regularised
     fit, not a pure least-squares one.
     """
-    from scipy.sparse import diags
-    from scipy.sparse.linalg import splu
+    return _solve_normal(_grid_normal(A, w, r), DtD, tau_px, base)
 
-    out = np.empty((A.shape[1], 2))
+
+def _grid_normal(A, w, r):
+    """The data part of :func:`_grid_solve`'s normal equations: ``([A^T W_c A per component], A^T W r, max w)``.
+
+    One matrix serves both components when their weights are equal (the usual case).
+    """
+    AtW = [A.T.multiply(w[:, c]).tocsr() for c in range(2)]
+    N0 = AtW[0] @ A
+    N = [N0, N0 if np.array_equal(w[:, 1], w[:, 0]) else AtW[1] @ A]
+    return N, np.column_stack([AtW[c] @ r[:, c] for c in range(2)]), float(w.max())
+
+
+def _solve_normal(normal, DtD, tau_px, base=None):
+    """Solve the normal equations of :func:`_grid_normal` with the prior ``DtD / τ²`` on ``base + v``."""
+    from scipy.sparse import diags
+
+    N, b, w_max = normal
     reg = DtD / tau_px**2
     # a tiny ridge keeps nodes far from all data (fixed only through the prior's null space) determined
-    ridge = diags(np.full(A.shape[1], 1e-10 * max(float(w.max()), 1.0)))
+    ridge = diags(np.full(b.shape[0], 1e-10 * max(w_max, 1.0)))
+    out = np.empty(b.shape)
+    lu = None
     for c in range(2):
-        AtW = A.T.multiply(w[:, c]).tocsr()
-        lu = splu((AtW @ A + reg + ridge).tocsc())
-        rhs = AtW @ r[:, c]
-        if base is not None:
-            rhs = rhs - reg @ base[:, c]
+        if lu is None or N[c] is not N[0]:
+            lu = _factor_spd(N[c] + reg + ridge)
+        rhs = b[:, c] if base is None else b[:, c] - reg @ base[:, c]
         out[:, c] = lu.solve(rhs)
     return out
 
@@ -861,52 +934,80 @@ class GridCvReport:
     Attributes
     ----------
     tau_grid_px : (T,) float64 ndarray, px
-        Candidate prior standard deviations of a node's second difference.
+        Candidate prior standard deviations of a node's difference of the
+        prior's order, as evaluated (``tau_grid_px`` of the parameters in
+        increasing order, for each order in turn, up to the first rise of the cost).
     cv_cost : (T,) float64 ndarray
         Mean out-of-fold equation-3 cost per observation.
     tau_px : float
         The chosen candidate.
     cv_rms_px : float
         Out-of-fold RMS per component at ``tau_px``.
+    order : int
+        The chosen order of the difference prior.
+    order_grid : (T,) int64 ndarray or None
+        The order of each candidate (None: all ``order``).
     """
 
     tau_grid_px: np.ndarray
     cv_cost: np.ndarray
     tau_px: float
     cv_rms_px: float
+    order: int = 2
+    order_grid: np.ndarray | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "tau_grid_px", np.asarray(self.tau_grid_px, dtype=np.float64))
         object.__setattr__(self, "cv_cost", np.asarray(self.cv_cost, dtype=np.float64))
+        object.__setattr__(self, "order", int(self.order))
+        order_grid = np.full(len(self.tau_grid_px), self.order) if self.order_grid is None else self.order_grid
+        object.__setattr__(self, "order_grid", np.asarray(order_grid, dtype=np.int64))
         freeze(self)
 
 
 def cross_validate_smoothness(xy_px, residuals_px, residual_var_px2, *, image_size, params: LearnParams, base_px=None) -> GridCvReport:
     """Choose the smoothness prior of :func:`fit_grid_field` by shuffled K-fold CV of equation 3.
 
-    Parameters as in :func:`fit_grid_field`; candidates from ``params.tau_grid_px``.
+    Parameters as in :func:`fit_grid_field`; candidates: every order of
+    ``params.smoothness_orders`` with the ``τ`` of ``params.tau_grid_px`` in
+    increasing order, up to the first whose cost rises (each candidate costs
+    a sparse factorisation per fold).
+
+    Notes
+    -----
+    With ``base_px`` the prior acts on ``base + δ``; the fit of ``δ`` to the
+    residuals ``r`` is then the fit of the total field to ``r + base(x)``, so
+    the out-of-fold cost judges the total field, not the update.
     """
     base = None if base_px is None else np.asarray(base_px, dtype=np.float64).reshape(-1, 2)
     xy, r, var = _check_training(xy_px, residuals_px, residual_var_px2)
     xn, yn = grid_nodes(*image_size, params.grid_spacing_px)
     A = _bilinear_design(xn, yn, xy)
-    D = _second_differences(len(yn), len(xn))
-    DtD = (D.T @ D).tocsr()
     w = 1.0 / var
     n = len(xy)
     folds = np.array_split(np.random.default_rng(params.seed).permutation(n), min(params.smoothness_folds, n))
-    taus = np.asarray(params.tau_grid_px, dtype=np.float64)
-    cost = np.zeros(len(taus))
-    sq = np.zeros(len(taus))
-    for test in folds:
-        train = np.setdiff1d(np.arange(n), test, assume_unique=True)
-        for t, tau in enumerate(taus):
-            v = _grid_solve(A[train], DtD, w[train], r[train], tau, base)
-            err = r[test] - A[test] @ v
-            cost[t] += np.sum(w[test] * err**2)
-            sq[t] += np.sum(err**2)
-    best = int(np.argmin(cost))
-    return GridCvReport(taus, cost / n, float(taus[best]), float(np.sqrt(sq[best] / (2 * n))))
+    # the data part of each fold's normal equations, shared by every candidate
+    normals = [_grid_normal(A[train], w[train], r[train]) for train in (np.setdiff1d(np.arange(n), test, assume_unique=True) for test in folds)]
+    tests = [(A[test], w[test], r[test]) for test in folds]
+    evaluated = []  # (order, tau, cost, sq)
+    for order in params.smoothness_orders:
+        D = _difference_operator(len(yn), len(xn), order)
+        DtD = (D.T @ D).tocsr()
+        for tau in sorted(params.tau_grid_px):
+            cost = sq = 0.0
+            for normal, (A_test, w_test, r_test) in zip(normals, tests):
+                err = r_test - A_test @ _solve_normal(normal, DtD, tau, base)
+                cost += float(np.sum(w_test * err**2))
+                sq += float(np.sum(err**2))
+            cost /= n
+            rising = bool(evaluated) and evaluated[-1][0] == order and cost > evaluated[-1][2]
+            evaluated.append((order, tau, cost, sq))
+            if rising:
+                # past this order's minimum (taken as unimodal in log tau): larger ones only fit more of the noise
+                break
+    orders, taus, costs, sqs = (np.array(c) for c in zip(*evaluated))
+    best = int(np.argmin(costs))
+    return GridCvReport(taus, costs, float(taus[best]), float(np.sqrt(sqs[best] / (2 * n))), int(orders[best]), orders)
 
 
 def fit_grid_field(
@@ -919,6 +1020,7 @@ def fit_grid_field(
     tau_px: float,
     cv_rms_px: float | None = None,
     base: CorrectionField | None = None,
+    order: int = 2,
 ) -> CorrectionField:
     """Fit the node values of a bilinear grid to the residuals directly (weighted least squares).
 
@@ -944,6 +1046,9 @@ def fit_grid_field(
     base : CorrectionField, optional
         The field accumulated so far, on the same grid: the prior then acts on
         ``base + δ`` (the alternation's total field) and the returned ``δ`` is the update.
+    order : int
+        Order of the difference prior (default 2, the thin-plate energy; see
+        ``LearnParams.smoothness_orders``).
 
     Returns
     -------
@@ -955,7 +1060,7 @@ def fit_grid_field(
     width, height = (int(s) for s in image_size)
     xn, yn = grid_nodes(width, height, params.grid_spacing_px)
     A = _bilinear_design(xn, yn, xy)
-    D = _second_differences(len(yn), len(xn))
+    D = _difference_operator(len(yn), len(xn), int(order))
     v = _grid_solve(A, (D.T @ D).tocsr(), 1.0 / var, r, float(tau_px), None if base is None else base.delta_px.reshape(-1, 2))
     if cv_rms_px is None:
         cv_rms_px = float(np.sqrt(np.mean((r - A @ v) ** 2)))
@@ -970,9 +1075,8 @@ def _grid_result(xn, yn, values, A, xy, cv_rms_px, params, image_size) -> Correc
     n_eff = np.asarray(A.sum(axis=0)).ravel()
     sigma = cv_rms_px / np.sqrt(np.maximum(n_eff, 1e-3))
     nodes = np.column_stack([a.ravel() for a in np.meshgrid(xn, yn)])
-    counts = np.array([len(c) for c in KDTree(xy).query_ball_point(nodes, r=params.support_radius)])
     shape = (len(yn), len(xn))
-    return CorrectionField(xn, yn, values.reshape(shape + (2,)), sigma.reshape(shape), (counts >= params.min_support).reshape(shape), *image_size)
+    return CorrectionField(xn, yn, values.reshape(shape + (2,)), sigma.reshape(shape), _support_mask(xy, nodes, params).reshape(shape), *image_size)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1085,6 +1189,10 @@ class LearnResult:
         Part of ``wall_time_s`` spent in :func:`stages.adjust.adjust_bundle`.
     initial_residual_px : (N, 2) float64 ndarray or None, px
         Residuals of the first adjustment, with no correction (the "before" of the report).
+
+    For scheme ``polynomial`` the ``adjustment`` is the one that estimated
+    the model (its ``ap_px``, ``ap_std_px``; held at no correction), and
+    ``corrections_px`` is that model at the observations.
     """
 
     scheme: str
@@ -1114,10 +1222,10 @@ class LearnResult:
 
 
 def _scheme_flags(scheme: str) -> tuple[bool, bool, bool]:
-    """``(learn, estimate_iop, smooth)`` of a scheme name."""
+    """``(learn, estimate_iop, smooth)`` of a scheme name (``polynomial`` learns no kNN field)."""
     if scheme not in SCHEMES:
         raise InputError(f"scheme must be one of {', '.join(SCHEMES)}; got {scheme!r}")
-    if scheme == "none":
+    if scheme in ("none", "polynomial"):
         return False, True, True
     parts = set(scheme.split("+"))
     return True, "iop" in parts, "smooth" in parts
@@ -1166,7 +1274,9 @@ def calibrate(
         ``"knn"``, ``"knn+iop"``, ``"knn+smooth"``, ``"knn+iop+smooth"`` (the
         paper's four; "iop" = the adjustment estimates the interior
         orientation, otherwise it is held at its initial value and the field
-        absorbs it) or ``"none"`` (adjustment only, IOP estimated).
+        absorbs it), ``"none"`` (adjustment only, IOP estimated) or
+        ``"polynomial"`` (no kNN loop: the adjustment estimates the IOP and
+        the global polynomial model, see :func:`_calibrate_polynomial`).
     params : LearnParams
         ``smooth`` is set from the scheme; ``acceleration`` and ``refine``
         go beyond the paper (defaults: the paper's plain loop).
@@ -1196,6 +1306,8 @@ def calibrate(
     """
     t0 = time.perf_counter()
     learn, estimate_iop, smooth = _scheme_flags(scheme)
+    if scheme == "polynomial":
+        return _calibrate_polynomial(observations, phantom, initial, _image_sizes(image_size, len(observations.system_names)), params, adjust_params)
     if smooth:
         params = replace(params, smooth=True)
     else:
@@ -1230,16 +1342,20 @@ def calibrate(
     k_prev: list = [None] * n_systems
     taus: list = [None] * n_systems
     cvs: list = [None] * n_systems
+    knn_caches = [{} for _ in range(n_systems)]
     anderson = _Anderson(params.anderson_depth)
 
-    def fit_system(s, sel, adj, out, phase):
-        """One regression step of system ``s`` on observations ``sel``: the update and the rows used."""
+    def fit_system(s, sel, adj, out, phase, refit=False):
+        """One regression step of system ``s`` on observations ``sel``: the update and the rows used.
+
+        ``refit``: the same step again without the local outliers, with the ``k`` just chosen.
+        """
         r, var = out.residuals_px[sel], out.residual_var_px2[sel]
         if phase == "grid":
             if taus[s] is None:
                 cvs[s] = cross_validate_smoothness(xy[sel], r, var, image_size=sizes[s], params=params, base_px=grids[s].delta_px)
                 taus[s] = cvs[s].tau_px
-                logger.info("system %s: gridded refinement, smoothness tau %.3g px (CV)", observations.system_names[s], taus[s])
+                logger.info("system %s: gridded refinement, smoothness order %d, tau %.3g px (CV)", observations.system_names[s], cvs[s].order, taus[s])
             if params.refine == "grid+points":
                 bead, J = _point_jacobians(adj, observations, sel)
                 t_weight = adj.weight[sel, None] if params.training == "inliers" else 1.0
@@ -1247,12 +1363,18 @@ def calibrate(
                 shape = (adj.xyz_mm, nominal_xyz[lookup(adj.bead_id)]) if params.affine_datum else None
                 model = fit_grid_with_points(
                     xy[sel], r, w_obs, bead, J, params, image_size=sizes[s], tau_px=taus[s], base=grids[s],
-                    cv_rms_px=cvs[s].cv_rms_px, shape_mm=shape, max_cg_iterations=_LOOP_CG_ITERATIONS,
+                    cv_rms_px=cvs[s].cv_rms_px, shape_mm=shape, max_cg_iterations=_LOOP_CG_ITERATIONS, order=cvs[s].order,
                 )
             else:
-                model = fit_grid_field(xy[sel], r, var, params, image_size=sizes[s], tau_px=taus[s], cv_rms_px=cvs[s].cv_rms_px, base=grids[s])
+                model = fit_grid_field(
+                    xy[sel], r, var, params, image_size=sizes[s], tau_px=taus[s], cv_rms_px=cvs[s].cv_rms_px, base=grids[s], order=cvs[s].order,
+                )
+        elif refit:
+            model, _ = fit_knn_field(xy[sel], r, var, params, image_size=sizes[s], cv=cvs[s])
         else:
-            model, cvs[s] = fit_knn_field(xy[sel], r, var, replace(params, k_grid=_restricted_k_grid(params.k_grid, k_prev[s])), image_size=sizes[s])
+            model, cvs[s] = fit_knn_field(
+                xy[sel], r, var, replace(params, k_grid=_restricted_k_grid(params.k_grid, k_prev[s])), image_size=sizes[s], neighbour_cache=knn_caches[s],
+            )
             k_prev[s] = cvs[s].k
         return model, sel
 
@@ -1281,7 +1403,7 @@ def calibrate(
                 keep = z2 <= params.outlier_chi2 * max(float(np.median(z2)) / (2 * np.log(2)), 1e-300)
                 sel = candidates[keep] if keep.sum() >= params.n_folds else candidates
                 if len(sel) < len(candidates):
-                    model, _ = fit_system(s, sel, adj, out, phase)
+                    model, _ = fit_system(s, sel, adj, out, phase, refit=True)
             else:
                 model, sel = fit_system(s, sel, adj, out, phase)
             r, var = out.residuals_px[sel], out.residual_var_px2[sel]
@@ -1350,6 +1472,62 @@ def calibrate(
         logger.warning("scheme %s: the final adjustment is not usable (%s)", scheme, adj.stop_reason)
     logger.info("scheme %s: %s after %d iterations (%.1f s, of which %.1f s in the adjustment)", scheme, stop, iteration, wall, run.seconds)
     return LearnResult(scheme, fields, pw, corrections, adj, tuple(history), tuple(cvs), converged, stop, wall, run.seconds, initial_residual)
+
+
+def _calibrate_polynomial(observations, phantom, initial, sizes, params: LearnParams, adjust_params) -> LearnResult:
+    """Scheme ``polynomial``: the adjustment estimates the IOP and each system's global polynomial model; no kNN loop.
+
+    Iteration 0 is the plain adjustment (no correction: the "before" of the
+    report, as in the other schemes); iteration 1 the adjustment with the
+    model (:mod:`stages._polynomial`: the coefficients ``adjust_params`` does
+    not hold fixed, by default all but the affinity ``b1, b2``), warm-started
+    from it. Each system's model is sampled at the nodes of the usual grid
+    (``params.grid_spacing_px``) relative to its estimated principal point;
+    ``corrections_px`` is the model itself at every observation. Node
+    ``sigma_px`` is the model's standard uncertainty there propagated from the
+    coefficients' covariance, ``sqrt((σ²_Δx + σ²_Δy) / 2)`` with
+    ``σ²_Δ = b C_ap b^T`` (``b`` the node's row of the design matrix; the
+    principal point's own uncertainty is not included), and ``support`` marks
+    nodes with ``params.min_support`` used observations within
+    ``params.support_radius``, as for the learned fields.
+    """
+    t0 = time.perf_counter()
+    xy = observations.xy_px
+    plain = _adjuster(observations, phantom, initial, adjust_params, True, fast=True)
+    model = _adjuster(observations, phantom, initial, adjust_params, True, additional_parameters="polynomial")
+    zero = np.zeros((len(xy), 2))
+    first = plain(zero, None, final=False)
+    adj = model(zero, first)
+    before, out = _adjustment_outcome(first, observations.sigma_px), _adjustment_outcome(adj, observations.sigma_px)
+    corrections = np.zeros((len(xy), 2))
+    fields = []
+    for s, (w, h) in enumerate(sizes):
+        rows = np.flatnonzero(observations.system == s)
+        corrections[rows] = adj.polynomial_correction(s, xy[rows])
+        grid = CorrectionField.constant(w, h, spacing_px=params.grid_spacing_px)
+        nodes = grid.nodes_px
+        B = _polynomial.basis(nodes, adj.iop_px[s, :2], adj.ap_radius_px[s])
+        var = np.einsum("nci,ij,ncj->n", B, adj.ap_cov_px2[s], B) / 2
+        fields.append(grid.with_delta(
+            adj.polynomial_correction(s, nodes).reshape(grid.delta_px.shape), sigma_px=np.sqrt(var).reshape(grid.sigma_px.shape),
+            support=_support_mask(xy[rows[adj.used[rows]]], nodes, params).reshape(grid.support.shape),
+        ))
+    step = float(np.abs(corrections).max(initial=0.0))
+    history = (
+        IterationRecord(0, "adjust", before.cost, 0.0, before.cost, (), before.rms_px, 0.0),
+        IterationRecord(1, "polynomial", out.cost, 0.0, out.cost, (), out.rms_px, step),
+    )
+    logger.info("scheme polynomial: inlier RMS %.4f -> %.4f px, coefficients %s px", before.rms_px, out.rms_px, np.round(adj.ap_px, 4).tolist())
+    stop = f"polynomial model estimated in the adjustment ({adj.stop_reason})"
+    seconds = plain.seconds + model.seconds
+    return LearnResult("polynomial", tuple(fields), None, corrections, adj, history, (), adj.converged, stop, time.perf_counter() - t0, seconds,
+                       first.residual_px)
+
+
+def _support_mask(xy_px: np.ndarray, nodes_px: np.ndarray, params: LearnParams) -> np.ndarray:
+    """``(n_nodes,)`` True where at least ``params.min_support`` points lie within ``params.support_radius`` of a node."""
+    counts = np.array([len(c) for c in KDTree(xy_px).query_ball_point(nodes_px, r=params.support_radius)])
+    return counts >= params.min_support
 
 
 def _gauge_basis(xy_px, iop_px, with_iop: bool) -> np.ndarray:
@@ -1439,7 +1617,7 @@ def _nominal_pair(phantom) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(ids, dtype=np.int64), np.asarray(xyz, dtype=np.float64)
 
 
-def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool, fast: bool = False):
+def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool, fast: bool = False, additional_parameters: str = "none"):
     """``run(corrections_px, previous) -> Adjustment``: the adjustment with Δ held constant.
 
     ``previous`` is None (start from ``initial``) or a previous
@@ -1449,10 +1627,14 @@ def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool,
     refer to the previous estimate, which itself satisfies them relative to
     the nominal coordinates: the datum moves by second-order terms only
     (below 1e-3 mm for 0.1 mm corrections on a 100 mm phantom).
+    ``additional_parameters`` applies to every solve: the kNN schemes keep
+    "none", so the learned field is the whole correction.
     """
     from stages.adjust import AdjustParams, Orientation, adjust_bundle
 
-    final_params = replace(adjust_params if adjust_params is not None else AdjustParams(), estimate_iop=estimate_iop)
+    final_params = replace(
+        adjust_params if adjust_params is not None else AdjustParams(), estimate_iop=estimate_iop, additional_parameters=additional_parameters
+    )
     # intermediate solves: no covariance, a looser cost tolerance (0.045 sigma steps) and fewer iterations
     fast_params = replace(
         final_params, compute_covariance=False, function_tolerance=max(final_params.function_tolerance, 1e-3),
@@ -1558,6 +1740,7 @@ def fit_grid_with_points(
     cv_rms_px: float,
     shape_mm: tuple[np.ndarray, np.ndarray] | None = None,
     max_cg_iterations: int = 400,
+    order: int = 2,
 ) -> CorrectionField:
     """Gridded field update estimated jointly with corrections to the object points (poses held).
 
@@ -1592,6 +1775,8 @@ def fit_grid_with_points(
         perspective effects, and a field that mimics them (an image aspect
         ratio or shear) would otherwise stretch the reconstruction.
     max_cg_iterations : int
+    order : int
+        Order of the difference prior (default 2), as in :func:`fit_grid_field`.
 
     Returns
     -------
@@ -1599,7 +1784,7 @@ def fit_grid_with_points(
         The update ``δ`` (not ``base + δ``).
     """
     from scipy.sparse import block_diag, csr_matrix, diags, vstack
-    from scipy.sparse.linalg import LinearOperator, cg, splu
+    from scipy.sparse.linalg import LinearOperator, cg
 
     xy, r, w = (np.asarray(a, dtype=np.float64) for a in (xy_px, residuals_px, weights))
     width, height = (int(s) for s in image_size)
@@ -1607,7 +1792,7 @@ def fit_grid_with_points(
     n = len(xy)
     A = _bilinear_design(xn, yn, xy)
     n_nodes = A.shape[1]
-    D = _second_differences(len(yn), len(xn))
+    D = _difference_operator(len(yn), len(xn), int(order))
     reg = (D.T @ D).tocsr() / tau_px**2
     ridge = 1e-10 * max(float(w.max()), 1.0)
     AtW = [A.T.multiply(w[:, c]).tocsr() for c in range(2)]
@@ -1648,8 +1833,14 @@ def fit_grid_with_points(
     Npv = Nvp.T.tocsr()
     rhs = bv - Nvp @ apply_pp_inv(bp.ravel())
     op = LinearOperator((2 * n_nodes, 2 * n_nodes), matvec=lambda v: Nvv @ v - Nvp @ apply_pp_inv(Npv @ v), dtype=np.float64)
-    lu = splu(Nvv)
-    pre = LinearOperator((2 * n_nodes, 2 * n_nodes), matvec=lu.solve, dtype=np.float64)
+    # the preconditioner, block by block: one factorisation when both components weigh alike
+    blocks = [Nvv[:n_nodes, :n_nodes]] if np.array_equal(w[:, 0], w[:, 1]) else [Nvv[:n_nodes, :n_nodes], Nvv[n_nodes:, n_nodes:]]
+    lus = [_factor_spd(blk) for blk in blocks]
+
+    def precondition(v):
+        return np.concatenate([lus[0].solve(v[:n_nodes]), lus[-1].solve(v[n_nodes:])])
+
+    pre = LinearOperator((2 * n_nodes, 2 * n_nodes), matvec=precondition, dtype=np.float64)
     v, info = cg(op, rhs, rtol=1e-6, maxiter=max_cg_iterations, M=pre)
     if info > 0:
         logger.info("joint field-and-points step: CG stopped after %d iterations short of its tolerance", info)

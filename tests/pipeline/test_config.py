@@ -66,3 +66,9 @@ def test_grid_phantom_needs_lattice_and_pitch(tmp_path):
 def test_params_from_dict_coerces_ints_to_floats_and_keeps_defaults():
     p = params_from_dict(DetectLike, {"min_diameter_px": 8})
     assert p == DetectLike(min_diameter_px=8.0) and isinstance(p.min_diameter_px, float)
+
+
+def test_polynomial_scheme_is_accepted(tmp_path):
+    path = make_project(tmp_path)
+    path.write_text(path.read_text() + '\n[calibration]\nscheme = "polynomial"\n')
+    assert load_config(path).scheme == "polynomial"
