@@ -42,12 +42,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.learn import METHODS, NOISE_PX, simulated_sets  # noqa: E402
+from benchmarks.learn import METHODS, NOISE_PX, RECOMMENDED, simulated_sets  # noqa: E402
 from stages._geometry import image_rays, intersect_rays, matrix_to_quat, quat_multiply, quat_to_matrix, similarity_fit  # noqa: E402
 from stages.learn import LearnParams, calibrate  # noqa: E402
 
 #: the recommended setting (row of ``benchmarks/learn.py``)
-RECOMMENDED = "ours: same + local outliers + gauge + fast solves"
 DEFAULT_SCHEMES = ("none", RECOMMENDED)
 
 #: TABLE I of the paper (real ARCADIS pairs): average RMSE, mm, and % improvement

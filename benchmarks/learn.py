@@ -46,6 +46,8 @@ NOISE_PX = 0.05
 #: the paper's loop as written (learn from the adjustment's inliers, no gauge, every solve in full)
 PLAIN = {"training": "inliers", "field_gauge": "none", "fast_intermediate": False}
 
+RECOMMENDED = "ours: recommended [learn] block (+ stop when the field stops moving)"
+
 METHODS = {
     # name: (scheme, LearnParams overrides)
     "none": ("none", {}),
@@ -70,6 +72,12 @@ METHODS = {
     "ours: same + prior order by CV": (
         "knn+iop+smooth",
         {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True, "smoothness_orders": (2, 3, 4)},
+    ),
+    # the recommended [learn] block (pipeline/cmd_simulate.py RECOMMENDED_LEARN)
+    RECOMMENDED: (
+        "knn+iop+smooth",
+        {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True, "smoothness_orders": (2, 3, 4),
+         "step_tolerance": 0.1},
     ),
     # ablations of the defaults
     "ours defaults without gauge": (

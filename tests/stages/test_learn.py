@@ -491,6 +491,23 @@ def test_joint_grid_refinement_gets_closer_to_the_truth(simulated, orders):
 
 
 @pytest.mark.slow
+def test_step_tolerance_stops_the_refinement_once_the_field_stops_moving(simulated):
+    from stages.learn import calibrate
+
+    obs, phantom, initial, _, _ = simulated
+    base = dict(max_iterations=2, acceleration="anderson", refine="grid+points", refine_iterations=12, affine_datum=True)
+    res = calibrate(obs, phantom, initial, image_size=(E2E_SIZE, E2E_SIZE), scheme="knn+iop+smooth", params=LearnParams(**base, step_tolerance=0.2))
+    grid = [h for h in res.history if h.phase == "grid"]
+    # the rule as stated: it stopped at the first refinement step after which the correction moved by < 0.2 x RMS
+    small = [h.step_px < 0.2 * h.rms_px for h in grid[1:]]
+    assert res.converged and "moved by at most" in res.stop_reason
+    assert small[-1] and not any(small[:-1]), [(h.step_px, h.rms_px) for h in grid]
+    assert len(grid) < 12
+    with pytest.raises(InputError, match="step_tolerance"):
+        LearnParams(step_tolerance=-1)
+
+
+@pytest.mark.slow
 def test_scheme_none_and_unsmoothed_knn(simulated):
     from stages.learn import calibrate
 
