@@ -139,7 +139,7 @@ def write_report(out_dir: Path, runner, obs, result, cal) -> list[Path]:
         f"Config: `{runner.config.path}`; scheme `{result.scheme}`; made by `fluorocal run` (fluorocal {cal.meta['fluorocal_version']}).",
         "All figures are in-sample (the training frames) unless marked otherwise.",
         "",
-        "| system | frames | observations | inliers | outliers | RMS before (px) | RMS after (px) | xp (px) | yp (px) | c (px) | max Δ (px) |",
+        "| system | frames | observations | inliers | outliers | RMS before (px) | RMS after (px) | xp (px) | yp (px) | c (px) | max Δ where supported (px) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     plots = []
@@ -150,7 +150,9 @@ def write_report(out_dir: Path, runner, obs, result, cal) -> list[Path]:
         rms_before = rms_px(before[inl]) if before is not None else float("nan")
         n_frames = sum(1 for u in runner.units if u.system == s)
         iop, iop_sd = cal.systems[name].iop_px, cal.systems[name].iop_std_px
-        max_delta = float(np.linalg.norm(result.fields[s].delta_px, axis=-1).max())
+        field = result.fields[s]
+        # nodes without data hold the prior's extrapolation, which can be large far outside the field of view
+        max_delta = float(np.linalg.norm(field.delta_px, axis=-1)[field.support].max(initial=0.0))
         lines.append(
             f"| {name} | {n_frames} | {int(sel.sum())} | {int(inl.sum())} | {int((sel & adj.used & ~adj.inlier).sum())} | {rms_before:.3f} | {rms_px(adj.residual_px[inl]):.3f} "
             f"| {iop[0]:.2f} ± {iop_sd[0]:.2f} | {iop[1]:.2f} ± {iop_sd[1]:.2f} | {iop[2]:.1f} ± {iop_sd[2]:.1f} | {max_delta:.2f} |"

@@ -1630,6 +1630,10 @@ def _nominal_pair(phantom) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(ids, dtype=np.int64), np.asarray(xyz, dtype=np.float64)
 
 
+def _not_usable_filter(record: logging.LogRecord) -> bool:
+    return not record.getMessage().startswith("adjustment not usable")
+
+
 def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool, fast: bool = False, additional_parameters: str = "none"):
     """``run(corrections_px, previous) -> Adjustment``: the adjustment with Δ held constant.
 
@@ -1661,9 +1665,15 @@ def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool,
 
     def run(corrections_px, previous, final=True):
         t0 = time.perf_counter()
+        intermediate = fast and not final
+        adjust_log = logging.getLogger("stages.adjust")
+        if intermediate:
+            # an intermediate solve stopped at its iteration cap is expected, not the user's concern
+            adjust_log.addFilter(_not_usable_filter)
         try:
-            return solve(corrections_px, previous, final_params if (final or not fast) else fast_params)
+            return solve(corrections_px, previous, fast_params if intermediate else final_params)
         finally:
+            adjust_log.removeFilter(_not_usable_filter)
             run.seconds += time.perf_counter() - t0
 
     run.seconds = 0.0

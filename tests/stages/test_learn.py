@@ -507,6 +507,21 @@ def test_step_tolerance_stops_the_refinement_once_the_field_stops_moving(simulat
         LearnParams(step_tolerance=-1)
 
 
+def test_intermediate_solves_at_their_cap_do_not_warn_the_final_one_does(simulated, caplog):
+    import logging
+
+    from stages.adjust import AdjustParams
+    from stages.learn import _adjuster
+
+    obs, phantom, initial, _, _ = simulated
+    run = _adjuster(obs, phantom, initial, AdjustParams(max_iterations=1), True, fast=True)
+    with caplog.at_level(logging.WARNING, logger="stages.adjust"):
+        assert not run(np.zeros((len(obs), 2)), None, final=False).usable
+        assert "not usable" not in caplog.text
+        assert not run(np.zeros((len(obs), 2)), None, final=True).usable
+        assert "not usable" in caplog.text
+
+
 @pytest.mark.slow
 def test_scheme_none_and_unsmoothed_knn(simulated):
     from stages.learn import calibrate
