@@ -77,7 +77,7 @@ METHODS = {
     RECOMMENDED: (
         "knn+iop+smooth",
         {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True, "smoothness_orders": (2, 3, 4),
-         "step_tolerance": 0.1},
+         "step_tolerance": 0.05},
     ),
     # ablations of the defaults
     "ours defaults without gauge": (

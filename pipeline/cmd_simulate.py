@@ -64,7 +64,7 @@ RECOMMENDED_LEARN = (
     "affine_datum = true",
     "smoothness_orders = [2, 3, 4]",
     "max_iterations = 3",
-    "step_tolerance = 0.1",
+    "step_tolerance = 0.05",
 )
 
 
