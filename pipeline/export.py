@@ -99,12 +99,13 @@ def calibration_from_result(runner, result):
 
 def export_calibration(runner) -> list[Path]:
     """Write the calibration, its tables and its report."""
-    from pipeline.gather import observations_from_labels
+    from pipeline.gather import failed_frames, observations_from_labels
 
     out_dir = Path(runner.config.output_dir)
     result = runner.get("learn", None)
     labels = [runner.get("label", u) for u in range(len(runner.units))]
-    obs = observations_from_labels(runner.units, labels, runner.config)
+    # the learning stage's gathering already warned about excluded frames; the report lists them
+    obs = observations_from_labels(runner.units, labels, runner.config, warn=False)
     adj = result.adjustment
     cal = calibration_from_result(runner, result)
     written = cal.save(out_dir / "calibration.json")
@@ -123,11 +124,11 @@ def export_calibration(runner) -> list[Path]:
     header = ["system", "file", "exposure", "id", "x", "y", "sigma_x", "sigma_y", "rho", "delta_x", "delta_y", "residual_x", "residual_y", "inlier"]
     write_csv(out_dir / "observations.csv", header, rows)
     written.append(out_dir / "observations.csv")
-    written += write_report(out_dir, runner, obs, result, cal)
+    written += write_report(out_dir, runner, obs, result, cal, failed_frames(runner.units, labels))
     return written
 
 
-def write_report(out_dir: Path, runner, obs, result, cal) -> list[Path]:
+def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[Path]:
     """``report.md`` and its plots: residuals before/after, the learned fields, convergence, per-frame RMS."""
     from pipeline import report
 
@@ -138,6 +139,7 @@ def write_report(out_dir: Path, runner, obs, result, cal) -> list[Path]:
         "",
         f"Config: `{runner.config.path}`; scheme `{result.scheme}`; made by `fluorocal run` (fluorocal {cal.meta['fluorocal_version']}).",
         "All figures are in-sample (the training frames) unless marked otherwise.",
+        *([f"Excluded (labelling failed): {'; '.join(excluded)}."] if excluded else []),
         "",
         "| system | frames | observations | inliers | outliers | RMS before (px) | RMS after (px) | xp (px) | yp (px) | c (px) | max Δ where supported (px) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",

@@ -12,27 +12,31 @@ from stages.errors import InputError
 log = logging.getLogger(__name__)
 
 
-def observations_from_labels(units, labels, config) -> Observations:
+def failed_frames(units, labels) -> list[str]:
+    """``"frame (reason)"`` of every frame whose labelling failed."""
+    return [f"{unit.label} ({lab.reason})" for unit, lab in zip(units, labels) if not lab.ok]
+
+
+def observations_from_labels(units, labels, config, *, warn: bool = True) -> Observations:
     """The observations table of every labelled bead of every frame that labelled.
 
-    Frames whose labelling failed contribute nothing; they are listed in a
-    warning with their reason. ``exposure`` is the frame's position in its
-    system's sorted frame list, so biplanar frames pair in sorted order.
+    Frames whose labelling failed contribute nothing; with ``warn`` they are
+    listed in a warning with their reason. ``exposure`` is the frame's
+    position in its system's sorted frame list, so biplanar frames pair in
+    sorted order.
 
     Raises
     ------
     InputError
         No frame of some system could be labelled.
     """
-    parts = []
-    failed = []
-    for unit, lab in zip(units, labels):
-        if not lab.ok:
-            failed.append(f"{unit.label} ({lab.reason})")
-            continue
-        n = len(lab)
-        parts.append((np.full(n, unit.system), np.full(n, unit.exposure), lab.bead_id, lab.xy_px, lab.sigma_px))
-    if failed:
+    parts = [
+        (np.full(len(lab), unit.system), np.full(len(lab), unit.exposure), lab.bead_id, lab.xy_px, lab.sigma_px)
+        for unit, lab in zip(units, labels)
+        if lab.ok
+    ]
+    failed = failed_frames(units, labels)
+    if failed and warn:
         log.warning("%d frame(s) excluded, labelling failed: %s", len(failed), "; ".join(failed))
     names = tuple(s.name for s in config.systems)
     if not parts:

@@ -193,5 +193,8 @@ def test_a_frame_without_beads_is_excluded_with_a_warning(project, tmp_path, cap
     with caplog.at_level(logging.WARNING):
         assert main(["run", str(root / "fluorocal.toml")]) == 0
     assert "frame_002.tif" in capsys.readouterr().err  # the detector's warning names the frame
-    assert any("excluded" in r.message and "frame_002.tif" in r.message for r in caplog.records)
+    excluded = [r.getMessage() for r in caplog.records if "excluded" in r.getMessage()]
+    assert len(excluded) == 1 and "frame_002.tif" in excluded[0]  # once per run
     assert (root / "out" / "calibration.json").is_file()
+    listed = [line for line in (root / "out" / "report.md").read_text().splitlines() if line.startswith("Excluded (labelling failed):")]
+    assert len(listed) == 1 and "frame_002.tif" in listed[0]
