@@ -19,7 +19,7 @@ uniform split). Per system and method:
 The oracle is the same held-out adjustment handed the true correction and the
 true IOP; "no calibration" is scheme ``none`` (IOP estimated, no field).
 
-Usage: ``python benchmarks/learn.py [--frames N] [--systems S] [--size PX] [--schemes a,b,...]``
+Usage: ``python benchmarks/learn.py [--frames N] [--systems S] [--size PX] [--seed N | --seeds a,b,...] [--schemes a,b,...]``
 (defaults: 75 training + 75 held-out exposures, 1 system, 1024 px, every scheme).
 """
 
@@ -172,18 +172,45 @@ def main(argv=None) -> None:
     ap.add_argument("--systems", type=int, default=1, help="1 or 2 systems, each calibrated on its own (default 1)")
     ap.add_argument("--size", type=int, default=1024, help="image side px (default 1024)")
     ap.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    ap.add_argument("--seeds", help="comma-separated seeds, each a new simulated set; adds a table of the 3D error relative to each set's oracle")
     ap.add_argument("--schemes", default=",".join(METHODS), help="comma-separated methods (default: all)")
     ap.add_argument("--iterations", type=int, default=20, help="iteration cap of the paper's schemes (default 20, as the issue's anchor)")
     ap.add_argument("-v", "--verbose", action="store_true", help="log the alternation")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(name)s: %(message)s")
     logging.getLogger("stages.adjust").setLevel(logging.ERROR)
-
-    t0 = time.perf_counter()
-    (train, test), nominal, true_xyz, acq, p = simulated_sets(args.frames, args.systems, args.size, args.seed)
-    print(f"simulated {len(train[0])} training + {len(test[0])} held-out observations "
-          f"({args.frames} + {args.frames} exposures x {args.systems} system(s), {args.size} px, noise {NOISE_PX} px) in {time.perf_counter() - t0:.1f} s")
     names = [m.strip() for m in args.schemes.split(",") if m.strip()]
+    seeds = [int(v) for v in args.seeds.split(",")] if args.seeds else [args.seed]
+    rows = {seed: run_set(args, seed, names) for seed in seeds}
+    print()
+    print("| seed | system | method | out-of-sample 3D (mm) | out-of-sample reproj. RMS (px) | field error mod H, covered (px) | same, inner 80 % (px) | wall (s) | iterations |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for seed, per_set in rows.items():
+        for sysname, name, e3, rp, ferr, wall, it, _ in per_set:
+            print(f"| {seed} | {sysname} | {name} | {e3:.4f} | {rp:.4f} | {ferr[0]:.4f} | {ferr[1]:.4f} | {wall:.1f} | {it} |")
+    if len(seeds) > 1:
+        print("\nout-of-sample 3D error / the same set's oracle, per seed and mean:")
+        for name in names:
+            ratios = [row[2] / oracle[2] for per_set in rows.values() for oracle, row in _with_oracle(per_set) if row[1] == name]
+            print(f"  {name}: {', '.join(f'{r:.2f}x' for r in ratios)}; mean {np.mean(ratios):.2f}x, worst {max(ratios):.2f}x")
+
+
+def _with_oracle(per_set):
+    """``(oracle row, row)`` pairs of one set's table (each system's oracle row precedes its methods)."""
+    oracle = None
+    for row in per_set:
+        if row[1].startswith("oracle"):
+            oracle = row
+        else:
+            yield oracle, row
+
+
+def run_set(args, seed: int, names) -> list:
+    """One simulated set: the oracle and every method, per system; rows ``(system, method, 3D, reproj, field, wall, iterations, stop)``."""
+    t0 = time.perf_counter()
+    (train, test), nominal, true_xyz, acq, p = simulated_sets(args.frames, args.systems, args.size, seed)
+    print(f"seed {seed}: simulated {len(train[0])} training + {len(test[0])} held-out observations "
+          f"({args.frames} + {args.frames} exposures x {args.systems} system(s), {args.size} px, noise {NOISE_PX} px) in {time.perf_counter() - t0:.1f} s")
     rows = []
     for s in range(args.systems):
         sel_tr = train[0].system == s
@@ -213,11 +240,7 @@ def main(argv=None) -> None:
                 f"{wall:.1f} s ({res.adjust_time_s:.1f} s adjusting), {len(res.history) - 1} it",
                 flush=True,
             )
-    print()
-    print("| system | method | out-of-sample 3D (mm) | out-of-sample reproj. RMS (px) | field error mod H, covered (px) | same, inner 80 % (px) | wall (s) | iterations |")
-    print("|---|---|---|---|---|---|---|---|")
-    for sysname, name, e3, rp, ferr, wall, it, _ in rows:
-        print(f"| {sysname} | {name} | {e3:.4f} | {rp:.4f} | {ferr[0]:.4f} | {ferr[1]:.4f} | {wall:.1f} | {it} |")
+    return rows
 
 
 def _one_system(obs: Observations, sel: np.ndarray) -> Observations:
