@@ -1087,7 +1087,7 @@ def _screen(frame: _Frame, result: dict, R: np.ndarray, T: np.ndarray, min_count
     sub = replace(frame, iop=result["iop"])
     vis, ideal, diam = _visible(sub, R, T)
     if not len(vis):
-        return 0
+        return 0, True
     pred = result["corr"].apply(ideal[vis])
     for _ in range(2):
         d, j = frame.det_tree.query(pred, distance_upper_bound=p.gate_bead_diameters * frame.diam_ref_px)
