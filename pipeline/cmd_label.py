@@ -51,7 +51,7 @@ def run(args) -> int:
     """Label every frame of the detections file; return the exit code."""
     from stages.artifacts import Phantom
     from stages.errors import InputError
-    from stages.io import read_phantom, write_csv
+    from stages.io import read_frames, read_phantom, write_csv
     from stages.label import LabelParams, label_sequence
 
     frames = _read_detections(args.detections)
@@ -76,17 +76,16 @@ def run(args) -> int:
     rows, n_failed = [], 0
     for file, file_keys in by_file.items():
         labels = label_sequence([frames[k] for k in file_keys], phantom, params, {i: seeds[k] for i, k in enumerate(file_keys) if k in seeds})
+        images = read_frames(file) if args.overlay else None  # decoded once per file, not per frame
         for (f, frame), lab in zip(file_keys, labels):
             where = f"{f}[{frame}]"
+            if images is not None:
+                _write_overlay(args.overlay / f"{Path(f).stem}_{frame:03d}_labels.png", f, frame, images, frames[(f, frame)], lab)
             if not lab.ok:
                 n_failed += 1
                 log.warning("%s: %s", where, lab.summary())
-                if args.overlay:
-                    _write_overlay(args.overlay / f"{Path(f).stem}_{frame:03d}_labels.png", f, frame, frames[(f, frame)], lab)
                 continue
             log.info("%s: %s", where, lab.summary())
-            if args.overlay:
-                _write_overlay(args.overlay / f"{Path(f).stem}_{frame:03d}_labels.png", f, frame, frames[(f, frame)], lab)
             header, table = lab.to_table()
             rows.extend([f, frame, *r] for r in table)
     write_csv(args.out, ["file", "frame", *header], rows)
@@ -155,13 +154,12 @@ def _csv_rows(path: Path, need: tuple):
             yield line_no, {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
 
 
-def _write_overlay(path: Path, file: str, frame_index: int, centroids, labels) -> None:
+def _write_overlay(path: Path, file: str, frame_index: int, frames, centroids, labels) -> None:
     import cv2
 
     from stages.errors import InputError
-    from stages.io import atomic_write, read_frames
+    from stages.io import atomic_write
 
-    frames = read_frames(file)
     if not 0 <= frame_index < len(frames):
         raise InputError(f"{file}: has no frame {frame_index} for the overlay")
     from pipeline.overlay import render_label_overlay

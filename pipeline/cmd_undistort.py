@@ -45,15 +45,12 @@ def run(args) -> int:
         if path.resolve().parent == out_dir:
             raise InputError(f"{path}: input lies in the output directory {out_dir}; choose another --out")
     params = UndistortParams(interpolation=args.interpolation)
-    maps: dict = {}
+    map_x, map_y = field.field.remap_maps(*field.image_size_px)  # every input must have the calibrated size
     for path in tqdm(args.inputs, desc="undistort", unit="file", disable=args.quiet or None):
         frames = read_frames(path)
         size = (frames[0].shape[1], frames[0].shape[0])
         if size != tuple(field.image_size_px):
             raise InputError(f"{path}: frame is {size[0]}x{size[1]} px; system {args.system} was calibrated at {field.image_size_px[0]}x{field.image_size_px[1]}")
-        if size not in maps:
-            maps[size] = field.field.remap_maps(*size)
-        map_x, map_y = maps[size]
         corrected = [undistort_frame(f, map_x, map_y, params) for f in frames]
         write_frames_like(path, corrected, out_dir / path.name)
     logging.getLogger("fluorocal").info("wrote %d undistorted file(s) to %s", len(args.inputs), out_dir)

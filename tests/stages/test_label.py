@@ -535,6 +535,39 @@ def test_cli_label(tmp_path, sim):
     assert main(["-q", "label", str(tmp_path / "missing.csv"), "--lattice", "hex", "--pitch", "2", "--out", str(tmp_path / "x.csv")]) == 2
 
 
+def test_cli_label_overlay_reads_each_frame_file_once(tmp_path, sim, monkeypatch):
+    """`--overlay` draws one PNG per frame of a multi-frame file and decodes the file once, not once per frame."""
+    import cv2
+
+    import stages.io
+    from pipeline.cli import main
+    from stages.io import write_csv
+
+    rng = np.random.default_rng(10)
+    ft = sim.truth.frames[0][1]
+    c, _ = detections_from_truth(ft, rng)
+    size = sim.params.image_size_px
+    movie = tmp_path / "movie.avi"
+    writer = cv2.VideoWriter(str(movie), cv2.VideoWriter_fourcc(*"MJPG"), 10, (size, size), False)
+    for _ in range(2):
+        writer.write(np.full((size, size), 128, np.uint8))
+    writer.release()
+    header = "file,frame,x,y,sigma_x,sigma_y,rho,major,minor,angle,fit_rmse,score".split(",")
+    rows = [[str(movie), f, *c.xy_px[i], c.sigma_x[i], c.sigma_y[i], c.rho[i], c.major_px[i], c.minor_px[i], 0.0, 0.05, 9.0] for f in (0, 1) for i in range(len(c))]
+    write_csv(tmp_path / "det.csv", header, rows)
+    ph = sim.phantom
+    write_csv(tmp_path / "phantom.csv", ["id", "x", "y", "z", "diameter", "role"], [[int(i), *x, d, r] for i, x, d, r in zip(ph.ids, ph.xyz_mm, ph.diameter_mm, ph.role)])
+    reads = []
+    real = stages.io.read_frames
+    monkeypatch.setattr(stages.io, "read_frames", lambda path, *a, **k: reads.append(path) or real(path, *a, **k))
+    p = sim.params
+    argv = ["-q", "label", str(tmp_path / "det.csv"), "--phantom", str(tmp_path / "phantom.csv"), "--sid", str(p.source_image_distance_mm),
+            "--pixel-pitch", str(p.pixel_pitch_mm), "--out", str(tmp_path / "labels.csv"), "--overlay", str(tmp_path / "png")]
+    assert main(argv) == 0
+    assert sorted(x.name for x in (tmp_path / "png").iterdir()) == ["movie_000_labels.png", "movie_001_labels.png"]
+    assert len(reads) == 1
+
+
 def test_label_overlay(sim, params):
     from pipeline.overlay import render_label_overlay
     from stages.artifacts import Radiograph
