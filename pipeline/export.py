@@ -14,6 +14,7 @@ interrupted run never leaves a half-written output.
 
 from __future__ import annotations
 
+import logging
 import time
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -22,6 +23,8 @@ import numpy as np
 
 from pipeline.report import rms_px
 from stages.io import atomic_write, write_csv
+
+log = logging.getLogger(__name__)
 
 
 def export_outputs(runner) -> list[Path]:
@@ -104,8 +107,10 @@ def export_calibration(runner) -> list[Path]:
     out_dir = Path(runner.config.output_dir)
     result = runner.get("learn", None)
     labels = [runner.get("label", u) for u in range(len(runner.units))]
-    # the learning stage's gathering already warned about excluded frames; the report lists them
-    obs = observations_from_labels(runner.units, labels, runner.config, warn=False)
+    obs = observations_from_labels(runner.units, labels, runner.config)
+    excluded = failed_frames(runner.units, labels)
+    if excluded:
+        log.warning("%d frame(s) excluded, labelling failed: %s", len(excluded), "; ".join(excluded))
     adj = result.adjustment
     cal = calibration_from_result(runner, result)
     written = cal.save(out_dir / "calibration.json")
@@ -124,7 +129,7 @@ def export_calibration(runner) -> list[Path]:
     header = ["system", "file", "exposure", "id", "x", "y", "sigma_x", "sigma_y", "rho", "delta_x", "delta_y", "residual_x", "residual_y", "inlier"]
     write_csv(out_dir / "observations.csv", header, rows)
     written.append(out_dir / "observations.csv")
-    written += write_report(out_dir, runner, obs, result, cal, failed_frames(runner.units, labels))
+    written += write_report(out_dir, runner, obs, result, cal, excluded)
     return written
 
 

@@ -2,14 +2,10 @@
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 
 from stages.artifacts import Observations
 from stages.errors import InputError
-
-log = logging.getLogger(__name__)
 
 
 def failed_frames(units, labels) -> list[str]:
@@ -17,13 +13,13 @@ def failed_frames(units, labels) -> list[str]:
     return [f"{unit.label} ({lab.reason})" for unit, lab in zip(units, labels) if not lab.ok]
 
 
-def observations_from_labels(units, labels, config, *, warn: bool = True) -> Observations:
+def observations_from_labels(units, labels, config) -> Observations:
     """The observations table of every labelled bead of every frame that labelled.
 
-    Frames whose labelling failed contribute nothing; with ``warn`` they are
-    listed in a warning with their reason. ``exposure`` is the frame's
-    position in its system's sorted frame list, so biplanar frames pair in
-    sorted order.
+    Frames whose labelling failed contribute nothing (:func:`failed_frames`
+    lists them; the export reports them once per run). ``exposure`` is the
+    frame's position in its system's sorted frame list, so biplanar frames
+    pair in sorted order.
 
     Raises
     ------
@@ -35,9 +31,6 @@ def observations_from_labels(units, labels, config, *, warn: bool = True) -> Obs
         for unit, lab in zip(units, labels)
         if lab.ok
     ]
-    failed = failed_frames(units, labels)
-    if failed and warn:
-        log.warning("%d frame(s) excluded, labelling failed: %s", len(failed), "; ".join(failed))
     names = tuple(s.name for s in config.systems)
     if not parts:
         raise InputError("no frame could be labelled; check the phantom file, the [[systems]] geometry and `fluorocal inspect CONFIG label`")
