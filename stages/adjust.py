@@ -848,7 +848,8 @@ def _summarise(observations, prepared: _Prepared, solved, initial, params) -> Ad
     inlier_fraction = float(inlier.mean()) if n_used else 0.0
     usable = bool(solved.converged and finite and inlier_fraction >= params.min_inlier_fraction)
     if not usable:
-        log.warning(
+        # the result says so (``usable``, ``stop_reason``); callers decide whether it concerns the user
+        log.info(
             "adjustment not usable: %s, %.1f %% inliers (minimum %.1f %%)",
             solved.stop_reason, 100 * inlier_fraction, 100 * params.min_inlier_fraction,
         )

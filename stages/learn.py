@@ -66,6 +66,7 @@ import numpy as np
 from scipy.spatial import KDTree
 
 from stages import _polynomial
+from stages.adjust import _lookup, _nominal_table
 from stages.artifacts import check_shape, freeze
 from stages.errors import EstimationError, InputError, ShapeError
 
@@ -1329,12 +1330,7 @@ def calibrate(
     rows = [np.flatnonzero(observations.system == s) for s in range(n_systems)]
     corrections = np.zeros((n_obs, 2))
     run = _adjuster(observations, phantom, initial, adjust_params, estimate_iop, fast=params.fast_intermediate)
-    nominal_ids, nominal_xyz = _nominal_pair(phantom)
-    id_order = np.argsort(nominal_ids)
-
-    def lookup(ids):
-        return id_order[np.searchsorted(nominal_ids, ids, sorter=id_order)]
-
+    nominal_ids, nominal_xyz = _nominal_table(phantom)
     adj = run(corrections, None, final=not learn)
     initial_residual = adj.residual_px
     out = _adjustment_outcome(adj, observations.sigma_px)
@@ -1369,7 +1365,7 @@ def calibrate(
                 bead, J = _point_jacobians(adj, observations, sel)
                 t_weight = adj.weight[sel, None] if params.training == "inliers" else 1.0
                 w_obs = t_weight / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
-                shape = (adj.xyz_mm, nominal_xyz[lookup(adj.bead_id)]) if params.affine_datum else None
+                shape = (adj.xyz_mm, nominal_xyz[_lookup(adj.bead_id, nominal_ids, "bead ids of the adjustment")]) if params.affine_datum else None
                 model = fit_grid_with_points(
                     xy[sel], r, w_obs, bead, J, params, image_size=sizes[s], tau_px=taus[s], base=grids[s],
                     cv_rms_px=cvs[s].cv_rms_px, shape_mm=shape, max_cg_iterations=_LOOP_CG_ITERATIONS, order=cvs[s].order,
@@ -1481,8 +1477,6 @@ def calibrate(
             fields.append(grid.with_delta(grid.delta_px, sigma_px=sigma.reshape(grid.sigma_px.shape), support=support.reshape(grid.support.shape)))
         fields, pw = tuple(fields), tuple(pointwise)
     wall = time.perf_counter() - t0
-    if not getattr(adj, "usable", True):
-        logger.warning("scheme %s: the final adjustment is not usable (%s)", scheme, adj.stop_reason)
     logger.info("scheme %s: %s after %d iterations (%.1f s, of which %.1f s in the adjustment)", scheme, stop, iteration, wall, run.seconds)
     return LearnResult(scheme, fields, pw, corrections, adj, tuple(history), tuple(cvs), converged, stop, wall, run.seconds, initial_residual)
 
@@ -1623,27 +1617,14 @@ def _adjustment_outcome(adj, sigma_px: np.ndarray) -> _Outcome:
     return _Outcome(adj.residual_px, var, inlier, float(adj.cost_history[-1]), rms)
 
 
-def _nominal_pair(phantom) -> tuple[np.ndarray, np.ndarray]:
-    if hasattr(phantom, "ids") and hasattr(phantom, "xyz_mm"):
-        return np.asarray(phantom.ids, dtype=np.int64), np.asarray(phantom.xyz_mm, dtype=np.float64)
-    ids, xyz = phantom
-    return np.asarray(ids, dtype=np.int64), np.asarray(xyz, dtype=np.float64)
-
-
-def _not_usable_filter(record: logging.LogRecord) -> bool:
-    return not record.getMessage().startswith("adjustment not usable")
-
-
 def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool, fast: bool = False, additional_parameters: str = "none"):
     """``run(corrections_px, previous) -> Adjustment``: the adjustment with Δ held constant.
 
     ``previous`` is None (start from ``initial``) or a previous
     :class:`stages.adjust.Adjustment`, from which the solve is
-    warm-started in the poses, IOP, ROP *and* object points. The points enter
-    as the adjustment's "nominal" coordinates, so its inner constraints then
-    refer to the previous estimate, which itself satisfies them relative to
-    the nominal coordinates: the datum moves by second-order terms only
-    (below 1e-3 mm for 0.1 mm corrections on a 100 mm phantom).
+    warm-started in the poses, IOP, ROP *and* object points (the points as
+    ``start_points``, so every solve's inner constraints refer to the same
+    nominal design).
     ``additional_parameters`` applies to every solve: the kNN schemes keep
     "none", so the learned field is the whole correction.
     """
@@ -1659,36 +1640,32 @@ def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool,
         function_tolerance=max(final_params.function_tolerance, 1e-3, 1e-6 * len(observations.xy_px)),
         max_iterations=min(final_params.max_iterations, 10),
     )
-    ids, nominal_xyz = _nominal_pair(phantom)
-
-    order = np.argsort(ids)
+    nominal = _nominal_table(phantom)
 
     def run(corrections_px, previous, final=True):
         t0 = time.perf_counter()
         intermediate = fast and not final
-        adjust_log = logging.getLogger("stages.adjust")
-        if intermediate:
-            # an intermediate solve stopped at its iteration cap is expected, not the user's concern
-            adjust_log.addFilter(_not_usable_filter)
         try:
-            return solve(corrections_px, previous, fast_params if intermediate else final_params)
+            adj = solve(corrections_px, previous, fast_params if intermediate else final_params)
         finally:
-            adjust_log.removeFilter(_not_usable_filter)
             run.seconds += time.perf_counter() - t0
+        # an intermediate solve stopped at its iteration cap is expected, not the user's concern
+        if not intermediate and not adj.usable:
+            inliers = 100 * float(adj.inlier[adj.used].mean()) if adj.used.any() else 0.0
+            logger.warning("adjustment not usable: %s, %.1f %% inliers", adj.stop_reason, inliers)
+        return adj
 
     run.seconds = 0.0
 
     def solve(corrections_px, previous, params):
         if previous is None:
-            return adjust_bundle(observations, (ids, nominal_xyz), initial, corrections_px, params)
-        xyz = nominal_xyz.copy()
-        xyz[order[np.searchsorted(ids, previous.bead_id, sorter=order)]] = previous.xyz_mm
+            return adjust_bundle(observations, nominal, initial, corrections_px, params)
         # epochs the adjustment dropped keep their initial pose
         q, src = initial.q_cam_from_obj.copy(), initial.source_mm.copy()
         at = np.searchsorted(initial.exposure, previous.exposure)
         q[at], src[at] = previous.q_cam_from_obj, previous.source_mm
         warm = Orientation(previous.iop_px, initial.exposure, q, src, previous.rop_q, previous.rop_source_mm, initial.system_names)
-        return adjust_bundle(observations, (ids, xyz), warm, corrections_px, params)
+        return adjust_bundle(observations, nominal, warm, corrections_px, params, start_points=(previous.bead_id, previous.xyz_mm))
 
     return run
 
