@@ -1565,7 +1565,7 @@ def _gauge_fixed(field: "CorrectionField", xy_px: np.ndarray, iop_px, with_iop: 
     """
     B = _gauge_basis(xy_px, iop_px, with_iop)
     scale = np.sqrt(np.mean(B**2, axis=(0, 1)))
-    A = (B / scale).transpose(0, 1, 2).reshape(-1, B.shape[2])
+    A = (B / scale).reshape(-1, B.shape[2])
     coef, *_ = np.linalg.lstsq(A, field.correction_at(xy_px).reshape(-1), rcond=None)
     nodes = field.nodes_px
     at_nodes = (_gauge_basis(nodes, iop_px, with_iop) / scale).reshape(-1, B.shape[2]) @ coef
