@@ -34,7 +34,9 @@ def _parse():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--threads", default="1", help="BLAS threads (default 1)")
     p.add_argument("--skip-scipy", action="store_true", help="skip the scipy least_squares runs (default: run them)")
-    p.add_argument("--sizes", default="75,250,500,1000", help="exposure counts for the scaling part (default 75,250,500,1000)")
+    p.add_argument(
+        "--sizes", default="75,250,500,1000", help="exposure counts for the scaling part (default 75,250,500,1000)"
+    )
     p.add_argument("--scale-one", type=int, metavar="M", help=argparse.SUPPRESS)
     return p.parse_args()
 
@@ -56,9 +58,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
+from fluorocal.stages.adjust import AdjustParams, adjust_bundle  # noqa: E402
+from fluorocal.stages.artifacts import Observations  # noqa: E402
 
-from stages.adjust import AdjustParams, adjust_bundle  # noqa: E402
-from stages.artifacts import Observations  # noqa: E402
 from tests.stages.ba_synthetic import ScipyProblem, aligned_error_mm, make_problem, pycolmap_reconstruction  # noqa: E402
 
 PAPER_S_PER_ITERATION = 42.1  # the paper's C++ at 75 images (section VI)
@@ -94,13 +96,25 @@ def rms(a) -> float:
 
 def side_by_side(skip_scipy: bool) -> None:
     syn, obs, bad = corrupted(400, 75, 0.75)
-    print(f"Part 1: 75 exposures, {len(syn.ids)} beads, {len(obs)} observations ({len(obs) / 75:.0f} per exposure), "
-          f"{bad.mean() * 100:.1f} % outliers, noise {NOISE_PX} px, BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}")
+    print(
+        f"Part 1: 75 exposures, {len(syn.ids)} beads, {len(obs)} observations ({len(obs) / 75:.0f} per exposure), "
+        f"{bad.mean() * 100:.1f} % outliers, noise {NOISE_PX} px, BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}"
+    )
     rows = []
-    res, wall, cpu = timed(lambda: adjust_bundle(obs, (syn.ids, syn.nominal_mm), syn.initial, params=AdjustParams()), repeat=3)
+    res, wall, cpu = timed(
+        lambda: adjust_bundle(obs, (syn.ids, syn.nominal_mm), syn.initial, params=AdjustParams()), repeat=3
+    )
     ours, ours_cpu = wall, cpu
-    rows.append(("fluorocal adjust_bundle (t, ν=4)", wall, cpu, res.iterations,
-                 rms(aligned_error_mm(res.xyz_mm, syn.xyz_true_mm)), f"{(~res.inlier[bad]).mean() * 100:.0f} % of outliers flagged"))
+    rows.append(
+        (
+            "fluorocal adjust_bundle (t, ν=4)",
+            wall,
+            cpu,
+            res.iterations,
+            rms(aligned_error_mm(res.xyz_mm, syn.xyz_true_mm)),
+            f"{(~res.inlier[bad]).mean() * 100:.0f} % of outliers flagged",
+        )
+    )
 
     if not skip_scipy:
         from scipy.optimize import least_squares
@@ -108,19 +122,40 @@ def side_by_side(skip_scipy: bool) -> None:
         ref = ScipyProblem(_with(syn, obs))
         sparsity = ref.sparsity()
         for loss in ("cauchy", "linear"):
-            sol, wall, cpu = timed(lambda: least_squares(ref.residuals, ref.x0(), jac_sparsity=sparsity, method="trf", loss=loss,
-                                                         f_scale=2.0, x_scale="jac", max_nfev=100))
+            sol, wall, cpu = timed(
+                lambda: least_squares(
+                    ref.residuals,
+                    ref.x0(),
+                    jac_sparsity=sparsity,
+                    method="trf",
+                    loss=loss,
+                    f_scale=2.0,
+                    x_scale="jac",
+                    max_nfev=100,
+                )
+            )
             P = ref.unpack(sol.x)[0]
-            rows.append((f"scipy least_squares trf {loss}", wall, cpu, sol.nfev, rms(aligned_error_mm(P, syn.xyz_true_mm)),
-                         f"status {sol.status}: {sol.message[:40]}"))
+            rows.append(
+                (
+                    f"scipy least_squares trf {loss}",
+                    wall,
+                    cpu,
+                    sol.nfev,
+                    rms(aligned_error_mm(P, syn.xyz_true_mm)),
+                    f"status {sol.status}: {sol.message[:40]}",
+                )
+            )
     try:
         import pycolmap
     except ImportError:
         pycolmap = None
-        rows.append(("pycolmap (not importable)", math.nan, math.nan, 0, math.nan, "pip install pycolmap to compare (optional)"))
+        rows.append(
+            ("pycolmap (not importable)", math.nan, math.nan, 0, math.nan, "pip install pycolmap to compare (optional)")
+        )
     if pycolmap is not None:
         pycolmap.logging.minloglevel = 2  # errors only: no per-run banner
         for threads in (1, -1):
+
             def run():
                 rec = pycolmap_reconstruction(syn, obs.xy_px)
                 opts = pycolmap.BundleAdjustmentOptions()
@@ -137,15 +172,29 @@ def side_by_side(skip_scipy: bool) -> None:
 
             (rec, ba_s, ba_cpu), wall, cpu = timed(run, repeat=3)
             X = np.array([rec.point3D(i + 1).xyz for i in range(len(syn.ids))])
-            rows.append((f"pycolmap {pycolmap.__version__} BA, {'1 thread' if threads == 1 else 'all threads'}", ba_s, ba_cpu, 0,
-                         rms(aligned_error_mm(X, syn.xyz_true_mm)), f"+{wall - ba_s:.2f} s to build the reconstruction (not counted)"))
+            rows.append(
+                (
+                    f"pycolmap {pycolmap.__version__} BA, {'1 thread' if threads == 1 else 'all threads'}",
+                    ba_s,
+                    ba_cpu,
+                    0,
+                    rms(aligned_error_mm(X, syn.xyz_true_mm)),
+                    f"+{wall - ba_s:.2f} s to build the reconstruction (not counted)",
+                )
+            )
 
-    print(f"{'solver':44s} {'wall s':>8s} {'cpu s':>7s} {'iter/nfev':>9s} {'3D rms mm':>10s} {'wall/ours':>9s} {'cpu/ours':>8s}  note")
+    print(
+        f"{'solver':44s} {'wall s':>8s} {'cpu s':>7s} {'iter/nfev':>9s} {'3D rms mm':>10s} {'wall/ours':>9s} {'cpu/ours':>8s}  note"
+    )
     for name, wall, cpu, it, err, note in rows:
-        print(f"{name:44s} {wall:8.3f} {cpu:7.3f} {it:9d} {err:10.4f} {wall / ours:8.1f}x {cpu / ours_cpu:7.1f}x  {note}")
-    print(f"paper's C++: {PAPER_S_PER_ITERATION} s per iteration (about 30 iterations): ours {ours:.3f} s for the whole solve = "
-          f"{PAPER_S_PER_ITERATION / ours:.0f}x one paper iteration, {30 * PAPER_S_PER_ITERATION / ours:.0f}x the paper's solve; "
-          f"{ours / res.iterations * 1000:.0f} ms per iteration here (wall; {ours_cpu / res.iterations * 1000:.0f} ms cpu)")
+        print(
+            f"{name:44s} {wall:8.3f} {cpu:7.3f} {it:9d} {err:10.4f} {wall / ours:8.1f}x {cpu / ours_cpu:7.1f}x  {note}"
+        )
+    print(
+        f"paper's C++: {PAPER_S_PER_ITERATION} s per iteration (about 30 iterations): ours {ours:.3f} s for the whole solve = "
+        f"{PAPER_S_PER_ITERATION / ours:.0f}x one paper iteration, {30 * PAPER_S_PER_ITERATION / ours:.0f}x the paper's solve; "
+        f"{ours / res.iterations * 1000:.0f} ms per iteration here (wall; {ours_cpu / res.iterations * 1000:.0f} ms cpu)"
+    )
 
 
 @contextlib.contextmanager
@@ -173,24 +222,44 @@ def scale_one(m: int) -> None:
     syn, obs, bad = corrupted(500, m, 0.6, seed=2)
     res, wall, cpu = timed(lambda: adjust_bundle(obs, (syn.ids, syn.nominal_mm), syn.initial))
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(json.dumps({"m": m, "n_obs": len(obs), "wall": wall, "cpu": cpu, "iterations": res.iterations, "peak_mb": peak_mb,
-                      "usable": res.usable, "err": rms(aligned_error_mm(res.xyz_mm, syn.xyz_true_mm)),
-                      "flagged": float((~res.inlier[bad]).mean())}))
+    print(
+        json.dumps(
+            {
+                "m": m,
+                "n_obs": len(obs),
+                "wall": wall,
+                "cpu": cpu,
+                "iterations": res.iterations,
+                "peak_mb": peak_mb,
+                "usable": res.usable,
+                "err": rms(aligned_error_mm(res.xyz_mm, syn.xyz_true_mm)),
+                "flagged": float((~res.inlier[bad]).mean()),
+            }
+        )
+    )
 
 
 def scaling(sizes) -> None:
     print("\nPart 2: scaling, 500 beads, ~300 observations per exposure, 2 % outliers (each size in a fresh process)")
-    print(f"{'exposures':>9s} {'observations':>12s} {'wall s':>8s} {'cpu s':>7s} {'iterations':>10s} {'cpu ms/iter':>11s} "
-          f"{'peak MB':>8s} {'3D rms mm':>10s} {'flagged':>8s} {'cpu / cpu@first':>15s}")
+    print(
+        f"{'exposures':>9s} {'observations':>12s} {'wall s':>8s} {'cpu s':>7s} {'iterations':>10s} {'cpu ms/iter':>11s} "
+        f"{'peak MB':>8s} {'3D rms mm':>10s} {'flagged':>8s} {'cpu / cpu@first':>15s}"
+    )
     base = None
     for m in sizes:
-        out = subprocess.run([sys.executable, __file__, "--threads", os.environ["OPENBLAS_NUM_THREADS"], "--scale-one", str(m)],
-                             capture_output=True, text=True, check=True)
+        out = subprocess.run(
+            [sys.executable, __file__, "--threads", os.environ["OPENBLAS_NUM_THREADS"], "--scale-one", str(m)],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
         r = json.loads(out.stdout.strip().splitlines()[-1])
         base = base or r["cpu"]
-        print(f"{r['m']:9d} {r['n_obs']:12d} {r['wall']:8.2f} {r['cpu']:7.2f} {r['iterations']:10d} "
-              f"{1000 * r['cpu'] / r['iterations']:11.0f} {r['peak_mb']:8.0f} {r['err']:10.4f} {100 * r['flagged']:7.0f}% "
-              f"{r['cpu'] / base:15.1f}")
+        print(
+            f"{r['m']:9d} {r['n_obs']:12d} {r['wall']:8.2f} {r['cpu']:7.2f} {r['iterations']:10d} "
+            f"{1000 * r['cpu'] / r['iterations']:11.0f} {r['peak_mb']:8.0f} {r['err']:10.4f} {100 * r['flagged']:7.0f}% "
+            f"{r['cpu'] / base:15.1f}"
+        )
     print("wall > cpu means the process waited for a CPU (the machine is shared); cpu is this process's own time")
 
 

@@ -42,9 +42,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from fluorocal.stages._geometry import (
+    image_rays,
+    intersect_rays,
+    matrix_to_quat,
+    quat_multiply,
+    quat_to_matrix,
+    similarity_fit,
+)  # noqa: E402
+from fluorocal.stages.learn import LearnParams, calibrate  # noqa: E402
+
 from benchmarks.learn import METHODS, NOISE_PX, RECOMMENDED, simulated_sets  # noqa: E402
-from stages._geometry import image_rays, intersect_rays, matrix_to_quat, quat_multiply, quat_to_matrix, similarity_fit  # noqa: E402
-from stages.learn import LearnParams, calibrate  # noqa: E402
 
 #: the recommended setting (row of ``benchmarks/learn.py``)
 DEFAULT_SCHEMES = ("none", RECOMMENDED)
@@ -133,7 +141,13 @@ def summarise(err_mm) -> dict:
     """Mean and RMS 3D distance, per-axis RMSE and their average (the paper's "Average RMSE"), mm."""
     dist = np.linalg.norm(err_mm, axis=1)
     axes = np.sqrt(np.mean(err_mm**2, axis=0))
-    return {"mean": float(dist.mean()), "rms": float(np.sqrt(np.mean(dist**2))), "axes": axes, "avg_rmse": float(axes.mean()), "n": len(dist)}
+    return {
+        "mean": float(dist.mean()),
+        "rms": float(np.sqrt(np.mean(dist**2))),
+        "axes": axes,
+        "avg_rmse": float(axes.mean()),
+        "n": len(dist),
+    }
 
 
 def rig_error(iop_px, rop_q, rop_source_mm, acq) -> tuple[float, float, float, float]:
@@ -154,12 +168,21 @@ def main(argv=None) -> None:
     ap.add_argument("--frames", type=int, default=75, help="training (and held-out) epochs (default 75)")
     ap.add_argument("--size", type=int, default=1024, help="image side px (default 1024)")
     ap.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
-    ap.add_argument("--schemes", default=",".join(DEFAULT_SCHEMES), help=f"comma-separated methods of benchmarks/learn.py (default: {','.join(DEFAULT_SCHEMES)})")
-    ap.add_argument("--iterations", type=int, default=20, help="iteration cap of the paper's schemes (default 20, as benchmarks/learn.py)")
+    ap.add_argument(
+        "--schemes",
+        default=",".join(DEFAULT_SCHEMES),
+        help=f"comma-separated methods of benchmarks/learn.py (default: {','.join(DEFAULT_SCHEMES)})",
+    )
+    ap.add_argument(
+        "--iterations",
+        type=int,
+        default=20,
+        help="iteration cap of the paper's schemes (default 20, as benchmarks/learn.py)",
+    )
     ap.add_argument("-v", "--verbose", action="store_true", help="log the alternation")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(name)s: %(message)s")
-    logging.getLogger("stages.adjust").setLevel(logging.ERROR)
+    logging.getLogger("fluorocal.stages.adjust").setLevel(logging.ERROR)
     names = [m.strip() for m in args.schemes.split(",") if m.strip()]
     unknown = [m for m in names if m not in METHODS]
     if unknown:
@@ -169,8 +192,10 @@ def main(argv=None) -> None:
     (train, test), nominal, true_xyz, acq, _ = simulated_sets(args.frames, 2, args.size, args.seed)
     test_obs = test[0]
     n_pairs = len(biplanar_pairs(test_obs)[0])
-    print(f"simulated {len(train[0])} training + {len(test_obs)} held-out observations ({args.frames} + {args.frames} epochs x 2 systems, "
-          f"{args.size} px, noise {NOISE_PX} px) in {time.perf_counter() - t0:.1f} s; {n_pairs} held-out bead pairs seen by both systems")
+    print(
+        f"simulated {len(train[0])} training + {len(test_obs)} held-out observations ({args.frames} + {args.frames} epochs x 2 systems, "
+        f"{args.size} px, noise {NOISE_PX} px) in {time.perf_counter() - t0:.1f} s; {n_pairs} held-out bead pairs seen by both systems"
+    )
 
     rows = []
     iop_t, q_t, src_t = true_rig(acq)
@@ -179,33 +204,59 @@ def main(argv=None) -> None:
     for name in names:
         scheme, over = METHODS[name]
         t = time.perf_counter()
-        res = calibrate(train[0], nominal, train[1], image_size=(args.size, args.size), scheme=scheme, params=LearnParams(**{"max_iterations": args.iterations, **over}))
+        res = calibrate(
+            train[0],
+            nominal,
+            train[1],
+            image_size=(args.size, args.size),
+            scheme=scheme,
+            params=LearnParams(**{"max_iterations": args.iterations, **over}),
+        )
         wall = time.perf_counter() - t
         adj = res.adjustment
-        err = biplanar_errors(test_obs, learned_ideal(res, test_obs), adj.iop_px, adj.rop_q, adj.rop_source_mm, nominal.ids, true_xyz)
+        err = biplanar_errors(
+            test_obs, learned_ideal(res, test_obs), adj.iop_px, adj.rop_q, adj.rop_source_mm, nominal.ids, true_xyz
+        )
         stats = summarise(err)
         rig = rig_error(adj.iop_px, adj.rop_q, adj.rop_source_mm, acq)
         rows.append((name, stats, wall, rig))
-        print(f"  {name} ({scheme}): mean {stats['mean']:.4f} mm, RMS {stats['rms']:.4f} mm, {wall:.1f} s, {len(res.history) - 1} it, {res.stop_reason}", flush=True)
+        print(
+            f"  {name} ({scheme}): mean {stats['mean']:.4f} mm, RMS {stats['rms']:.4f} mm, {wall:.1f} s, {len(res.history) - 1} it, {res.stop_reason}",
+            flush=True,
+        )
 
     base = next((r[1] for r in rows if r[0] == "none"), None)
     print()
-    print("Out-of-sample two-ray intersection, held-out epochs, after a per-epoch 6-parameter rigid fit to the true bead centres (mm):")
+    print(
+        "Out-of-sample two-ray intersection, held-out epochs, after a per-epoch 6-parameter rigid fit to the true bead centres (mm):"
+    )
     print()
-    print("| method | pairs | mean 3D (mm) | RMS 3D (mm) | X RMSE | Y RMSE | Z RMSE | avg RMSE (mm) | improvement, mean (%) | improvement, avg RMSE (%) | wall (s) |")
+    print(
+        "| method | pairs | mean 3D (mm) | RMS 3D (mm) | X RMSE | Y RMSE | Z RMSE | avg RMSE (mm) | improvement, mean (%) | improvement, avg RMSE (%) | wall (s) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, st, wall, _ in rows:
-        imp = (f"{100 * (1 - st['mean'] / base['mean']):.1f}", f"{100 * (1 - st['avg_rmse'] / base['avg_rmse']):.1f}") if base and name != "none" else ("N/A", "N/A")
+        imp = (
+            (f"{100 * (1 - st['mean'] / base['mean']):.1f}", f"{100 * (1 - st['avg_rmse'] / base['avg_rmse']):.1f}")
+            if base and name != "none"
+            else ("N/A", "N/A")
+        )
         x, y, z = st["axes"]
-        print(f"| {name} | {st['n']} | {st['mean']:.4f} | {st['rms']:.4f} | {x:.4f} | {y:.4f} | {z:.4f} | {st['avg_rmse']:.4f} | {imp[0]} | {imp[1]} | {wall:.1f} |")
+        print(
+            f"| {name} | {st['n']} | {st['mean']:.4f} | {st['rms']:.4f} | {x:.4f} | {y:.4f} | {z:.4f} | {st['avg_rmse']:.4f} | {imp[0]} | {imp[1]} | {wall:.1f} |"
+        )
     print()
     print(PAPER + f"; target: improvement >= {TARGET_PERCENT:.0f} %")
     print()
     # a field that shifts, rotates or scales the image trades with xp, yp, c and the ROP rotation:
     # (and the unmodelled distortion pulls them for "none"): only the rays they make together are compared above
-    print("Calibrated rig against the truth (system B relative to A; traded against the field or the unmodelled distortion):")
+    print(
+        "Calibrated rig against the truth (system B relative to A; traded against the field or the unmodelled distortion):"
+    )
     print()
-    print("| method | ROP rotation error (deg) | ROP source error (mm) | baseline length error (mm) | worst c error (px) |")
+    print(
+        "| method | ROP rotation error (deg) | ROP source error (mm) | baseline length error (mm) | worst c error (px) |"
+    )
     print("|---|---|---|---|---|")
     for name, _, _, (angle, src, base_len, dc) in rows[1:]:
         print(f"| {name} | {angle:.5f} | {src:.3f} | {base_len:+.3f} | {dc:.2f} |")

@@ -45,9 +45,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages.artifacts import Radiograph  # noqa: E402
-from stages.centroid import CentroidParams, centroid_beads  # noqa: E402
-from stages.detect import DetectParams, detect_beads  # noqa: E402
+from fluorocal.stages.artifacts import Radiograph  # noqa: E402
+from fluorocal.stages.centroid import CentroidParams, centroid_beads  # noqa: E402
+from fluorocal.stages.detect import DetectParams, detect_beads  # noqa: E402
 
 PAPER_SECONDS_PER_IMAGE = 15 * 60
 
@@ -77,7 +77,9 @@ def opencv_fit_ellipse(image, xy, radius, polarity):
     r = np.hypot(xx + x0 - xy[0], yy + y0 - xy[1])
     background = np.median(patch[(r > 1.5 * radius) & (r < 1.9 * radius)])
     extreme = np.percentile(patch[r < 0.5 * radius], 50)
-    mask = ((patch < (background + extreme) / 2) if polarity == "dark" else (patch > (background + extreme) / 2)) & (r <= 1.35 * radius)
+    mask = ((patch < (background + extreme) / 2) if polarity == "dark" else (patch > (background + extreme) / 2)) & (
+        r <= 1.35 * radius
+    )
     mask = mask.astype(np.uint8)  # neighbours beyond 1.35 radii are cut off
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     contour = max(contours, key=cv2.contourArea)
@@ -86,10 +88,9 @@ def opencv_fit_ellipse(image, xy, radius, polarity):
 
 
 def skimage_canny_ellipse(image, xy, radius, polarity):
+    from fluorocal.stages._geometry import rc_to_xy
     from skimage.feature import canny
     from skimage.measure import EllipseModel
-
-    from stages._geometry import rc_to_xy
 
     half = int(np.ceil(1.5 * radius)) + 2
     patch, x0, y0 = _patch(image, xy, half)
@@ -117,9 +118,8 @@ def _rms(err):
 
 def accuracy(noise_scale: float, n_frames: int, image_size_px: int = 1024, peers: bool = True) -> dict:
     """Errors of every method on simulated frames at one noise scale."""
+    from fluorocal.stages.simulate import SimulateParams, simulate
     from scipy.spatial import cKDTree
-
-    from stages.simulate import SimulateParams, simulate
 
     data = simulate(SimulateParams(n_frames=n_frames, noise_scale=noise_scale, image_size_px=image_size_px, seed=3))
     out = {name: ([], []) for name in ["ours", *PEERS] if peers or name == "ours"}
@@ -146,7 +146,12 @@ def accuracy(noise_scale: float, n_frames: int, image_size_px: int = 1024, peers
         cand = beads.candidate_index[rows]
         for name, method in PEERS.items():
             if name in out:
-                measured[name] = np.array([method(frame.image, candidates.xy_px[c], candidates.radius_px[c], candidates.polarity) for c in cand]).reshape(-1, 2)
+                measured[name] = np.array(
+                    [
+                        method(frame.image, candidates.xy_px[c], candidates.radius_px[c], candidates.polarity)
+                        for c in cand
+                    ]
+                ).reshape(-1, 2)
         for name, xy in measured.items():
             out[name][0].append(xy - truth.outline_xy_px[use])
             out[name][1].append(xy - truth.distorted_xy_px[use])
@@ -166,10 +171,15 @@ def speed(repeat: int) -> dict:
 
     cv2.setNumThreads(1)
     centres = bead_grid((1024, 1024), 45, 40, seed=1)
-    image = render_beads((1024, 1024), centres, 9.5, blur_sigma_px=1.6, noise_dn=16, vignetting=0.25, dtype=np.uint16, seed=2)
+    image = render_beads(
+        (1024, 1024), centres, 9.5, blur_sigma_px=1.6, noise_dn=16, vignetting=0.25, dtype=np.uint16, seed=2
+    )
     frame = Radiograph(image.astype(np.float32), 12)
     out = {"n_beads": len(centres)}
-    for label, params in (("auto", DetectParams()), ("given", DetectParams(polarity="dark", min_diameter_px=12, max_diameter_px=28))):
+    for label, params in (
+        ("auto", DetectParams()),
+        ("given", DetectParams(polarity="dark", min_diameter_px=12, max_diameter_px=28)),
+    ):
         candidates = detect_beads(frame, params)
         beads = centroid_beads(frame, candidates, CentroidParams())
         detect_s, centroid_s, cpu_s, detect_cpu_s = [], [], [], []
@@ -200,7 +210,7 @@ def speed(repeat: int) -> dict:
 
 def real_fit_rmse() -> dict:
     """Median ellipse-fit RMSE (px) of the accepted beads of the real ARCADIS bead frames, if present."""
-    from stages.io import read_frames
+    from fluorocal.stages.io import read_frames
 
     root = Path(__file__).resolve().parents[2] / "shared" / "data" / "arcadis"
     out = {}
@@ -209,7 +219,11 @@ def real_fit_rmse() -> dict:
             frame = read_frames(root / name)[0]
             candidates = detect_beads(frame, DetectParams())
             beads = centroid_beads(frame, candidates, CentroidParams())
-            out[name] = (int(beads.ok.sum()), float(np.median(beads.fit_rmse_px[beads.ok])), float(np.median(np.hypot(beads.sigma_x[beads.ok], beads.sigma_y[beads.ok]))))
+            out[name] = (
+                int(beads.ok.sum()),
+                float(np.median(beads.fit_rmse_px[beads.ok])),
+                float(np.median(np.hypot(beads.sigma_x[beads.ok], beads.sigma_y[beads.ok]))),
+            )
     return out
 
 
@@ -220,16 +234,24 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     print("Centroid accuracy, simulated cube phantom (RMS 2D error, px; beads >= 10 px, visible, overlapping nothing)")
-    print(f"{'noise':>5} {'beads':>5} {'diam px':>7} | " + " | ".join(f"{name:>15}" for name in ["ours", *PEERS]) + " | recall   false pos.")
+    print(
+        f"{'noise':>5} {'beads':>5} {'diam px':>7} | "
+        + " | ".join(f"{name:>15}" for name in ["ours", *PEERS])
+        + " | recall   false pos."
+    )
     print(f"{'':>21} | " + " | ".join(f"{'outline sphere':>15}" for _ in range(1 + len(PEERS))) + " |")
     for noise in (0.5, 1.0, 2.0):
         r = accuracy(noise, args.frames)
         cells = " | ".join(f"{r[name][0]:6.4f} {r[name][1]:8.4f}" for name in ["ours", *PEERS])
-        print(f"{noise:5.1f} {r['n']:5d} {r['diameter']:7.1f} | {cells} | {100 * r['recall']:6.2f} % {r['false'][0]}/{r['false'][1]}")
+        print(
+            f"{noise:5.1f} {r['n']:5d} {r['diameter']:7.1f} | {cells} | {100 * r['recall']:6.2f} % {r['false'][0]}/{r['false'][1]}"
+        )
     print("\nSmaller beads, ours only (noise 1.0; the scene on smaller images):")
     for size in (512, 320):
         r = accuracy(1.0, args.frames, image_size_px=size, peers=False)
-        print(f"  {size:4d} px image: median diameter {r['diameter']:4.1f} px, {r['n']} beads: RMS {r['ours'][0]:.4f} px (outline), {r['ours'][1]:.4f} px (sphere); recall {100 * r['recall']:.2f} %, false {r['false'][0]}/{r['false'][1]}")
+        print(
+            f"  {size:4d} px image: median diameter {r['diameter']:4.1f} px, {r['n']} beads: RMS {r['ours'][0]:.4f} px (outline), {r['ours'][1]:.4f} px (sphere); recall {100 * r['recall']:.2f} %, false {r['false'][0]}/{r['false'][1]}"
+        )
 
     real = real_fit_rmse()
     if real:
@@ -240,13 +262,21 @@ def main(argv=None) -> int:
 
     s = speed(args.repeat)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"\nSpeed, detect + centroid, 1024x1024 12-bit, {s['n_beads']} beads, 1 OpenCV thread, {args.repeat} repeats (load average {load:.1f}):")
+    print(
+        f"\nSpeed, detect + centroid, 1024x1024 12-bit, {s['n_beads']} beads, 1 OpenCV thread, {args.repeat} repeats (load average {load:.1f}):"
+    )
     for label in ("auto", "given"):
         v = s[label]
         what = "polarity and diameter estimated" if label == "auto" else "polarity and diameter given"
-        print(f"  {what:32s}: best detect {v['detect_ms']:5.1f} ms + centroid {v['centroid_ms']:5.1f} ms = {v['best_fps']:5.1f} frames/s; mean {v['mean_fps']:5.1f} frames/s wall, {v['cpu_fps']:5.1f} frames/s CPU ({v['fitted']} fitted)")
-        print(f"  {'':32s}  CPU (process time, median): detect {v['detect_cpu_ms']:5.1f} ms + centroid {v['centroid_cpu_ms']:5.1f} ms")
-    print(f"  paper: {PAPER_SECONDS_PER_IMAGE / 60:.0f} min per image by hand = {1 / PAPER_SECONDS_PER_IMAGE:.4f} frames/s; here {s['auto']['mean_fps'] * PAPER_SECONDS_PER_IMAGE:,.0f}x faster")
+        print(
+            f"  {what:32s}: best detect {v['detect_ms']:5.1f} ms + centroid {v['centroid_ms']:5.1f} ms = {v['best_fps']:5.1f} frames/s; mean {v['mean_fps']:5.1f} frames/s wall, {v['cpu_fps']:5.1f} frames/s CPU ({v['fitted']} fitted)"
+        )
+        print(
+            f"  {'':32s}  CPU (process time, median): detect {v['detect_cpu_ms']:5.1f} ms + centroid {v['centroid_cpu_ms']:5.1f} ms"
+        )
+    print(
+        f"  paper: {PAPER_SECONDS_PER_IMAGE / 60:.0f} min per image by hand = {1 / PAPER_SECONDS_PER_IMAGE:.4f} frames/s; here {s['auto']['mean_fps'] * PAPER_SECONDS_PER_IMAGE:,.0f}x faster"
+    )
     return 0
 
 

@@ -38,8 +38,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages.label import STATUS_AMBIGUOUS, LabelParams, label_beads, label_sequence  # noqa: E402
-from stages.simulate import SimulateParams, simulate  # noqa: E402
+from fluorocal.stages.label import STATUS_AMBIGUOUS, LabelParams, label_beads, label_sequence  # noqa: E402
+from fluorocal.stages.simulate import SimulateParams, simulate  # noqa: E402
+
 from tests.stages.test_label import detections_from_truth, seeds_from_truth, unambiguous_ids, without_roles  # noqa: E402
 
 
@@ -90,17 +91,33 @@ HEADER = (
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=150, help="exposures per system (default: 150)")
-    ap.add_argument("--rendered", type=int, default=4, help="rendered exposures per system for the detect+centroid cross-check (default: 4; 0 = skip)")
+    ap.add_argument(
+        "--rendered",
+        type=int,
+        default=4,
+        help="rendered exposures per system for the detect+centroid cross-check (default: 4; 0 = skip)",
+    )
     ap.add_argument("--seed", type=int, default=0, help="simulator seed (default: 0)")
-    ap.add_argument("--merged-keep", type=float, default=0.2, help="fraction of merged blobs that pass detection (default: 0.2; stages/detect.py rejects most as 'merged')")
+    ap.add_argument(
+        "--merged-keep",
+        type=float,
+        default=0.2,
+        help="fraction of merged blobs that pass detection (default: 0.2; stages/detect.py rejects most as 'merged')",
+    )
     args = ap.parse_args(argv)
 
     t0 = time.perf_counter()
     sp = SimulateParams(n_frames=args.frames, n_systems=2, seed=args.seed)
     data = simulate(sp, render=False)
-    print(f"simulated {args.frames} x 2 frames (geometry only) in {time.perf_counter() - t0:.1f} s; phantom {data.phantom.n_beads} beads, "
-          f"{int((data.phantom.role == 'marker').sum())} markers; distortion {sp.distortion}")
-    params = LabelParams(source_image_distance_mm=sp.source_image_distance_mm, pixel_pitch_mm=sp.pixel_pitch_mm, image_size_px=(sp.image_size_px,) * 2)
+    print(
+        f"simulated {args.frames} x 2 frames (geometry only) in {time.perf_counter() - t0:.1f} s; phantom {data.phantom.n_beads} beads, "
+        f"{int((data.phantom.role == 'marker').sum())} markers; distortion {sp.distortion}"
+    )
+    params = LabelParams(
+        source_image_distance_mm=sp.source_image_distance_mm,
+        pixel_pitch_mm=sp.pixel_pitch_mm,
+        image_size_px=(sp.image_size_px,) * 2,
+    )
     no_markers = without_roles(data.phantom)
 
     rng = np.random.default_rng(args.seed + 1)
@@ -148,18 +165,19 @@ def main(argv=None) -> int:
     ok_wrong = all(100.0 * m.wrong / max(m.labelled, 1) <= 0.05 for m in modes)
     slow = [m.name for m in modes if not m.frames / m.seconds >= 20.0]
     print()
-    print(f"targets (all three modes): labelled >= 99 %: {'met' if ok_label else 'NOT met'}; wrong <= 0.05 %: {'met' if ok_wrong else 'NOT met'}; "
-          f">= 20 frames/s: {'met' if not slow else 'NOT met (' + ', '.join(slow) + ')'}")
+    print(
+        f"targets (all three modes): labelled >= 99 %: {'met' if ok_label else 'NOT met'}; wrong <= 0.05 %: {'met' if ok_wrong else 'NOT met'}; "
+        f">= 20 frames/s: {'met' if not slow else 'NOT met (' + ', '.join(slow) + ')'}"
+    )
     print(f"total {time.perf_counter() - t0:.1f} s")
     return 0
 
 
 def _rendered_check(sp: SimulateParams, n_frames: int, params: LabelParams) -> None:
     """Rendered frames through detect + centroid + label: ids against the nearest true outline."""
+    from fluorocal.stages.centroid import CentroidParams, centroid_beads
+    from fluorocal.stages.detect import DetectParams, detect_beads
     from scipy.spatial import cKDTree
-
-    from stages.centroid import CentroidParams, centroid_beads
-    from stages.detect import DetectParams, detect_beads
 
     t = time.perf_counter()
     data = simulate(replace(sp, n_frames=n_frames, seed=sp.seed + 100))
@@ -181,9 +199,11 @@ def _rendered_check(sp: SimulateParams, n_frames: int, params: LabelParams) -> N
             n_labelled += len(lab)
             n_wrong += int(np.sum((ft.ids[i] != lab.bead_id) | (d > 0.25 * ft.diameter_px[i])))
     print()
-    print(f"rendered cross-check ({n_frames_total} frames rendered in {t_render:.0f} s, detect + centroid + label): "
-          f"{n_failed} failed, {n_labelled} labels of {n_det} usable detections, {n_wrong} not on the nearest true outline, "
-          f"labelling {n_frames_total / t_label:.1f} frames/s")
+    print(
+        f"rendered cross-check ({n_frames_total} frames rendered in {t_render:.0f} s, detect + centroid + label): "
+        f"{n_failed} failed, {n_labelled} labels of {n_det} usable detections, {n_wrong} not on the nearest true outline, "
+        f"labelling {n_frames_total / t_label:.1f} frames/s"
+    )
 
 
 if __name__ == "__main__":

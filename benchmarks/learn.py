@@ -35,11 +35,18 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages import simulate as sim  # noqa: E402
-from stages._geometry import matrix_to_quat, quat_multiply, quat_normalize, quat_to_matrix, rotvec_to_quat, similarity_fit  # noqa: E402
-from stages.adjust import AdjustParams, Orientation, adjust_bundle  # noqa: E402
-from stages.artifacts import Observations  # noqa: E402
-from stages.learn import LearnParams, calibrate  # noqa: E402
+from fluorocal.stages import simulate as sim  # noqa: E402
+from fluorocal.stages._geometry import (
+    matrix_to_quat,
+    quat_multiply,
+    quat_normalize,
+    quat_to_matrix,
+    rotvec_to_quat,
+    similarity_fit,
+)  # noqa: E402
+from fluorocal.stages.adjust import AdjustParams, Orientation, adjust_bundle  # noqa: E402
+from fluorocal.stages.artifacts import Observations  # noqa: E402
+from fluorocal.stages.learn import LearnParams, calibrate  # noqa: E402
 
 NOISE_PX = 0.05
 
@@ -57,8 +64,14 @@ METHODS = {
     "knn+iop": ("knn+iop", PLAIN),
     "knn+smooth": ("knn+smooth", PLAIN),
     "knn+iop+smooth": ("knn+iop+smooth", PLAIN),
-    "ours: anderson + grid refine": ("knn+iop+smooth", {**PLAIN, "acceleration": "anderson", "refine": "grid", "max_iterations": 3}),
-    "ours: anderson + joint grid+points refine": ("knn+iop+smooth", {**PLAIN, "acceleration": "anderson", "refine": "grid+points", "max_iterations": 3}),
+    "ours: anderson + grid refine": (
+        "knn+iop+smooth",
+        {**PLAIN, "acceleration": "anderson", "refine": "grid", "max_iterations": 3},
+    ),
+    "ours: anderson + joint grid+points refine": (
+        "knn+iop+smooth",
+        {**PLAIN, "acceleration": "anderson", "refine": "grid+points", "max_iterations": 3},
+    ),
     "ours: same + affine datum": (
         "knn+iop+smooth",
         {**PLAIN, "acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True},
@@ -71,33 +84,65 @@ METHODS = {
     # the recommended [learn] block: the same with the smoothness prior's order chosen by CV with its weight
     "ours: same + prior order by CV": (
         "knn+iop+smooth",
-        {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True, "smoothness_orders": (2, 3, 4)},
+        {
+            "acceleration": "anderson",
+            "refine": "grid+points",
+            "max_iterations": 3,
+            "affine_datum": True,
+            "smoothness_orders": (2, 3, 4),
+        },
     ),
     # the recommended [learn] block (pipeline/cmd_simulate.py RECOMMENDED_LEARN)
     RECOMMENDED: (
         "knn+iop+smooth",
-        {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True, "smoothness_orders": (2, 3, 4),
-         "step_tolerance": 0.05},
+        {
+            "acceleration": "anderson",
+            "refine": "grid+points",
+            "max_iterations": 3,
+            "affine_datum": True,
+            "smoothness_orders": (2, 3, 4),
+            "step_tolerance": 0.05,
+        },
     ),
     # ablations of the defaults
     "ours defaults without gauge": (
         "knn+iop+smooth",
-        {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True, "field_gauge": "none"},
+        {
+            "acceleration": "anderson",
+            "refine": "grid+points",
+            "max_iterations": 3,
+            "affine_datum": True,
+            "field_gauge": "none",
+        },
     ),
     "ours defaults with full intermediate solves": (
         "knn+iop+smooth",
-        {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True, "fast_intermediate": False},
+        {
+            "acceleration": "anderson",
+            "refine": "grid+points",
+            "max_iterations": 3,
+            "affine_datum": True,
+            "fast_intermediate": False,
+        },
     ),
     "ours defaults with inlier training": (
         "knn+iop+smooth",
-        {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True, "training": "inliers"},
+        {
+            "acceleration": "anderson",
+            "refine": "grid+points",
+            "max_iterations": 3,
+            "affine_datum": True,
+            "training": "inliers",
+        },
     ),
 }
 
 
 def simulated_sets(n_train: int, n_systems: int, size: int, seed: int):
     """Training and held-out observation sets, the nominal phantom, initial orientations and the truth."""
-    p = sim.SimulateParams(n_frames=2 * n_train, n_systems=n_systems, seed=seed, image_size_px=size, distortion="strong")
+    p = sim.SimulateParams(
+        n_frames=2 * n_train, n_systems=n_systems, seed=seed, image_size_px=size, distortion="strong"
+    )
     data = sim.simulate(p, render=False)
     acq = data.truth.acquisition
     rng = np.random.default_rng([seed, 7])
@@ -111,7 +156,9 @@ def simulated_sets(n_train: int, n_systems: int, size: int, seed: int):
         ids = np.concatenate([f.ids[k] for f, k in zip(frames, keep)])
         xy = np.concatenate([f.outline_xy_px[k] for f, k in zip(frames, keep)])
         xy = xy + rng.normal(0, NOISE_PX, xy.shape)
-        obs = Observations(system, exposure, ids, xy, np.tile([NOISE_PX, NOISE_PX, 0.0], (len(xy), 1)), system_names=data.system_names)
+        obs = Observations(
+            system, exposure, ids, xy, np.tile([NOISE_PX, NOISE_PX, 0.0], (len(xy), 1)), system_names=data.system_names
+        )
         sets.append((obs, _initial(acq, np.arange(part, p.n_frames, 2), size, rng)))
     return sets, data.phantom, data.truth.true_xyz_mm, acq, p
 
@@ -134,7 +181,15 @@ def _initial(acq, epochs, size, rng) -> Orientation:
 
 def held_out(test_obs, test_init, nominal, true_xyz, corrections, iop_px):
     """Adjust the held-out exposures with the corrections and IOP held fixed: (3D RMS mm, reprojection RMS px)."""
-    init = Orientation(iop_px, test_init.exposure, test_init.q_cam_from_obj, test_init.source_mm, test_init.rop_q, test_init.rop_source_mm, test_init.system_names)
+    init = Orientation(
+        iop_px,
+        test_init.exposure,
+        test_init.q_cam_from_obj,
+        test_init.source_mm,
+        test_init.rop_q,
+        test_init.rop_source_mm,
+        test_init.system_names,
+    )
     adj = adjust_bundle(test_obs, nominal, init, corrections, AdjustParams(estimate_iop=False))
     truth = true_xyz[np.searchsorted(nominal.ids, adj.bead_id)]
     scale, R, t = similarity_fit(adj.xyz_mm, truth)
@@ -172,27 +227,46 @@ def main(argv=None) -> None:
     ap.add_argument("--systems", type=int, default=1, help="1 or 2 systems, each calibrated on its own (default 1)")
     ap.add_argument("--size", type=int, default=1024, help="image side px (default 1024)")
     ap.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
-    ap.add_argument("--seeds", help="comma-separated seeds, each a new simulated set; adds a table of the 3D error relative to each set's oracle")
+    ap.add_argument(
+        "--seeds",
+        help="comma-separated seeds, each a new simulated set; adds a table of the 3D error relative to each set's oracle",
+    )
     ap.add_argument("--schemes", default=",".join(METHODS), help="comma-separated methods (default: all)")
-    ap.add_argument("--iterations", type=int, default=20, help="iteration cap of the paper's schemes (default 20, as the issue's anchor)")
+    ap.add_argument(
+        "--iterations",
+        type=int,
+        default=20,
+        help="iteration cap of the paper's schemes (default 20, as the issue's anchor)",
+    )
     ap.add_argument("-v", "--verbose", action="store_true", help="log the alternation")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(name)s: %(message)s")
-    logging.getLogger("stages.adjust").setLevel(logging.ERROR)
+    logging.getLogger("fluorocal.stages.adjust").setLevel(logging.ERROR)
     names = [m.strip() for m in args.schemes.split(",") if m.strip()]
     seeds = [int(v) for v in args.seeds.split(",")] if args.seeds else [args.seed]
     rows = {seed: run_set(args, seed, names) for seed in seeds}
     print()
-    print("| seed | system | method | out-of-sample 3D (mm) | out-of-sample reproj. RMS (px) | field error mod H, covered (px) | same, inner 80 % (px) | wall (s) | iterations |")
+    print(
+        "| seed | system | method | out-of-sample 3D (mm) | out-of-sample reproj. RMS (px) | field error mod H, covered (px) | same, inner 80 % (px) | wall (s) | iterations |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for seed, per_set in rows.items():
         for sysname, name, e3, rp, ferr, wall, it, _ in per_set:
-            print(f"| {seed} | {sysname} | {name} | {e3:.4f} | {rp:.4f} | {ferr[0]:.4f} | {ferr[1]:.4f} | {wall:.1f} | {it} |")
+            print(
+                f"| {seed} | {sysname} | {name} | {e3:.4f} | {rp:.4f} | {ferr[0]:.4f} | {ferr[1]:.4f} | {wall:.1f} | {it} |"
+            )
     if len(seeds) > 1:
         print("\nout-of-sample 3D error / the same set's oracle, per seed and mean:")
         for name in names:
-            ratios = [row[2] / oracle[2] for per_set in rows.values() for oracle, row in _with_oracle(per_set) if row[1] == name]
-            print(f"  {name}: {', '.join(f'{r:.2f}x' for r in ratios)}; mean {np.mean(ratios):.2f}x, worst {max(ratios):.2f}x")
+            ratios = [
+                row[2] / oracle[2]
+                for per_set in rows.values()
+                for oracle, row in _with_oracle(per_set)
+                if row[1] == name
+            ]
+            print(
+                f"  {name}: {', '.join(f'{r:.2f}x' for r in ratios)}; mean {np.mean(ratios):.2f}x, worst {max(ratios):.2f}x"
+            )
 
 
 def _with_oracle(per_set):
@@ -209,8 +283,10 @@ def run_set(args, seed: int, names) -> list:
     """One simulated set: the oracle and every method, per system; rows ``(system, method, 3D, reproj, field, wall, iterations, stop)``."""
     t0 = time.perf_counter()
     (train, test), nominal, true_xyz, acq, p = simulated_sets(args.frames, args.systems, args.size, seed)
-    print(f"seed {seed}: simulated {len(train[0])} training + {len(test[0])} held-out observations "
-          f"({args.frames} + {args.frames} exposures x {args.systems} system(s), {args.size} px, noise {NOISE_PX} px) in {time.perf_counter() - t0:.1f} s")
+    print(
+        f"seed {seed}: simulated {len(train[0])} training + {len(test[0])} held-out observations "
+        f"({args.frames} + {args.frames} exposures x {args.systems} system(s), {args.size} px, noise {NOISE_PX} px) in {time.perf_counter() - t0:.1f} s"
+    )
     rows = []
     for s in range(args.systems):
         sel_tr = train[0].system == s
@@ -226,12 +302,21 @@ def run_set(args, seed: int, names) -> list:
         for name in names:
             scheme, over = METHODS[name]
             t = time.perf_counter()
-            res = calibrate(tr, nominal, init_tr, image_size=(args.size, args.size), scheme=scheme, params=LearnParams(**{"max_iterations": args.iterations, **over}))
+            res = calibrate(
+                tr,
+                nominal,
+                init_tr,
+                image_size=(args.size, args.size),
+                scheme=scheme,
+                params=LearnParams(**{"max_iterations": args.iterations, **over}),
+            )
             wall = time.perf_counter() - t
             field = res.field(0)
             corr = field.correction_at(te.xy_px)
             e3, rp = held_out(te, init_te, nominal, true_xyz, corr, res.adjustment.iop_px)
-            ferr = field_error_px(field.correction_at, res.fields[0].support_at, system.distortion, args.size, p.fov_radius_px)
+            ferr = field_error_px(
+                field.correction_at, res.fields[0].support_at, system.distortion, args.size, p.fov_radius_px
+            )
             at_test = _modulo_homography(field.correction_at, system.distortion, te.xy_px, np.ones(len(te), bool))[0]
             print(f"    field error mod H at the held-out observations: {at_test:.4f} px")
             rows.append((system.name, name, e3, rp, ferr, wall, len(res.history) - 1, res.stop_reason))
@@ -244,7 +329,14 @@ def run_set(args, seed: int, names) -> list:
 
 
 def _one_system(obs: Observations, sel: np.ndarray) -> Observations:
-    return Observations(np.zeros(sel.sum()), obs.exposure[sel], obs.bead_id[sel], obs.xy_px[sel], obs.sigma_px[sel], system_names=(obs.system_names[int(obs.system[sel][0])],))
+    return Observations(
+        np.zeros(sel.sum()),
+        obs.exposure[sel],
+        obs.bead_id[sel],
+        obs.xy_px[sel],
+        obs.sigma_px[sel],
+        system_names=(obs.system_names[int(obs.system[sel][0])],),
+    )
 
 
 def _system_orientation(init: Orientation, acq, s: int) -> Orientation:

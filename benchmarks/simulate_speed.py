@@ -24,8 +24,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-
-from stages.simulate import SimulateParams, _system_raster, make_acquisition, make_phantom, project_beads, render_frame  # noqa: E402
+from fluorocal.stages.simulate import (
+    SimulateParams,
+    _system_raster,
+    make_acquisition,
+    make_phantom,
+    project_beads,
+    render_frame,
+)  # noqa: E402
 
 TARGET_S = 0.5
 
@@ -47,17 +53,45 @@ def main() -> int:
     raster = rasters[0]
     render, truth = [], []
     for k in range(params.n_frames):
-        truth.append(timed(lambda: project_beads(
-            nominal.ids, true_xyz, nominal.diameter_mm, acq.q[0, k], acq.source_mm[0, k], system.iop_px, system.distortion,
-            image_size_px=params.image_size_px, fov_radius_px=params.fov_radius_px)))
-        render.append(timed(lambda: render_frame(
-            params, system, acq.q[0, k], acq.source_mm[0, k], true_xyz, nominal.diameter_mm, rng=np.random.default_rng(k), raster=raster)))
+        truth.append(
+            timed(
+                lambda: project_beads(
+                    nominal.ids,
+                    true_xyz,
+                    nominal.diameter_mm,
+                    acq.q[0, k],
+                    acq.source_mm[0, k],
+                    system.iop_px,
+                    system.distortion,
+                    image_size_px=params.image_size_px,
+                    fov_radius_px=params.fov_radius_px,
+                )
+            )
+        )
+        render.append(
+            timed(
+                lambda: render_frame(
+                    params,
+                    system,
+                    acq.q[0, k],
+                    acq.source_mm[0, k],
+                    true_xyz,
+                    nominal.diameter_mm,
+                    rng=np.random.default_rng(k),
+                    raster=raster,
+                )
+            )
+        )
     wall, cpu = np.median(render, axis=0)
     print(f"simulate: {params.image_size_px}² px, {nominal.n_beads} beads, distortion={params.distortion}, 1 core")
-    print(f"  render per frame     {wall:6.3f} s wall  {cpu:6.3f} s CPU   (median of {params.n_frames}; target <= {TARGET_S} s: {'OK' if min(wall, cpu) <= TARGET_S else 'SLOW'})")
+    print(
+        f"  render per frame     {wall:6.3f} s wall  {cpu:6.3f} s CPU   (median of {params.n_frames}; target <= {TARGET_S} s: {'OK' if min(wall, cpu) <= TARGET_S else 'SLOW'})"
+    )
     wall, cpu = np.median(truth, axis=0)
     print(f"  truth per frame      {wall:6.3f} s wall  {cpu:6.3f} s CPU   (projections, outline centres, flags)")
-    print(f"  set-up per system    {setup[0]:6.3f} s wall  {setup[1]:6.3f} s CPU   (exact inverse distortion of every pixel, once per system)")
+    print(
+        f"  set-up per system    {setup[0]:6.3f} s wall  {setup[1]:6.3f} s CPU   (exact inverse distortion of every pixel, once per system)"
+    )
     return 0
 
 

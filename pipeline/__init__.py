@@ -1,12 +1,12 @@
 """fluorocal pipeline: orchestration, cache, config, CLI, and the public :class:`Calibration` API.
 
-``from pipeline import Calibration`` is resolved lazily, so the CLI's ``--help`` imports nothing heavy.
+``from fluorocal import Calibration`` is resolved lazily, so the CLI's ``--help`` imports nothing heavy.
 """
 
 
 def __getattr__(name):
     if name == "Calibration":
-        from pipeline.calibration import Calibration
+        from fluorocal.calibration import Calibration
 
         return Calibration
-    raise AttributeError(f"module 'pipeline' has no attribute {name!r}")
+    raise AttributeError(f"module 'fluorocal' has no attribute {name!r}")

@@ -93,7 +93,9 @@ def _encode(obj, arrays: dict, path: str):
         cls = type(obj)
         return {
             "__dataclass__": f"{cls.__module__}:{cls.__qualname__}",
-            "fields": {f.name: _encode(getattr(obj, f.name), arrays, f"{path}.{f.name}") for f in dataclasses.fields(obj)},
+            "fields": {
+                f.name: _encode(getattr(obj, f.name), arrays, f"{path}.{f.name}") for f in dataclasses.fields(obj)
+            },
         }
     if isinstance(obj, (list, tuple)):
         return {"__tuple__": [_encode(v, arrays, f"{path}.{i}") for i, v in enumerate(obj)]}
@@ -170,7 +172,9 @@ class ArtifactCache:
             shutil.rmtree(entry, ignore_errors=True)
             return None
 
-    def store(self, stage: str, key: str, artifact, *, provenance: dict | None = None, overlay: bytes | None = None) -> Path:
+    def store(
+        self, stage: str, key: str, artifact, *, provenance: dict | None = None, overlay: bytes | None = None
+    ) -> Path:
         """Write ``artifact`` atomically and return its directory."""
         final = self.entry_dir(stage, key)
         final.parent.mkdir(parents=True, exist_ok=True)
@@ -235,7 +239,7 @@ class ArtifactCache:
 
 
 def _write_table(path: Path, header: list[str], rows) -> None:
-    from stages.io import write_csv
+    from fluorocal.stages.io import write_csv
 
     write_csv(path, header, rows)
 

@@ -7,7 +7,7 @@ relative orientation of a biplanar pair; each training exposure's pose; the
 scheme and the statistics of the solve. README.md, "Calibration file",
 documents every key. Usage::
 
-    from pipeline import Calibration
+    from fluorocal import Calibration
     cal = Calibration.load("out/calibration.json")
     ideal_xy = cal.undistort_points("A", [[512.3, 100.7]])
 """
@@ -19,8 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from stages._geometry import (
+from fluorocal.stages._geometry import (
     check_points,
     image_rays,
     intersect_rays,
@@ -29,9 +28,9 @@ from stages._geometry import (
     quat_normalize,
     quat_to_matrix,
 )
-from stages.errors import ArtifactError, InputError
-from stages.io import atomic_write
-from stages.learn import CorrectionField
+from fluorocal.stages.errors import ArtifactError, InputError
+from fluorocal.stages.io import atomic_write
+from fluorocal.stages.learn import CorrectionField
 
 SCHEMA = "fluorocal-calibration"
 SCHEMA_VERSION = 1
@@ -81,7 +80,9 @@ class Calibration:
         except (OSError, ValueError) as exc:
             raise ArtifactError(f"{path}: cannot read calibration ({exc})") from exc
         if doc.get("schema") != SCHEMA or doc.get("schema_version") != SCHEMA_VERSION:
-            raise ArtifactError(f"{path}: not a {SCHEMA} v{SCHEMA_VERSION} file (schema {doc.get('schema')!r} v{doc.get('schema_version')!r})")
+            raise ArtifactError(
+                f"{path}: not a {SCHEMA} v{SCHEMA_VERSION} file (schema {doc.get('schema')!r} v{doc.get('schema_version')!r})"
+            )
         systems = []
         try:
             for s in doc["systems"]:
@@ -91,12 +92,19 @@ class Calibration:
                 iop = s["iop_px"]
                 systems.append(
                     SystemCalibration(
-                        s["name"], (int(w), int(h)), np.array([iop["xp"], iop["yp"], iop["c"]]),
-                        np.array(s.get("iop_std_px", [0.0, 0.0, 0.0])), np.array(s["rop"]["q_cam_from_ref"]),
-                        np.array(s["rop"]["source_in_ref_camera_mm"]), field,
+                        s["name"],
+                        (int(w), int(h)),
+                        np.array([iop["xp"], iop["yp"], iop["c"]]),
+                        np.array(s.get("iop_std_px", [0.0, 0.0, 0.0])),
+                        np.array(s["rop"]["q_cam_from_ref"]),
+                        np.array(s["rop"]["source_in_ref_camera_mm"]),
+                        field,
                     )
                 )
-            exposures = {int(e["exposure"]): (np.array(e["q_cam_from_obj"]), np.array(e["source_mm"])) for e in doc.get("exposures", [])}
+            exposures = {
+                int(e["exposure"]): (np.array(e["q_cam_from_obj"]), np.array(e["source_mm"]))
+                for e in doc.get("exposures", [])
+            }
         except (KeyError, TypeError, ValueError, OSError) as exc:
             raise ArtifactError(f"{path}: malformed calibration ({type(exc).__name__}: {exc})") from exc
         meta = {k: v for k, v in doc.items() if k not in ("systems", "exposures")}
@@ -111,14 +119,19 @@ class Calibration:
             field_file = path.parent / f"field_{name}.npz"
             atomic_write(field_file, lambda tmp, f=s.field: np.savez(tmp, **{k: getattr(f, k) for k in FIELD_ARRAYS}))
             written.append(field_file)
-            magnitude = np.linalg.norm(s.field.delta_px, axis=-1)[s.field.support] if s.field.support.any() else np.zeros(1)
+            magnitude = (
+                np.linalg.norm(s.field.delta_px, axis=-1)[s.field.support] if s.field.support.any() else np.zeros(1)
+            )
             systems.append(
                 {
                     "name": name,
                     "image_size_px": list(s.image_size_px),
                     "iop_px": dict(zip(("xp", "yp", "c"), map(float, s.iop_px))),
                     "iop_std_px": [float(v) for v in s.iop_std_px],
-                    "rop": {"q_cam_from_ref": [float(v) for v in s.rop_q], "source_in_ref_camera_mm": [float(v) for v in s.rop_source_mm]},
+                    "rop": {
+                        "q_cam_from_ref": [float(v) for v in s.rop_q],
+                        "source_in_ref_camera_mm": [float(v) for v in s.rop_source_mm],
+                    },
                     "field": {
                         "file": field_file.name,
                         "grid_nodes": [len(s.field.x_nodes_px), len(s.field.y_nodes_px)],
@@ -133,7 +146,10 @@ class Calibration:
             "schema_version": SCHEMA_VERSION,
             **{k: v for k, v in self.meta.items() if k not in ("schema", "schema_version")},
             "systems": systems,
-            "exposures": [{"exposure": e, "q_cam_from_obj": q.tolist(), "source_mm": t.tolist()} for e, (q, t) in sorted(self.exposures.items())],
+            "exposures": [
+                {"exposure": e, "q_cam_from_obj": q.tolist(), "source_mm": t.tolist()}
+                for e, (q, t) in sorted(self.exposures.items())
+            ],
         }
         atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=1)))
         return written + [path]
@@ -161,7 +177,13 @@ class Calibration:
         """``{"xp", "yp", "c", "K", "image_size_px"}``: principal point and distance (px) and the 3×3 camera matrix."""
         s = self._system(system)
         xp, yp, c = s.iop_px
-        return {"xp": xp, "yp": yp, "c": c, "K": np.array([[c, 0, xp], [0, c, yp], [0, 0, 1.0]]), "image_size_px": s.image_size_px}
+        return {
+            "xp": xp,
+            "yp": yp,
+            "c": c,
+            "K": np.array([[c, 0, xp], [0, c, yp], [0, 0, 1.0]]),
+            "image_size_px": s.image_size_px,
+        }
 
     def pose(self, system: str, exposure: int) -> tuple[np.ndarray, np.ndarray]:
         """``(q, T)`` of ``system`` at a training ``exposure``: the reference pose composed with the ROP."""
@@ -175,7 +197,9 @@ class Calibration:
     def project(self, system: str, exposure: int, xyz_mm) -> np.ndarray:
         """Where object points ``(N, 3)`` mm appear in ``system``'s measured (distorted) image at ``exposure``, px."""
         q, T = self.pose(system, exposure)
-        return self.distort_points(system, project(check_points("xyz_mm", xyz_mm, 3), q, T, self._system(system).iop_px))
+        return self.distort_points(
+            system, project(check_points("xyz_mm", xyz_mm, 3), q, T, self._system(system).iop_px)
+        )
 
     def rays(self, system: str, xy, *, exposure: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Origins ``(3,)`` and unit directions ``(N, 3)`` of the rays through measured points.

@@ -39,30 +39,55 @@ def _command_modules():
     here = Path(__file__).parent
     for name in COMMAND_MODULES:
         if (here / f"cmd_{name}.py").is_file():
-            yield importlib.import_module(f"pipeline.cmd_{name}")
+            yield importlib.import_module(f"fluorocal.cmd_{name}")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fluorocal", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="fluorocal", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars, warnings and errors only")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    p = sub.add_parser("run", help="run the calibration pipeline of a project", description="Run every stage of a project (cached stages are not recomputed) and write its outputs.")
+    p = sub.add_parser(
+        "run",
+        help="run the calibration pipeline of a project",
+        description="Run every stage of a project (cached stages are not recomputed) and write its outputs.",
+    )
     p.add_argument("config", type=Path, help="project TOML file")
-    p.add_argument("--force", action="append", default=[], metavar="STAGE", help="recompute STAGE and everything downstream (repeatable)")
+    p.add_argument(
+        "--force",
+        action="append",
+        default=[],
+        metavar="STAGE",
+        help="recompute STAGE and everything downstream (repeatable)",
+    )
     p.add_argument("--until", metavar="STAGE", help="stop after STAGE (default: run all stages)")
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("inspect", help="show what each stage produced", description="Table of stages: key, status (cached / stale / missing), size and summary; with STAGE, that stage's artifacts.")
+    p = sub.add_parser(
+        "inspect",
+        help="show what each stage produced",
+        description="Table of stages: key, status (cached / stale / missing), size and summary; with STAGE, that stage's artifacts.",
+    )
     p.add_argument("config", type=Path, help="project TOML file")
     p.add_argument("stage", nargs="?", help="a stage name (default: all stages)")
-    p.add_argument("--frame", type=int, metavar="N", help="with STAGE: write the debug overlay of frame N (0-based, over all systems)")
+    p.add_argument(
+        "--frame",
+        type=int,
+        metavar="N",
+        help="with STAGE: write the debug overlay of frame N (0-based, over all systems)",
+    )
     p.set_defaults(func=cmd_inspect)
 
     p = sub.add_parser("cache", help="manage the artifact cache", description="Manage a project's artifact cache.")
     cache_sub = p.add_subparsers(dest="cache_command", metavar="ACTION", required=True)
-    c = cache_sub.add_parser("clean", help="delete a project's cache", description="Delete the project's artifact cache (or, with --stale, only entries the current config no longer uses).")
+    c = cache_sub.add_parser(
+        "clean",
+        help="delete a project's cache",
+        description="Delete the project's artifact cache (or, with --stale, only entries the current config no longer uses).",
+    )
     c.add_argument("config", type=Path, help="project TOML file")
     c.add_argument("--stale", action="store_true", help="keep entries the current config uses (default: delete all)")
     c.set_defaults(func=cmd_cache_clean)
@@ -73,23 +98,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _load(config_path: Path):
-    from pipeline.config import load_config
-    from pipeline.graph import stage_params_classes
+    from fluorocal.config import load_config
+    from fluorocal.graph import stage_params_classes
 
     return load_config(config_path, stage_params_allowed=stage_params_classes())
 
 
 def _runner(args, **kw):
-    from pipeline.cache import ArtifactCache
-    from pipeline.graph import default_stages
-    from pipeline.run import Runner
+    from fluorocal.cache import ArtifactCache
+    from fluorocal.graph import default_stages
+    from fluorocal.run import Runner
 
     config = _load(args.config)
     return Runner(config, default_stages(), ArtifactCache(config.cache_dir), progress=not args.quiet, **kw)
 
 
 def cmd_run(args) -> int:
-    from pipeline.export import export_outputs
+    from fluorocal.export import export_outputs
 
     runner = _runner(args, force=args.force, until=args.until)
     runner.run()
@@ -110,12 +135,14 @@ def cmd_inspect(args) -> int:
         return _inspect_stage(runner, args.stage, args.frame)
     print(f"{'stage':<10} {'key':<12} {'status':<8} {'entries':>9} {'size':>10}  summary")
     for r in rows:
-        print(f"{r['stage']:<10} {r['key']:<12} {r['status']:<8} {r['cached']:>4}/{r['n']:<4} {_human(r['bytes']):>10}  {r['summary']}")
+        print(
+            f"{r['stage']:<10} {r['key']:<12} {r['status']:<8} {r['cached']:>4}/{r['n']:<4} {_human(r['bytes']):>10}  {r['summary']}"
+        )
     return 0
 
 
 def _inspect_stage(runner, stage: str, frame: int | None) -> int:
-    from stages.errors import InputError
+    from fluorocal.stages.errors import InputError
 
     if stage not in runner.by_name:
         raise InputError(f"unknown stage {stage!r}; stages are {', '.join(runner.by_name)}")
@@ -136,7 +163,7 @@ def _inspect_stage(runner, stage: str, frame: int | None) -> int:
         files = ", ".join(str(entry / f) for f in manifest["files"] if not f.endswith(".npz"))
         print(f"{where}: {manifest['summary']}  [{entry}]" + (f"  {files}" if files else ""))
     if frame is not None:
-        from pipeline.inspect import write_stage_overlay
+        from fluorocal.inspect import write_stage_overlay
 
         path = write_stage_overlay(runner, stage, frame)
         print(f"overlay: {path}")
@@ -144,7 +171,7 @@ def _inspect_stage(runner, stage: str, frame: int | None) -> int:
 
 
 def cmd_cache_clean(args) -> int:
-    from pipeline.cache import ArtifactCache
+    from fluorocal.cache import ArtifactCache
 
     config = _load(args.config)
     cache = ArtifactCache(config.cache_dir)
@@ -172,12 +199,16 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.debug else (logging.WARNING if args.quiet else logging.INFO), format="%(message)s")
-    for noisy in ("PIL", "matplotlib", "stages.adjust"):  # the adjustment's per-solve lines are for --debug
-        logging.getLogger(noisy).setLevel(logging.DEBUG if args.debug and noisy.startswith("stages") else logging.WARNING)
+    logging.basicConfig(
+        level=logging.DEBUG if args.debug else (logging.WARNING if args.quiet else logging.INFO), format="%(message)s"
+    )
+    for noisy in ("PIL", "matplotlib", "fluorocal.stages.adjust"):  # the adjustment's per-solve lines are for --debug
+        logging.getLogger(noisy).setLevel(
+            logging.DEBUG if args.debug and noisy.startswith("stages") else logging.WARNING
+        )
     if not args.debug:
         warnings.showwarning = _show_warning
-    from stages.errors import CalibError
+    from fluorocal.stages.errors import CalibError
 
     try:
         return int(args.func(args) or 0)

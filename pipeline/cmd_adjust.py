@@ -26,15 +26,38 @@ from pathlib import Path
 
 def add_parser(subparsers) -> None:
     """Register the ``adjust`` subcommand."""
-    p = subparsers.add_parser("adjust", help="robust bundle adjustment of labelled observations (debugging)", description=__doc__,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--observations", type=Path, required=True, metavar="CSV", help="labelled observations (from `fluorocal label`)")
-    p.add_argument("--phantom", type=Path, required=True, metavar="CSV", help="phantom CSV id,x,y,z[,diameter][,role] (mm)")
-    p.add_argument("--sid", type=float, default=1100.0, metavar="MM", help="source-image distance, approximate (default 1100)")
-    p.add_argument("--pixel-pitch", type=float, default=0.25, metavar="MM", help="detector pixel pitch, approximate (default 0.25)")
-    p.add_argument("--image-size", type=int, nargs=2, default=(1024, 1024), metavar=("W", "H"), help="image size in px (default 1024 1024)")
-    p.add_argument("--nu", type=float, default=4.0, help="Student-t degrees of freedom; inf for least squares (default 4)")
-    p.add_argument("--fixed-iop", action="store_true", help="hold (xp, yp, c) at the start values (default: estimate them)")
+    p = subparsers.add_parser(
+        "adjust",
+        help="robust bundle adjustment of labelled observations (debugging)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--observations", type=Path, required=True, metavar="CSV", help="labelled observations (from `fluorocal label`)"
+    )
+    p.add_argument(
+        "--phantom", type=Path, required=True, metavar="CSV", help="phantom CSV id,x,y,z[,diameter][,role] (mm)"
+    )
+    p.add_argument(
+        "--sid", type=float, default=1100.0, metavar="MM", help="source-image distance, approximate (default 1100)"
+    )
+    p.add_argument(
+        "--pixel-pitch", type=float, default=0.25, metavar="MM", help="detector pixel pitch, approximate (default 0.25)"
+    )
+    p.add_argument(
+        "--image-size",
+        type=int,
+        nargs=2,
+        default=(1024, 1024),
+        metavar=("W", "H"),
+        help="image size in px (default 1024 1024)",
+    )
+    p.add_argument(
+        "--nu", type=float, default=4.0, help="Student-t degrees of freedom; inf for least squares (default 4)"
+    )
+    p.add_argument(
+        "--fixed-iop", action="store_true", help="hold (xp, yp, c) at the start values (default: estimate them)"
+    )
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory (created)")
     p.set_defaults(func=run)
 
@@ -44,9 +67,8 @@ def _read_observations(path: Path):
     import csv
 
     import numpy as np
-
-    from stages.artifacts import Observations
-    from stages.errors import InputError
+    from fluorocal.stages.artifacts import Observations
+    from fluorocal.stages.errors import InputError
 
     if not path.is_file():
         raise InputError(f"{path}: observations file not found")
@@ -61,9 +83,17 @@ def _read_observations(path: Path):
         for line_no, row in enumerate(reader, start=2):
             row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
             try:
-                rows.append((row.get("system") or "A", row["file"], int(row["frame"]), int(row["id"]),
-                             *(float(row[c]) for c in ("x", "y", "sigma_x", "sigma_y", "rho")),
-                             float(row.get("dx") or 0.0), float(row.get("dy") or 0.0)))
+                rows.append(
+                    (
+                        row.get("system") or "A",
+                        row["file"],
+                        int(row["frame"]),
+                        int(row["id"]),
+                        *(float(row[c]) for c in ("x", "y", "sigma_x", "sigma_y", "rho")),
+                        float(row.get("dx") or 0.0),
+                        float(row.get("dy") or 0.0),
+                    )
+                )
             except ValueError as exc:
                 raise InputError(f"{path}:{line_no}: not a number ({exc})") from exc
     if not rows:
@@ -78,8 +108,14 @@ def _read_observations(path: Path):
             if sy == s:
                 exposure[k] = number[(r[1], r[2])]
     table = np.array([r[4:] for r in rows], dtype=np.float64)
-    obs = Observations(system=system, exposure=exposure, bead_id=np.array([r[3] for r in rows]), xy_px=table[:, 0:2],
-                       sigma_px=table[:, 2:5], system_names=names)
+    obs = Observations(
+        system=system,
+        exposure=exposure,
+        bead_id=np.array([r[3] for r in rows]),
+        xy_px=table[:, 0:2],
+        sigma_px=table[:, 2:5],
+        system_names=names,
+    )
     return obs, rows, table[:, 5:7]
 
 
@@ -90,10 +126,9 @@ def run(args) -> int:
     import math
 
     import numpy as np
-
-    from stages.adjust import AdjustParams, adjust_bundle, initial_orientation
-    from stages.errors import InputError
-    from stages.io import atomic_write, read_phantom, write_csv
+    from fluorocal.stages.adjust import AdjustParams, adjust_bundle, initial_orientation
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import atomic_write, read_phantom, write_csv
 
     log = logging.getLogger("fluorocal")
     if args.sid <= 0 or args.pixel_pitch <= 0:
@@ -107,26 +142,76 @@ def run(args) -> int:
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    write_csv(out / "object_points.csv", ["id", "x", "y", "z", "sx", "sy", "sz"],
-              [[int(i), *map(float, p), *map(float, sd)] for i, p, sd in zip(res.bead_id, res.xyz_mm, res.xyz_std_mm)])
-    header = ["file", "frame", "system", "exposure", "id", "x", "y", "sigma_x", "sigma_y", "rho", "dx", "dy",
-              "rx", "ry", "wx", "wy", "redx", "redy", "weight", "inlier", "used"]
+    write_csv(
+        out / "object_points.csv",
+        ["id", "x", "y", "z", "sx", "sy", "sz"],
+        [[int(i), *map(float, p), *map(float, sd)] for i, p, sd in zip(res.bead_id, res.xyz_mm, res.xyz_std_mm)],
+    )
+    header = [
+        "file",
+        "frame",
+        "system",
+        "exposure",
+        "id",
+        "x",
+        "y",
+        "sigma_x",
+        "sigma_y",
+        "rho",
+        "dx",
+        "dy",
+        "rx",
+        "ry",
+        "wx",
+        "wy",
+        "redx",
+        "redy",
+        "weight",
+        "inlier",
+        "used",
+    ]
     table = []
     for k, r in enumerate(rows):
-        table.append([r[1], r[2], r[0], int(obs.exposure[k]), r[3], *r[4:11], *map(float, res.residual_px[k]),
-                      *map(float, res.standardized_residual[k]), *map(float, res.redundancy[k]), float(res.weight[k]),
-                      int(res.inlier[k]), int(res.used[k])])
+        table.append(
+            [
+                r[1],
+                r[2],
+                r[0],
+                int(obs.exposure[k]),
+                r[3],
+                *r[4:11],
+                *map(float, res.residual_px[k]),
+                *map(float, res.standardized_residual[k]),
+                *map(float, res.redundancy[k]),
+                float(res.weight[k]),
+                int(res.inlier[k]),
+                int(res.used[k]),
+            ]
+        )
     write_csv(out / "observations.csv", header, table)
     summary = {
         "system_names": list(res.system_names),
-        "iop_px": res.iop_px.tolist(), "iop_std_px": res.iop_std_px.tolist(),
-        "exposure": res.exposure.tolist(), "q_cam_from_obj": res.q_cam_from_obj.tolist(), "source_mm": res.source_mm.tolist(),
+        "iop_px": res.iop_px.tolist(),
+        "iop_std_px": res.iop_std_px.tolist(),
+        "exposure": res.exposure.tolist(),
+        "q_cam_from_obj": res.q_cam_from_obj.tolist(),
+        "source_mm": res.source_mm.tolist(),
         "pose_std": res.pose_std.tolist(),
-        "rop_q": res.rop_q.tolist(), "rop_source_mm": res.rop_source_mm.tolist(), "rop_std": res.rop_std.tolist(),
-        "sigma0": res.sigma0, "t_scale": res.t_scale, "nu": res.nu if math.isfinite(res.nu) else "inf", "dof": res.dof,
-        "n_parameters": res.n_parameters, "iterations": res.iterations, "stop_reason": res.stop_reason,
-        "converged": res.converged, "usable": res.usable, "cost_history": list(res.cost_history),
-        "outliers": int((~res.inlier & res.used).sum()), "unused": int((~res.used).sum()),
+        "rop_q": res.rop_q.tolist(),
+        "rop_source_mm": res.rop_source_mm.tolist(),
+        "rop_std": res.rop_std.tolist(),
+        "sigma0": res.sigma0,
+        "t_scale": res.t_scale,
+        "nu": res.nu if math.isfinite(res.nu) else "inf",
+        "dof": res.dof,
+        "n_parameters": res.n_parameters,
+        "iterations": res.iterations,
+        "stop_reason": res.stop_reason,
+        "converged": res.converged,
+        "usable": res.usable,
+        "cost_history": list(res.cost_history),
+        "outliers": int((~res.inlier & res.used).sum()),
+        "unused": int((~res.used).sum()),
     }
 
     def _write(tmp):
@@ -134,6 +219,15 @@ def run(args) -> int:
             json.dump(summary, fh, indent=1)
 
     atomic_write(out / "orientation.json", _write)
-    log.info("adjusted %d observations (%d outliers, %d unused): σ0 %.3g, %d iterations (%s), usable %s -> %s",
-             len(obs), summary["outliers"], summary["unused"], res.sigma0, res.iterations, res.stop_reason, res.usable, out)
+    log.info(
+        "adjusted %d observations (%d outliers, %d unused): σ0 %.3g, %d iterations (%s), usable %s -> %s",
+        len(obs),
+        summary["outliers"],
+        summary["unused"],
+        res.sigma0,
+        res.iterations,
+        res.stop_reason,
+        res.usable,
+        out,
+    )
     return 0 if res.usable else 1

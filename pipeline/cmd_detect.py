@@ -44,10 +44,28 @@ def add_parser(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("files", nargs="+", type=Path, metavar="FILE", help="frames: DICOM, TIFF, PNG or video")
-    p.add_argument("--polarity", choices=("auto", "dark", "bright"), default="auto", help="dark beads (steel) or bright (grid holes) (default: auto, decided per frame)")
-    p.add_argument("--diameter", type=_diameter_range, metavar="MIN:MAX", help="expected bead diameter range in px (default: estimated per frame)")
-    p.add_argument("--out", type=Path, required=True, metavar="CSV", help="detections table to write (required; written atomically)")
-    p.add_argument("--overlay", type=Path, metavar="DIR", help="also write a PNG overlay per frame into DIR (default: none)")
+    p.add_argument(
+        "--polarity",
+        choices=("auto", "dark", "bright"),
+        default="auto",
+        help="dark beads (steel) or bright (grid holes) (default: auto, decided per frame)",
+    )
+    p.add_argument(
+        "--diameter",
+        type=_diameter_range,
+        metavar="MIN:MAX",
+        help="expected bead diameter range in px (default: estimated per frame)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="CSV",
+        help="detections table to write (required; written atomically)",
+    )
+    p.add_argument(
+        "--overlay", type=Path, metavar="DIR", help="also write a PNG overlay per frame into DIR (default: none)"
+    )
     p.set_defaults(func=run)
 
 
@@ -57,12 +75,11 @@ def run(args) -> int:
     import sys
     import warnings
 
+    from fluorocal.stages.centroid import CentroidParams, centroid_beads
+    from fluorocal.stages.detect import DetectParams, detect_beads
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import read_frames, write_csv
     from tqdm import tqdm
-
-    from stages.centroid import CentroidParams, centroid_beads
-    from stages.detect import DetectParams, detect_beads
-    from stages.errors import InputError
-    from stages.io import read_frames, write_csv
 
     log = logging.getLogger("fluorocal")
     for path in args.files:
@@ -84,8 +101,17 @@ def run(args) -> int:
                 log.warning("%s", w.message)
             rows.extend(_rows(str(path), frame.frame_index, beads))
             if args.overlay is not None:
-                _write_overlay(Path(args.overlay) / f"{Path(path).stem}_f{frame.frame_index:04d}.png", frame, candidates, beads)
-            log.debug("%s[%d]: %d candidates, %d accepted, %d fitted", path, frame.frame_index, len(candidates), candidates.n_accepted, int(beads.ok.sum()))
+                _write_overlay(
+                    Path(args.overlay) / f"{Path(path).stem}_f{frame.frame_index:04d}.png", frame, candidates, beads
+                )
+            log.debug(
+                "%s[%d]: %d candidates, %d accepted, %d fitted",
+                path,
+                frame.frame_index,
+                len(candidates),
+                candidates.n_accepted,
+                int(beads.ok.sum()),
+            )
     write_csv(args.out, COLUMNS, rows)
     log.info("%d beads in %d frames of %d files -> %s", len(rows), n_frames, len(args.files), args.out)
     return 0
@@ -97,18 +123,29 @@ def _rows(file: str, frame_index: int, beads) -> list[list]:
     for i in beads.ok.nonzero()[0]:
         x, y = beads.xy_px[i]
         out.append(
-            [file, frame_index, float(x), float(y), float(beads.sigma_x[i]), float(beads.sigma_y[i]), float(beads.rho[i]),
-             float(beads.major_px[i]), float(beads.minor_px[i]), float(beads.angle_rad[i]), float(beads.fit_rmse_px[i]), float(beads.score[i])]
+            [
+                file,
+                frame_index,
+                float(x),
+                float(y),
+                float(beads.sigma_x[i]),
+                float(beads.sigma_y[i]),
+                float(beads.rho[i]),
+                float(beads.major_px[i]),
+                float(beads.minor_px[i]),
+                float(beads.angle_rad[i]),
+                float(beads.fit_rmse_px[i]),
+                float(beads.score[i]),
+            ]
         )
     return out
 
 
 def _write_overlay(path: Path, frame, candidates, beads) -> None:
     import cv2
-
-    from pipeline.overlay import render_overlay
-    from stages.errors import InputError
-    from stages.io import atomic_write
+    from fluorocal.overlay import render_overlay
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import atomic_write
 
     image = render_overlay(frame, candidates, beads)
 

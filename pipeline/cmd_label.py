@@ -33,26 +33,64 @@ log = logging.getLogger(__name__)
 
 def add_parser(subparsers) -> None:
     """Register the ``label`` subcommand."""
-    p = subparsers.add_parser("label", help="label detections with phantom bead ids (debugging)", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "label",
+        help="label detections with phantom bead ids (debugging)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("detections", type=Path, metavar="DETECTIONS.csv", help="detections from `fluorocal detect`")
-    p.add_argument("--phantom", type=Path, metavar="CSV", help="phantom CSV id,x,y,z[,diameter][,role] (mm); required unless --lattice")
-    p.add_argument("--lattice", choices=("hex", "square"), help="grid plate lattice instead of a phantom CSV (default: none)")
-    p.add_argument("--pitch", type=float, default=0.0, metavar="MM", help="grid plate hole pitch in mm (default: 0, required with --lattice)")
-    p.add_argument("--sid", type=float, default=0.0, metavar="MM", help="source-image distance in mm, approximate (required for a 3D phantom)")
-    p.add_argument("--pixel-pitch", type=float, default=0.0, metavar="MM", help="detector pixel pitch in mm, approximate (required for a 3D phantom)")
-    p.add_argument("--image-size", type=int, nargs=2, metavar=("W", "H"), help="frame size in px; the principal point is its centre (default: centre of the detections)")
+    p.add_argument(
+        "--phantom",
+        type=Path,
+        metavar="CSV",
+        help="phantom CSV id,x,y,z[,diameter][,role] (mm); required unless --lattice",
+    )
+    p.add_argument(
+        "--lattice", choices=("hex", "square"), help="grid plate lattice instead of a phantom CSV (default: none)"
+    )
+    p.add_argument(
+        "--pitch",
+        type=float,
+        default=0.0,
+        metavar="MM",
+        help="grid plate hole pitch in mm (default: 0, required with --lattice)",
+    )
+    p.add_argument(
+        "--sid",
+        type=float,
+        default=0.0,
+        metavar="MM",
+        help="source-image distance in mm, approximate (required for a 3D phantom)",
+    )
+    p.add_argument(
+        "--pixel-pitch",
+        type=float,
+        default=0.0,
+        metavar="MM",
+        help="detector pixel pitch in mm, approximate (required for a 3D phantom)",
+    )
+    p.add_argument(
+        "--image-size",
+        type=int,
+        nargs=2,
+        metavar=("W", "H"),
+        help="frame size in px; the principal point is its centre (default: centre of the detections)",
+    )
     p.add_argument("--seeds", type=Path, metavar="CSV", help="seeds id,x,y[,file,frame] (default: none)")
     p.add_argument("--out", type=Path, required=True, metavar="CSV", help="labels CSV to write")
-    p.add_argument("--overlay", type=Path, metavar="DIR", help="write a PNG per frame with the ids drawn (default: none)")
+    p.add_argument(
+        "--overlay", type=Path, metavar="DIR", help="write a PNG per frame with the ids drawn (default: none)"
+    )
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     """Label every frame of the detections file; return the exit code."""
-    from stages.artifacts import Phantom
-    from stages.errors import InputError
-    from stages.io import read_frames, read_phantom, write_csv
-    from stages.label import LabelParams, label_sequence
+    from fluorocal.stages.artifacts import Phantom
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import read_frames, read_phantom, write_csv
+    from fluorocal.stages.label import LabelParams, label_sequence
 
     frames = _read_detections(args.detections)
     if args.lattice:
@@ -68,19 +106,28 @@ def run(args) -> int:
     keys = sorted(frames)
     seeds = _read_seeds(args.seeds, keys) if args.seeds else {}
     params = LabelParams(
-        source_image_distance_mm=args.sid, pixel_pitch_mm=args.pixel_pitch, image_size_px=tuple(args.image_size or ()),
+        source_image_distance_mm=args.sid,
+        pixel_pitch_mm=args.pixel_pitch,
+        image_size_px=tuple(args.image_size or ()),
     )
     by_file: dict[str, list] = {}
     for key in keys:
         by_file.setdefault(key[0], []).append(key)
     rows, n_failed = [], 0
     for file, file_keys in by_file.items():
-        labels = label_sequence([frames[k] for k in file_keys], phantom, params, {i: seeds[k] for i, k in enumerate(file_keys) if k in seeds})
+        labels = label_sequence(
+            [frames[k] for k in file_keys],
+            phantom,
+            params,
+            {i: seeds[k] for i, k in enumerate(file_keys) if k in seeds},
+        )
         images = read_frames(file) if args.overlay else None  # decoded once per file, not per frame
         for (f, frame), lab in zip(file_keys, labels):
             where = f"{f}[{frame}]"
             if images is not None:
-                _write_overlay(args.overlay / f"{Path(f).stem}_{frame:03d}_labels.png", f, frame, images, frames[(f, frame)], lab)
+                _write_overlay(
+                    args.overlay / f"{Path(f).stem}_{frame:03d}_labels.png", f, frame, images, frames[(f, frame)], lab
+                )
             if not lab.ok:
                 n_failed += 1
                 log.warning("%s: %s", where, lab.summary())
@@ -96,9 +143,8 @@ def run(args) -> int:
 def _read_detections(path: Path) -> dict:
     """``{(file, frame): Centroids}`` from a detections CSV."""
     import numpy as np
-
-    from stages.centroid import Centroids
-    from stages.errors import InputError
+    from fluorocal.stages.centroid import Centroids
+    from fluorocal.stages.errors import InputError
 
     need = ("file", "frame", "x", "y", "sigma_x", "sigma_y", "rho", "major", "minor")
     grouped: dict = {}
@@ -118,16 +164,29 @@ def _read_detections(path: Path) -> dict:
         n = len(a)
         ok = a[:, 7].astype(bool) & np.all(np.isfinite(a[:, :7]), axis=1)
         out[key] = Centroids(
-            a[:, 0:2], a[:, 2], a[:, 3], a[:, 4], a[:, 5], a[:, 6], np.zeros(n), np.zeros(n), np.zeros(n, np.int64), np.zeros(n),
-            ok, np.where(ok, "", "input"), np.arange(n), key[0], key[1],
+            a[:, 0:2],
+            a[:, 2],
+            a[:, 3],
+            a[:, 4],
+            a[:, 5],
+            a[:, 6],
+            np.zeros(n),
+            np.zeros(n),
+            np.zeros(n, np.int64),
+            np.zeros(n),
+            ok,
+            np.where(ok, "", "input"),
+            np.arange(n),
+            key[0],
+            key[1],
         )
     return out
 
 
 def _read_seeds(path: Path, keys: list) -> dict:
     """``{(file, frame): ((id, x, y), ...)}``; rows without file/frame go to the first frame."""
-    from stages.errors import InputError
-    from stages.io import read_seeds
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import read_seeds
 
     by_name = {(Path(f).name, i): (f, i) for f, i in keys}
     out = {}
@@ -140,7 +199,7 @@ def _read_seeds(path: Path, keys: list) -> dict:
 
 
 def _csv_rows(path: Path, need: tuple):
-    from stages.errors import InputError
+    from fluorocal.stages.errors import InputError
 
     if not path.is_file():
         raise InputError(f"{path}: no such file")
@@ -156,13 +215,12 @@ def _csv_rows(path: Path, need: tuple):
 
 def _write_overlay(path: Path, file: str, frame_index: int, frames, centroids, labels) -> None:
     import cv2
-
-    from stages.errors import InputError
-    from stages.io import atomic_write
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import atomic_write
 
     if not 0 <= frame_index < len(frames):
         raise InputError(f"{file}: has no frame {frame_index} for the overlay")
-    from pipeline.overlay import render_label_overlay
+    from fluorocal.overlay import render_label_overlay
 
     image = render_label_overlay(frames[frame_index], centroids, labels)
 

@@ -76,16 +76,40 @@ def add_parser(subparsers) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("outdir", type=Path, metavar="OUTDIR", help="output directory (must be empty or absent unless --force)")
+    p.add_argument(
+        "outdir", type=Path, metavar="OUTDIR", help="output directory (must be empty or absent unless --force)"
+    )
     p.add_argument("--frames", type=int, default=12, metavar="N", help="exposures per system (default: 12)")
     p.add_argument("--systems", type=int, choices=(1, 2), default=1, help="1 = monoplanar, 2 = biplanar (default: 1)")
     p.add_argument("--seed", type=int, default=0, help="random seed; same seed, same bytes (default: 0)")
-    p.add_argument("--image-size", type=int, default=1024, metavar="PX", help="square image side in px; the detector stays 256 mm wide (default: 1024)")
-    p.add_argument("--distortion", choices=("none", "mild", "strong"), default="strong", help="image-intensifier distortion (default: strong, ~15 px at the field edge)")
-    p.add_argument("--phantom", choices=("cube", "grid"), default="cube", help="cube: 494 steel beads on an acrylic box; grid: perforated hex plate, 1 system only (default: cube)")
-    p.add_argument("--format", choices=tuple(FORMATS), default="tiff", help="frame files: 16-bit TIFF or DICOM XA (default: tiff)")
-    p.add_argument("--noise", type=float, default=1.0, metavar="SCALE", help="noise scale, 0 for noise-free frames (default: 1.0)")
-    p.add_argument("--force", action="store_true", help="write into a non-empty OUTDIR, replacing earlier frames (default: refuse)")
+    p.add_argument(
+        "--image-size",
+        type=int,
+        default=1024,
+        metavar="PX",
+        help="square image side in px; the detector stays 256 mm wide (default: 1024)",
+    )
+    p.add_argument(
+        "--distortion",
+        choices=("none", "mild", "strong"),
+        default="strong",
+        help="image-intensifier distortion (default: strong, ~15 px at the field edge)",
+    )
+    p.add_argument(
+        "--phantom",
+        choices=("cube", "grid"),
+        default="cube",
+        help="cube: 494 steel beads on an acrylic box; grid: perforated hex plate, 1 system only (default: cube)",
+    )
+    p.add_argument(
+        "--format", choices=tuple(FORMATS), default="tiff", help="frame files: 16-bit TIFF or DICOM XA (default: tiff)"
+    )
+    p.add_argument(
+        "--noise", type=float, default=1.0, metavar="SCALE", help="noise scale, 0 for noise-free frames (default: 1.0)"
+    )
+    p.add_argument(
+        "--force", action="store_true", help="write into a non-empty OUTDIR, replacing earlier frames (default: refuse)"
+    )
     p.set_defaults(func=run)
 
 
@@ -93,8 +117,8 @@ def run(args) -> int:
     """Simulate and write the data set; return the exit code."""
     import logging
 
-    from stages.errors import InputError
-    from stages.simulate import SimulateParams, simulate
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.simulate import SimulateParams, simulate
 
     log = logging.getLogger("fluorocal")
     outdir = Path(args.outdir)
@@ -114,7 +138,9 @@ def run(args) -> int:
     from tqdm import tqdm
 
     quiet = bool(getattr(args, "quiet", False))
-    with tqdm(total=params.n_frames * params.n_systems, desc="simulate", unit="frame", disable=True if quiet else None) as bar:
+    with tqdm(
+        total=params.n_frames * params.n_systems, desc="simulate", unit="frame", disable=True if quiet else None
+    ) as bar:
         data = simulate(params, on_frame=lambda s, k: bar.update())
     written = write_dataset(data, outdir, fmt=args.format, replace=args.force)
     log.info("wrote %d files to %s (run: fluorocal run %s)", len(written), outdir, outdir / "fluorocal.toml")
@@ -136,10 +162,9 @@ def write_dataset(data, outdir: Path, *, fmt: str = "tiff", replace: bool = Fals
     import json
 
     import numpy as np
-
-    from stages.errors import InputError
-    from stages.io import atomic_write, write_csv, write_still
-    from stages.simulate import truth_to_dict
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import atomic_write, write_csv, write_still
+    from fluorocal.stages.simulate import truth_to_dict
 
     if fmt not in FORMATS:
         raise InputError(f"fmt must be one of {', '.join(FORMATS)}; got {fmt!r}")
@@ -157,11 +182,19 @@ def write_dataset(data, outdir: Path, *, fmt: str = "tiff", replace: bool = Fals
             if fmt == "tiff":
                 write_still(path, pixels, attributes={"DateTime": _TIFF_DATETIME, "compression": "zip"})
             else:
-                atomic_write(path, lambda tmp, s=s, k=k, pixels=pixels: _dicom_dataset(data, s, k, pixels).save_as(tmp, enforce_file_format=True))
+                atomic_write(
+                    path,
+                    lambda tmp, s=s, k=k, pixels=pixels: _dicom_dataset(data, s, k, pixels).save_as(
+                        tmp, enforce_file_format=True
+                    ),
+                )
             written.append(path)
 
     phantom = data.phantom
-    rows = [(int(i), *map(float, xyz), float(d), r) for i, xyz, d, r in zip(phantom.ids, phantom.xyz_mm, phantom.diameter_mm, phantom.role)]
+    rows = [
+        (int(i), *map(float, xyz), float(d), r)
+        for i, xyz, d, r in zip(phantom.ids, phantom.xyz_mm, phantom.diameter_mm, phantom.role)
+    ]
     write_csv(outdir / "phantom.csv", ["id", "x", "y", "z", "diameter", "role"], rows)
     ref_rows = [(int(i), *map(float, xyz)) for i, xyz in zip(phantom.ids, data.truth.reference_xyz_mm)]
     write_csv(outdir / "reference.csv", ["id", "x", "y", "z"], ref_rows)
@@ -186,7 +219,7 @@ _TIFF_DATETIME = "2026:01:01 12:00:00"
 
 
 def _write_text(path: Path, text: str) -> Path:
-    from stages.io import atomic_write
+    from fluorocal.stages.io import atomic_write
 
     atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
     return path
@@ -213,13 +246,22 @@ def _config_text(data, suffix: str) -> str:
             f"source_image_distance = {p.source_image_distance_mm:g}   # mm, approximate (nominal; the truth differs by up to 1 %)",
             f"pixel_pitch = {p.pixel_pitch_mm:g}              # mm at the detector",
         ]
-    lines += ["", "[calibration]", 'scheme = "knn+iop+smooth"', "", *RECOMMENDED_LEARN, "", "[output]", 'dir = "out"', ""]
+    lines += [
+        "",
+        "[calibration]",
+        'scheme = "knn+iop+smooth"',
+        "",
+        *RECOMMENDED_LEARN,
+        "",
+        "[output]",
+        'dir = "out"',
+        "",
+    ]
     return "\n".join(lines)
 
 
 def montage(data, *, n_max: int = 4, tile_px: int = 256):
     """Up to ``n_max`` frames side by side (8-bit, each ``tile_px`` square); both systems when biplanar."""
-
     picks = []
     n_sys = len(data.frames)
     per_system = max(1, n_max // n_sys)

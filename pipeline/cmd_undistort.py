@@ -15,24 +15,44 @@ from pathlib import Path
 
 def add_parser(subparsers) -> None:
     """Register the ``undistort`` subcommand."""
-    p = subparsers.add_parser("undistort", help="undistort frames with a calibration", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "undistort",
+        help="undistort frames with a calibration",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("inputs", nargs="+", type=Path, metavar="INPUT", help="frames to undistort")
     p.add_argument("--calibration", type=Path, required=True, help="calibration.json written by `fluorocal run`")
-    p.add_argument("--system", required=True, metavar="NAME", help="the imaging system the frames come from (a name in the calibration)")
-    p.add_argument("--out", type=Path, default=Path("undistorted"), metavar="OUTDIR", help="output directory (default: ./undistorted)")
-    p.add_argument("--interpolation", choices=("linear", "cubic", "lanczos", "nearest"), default="linear", help="resampling kernel (default: linear)")
+    p.add_argument(
+        "--system",
+        required=True,
+        metavar="NAME",
+        help="the imaging system the frames come from (a name in the calibration)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("undistorted"),
+        metavar="OUTDIR",
+        help="output directory (default: ./undistorted)",
+    )
+    p.add_argument(
+        "--interpolation",
+        choices=("linear", "cubic", "lanczos", "nearest"),
+        default="linear",
+        help="resampling kernel (default: linear)",
+    )
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     import logging
 
+    from fluorocal.calibration import Calibration
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import read_frames, write_frames_like
+    from fluorocal.stages.undistort import UndistortParams, undistort_frame
     from tqdm import tqdm
-
-    from pipeline.calibration import Calibration
-    from stages.errors import InputError
-    from stages.io import read_frames, write_frames_like
-    from stages.undistort import UndistortParams, undistort_frame
 
     cal = Calibration.load(args.calibration)
     field = cal.systems.get(args.system)
@@ -50,7 +70,9 @@ def run(args) -> int:
         frames = read_frames(path)
         size = (frames[0].shape[1], frames[0].shape[0])
         if size != tuple(field.image_size_px):
-            raise InputError(f"{path}: frame is {size[0]}x{size[1]} px; system {args.system} was calibrated at {field.image_size_px[0]}x{field.image_size_px[1]}")
+            raise InputError(
+                f"{path}: frame is {size[0]}x{size[1]} px; system {args.system} was calibrated at {field.image_size_px[0]}x{field.image_size_px[1]}"
+            )
         corrected = [undistort_frame(f, map_x, map_y, params) for f in frames]
         write_frames_like(path, corrected, out_dir / path.name)
     logging.getLogger("fluorocal").info("wrote %d undistorted file(s) to %s", len(args.inputs), out_dir)

@@ -15,8 +15,7 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from stages.errors import InputError
-
+from fluorocal.stages.errors import InputError
 
 
 class ConfigError(InputError):
@@ -75,7 +74,9 @@ def _expect(value, kind, what: str, path: Path, section: str, key: str):
 def _reject_unknown(table: dict, allowed: set[str], path: Path, section: str) -> None:
     unknown = sorted(set(table) - allowed)
     if unknown:
-        raise ConfigError(f"{_where(path, section, unknown[0])}: unknown key; allowed keys are {', '.join(sorted(allowed))}")
+        raise ConfigError(
+            f"{_where(path, section, unknown[0])}: unknown key; allowed keys are {', '.join(sorted(allowed))}"
+        )
 
 
 def _resolve_frames(value, root: Path, path: Path, section: str) -> tuple[Path, ...]:
@@ -90,7 +91,9 @@ def _resolve_frames(value, root: Path, path: Path, section: str) -> tuple[Path, 
         if missing:
             raise ConfigError(f"{_where(path, section, 'frames')}: file not found: {missing[0]}")
         return files
-    raise ConfigError(f"{_where(path, section, 'frames')}: expected a glob string or a non-empty list of files; got {value!r}")
+    raise ConfigError(
+        f"{_where(path, section, 'frames')}: expected a glob string or a non-empty list of files; got {value!r}"
+    )
 
 
 def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
@@ -105,9 +108,11 @@ def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
             return PhantomConfig(file=f)
     else:
         f = None
-    lattice = _expect(table.get("lattice"), str, 'a phantom "file", or "lattice" = "hex" | "square"', path, section, "lattice")
+    lattice = _expect(
+        table.get("lattice"), str, 'a phantom "file", or "lattice" = "hex" | "square"', path, section, "lattice"
+    )
     if lattice not in ("hex", "square"):
-        raise ConfigError(f"{_where(path, section, 'lattice')}: expected \"hex\" or \"square\"; got {lattice!r}")
+        raise ConfigError(f'{_where(path, section, "lattice")}: expected "hex" or "square"; got {lattice!r}')
     pitch = float(_expect(table.get("pitch"), (int, float), "a positive number (mm)", path, section, "pitch"))
     if pitch <= 0:
         raise ConfigError(f"{_where(path, section, 'pitch')}: expected a positive number (mm); got {pitch}")
@@ -118,7 +123,7 @@ def _system(table: dict, i: int, root: Path, path: Path) -> SystemConfig:
     name = table.get("name", f"#{i + 1}")
     section = f"[[systems]] #{i + 1} "
     _reject_unknown(table, {"name", "frames", "source_image_distance", "pixel_pitch", "seeds"}, path, section)
-    _expect(table.get("name"), str, "a name such as \"A\"", path, section, "name")
+    _expect(table.get("name"), str, 'a name such as "A"', path, section, "name")
     numbers = {}
     for key, unit in (("source_image_distance", "mm"), ("pixel_pitch", "mm")):
         v = _expect(table.get(key), (int, float), f"a positive number ({unit})", path, section, key)
@@ -158,7 +163,9 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path.name}: not valid TOML ({exc})") from exc
     stage_params_allowed = stage_params_allowed or {}
-    _reject_unknown(data, {"phantom", "systems", "calibration", "output", "cache"} | set(stage_params_allowed), path, "")
+    _reject_unknown(
+        data, {"phantom", "systems", "calibration", "output", "cache"} | set(stage_params_allowed), path, ""
+    )
     root = path.parent
     if "phantom" not in data:
         raise ConfigError(f"{path.name}: key 'phantom': missing; add a [phantom] table with file = \"phantom.csv\"")
@@ -174,10 +181,12 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     calibration = data.get("calibration", {})
     _reject_unknown(calibration, {"scheme"}, path, "[calibration] ")
     scheme = calibration.get("scheme", "knn+iop+smooth")
-    from stages.learn import SCHEMES
+    from fluorocal.stages.learn import SCHEMES
 
     if scheme not in SCHEMES:
-        raise ConfigError(f"{_where(path, '[calibration] ', 'scheme')}: expected one of {', '.join(SCHEMES)}; got {scheme!r}")
+        raise ConfigError(
+            f"{_where(path, '[calibration] ', 'scheme')}: expected one of {', '.join(SCHEMES)}; got {scheme!r}"
+        )
 
     output = data.get("output", {})
     _reject_unknown(output, {"dir"}, path, "[output] ")
@@ -245,7 +254,9 @@ def _coerce(value, hint, where: str):
         if isinstance(value, list):
             args = typing.get_args(hint)
             inner = args[0] if args else object
-            return tuple(_coerce(v, inner, where) if inner is not object and inner is not Ellipsis else v for v in value)
+            return tuple(
+                _coerce(v, inner, where) if inner is not object and inner is not Ellipsis else v for v in value
+            )
     elif hint is object or hint is typing.Any:
         return value
     raise ConfigError(f"{where}: expected {getattr(hint, '__name__', hint)}; got {value!r}")

@@ -20,9 +20,8 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import numpy as np
-
-from pipeline.report import rms_px
-from stages.io import atomic_write, write_csv
+from fluorocal.report import rms_px
+from fluorocal.stages.io import atomic_write, write_csv
 
 log = logging.getLogger(__name__)
 
@@ -66,13 +65,21 @@ def _fluorocal_version() -> str:
 
 def calibration_from_result(runner, result):
     """The :class:`Calibration` of a learning result, with the statistics of the solve."""
-    from pipeline.calibration import Calibration, SystemCalibration
+    from fluorocal.calibration import Calibration, SystemCalibration
 
     adj = result.adjustment
     names = [s.name for s in runner.config.systems]
     sizes = [next(u.size_px for u in runner.units if u.system == s) for s in range(len(names))]
     systems = [
-        SystemCalibration(name, tuple(sizes[s]), adj.iop_px[s], adj.iop_std_px[s], adj.rop_q[s], adj.rop_source_mm[s], result.fields[s])
+        SystemCalibration(
+            name,
+            tuple(sizes[s]),
+            adj.iop_px[s],
+            adj.iop_std_px[s],
+            adj.rop_q[s],
+            adj.rop_source_mm[s],
+            result.fields[s],
+        )
         for s, name in enumerate(names)
     ]
     exposures = {int(e): (q, t) for e, q, t in zip(adj.exposure, adj.q_cam_from_obj, adj.source_mm)}
@@ -102,7 +109,7 @@ def calibration_from_result(runner, result):
 
 def export_calibration(runner) -> list[Path]:
     """Write the calibration, its tables and its report."""
-    from pipeline.gather import failed_frames, observations_from_labels
+    from fluorocal.gather import failed_frames, observations_from_labels
 
     out_dir = Path(runner.config.output_dir)
     result = runner.get("learn", None)
@@ -116,17 +123,59 @@ def export_calibration(runner) -> list[Path]:
     written = cal.save(out_dir / "calibration.json")
 
     sx, sy, sz = adj.xyz_std_mm.T
-    rows = [[int(i), *map(float, p), float(a), float(b), float(c)] for i, p, a, b, c in zip(adj.bead_id, adj.xyz_mm, sx, sy, sz)]
+    rows = [
+        [int(i), *map(float, p), float(a), float(b), float(c)]
+        for i, p, a, b, c in zip(adj.bead_id, adj.xyz_mm, sx, sy, sz)
+    ]
     write_csv(out_dir / "object_points.csv", ["id", "x", "y", "z", "sx", "sy", "sz"], rows)
     written.append(out_dir / "object_points.csv")
 
     files = {(u.system, u.exposure): u.path.name for u in runner.units}
     names = obs.system_names
     rows = [
-        [names[s], files[(s, e)], int(e), int(i), float(x), float(y), float(sg[0]), float(sg[1]), float(sg[2]), float(d[0]), float(d[1]), float(v[0]), float(v[1]), int(inl)]
-        for s, e, i, (x, y), sg, d, v, inl in zip(obs.system, obs.exposure, obs.bead_id, obs.xy_px, obs.sigma_px, result.corrections_px, adj.residual_px, adj.inlier)
+        [
+            names[s],
+            files[(s, e)],
+            int(e),
+            int(i),
+            float(x),
+            float(y),
+            float(sg[0]),
+            float(sg[1]),
+            float(sg[2]),
+            float(d[0]),
+            float(d[1]),
+            float(v[0]),
+            float(v[1]),
+            int(inl),
+        ]
+        for s, e, i, (x, y), sg, d, v, inl in zip(
+            obs.system,
+            obs.exposure,
+            obs.bead_id,
+            obs.xy_px,
+            obs.sigma_px,
+            result.corrections_px,
+            adj.residual_px,
+            adj.inlier,
+        )
     ]
-    header = ["system", "file", "exposure", "id", "x", "y", "sigma_x", "sigma_y", "rho", "delta_x", "delta_y", "residual_x", "residual_y", "inlier"]
+    header = [
+        "system",
+        "file",
+        "exposure",
+        "id",
+        "x",
+        "y",
+        "sigma_x",
+        "sigma_y",
+        "rho",
+        "delta_x",
+        "delta_y",
+        "residual_x",
+        "residual_y",
+        "inlier",
+    ]
     write_csv(out_dir / "observations.csv", header, rows)
     written.append(out_dir / "observations.csv")
     written += write_report(out_dir, runner, obs, result, cal, excluded)
@@ -135,7 +184,7 @@ def export_calibration(runner) -> list[Path]:
 
 def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[Path]:
     """``report.md`` and its plots: residuals before/after, the learned fields, convergence, per-frame RMS."""
-    from pipeline import report
+    from fluorocal import report
 
     adj = result.adjustment
     before = getattr(result, "initial_residual_px", None)
@@ -164,9 +213,13 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
             f"| {name} | {n_frames} | {int(sel.sum())} | {int(inl.sum())} | {int((sel & adj.used & ~adj.inlier).sum())} | {rms_before:.3f} | {rms_px(adj.residual_px[inl]):.3f} "
             f"| {iop[0]:.2f} ± {iop_sd[0]:.2f} | {iop[1]:.2f} ± {iop_sd[1]:.2f} | {iop[2]:.1f} ± {iop_sd[2]:.1f} | {max_delta:.2f} |"
         )
-        panels = ([("before: no correction", obs.xy_px[inl], before[inl])] if before is not None else []) + [("after: calibrated", obs.xy_px[inl], adj.residual_px[inl])]
+        panels = ([("before: no correction", obs.xy_px[inl], before[inl])] if before is not None else []) + [
+            ("after: calibrated", obs.xy_px[inl], adj.residual_px[inl])
+        ]
         plots.append(report.residual_maps(out_dir / f"residuals_{name}.png", panels, size))
-        plots.append(report.field_map(out_dir / f"field_{name}.png", result.fields[s], f"learned correction Δ, system {name}"))
+        plots.append(
+            report.field_map(out_dir / f"field_{name}.png", result.fields[s], f"learned correction Δ, system {name}")
+        )
         labels, rms_b, rms_a = [], [], []
         for u in (u for u in runner.units if u.system == s):
             f = inl & (obs.exposure == u.exposure)

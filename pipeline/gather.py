@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-
-from stages.artifacts import Observations
-from stages.errors import InputError
+from fluorocal.stages.artifacts import Observations
+from fluorocal.stages.errors import InputError
 
 
 def failed_frames(units, labels) -> list[str]:
@@ -33,7 +32,9 @@ def observations_from_labels(units, labels, config) -> Observations:
     ]
     names = tuple(s.name for s in config.systems)
     if not parts:
-        raise InputError("no frame could be labelled; check the phantom file, the [[systems]] geometry and `fluorocal inspect CONFIG label`")
+        raise InputError(
+            "no frame could be labelled; check the phantom file, the [[systems]] geometry and `fluorocal inspect CONFIG label`"
+        )
     system, exposure, bead_id, xy, sigma = (np.concatenate(p) for p in zip(*parts))
     for s, name in enumerate(names):
         if not np.any(system == s):

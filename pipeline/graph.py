@@ -14,8 +14,8 @@ instant.
 from __future__ import annotations
 
 import importlib
-from functools import lru_cache
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Callable
 
 SOURCES = ("frame", "phantom")
@@ -77,41 +77,60 @@ def _label_context(config, unit, units) -> dict:
 
 @lru_cache(maxsize=8)
 def _seeds(path):
-    from stages.io import read_seeds
+    from fluorocal.stages.io import read_seeds
 
     return read_seeds(path)
 
 
 def _learn_extras(config, units) -> dict:
-    from pipeline.config import params_from_dict
-    from stages.adjust import AdjustParams
-    from stages.learn import CalibrationSetup
+    from fluorocal.config import params_from_dict
+    from fluorocal.stages.adjust import AdjustParams
+    from fluorocal.stages.learn import CalibrationSetup
 
     sizes, guesses = [], []
     for s, system in enumerate(config.systems):
         w, h = next(u.size_px for u in units if u.system == s)
         sizes.append((w, h))
         guesses.append(((w - 1) / 2, (h - 1) / 2, system.source_image_distance_mm / system.pixel_pitch_mm))
-    adjust = params_from_dict(AdjustParams, config.stage_params.get("adjust", {}), where=f"{config.path.name}: [adjust] ")
-    return {"setup": CalibrationSetup(scheme=config.scheme, image_size_px=tuple(sizes), iop_guess_px=tuple(guesses)), "adjust": adjust}
+    adjust = params_from_dict(
+        AdjustParams, config.stage_params.get("adjust", {}), where=f"{config.path.name}: [adjust] "
+    )
+    return {
+        "setup": CalibrationSetup(scheme=config.scheme, image_size_px=tuple(sizes), iop_guess_px=tuple(guesses)),
+        "adjust": adjust,
+    }
 
 
 def _gather_observations(units, labels, config):
-    from pipeline.gather import observations_from_labels
+    from fluorocal.gather import observations_from_labels
 
     return observations_from_labels(units, labels, config)
 
 
 #: the project's stages in execution order: (stage name, module, entry function, Params class, inputs, options)
 REGISTRY = (
-    ("detect", "stages.detect", "detect_beads", "DetectParams", ("frame",), {}),
-    ("centroid", "stages.centroid", "centroid_beads", "CentroidParams", ("frame", "detect"), {}),
-    ("label", "stages.label", "label_beads", "LabelParams", ("centroid", "phantom"), {"context": _label_context}),
-    ("learn", "stages.learn", "learn_calibration", "LearnParams", ("label", "phantom"), {"per_frame": False, "gather": _gather_observations, "extras": _learn_extras}),
+    ("detect", "fluorocal.stages.detect", "detect_beads", "DetectParams", ("frame",), {}),
+    ("centroid", "fluorocal.stages.centroid", "centroid_beads", "CentroidParams", ("frame", "detect"), {}),
+    (
+        "label",
+        "fluorocal.stages.label",
+        "label_beads",
+        "LabelParams",
+        ("centroid", "phantom"),
+        {"context": _label_context},
+    ),
+    (
+        "learn",
+        "fluorocal.stages.learn",
+        "learn_calibration",
+        "LearnParams",
+        ("label", "phantom"),
+        {"per_frame": False, "gather": _gather_observations, "extras": _learn_extras},
+    ),
 )
 
 #: config sections that are not a stage of their own, and their Params class
-EXTRA_SECTIONS = {"adjust": ("stages.adjust", "AdjustParams")}
+EXTRA_SECTIONS = {"adjust": ("fluorocal.stages.adjust", "AdjustParams")}
 
 
 def default_stages() -> list[Stage]:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from stages.errors import InputError
-from stages.io import atomic_write
+from fluorocal.stages.errors import InputError
+from fluorocal.stages.io import atomic_write
 
 
 def write_stage_overlay(runner, stage: str, frame: int) -> Path:
@@ -14,8 +14,7 @@ def write_stage_overlay(runner, stage: str, frame: int) -> Path:
     Computes (and caches) what the overlay needs if it is not cached yet.
     """
     import cv2
-
-    from pipeline.overlay import render_label_overlay, render_overlay
+    from fluorocal.overlay import render_label_overlay, render_overlay
 
     radiograph = runner.get("frame", frame)
     if stage == "detect":
@@ -27,7 +26,11 @@ def write_stage_overlay(runner, stage: str, frame: int) -> Path:
     else:
         raise InputError(f"stage {stage!r} has no per-frame overlay; use detect, centroid or label")
     unit = runner.units[frame]
-    path = Path(runner.config.output_dir) / "overlays" / f"{stage}_{runner.config.systems[unit.system].name}_{unit.exposure:04d}.png"
+    path = (
+        Path(runner.config.output_dir)
+        / "overlays"
+        / f"{stage}_{runner.config.systems[unit.system].name}_{unit.exposure:04d}.png"
+    )
     ok, png = cv2.imencode(".png", image)
     if not ok:
         raise InputError(f"{path}: PNG encoding failed")

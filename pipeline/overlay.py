@@ -58,10 +58,23 @@ def render_overlay(radiograph, candidates, centroids=None) -> np.ndarray:
         elif centroids is None:
             cv2.circle(out, (fixed(x), fixed(y)), fixed(r), _ACCEPTED, 1, cv2.LINE_AA, shift)
     if centroids is not None:
-        for (x, y), a, b, angle, ok, why in zip(centroids.xy_px, centroids.major_px, centroids.minor_px, centroids.angle_rad, centroids.ok, centroids.reason):
+        for (x, y), a, b, angle, ok, why in zip(
+            centroids.xy_px, centroids.major_px, centroids.minor_px, centroids.angle_rad, centroids.ok, centroids.reason
+        ):
             colour = _ACCEPTED if ok else _FAILED_FIT
             if np.all(np.isfinite([x, y, a, b, angle])) and a > 0:
-                cv2.ellipse(out, (fixed(x), fixed(y)), (fixed(a), fixed(b)), float(np.degrees(angle)), 0, 360, colour, 1, cv2.LINE_AA, shift)
+                cv2.ellipse(
+                    out,
+                    (fixed(x), fixed(y)),
+                    (fixed(a), fixed(b)),
+                    float(np.degrees(angle)),
+                    0,
+                    360,
+                    colour,
+                    1,
+                    cv2.LINE_AA,
+                    shift,
+                )
                 cv2.drawMarker(out, (int(round(x)), int(round(y))), colour, cv2.MARKER_CROSS, 3, 1)
             if not ok:
                 cv2.putText(out, why, (int(x + a + 2), int(y + 4)), font, 0.8, colour, 1, cv2.LINE_AA)
@@ -86,8 +99,7 @@ def render_label_overlay(radiograph, centroids, labels):
     """
     import cv2
     import numpy as np
-
-    from stages.label import STATUS_AMBIGUOUS, STATUS_LABELLED, STATUS_UNMATCHED
+    from fluorocal.stages.label import STATUS_AMBIGUOUS, STATUS_LABELLED, STATUS_UNMATCHED
 
     out = cv2.cvtColor(stretch_to_uint8(radiograph.image), cv2.COLOR_GRAY2BGR)
     colours = {STATUS_LABELLED: (60, 220, 60), STATUS_AMBIGUOUS: (0, 165, 255), STATUS_UNMATCHED: (60, 60, 255)}

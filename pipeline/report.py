@@ -9,8 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
-from stages.io import atomic_write
+from fluorocal.stages.io import atomic_write
 
 
 def rms_px(residual_px: np.ndarray) -> float:
@@ -53,7 +52,16 @@ def residual_maps(path: Path, panels: list[tuple[str, np.ndarray, np.ndarray]], 
         rms = rms_px(res)
         sc = ax.scatter(xy[:, 0], xy[:, 1], c=mag, s=2, cmap="viridis", vmin=0, vmax=vmax)
         step = max(len(xy) // 1500, 1)
-        ax.quiver(xy[::step, 0], xy[::step, 1], res[::step, 0], res[::step, 1], angles="xy", color="k", width=0.002, scale=vmax * 25)
+        ax.quiver(
+            xy[::step, 0],
+            xy[::step, 1],
+            res[::step, 0],
+            res[::step, 1],
+            angles="xy",
+            color="k",
+            width=0.002,
+            scale=vmax * 25,
+        )
         _image_axes(ax, size_px, f"{title}\nRMS {rms:.3f} px per coordinate")
     fig.colorbar(sc, ax=list(axes), label="|residual| (px)", shrink=0.8)
     return _save(plt, fig, path)
@@ -68,7 +76,9 @@ def field_map(path: Path, field, title: str) -> Path:
     xx, yy = np.meshgrid(field.x_nodes_px, field.y_nodes_px)
     step = max(len(field.x_nodes_px) // 24, 1)
     sel = (slice(None, None, step), slice(None, None, step))
-    ax.quiver(xx[sel], yy[sel], field.delta_px[sel][..., 0], field.delta_px[sel][..., 1], angles="xy", color="c", width=0.003)
+    ax.quiver(
+        xx[sel], yy[sel], field.delta_px[sel][..., 0], field.delta_px[sel][..., 1], angles="xy", color="c", width=0.003
+    )
     _image_axes(ax, (field.width_px, field.height_px), title)
     fig.colorbar(im, ax=ax, label="|Δ| (px)", shrink=0.8)
     return _save(plt, fig, path)

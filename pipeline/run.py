@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
-from pipeline.cache import ArtifactCache, artifact_key, file_sha256
-from pipeline.config import Config, params_from_dict
-from pipeline.graph import SOURCES, Stage, check_graph, downstream
-from stages.errors import CalibError, InputError
+from fluorocal.cache import ArtifactCache, artifact_key, file_sha256
+from fluorocal.config import Config, params_from_dict
+from fluorocal.graph import SOURCES, Stage, check_graph, downstream
+from fluorocal.stages.errors import CalibError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +67,7 @@ class RunReport:
 
 def frame_units(config: Config) -> list[FrameUnit]:
     """Every frame of every system, in sorted file order; the key is the file's content hash and frame index."""
-    from stages.io import probe_frames
+    from fluorocal.stages.io import probe_frames
 
     units = []
     for s, system in enumerate(config.systems):
@@ -85,14 +85,16 @@ def frame_units(config: Config) -> list[FrameUnit]:
 @lru_cache(maxsize=2)
 def _read_file_frames(path: Path, content_sha256: str):
     """All frames of a file; the content hash keeps an edited file from being served stale."""
-    from stages.io import read_frames
+    from fluorocal.stages.io import read_frames
 
     return read_frames(path)
 
 
 def stage_params(stage: Stage, config: Config, unit: FrameUnit | None, units: list[FrameUnit]):
     """The stage's Params from its config section, with the fields its context fills from the project."""
-    params = params_from_dict(stage.params_cls, config.stage_params.get(stage.name, {}), where=f"{config.path.name}: [{stage.name}] ")
+    params = params_from_dict(
+        stage.params_cls, config.stage_params.get(stage.name, {}), where=f"{config.path.name}: [{stage.name}] "
+    )
     if stage.context is not None:
         params = dataclasses.replace(params, **stage.context(config, unit, units))
     return params
@@ -111,7 +113,9 @@ class Runner:
         Show progress bars (on a terminal).
     """
 
-    def __init__(self, config: Config, stages: list[Stage], cache: ArtifactCache, *, force=(), until=None, progress=True):
+    def __init__(
+        self, config: Config, stages: list[Stage], cache: ArtifactCache, *, force=(), until=None, progress=True
+    ):
         check_graph(stages)
         names = [s.name for s in stages]
         unknown = [n for n in list(force) + ([until] if until else []) if n not in names]
@@ -152,11 +156,15 @@ class Runner:
             for unit in self._stage_units(stage):
                 inputs = [k for name in stage.inputs for k in self._input_key(name, unit)]
                 if not stage.per_frame:  # the grouping of frames is part of what a gathering stage sees
-                    inputs.append(repr([(u.system, u.exposure) for u in self.units]) + repr([s.name for s in self.config.systems]))
+                    inputs.append(
+                        repr([(u.system, u.exposure) for u in self.units]) + repr([s.name for s in self.config.systems])
+                    )
                 params = stage_params(stage, self.config, None if unit is None else self.units[unit], self.units)
                 extras = stage.extras(self.config, self.units) if stage.extras else {}
                 self.params[(stage.name, unit)] = (params, extras)
-                self.keys[(stage.name, unit)] = artifact_key(stage.name, stage.version, {"params": params, **extras}, inputs)
+                self.keys[(stage.name, unit)] = artifact_key(
+                    stage.name, stage.version, {"params": params, **extras}, inputs
+                )
 
     def _stage_units(self, stage: Stage) -> list[int | None]:
         return list(range(len(self.units))) if stage.per_frame else [None]
@@ -167,10 +175,20 @@ class Runner:
         from tqdm import tqdm
 
         for stage in self.stages:
-            todo = [u for u in self._stage_units(stage) if stage.name in self.force or not self.cache.has(stage.name, self.keys[(stage.name, u)])]
+            todo = [
+                u
+                for u in self._stage_units(stage)
+                if stage.name in self.force or not self.cache.has(stage.name, self.keys[(stage.name, u)])
+            ]
             self.report.cached[stage.name] = len(self._stage_units(stage)) - len(todo)
             self.report.computed[stage.name] = 0
-            bar = tqdm(todo, desc=f"{stage.name:>9}", unit="frame" if stage.per_frame else "run", leave=False, disable=not (self.progress and sys.stderr.isatty()) or not todo)
+            bar = tqdm(
+                todo,
+                desc=f"{stage.name:>9}",
+                unit="frame" if stage.per_frame else "run",
+                leave=False,
+                disable=not (self.progress and sys.stderr.isatty()) or not todo,
+            )
             for unit in bar:
                 self._compute(stage, unit)
         for line in self.report.lines():
@@ -196,8 +214,8 @@ class Runner:
         return self._compute(stage, slot[1])
 
     def _phantom(self):
-        from stages.artifacts import Phantom
-        from stages.io import read_phantom
+        from fluorocal.stages.artifacts import Phantom
+        from fluorocal.stages.io import read_phantom
 
         ph = self.config.phantom
         if ph.file:
@@ -226,7 +244,12 @@ class Runner:
             where = f"{self.units[unit].label}: " if unit is not None else ""
             raise type(exc)(f"{where}{stage.name}: {exc}") from exc
         took = time.perf_counter() - t0
-        provenance = {"stage_version": stage.version, "params": dataclasses.asdict(params), "inputs": list(stage.inputs), "wall_seconds": took}
+        provenance = {
+            "stage_version": stage.version,
+            "params": dataclasses.asdict(params),
+            "inputs": list(stage.inputs),
+            "wall_seconds": took,
+        }
         if unit is not None:
             provenance["frame"] = {"file": str(self.units[unit].path), "index": self.units[unit].index}
         self.cache.store(stage.name, self.keys[slot], artifact, provenance=provenance)
@@ -248,5 +271,15 @@ class Runner:
             if present:
                 manifest = self.cache.manifest(stage.name, present[-1])
                 summary = (manifest or {}).get("summary", "")
-            rows.append({"stage": stage.name, "key": keys[0][:12] if keys else "", "n": len(keys), "cached": len(present), "status": status, "bytes": size, "summary": summary})
+            rows.append(
+                {
+                    "stage": stage.name,
+                    "key": keys[0][:12] if keys else "",
+                    "n": len(keys),
+                    "cached": len(present),
+                    "status": status,
+                    "bytes": size,
+                    "summary": summary,
+                }
+            )
         return rows

@@ -40,10 +40,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-
-from stages import _polynomial
-from stages._geometry import quat_multiply, quat_normalize, quat_to_matrix, rotvec_to_quat
-from stages.errors import EstimationError
+from fluorocal.stages import _polynomial
+from fluorocal.stages._geometry import quat_multiply, quat_normalize, quat_to_matrix, rotvec_to_quat
+from fluorocal.stages.errors import EstimationError
 
 log = logging.getLogger(__name__)
 
@@ -311,7 +310,9 @@ def build_problem(
         sel = np.flatnonzero(sys_idx == s) if n_systems > 1 else None
         e_s, k_s = (e_idx, k_idx) if sel is None else (e_idx[sel], k_idx[sel])
         # B laid out (ne, be, r): flat index of row (e, a), column k * bk + b
-        flat = (e_s[:, None, None] * be + np.arange(be)[None, :, None]) * n_kept + k_s[:, None, None] * bk + np.arange(bk)
+        flat = (
+            (e_s[:, None, None] * be + np.arange(be)[None, :, None]) * n_kept + k_s[:, None, None] * bk + np.arange(bk)
+        )
         ek_flat.append((sel, flat.reshape(-1)))
     problem = Problem(
         point_idx=point_idx,
@@ -389,7 +390,9 @@ def residuals(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     return _residuals_from_camera(state, problem, p)
 
 
-def _residuals_from_camera(state: State, problem: Problem, p: np.ndarray, ap_basis: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _residuals_from_camera(
+    state: State, problem: Problem, p: np.ndarray, ap_basis: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     z = p[:, 2]
     if not np.all(z > 1e-6):
         raise FloatingPointError("point at or behind the source")
@@ -980,8 +983,10 @@ def solve(state: State, problem: Problem, options: SolverOptions) -> SolverResul
                 stop, converged = "step below parameter_tolerance", True
                 break
         else:
-            if small_step or 0 <= predicted <= options.function_tolerance or (
-                math.isfinite(new_cost) and abs(actual) <= options.function_tolerance
+            if (
+                small_step
+                or 0 <= predicted <= options.function_tolerance
+                or (math.isfinite(new_cost) and abs(actual) <= options.function_tolerance)
             ):
                 stop, converged = "no further decrease within the tolerances", True
                 break
@@ -1066,7 +1071,9 @@ def covariance(state: State, problem: Problem, w: np.ndarray) -> Covariance:
     PE = cov_e - Ainv  # F Z^-1 F^T per eliminated block
     # the kept columns of an observation depend only on its (kept block, system): gather Z^-1 once per pair
     n_sys = problem.n_systems
-    pair_cols = np.concatenate([np.repeat(np.arange(nk), n_sys)[:, None] * bk + np.arange(bk), gcols[np.tile(np.arange(n_sys), nk)]], axis=1)
+    pair_cols = np.concatenate(
+        [np.repeat(np.arange(nk), n_sys)[:, None] * bk + np.arange(bk), gcols[np.tile(np.arange(n_sys), nk)]], axis=1
+    )
     pair_valid = pair_cols >= 0
     pair_cols = np.where(pair_valid, pair_cols, 0)
     pair_Z = Zinv[pair_cols[:, :, None], pair_cols[:, None, :]]

@@ -19,8 +19,7 @@ Conventions (README.md, "Conventions"):
 from __future__ import annotations
 
 import numpy as np
-
-from stages.errors import ShapeError
+from fluorocal.stages.errors import ShapeError
 
 
 def rc_to_xy(points_rc: np.ndarray) -> np.ndarray:
@@ -144,7 +143,9 @@ def project(points_mm: np.ndarray, q: np.ndarray, source_mm: np.ndarray, iop: np
     return np.column_stack([xp + c * p_cam[:, 0] / p_cam[:, 2], yp + c * p_cam[:, 1] / p_cam[:, 2]])
 
 
-def similarity_fit(src: np.ndarray, dst: np.ndarray, *, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+def similarity_fit(
+    src: np.ndarray, dst: np.ndarray, *, with_scale: bool = True
+) -> tuple[float, np.ndarray, np.ndarray]:
     """Least-squares 7-parameter similarity ``dst ≈ s R src + t`` (Umeyama).
 
     Parameters
@@ -175,7 +176,9 @@ def similarity_fit(src: np.ndarray, dst: np.ndarray, *, with_scale: bool = True)
     return scale, R, mu_d - scale * R @ mu_s
 
 
-def image_rays(ideal_xy_px: np.ndarray, iop_px: np.ndarray, q: np.ndarray, source_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def image_rays(
+    ideal_xy_px: np.ndarray, iop_px: np.ndarray, q: np.ndarray, source_mm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Rays from the source through ideal (undistorted) image points, in the frame the pose is given in.
 
     Parameters

@@ -16,9 +16,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from stages._ba import t_weights, whiten, whitening
-from stages.errors import EstimationError
+from fluorocal.stages._ba import t_weights, whiten, whitening
+from fluorocal.stages.errors import EstimationError
 
 log = logging.getLogger(__name__)
 
@@ -78,12 +77,18 @@ def _jacobian(h, plate_n, seg, linv_n) -> tuple[np.ndarray, np.ndarray]:
     one_d = 1.0 / d
     u, v = f[:, 0], f[:, 1]
     dfdh = np.stack(
-        [np.stack([X, Y, one_d, zero, zero, zero, -u * X, -u * Y], -1), np.stack([zero, zero, zero, X, Y, one_d, -v * X, -v * Y], -1)], 1
+        [
+            np.stack([X, Y, one_d, zero, zero, zero, -u * X, -u * Y], -1),
+            np.stack([zero, zero, zero, X, Y, one_d, -v * X, -v * Y], -1),
+        ],
+        1,
     )
     return -whiten(linv_n, dfdh), f
 
 
-def fit_homographies(plate_mm, image_px, sigma_px, frame_starts, *, nu, estimate_scale, max_iterations, function_tolerance) -> FrameFit:
+def fit_homographies(
+    plate_mm, image_px, sigma_px, frame_starts, *, nu, estimate_scale, max_iterations, function_tolerance
+) -> FrameFit:
     """Student-t maximum-likelihood homography of every frame (observations sorted by frame).
 
     Parameters
@@ -177,8 +182,16 @@ def fit_homographies(plate_mm, image_px, sigma_px, frame_starts, *, nu, estimate
     Q = np.linalg.inv(np.add.reduceat(np.matmul(Jw.transpose(0, 2, 1), Jw), frame_starts, axis=0))
     hat = np.einsum("nai,nij,nbj->nab", J, Q[seg], J)
     residual_px = (image_n - f) / is_[seg, None]
-    return FrameFit(H=H_px, scale2=scale2, residual_px=residual_px, s=s, hat=hat, iterations=it, converged=done,
-                    cost_history=tuple(history))
+    return FrameFit(
+        H=H_px,
+        scale2=scale2,
+        residual_px=residual_px,
+        s=s,
+        hat=hat,
+        iterations=it,
+        converged=done,
+        cost_history=tuple(history),
+    )
 
 
 def _ml_scales(s, seg, counts, nu, scale2) -> np.ndarray:

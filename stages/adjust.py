@@ -48,8 +48,8 @@ the same per-observation outputs).
 Examples
 --------
 >>> import numpy as np
->>> from stages._geometry import project, quat_to_matrix, rotvec_to_quat
->>> from stages.artifacts import Observations
+>>> from fluorocal.stages._geometry import project, quat_to_matrix, rotvec_to_quat
+>>> from fluorocal.stages.artifacts import Observations
 >>> rng = np.random.default_rng(0)
 >>> xyz = rng.uniform(-50, 50, (40, 3))
 >>> angles = np.deg2rad(np.arange(0, 360, 40))
@@ -72,11 +72,10 @@ import math
 from dataclasses import dataclass, fields
 
 import numpy as np
-
-from stages import _ba, _polynomial
-from stages._geometry import quat_multiply, quat_normalize, quat_to_matrix
-from stages.artifacts import Observations, Phantom, SCHEMA_VERSION, check_shape, freeze
-from stages.errors import EstimationError, InputError, ShapeError
+from fluorocal.stages import _ba, _polynomial
+from fluorocal.stages._geometry import quat_multiply, quat_normalize, quat_to_matrix
+from fluorocal.stages.artifacts import SCHEMA_VERSION, Observations, Phantom, check_shape, freeze
+from fluorocal.stages.errors import EstimationError, InputError, ShapeError
 
 log = logging.getLogger(__name__)
 
@@ -195,10 +194,14 @@ class AdjustParams:
         if self.schur not in ("auto", "points", "poses"):
             raise InputError(f"schur must be 'auto', 'points' or 'poses'; got {self.schur!r}")
         if self.additional_parameters not in ("none", "polynomial"):
-            raise InputError(f"additional_parameters must be 'none' or 'polynomial'; got {self.additional_parameters!r}")
+            raise InputError(
+                f"additional_parameters must be 'none' or 'polynomial'; got {self.additional_parameters!r}"
+            )
         unknown = set(self.fixed_additional_parameters) - set(_polynomial.AP_NAMES)
         if unknown:
-            raise InputError(f"fixed_additional_parameters must name some of {', '.join(_polynomial.AP_NAMES)}; got {sorted(unknown)}")
+            raise InputError(
+                f"fixed_additional_parameters must name some of {', '.join(_polynomial.AP_NAMES)}; got {sorted(unknown)}"
+            )
         if self.min_exposures < 2 or self.min_beads_per_exposure < 3 or self.min_exposures_per_bead < 2:
             raise InputError(
                 "min_exposures >= 2, min_beads_per_exposure >= 3 and min_exposures_per_bead >= 2 are required; got "
@@ -396,8 +399,12 @@ class Adjustment:
 
     def __post_init__(self):
         n_sys, n_ap = len(np.asarray(self.iop_px).reshape(-1, 3)), _polynomial.N_AP
-        for name, shape, fill in (("ap_px", (n_sys, n_ap), 0.0), ("ap_std_px", (n_sys, n_ap), 0.0),
-                                  ("ap_cov_px2", (n_sys, n_ap, n_ap), 0.0), ("ap_radius_px", (n_sys,), 1.0)):
+        for name, shape, fill in (
+            ("ap_px", (n_sys, n_ap), 0.0),
+            ("ap_std_px", (n_sys, n_ap), 0.0),
+            ("ap_cov_px2", (n_sys, n_ap, n_ap), 0.0),
+            ("ap_radius_px", (n_sys,), 1.0),
+        ):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, np.full(shape, fill))
         _check_finite_and_freeze(self)
@@ -460,8 +467,7 @@ def initial_orientation(observations: Observations, nominal, iop_px: np.ndarray,
         No frame could be resected, or a system shares no epoch with system 0.
     """
     import cv2
-
-    from stages._geometry import matrix_to_quat
+    from fluorocal.stages._geometry import matrix_to_quat
 
     ids, xyz = _nominal_table(nominal)
     n_sys = len(observations.system_names)
@@ -487,7 +493,9 @@ def initial_orientation(observations: Observations, nominal, iop_px: np.ndarray,
     for s in range(1, n_sys):
         both = np.isfinite(T[0, :, 0]) & np.isfinite(T[s, :, 0])
         if not both.any():
-            raise EstimationError(f"system {observations.system_names[s]} shares no resected exposure with system {observations.system_names[0]}")
+            raise EstimationError(
+                f"system {observations.system_names[s]} shares no resected exposure with system {observations.system_names[0]}"
+            )
         q_rel = matrix_to_quat(R[s, both] @ R[0, both].transpose(0, 2, 1))
         q_rel *= np.sign(q_rel @ q_rel[0])[:, None]
         rop_q[s] = quat_normalize(q_rel.mean(0))
@@ -508,8 +516,15 @@ def initial_orientation(observations: Observations, nominal, iop_px: np.ndarray,
         raise EstimationError(f"no frame could be resected (each needs >= {min_beads} labelled beads)")
     if not found.all():
         log.warning("%d exposure(s) could not be resected and are left out", int((~found).sum()))
-    return Orientation(iop_px=iop_px, exposure=epochs[found], q_cam_from_obj=q0[found], source_mm=T0[found], rop_q=rop_q,
-                       rop_source_mm=rop_t, system_names=observations.system_names)
+    return Orientation(
+        iop_px=iop_px,
+        exposure=epochs[found],
+        q_cam_from_obj=q0[found],
+        source_mm=T0[found],
+        rop_q=rop_q,
+        rop_source_mm=rop_t,
+        system_names=observations.system_names,
+    )
 
 
 # --------------------------------------------------------------------------- input checks
@@ -586,13 +601,22 @@ def _select_observations(obs, point_idx, epoch_idx, n_points, n_epochs, initial,
         if drop.any():
             log.info(
                 "dropping %d observation(s) of %d bead(s) seen in fewer than %d epochs or by rays within %.3g deg",
-                int(drop.sum()), int(len(np.unique(point_idx[drop]))), params.min_exposures_per_bead, params.min_ray_angle_deg,
+                int(drop.sum()),
+                int(len(np.unique(point_idx[drop]))),
+                params.min_exposures_per_bead,
+                params.min_ray_angle_deg,
             )
             used &= ~drop
-        epoch_beads = np.bincount(np.unique(epoch_idx[used] * (n_points + 1) + point_idx[used]) // (n_points + 1), minlength=n_epochs)
+        epoch_beads = np.bincount(
+            np.unique(epoch_idx[used] * (n_points + 1) + point_idx[used]) // (n_points + 1), minlength=n_epochs
+        )
         weak_epoch = (epoch_beads < params.min_beads_per_exposure)[epoch_idx] & used
         if weak_epoch.any():
-            log.info("dropping %d observation(s) of epochs with fewer than %d beads", int(weak_epoch.sum()), params.min_beads_per_exposure)
+            log.info(
+                "dropping %d observation(s) of epochs with fewer than %d beads",
+                int(weak_epoch.sum()),
+                params.min_beads_per_exposure,
+            )
             used &= ~weak_epoch
         if used.sum() == before:
             break
@@ -707,7 +731,9 @@ def _prepare(observations, nominal, initial, corrections_px, params, start_point
         corrections_px = np.zeros((n_obs, 2))
     corrections_px = np.asarray(corrections_px, dtype=np.float64)
     if corrections_px.shape != (n_obs, 2):
-        raise ShapeError(f"corrections_px must have shape ({n_obs}, 2) like the observations; got {corrections_px.shape}")
+        raise ShapeError(
+            f"corrections_px must have shape ({n_obs}, 2) like the observations; got {corrections_px.shape}"
+        )
     if not np.all(np.isfinite(corrections_px)):
         raise InputError("corrections_px holds non-finite values")
     if initial.n_systems != len(observations.system_names):
@@ -721,7 +747,9 @@ def _prepare(observations, nominal, initial, corrections_px, params, start_point
     point_all = _lookup(observations.bead_id, ids, "observations.bead_id not in the nominal coordinates")
     epoch_all = _lookup(observations.exposure, initial.exposure, "observations.exposure not in initial.exposure")
 
-    used = _select_observations(observations, point_all, epoch_all, len(ids), len(initial.exposure), initial, nominal_xyz, params)
+    used = _select_observations(
+        observations, point_all, epoch_all, len(ids), len(initial.exposure), initial, nominal_xyz, params
+    )
     n_frames = len(np.unique(observations.system[used] * (len(initial.exposure) + 1) + epoch_all[used]))
     if n_frames < params.min_exposures:
         raise InputError(
@@ -736,7 +764,9 @@ def _prepare(observations, nominal, initial, corrections_px, params, start_point
     iop_free = np.full(n_sys, bool(params.estimate_iop))
     ap_radius = None
     if params.additional_parameters == "polynomial":
-        ap_radius = np.array([_polynomial.reference_radius(observations.xy_px[used][sys_idx == s]) for s in range(n_sys)])
+        ap_radius = np.array(
+            [_polynomial.reference_radius(observations.xy_px[used][sys_idx == s]) for s in range(n_sys)]
+        )
     problem, perm = _ba.build_problem(
         point_idx.astype(np.int64),
         pose_idx.astype(np.int64),
@@ -773,11 +803,14 @@ def _prepare(observations, nominal, initial, corrections_px, params, start_point
     )
     log.info(
         "adjusting %d observations: %d beads, %d epochs, %d systems, %d free parameters, eliminating %s",
-        problem.n_obs, problem.n_points, problem.n_poses, n_sys, problem.n_free, problem.eliminate,
+        problem.n_obs,
+        problem.n_points,
+        problem.n_poses,
+        n_sys,
+        problem.n_free,
+        problem.eliminate,
     )
     return _Prepared(problem, perm, state, options, used, beads_used, ids, epochs_used)
-
-
 
 
 def _summarise(observations, prepared: _Prepared, solved, initial, params) -> Adjustment:
@@ -799,7 +832,9 @@ def _summarise(observations, prepared: _Prepared, solved, initial, params) -> Ad
     else:
         # no inverse: zero cofactors, and the mean redundancy for every observation (hat = (1 - r̄)/w I)
         ng = problem.n_globals
-        cov = _ba.Covariance(np.zeros((problem.n_points, 3, 3)), np.zeros((problem.n_poses, 6, 6)), np.zeros((ng, ng)), None)
+        cov = _ba.Covariance(
+            np.zeros((problem.n_points, 3, 3)), np.zeros((problem.n_poses, 6, 6)), np.zeros((ng, ng)), None
+        )
         hat = ((1.0 - dof / (2.0 * n_used)) / w)[:, None, None] * np.eye(2)
 
     red, std_res, sigma0, inlier = _observation_statistics(r_px, s, w, hat, problem.linv, params.outlier_weight)
@@ -851,11 +886,17 @@ def _summarise(observations, prepared: _Prepared, solved, initial, params) -> Ad
         # the result says so (``usable``, ``stop_reason``); callers decide whether it concerns the user
         log.info(
             "adjustment not usable: %s, %.1f %% inliers (minimum %.1f %%)",
-            solved.stop_reason, 100 * inlier_fraction, 100 * params.min_inlier_fraction,
+            solved.stop_reason,
+            100 * inlier_fraction,
+            100 * params.min_inlier_fraction,
         )
     log.info(
         "adjustment: %d iterations (%s), σ0 %.3g, %.2f %% outliers, dof %d",
-        solved.iterations, solved.stop_reason, sigma0, 100 * (1 - inlier_fraction), dof,
+        solved.iterations,
+        solved.stop_reason,
+        sigma0,
+        100 * (1 - inlier_fraction),
+        dof,
     )
     return Adjustment(
         bead_id=ids[beads_used],
@@ -976,36 +1017,54 @@ def adjust_plate(
     EstimationError
         A frame's observations admit no homography (for example all on a line).
     """
-    from stages import _homography
+    from fluorocal.stages import _homography
 
     if not isinstance(observations, Observations):
         raise InputError(f"observations must be an Observations artifact; got {type(observations).__name__}")
     n_obs = len(observations)
     corrections_px = np.zeros((n_obs, 2)) if corrections_px is None else np.asarray(corrections_px, dtype=np.float64)
     if corrections_px.shape != (n_obs, 2):
-        raise ShapeError(f"corrections_px must have shape ({n_obs}, 2) like the observations; got {corrections_px.shape}")
+        raise ShapeError(
+            f"corrections_px must have shape ({n_obs}, 2) like the observations; got {corrections_px.shape}"
+        )
     ids, xyz = _nominal_table(nominal)
     point = _lookup(observations.bead_id, ids, "observations.bead_id not in the nominal coordinates")
     frame_key = observations.system * (int(observations.exposure.max(initial=0)) + 1) + observations.exposure
     keys, frame_idx, counts = np.unique(frame_key, return_inverse=True, return_counts=True)
     used = counts[frame_idx] >= max(params.min_beads_per_exposure, 5)
     if (~used).any():
-        log.info("leaving out %d frame(s) with fewer than %d beads", int((counts < max(params.min_beads_per_exposure, 5)).sum()),
-                 max(params.min_beads_per_exposure, 5))
+        log.info(
+            "leaving out %d frame(s) with fewer than %d beads",
+            int((counts < max(params.min_beads_per_exposure, 5)).sum()),
+            max(params.min_beads_per_exposure, 5),
+        )
     if not used.any():
-        raise InputError(f"no frame has >= {max(params.min_beads_per_exposure, 5)} observations; got at most {int(counts.max(initial=0))}")
+        raise InputError(
+            f"no frame has >= {max(params.min_beads_per_exposure, 5)} observations; got at most {int(counts.max(initial=0))}"
+        )
     order = np.flatnonzero(used)[np.argsort(frame_idx[used], kind="stable")]
     fr = frame_idx[order]
     starts = np.flatnonzero(np.r_[True, fr[1:] != fr[:-1]])
     fit = _homography.fit_homographies(
-        xyz[point[order], :2], observations.xy_px[order] - corrections_px[order], observations.sigma_px[order], starts,
-        nu=float(params.nu), estimate_scale=params.estimate_scale, max_iterations=params.max_iterations,
+        xyz[point[order], :2],
+        observations.xy_px[order] - corrections_px[order],
+        observations.sigma_px[order],
+        starts,
+        nu=float(params.nu),
+        estimate_scale=params.estimate_scale,
+        max_iterations=params.max_iterations,
         function_tolerance=params.function_tolerance,
     )
     seg = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(order)]))
-    w = _ba.t_weights(fit.s, float(params.nu), 1.0) if math.isinf(params.nu) else (params.nu + 2) / (params.nu + fit.s / fit.scale2[seg])
+    w = (
+        _ba.t_weights(fit.s, float(params.nu), 1.0)
+        if math.isinf(params.nu)
+        else (params.nu + 2) / (params.nu + fit.s / fit.scale2[seg])
+    )
     linv = _ba.whitening(observations.sigma_px[order])
-    red, std_res, sigma0, inlier = _observation_statistics(fit.residual_px, fit.s, w, fit.hat, linv, params.outlier_weight)
+    red, std_res, sigma0, inlier = _observation_statistics(
+        fit.residual_px, fit.s, w, fit.hat, linv, params.outlier_weight
+    )
     dof = 2 * len(order) - 8 * len(starts)
 
     def scatter(values, fill=0.0):
@@ -1030,7 +1089,9 @@ def adjust_plate(
         nu=float(params.nu),
         dof=int(dof),
         iterations=int(fit.iterations),
-        stop_reason="converged in every frame" if converged else f"{int((~fit.converged).sum())} frame(s) hit max_iterations",
+        stop_reason="converged in every frame"
+        if converged
+        else f"{int((~fit.converged).sum())} frame(s) hit max_iterations",
         converged=converged,
         usable=bool(usable),
         cost_history=fit.cost_history,
@@ -1076,4 +1137,13 @@ def _observation_statistics(r_px, s, w, hat, linv, outlier_weight):
     return red, std_res, sigma0, inlier
 
 
-__all__ = ["VERSION", "AdjustParams", "Orientation", "Adjustment", "adjust_bundle", "initial_orientation", "PlateAdjustment", "adjust_plate"]
+__all__ = [
+    "VERSION",
+    "AdjustParams",
+    "Orientation",
+    "Adjustment",
+    "adjust_bundle",
+    "initial_orientation",
+    "PlateAdjustment",
+    "adjust_plate",
+]

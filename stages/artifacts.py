@@ -12,8 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 
 import numpy as np
-
-from stages.errors import ShapeError
+from fluorocal.stages.errors import ShapeError
 
 SCHEMA_VERSION = 1
 
@@ -164,7 +163,9 @@ class Observations:
         if not (np.all(np.isfinite(self.xy_px)) and np.all(np.isfinite(self.sigma_px))):
             raise ShapeError("observations hold non-finite coordinates or sigmas")
         if n and (self.system.min() < 0 or self.system.max() >= len(self.system_names)):
-            raise ShapeError(f"system indices must lie in [0, {len(self.system_names)}); got {self.system.min()}..{self.system.max()}")
+            raise ShapeError(
+                f"system indices must lie in [0, {len(self.system_names)}); got {self.system.min()}..{self.system.max()}"
+            )
         freeze(self)
 
     def __len__(self) -> int:

@@ -62,11 +62,10 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-
-from stages._image import background, frame_name, odd_size
-from stages.artifacts import SCHEMA_VERSION, Radiograph, check_shape, freeze
-from stages.detect import BeadCandidates, EmptyFrameWarning
-from stages.errors import InputError
+from fluorocal.stages._image import background, frame_name, odd_size
+from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, check_shape, freeze
+from fluorocal.stages.detect import BeadCandidates, EmptyFrameWarning
+from fluorocal.stages.errors import InputError
 
 VERSION = 2
 
@@ -150,7 +149,16 @@ class CentroidParams:
     min_edge_sigma_px: float = 1.0
 
     def __post_init__(self):
-        for name in ("edge_sigma_px", "min_edge_sigma_px", "annulus_fraction", "min_annulus_px", "outlier_sigma", "max_axis_ratio", "max_rmse_px", "neighbour_margin_px"):
+        for name in (
+            "edge_sigma_px",
+            "min_edge_sigma_px",
+            "annulus_fraction",
+            "min_annulus_px",
+            "outlier_sigma",
+            "max_axis_ratio",
+            "max_rmse_px",
+            "neighbour_margin_px",
+        ):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be > 0; got {getattr(self, name)}")
         for name in ("min_gradient_fraction", "min_cos_radial", "min_edge_fraction"):
@@ -269,7 +277,7 @@ def centroid_beads(radiograph: Radiograph, candidates: BeadCandidates, params: C
 
     Examples
     --------
-    >>> from stages.detect import DetectParams, detect_beads
+    >>> from fluorocal.stages.detect import DetectParams, detect_beads
     >>> yy, xx = np.mgrid[0:128, 0:128]
     >>> image = np.where((xx - 60.3) ** 2 + (yy - 70.6) ** 2 < 8.0**2, 150.0, 1400.0)
     >>> frame = Radiograph(image, 12)
@@ -282,24 +290,46 @@ def centroid_beads(radiograph: Radiograph, candidates: BeadCandidates, params: C
     radius0 = candidates.radius_px[index]
     height, width = radiograph.shape
     if len(index) and (np.any(centre0 < 0) or np.any(centre0[:, 0] > width - 1) or np.any(centre0[:, 1] > height - 1)):
-        raise InputError(f"candidates lie outside the {width}x{height} radiograph {radiograph.source or ''}: detected in another frame?")
+        raise InputError(
+            f"candidates lie outside the {width}x{height} radiograph {radiograph.source or ''}: detected in another frame?"
+        )
     n = len(index)
     if n == 0:
-        return _result(candidates, index, np.empty((0, 2)), np.empty((0, 5)), np.empty((0, 2, 2)), np.empty(0), np.empty(0, np.int64), np.empty(0, "<U16"))
+        return _result(
+            candidates,
+            index,
+            np.empty((0, 2)),
+            np.empty((0, 5)),
+            np.empty((0, 2, 2)),
+            np.empty(0),
+            np.empty(0, np.int64),
+            np.empty(0, "<U16"),
+        )
 
     # every blob the detector saw, accepted or not, can bend the edges of a bead next to it
     near = _neighbours(index, candidates.xy_px, candidates.radius_px, params)
     sigma_px = _edge_sigma(index, near, candidates.xy_px, candidates.radius_px, params)
     points_xy, owner = _edge_points(radiograph.image, centre0, radius0, candidates.polarity, sigma_px, params)
-    points_xy, owner = _drop_near_neighbours(points_xy, owner, index, near, candidates.xy_px, candidates.radius_px, params)
+    points_xy, owner = _drop_near_neighbours(
+        points_xy, owner, index, near, candidates.xy_px, candidates.radius_px, params
+    )
     params_fit, rmse, n_inliers, covariance = _fit_ellipses(points_xy, owner, centre0, radius0, params)
     reason = _fit_reasons(params_fit, centre0, radius0, n_inliers, covariance, params)
     reason[(reason == "") & ~(rmse <= params.max_rmse_px)] = "rmse"
     if not np.any(reason == ""):
         # the detector accepted blobs, but none has a bead's outline (anatomy, a bead-free frame)
         why = ", ".join(f"{k} {v}" for k, v in zip(*np.unique(reason, return_counts=True)))
-        warnings.warn(f"{frame_name(radiograph)}: no bead fitted ({n} candidates failed: {why})", EmptyFrameWarning, stacklevel=2)
-    log.debug("%s[%d]: %d of %d beads fitted, %d edge points", candidates.source, candidates.frame_index, int(np.sum(reason == "")), n, len(owner))
+        warnings.warn(
+            f"{frame_name(radiograph)}: no bead fitted ({n} candidates failed: {why})", EmptyFrameWarning, stacklevel=2
+        )
+    log.debug(
+        "%s[%d]: %d of %d beads fitted, %d edge points",
+        candidates.source,
+        candidates.frame_index,
+        int(np.sum(reason == "")),
+        n,
+        len(owner),
+    )
     return _result(candidates, index, centre0, params_fit, covariance, rmse, n_inliers, reason)
 
 
@@ -366,8 +396,12 @@ def _gaussian_gradient(image: np.ndarray, sigma_px: float) -> tuple[np.ndarray, 
     # normalised so that a ramp of unit slope gives 1 (cv2 correlates: sum_t dg(t) f(x + t))
     dg = t * g
     dg /= np.sum(t * dg)
-    gx = cv2.sepFilter2D(image, cv2.CV_32F, dg.astype(np.float32), g.astype(np.float32), borderType=cv2.BORDER_REPLICATE)
-    gy = cv2.sepFilter2D(image, cv2.CV_32F, g.astype(np.float32), dg.astype(np.float32), borderType=cv2.BORDER_REPLICATE)
+    gx = cv2.sepFilter2D(
+        image, cv2.CV_32F, dg.astype(np.float32), g.astype(np.float32), borderType=cv2.BORDER_REPLICATE
+    )
+    gy = cv2.sepFilter2D(
+        image, cv2.CV_32F, g.astype(np.float32), dg.astype(np.float32), borderType=cv2.BORDER_REPLICATE
+    )
     return gx, gy
 
 
@@ -402,7 +436,11 @@ def _neighbours(index, all_xy, all_radius, params: CentroidParams) -> np.ndarray
         return np.full((len(index), 1), n_blobs)
     # a point of bead i lies within R_i (1 + annulus_fraction) + min_annulus_px of its centre
     point_reach = all_radius.max() * (1 + params.annulus_fraction) + params.min_annulus_px
-    distance, near = cKDTree(all_xy).query(all_xy[index], k=min(n_blobs, 8), distance_upper_bound=point_reach + all_radius.max() + params.neighbour_margin_px)
+    distance, near = cKDTree(all_xy).query(
+        all_xy[index],
+        k=min(n_blobs, 8),
+        distance_upper_bound=point_reach + all_radius.max() + params.neighbour_margin_px,
+    )
     near = np.where(np.isfinite(distance) & (near != index[:, None]), near, n_blobs)
     # each row's blobs nearest first (the bead itself, at distance 0, is now padding)
     order = np.argsort(np.where(near < n_blobs, distance, np.inf), axis=1, kind="stable")
@@ -430,8 +468,14 @@ def _edge_sigma(index, near, all_xy, all_radius, params: CentroidParams) -> floa
     nearest = near[:, 0]
     has = nearest < len(all_xy)
     gap = np.full(len(index), np.inf)
-    gap[has] = np.hypot(*(all_xy[nearest[has]] - all_xy[index[has]]).T) - all_radius[index[has]] - all_radius[nearest[has]]
-    return float(np.clip(np.median(gap) / 4, params.min_edge_sigma_px, params.edge_sigma_px)) if len(gap) else params.edge_sigma_px
+    gap[has] = (
+        np.hypot(*(all_xy[nearest[has]] - all_xy[index[has]]).T) - all_radius[index[has]] - all_radius[nearest[has]]
+    )
+    return (
+        float(np.clip(np.median(gap) / 4, params.min_edge_sigma_px, params.edge_sigma_px))
+        if len(gap)
+        else params.edge_sigma_px
+    )
 
 
 def _edge_points(image, centre0, radius0, polarity, sigma_px: float, params: CentroidParams):
@@ -485,7 +529,9 @@ def _edge_points(image, centre0, radius0, polarity, sigma_px: float, params: Cen
     sign = 1.0 if polarity == "dark" else -1.0
     radial = sign * (gx_p * ux + gy_p * uy) >= params.min_cos_radial * centre_mag * np.sqrt(ux * ux + uy * uy)
     keep = radial & (centre_mag > before) & (centre_mag >= after)
-    found_xy, owner, centre_mag, horizontal, before, after = (v[keep] for v in (found_xy, owner, centre_mag, horizontal, before, after))
+    found_xy, owner, centre_mag, horizontal, before, after = (
+        v[keep] for v in (found_xy, owner, centre_mag, horizontal, before, after)
+    )
 
     # a parabola through the log magnitudes: the exact peak of a Gaussian profile
     log_b, log_a = np.log(np.maximum(before, 1e-12)), np.log(np.maximum(after, 1e-12))
@@ -506,7 +552,9 @@ def _edge_points(image, centre0, radius0, polarity, sigma_px: float, params: Cen
         starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
         strongest[owner[starts]] = np.maximum.reduceat(centre_mag, starts)
     dist = np.sqrt(dx * dx + dy * dy)
-    keep = (centre_mag >= params.min_gradient_fraction * strongest[owner]) & (dist >= r_in[owner]) & (dist <= r_out[owner])
+    keep = (
+        (centre_mag >= params.min_gradient_fraction * strongest[owner]) & (dist >= r_in[owner]) & (dist <= r_out[owner])
+    )
     return np.column_stack([x[keep], y[keep]]), owner[keep]
 
 
@@ -542,9 +590,13 @@ def _drop_near_neighbours(points_xy, owner, index, near, all_xy, all_radius, par
     padded_xy = np.vstack([all_xy, np.full((1, 2), np.inf)])
     # the margin shrinks for small blobs (whose outline is otherwise left with too few points), but not below
     # 3 px: a neighbour's edge pulls over the blur and filter widths, whatever the blob's size
-    padded_reach = np.append(all_radius + np.minimum(params.neighbour_margin_px, np.maximum(0.6 * all_radius, 3.0)), 0.0)
+    padded_reach = np.append(
+        all_radius + np.minimum(params.neighbour_margin_px, np.maximum(0.6 * all_radius, 3.0)), 0.0
+    )
     neighbours = near[owner[check]]  # shape (P', K)
-    gap = np.hypot(points_xy[check, None, 0] - padded_xy[neighbours, 0], points_xy[check, None, 1] - padded_xy[neighbours, 1])
+    gap = np.hypot(
+        points_xy[check, None, 0] - padded_xy[neighbours, 0], points_xy[check, None, 1] - padded_xy[neighbours, 1]
+    )
     keep[check] = np.all(gap >= padded_reach[neighbours], axis=1)
     # a bead surrounded on all sides (a grid plate) keeps all its points: its neighbours pull symmetrically
     n = len(index)
@@ -758,11 +810,20 @@ def _fit_reasons(fit, centre0, radius0, n_inliers, covariance, params: CentroidP
     """Why each fit is unusable (``""`` when it is); (n,) str."""
     reason = np.full(len(centre0), "", dtype="<U16")
     major, minor, _ = _axes(fit[:, 2:])
-    finite = np.all(np.isfinite(fit), axis=1) & np.isfinite(major) & np.isfinite(minor) & np.all(np.isfinite(covariance), axis=(1, 2))
+    finite = (
+        np.all(np.isfinite(fit), axis=1)
+        & np.isfinite(major)
+        & np.isfinite(minor)
+        & np.all(np.isfinite(covariance), axis=(1, 2))
+    )
     finite &= (covariance[:, 0, 0] > 0) & (covariance[:, 1, 1] > 0)
     expected_points = 2 * np.pi * np.where(finite, np.sqrt(np.abs(major * minor)), radius0)
     reason[~finite] = "no_fit"
-    shape_bad = finite & ((major > params.max_axis_ratio * minor) | (major > 2 * radius0 + params.min_annulus_px) | (minor < 0.3 * radius0))
+    shape_bad = finite & (
+        (major > params.max_axis_ratio * minor)
+        | (major > 2 * radius0 + params.min_annulus_px)
+        | (minor < 0.3 * radius0)
+    )
     reason[shape_bad] = "shape"
     moved = finite & (np.hypot(*(fit[:, :2] - centre0).T) > 0.5 * radius0 + 1)
     reason[moved & ~shape_bad] = "moved"

@@ -49,11 +49,10 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-
-from stages._geometry import xy_to_rc
-from stages._image import bead_signal, frame_name, log_image, odd_size
-from stages.artifacts import SCHEMA_VERSION, Radiograph, check_shape, freeze
-from stages.errors import InputError, ShapeError
+from fluorocal.stages._geometry import xy_to_rc
+from fluorocal.stages._image import bead_signal, frame_name, log_image, odd_size
+from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, check_shape, freeze
+from fluorocal.stages.errors import InputError, ShapeError
 
 VERSION = 2
 
@@ -120,7 +119,9 @@ class DetectParams:
             raise InputError(f"polarity must be one of {POLARITIES}; got {self.polarity!r}")
         lo, hi = self.min_diameter_px, self.max_diameter_px
         if not ((lo == 0 and hi == 0) or (0 < lo <= hi)):
-            raise InputError(f"min_diameter_px, max_diameter_px must both be 0 (estimate) or 0 < min <= max; got {lo}, {hi}")
+            raise InputError(
+                f"min_diameter_px, max_diameter_px must both be 0 (estimate) or 0 < min <= max; got {lo}, {hi}"
+            )
         for name in ("min_contrast", "min_snr", "min_relative_contrast", "fov_margin_px"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0; got {getattr(self, name)}")
@@ -250,7 +251,15 @@ def detect_beads(radiograph: Radiograph, params: DetectParams) -> BeadCandidates
     else:
         estimate = _estimate_diameter_range(half_log, half_mask, polarity, noise, params)
         if estimate is None:
-            return _empty(radiograph, params, name, "no bead-like blob (bead-free or saturated frame)", polarity, (cx, cy), fov_radius)
+            return _empty(
+                radiograph,
+                params,
+                name,
+                "no bead-like blob (bead-free or saturated frame)",
+                polarity,
+                (cx, cy),
+                fov_radius,
+            )
         d_min, d_max = estimate
 
     if d_min >= _REDUCE_FROM_DIAMETER_PX and min(height, width) >= 128:
@@ -266,7 +275,14 @@ def detect_beads(radiograph: Radiograph, params: DetectParams) -> BeadCandidates
     if not accepted.any():
         warnings.warn(f"{name}: no bead accepted ({len(reason)} candidates rejected)", EmptyFrameWarning, stacklevel=2)
     diameter = float(np.median(2 * blobs["radius_px"][accepted])) if accepted.any() else 0.0
-    log.debug("%s: %d/%d candidates accepted, polarity %s, diameter %.1f px", name, accepted.sum(), len(reason), polarity, diameter)
+    log.debug(
+        "%s: %d/%d candidates accepted, polarity %s, diameter %.1f px",
+        name,
+        accepted.sum(),
+        len(reason),
+        polarity,
+        diameter,
+    )
     return BeadCandidates(
         xy_px=blobs["xy_px"],
         radius_px=blobs["radius_px"],
@@ -317,7 +333,9 @@ def _field_of_view(image: np.ndarray):
     height, width = image.shape
     # about 256 px across is plenty for an outline good to a reduced pixel
     factor = max(1, min(height, width) // 256)
-    small = cv2.resize(image, (width // factor, height // factor), interpolation=cv2.INTER_AREA) if factor > 1 else image
+    small = (
+        cv2.resize(image, (width // factor, height // factor), interpolation=cv2.INTER_AREA) if factor > 1 else image
+    )
     # every other reduced pixel is plenty for the levels
     sample = small[::2, ::2]
     bright_level = float(np.percentile(sample, 99))
@@ -345,7 +363,9 @@ def _pixel_noise(image: np.ndarray, fov_mask: np.ndarray) -> float:
     # every 4th row and pair of columns is plenty for a median
     left, right = image[::4, 0:-1:4], image[::4, 1::4]
     n_columns = min(left.shape[1], right.shape[1])
-    diff = np.abs(log_image(np.ascontiguousarray(right[:, :n_columns])) - log_image(np.ascontiguousarray(left[:, :n_columns])))
+    diff = np.abs(
+        log_image(np.ascontiguousarray(right[:, :n_columns])) - log_image(np.ascontiguousarray(left[:, :n_columns]))
+    )
     diff = diff[fov_mask[::4, 1::4][:, :n_columns] > 0]
     if diff.size == 0:
         return 1e-3
@@ -510,9 +530,15 @@ def _blobs(log_frame, fov_mask, polarity, d_min, d_max, noise, params: DetectPar
     clean = reason == ""
     core_of_clean = has_parent & clean[np.maximum(parent, 0)]
     # the 85 % contour lies inside the half-maximum one by about the edge's blur width, whatever the size
-    widen = float(np.median(half["radius_px"][parent[core_of_clean]] - core["radius_px"][core_of_clean])) if core_of_clean.any() else 0.0
+    widen = (
+        float(np.median(half["radius_px"][parent[core_of_clean]] - core["radius_px"][core_of_clean]))
+        if core_of_clean.any()
+        else 0.0
+    )
     # the size test on the core itself (smaller than its outline), then its radius widened to the outline's
-    core_reason = _reasons(core, max(d_min - 2 * widen, 0.0), d_max, noise, params, typical_contrast=_typical_contrast(half, clean))
+    core_reason = _reasons(
+        core, max(d_min - 2 * widen, 0.0), d_max, noise, params, typical_contrast=_typical_contrast(half, clean)
+    )
     core["radius_px"] = core["radius_px"] + widen
     rescued = has_parent & retry[np.maximum(parent, 0)] & (core_reason == "")
     if not rescued.any():
@@ -537,7 +563,9 @@ def _fov_clearance(points_xy: np.ndarray, hull_xy: np.ndarray) -> np.ndarray:
     to_centre = hull_xy.mean(axis=0) - start[0]
     inward = 1.0 if edge[0, 0] * to_centre[1] - edge[0, 1] * to_centre[0] >= 0 else -1.0
     # shape (N, K): signed distance of each point to each edge line, positive on the inner side
-    cross = edge[None, :, 0] * (points_xy[:, None, 1] - start[None, :, 1]) - edge[None, :, 1] * (points_xy[:, None, 0] - start[None, :, 0])
+    cross = edge[None, :, 0] * (points_xy[:, None, 1] - start[None, :, 1]) - edge[None, :, 1] * (
+        points_xy[:, None, 0] - start[None, :, 0]
+    )
     return (inward * cross / length).min(axis=1) if len(length) else np.full(len(points_xy), np.inf)
 
 
@@ -545,14 +573,22 @@ def _typical_contrast(blobs: dict, plausible: np.ndarray) -> float:
     return float(np.median(blobs["contrast"][plausible])) if plausible.any() else 0.0
 
 
-def _reasons(blobs: dict, d_min, d_max, noise, params: DetectParams, typical_contrast: float | None = None) -> np.ndarray:
+def _reasons(
+    blobs: dict, d_min, d_max, noise, params: DetectParams, typical_contrast: float | None = None
+) -> np.ndarray:
     """The first rejection reason (other than the field of view) that applies to each blob; (N,) str, ``""`` if none."""
     diameter = 2 * blobs["radius_px"]
     reason = np.full(len(diameter), "", dtype="<U16")
     elongated = (blobs["axis_ratio"] < params.min_axis_ratio) | (blobs["fill"] < params.min_fill)
     # two touching beads: as wide as one bead, 1.3 to 2.4 beads' area
     area_over_minor_disc = (diameter / np.maximum(blobs["minor_diameter_px"], 1e-6)) ** 2
-    merged = elongated & (area_over_minor_disc >= 1.3) & (area_over_minor_disc <= 2.4) & (blobs["minor_diameter_px"] >= d_min) & (blobs["minor_diameter_px"] <= d_max)
+    merged = (
+        elongated
+        & (area_over_minor_disc >= 1.3)
+        & (area_over_minor_disc <= 2.4)
+        & (blobs["minor_diameter_px"] >= d_min)
+        & (blobs["minor_diameter_px"] <= d_max)
+    )
     absolute_faint = (blobs["contrast"] < params.min_contrast) | (blobs["contrast"] < params.min_snr * noise)
     in_size = (diameter >= d_min) & (diameter <= d_max)
     if typical_contrast is None:
@@ -566,14 +602,20 @@ def _reasons(blobs: dict, d_min, d_max, noise, params: DetectParams, typical_con
     return reason
 
 
-def _keep_reportable(blobs: dict, reason: np.ndarray, hull_xy, d_min, d_max, params: DetectParams) -> tuple[dict, np.ndarray]:
+def _keep_reportable(
+    blobs: dict, reason: np.ndarray, hull_xy, d_min, d_max, params: DetectParams
+) -> tuple[dict, np.ndarray]:
     """Mark blobs cut by the field's edge, and drop those that are plainly background."""
     reason = reason.copy()
     clearance = _fov_clearance(blobs["xy_px"], hull_xy)
     reason[clearance < blobs["radius_px"] + params.fov_margin_px] = "fov_edge"
     diameter = 2 * blobs["radius_px"]
     # blobs far from the bead size, or faint and of the wrong size, are background, not candidates worth reporting
-    keep = (diameter >= 0.5 * d_min) & (diameter <= 2 * d_max) & ~((reason == "faint") & ((diameter < d_min) | (diameter > d_max)))
+    keep = (
+        (diameter >= 0.5 * d_min)
+        & (diameter <= 2 * d_max)
+        & ~((reason == "faint") & ((diameter < d_min) | (diameter > d_max)))
+    )
     return {k: v[keep] for k, v in blobs.items()}, reason[keep]
 
 

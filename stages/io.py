@@ -17,9 +17,8 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-
-from stages.artifacts import Phantom, Radiograph
-from stages.errors import InputError
+from fluorocal.stages.artifacts import Phantom, Radiograph
+from fluorocal.stages.errors import InputError
 
 VIDEO_SUFFIXES = {".avi", ".mp4", ".mov", ".mkv", ".m4v", ".wmv"}
 DICOM_SUFFIXES = {".dcm", ".ima", ".dicom"}
@@ -119,7 +118,11 @@ def _read_dicom(path: Path) -> list[Radiograph]:
     for tag in ("PixelSpacing", "ImagerPixelSpacing", "DistanceSourceToDetector", "FieldOfViewDimensions"):
         if tag in ds and ds.data_element(tag).value not in (None, ""):
             value = ds.data_element(tag).value
-            meta[tag] = [float(v) for v in value] if isinstance(value, (list, tuple, pydicom.multival.MultiValue)) else float(value)
+            meta[tag] = (
+                [float(v) for v in value]
+                if isinstance(value, (list, tuple, pydicom.multival.MultiValue))
+                else float(value)
+            )
     return [Radiograph(np.ascontiguousarray(f), bit_depth, str(path), i, meta) for i, f in enumerate(frames)]
 
 
@@ -255,7 +258,9 @@ def read_phantom(path: str | os.PathLike, *, lattice: str = "", pitch_mm: float 
         header = [h.strip() for h in (reader.fieldnames or [])]
         missing = [c for c in ("id", "x", "y", "z") if c not in header]
         if missing:
-            raise InputError(f"{path}: phantom CSV needs columns id,x,y,z[,diameter][,role]; missing {','.join(missing)}")
+            raise InputError(
+                f"{path}: phantom CSV needs columns id,x,y,z[,diameter][,role]; missing {','.join(missing)}"
+            )
         ids, xyz, diam, role = [], [], [], []
         for line_no, row in enumerate(reader, start=2):
             row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
@@ -359,7 +364,9 @@ def _write_dicom_like(source: Path, frames: list[Radiograph], out_path: Path) ->
     if (slope, intercept) != (1.0, 0.0):  # store raw values so the modality LUT gives the output back
         pixels = np.clip(np.rint((pixels - intercept) / slope), 0, 2 ** int(ds.BitsStored) - 1).astype(np.uint16)
     ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds.PixelData = (pixels[0] if len(frames) == 1 else pixels).astype(np.uint16 if ds.BitsAllocated == 16 else np.uint8).tobytes()
+    ds.PixelData = (
+        (pixels[0] if len(frames) == 1 else pixels).astype(np.uint16 if ds.BitsAllocated == 16 else np.uint8).tobytes()
+    )
     if len(frames) > 1:
         ds.NumberOfFrames = len(frames)
     ds.SOPInstanceUID = generate_uid()

@@ -51,10 +51,9 @@ import logging
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-
-from stages._geometry import matrix_to_quat, quat_to_matrix, rotvec_to_quat, to_camera
-from stages.artifacts import SCHEMA_VERSION, Phantom, check_shape, freeze
-from stages.errors import InputError
+from fluorocal.stages._geometry import matrix_to_quat, quat_to_matrix, rotvec_to_quat, to_camera
+from fluorocal.stages.artifacts import SCHEMA_VERSION, Phantom, check_shape, freeze
+from fluorocal.stages.errors import InputError
 
 VERSION = 2
 
@@ -199,8 +198,13 @@ class LabelParams:
     lattice_max_gap: int = 2
 
     def __post_init__(self):
-        positive = ("gate_bead_diameters", "final_gate_bead_diameters", "ambiguity_bead_diameters",
-                    "ransac_threshold_bead_diameters", "lattice_tolerance_pitch")
+        positive = (
+            "gate_bead_diameters",
+            "final_gate_bead_diameters",
+            "ambiguity_bead_diameters",
+            "ransac_threshold_bead_diameters",
+            "lattice_tolerance_pitch",
+        )
         for name in positive:
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be > 0; got {getattr(self, name)}")
@@ -493,12 +497,16 @@ class _Detections:
 
     @classmethod
     def from_centroids(cls, centroids) -> "_Detections":
-        xy = np.asarray(getattr(centroids, "xy_px"), dtype=np.float64).reshape(-1, 2)
+        xy = np.asarray(centroids.xy_px, dtype=np.float64).reshape(-1, 2)
         m = len(xy)
 
         def column(name, default):
             value = getattr(centroids, name, None)
-            return np.full(m, default, dtype=np.float64) if value is None else np.asarray(value, dtype=np.float64).reshape(m)
+            return (
+                np.full(m, default, dtype=np.float64)
+                if value is None
+                else np.asarray(value, dtype=np.float64).reshape(m)
+            )
 
         sigma = np.column_stack([column("sigma_x", np.nan), column("sigma_y", np.nan), column("rho", 0.0)])
         ok = getattr(centroids, "ok", None)
@@ -551,9 +559,21 @@ def _failed(det: _Detections, iop: np.ndarray, reason: str, pose_source: str = "
     status = np.where(det.valid, STATUS_UNMATCHED, STATUS_REJECTED)
     empty = np.empty((0,))
     return Labels(
-        empty, empty, np.empty((0, 2)), np.empty((0, 3)), np.empty((0, 3)), status,
-        np.full(4, np.nan), np.full(3, np.nan), iop, 0, 0, int(det.valid.sum()),
-        ok=False, reason=reason, pose_source=pose_source,
+        empty,
+        empty,
+        np.empty((0, 2)),
+        np.empty((0, 3)),
+        np.empty((0, 3)),
+        status,
+        np.full(4, np.nan),
+        np.full(3, np.nan),
+        iop,
+        0,
+        0,
+        int(det.valid.sum()),
+        ok=False,
+        reason=reason,
+        pose_source=pose_source,
     )
 
 
@@ -578,7 +598,8 @@ def _pose_from_cv(rvec: np.ndarray, tvec: np.ndarray) -> tuple[np.ndarray, np.nd
 
 def _project_cam(p_cam: np.ndarray, iop: np.ndarray) -> np.ndarray:
     """The pinhole of :func:`stages._geometry.project` on camera-frame points (the labelling keeps poses as
-    rotation matrices, so the quaternion round trip is skipped); NaN behind the source."""
+    rotation matrices, so the quaternion round trip is skipped); NaN behind the source.
+    """
     z = p_cam[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.column_stack([iop[0] + iop[2] * p_cam[:, 0] / z, iop[1] + iop[2] * p_cam[:, 1] / z])
@@ -627,7 +648,9 @@ def _max_degree(n_points: int) -> int:
     return degree
 
 
-def _fit_correction(ideal: np.ndarray, measured: np.ndarray, degree: int, centre: np.ndarray, scale: float) -> _Correction:
+def _fit_correction(
+    ideal: np.ndarray, measured: np.ndarray, degree: int, centre: np.ndarray, scale: float
+) -> _Correction:
     """Least-squares polynomial correction, refitted once without gross outliers."""
     corr = _Correction(centre, scale, degree)
     A = corr.basis(ideal)
@@ -795,7 +818,9 @@ def _label_cube(
         if rival is not None and _acceptable(frame, rival)[0] and _rivals(best, rival):
             if rival["n_labelled"] > best["n_labelled"]:
                 best, rival = rival, best
-            why = f"two poses explain the frame about equally well ({best['n_labelled']} vs {rival['n_labelled']} labels)"
+            why = (
+                f"two poses explain the frame about equally well ({best['n_labelled']} vs {rival['n_labelled']} labels)"
+            )
             return _failed(det, iop, why, source)
         return _labels_from_result(frame, best)
     return _failed(det, iop, reason, groups[-1][0] if groups else "")
@@ -843,14 +868,19 @@ def _acceptable(frame: _Frame, result: dict) -> tuple[bool, str]:
         rms = result["rms_corrected_px"]
         return False, f"labelling residuals of {rms:.2f} px RMS exceed {limit:.2f} px: chance matches, not a fit"
     if not result["sizes_consistent"]:
-        return False, "the labelling puts beads of one diameter on detections of another (markers misplaced): wrong pose"
+        return (
+            False,
+            "the labelling puts beads of one diameter on detections of another (markers misplaced): wrong pose",
+        )
     return True, ""
 
 
 # --- from another frame's pose: a global search over the phantom's shift (and turn) -------------
 
 
-def _label_from_prior(frame: _Frame, R0: np.ndarray, T0: np.ndarray, axis: np.ndarray | None) -> tuple[dict | None, str]:
+def _label_from_prior(
+    frame: _Frame, R0: np.ndarray, T0: np.ndarray, axis: np.ndarray | None
+) -> tuple[dict | None, str]:
     """Label a frame from a neighbouring frame's pose ``(R0, T0)``; ``(result, "")`` or ``(None, reason)``.
 
     The neighbouring pose fixes the orientation roughly (a turntable step) but not the position: the
@@ -875,7 +905,8 @@ def _rays(frame: _Frame, xy: np.ndarray) -> np.ndarray:
 
 def _depth_steps(frame: _Frame, depth_mm: float) -> np.ndarray:
     """Changes of the phantom's distance from the source (mm) to try: up to ``_MAX_DEPTH_CHANGE`` of it,
-    in steps that move the detection farthest from the principal point by one assignment gate."""
+    in steps that move the detection farthest from the principal point by one assignment gate.
+    """
     r_max = float(np.max(np.linalg.norm(frame.det_xy - frame.iop[:2], axis=1), initial=1.0))
     step = frame.params.gate_bead_diameters * frame.diam_ref_px * depth_mm / max(r_max, 1.0)
     n = int(np.ceil(_MAX_DEPTH_CHANGE * depth_mm / step))
@@ -893,13 +924,19 @@ def _shift_starts(frame: _Frame, R: np.ndarray, T: np.ndarray, rays: np.ndarray,
     apart.
     """
     depth = float(np.median((frame.phantom.xyz_mm - T) @ R[2]))
-    thin = rays[np.linspace(0, len(rays) - 1, _N_DEPTH_DETECTIONS).astype(int)] if len(rays) > _N_DEPTH_DETECTIONS else rays
+    thin = (
+        rays[np.linspace(0, len(rays) - 1, _N_DEPTH_DETECTIONS).astype(int)]
+        if len(rays) > _N_DEPTH_DETECTIONS
+        else rays
+    )
     steps = _depth_steps(frame, depth)
     best_dz = steps[int(np.argmax([_shift_strength(frame, R, T - dz * R[2], thin) for dz in steps]))]
     return _shift_peaks(frame, R, T - best_dz * R[2], rays, n_keep or _N_PEAKS)
 
 
-def _shift_votes(frame: _Frame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, *, bin_gates: float = 0.5, box: int = 3):
+def _shift_votes(
+    frame: _Frame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, *, bin_gates: float = 0.5, box: int = 3
+):
     """The vote for shifts of pose ``(R, T)`` across the beam; None without beads in front of the source.
 
     Every pair of a detection (``rays``) and a bead votes for the shift (camera x, y at the bead's depth,
@@ -919,7 +956,9 @@ def _shift_votes(frame: _Frame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, 
     p_cam = p_cam[p_cam[:, 2] > 0]
     if len(p_cam) < 4 or not len(rays):
         return None
-    bin_mm = bin_gates * frame.params.gate_bead_diameters * frame.diam_ref_px * float(np.median(p_cam[:, 2])) / frame.iop[2]
+    bin_mm = (
+        bin_gates * frame.params.gate_bead_diameters * frame.diam_ref_px * float(np.median(p_cam[:, 2])) / frame.iop[2]
+    )
     # shape (D, B) each: the shift (in bins) that moves bead b onto detection d's ray, at b's depth
     z = p_cam[:, 2] / bin_mm
     fx = rays[:, 0:1] * z - p_cam[:, 0] / bin_mm
@@ -939,14 +978,16 @@ def _shift_votes(frame: _Frame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, 
 
 def _shift_strength(frame: _Frame, R: np.ndarray, T: np.ndarray, rays: np.ndarray) -> float:
     """Votes of the strongest peak of :func:`_shift_votes`, on a coarser grid (bins of a gate, 2 x 2 sums;
-    for comparing depths and turns, 4x faster), 0 without one."""
+    for comparing depths and turns, 4x faster), 0 without one.
+    """
     vote = _shift_votes(frame, R, T, rays, bin_gates=1.0, box=2)
     return 0.0 if vote is None else float(vote[1].max())
 
 
 def _shift_peaks(frame: _Frame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, n_keep: int) -> list:
     """The ``n_keep`` strongest peaks ``[(R, T, votes)]`` of :func:`_shift_votes`, at least 3 bins apart,
-    each located at the vote-weighted mean of its 3 x 3 bins."""
+    each located at the vote-weighted mean of its 3 x 3 bins.
+    """
     vote = _shift_votes(frame, R, T, rays)
     if vote is None:
         return []
@@ -1006,11 +1047,13 @@ def _turn_starts(frame: _Frame, R0: np.ndarray, T0: np.ndarray, axis: np.ndarray
         vote = _shift_votes(frame, *turned(angle), rays)
         return 0.0 if vote is None else float(vote[1].max())
 
-    thin = rays[np.linspace(0, len(rays) - 1, _N_TURN_DETECTIONS).astype(int)] if len(rays) > _N_TURN_DETECTIONS else rays
+    thin = (
+        rays[np.linspace(0, len(rays) - 1, _N_TURN_DETECTIONS).astype(int)] if len(rays) > _N_TURN_DETECTIONS else rays
+    )
     scan = np.array([_shift_strength(frame, *turned(a), thin) for a in np.arange(n_steps) * step])
     local = np.flatnonzero((scan >= np.roll(scan, 1)) & (scan >= np.roll(scan, -1)))
     refined = []
-    for k in local[np.argsort(-scan[local], kind="stable")][: _N_TURN_CANDIDATES]:
+    for k in local[np.argsort(-scan[local], kind="stable")][:_N_TURN_CANDIDATES]:
         angles = (k + np.array([-0.5, 0.0, 0.5])) * step
         scores = [strength(a) for a in angles]
         refined.append((max(scores), angles[int(np.argmax(scores))]))
@@ -1123,8 +1166,14 @@ def _solve_pose(frame: _Frame, obj: np.ndarray, img: np.ndarray, R: np.ndarray, 
         return R, T
     rvec, tvec = _pose_to_cv(R, T)
     ok, rvec, tvec = cv2.solvePnP(
-        obj, img, frame.K, None, rvec.reshape(3, 1).copy(), tvec.reshape(3, 1).copy(),
-        useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE,
+        obj,
+        img,
+        frame.K,
+        None,
+        rvec.reshape(3, 1).copy(),
+        tvec.reshape(3, 1).copy(),
+        useExtrinsicGuess=True,
+        flags=cv2.SOLVEPNP_ITERATIVE,
     )
     if not ok or not np.all(np.isfinite(tvec)):
         return R, T
@@ -1177,8 +1226,16 @@ def _ransac_pose(frame: _Frame, obj: np.ndarray, img: np.ndarray, R: np.ndarray,
     rvec, tvec = _pose_to_cv(R, T)
     thr = frame.params.ransac_threshold_bead_diameters * frame.diam_ref_px
     ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-        obj, img, frame.K, None, rvec.reshape(3, 1).copy(), tvec.reshape(3, 1).copy(), useExtrinsicGuess=True,
-        iterationsCount=frame.params.ransac_iterations, reprojectionError=thr, confidence=0.999,
+        obj,
+        img,
+        frame.K,
+        None,
+        rvec.reshape(3, 1).copy(),
+        tvec.reshape(3, 1).copy(),
+        useExtrinsicGuess=True,
+        iterationsCount=frame.params.ransac_iterations,
+        reprojectionError=thr,
+        confidence=0.999,
         flags=cv2.SOLVEPNP_ITERATIVE,
     )
     mask = np.zeros(len(obj), dtype=bool)
@@ -1253,11 +1310,18 @@ def _iterate(frame: _Frame, R: np.ndarray, T: np.ndarray) -> dict | None:
     ideal_lab = ideal[beads]
     pin = np.linalg.norm(ideal_lab - frame.det_xy[dets], axis=1)
     return {
-        "R": R, "T": T, "iop": frame.iop, "bead": beads, "det": dets, "ambiguous_det": i_det[ambig],
-        "n_labelled": len(beads), "n_ambiguous": int(ambig.sum()),
+        "R": R,
+        "T": T,
+        "iop": frame.iop,
+        "bead": beads,
+        "det": dets,
+        "ambiguous_det": i_det[ambig],
+        "n_labelled": len(beads),
+        "n_ambiguous": int(ambig.sum()),
         "rms_px": float(np.sqrt(np.mean(pin**2))) if len(pin) else np.nan,
         "rms_corrected_px": float(np.sqrt(np.mean(resid[lab] ** 2))) if lab.any() else np.nan,
-        "sizes_consistent": _sizes_consistent(frame, R, T, beads, dets), "corr": corr,
+        "sizes_consistent": _sizes_consistent(frame, R, T, beads, dets),
+        "corr": corr,
     }
 
 
@@ -1591,11 +1655,23 @@ def _labels_from_result(frame: _Frame, res: dict) -> Labels:
     idx, beads = idx[order], res["bead"][order]
     q = matrix_to_quat(res["R"])
     return Labels(
-        idx, frame.phantom.ids[beads], det.xy_px[idx], det.sigma_px[idx], frame.phantom.xyz_mm[beads], status,
-        q, res["T"], res["iop"],
-        n_labelled=len(idx), n_ambiguous=int((status == STATUS_AMBIGUOUS).sum()),
+        idx,
+        frame.phantom.ids[beads],
+        det.xy_px[idx],
+        det.sigma_px[idx],
+        frame.phantom.xyz_mm[beads],
+        status,
+        q,
+        res["T"],
+        res["iop"],
+        n_labelled=len(idx),
+        n_ambiguous=int((status == STATUS_AMBIGUOUS).sum()),
         n_unmatched=int((status == STATUS_UNMATCHED).sum()),
-        rms_px=res["rms_px"], rms_corrected_px=res["rms_corrected_px"], ok=True, reason="", pose_source=res["source"],
+        rms_px=res["rms_px"],
+        rms_corrected_px=res["rms_corrected_px"],
+        ok=True,
+        reason="",
+        pose_source=res["source"],
     )
 
 
@@ -1634,9 +1710,22 @@ def _label_grid(det: _Detections, phantom: Phantom, params: LabelParams, iop: np
     status[idx] = STATUS_LABELLED
     q, T, rms = _planar_pose(obj, det.xy_px[idx], iop)
     return Labels(
-        idx, lattice_id(ij[sel]), det.xy_px[idx], det.sigma_px[idx], obj, status, q, T, iop,
-        n_labelled=len(idx), n_ambiguous=0, n_unmatched=int((status == STATUS_UNMATCHED).sum()),
-        rms_px=rms, rms_corrected_px=float(np.sqrt(np.mean(resid**2))), ok=True, pose_source="lattice",
+        idx,
+        lattice_id(ij[sel]),
+        det.xy_px[idx],
+        det.sigma_px[idx],
+        obj,
+        status,
+        q,
+        T,
+        iop,
+        n_labelled=len(idx),
+        n_ambiguous=0,
+        n_unmatched=int((status == STATUS_UNMATCHED).sum()),
+        rms_px=rms,
+        rms_corrected_px=float(np.sqrt(np.mean(resid**2))),
+        ok=True,
+        pose_source="lattice",
     )
 
 

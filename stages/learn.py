@@ -63,12 +63,11 @@ from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
+from fluorocal.stages import _polynomial
+from fluorocal.stages.adjust import _lookup, _nominal_table
+from fluorocal.stages.artifacts import check_shape, freeze
+from fluorocal.stages.errors import EstimationError, InputError, ShapeError
 from scipy.spatial import KDTree
-
-from stages import _polynomial
-from stages.adjust import _lookup, _nominal_table
-from stages.artifacts import check_shape, freeze
-from stages.errors import EstimationError, InputError, ShapeError
 
 logger = logging.getLogger(__name__)
 
@@ -244,13 +243,17 @@ class LearnParams:
         if self.refine != "none" and not self.smooth:
             raise InputError("refine='grid' needs smooth=True (it refines the gridded field)")
         if self.affine_datum and self.refine != "grid+points":
-            raise InputError(f"affine_datum needs refine='grid+points' (it constrains the point shifts); got refine={self.refine!r}")
+            raise InputError(
+                f"affine_datum needs refine='grid+points' (it constrains the point shifts); got refine={self.refine!r}"
+            )
         object.__setattr__(self, "tau_grid_px", tuple(float(t) for t in self.tau_grid_px))
         if not self.tau_grid_px or min(self.tau_grid_px) <= 0:
             raise InputError(f"tau_grid_px must hold positive values; got {self.tau_grid_px}")
         object.__setattr__(self, "smoothness_orders", tuple(sorted({int(m) for m in self.smoothness_orders})))
         if not self.smoothness_orders or not set(self.smoothness_orders) <= set(_DIFFERENCE_STENCILS):
-            raise InputError(f"smoothness_orders must hold orders among {tuple(_DIFFERENCE_STENCILS)}; got {self.smoothness_orders}")
+            raise InputError(
+                f"smoothness_orders must hold orders among {tuple(_DIFFERENCE_STENCILS)}; got {self.smoothness_orders}"
+            )
         if not 0 < self.relaxation < 2:
             raise InputError(f"relaxation must lie in (0, 2); got {self.relaxation}")
         if self.max_iterations < 1:
@@ -367,7 +370,7 @@ class KnnModel:
         return dist.reshape(-1, k), idx.reshape(-1, k)
 
     def correction_at(self, xy_px: np.ndarray) -> np.ndarray:
-        """kNN prediction ``(M, 2)`` px at measured coordinates ``xy_px`` ``(M, 2)`` px."""
+        """KNN prediction ``(M, 2)`` px at measured coordinates ``xy_px`` ``(M, 2)`` px."""
         xy = np.asarray(xy_px, dtype=np.float64).reshape(-1, 2)
         if len(xy) == 0:
             return np.empty((0, 2))
@@ -416,7 +419,13 @@ class CvReport:
 
 
 def cross_validate_k(
-    xy_px: np.ndarray, residuals_px: np.ndarray, residual_var_px2: np.ndarray, *, k_grid, n_folds: int, seed: int,
+    xy_px: np.ndarray,
+    residuals_px: np.ndarray,
+    residual_var_px2: np.ndarray,
+    *,
+    k_grid,
+    n_folds: int,
+    seed: int,
     neighbour_cache: dict | None = None,
 ) -> CvReport:
     """Choose ``k`` by shuffled K-fold cross-validation of the equation-3 cost.
@@ -463,7 +472,12 @@ def cross_validate_k(
     if len(ks) == 0:
         raise InputError(f"k_grid {tuple(k_grid)} has no candidate <= the training fold size {n_train_min}")
     cache = neighbour_cache if neighbour_cache is not None else {}
-    if not (cache.get("n_folds") == n_folds and cache.get("seed") == seed and cache.get("k", 0) >= ks[-1] and np.array_equal(cache.get("xy"), xy)):
+    if not (
+        cache.get("n_folds") == n_folds
+        and cache.get("seed") == seed
+        and cache.get("k", 0) >= ks[-1]
+        and np.array_equal(cache.get("xy"), xy)
+    ):
         cache.clear()
         cache.update(xy=xy.copy(), n_folds=n_folds, seed=seed, k=int(ks[-1]), idx=[])
         for test in folds:
@@ -568,7 +582,12 @@ def _invert_correction(correction_at, xy_ideal, *, jacobian=None, tol_px=1e-9, m
         if len(m) == 0 or np.max(np.abs(step)) < tol_px:
             break
     else:
-        logger.warning("distort_points: %d of %d points not converged to %.1e px", np.sum(np.abs(step).max(1) >= tol_px), len(m), tol_px)
+        logger.warning(
+            "distort_points: %d of %d points not converged to %.1e px",
+            np.sum(np.abs(step).max(1) >= tol_px),
+            len(m),
+            tol_px,
+        )
     return m
 
 
@@ -685,7 +704,9 @@ class CorrectionField(_FieldOps):
         freeze(self)
 
     @classmethod
-    def constant(cls, width_px: int, height_px: int, delta_px=(0.0, 0.0), *, spacing_px: float = 16.0) -> "CorrectionField":
+    def constant(
+        cls, width_px: int, height_px: int, delta_px=(0.0, 0.0), *, spacing_px: float = 16.0
+    ) -> "CorrectionField":
         """A field equal to ``delta_px`` everywhere (zero: the identity), supported everywhere."""
         xn, yn = grid_nodes(width_px, height_px, spacing_px)
         delta = np.broadcast_to(np.asarray(delta_px, dtype=np.float64), (len(yn), len(xn), 2)).copy()
@@ -707,7 +728,9 @@ class CorrectionField(_FieldOps):
 
     def support_at(self, xy_px: np.ndarray) -> np.ndarray:
         """True ``(N,)`` where all four surrounding nodes are supported."""
-        s = _bilinear(self.x_nodes_px, self.y_nodes_px, self.support[..., None].astype(float), _as_points("xy_px", xy_px))
+        s = _bilinear(
+            self.x_nodes_px, self.y_nodes_px, self.support[..., None].astype(float), _as_points("xy_px", xy_px)
+        )
         return s[:, 0] > 1 - 1e-9
 
     def with_delta(self, delta_px: np.ndarray, **changes) -> "CorrectionField":
@@ -720,7 +743,9 @@ class CorrectionField(_FieldOps):
         The uncertainty and support are ``other``'s: every regression sees the
         same observations, and the latest one judges the accumulated field.
         """
-        if not (np.array_equal(self.x_nodes_px, other.x_nodes_px) and np.array_equal(self.y_nodes_px, other.y_nodes_px)):
+        if not (
+            np.array_equal(self.x_nodes_px, other.x_nodes_px) and np.array_equal(self.y_nodes_px, other.y_nodes_px)
+        ):
             raise InputError("other must be on the same grid as this field")
         return replace(self, delta_px=self.delta_px + other.delta_px, sigma_px=other.sigma_px, support=other.support)
 
@@ -741,7 +766,10 @@ class CorrectionField(_FieldOps):
         height_px = self.height_px if height_px is None else int(height_px)
         yy, xx = np.mgrid[0:height_px, 0:width_px].astype(np.float64)
         src = self.distort_points(np.column_stack([xx.ravel(), yy.ravel()]))
-        return (src[:, 0].reshape(height_px, width_px).astype(np.float32), src[:, 1].reshape(height_px, width_px).astype(np.float32))
+        return (
+            src[:, 0].reshape(height_px, width_px).astype(np.float32),
+            src[:, 1].reshape(height_px, width_px).astype(np.float32),
+        )
 
 
 @dataclass(frozen=True)
@@ -847,7 +875,9 @@ def fit_knn_field(
     xy, r, var = _check_training(xy_px, residuals_px, residual_var_px2)
     width, height = (int(s) for s in image_size)
     if cv is None:
-        cv = cross_validate_k(xy, r, var, k_grid=params.k_grid, n_folds=params.n_folds, seed=params.seed, neighbour_cache=neighbour_cache)
+        cv = cross_validate_k(
+            xy, r, var, k_grid=params.k_grid, n_folds=params.n_folds, seed=params.seed, neighbour_cache=neighbour_cache
+        )
         logger.debug("kNN cross-validation over %d points:\n%s", len(xy), cv.table())
     model = KnnModel(xy, r, 1.0 / var, cv.k)
     if not params.smooth:
@@ -856,7 +886,9 @@ def fit_knn_field(
     nodes = np.column_stack([a.ravel() for a in np.meshgrid(xn, yn)])
     delta = model.correction_at(nodes).reshape(len(yn), len(xn), 2)
     sigma, support = _node_statistics(model, nodes, cv, params)
-    return CorrectionField(xn, yn, delta, sigma.reshape(delta.shape[:2]), support.reshape(delta.shape[:2]), width, height), cv
+    return CorrectionField(
+        xn, yn, delta, sigma.reshape(delta.shape[:2]), support.reshape(delta.shape[:2]), width, height
+    ), cv
 
 
 # ---------------------------------------------------------------------------------------------
@@ -883,7 +915,9 @@ def _difference_operator(n_y: int, n_x: int, order: int):
         c = _DIFFERENCE_STENCILS[k]
         return diags(list(c), list(range(k + 1)), shape=(max(n - k, 0), n))
 
-    return vstack([np.sqrt(comb(order, a)) * kron(diff(n_y, a), diff(n_x, order - a)) for a in range(order + 1)]).tocsr()
+    return vstack(
+        [np.sqrt(comb(order, a)) * kron(diff(n_y, a), diff(n_x, order - a)) for a in range(order + 1)]
+    ).tocsr()
 
 
 def _factor_spd(M):
@@ -975,7 +1009,9 @@ class GridCvReport:
         freeze(self)
 
 
-def cross_validate_smoothness(xy_px, residuals_px, residual_var_px2, *, image_size, params: LearnParams, base_px=None) -> GridCvReport:
+def cross_validate_smoothness(
+    xy_px, residuals_px, residual_var_px2, *, image_size, params: LearnParams, base_px=None
+) -> GridCvReport:
     """Choose the smoothness prior of :func:`fit_grid_field` by shuffled K-fold CV of equation 3.
 
     Parameters as in :func:`fit_grid_field`; candidates: every order of
@@ -997,7 +1033,10 @@ def cross_validate_smoothness(xy_px, residuals_px, residual_var_px2, *, image_si
     n = len(xy)
     folds = np.array_split(np.random.default_rng(params.seed).permutation(n), min(params.smoothness_folds, n))
     # the data part of each fold's normal equations, shared by every candidate
-    normals = [_grid_normal(A[train], w[train], r[train]) for train in (np.setdiff1d(np.arange(n), test, assume_unique=True) for test in folds)]
+    normals = [
+        _grid_normal(A[train], w[train], r[train])
+        for train in (np.setdiff1d(np.arange(n), test, assume_unique=True) for test in folds)
+    ]
     tests = [(A[test], w[test], r[test]) for test in folds]
     evaluated = []  # (order, tau, cost, sq)
     for order in params.smoothness_orders:
@@ -1071,7 +1110,9 @@ def fit_grid_field(
     xn, yn = grid_nodes(width, height, params.grid_spacing_px)
     A = _bilinear_design(xn, yn, xy)
     D = _difference_operator(len(yn), len(xn), int(order))
-    v = _grid_solve(A, (D.T @ D).tocsr(), 1.0 / var, r, float(tau_px), None if base is None else base.delta_px.reshape(-1, 2))
+    v = _grid_solve(
+        A, (D.T @ D).tocsr(), 1.0 / var, r, float(tau_px), None if base is None else base.delta_px.reshape(-1, 2)
+    )
     if cv_rms_px is None:
         cv_rms_px = float(np.sqrt(np.mean((r - A @ v) ** 2)))
     return _grid_result(xn, yn, v, A, xy, cv_rms_px, params, (width, height))
@@ -1086,7 +1127,14 @@ def _grid_result(xn, yn, values, A, xy, cv_rms_px, params, image_size) -> Correc
     sigma = cv_rms_px / np.sqrt(np.maximum(n_eff, 1e-3))
     nodes = np.column_stack([a.ravel() for a in np.meshgrid(xn, yn)])
     shape = (len(yn), len(xn))
-    return CorrectionField(xn, yn, values.reshape(shape + (2,)), sigma.reshape(shape), _support_mask(xy, nodes, params).reshape(shape), *image_size)
+    return CorrectionField(
+        xn,
+        yn,
+        values.reshape(shape + (2,)),
+        sigma.reshape(shape),
+        _support_mask(xy, nodes, params).reshape(shape),
+        *image_size,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1223,7 +1271,11 @@ class LearnResult:
         adj = self.adjustment
         inl = adj.inlier
         after = float(np.sqrt(np.mean(adj.residual_px[inl] ** 2))) if inl.any() else float("nan")
-        before = float(np.sqrt(np.mean(self.initial_residual_px[inl] ** 2))) if self.initial_residual_px is not None and inl.any() else float("nan")
+        before = (
+            float(np.sqrt(np.mean(self.initial_residual_px[inl] ** 2)))
+            if self.initial_residual_px is not None and inl.any()
+            else float("nan")
+        )
         return f"{self.scheme}: in-sample RMS {before:.3f} -> {after:.3f} px, {len(self.history) - 1} iterations, {self.stop_reason}"
 
     def field(self, system: int):
@@ -1254,7 +1306,9 @@ def _image_sizes(image_size, n_systems: int) -> list[tuple[int, int]]:
     if arr.shape == (2,):
         arr = np.tile(arr, (n_systems, 1))
     if arr.shape != (n_systems, 2) or np.any(arr < 1):
-        raise InputError(f"image_size must be (width, height) or one per system, shape ({n_systems}, 2); got {arr.shape}")
+        raise InputError(
+            f"image_size must be (width, height) or one per system, shape ({n_systems}, 2); got {arr.shape}"
+        )
     return [(int(w), int(h)) for w, h in arr]
 
 
@@ -1317,12 +1371,24 @@ def calibrate(
     t0 = time.perf_counter()
     learn, estimate_iop, smooth = _scheme_flags(scheme)
     if scheme == "polynomial":
-        return _calibrate_polynomial(observations, phantom, initial, _image_sizes(image_size, len(observations.system_names)), params, adjust_params)
+        return _calibrate_polynomial(
+            observations,
+            phantom,
+            initial,
+            _image_sizes(image_size, len(observations.system_names)),
+            params,
+            adjust_params,
+        )
     if smooth:
         params = replace(params, smooth=True)
     else:
         # Anderson and the gridded refinement combine gridded fields: the unsmoothed scheme runs without them
-        params = replace(params, smooth=False, refine="none", acceleration="none" if params.acceleration == "anderson" else params.acceleration)
+        params = replace(
+            params,
+            smooth=False,
+            refine="none",
+            acceleration="none" if params.acceleration == "anderson" else params.acceleration,
+        )
     n_systems = len(observations.system_names)
     sizes = _image_sizes(image_size, n_systems)
     xy = observations.xy_px
@@ -1338,8 +1404,18 @@ def calibrate(
     logger.info("scheme %s: initial adjustment cost %.6g, inlier RMS %.4f px", scheme, out.cost, out.rms_px)
     if not learn:
         return LearnResult(
-            scheme, tuple(CorrectionField.constant(w, h) for w, h in sizes), None, corrections, adj, tuple(history), (), True,
-            "scheme 'none' learns nothing", time.perf_counter() - t0, run.seconds, initial_residual,
+            scheme,
+            tuple(CorrectionField.constant(w, h) for w, h in sizes),
+            None,
+            corrections,
+            adj,
+            tuple(history),
+            (),
+            True,
+            "scheme 'none' learns nothing",
+            time.perf_counter() - t0,
+            run.seconds,
+            initial_residual,
         )
 
     grids = [CorrectionField.constant(w, h, spacing_px=params.grid_spacing_px) for w, h in sizes]
@@ -1358,27 +1434,62 @@ def calibrate(
         r, var = out.residuals_px[sel], out.residual_var_px2[sel]
         if phase == "grid":
             if taus[s] is None:
-                cvs[s] = cross_validate_smoothness(xy[sel], r, var, image_size=sizes[s], params=params, base_px=grids[s].delta_px)
+                cvs[s] = cross_validate_smoothness(
+                    xy[sel], r, var, image_size=sizes[s], params=params, base_px=grids[s].delta_px
+                )
                 taus[s] = cvs[s].tau_px
-                logger.info("system %s: gridded refinement, smoothness order %d, tau %.3g px (CV)", observations.system_names[s], cvs[s].order, taus[s])
+                logger.info(
+                    "system %s: gridded refinement, smoothness order %d, tau %.3g px (CV)",
+                    observations.system_names[s],
+                    cvs[s].order,
+                    taus[s],
+                )
             if params.refine == "grid+points":
                 bead, J = _point_jacobians(adj, observations, sel)
                 t_weight = adj.weight[sel, None] if params.training == "inliers" else 1.0
                 w_obs = t_weight / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
-                shape = (adj.xyz_mm, nominal_xyz[_lookup(adj.bead_id, nominal_ids, "bead ids of the adjustment")]) if params.affine_datum else None
+                shape = (
+                    (adj.xyz_mm, nominal_xyz[_lookup(adj.bead_id, nominal_ids, "bead ids of the adjustment")])
+                    if params.affine_datum
+                    else None
+                )
                 model = fit_grid_with_points(
-                    xy[sel], r, w_obs, bead, J, params, image_size=sizes[s], tau_px=taus[s], base=grids[s],
-                    cv_rms_px=cvs[s].cv_rms_px, shape_mm=shape, max_cg_iterations=_LOOP_CG_ITERATIONS, order=cvs[s].order,
+                    xy[sel],
+                    r,
+                    w_obs,
+                    bead,
+                    J,
+                    params,
+                    image_size=sizes[s],
+                    tau_px=taus[s],
+                    base=grids[s],
+                    cv_rms_px=cvs[s].cv_rms_px,
+                    shape_mm=shape,
+                    max_cg_iterations=_LOOP_CG_ITERATIONS,
+                    order=cvs[s].order,
                 )
             else:
                 model = fit_grid_field(
-                    xy[sel], r, var, params, image_size=sizes[s], tau_px=taus[s], cv_rms_px=cvs[s].cv_rms_px, base=grids[s], order=cvs[s].order,
+                    xy[sel],
+                    r,
+                    var,
+                    params,
+                    image_size=sizes[s],
+                    tau_px=taus[s],
+                    cv_rms_px=cvs[s].cv_rms_px,
+                    base=grids[s],
+                    order=cvs[s].order,
                 )
         elif refit:
             model, _ = fit_knn_field(xy[sel], r, var, params, image_size=sizes[s], cv=cvs[s])
         else:
             model, cvs[s] = fit_knn_field(
-                xy[sel], r, var, replace(params, k_grid=_restricted_k_grid(params.k_grid, k_prev[s])), image_size=sizes[s], neighbour_cache=knn_caches[s],
+                xy[sel],
+                r,
+                var,
+                replace(params, k_grid=_restricted_k_grid(params.k_grid, k_prev[s])),
+                image_size=sizes[s],
+                neighbour_cache=knn_caches[s],
             )
             k_prev[s] = cvs[s].k
         return model, sel
@@ -1397,7 +1508,9 @@ def calibrate(
             else:
                 sel = rows[s][out.inlier[rows[s]]]
             if len(sel) < params.n_folds:
-                raise EstimationError(f"system {observations.system_names[s]} has {len(sel)} inlier observations; the regression needs at least {params.n_folds}")
+                raise EstimationError(
+                    f"system {observations.system_names[s]} has {len(sel)} inlier observations; the regression needs at least {params.n_folds}"
+                )
             if params.training == "local":
                 # gross errors are what the field cannot explain: fit to all, test every
                 # observation against the fitted field, refit without the misfits
@@ -1442,7 +1555,17 @@ def calibrate(
         step = float(np.max(np.abs(corrections - old))) if n_obs else 0.0
         ks = tuple(int(k or 0) if phase == "knn" else 0 for k in k_prev)
         history.append(IterationRecord(iteration, phase, out.cost, fit_cost, total, ks, out.rms_px, step))
-        logger.info("iteration %d (%s): cost %.6g + %.6g = %.6g, RMS %.4f px, step %.4f px, k %s", iteration, phase, out.cost, fit_cost, total, out.rms_px, step, ks)
+        logger.info(
+            "iteration %d (%s): cost %.6g + %.6g = %.6g, RMS %.4f px, step %.4f px, k %s",
+            iteration,
+            phase,
+            out.cost,
+            fit_cost,
+            total,
+            out.rms_px,
+            step,
+            ks,
+        )
         prev = history[-2].cost_total if len(history) > 2 and history[-2].phase == phase else None
         if params.acceleration == "anderson" and prev is not None and total > prev:
             anderson.restart()
@@ -1474,11 +1597,37 @@ def calibrate(
         for s, (model, cv) in enumerate(zip(updates, cvs)):
             grid = pointwise[s].to_grid(params)
             sigma, support = _node_statistics(model, grid.nodes_px, cv, params)
-            fields.append(grid.with_delta(grid.delta_px, sigma_px=sigma.reshape(grid.sigma_px.shape), support=support.reshape(grid.support.shape)))
+            fields.append(
+                grid.with_delta(
+                    grid.delta_px,
+                    sigma_px=sigma.reshape(grid.sigma_px.shape),
+                    support=support.reshape(grid.support.shape),
+                )
+            )
         fields, pw = tuple(fields), tuple(pointwise)
     wall = time.perf_counter() - t0
-    logger.info("scheme %s: %s after %d iterations (%.1f s, of which %.1f s in the adjustment)", scheme, stop, iteration, wall, run.seconds)
-    return LearnResult(scheme, fields, pw, corrections, adj, tuple(history), tuple(cvs), converged, stop, wall, run.seconds, initial_residual)
+    logger.info(
+        "scheme %s: %s after %d iterations (%.1f s, of which %.1f s in the adjustment)",
+        scheme,
+        stop,
+        iteration,
+        wall,
+        run.seconds,
+    )
+    return LearnResult(
+        scheme,
+        fields,
+        pw,
+        corrections,
+        adj,
+        tuple(history),
+        tuple(cvs),
+        converged,
+        stop,
+        wall,
+        run.seconds,
+        initial_residual,
+    )
 
 
 def _calibrate_polynomial(observations, phantom, initial, sizes, params: LearnParams, adjust_params) -> LearnResult:
@@ -1515,20 +1664,40 @@ def _calibrate_polynomial(observations, phantom, initial, sizes, params: LearnPa
         nodes = grid.nodes_px
         B = _polynomial.basis(nodes, adj.iop_px[s, :2], adj.ap_radius_px[s])
         var = np.einsum("nci,ij,ncj->n", B, adj.ap_cov_px2[s], B) / 2
-        fields.append(grid.with_delta(
-            adj.polynomial_correction(s, nodes).reshape(grid.delta_px.shape), sigma_px=np.sqrt(var).reshape(grid.sigma_px.shape),
-            support=_support_mask(xy[rows[adj.used[rows]]], nodes, params).reshape(grid.support.shape),
-        ))
+        fields.append(
+            grid.with_delta(
+                adj.polynomial_correction(s, nodes).reshape(grid.delta_px.shape),
+                sigma_px=np.sqrt(var).reshape(grid.sigma_px.shape),
+                support=_support_mask(xy[rows[adj.used[rows]]], nodes, params).reshape(grid.support.shape),
+            )
+        )
     step = float(np.abs(corrections).max(initial=0.0))
     history = (
         IterationRecord(0, "adjust", before.cost, 0.0, before.cost, (), before.rms_px, 0.0),
         IterationRecord(1, "polynomial", out.cost, 0.0, out.cost, (), out.rms_px, step),
     )
-    logger.info("scheme polynomial: inlier RMS %.4f -> %.4f px, coefficients %s px", before.rms_px, out.rms_px, np.round(adj.ap_px, 4).tolist())
+    logger.info(
+        "scheme polynomial: inlier RMS %.4f -> %.4f px, coefficients %s px",
+        before.rms_px,
+        out.rms_px,
+        np.round(adj.ap_px, 4).tolist(),
+    )
     stop = f"polynomial model estimated in the adjustment ({adj.stop_reason})"
     seconds = plain.seconds + model.seconds
-    return LearnResult("polynomial", tuple(fields), None, corrections, adj, history, (), adj.converged, stop, time.perf_counter() - t0, seconds,
-                       first.residual_px)
+    return LearnResult(
+        "polynomial",
+        tuple(fields),
+        None,
+        corrections,
+        adj,
+        history,
+        (),
+        adj.converged,
+        stop,
+        time.perf_counter() - t0,
+        seconds,
+        first.residual_px,
+    )
 
 
 def _support_mask(xy_px: np.ndarray, nodes_px: np.ndarray, params: LearnParams) -> np.ndarray:
@@ -1582,7 +1751,9 @@ def _split_nodes(grids, updates, x_new):
     out, start = [], 0
     for g, u in zip(grids, updates):
         n = g.delta_px.size
-        out.append(g.with_delta(x_new[start : start + n].reshape(g.delta_px.shape), sigma_px=u.sigma_px, support=u.support))
+        out.append(
+            g.with_delta(x_new[start : start + n].reshape(g.delta_px.shape), sigma_px=u.sigma_px, support=u.support)
+        )
         start += n
     return out
 
@@ -1617,7 +1788,15 @@ def _adjustment_outcome(adj, sigma_px: np.ndarray) -> _Outcome:
     return _Outcome(adj.residual_px, var, inlier, float(adj.cost_history[-1]), rms)
 
 
-def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool, fast: bool = False, additional_parameters: str = "none"):
+def _adjuster(
+    observations,
+    phantom,
+    initial,
+    adjust_params,
+    estimate_iop: bool,
+    fast: bool = False,
+    additional_parameters: str = "none",
+):
     """``run(corrections_px, previous) -> Adjustment``: the adjustment with Δ held constant.
 
     ``previous`` is None (start from ``initial``) or a previous
@@ -1628,15 +1807,18 @@ def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool,
     ``additional_parameters`` applies to every solve: the kNN schemes keep
     "none", so the learned field is the whole correction.
     """
-    from stages.adjust import AdjustParams, Orientation, adjust_bundle
+    from fluorocal.stages.adjust import AdjustParams, Orientation, adjust_bundle
 
     final_params = replace(
-        adjust_params if adjust_params is not None else AdjustParams(), estimate_iop=estimate_iop, additional_parameters=additional_parameters
+        adjust_params if adjust_params is not None else AdjustParams(),
+        estimate_iop=estimate_iop,
+        additional_parameters=additional_parameters,
     )
     # intermediate solves: no covariance, fewer iterations and a looser cost tolerance: 1e-6 per observation
     # (at least 1e-3), far below the noise the inexact field fits leave in the combined cost
     fast_params = replace(
-        final_params, compute_covariance=False,
+        final_params,
+        compute_covariance=False,
         function_tolerance=max(final_params.function_tolerance, 1e-3, 1e-6 * len(observations.xy_px)),
         max_iterations=min(final_params.max_iterations, 10),
     )
@@ -1664,8 +1846,12 @@ def _adjuster(observations, phantom, initial, adjust_params, estimate_iop: bool,
         q, src = initial.q_cam_from_obj.copy(), initial.source_mm.copy()
         at = np.searchsorted(initial.exposure, previous.exposure)
         q[at], src[at] = previous.q_cam_from_obj, previous.source_mm
-        warm = Orientation(previous.iop_px, initial.exposure, q, src, previous.rop_q, previous.rop_source_mm, initial.system_names)
-        return adjust_bundle(observations, nominal, warm, corrections_px, params, start_points=(previous.bead_id, previous.xyz_mm))
+        warm = Orientation(
+            previous.iop_px, initial.exposure, q, src, previous.rop_q, previous.rop_source_mm, initial.system_names
+        )
+        return adjust_bundle(
+            observations, nominal, warm, corrections_px, params, start_points=(previous.bead_id, previous.xyz_mm)
+        )
 
     return run
 
@@ -1682,7 +1868,7 @@ def _point_jacobians(adj, observations, rows: np.ndarray) -> tuple[np.ndarray, n
     ``p = R (P - T)`` at the adjustment's estimate (``R``, ``T`` the pose of
     the observation's system and epoch).
     """
-    from stages._geometry import quat_to_matrix
+    from fluorocal.stages._geometry import quat_to_matrix
 
     order = np.argsort(adj.bead_id)
     bead = order[np.searchsorted(adj.bead_id, observations.bead_id[rows], sorter=order)]
@@ -1713,7 +1899,7 @@ def _affine_shape_modes(points_mm: np.ndarray, nominal_mm: np.ndarray) -> tuple[
     traceless (stretches and shears); ``P_nom`` is the nominal design brought
     onto ``P`` by a 7-parameter similarity, so only shape differs.
     """
-    from stages._geometry import similarity_fit
+    from fluorocal.stages._geometry import similarity_fit
 
     c = points_mm - points_mm.mean(0)
     r3 = 1 / np.sqrt(3.0)
@@ -1805,7 +1991,10 @@ def fit_grid_with_points(
     n_beads = len(shape_mm[0]) if shape_mm is not None else (int(bead_index.max()) + 1 if n else 0)
     cols = (3 * bead_index[:, None] + np.arange(3)).ravel()
     # J_c as sparse (n, 3 n_beads): row o holds d proj_c / d P of its bead
-    Jc = [csr_matrix((point_jacobian[:, c, :].ravel(), (np.repeat(np.arange(n), 3), cols)), shape=(n, 3 * n_beads)) for c in range(2)]
+    Jc = [
+        csr_matrix((point_jacobian[:, c, :].ravel(), (np.repeat(np.arange(n), 3), cols)), shape=(n, 3 * n_beads))
+        for c in range(2)
+    ]
     Nvp = vstack([AtW[c] @ Jc[c] for c in range(2)]).tocsr()
     # per-bead 3x3 blocks sum_o J^T W J, inverted
     Npp = np.zeros((n_beads, 3, 3))
@@ -1834,9 +2023,15 @@ def fit_grid_with_points(
 
     Npv = Nvp.T.tocsr()
     rhs = bv - Nvp @ apply_pp_inv(bp.ravel())
-    op = LinearOperator((2 * n_nodes, 2 * n_nodes), matvec=lambda v: Nvv @ v - Nvp @ apply_pp_inv(Npv @ v), dtype=np.float64)
+    op = LinearOperator(
+        (2 * n_nodes, 2 * n_nodes), matvec=lambda v: Nvv @ v - Nvp @ apply_pp_inv(Npv @ v), dtype=np.float64
+    )
     # the preconditioner, block by block: one factorisation when both components weigh alike
-    blocks = [Nvv[:n_nodes, :n_nodes]] if np.array_equal(w[:, 0], w[:, 1]) else [Nvv[:n_nodes, :n_nodes], Nvv[n_nodes:, n_nodes:]]
+    blocks = (
+        [Nvv[:n_nodes, :n_nodes]]
+        if np.array_equal(w[:, 0], w[:, 1])
+        else [Nvv[:n_nodes, :n_nodes], Nvv[n_nodes:, n_nodes:]]
+    )
     lus = [_factor_spd(blk) for blk in blocks]
 
     def precondition(v):
@@ -1894,7 +2089,9 @@ class CalibrationSetup:
     iop_guess_px: tuple = ()
 
 
-def learn_calibration(observations, phantom, params: LearnParams, *, setup: CalibrationSetup, adjust=None) -> LearnResult:
+def learn_calibration(
+    observations, phantom, params: LearnParams, *, setup: CalibrationSetup, adjust=None
+) -> LearnResult:
     """Calibrate from labelled observations: start values by resection, then :func:`calibrate`.
 
     Parameters
@@ -1913,9 +2110,19 @@ def learn_calibration(observations, phantom, params: LearnParams, *, setup: Cali
     EstimationError
         No frame could be resected, or the adjustment failed as a whole.
     """
-    from stages.adjust import initial_orientation
+    from fluorocal.stages.adjust import initial_orientation
 
     if phantom.lattice:
-        raise InputError("calibrating from a grid plate is not supported by `fluorocal run` yet: use a 3D bead phantom (the grid's holes are detected and indexed by `fluorocal detect` / `fluorocal label`)")
+        raise InputError(
+            "calibrating from a grid plate is not supported by `fluorocal run` yet: use a 3D bead phantom (the grid's holes are detected and indexed by `fluorocal detect` / `fluorocal label`)"
+        )
     initial = initial_orientation(observations, phantom, np.asarray(setup.iop_guess_px, dtype=np.float64))
-    return calibrate(observations, phantom, initial, image_size=setup.image_size_px, scheme=setup.scheme, params=params, adjust_params=adjust)
+    return calibrate(
+        observations,
+        phantom,
+        initial,
+        image_size=setup.image_size_px,
+        scheme=setup.scheme,
+        params=params,
+        adjust_params=adjust,
+    )

@@ -51,10 +51,9 @@ import logging
 from dataclasses import dataclass, field, fields
 
 import numpy as np
-
-from stages._geometry import check_points, matrix_to_quat, project, quat_to_matrix, to_camera
-from stages.artifacts import Phantom, Radiograph, freeze
-from stages.errors import InputError
+from fluorocal.stages._geometry import check_points, matrix_to_quat, project, quat_to_matrix, to_camera
+from fluorocal.stages.artifacts import Phantom, Radiograph, freeze
+from fluorocal.stages.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -297,7 +296,9 @@ def _cube_phantom(params: SimulateParams) -> Phantom:
     n_levels = int(np.floor(extent / step)) + 1
     n_cols = int(np.floor(extent / params.bead_column_pitch_mm)) + 1
     if n_levels < 2 or n_cols < 2:
-        raise InputError(f"bead_row_pitch_mm={params.bead_row_pitch_mm} and bead_column_pitch_mm={params.bead_column_pitch_mm} leave no bead grid on a {params.cube_side_mm} mm cube")
+        raise InputError(
+            f"bead_row_pitch_mm={params.bead_row_pitch_mm} and bead_column_pitch_mm={params.bead_column_pitch_mm} leave no bead grid on a {params.cube_side_mm} mm cube"
+        )
     levels = (np.arange(n_levels) - (n_levels - 1) / 2) * step
     cols = (np.arange(n_cols) - (n_cols - 1) / 2) * params.bead_column_pitch_mm
     xyz, diam, role = [], [], []
@@ -465,7 +466,7 @@ class ImageDistortion:
         EstimationError
             The iteration did not reach ``tol_px`` within ``max_iter`` steps.
         """
-        from stages.errors import EstimationError
+        from fluorocal.stages.errors import EstimationError
 
         target = np.asarray(xy_distorted, dtype=np.float64)
         if target.shape[-1:] != (2,):
@@ -521,7 +522,18 @@ class ImageDistortion:
     @classmethod
     def from_dict(cls, d: dict) -> ImageDistortion:
         """Inverse of :meth:`to_dict`."""
-        keys = ("centre_xy_px", "scale_px", "k1", "k2", "s_rad", "p1", "p2", "field_spacing_px", "field_origin_xy_px", "field_coeffs_px")
+        keys = (
+            "centre_xy_px",
+            "scale_px",
+            "k1",
+            "k2",
+            "s_rad",
+            "p1",
+            "p2",
+            "field_spacing_px",
+            "field_origin_xy_px",
+            "field_coeffs_px",
+        )
         missing = [k for k in keys if k not in d]
         if missing:
             raise InputError(f"distortion dict misses keys: {', '.join(missing)}")
@@ -569,7 +581,9 @@ def make_distortion(params: SimulateParams, system: int) -> ImageDistortion:
     n_nodes = int(np.ceil(size / spacing)) + 7
     origin = np.full(2, (size - 1) / 2.0 - spacing * (n_nodes - 1) / 2)
     coeffs = rng.normal(size=(2, n_nodes, n_nodes))
-    base = ImageDistortion(np.zeros(2), scale, field_spacing_px=spacing, field_origin_xy_px=origin, field_coeffs_px=coeffs)
+    base = ImageDistortion(
+        np.zeros(2), scale, field_spacing_px=spacing, field_origin_xy_px=origin, field_coeffs_px=coeffs
+    )
     g = np.linspace(0, size - 1, 48)
     sample = np.stack(np.meshgrid(g, g), axis=-1)
     rms = np.sqrt(np.mean(np.sum(base._field(sample) ** 2, axis=-1)))
@@ -666,7 +680,9 @@ def _turntable_angles(params: SimulateParams) -> np.ndarray:
         ok &= np.minimum(rel, 90.0 - rel) >= params.min_face_angle_deg
     allowed = candidates[ok]
     if allowed.size == 0:
-        raise InputError(f"min_face_angle_deg={params.min_face_angle_deg} leaves no turntable angle for system_angle_deg={params.system_angle_deg}")
+        raise InputError(
+            f"min_face_angle_deg={params.min_face_angle_deg} leaves no turntable angle for system_angle_deg={params.system_angle_deg}"
+        )
     idx = ((np.arange(params.n_frames) + 0.5) * allowed.size / params.n_frames).astype(int)
     return allowed[idx]
 
@@ -725,7 +741,9 @@ def make_acquisition(params: SimulateParams) -> Acquisition:
             # p_cam = C (R_k P + t_k - S) = (C R_k) (P - R_kᵀ (S - t_k))
             q[s, i] = matrix_to_quat(camera_from_lab @ lab_from_phantom[i])
             source[s, i] = lab_from_phantom[i].T @ (system.source_lab_mm - translation[i])
-    return Acquisition(tuple(systems), np.asarray(angles, dtype=np.float64), translation, matrix_to_quat(lab_from_phantom), q, source)
+    return Acquisition(
+        tuple(systems), np.asarray(angles, dtype=np.float64), translation, matrix_to_quat(lab_from_phantom), q, source
+    )
 
 
 # --------------------------------------------------------------------------- projection truth
@@ -781,10 +799,21 @@ class FrameTruth:
         return len(self.ids)
 
     #: per-bead array fields, in the order of ``to_dict``
-    BEAD_FIELDS = ("ids", "ideal_xy_px", "distorted_xy_px", "outline_ideal_xy_px", "outline_xy_px", "diameter_px", "overlap", "field_edge")
+    BEAD_FIELDS = (
+        "ids",
+        "ideal_xy_px",
+        "distorted_xy_px",
+        "outline_ideal_xy_px",
+        "outline_xy_px",
+        "diameter_px",
+        "overlap",
+        "field_edge",
+    )
 
 
-def _circle_ellipse(centre_cam: np.ndarray, e1_cam: np.ndarray, e2_cam: np.ndarray, radius: np.ndarray, iop: np.ndarray):
+def _circle_ellipse(
+    centre_cam: np.ndarray, e1_cam: np.ndarray, e2_cam: np.ndarray, radius: np.ndarray, iop: np.ndarray
+):
     """Perspective image of 3D circles as ellipses ``centre + L (cos t, sin t)``.
 
     Parameters
@@ -813,7 +842,7 @@ def _circle_ellipse(centre_cam: np.ndarray, e1_cam: np.ndarray, e2_cam: np.ndarr
     Hinv = np.linalg.inv(H)
     D = np.zeros((len(radius), 3, 3))
     D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = -np.asarray(radius, dtype=np.float64) ** 2
+    D[:, 2, 2] = -(np.asarray(radius, dtype=np.float64) ** 2)
     Q = np.swapaxes(Hinv, -1, -2) @ D @ Hinv
     A, b, f = Q[:, :2, :2], Q[:, :2, 2], Q[:, 2, 2]
     centre = -np.linalg.solve(A, b[..., None])[..., 0]
@@ -861,7 +890,9 @@ class _Outlines:
     radius_max_px: np.ndarray  # largest distance from the distorted outline centre to the outline
 
 
-def _project_outlines(xyz_mm, diameter_mm, q, source_mm, iop, distortion: ImageDistortion, *, hole_axis: bool) -> _Outlines:
+def _project_outlines(
+    xyz_mm, diameter_mm, q, source_mm, iop, distortion: ImageDistortion, *, hole_axis: bool
+) -> _Outlines:
     ideal = project(xyz_mm, q, source_mm, iop)
     centre_cam = to_camera(xyz_mm, q, source_mm)
     radius = np.asarray(diameter_mm, dtype=np.float64) / 2
@@ -923,7 +954,9 @@ def project_beads(
     ids = np.asarray(ids, dtype=np.int64)
     diameter_mm = np.asarray(diameter_mm, dtype=np.float64)
     if ids.shape != (len(xyz_mm),) or diameter_mm.shape != (len(xyz_mm),):
-        raise InputError(f"ids and diameter_mm must have shape ({len(xyz_mm)},); got {ids.shape} and {diameter_mm.shape}")
+        raise InputError(
+            f"ids and diameter_mm must have shape ({len(xyz_mm)},); got {ids.shape} and {diameter_mm.shape}"
+        )
     o = _project_outlines(xyz_mm, diameter_mm, q, source_mm, iop, distortion, hole_axis=holes)
     centre = np.full(2, (image_size_px - 1) / 2.0)
     r_fov = np.linalg.norm(o.outline_xy_px - centre, axis=1)
@@ -932,7 +965,9 @@ def project_beads(
     in_image = np.all((hi >= -0.5) & (lo <= image_size_px - 0.5), axis=1)
     visible = (r_fov < fov_radius_px + rad) & in_image
     margin = overlap_margin_px
-    field_edge = (r_fov > fov_radius_px - rad - margin) | np.any((lo < -0.5 + margin) | (hi > image_size_px - 0.5 - margin), axis=1)
+    field_edge = (r_fov > fov_radius_px - rad - margin) | np.any(
+        (lo < -0.5 + margin) | (hi > image_size_px - 0.5 - margin), axis=1
+    )
     overlap = np.zeros(len(ids), dtype=bool)
     if len(ids) > 1:
         from scipy.spatial import cKDTree
@@ -1052,7 +1087,9 @@ def _box_chord(a: tuple, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.maximum(leave - enter, 0.0)
 
 
-def _background_line_integral(params: SimulateParams, rays: np.ndarray, q: np.ndarray, source_mm: np.ndarray) -> np.ndarray:
+def _background_line_integral(
+    params: SimulateParams, rays: np.ndarray, q: np.ndarray, source_mm: np.ndarray
+) -> np.ndarray:
     """μ·length through the acrylic walls (cube) or the steel plate (grid) along each ray ``(M,)``.
 
     ``rays`` : (3, M) float32 unit rays in the camera frame.
@@ -1066,8 +1103,12 @@ def _background_line_integral(params: SimulateParams, rays: np.ndarray, q: np.nd
             return params.mu_steel_per_mm * params.grid_thickness_mm / np.abs(a[2])
     half = params.cube_side_mm / 2
     inner = half - params.wall_thickness_mm
-    outer_len = _box_chord(a, np.array([-half, -half, -half], np.float32) - T, np.array([half, half, half], np.float32) - T)
-    inner_len = _box_chord(a, np.array([-inner, -inner, -half], np.float32) - T, np.array([inner, inner, half], np.float32) - T)
+    outer_len = _box_chord(
+        a, np.array([-half, -half, -half], np.float32) - T, np.array([half, half, half], np.float32) - T
+    )
+    inner_len = _box_chord(
+        a, np.array([-inner, -inner, -half], np.float32) - T, np.array([inner, inner, half], np.float32) - T
+    )
     return params.mu_acrylic_per_mm * (outer_len - inner_len)
 
 
@@ -1224,7 +1265,9 @@ def _blur_sigma_px(params: SimulateParams) -> float:
     return float(np.hypot(focal, params.intensifier_blur_mm) / params.pixel_pitch_mm)
 
 
-def _form_image(params: SimulateParams, raster: _SystemRaster, transmission: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def _form_image(
+    params: SimulateParams, raster: _SystemRaster, transmission: np.ndarray, rng: np.random.Generator
+) -> np.ndarray:
     """Detector chain from transmission ``(H, W)`` to quantised DN ``(H, W) uint16``."""
     import cv2
 
@@ -1239,14 +1282,18 @@ def _form_image(params: SimulateParams, raster: _SystemRaster, transmission: np.
         # veiling glare: a wide Gaussian, computed at 1/8 resolution (it has no fine detail)
         f = 8 if size >= 64 else 1
         low = cv2.resize(primary, (size // f, size // f), interpolation=cv2.INTER_AREA) if f > 1 else primary
-        low = cv2.GaussianBlur(low, (0, 0), params.glare_sigma_mm / params.pixel_pitch_mm / f, borderType=cv2.BORDER_CONSTANT)
+        low = cv2.GaussianBlur(
+            low, (0, 0), params.glare_sigma_mm / params.pixel_pitch_mm / f, borderType=cv2.BORDER_CONSTANT
+        )
         glare = cv2.resize(low, (size, size), interpolation=cv2.INTER_LINEAR) if f > 1 else low
         primary = (1.0 - params.glare_fraction) * primary + params.glare_fraction * glare
     signal = params.open_field_dn * primary * (1.0 - params.vignetting * raster.radial2)
     image = signal + params.dark_dn
     if params.noise_scale > 0:
         # quantum noise by its normal approximation (>= ~500 quanta per pixel inside the field)
-        std = params.noise_scale * np.sqrt(params.gain_dn_per_quantum * np.maximum(signal, 0) + params.electronic_noise_dn**2)
+        std = params.noise_scale * np.sqrt(
+            params.gain_dn_per_quantum * np.maximum(signal, 0) + params.electronic_noise_dn**2
+        )
         image = image + std * rng.standard_normal(image.shape, dtype=np.float32)
     return np.clip(np.rint(image), 0, 2**params.bit_depth - 1).astype(np.uint16)
 
@@ -1348,7 +1395,9 @@ class SimulatedData:
         return tuple(s.name for s in self.truth.systems)
 
 
-def simulate(params: SimulateParams, *, render: bool = True, phantom: Phantom | None = None, on_frame=None) -> SimulatedData:
+def simulate(
+    params: SimulateParams, *, render: bool = True, phantom: Phantom | None = None, on_frame=None
+) -> SimulatedData:
     """Simulate an acquisition with its ground truth.
 
     Parameters
@@ -1389,19 +1438,36 @@ def simulate(params: SimulateParams, *, render: bool = True, phantom: Phantom | 
         for k in range(params.n_frames):
             per_system.append(
                 project_beads(
-                    nominal.ids, true_xyz, diameter, acq.q[s, k], acq.source_mm[s, k], system.iop_px, system.distortion,
-                    image_size_px=params.image_size_px, fov_radius_px=params.fov_radius_px,
-                    overlap_margin_px=params.overlap_margin_px, holes=holes, system=s, exposure=k,
+                    nominal.ids,
+                    true_xyz,
+                    diameter,
+                    acq.q[s, k],
+                    acq.source_mm[s, k],
+                    system.iop_px,
+                    system.distortion,
+                    image_size_px=params.image_size_px,
+                    fov_radius_px=params.fov_radius_px,
+                    overlap_margin_px=params.overlap_margin_px,
+                    holes=holes,
+                    system=s,
+                    exposure=k,
                 )
             )
         truth_frames.append(tuple(per_system))
-        log.debug("system %s: %d exposures, %.0f visible beads per frame", system.name, params.n_frames, np.mean([len(f) for f in per_system]))
+        log.debug(
+            "system %s: %d exposures, %.0f visible beads per frame",
+            system.name,
+            params.n_frames,
+            np.mean([len(f) for f in per_system]),
+        )
         rendered = []
         if render:
             raster = _system_raster(params, system)
             for k in range(params.n_frames):
                 rng = np.random.default_rng([params.seed, _RNG_NOISE, s, k])
-                image = render_frame(params, system, acq.q[s, k], acq.source_mm[s, k], true_xyz, diameter, rng=rng, raster=raster)
+                image = render_frame(
+                    params, system, acq.q[s, k], acq.source_mm[s, k], true_xyz, diameter, rng=rng, raster=raster
+                )
                 meta = {
                     "format": "simulated",
                     "system": system.name,
@@ -1409,11 +1475,17 @@ def simulate(params: SimulateParams, *, render: bool = True, phantom: Phantom | 
                     "ImagerPixelSpacing": [params.pixel_pitch_mm, params.pixel_pitch_mm],
                     "DistanceSourceToDetector": system.source_image_distance_mm,
                 }
-                rendered.append(Radiograph(image.astype(np.float32), params.bit_depth, f"simulated/{system.name}/frame_{k:03d}", 0, meta))
+                rendered.append(
+                    Radiograph(
+                        image.astype(np.float32), params.bit_depth, f"simulated/{system.name}/frame_{k:03d}", 0, meta
+                    )
+                )
                 if on_frame is not None:
                     on_frame(s, k)
         frames.append(tuple(rendered))
-    truth = Truth(np.asarray(true_xyz, dtype=np.float64), np.asarray(reference_xyz, dtype=np.float64), acq, tuple(truth_frames))
+    truth = Truth(
+        np.asarray(true_xyz, dtype=np.float64), np.asarray(reference_xyz, dtype=np.float64), acq, tuple(truth_frames)
+    )
     return SimulatedData(params, nominal, truth, tuple(frames))
 
 
@@ -1460,7 +1532,12 @@ def truth_to_dict(data: SimulatedData, *, grid_step_px: float | None = None) -> 
     frames = []
     for s, per_system in enumerate(data.truth.frames):
         for ft in per_system:
-            entry = {"system": acq.systems[s].name, "exposure": ft.exposure, "q": ft.q.tolist(), "source_mm": ft.source_mm.tolist()}
+            entry = {
+                "system": acq.systems[s].name,
+                "exposure": ft.exposure,
+                "q": ft.q.tolist(),
+                "source_mm": ft.source_mm.tolist(),
+            }
             entry["beads"] = {name: getattr(ft, name).tolist() for name in FrameTruth.BEAD_FIELDS}
             frames.append(entry)
     return {

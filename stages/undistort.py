@@ -11,9 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from stages.artifacts import Radiograph
-from stages.errors import InputError, ShapeError
+from fluorocal.stages.artifacts import Radiograph
+from fluorocal.stages.errors import InputError, ShapeError
 
 VERSION = 1
 
@@ -36,7 +35,9 @@ class UndistortParams:
     border_value: float = 0.0
 
 
-def undistort_frame(radiograph: Radiograph, map_x: np.ndarray, map_y: np.ndarray, params: UndistortParams) -> Radiograph:
+def undistort_frame(
+    radiograph: Radiograph, map_x: np.ndarray, map_y: np.ndarray, params: UndistortParams
+) -> Radiograph:
     """Resample a distorted frame onto the ideal (pinhole) image grid.
 
     Parameters

@@ -6,8 +6,8 @@ import csv
 import json
 
 import numpy as np
+from fluorocal.cli import main
 
-from pipeline.cli import main
 from tests.stages.ba_synthetic import make_problem
 
 
@@ -25,14 +25,30 @@ def _write_inputs(tmp_path):
         w.writerow(["file", "frame", "system", "id", "x", "y", "sigma_x", "sigma_y", "rho"])
         for k in range(len(obs)):
             name = "AB"[obs.system[k]]
-            w.writerow([f"{name}_{obs.exposure[k]:03d}.tif", 0, name, int(obs.bead_id[k]), *obs.xy_px[k], 0.05, 0.05, 0.0])
+            w.writerow(
+                [f"{name}_{obs.exposure[k]:03d}.tif", 0, name, int(obs.bead_id[k]), *obs.xy_px[k], 0.05, 0.05, 0.0]
+            )
     return syn, phantom, table
 
 
 def test_adjust_command_writes_outputs(tmp_path):
     syn, phantom, table = _write_inputs(tmp_path)
     out = tmp_path / "out"
-    rc = main(["adjust", "--observations", str(table), "--phantom", str(phantom), "--sid", "1100", "--pixel-pitch", "0.25", "--out", str(out)])
+    rc = main(
+        [
+            "adjust",
+            "--observations",
+            str(table),
+            "--phantom",
+            str(phantom),
+            "--sid",
+            "1100",
+            "--pixel-pitch",
+            "0.25",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     summary = json.loads((out / "orientation.json").read_text())
     assert summary["usable"] and summary["system_names"] == ["A", "B"]

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import pytest
+from fluorocal.config import ConfigError, load_config, params_from_dict
 
-from pipeline.config import ConfigError, load_config, params_from_dict
 from tests.pipeline.toy import make_project
 
 
@@ -28,12 +28,24 @@ def test_valid_config_resolves_paths_relative_to_file(tmp_path):
     "edit, match",
     [
         (lambda t: t + "\nbogus = 1\n", r"key 'bogus': unknown key"),
-        (lambda t: t.replace("pixel_pitch = 0.25", 'pixel_pitch = "0.25mm"'), r"\[\[systems\]\] #1 key 'pixel_pitch': expected a positive number \(mm\)"),
-        (lambda t: t.replace("pixel_pitch = 0.25", "pixel_pitch = -1"), r"key 'pixel_pitch': expected a positive number"),
+        (
+            lambda t: t.replace("pixel_pitch = 0.25", 'pixel_pitch = "0.25mm"'),
+            r"\[\[systems\]\] #1 key 'pixel_pitch': expected a positive number \(mm\)",
+        ),
+        (
+            lambda t: t.replace("pixel_pitch = 0.25", "pixel_pitch = -1"),
+            r"key 'pixel_pitch': expected a positive number",
+        ),
         (lambda t: t.replace("frames/*.tif", "nothing/*.tif"), r"key 'frames': no file matches 'nothing/\*.tif'"),
         (lambda t: t.replace('"phantom.csv"', '"missing.csv"'), r"\[phantom\] key 'file': phantom file not found"),
-        (lambda t: t + '\n[calibration]\nscheme = "magic"\n', r"\[calibration\] key 'scheme': expected one of none, knn"),
-        (lambda t: t + "\n[detect]\nmin_diameter = 3\n", r"\[detect\] key 'min_diameter': unknown; allowed keys are min_diameter_px, polarity"),
+        (
+            lambda t: t + '\n[calibration]\nscheme = "magic"\n',
+            r"\[calibration\] key 'scheme': expected one of none, knn",
+        ),
+        (
+            lambda t: t + "\n[detect]\nmin_diameter = 3\n",
+            r"\[detect\] key 'min_diameter': unknown; allowed keys are min_diameter_px, polarity",
+        ),
         (lambda t: t + '\n[detect]\nmin_diameter_px = "big"\n', r"\[detect\] key 'min_diameter_px': expected float"),
         (lambda t: t.replace('name = "A"', 'name = "A"\ncolour = "red"'), r"#1 key 'colour': unknown key"),
         (lambda t: t.replace('name = "A"', 'name = "A"\nseeds = "seeds.csv"'), r"#1 key 'seeds': seeds file not found"),

@@ -7,12 +7,11 @@ import json
 
 import numpy as np
 import pytest
-
-from pipeline import Calibration
-from pipeline.cli import main
-from pipeline.cmd_simulate import write_dataset
-from stages.io import read_frames
-from stages.simulate import ImageDistortion, SimulateParams, simulate
+from fluorocal import Calibration
+from fluorocal.cli import main
+from fluorocal.cmd_simulate import write_dataset
+from fluorocal.stages.io import read_frames
+from fluorocal.stages.simulate import ImageDistortion, SimulateParams, simulate
 
 PARAMS = SimulateParams(n_frames=4, n_systems=2, image_size_px=512, seed=3)
 
@@ -33,11 +32,23 @@ def _rows(path):
 
 def test_outputs_are_written(project):
     out = project / "out"
-    for name in ("calibration.json", "field_A.npz", "field_B.npz", "object_points.csv", "observations.csv", "report.md", "convergence.png", "residuals_A.png"):
+    for name in (
+        "calibration.json",
+        "field_A.npz",
+        "field_B.npz",
+        "object_points.csv",
+        "observations.csv",
+        "report.md",
+        "convergence.png",
+        "residuals_A.png",
+    ):
         assert (out / name).is_file(), name
     assert "RMS before" in (out / "report.md").read_text()
     header = list(_rows(out / "observations.csv")[0])
-    assert header[:9] == ["system", "file", "exposure", "id", "x", "y", "sigma_x", "sigma_y", "rho"] and header[-1] == "inlier"
+    assert (
+        header[:9] == ["system", "file", "exposure", "id", "x", "y", "sigma_x", "sigma_y", "rho"]
+        and header[-1] == "inlier"
+    )
 
 
 def test_labels_match_the_truth(project):
@@ -48,7 +59,9 @@ def test_labels_match_the_truth(project):
     for row in _rows(project / "out" / "observations.csv"):
         beads = frames[(row["system"], int(row["exposure"]))]
         i = beads["ids"].index(int(row["id"]))
-        errors.append(np.hypot(float(row["x"]) - beads["outline_xy_px"][i][0], float(row["y"]) - beads["outline_xy_px"][i][1]))
+        errors.append(
+            np.hypot(float(row["x"]) - beads["outline_xy_px"][i][0], float(row["y"]) - beads["outline_xy_px"][i][1])
+        )
     errors = np.array(errors)
     # a mislabel is off by a bead pitch (> 10 px); centroids of isolated beads are good to a few hundredths of a pixel,
     # those of beads touching a neighbour to a few tenths
@@ -64,7 +77,10 @@ def test_calibration_api_is_consistent(project):
         # the inverse is solved by Newton iteration to 1e-6 px; 1e-3 px is the bound
         np.testing.assert_allclose(cal.undistort_points(name, cal.distort_points(name, xy)), xy, atol=1e-3)
     obs = _rows(project / "out" / "observations.csv")
-    pts = {int(r["id"]): np.array([float(r["x"]), float(r["y"]), float(r["z"])]) for r in _rows(project / "out" / "object_points.csv")}
+    pts = {
+        int(r["id"]): np.array([float(r["x"]), float(r["y"]), float(r["z"])])
+        for r in _rows(project / "out" / "object_points.csv")
+    }
     rows = [r for r in obs if r["system"] == "B" and r["inlier"] == "1" and int(r["id"]) in pts]
     exposure = int(rows[0]["exposure"])
     rows = [r for r in rows if int(r["exposure"]) == exposure]
@@ -79,9 +95,19 @@ def test_calibration_api_is_consistent(project):
 def test_two_ray_intersection_recovers_the_points(project):
     cal = Calibration.load(project / "out" / "calibration.json")
     obs = [r for r in _rows(project / "out" / "observations.csv") if r["inlier"] == "1"]
-    pts = {int(r["id"]): np.array([float(r["x"]), float(r["y"]), float(r["z"])]) for r in _rows(project / "out" / "object_points.csv")}
+    pts = {
+        int(r["id"]): np.array([float(r["x"]), float(r["y"]), float(r["z"])])
+        for r in _rows(project / "out" / "object_points.csv")
+    }
     exposure = 1
-    seen = {s: {int(r["id"]): (float(r["x"]), float(r["y"])) for r in obs if r["system"] == s and int(r["exposure"]) == exposure} for s in "AB"}
+    seen = {
+        s: {
+            int(r["id"]): (float(r["x"]), float(r["y"]))
+            for r in obs
+            if r["system"] == s and int(r["exposure"]) == exposure
+        }
+        for s in "AB"
+    }
     common = sorted(set(seen["A"]) & set(seen["B"]) & set(pts))
     assert len(common) > 50
     xyz, miss = cal.intersect({s: np.array([seen[s][i] for i in common]) for s in "AB"}, exposure=exposure)
@@ -109,7 +135,9 @@ def test_learned_field_moves_toward_the_truth(project):
 
         def err(ideal):
             H, _ = cv2.findHomography(ideal[support], true_ideal[support], 0)
-            return np.sqrt(np.mean(np.sum((cv2.perspectiveTransform(ideal[None], H)[0] - true_ideal) ** 2, axis=1)[support]))
+            return np.sqrt(
+                np.mean(np.sum((cv2.perspectiveTransform(ideal[None], H)[0] - true_ideal) ** 2, axis=1)[support])
+            )
 
         # 4 frames per system at 512 px learn the field only coarsely (measured 0.19 / 0.11 px against 0.44 px with no
         # correction); benchmarks/learn.py measures the full-size case. Halving the error is the bound here.
@@ -124,7 +152,11 @@ def test_polynomial_scheme_end_to_end_reuses_the_labels(project, caplog):
     text = cfg.read_text()
     assert 'scheme = "knn+iop+smooth"' in text and 'dir = "out"' in text
     poly = project / "polynomial.toml"
-    poly.write_text(text.replace('scheme = "knn+iop+smooth"', 'scheme = "polynomial"').replace('dir = "out"', 'dir = "out_polynomial"'))
+    poly.write_text(
+        text.replace('scheme = "knn+iop+smooth"', 'scheme = "polynomial"').replace(
+            'dir = "out"', 'dir = "out_polynomial"'
+        )
+    )
     with caplog.at_level(logging.INFO):
         assert main(["run", str(poly)]) == 0
     for stage, computed in (("detect", 0), ("centroid", 0), ("label", 0), ("learn", 1)):
@@ -139,7 +171,9 @@ def test_polynomial_scheme_end_to_end_reuses_the_labels(project, caplog):
     for system in truth["systems"]:
         true_ideal = ImageDistortion.from_dict(system["distortion"]).undistort(pts)
         # measured 0.44 -> 0.34 px on system A: the simulator's distortion has local components no global model follows
-        assert _error_modulo_homography(cal.undistort_points(system["name"], pts), true_ideal) < 0.9 * _error_modulo_homography(pts, true_ideal)
+        assert _error_modulo_homography(
+            cal.undistort_points(system["name"], pts), true_ideal
+        ) < 0.9 * _error_modulo_homography(pts, true_ideal)
 
 
 def _error_modulo_homography(ideal, true_ideal):
@@ -167,7 +201,22 @@ def test_inspect_and_overlay(project, capsys):
 
 def test_undistort_keeps_format_and_depth(project, tmp_path):
     frame = project / "frames" / "A" / "frame_000.tif"
-    assert main(["--quiet", "undistort", "--calibration", str(project / "out" / "calibration.json"), "--system", "A", "--out", str(tmp_path), str(frame)]) == 0
+    assert (
+        main(
+            [
+                "--quiet",
+                "undistort",
+                "--calibration",
+                str(project / "out" / "calibration.json"),
+                "--system",
+                "A",
+                "--out",
+                str(tmp_path),
+                str(frame),
+            ]
+        )
+        == 0
+    )
     (src,), (dst,) = read_frames(frame), read_frames(tmp_path / frame.name)
     assert dst.image.shape == src.image.shape and dst.bit_depth == src.bit_depth
     assert 0 < np.abs(dst.image - src.image).mean() < 200  # moved, not blanked
@@ -175,7 +224,21 @@ def test_undistort_keeps_format_and_depth(project, tmp_path):
 
 def test_undistort_unknown_system_is_exit_2(project, tmp_path, capsys):
     frame = project / "frames" / "A" / "frame_000.tif"
-    assert main(["undistort", "--calibration", str(project / "out" / "calibration.json"), "--system", "C", "--out", str(tmp_path), str(frame)]) == 2
+    assert (
+        main(
+            [
+                "undistort",
+                "--calibration",
+                str(project / "out" / "calibration.json"),
+                "--system",
+                "C",
+                "--out",
+                str(tmp_path),
+                str(frame),
+            ]
+        )
+        == 2
+    )
     assert "--system 'C' is not in" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
 
@@ -185,7 +248,7 @@ def test_a_frame_without_beads_is_excluded_with_a_warning(project, tmp_path, cap
     import logging
     import shutil
 
-    from stages.io import write_still
+    from fluorocal.stages.io import write_still
 
     root = tmp_path / "p"
     shutil.copytree(project, root, ignore=shutil.ignore_patterns(".fluorocal", "out"))
@@ -196,5 +259,9 @@ def test_a_frame_without_beads_is_excluded_with_a_warning(project, tmp_path, cap
     excluded = [r.getMessage() for r in caplog.records if "excluded" in r.getMessage()]
     assert len(excluded) == 1 and "frame_002.tif" in excluded[0]  # once per run
     assert (root / "out" / "calibration.json").is_file()
-    listed = [line for line in (root / "out" / "report.md").read_text().splitlines() if line.startswith("Excluded (labelling failed):")]
+    listed = [
+        line
+        for line in (root / "out" / "report.md").read_text().splitlines()
+        if line.startswith("Excluded (labelling failed):")
+    ]
     assert len(listed) == 1 and "frame_002.tif" in listed[0]

@@ -6,11 +6,11 @@ import logging
 
 import numpy as np
 import pytest
+from fluorocal.cache import ArtifactCache, CacheWarning
+from fluorocal.config import load_config
+from fluorocal.run import Runner
+from fluorocal.stages.io import write_still
 
-from pipeline.cache import ArtifactCache, CacheWarning
-from pipeline.config import load_config
-from pipeline.run import Runner
-from stages.io import write_still
 from tests.pipeline import toy
 from tests.pipeline.toy import CALLS, make_project, toy_stages
 
@@ -37,7 +37,7 @@ def test_first_run_computes_everything_and_result_is_right(project):
 def test_second_run_recomputes_nothing_and_says_so(project, caplog):
     _run(project)
     CALLS.clear()
-    with caplog.at_level(logging.INFO, logger="pipeline.run"):
+    with caplog.at_level(logging.INFO, logger="fluorocal.run"):
         runner, report = _run(project)
     assert report.total_computed == 0 and sum(CALLS.values()) == 0
     assert "nothing recomputed" in caplog.text
@@ -99,7 +99,7 @@ def test_interrupted_write_leaves_no_trusted_artifact(project, monkeypatch):
     def crash(*a, **k):
         raise KeyboardInterrupt("simulated crash while writing")
 
-    monkeypatch.setattr("pipeline.cache.os.replace", crash)
+    monkeypatch.setattr("fluorocal.cache.os.replace", crash)
     with pytest.raises(KeyboardInterrupt):
         cache.store("mean", key, toy.Value(np.array([1.0])))
     monkeypatch.undo()
@@ -122,7 +122,7 @@ def test_crash_between_files_leaves_no_manifest(project, monkeypatch):
             raise OSError("disk full")
         return real_dumps(obj, *a, **k)
 
-    monkeypatch.setattr("pipeline.cache.json.dumps", crash_on_manifest)
+    monkeypatch.setattr("fluorocal.cache.json.dumps", crash_on_manifest)
     with pytest.raises(OSError):
         cache.store("mean", key, toy.Value(np.array([1.0])))
     monkeypatch.undo()
@@ -143,7 +143,7 @@ def test_until_stops_early(project):
 
 
 def test_unknown_stage_in_force_is_an_input_error(project):
-    from stages.errors import InputError
+    from fluorocal.stages.errors import InputError
 
     with pytest.raises(InputError, match="unknown stage 'nope'"):
         _run(project, force=["nope"])
@@ -167,5 +167,8 @@ def test_status_reports_cached_stale_missing(project):
     assert {r["status"] for r in runner.status()} == {"cached"}
     project.write_text(project.read_text() + "\n[scale]\nfactor = 5.0\n")
     config = load_config(project, stage_params_allowed={"scale": toy.ScaleParams})
-    status = {r["stage"]: r["status"] for r in Runner(config, toy_stages(), ArtifactCache(config.cache_dir), progress=False).status()}
+    status = {
+        r["stage"]: r["status"]
+        for r in Runner(config, toy_stages(), ArtifactCache(config.cache_dir), progress=False).status()
+    }
     assert status == {"mean": "cached", "scale": "stale", "total": "stale"}

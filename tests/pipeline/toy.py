@@ -7,10 +7,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from pipeline.graph import Stage
-from stages.artifacts import freeze
-from stages.io import write_still
+from fluorocal.graph import Stage
+from fluorocal.stages.artifacts import freeze
+from fluorocal.stages.io import write_still
 
 CALLS: Counter = Counter()
 

@@ -86,7 +86,9 @@ def render_beads(
         cover = inside.reshape(y1 - y0, supersample, x1 - x0, supersample).mean(axis=(1, 3))
         coverage[y0:y1, x0:x1] = np.maximum(coverage[y0:y1, x0:x1], cover)
     yy, xx = np.mgrid[0:height, 0:width]
-    rr2 = ((xx - (width - 1) / 2) ** 2 + (yy - (height - 1) / 2) ** 2) / (((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2)
+    rr2 = ((xx - (width - 1) / 2) ** 2 + (yy - (height - 1) / 2) ** 2) / (
+        ((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2
+    )
     field = background_dn * (1 - vignetting * rr2)
     sign = -1.0 if polarity == "dark" else 1.0
     image = field * (1 + sign * contrast * coverage)

@@ -17,10 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from stages._geometry import project, quat_multiply, quat_to_matrix, rotvec_to_quat
-from stages.adjust import Orientation
-from stages.artifacts import Observations
+from fluorocal.stages._geometry import project, quat_multiply, quat_to_matrix, rotvec_to_quat
+from fluorocal.stages.adjust import Orientation
+from fluorocal.stages.artifacts import Observations
 
 IMAGE_PX = 1024
 
@@ -76,7 +75,13 @@ def make_problem(
     angles = np.linspace(0, 2 * np.pi, n_exposures, endpoint=False) + rng.uniform(-0.05, 0.05, n_exposures)
     tilts = np.deg2rad(tilt_deg) * np.sin(np.arange(n_exposures) * 2.4 + 0.3)
     q = np.array([quat_multiply(_rot_quat([t, 0, 0]), _rot_quat([0, a, 0])) for t, a in zip(tilts, angles)])
-    offset = np.column_stack([rng.uniform(-10, 10, n_exposures), rng.uniform(-15, 15, n_exposures), distance_mm + rng.uniform(-20, 20, n_exposures)])
+    offset = np.column_stack(
+        [
+            rng.uniform(-10, 10, n_exposures),
+            rng.uniform(-15, 15, n_exposures),
+            distance_mm + rng.uniform(-20, 20, n_exposures),
+        ]
+    )
     R = quat_to_matrix(q)
     src = -np.einsum("mji,mj->mi", R, offset)
     iop = np.tile(np.asarray(iop_px, dtype=np.float64), (n_systems, 1))
@@ -88,8 +93,15 @@ def make_problem(
         Rr = quat_to_matrix(rop_q[s])
         centre = np.array([0.0, 0.0, distance_mm])
         rop_t[s] = centre - Rr.T @ (centre + [3.0, -2.0, 40.0])
-    truth = Orientation(iop_px=iop, exposure=np.arange(n_exposures), q_cam_from_obj=q, source_mm=src, rop_q=rop_q, rop_source_mm=rop_t,
-                        system_names=tuple("AB"[:n_systems]))
+    truth = Orientation(
+        iop_px=iop,
+        exposure=np.arange(n_exposures),
+        q_cam_from_obj=q,
+        source_mm=src,
+        rop_q=rop_q,
+        rop_source_mm=rop_t,
+        system_names=tuple("AB"[:n_systems]),
+    )
     rows = []
     for s in range(n_systems):
         qs, Ts = truth.poses(s)
@@ -101,8 +113,14 @@ def make_problem(
     system, exposure, bead, ideal = (np.concatenate(c) for c in zip(*rows))
     n = len(system)
     xy = ideal + rng.normal(0, noise_px, (n, 2))
-    obs = Observations(system=system, exposure=exposure, bead_id=bead, xy_px=xy, sigma_px=np.tile([noise_px, noise_px, 0.0], (n, 1)),
-                       system_names=tuple("AB"[:n_systems]))
+    obs = Observations(
+        system=system,
+        exposure=exposure,
+        bead_id=bead,
+        xy_px=xy,
+        sigma_px=np.tile([noise_px, noise_px, 0.0], (n, 1)),
+        system_names=tuple("AB"[:n_systems]),
+    )
     f = start_error
     q0 = np.array([quat_multiply(_rot_quat(rng.normal(0, f * 0.005, 3)), qq) for qq in q])
     initial = Orientation(
@@ -110,7 +128,9 @@ def make_problem(
         exposure=truth.exposure,
         q_cam_from_obj=q0,
         source_mm=src + rng.normal(0, f * 3.0, src.shape),
-        rop_q=np.array([quat_multiply(_rot_quat(rng.normal(0, f * 0.005, 3)), qq) if s else qq for s, qq in enumerate(rop_q)]),
+        rop_q=np.array(
+            [quat_multiply(_rot_quat(rng.normal(0, f * 0.005, 3)), qq) if s else qq for s, qq in enumerate(rop_q)]
+        ),
         rop_source_mm=rop_t + (np.arange(n_systems) > 0)[:, None] * rng.normal(0, f * 3.0, (n_systems, 3)),
         system_names=truth.system_names,
     )
@@ -120,7 +140,7 @@ def make_problem(
 
 def aligned_error_mm(estimate_mm: np.ndarray, truth_mm: np.ndarray) -> np.ndarray:
     """Per point 3D error (mm) after the least-squares 7-parameter similarity of the estimate onto the truth."""
-    from stages._geometry import similarity_fit
+    from fluorocal.stages._geometry import similarity_fit
 
     s, R, t = similarity_fit(estimate_mm, truth_mm)
     return np.linalg.norm(s * estimate_mm @ R.T + t - truth_mm, axis=1)
@@ -138,7 +158,7 @@ class ScipyProblem:
     """
 
     def __init__(self, syn: Synthetic, estimate_iop: bool = True, corrections_px=None):
-        from stages._ba import datum_directions
+        from fluorocal.stages._ba import datum_directions
 
         obs = syn.observations
         self.n, self.m, self.S = len(syn.ids), len(syn.initial.exposure), syn.initial.n_systems
@@ -174,7 +194,11 @@ class ScipyProblem:
         R = Rotation.from_rotvec(poses[:, :3]).as_matrix() @ self.R0
         iop = x[n3 + m6 : n3 + m6 + self.n_iop].reshape(-1, 3) if self.estimate_iop else self.init.iop_px
         rop = x[n3 + m6 + self.n_iop :].reshape(-1, 6)
-        Rr = np.concatenate([np.eye(3)[None], Rotation.from_rotvec(rop[:, :3]).as_matrix() @ self.Rr0[1:]]) if self.S > 1 else np.eye(3)[None]
+        Rr = (
+            np.concatenate([np.eye(3)[None], Rotation.from_rotvec(rop[:, :3]).as_matrix() @ self.Rr0[1:]])
+            if self.S > 1
+            else np.eye(3)[None]
+        )
         b = np.concatenate([np.zeros((1, 3)), rop[:, 3:]])
         return P, R, poses[:, 3:], iop, Rr, b
 
@@ -225,7 +249,9 @@ def pycolmap_reconstruction(syn: Synthetic, xy_px: np.ndarray):
     init = syn.initial
     rec = pycolmap.Reconstruction()
     xp, yp, c = init.iop_px[0]
-    cam = pycolmap.Camera(camera_id=1, model="SIMPLE_PINHOLE", width=IMAGE_PX, height=IMAGE_PX, params=[c, xp + 0.5, yp + 0.5])
+    cam = pycolmap.Camera(
+        camera_id=1, model="SIMPLE_PINHOLE", width=IMAGE_PX, height=IMAGE_PX, params=[c, xp + 0.5, yp + 0.5]
+    )
     rec.add_camera_with_trivial_rig(cam)
     point_ids = {}
     for i, b in enumerate(syn.ids):

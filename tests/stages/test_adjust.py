@@ -12,13 +12,13 @@ import math
 
 import numpy as np
 import pytest
+from fluorocal.config import params_from_dict
+from fluorocal.stages import _ba
+from fluorocal.stages._geometry import quat_to_matrix, similarity_fit
+from fluorocal.stages.adjust import VERSION, Adjustment, AdjustParams, Orientation, _prepare, adjust_bundle
+from fluorocal.stages.artifacts import Observations, Phantom
+from fluorocal.stages.errors import EstimationError, InputError, ShapeError
 
-from stages import _ba
-from stages._geometry import quat_to_matrix, similarity_fit
-from stages.adjust import VERSION, Adjustment, AdjustParams, Orientation, _prepare, adjust_bundle
-from stages.artifacts import Observations, Phantom
-from pipeline.config import params_from_dict
-from stages.errors import EstimationError, InputError, ShapeError
 from tests.stages.ba_synthetic import ScipyProblem, aligned_error_mm, make_problem
 
 NOISE_PX = 0.05
@@ -29,7 +29,9 @@ def _solve(syn, **params) -> Adjustment:
 
 
 def _with_xy(obs: Observations, xy: np.ndarray, bead_id=None) -> Observations:
-    return Observations(obs.system, obs.exposure, obs.bead_id if bead_id is None else bead_id, xy, obs.sigma_px, obs.system_names)
+    return Observations(
+        obs.system, obs.exposure, obs.bead_id if bead_id is None else bead_id, xy, obs.sigma_px, obs.system_names
+    )
 
 
 def _rms(a) -> float:
@@ -88,11 +90,25 @@ def test_orientation_poses_compose_rop(biplanar):
 def _tiny_problem(sigma, correction):
     """One bead at (10, -20, 0) mm seen from a source at (0, 0, -1000) mm, identity rotation, c = 4400 px."""
     problem, _ = _ba.build_problem(
-        np.array([0]), np.array([0]), np.array([0]), np.array([[557.0, 423.5]]) - correction, np.array([sigma]),
-        np.array([[10.0, -20.0, 0.0]]), 1, 1, np.array([True]), "points",
+        np.array([0]),
+        np.array([0]),
+        np.array([0]),
+        np.array([[557.0, 423.5]]) - correction,
+        np.array([sigma]),
+        np.array([[10.0, -20.0, 0.0]]),
+        1,
+        1,
+        np.array([True]),
+        "points",
     )
-    state = _ba.State(np.array([[10.0, -20.0, 0.0]]), np.array([[1.0, 0, 0, 0]]), np.array([[0.0, 0, -1000]]),
-                      np.array([[512.0, 512.0, 4400.0]]), np.array([[1.0, 0, 0, 0]]), np.zeros((1, 3)))
+    state = _ba.State(
+        np.array([[10.0, -20.0, 0.0]]),
+        np.array([[1.0, 0, 0, 0]]),
+        np.array([[0.0, 0, -1000]]),
+        np.array([[512.0, 512.0, 4400.0]]),
+        np.array([[1.0, 0, 0, 0]]),
+        np.zeros((1, 3)),
+    )
     return problem, state
 
 
@@ -114,8 +130,19 @@ def test_residuals_at_hand_computed_point():
 def test_residuals_match_geometry_project(biplanar):
     """The adjustment's model reproduces stages/_geometry.project through Orientation.poses for both systems."""
     prep = _prepare(biplanar.observations, (biplanar.ids, biplanar.xyz_true_mm), biplanar.truth, None, AdjustParams())
-    state = _ba.State(biplanar.xyz_true_mm.copy(), *(np.array(a) for a in (biplanar.truth.q_cam_from_obj, biplanar.truth.source_mm,
-                      biplanar.truth.iop_px, biplanar.truth.rop_q, biplanar.truth.rop_source_mm)))
+    state = _ba.State(
+        biplanar.xyz_true_mm.copy(),
+        *(
+            np.array(a)
+            for a in (
+                biplanar.truth.q_cam_from_obj,
+                biplanar.truth.source_mm,
+                biplanar.truth.iop_px,
+                biplanar.truth.rop_q,
+                biplanar.truth.rop_source_mm,
+            )
+        ),
+    )
     r, _ = _ba.residuals(state, prep.problem)
     noise = biplanar.observations.xy_px - biplanar.ideal_px
     np.testing.assert_allclose(r, noise[prep.used][prep.perm], atol=1e-9)
@@ -134,8 +161,14 @@ def test_analytic_jacobian_matches_central_differences(biplanar, eliminate):
     sigma = biplanar.observations.sigma_px.copy()
     sigma[:, 1] *= 1.5
     sigma[:, 2] = 0.3
-    obs = Observations(biplanar.observations.system, biplanar.observations.exposure, biplanar.observations.bead_id,
-                       biplanar.observations.xy_px, sigma, biplanar.observations.system_names)
+    obs = Observations(
+        biplanar.observations.system,
+        biplanar.observations.exposure,
+        biplanar.observations.bead_id,
+        biplanar.observations.xy_px,
+        sigma,
+        biplanar.observations.system_names,
+    )
     prep = _prepare(obs, (biplanar.ids, biplanar.nominal_mm), biplanar.initial, None, AdjustParams(schur=eliminate))
     problem, state = prep.problem, prep.state
     e0, J_point, J_pose, J_glob = _ba.linearize(state, problem)
@@ -207,7 +240,9 @@ def test_least_squares_matches_scipy():
     syn = make_problem(n_beads=40, n_exposures=6, seed=4)
     res = _solve(syn, nu=math.inf, function_tolerance=1e-12, parameter_tolerance=1e-14)
     ref = ScipyProblem(syn)
-    sol = least_squares(ref.residuals, ref.x0(), jac="3-point", method="trf", x_scale="jac", ftol=1e-15, xtol=1e-15, gtol=1e-15)
+    sol = least_squares(
+        ref.residuals, ref.x0(), jac="3-point", method="trf", x_scale="jac", ftol=1e-15, xtol=1e-15, gtol=1e-15
+    )
     P, R, T, iop, _, _ = ref.unpack(sol.x)
     assert np.abs(ref.residuals(sol.x)[-7:]).max() < 1e-6  # the datum rows (mm) hold: they act only on the gauge
     np.testing.assert_allclose(res.xyz_mm, P, rtol=0, atol=1e-6 * np.abs(P).max())
@@ -270,7 +305,9 @@ def test_inner_constraints_hold(mono_result, mono):
 def test_fixed_iop_and_rop_are_bit_identical(mono):
     res = _solve(mono, estimate_iop=False)
     assert np.array_equal(res.iop_px, mono.initial.iop_px)
-    assert np.array_equal(res.rop_q, mono.initial.rop_q) and np.array_equal(res.rop_source_mm, mono.initial.rop_source_mm)
+    assert np.array_equal(res.rop_q, mono.initial.rop_q) and np.array_equal(
+        res.rop_source_mm, mono.initial.rop_source_mm
+    )
     assert np.all(res.iop_std_px == 0)
     assert res.n_parameters == 3 * len(mono.ids) + 6 * len(mono.initial.exposure)
 
@@ -292,8 +329,14 @@ def test_perturbing_any_parameter_increases_cost(n_systems):
     res = adjust_bundle(syn.observations, (syn.ids, syn.nominal_mm), syn.initial, params=params)
     prep = _prepare(syn.observations, (syn.ids, syn.nominal_mm), res.orientation, None, params)
     problem = prep.problem
-    state = _ba.State(res.xyz_mm.copy(), res.q_cam_from_obj.copy(), res.source_mm.copy(), res.iop_px.copy(), res.rop_q.copy(),
-                      res.rop_source_mm.copy())
+    state = _ba.State(
+        res.xyz_mm.copy(),
+        res.q_cam_from_obj.copy(),
+        res.source_mm.copy(),
+        res.iop_px.copy(),
+        res.rop_q.copy(),
+        res.rop_source_mm.copy(),
+    )
     scale2 = res.t_scale**2
 
     def cost(st):
@@ -369,9 +412,15 @@ def test_input_errors(mono):
     with pytest.raises(InputError, match="bead_id not in the nominal"):
         adjust_bundle(obs, (mono.ids[1:], mono.nominal_mm[1:]), start)
     with pytest.raises(InputError, match="exposure not in initial.exposure"):
-        adjust_bundle(obs, nominal, Orientation(start.iop_px, start.exposure[1:], start.q_cam_from_obj[1:], start.source_mm[1:]))
+        adjust_bundle(
+            obs, nominal, Orientation(start.iop_px, start.exposure[1:], start.q_cam_from_obj[1:], start.source_mm[1:])
+        )
     with pytest.raises(InputError, match="system"):
-        adjust_bundle(obs, nominal, Orientation(np.tile(start.iop_px, (2, 1)), start.exposure, start.q_cam_from_obj, start.source_mm))
+        adjust_bundle(
+            obs,
+            nominal,
+            Orientation(np.tile(start.iop_px, (2, 1)), start.exposure, start.q_cam_from_obj, start.source_mm),
+        )
     with pytest.raises(InputError, match="nu must be > 0"):
         AdjustParams(nu=0)
     with pytest.raises(InputError, match="key 'loss': unknown"):
@@ -400,10 +449,19 @@ def test_all_exposures_from_one_pose(mono):
     keep = obs.exposure == 0
     n = int(keep.sum())
     rng = np.random.default_rng(0)
-    same = Observations(np.zeros(5 * n), np.repeat(np.arange(5), n), np.tile(obs.bead_id[keep], 5),
-                        np.tile(obs.xy_px[keep], (5, 1)) + rng.normal(0, NOISE_PX, (5 * n, 2)), np.tile(obs.sigma_px[keep], (5, 1)))
-    start = Orientation(mono.initial.iop_px, np.arange(5), np.tile(mono.initial.q_cam_from_obj[0], (5, 1)),
-                        np.tile(mono.initial.source_mm[0], (5, 1)))
+    same = Observations(
+        np.zeros(5 * n),
+        np.repeat(np.arange(5), n),
+        np.tile(obs.bead_id[keep], 5),
+        np.tile(obs.xy_px[keep], (5, 1)) + rng.normal(0, NOISE_PX, (5 * n, 2)),
+        np.tile(obs.sigma_px[keep], (5, 1)),
+    )
+    start = Orientation(
+        mono.initial.iop_px,
+        np.arange(5),
+        np.tile(mono.initial.q_cam_from_obj[0], (5, 1)),
+        np.tile(mono.initial.source_mm[0], (5, 1)),
+    )
     with pytest.raises(EstimationError, match="one pose"):
         adjust_bundle(same, (mono.ids, mono.nominal_mm), start)
 
@@ -414,8 +472,12 @@ def test_bead_seen_once_is_dropped_with_message(mono, caplog):
     first = np.flatnonzero(obs.bead_id == lone)[0]
     keep = (obs.bead_id != lone) | (np.arange(len(obs)) == first)
     sub = Observations(obs.system[keep], obs.exposure[keep], obs.bead_id[keep], obs.xy_px[keep], obs.sigma_px[keep])
-    with caplog.at_level(logging.INFO, logger="stages.adjust"):
-        res = adjust_bundle(sub, Phantom(mono.ids, mono.nominal_mm, np.full(len(mono.ids), np.nan), np.full(len(mono.ids), "")), mono.initial)
+    with caplog.at_level(logging.INFO, logger="fluorocal.stages.adjust"):
+        res = adjust_bundle(
+            sub,
+            Phantom(mono.ids, mono.nominal_mm, np.full(len(mono.ids), np.nan), np.full(len(mono.ids), "")),
+            mono.initial,
+        )
     assert "dropping 1 observation(s) of 1 bead(s)" in caplog.text
     i_lone = int(np.flatnonzero(sub.bead_id == lone)[0])
     assert not res.used[i_lone] and not res.inlier[i_lone] and res.weight[i_lone] == 0
@@ -428,7 +490,9 @@ def test_points_behind_the_source_are_rejected(mono):
     # sources mirrored through the phantom's centre: every bead now lies behind its source
     flipped = Orientation(start.iop_px, start.exposure, start.q_cam_from_obj, -start.source_mm)
     with pytest.raises(EstimationError, match="behind the X-ray source"):
-        adjust_bundle(mono.observations, (mono.ids, mono.nominal_mm), flipped, params=AdjustParams(min_ray_angle_deg=0.0))
+        adjust_bundle(
+            mono.observations, (mono.ids, mono.nominal_mm), flipped, params=AdjustParams(min_ray_angle_deg=0.0)
+        )
 
 
 def test_estimate_nu_on_heavy_tails():
@@ -437,8 +501,12 @@ def test_estimate_nu_on_heavy_tails():
     rng = np.random.default_rng(3)
     n = len(syn.ideal_px)
     t_noise = NOISE_PX * rng.standard_normal((n, 2)) / np.sqrt(rng.chisquare(3, n) / 3)[:, None]
-    heavy = adjust_bundle(_with_xy(syn.observations, syn.ideal_px + t_noise), (syn.ids, syn.nominal_mm), syn.initial,
-                          params=AdjustParams(estimate_nu=True))
+    heavy = adjust_bundle(
+        _with_xy(syn.observations, syn.ideal_px + t_noise),
+        (syn.ids, syn.nominal_mm),
+        syn.initial,
+        params=AdjustParams(estimate_nu=True),
+    )
     light = _solve(syn, estimate_nu=True)
     assert 1.5 < heavy.nu < 6
     assert light.nu > 20
@@ -456,19 +524,26 @@ def _plate_problem(n_frames=4, seed=0):
     ids = np.arange(len(xyz))
     rows, Hs = [], []
     for f in range(n_frames):
-        H = np.array([[6.0, 0.3, 512], [-0.2, 6.1, 500], [1e-4, -2e-4, 1.0]]) + rng.normal(0, [[0.05, 0.05, 5], [0.05, 0.05, 5], [5e-5, 5e-5, 0]])
+        H = np.array([[6.0, 0.3, 512], [-0.2, 6.1, 500], [1e-4, -2e-4, 1.0]]) + rng.normal(
+            0, [[0.05, 0.05, 5], [0.05, 0.05, 5], [5e-5, 5e-5, 0]]
+        )
         p = np.c_[xyz[:, :2], np.ones(len(xyz))] @ H.T
         rows.append(p[:, :2] / p[:, 2:])
         Hs.append(H / H[2, 2])
     ideal = np.concatenate(rows)
     n = len(ideal)
-    obs = Observations(np.zeros(n), np.repeat(np.arange(n_frames), len(xyz)), np.tile(ids, n_frames),
-                       ideal + rng.normal(0, NOISE_PX, (n, 2)), np.tile([NOISE_PX, NOISE_PX, 0.0], (n, 1)))
+    obs = Observations(
+        np.zeros(n),
+        np.repeat(np.arange(n_frames), len(xyz)),
+        np.tile(ids, n_frames),
+        ideal + rng.normal(0, NOISE_PX, (n, 2)),
+        np.tile([NOISE_PX, NOISE_PX, 0.0], (n, 1)),
+    )
     return obs, (ids, xyz), np.array(Hs), ideal
 
 
 def test_plate_homographies_recover_truth_and_flag_outliers():
-    from stages.adjust import adjust_plate
+    from fluorocal.stages.adjust import adjust_plate
 
     obs, nominal, H_true, ideal = _plate_problem()
     rng = np.random.default_rng(1)
@@ -490,7 +565,7 @@ def test_plate_homographies_recover_truth_and_flag_outliers():
 
 
 def test_plate_errors():
-    from stages.adjust import adjust_plate
+    from fluorocal.stages.adjust import adjust_plate
 
     obs, nominal, _, _ = _plate_problem(n_frames=1)
     with pytest.raises(ShapeError, match="corrections_px"):
@@ -502,8 +577,12 @@ def test_plate_errors():
 
 def test_warm_start_reaches_the_same_solution_faster(mono, mono_result):
     """The learning loop restarts from the previous solution: same optimum, fewer iterations."""
-    res = adjust_bundle(mono.observations, (mono.ids, mono.nominal_mm), mono_result.orientation,
-                        start_points=(mono_result.bead_id, mono_result.xyz_mm))
+    res = adjust_bundle(
+        mono.observations,
+        (mono.ids, mono.nominal_mm),
+        mono_result.orientation,
+        start_points=(mono_result.bead_id, mono_result.xyz_mm),
+    )
     assert res.iterations < mono_result.iterations
     np.testing.assert_allclose(res.xyz_mm, mono_result.xyz_mm, atol=0.05 * mono_result.xyz_std_mm.min())
     np.testing.assert_allclose(res.iop_px, mono_result.iop_px, atol=0.05 * mono_result.iop_std_px.min())
@@ -535,7 +614,7 @@ def _polynomially_distorted(syn, ap=AP_TRUE, radius_px=AP_RADIUS_PX):
 
     Returns the observations and the true correction at them (``ideal = measured - Δ``).
     """
-    from stages import _polynomial
+    from fluorocal.stages import _polynomial
 
     obs = syn.observations
     pp = syn.truth.iop_px[obs.system, :2]
@@ -547,14 +626,19 @@ def _polynomially_distorted(syn, ap=AP_TRUE, radius_px=AP_RADIUS_PX):
 
 
 def test_polynomial_model_at_hand_computed_points():
-    from stages import _polynomial
+    from fluorocal.stages import _polynomial
 
     pp = np.array([500.0, 400.0])
     # u = 0.6, v = 0.8 (ρ = 1): each coefficient's term by hand
     xy = np.array([[560.0, 480.0]])
     expected = {
-        "k1": (0.6, 0.8), "k2": (0.6, 0.8), "k3": (0.6, 0.8),
-        "p1": (1 + 2 * 0.36, 2 * 0.48), "p2": (2 * 0.48, 1 + 2 * 0.64), "b1": (0.6, 0.0), "b2": (0.8, 0.0),
+        "k1": (0.6, 0.8),
+        "k2": (0.6, 0.8),
+        "k3": (0.6, 0.8),
+        "p1": (1 + 2 * 0.36, 2 * 0.48),
+        "p2": (2 * 0.48, 1 + 2 * 0.64),
+        "b1": (0.6, 0.0),
+        "b2": (0.8, 0.0),
     }
     for i, name in enumerate(_polynomial.AP_NAMES):
         ap = np.zeros(7)
@@ -564,7 +648,9 @@ def test_polynomial_model_at_hand_computed_points():
     ap = AP_TRUE
     other = _polynomial.rescaled(ap, 700.0, 350.0)
     pts = np.random.default_rng(0).uniform(0, 1000, (50, 2))
-    np.testing.assert_allclose(_polynomial.correction(pts, pp, 350.0, other), _polynomial.correction(pts, pp, 700.0, ap), rtol=1e-12)
+    np.testing.assert_allclose(
+        _polynomial.correction(pts, pp, 350.0, other), _polynomial.correction(pts, pp, 700.0, ap), rtol=1e-12
+    )
 
 
 @pytest.mark.parametrize("eliminate", ["points", "poses"])
@@ -580,8 +666,13 @@ def test_ap_jacobian_matches_central_differences(biplanar, eliminate):
     from dataclasses import replace
 
     obs, _ = _polynomially_distorted(biplanar)
-    prep = _prepare(obs, (biplanar.ids, biplanar.nominal_mm), biplanar.initial, None,
-                    AdjustParams(schur=eliminate, additional_parameters="polynomial", fixed_additional_parameters=()))
+    prep = _prepare(
+        obs,
+        (biplanar.ids, biplanar.nominal_mm),
+        biplanar.initial,
+        None,
+        AdjustParams(schur=eliminate, additional_parameters="polynomial", fixed_additional_parameters=()),
+    )
     problem = prep.problem
     assert problem.gcol.shape == (2, 16) and problem.n_globals == 2 * 3 + 6 + 2 * 7  # IOP, ROP of B, APs
     state = replace(prep.state, ap_px=np.array([AP_TRUE, -0.5 * AP_TRUE[::-1]]))
@@ -612,12 +703,17 @@ def test_polynomial_distortion_is_recovered_by_the_adjustment(mono):
     IOP and the free network, may cost some accuracy but not more than 1.8x
     (measured 0.0104 vs 0.0067 mm; without the APs 0.043 mm).
     """
-    from stages import _polynomial
+    from fluorocal.stages import _polynomial
 
     obs, true_corr = _polynomially_distorted(mono)
     nominal = (mono.ids, mono.nominal_mm)
     # all seven: the tilted cube at 950 mm determines the affinity too
-    res = adjust_bundle(obs, nominal, mono.initial, params=AdjustParams(additional_parameters="polynomial", fixed_additional_parameters=()))
+    res = adjust_bundle(
+        obs,
+        nominal,
+        mono.initial,
+        params=AdjustParams(additional_parameters="polynomial", fixed_additional_parameters=()),
+    )
     assert res.usable and res.additional_parameters == "polynomial"
     r0 = res.ap_radius_px[0]
     assert r0 == pytest.approx(_polynomial.reference_radius(obs.xy_px))
@@ -634,14 +730,16 @@ def test_polynomial_distortion_is_recovered_by_the_adjustment(mono):
     assert err < 1.8 * oracle and err < 0.4 * plain, (err, oracle, plain)
     assert err == pytest.approx(math.sqrt(np.einsum("nii->n", res.xyz_cov_mm2).mean()), rel=0.25)
     # the reported model is the one the residuals were computed with: r = (xy - Δ_AP(xy)) - projection
-    from stages._geometry import project
+    from fluorocal.stages._geometry import project
 
     point = np.searchsorted(res.bead_id, obs.bead_id)
     projected = np.empty_like(obs.xy_px)
     for j, ep in enumerate(res.exposure):
         sel = obs.exposure == ep
         projected[sel] = project(res.xyz_mm[point[sel]], res.q_cam_from_obj[j], res.source_mm[j], res.iop_px[0])
-    np.testing.assert_allclose(obs.xy_px - res.polynomial_correction(0, obs.xy_px) - projected, res.residual_px, atol=1e-9)
+    np.testing.assert_allclose(
+        obs.xy_px - res.polynomial_correction(0, obs.xy_px) - projected, res.residual_px, atol=1e-9
+    )
     # the estimated correction at the observations is the true one up to what the orientation absorbs
     # (a principal-point shift, a scale, a common rotation: a homography); measured 0.001 px mod H of 0.4 px RMS
     import cv2

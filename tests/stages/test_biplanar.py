@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fluorocal.stages._geometry import project
+from fluorocal.stages.learn import LearnParams, calibrate
 
 from benchmarks.biplanar import RECOMMENDED, biplanar_errors, biplanar_pairs, learned_ideal, summarise, true_rig
 from benchmarks.learn import METHODS, simulated_sets
-from stages._geometry import project
-from stages.learn import LearnParams, calibrate
 
 N_EPOCHS = 8
 SIZE = 512
@@ -33,7 +33,9 @@ def _exact_observations(test_obs, true_xyz, ids, acq):
         for e in np.unique(test_obs.exposure):
             sel = (test_obs.system == s) & (test_obs.exposure == e)
             k = 2 * e + 1  # held-out epochs are the odd exposures of the acquisition
-            ideal = project(true_xyz[np.searchsorted(ids, test_obs.bead_id[sel])], acq.q[s, k], acq.source_mm[s, k], system.iop_px)
+            ideal = project(
+                true_xyz[np.searchsorted(ids, test_obs.bead_id[sel])], acq.q[s, k], acq.source_mm[s, k], system.iop_px
+            )
             xy[sel] = system.distortion.distort(ideal)
     return xy
 
@@ -64,9 +66,13 @@ def test_calibration_improves_the_intersection_at_least_as_much_as_the_paper(bip
     means = {}
     for name in ("none", RECOMMENDED):
         scheme, over = METHODS[name]
-        res = calibrate(train_obs, nominal, train_init, image_size=(SIZE, SIZE), scheme=scheme, params=LearnParams(**over))
+        res = calibrate(
+            train_obs, nominal, train_init, image_size=(SIZE, SIZE), scheme=scheme, params=LearnParams(**over)
+        )
         adj = res.adjustment
-        err = biplanar_errors(test_obs, learned_ideal(res, test_obs), adj.iop_px, adj.rop_q, adj.rop_source_mm, nominal.ids, true_xyz)
+        err = biplanar_errors(
+            test_obs, learned_ideal(res, test_obs), adj.iop_px, adj.rop_q, adj.rop_source_mm, nominal.ids, true_xyz
+        )
         means[name] = summarise(err)["mean"]
     improvement = 1 - means[RECOMMENDED] / means["none"]
     # the paper's TABLE I: 46.2-53.8 % (47 % with 75 pairs), the target; measured here

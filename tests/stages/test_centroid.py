@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fluorocal.stages.artifacts import Radiograph
+from fluorocal.stages.centroid import CentroidParams, Centroids, centroid_beads
+from fluorocal.stages.detect import BeadCandidates, DetectParams, detect_beads
+from fluorocal.stages.errors import InputError
+from fluorocal.stages.io import read_frames
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
-from stages.artifacts import Radiograph
-from stages.centroid import CentroidParams, Centroids, centroid_beads
-from stages.detect import BeadCandidates, DetectParams, detect_beads
-from stages.errors import InputError
-from stages.io import read_frames
 from tests.stages._synthetic import bead_grid, render_beads
 
 SHAPE = (256, 256)
@@ -54,14 +54,21 @@ def test_artifact_shapes_and_read_only():
 
 def test_no_candidates_give_an_empty_artifact():
     frame = Radiograph(np.full(SHAPE, 1400, np.float32), 12)
-    empty = BeadCandidates(np.empty((0, 2)), np.empty(0), np.empty(0), np.empty(0), np.empty(0, bool), np.empty(0, str), "dark")
+    empty = BeadCandidates(
+        np.empty((0, 2)), np.empty(0), np.empty(0), np.empty(0), np.empty(0, bool), np.empty(0, str), "dark"
+    )
     beads = centroid_beads(frame, empty, CentroidParams())
     assert len(beads) == 0 and beads.xy_px.shape == (0, 2) and beads.sigma_px.shape == (0, 3)
 
 
 @pytest.mark.parametrize(
     "kwargs, match",
-    [({"edge_sigma_px": 0.0}, "edge_sigma_px"), ({"n_arcs": 2}, "n_arcs"), ({"min_cos_radial": 2.0}, "min_cos_radial"), ({"n_iterations": 1.5}, "n_iterations")],
+    [
+        ({"edge_sigma_px": 0.0}, "edge_sigma_px"),
+        ({"n_arcs": 2}, "n_arcs"),
+        ({"min_cos_radial": 2.0}, "min_cos_radial"),
+        ({"n_iterations": 1.5}, "n_iterations"),
+    ],
 )
 def test_bad_params_raise_naming_the_field(kwargs, match):
     with pytest.raises(InputError, match=match):
@@ -71,12 +78,20 @@ def test_bad_params_raise_naming_the_field(kwargs, match):
 def test_no_fit_warns_naming_the_frame():
     # candidates accepted on a frame without beads (as anatomy can be): every fit fails, the artifact keeps
     # them with their reasons, and a warning names the frame
-    from stages.detect import EmptyFrameWarning
+    from fluorocal.stages.detect import EmptyFrameWarning
 
     image = 1400 + np.random.default_rng(4).normal(0, 16, SHAPE)
     frame = Radiograph(image.astype(np.float32), 12, source="bead-free")
     n = 3
-    fake = BeadCandidates(np.array([[60.0, 60.0], [128.0, 128.0], [190.0, 70.0]]), np.full(n, 8.0), np.ones(n), np.ones(n), np.ones(n, bool), np.full(n, ""), "dark")
+    fake = BeadCandidates(
+        np.array([[60.0, 60.0], [128.0, 128.0], [190.0, 70.0]]),
+        np.full(n, 8.0),
+        np.ones(n),
+        np.ones(n),
+        np.ones(n, bool),
+        np.full(n, ""),
+        "dark",
+    )
     with pytest.warns(EmptyFrameWarning, match=r"bead-free\[0\]"):
         beads = centroid_beads(frame, fake, CentroidParams())
     assert len(beads) == n and not beads.ok.any() and np.all(beads.reason != "")
@@ -109,7 +124,9 @@ def test_blurred_noisy_discs(diameter_px, bound_px):
     # 10 px and more, 0.05 px for 6-10 px (measured on these frames: 0.024, 0.025, 0.017, 0.015 px)
     pitch = max(2.5 * diameter_px, 20)
     centres = bead_grid((384, 384), pitch, pitch, seed=int(diameter_px))
-    image = render_beads((384, 384), centres, diameter_px / 2, blur_sigma_px=1.5, noise_dn=16, vignetting=0.3, dtype=np.uint16, seed=2)
+    image = render_beads(
+        (384, 384), centres, diameter_px / 2, blur_sigma_px=1.5, noise_dn=16, vignetting=0.3, dtype=np.uint16, seed=2
+    )
     assert _rms(_errors(_fit(image), centres)) < bound_px
 
 
@@ -118,7 +135,17 @@ def test_blurred_noisy_discs(diameter_px, bound_px):
 def test_polarity_and_dtype(polarity, dtype):
     # bright holes (a grid plate) and dark beads, 12-bit integers or floats: the same 0.03 px bound
     centres = bead_grid(SHAPE, 32, 24, seed=7)
-    image = render_beads(SHAPE, centres, 6.0, polarity=polarity, contrast=0.9 if polarity == "dark" else 1.0, blur_sigma_px=1.5, noise_dn=16, dtype=dtype, seed=3)
+    image = render_beads(
+        SHAPE,
+        centres,
+        6.0,
+        polarity=polarity,
+        contrast=0.9 if polarity == "dark" else 1.0,
+        blur_sigma_px=1.5,
+        noise_dn=16,
+        dtype=dtype,
+        seed=3,
+    )
     beads = _fit(image)
     assert _rms(_errors(beads, centres)) < 0.03
 
@@ -140,7 +167,9 @@ def test_ellipse_axes_and_angle():
     image = render_beads(SHAPE, centres, 12.0, axis_ratio=0.8, angle_rad=np.radians(30), blur_sigma_px=1.0, noise_dn=4)
     beads = _fit(image)
     assert _rms(_errors(beads, centres)) < 0.02
-    assert np.all((beads.major_px > 11.7) & (beads.major_px < 11.9)) and np.allclose(beads.minor_px / beads.major_px, 0.8, rtol=0.01)
+    assert np.all((beads.major_px > 11.7) & (beads.major_px < 11.9)) and np.allclose(
+        beads.minor_px / beads.major_px, 0.8, rtol=0.01
+    )
     assert np.allclose(beads.angle_rad, np.radians(30), atol=np.radians(1))
 
 
@@ -148,7 +177,7 @@ def test_stray_edge_points_are_rejected():
     # the robust fit alone: 60 points on each of 3 ellipses (0.02 px noise) plus 15 % stray points up to
     # 3 px off the outline (a neighbour's edge, a scratch); the centres stay within 0.02 px, and the strays
     # that remain inliers (within 3 robust sigmas after two rounds) keep the fit RMSE below 0.1 px
-    from stages.centroid import _fit_ellipses
+    from fluorocal.stages.centroid import _fit_ellipses
 
     rng = np.random.default_rng(13)
     truth = np.array([[40.3, 50.7, 9.0, 8.0, 0.3], [100.1, 60.2, 5.0, 4.6, -1.0], [70.0, 120.0, 12.0, 11.0, 1.2]])
@@ -158,9 +187,13 @@ def test_stray_edge_points_are_rejected():
         radial = np.where(rng.random(60) < 0.15, rng.uniform(-3, 3, 60), rng.normal(0, 0.02, 60))
         scale = 1 + radial / np.hypot(a * np.cos(t), b * np.sin(t))
         u, v = a * np.cos(t) * scale, b * np.sin(t) * scale
-        points.append(np.column_stack([cx + u * np.cos(angle) - v * np.sin(angle), cy + u * np.sin(angle) + v * np.cos(angle)]))
+        points.append(
+            np.column_stack([cx + u * np.cos(angle) - v * np.sin(angle), cy + u * np.sin(angle) + v * np.cos(angle)])
+        )
         owner.append(np.full(60, i))
-    fit, rmse, n_inliers, covariance = _fit_ellipses(np.concatenate(points), np.concatenate(owner), truth[:, :2] + 0.5, truth[:, 2], CentroidParams())
+    fit, rmse, n_inliers, covariance = _fit_ellipses(
+        np.concatenate(points), np.concatenate(owner), truth[:, :2] + 0.5, truth[:, 2], CentroidParams()
+    )
     assert np.allclose(fit[:, :2], truth[:, :2], atol=0.02)
     assert np.all(rmse < 0.1) and np.all(n_inliers >= 45)
 
@@ -174,7 +207,10 @@ def test_covariance_matches_monte_carlo():
     rng = np.random.default_rng(12)
     errors, predicted = [], []
     for _ in range(100):
-        beads = _fit(clean + rng.normal(0, 24, clean.shape), DetectParams(polarity="dark", min_diameter_px=10, max_diameter_px=24))
+        beads = _fit(
+            clean + rng.normal(0, 24, clean.shape),
+            DetectParams(polarity="dark", min_diameter_px=10, max_diameter_px=24),
+        )
         errors.append(_errors(beads, centres))
         predicted.append(beads.sigma_px[beads.ok])
     errors, predicted = np.concatenate(errors), np.concatenate(predicted)
@@ -194,7 +230,9 @@ def test_translation_equivariance(shift_x, shift_y, offset_x, offset_y):
     # moving the frame's content by whole pixels moves every centre by as much; not to rounding error, as
     # the detector and the centroid's background both work on 2x-reduced copies whose grid an odd shift
     # moves (measured: median 0.0002 px, at most 0.003 px), so within 0.005 px
-    patch = render_beads((72, 72), np.array([[35.0 + offset_x, 36.0 + offset_y]]), 9.0, blur_sigma_px=1.5, noise_dn=16, seed=5)
+    patch = render_beads(
+        (72, 72), np.array([[35.0 + offset_x, 36.0 + offset_y]]), 9.0, blur_sigma_px=1.5, noise_dn=16, seed=5
+    )
     params = DetectParams(polarity="dark", min_diameter_px=12, max_diameter_px=24)
     canvas = np.full((160, 160), 1400, np.float32)
     canvas[20:92, 20:92] = patch
@@ -204,9 +242,11 @@ def test_translation_equivariance(shift_x, shift_y, offset_x, offset_y):
     assert base.ok.all() and shifted.ok.all() and len(base) == len(shifted) == 1
     assert np.allclose(shifted.xy_px - [shift_x, shift_y], base.xy_px, atol=0.005)
     # the jackknife's arcs start at an angle fixed by the candidate centre, so its estimate (6 arcs:
-    # 5 degrees of freedom, 30-40 % scatter) moves with it; within a factor 2
+    # 5 degrees of freedom, 30-40 % scatter) moves with it. Two independent such estimates differ by
+    # sqrt(F(5, 5)), within a factor 3.3 with 98 % probability; these share the data, so within 3
+    # (a factor 2 was exceeded at shift (0, 1), offset (-0.19, 0): ratio 0.496)
     ratio = shifted.sigma_px[:, :2] / base.sigma_px[:, :2]
-    assert np.all((ratio > 0.5) & (ratio < 2))
+    assert np.all((ratio > 1 / 3) & (ratio < 3)), ratio
 
 
 # --- real frames ---------------------------------------------------------------------------------
@@ -222,7 +262,10 @@ def real_beads(arcadis_dir):
     return run
 
 
-@pytest.mark.parametrize("name, max_rmse_px", [("beads_centered_0.dcm", 0.05), ("beads_tilt_15.dcm", 0.05), ("spine_beads_centered_0.dcm", 0.1)])
+@pytest.mark.parametrize(
+    "name, max_rmse_px",
+    [("beads_centered_0.dcm", 0.05), ("beads_tilt_15.dcm", 0.05), ("spine_beads_centered_0.dcm", 0.1)],
+)
 def test_real_beads_fit_well(real_beads, name, max_rmse_px):
     # the paper reports 0.06 +- 0.01 px ellipse-fit RMSE; measured here 0.026, 0.025 and (over bone) 0.057 px
     candidates, beads = real_beads(name)
@@ -244,7 +287,7 @@ def test_real_grid_holes(real_beads):
 
 @pytest.fixture(scope="module")
 def simulated():
-    from stages.simulate import SimulateParams, simulate
+    from fluorocal.stages.simulate import SimulateParams, simulate
 
     data = simulate(SimulateParams(n_frames=2))
     results = []
@@ -260,7 +303,7 @@ def test_simulator_small_beads():
     # The target for 6-10 px: RMS <= 0.05 px (measured 0.027 px on this frame, 0.036 px on two).
     # Recall is lower than for larger beads: a bead 2-3 px from a neighbour can be left with too few edge
     # points once those facing the neighbour are dropped (measured 99.3 % here)
-    from stages.simulate import SimulateParams, simulate
+    from fluorocal.stages.simulate import SimulateParams, simulate
 
     data = simulate(SimulateParams(n_frames=1, image_size_px=320, seed=3))
     frame, truth = data.frames[0][0], data.truth.frames[0][0]

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fluorocal.stages._geometry import xy_to_rc
+from fluorocal.stages.artifacts import Radiograph
+from fluorocal.stages.detect import BeadCandidates, DetectParams, EmptyFrameWarning, detect_beads
+from fluorocal.stages.errors import InputError, ShapeError
+from fluorocal.stages.io import read_frames
 from scipy.spatial import cKDTree
 
-from stages._geometry import xy_to_rc
-from stages.artifacts import Radiograph
-from stages.detect import BeadCandidates, DetectParams, EmptyFrameWarning, detect_beads
-from stages.errors import InputError, ShapeError
-from stages.io import read_frames
 from tests.stages._synthetic import bead_grid, render_beads
 
 SHAPE = (256, 256)
@@ -82,9 +82,13 @@ def test_bad_params_raise_naming_the_field(kwargs, match):
 
 def test_artifact_checks_shapes():
     with pytest.raises(ShapeError, match="radius_px"):
-        BeadCandidates(np.zeros((2, 2)), np.zeros(3), np.zeros(2), np.zeros(2), np.ones(2, bool), np.array(["", ""]), "dark")
+        BeadCandidates(
+            np.zeros((2, 2)), np.zeros(3), np.zeros(2), np.zeros(2), np.ones(2, bool), np.array(["", ""]), "dark"
+        )
     with pytest.raises(ShapeError, match="reason"):
-        BeadCandidates(np.zeros((1, 2)), np.ones(1), np.ones(1), np.ones(1), np.ones(1, bool), np.array(["faint"]), "dark")
+        BeadCandidates(
+            np.zeros((1, 2)), np.ones(1), np.ones(1), np.ones(1), np.ones(1, bool), np.array(["faint"]), "dark"
+        )
 
 
 # --- ground truth on analytic frames -------------------------------------------------------------
@@ -96,7 +100,17 @@ def test_finds_every_bead_and_nothing_else(diameter_px, polarity):
     # blur 1.5 px (10-90 % edge 3.8 px) and 16 DN noise on 1400 DN: the real frames' ranges
     pitch = max(3 * diameter_px, 24)
     centres = bead_grid(SHAPE, pitch, pitch, seed=int(diameter_px))
-    image = render_beads(SHAPE, centres, diameter_px / 2, polarity=polarity, blur_sigma_px=1.5, noise_dn=16, vignetting=0.3, dtype=np.uint16, seed=1)
+    image = render_beads(
+        SHAPE,
+        centres,
+        diameter_px / 2,
+        polarity=polarity,
+        blur_sigma_px=1.5,
+        noise_dn=16,
+        vignetting=0.3,
+        dtype=np.uint16,
+        seed=1,
+    )
     found = detect_beads(_frame(image), DetectParams())
     assert found.polarity == polarity
     hit, false = _match(found.xy_px[found.accepted], centres, 0.3 * diameter_px)
@@ -202,8 +216,26 @@ def test_real_grid_plates(real, name):
 #: (rounded to 1 px). The frame shows 16 small and 2 large beads; data/README.md counts 26 + 2 for
 #: the phantom, but no further bead is visible in the field of view (checked at contrast > 0.08).
 BEADS_CENTERED_0 = np.array(
-    [[685, 290], [303, 295], [749, 328], [543, 332], [239, 334], [812, 366], [479, 371], [175, 373], [605, 496],
-     [388, 498], [655, 623], [513, 624], [339, 626], [720, 661], [450, 663], [275, 665], [787, 699], [209, 706]],
+    [
+        [685, 290],
+        [303, 295],
+        [749, 328],
+        [543, 332],
+        [239, 334],
+        [812, 366],
+        [479, 371],
+        [175, 373],
+        [605, 496],
+        [388, 498],
+        [655, 623],
+        [513, 624],
+        [339, 626],
+        [720, 661],
+        [450, 663],
+        [275, 665],
+        [787, 699],
+        [209, 706],
+    ],
     dtype=float,
 )
 
@@ -234,7 +266,7 @@ def test_real_spine_without_beads(arcadis_dir, params):
     # contrast 0.07-0.57 against 0.76-3.2 for steel beads); their outlines are no ellipses (fit RMSE 0.48 px and
     # more against at most 0.21 px for beads over bone), so none survives centroiding, and the frame is
     # reported empty with a warning naming it
-    from stages.centroid import CentroidParams, centroid_beads
+    from fluorocal.stages.centroid import CentroidParams, centroid_beads
 
     frame = read_frames(arcadis_dir / "spine_centered_0.dcm")[0]
     with pytest.warns(EmptyFrameWarning, match="spine_centered_0"):

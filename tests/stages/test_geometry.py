@@ -3,8 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
-
-from stages._geometry import image_rays, intersect_rays, project, quat_to_matrix, rotvec_to_quat, similarity_fit
+from fluorocal.stages._geometry import (
+    image_rays,
+    intersect_rays,
+    project,
+    quat_to_matrix,
+    rotvec_to_quat,
+    similarity_fit,
+)
 
 
 def _points(rng, n=40):
@@ -43,8 +49,10 @@ def test_two_exact_rays_meet_at_the_projected_point():
     rng = np.random.default_rng(2)
     xyz = rng.uniform(-50, 50, (25, 3))
     iop = np.array([510.0, 505.0, 4000.0])
-    poses = [(rotvec_to_quat(np.array([0.0, 0.0, 0.0])), np.array([0.0, 0.0, -700.0])),
-             (rotvec_to_quat(np.array([0.0, -np.pi / 2, 0.0])), np.array([-700.0, 0.0, 0.0]))]
+    poses = [
+        (rotvec_to_quat(np.array([0.0, 0.0, 0.0])), np.array([0.0, 0.0, -700.0])),
+        (rotvec_to_quat(np.array([0.0, -np.pi / 2, 0.0])), np.array([-700.0, 0.0, 0.0])),
+    ]
     rays = [image_rays(project(xyz, q, T, iop), iop, q, T) for q, T in poses]
     found, miss = intersect_rays(rays)
     # exact projections, 90 deg between the views: rounding only (1e-9 mm at 700 mm)

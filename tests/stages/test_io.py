@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pydicom
 import pytest
-
-from stages.errors import InputError
-from stages.io import probe_frames, read_frames, read_phantom, write_still
+from fluorocal.stages.errors import InputError
+from fluorocal.stages.io import probe_frames, read_frames, read_phantom, write_still
 
 
 def test_real_arcadis_dicom_reads_as_12_bit(arcadis_dir):

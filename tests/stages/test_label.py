@@ -13,27 +13,26 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
-
-from stages._geometry import project, quat_to_matrix, rotvec_to_quat
-from stages.artifacts import Phantom
-from stages.centroid import Centroids
-from stages.errors import InputError
-from stages.label import (
+from fluorocal.stages._geometry import project, quat_to_matrix, rotvec_to_quat
+from fluorocal.stages.artifacts import Phantom
+from fluorocal.stages.centroid import Centroids
+from fluorocal.stages.errors import InputError
+from fluorocal.stages.label import (
     STATUS_AMBIGUOUS,
     STATUS_LABELLED,
     STATUS_REJECTED,
-    Labels,
     LabelParams,
+    Labels,
     label_beads,
     label_sequence,
     lattice_id,
     lattice_index,
     lattice_xyz_mm,
 )
-from stages.simulate import SimulateParams, simulate
+from fluorocal.stages.simulate import SimulateParams, simulate
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 
 def make_centroids(xy_px, diameter_px, *, sigma_px=0.05, major_px=None) -> Centroids:
@@ -43,8 +42,19 @@ def make_centroids(xy_px, diameter_px, *, sigma_px=0.05, major_px=None) -> Centr
     minor = np.broadcast_to(np.asarray(diameter_px, dtype=np.float64) / 2, (n,))
     major = minor if major_px is None else np.asarray(major_px, dtype=np.float64)
     return Centroids(
-        xy_px, np.full(n, sigma_px), np.full(n, sigma_px), np.zeros(n), major, minor, np.zeros(n), np.full(n, 0.05),
-        np.full(n, 40, np.int64), np.full(n, 50.0), np.ones(n, bool), np.full(n, ""), np.arange(n),
+        xy_px,
+        np.full(n, sigma_px),
+        np.full(n, sigma_px),
+        np.zeros(n),
+        major,
+        minor,
+        np.zeros(n),
+        np.full(n, 0.05),
+        np.full(n, 40, np.int64),
+        np.full(n, 50.0),
+        np.ones(n, bool),
+        np.full(n, ""),
+        np.arange(n),
     )
 
 
@@ -64,7 +74,9 @@ def detections_from_truth(ft, rng, *, noise_px=0.05, dropout=0.01, merged_keep=0
     merge = pairs[dist < mean_d]
     touching = np.zeros(n, bool)
     touching[pairs[dist < 1.15 * mean_d].ravel()] = True
-    _, comp = connected_components(coo_matrix((np.ones(len(merge)), (merge[:, 0], merge[:, 1])), shape=(n, n)), directed=False)
+    _, comp = connected_components(
+        coo_matrix((np.ones(len(merge)), (merge[:, 0], merge[:, 1])), shape=(n, n)), directed=False
+    )
     xy, ids, minor, major = [], [], [], []
     for c in np.unique(comp):
         m = np.flatnonzero(comp == c)
@@ -130,7 +142,11 @@ def sim():
 @pytest.fixture(scope="module")
 def params(sim):
     p = sim.params
-    return LabelParams(source_image_distance_mm=p.source_image_distance_mm, pixel_pitch_mm=p.pixel_pitch_mm, image_size_px=(p.image_size_px, p.image_size_px))
+    return LabelParams(
+        source_image_distance_mm=p.source_image_distance_mm,
+        pixel_pitch_mm=p.pixel_pitch_mm,
+        image_size_px=(p.image_size_px, p.image_size_px),
+    )
 
 
 def all_frames(sim):
@@ -169,7 +185,11 @@ def test_unknown_seed_id_raises(sim, params):
     ft = sim.truth.frames[0][0]
     c, _ = detections_from_truth(ft, np.random.default_rng(0))
     with pytest.raises(InputError, match="seeds"):
-        label_beads(c, sim.phantom, LabelParams(source_image_distance_mm=1100, pixel_pitch_mm=0.25, seeds=((99999.0, 1.0, 2.0),) * 4))
+        label_beads(
+            c,
+            sim.phantom,
+            LabelParams(source_image_distance_mm=1100, pixel_pitch_mm=0.25, seeds=((99999.0, 1.0, 2.0),) * 4),
+        )
 
 
 def test_empty_frame_fails_with_shapes(sim, params):
@@ -219,7 +239,11 @@ def test_rough_geometry(sim, params):
     from dataclasses import replace
 
     rng = np.random.default_rng(13)
-    rough = replace(params, source_image_distance_mm=0.92 * params.source_image_distance_mm, pixel_pitch_mm=1.05 * params.pixel_pitch_mm)
+    rough = replace(
+        params,
+        source_image_distance_mm=0.92 * params.source_image_distance_mm,
+        pixel_pitch_mm=1.05 * params.pixel_pitch_mm,
+    )
     for ft in (sim.truth.frames[0][2], sim.truth.frames[1][2]):
         c, ids = detections_from_truth(ft, rng)
         lab = label_beads(c, sim.phantom, rough)
@@ -290,7 +314,11 @@ def test_hand_built_overlapping_pair_is_ambiguous():
     keep = np.ones(len(xyz), bool)
     keep[50] = False  # the pair is one blob in the image, detected at bead 112's place
     c = make_centroids(xy[keep] + rng.normal(scale=0.05, size=(keep.sum(), 2)), size[keep])
-    lab = label_beads(c, phantom, LabelParams(source_image_distance_mm=1000, pixel_pitch_mm=0.25, image_size_px=(1024, 1024), min_labelled=6))
+    lab = label_beads(
+        c,
+        phantom,
+        LabelParams(source_image_distance_mm=1000, pixel_pitch_mm=0.25, image_size_px=(1024, 1024), min_labelled=6),
+    )
     assert lab.ok, lab.reason
     assert 112 not in lab.bead_id and 150 not in lab.bead_id
     assert lab.detection_status[12] == STATUS_AMBIGUOUS
@@ -317,7 +345,9 @@ def test_three_seeds(sim, params):
     rng = np.random.default_rng(14)
     ft = sim.truth.frames[1][2]
     c, ids = detections_from_truth(ft, rng)
-    lab = label_beads(c, without_roles(sim.phantom), replace(params, seeds=seeds_from_truth(ft, rng, n=3, click_noise_px=0.5)))
+    lab = label_beads(
+        c, without_roles(sim.phantom), replace(params, seeds=seeds_from_truth(ft, rng, n=3, click_noise_px=0.5))
+    )
     check_against_truth(lab, ids, ft, min_fraction=0.97)
 
 
@@ -345,7 +375,9 @@ def test_prior_pose_on_a_periodic_patch_is_refused(sim, params):
     apart; the frame must be refused (never labelled one row off).
     """
     rng = np.random.default_rng(15)
-    phantom = Phantom(sim.phantom.ids, sim.phantom.xyz_mm, np.full(sim.phantom.n_beads, 3.5), np.full(sim.phantom.n_beads, ""))
+    phantom = Phantom(
+        sim.phantom.ids, sim.phantom.xyz_mm, np.full(sim.phantom.n_beads, 3.5), np.full(sim.phantom.n_beads, "")
+    )
     ft = sim.truth.frames[0][1]
     c, ids = detections_from_truth(ft, rng, n_false=0)
     inner = np.all(np.abs(c.xy_px - np.median(c.xy_px, axis=0)) < 120, axis=1)
@@ -359,13 +391,14 @@ def test_prior_pose_on_a_periodic_patch_is_refused(sim, params):
 
 def test_screening_a_pose_that_sees_no_bead_counts_zero(sim, params):
     """A candidate pose with every bead behind the source scores (0 beads, sizes not contradicted), no crash."""
+    from fluorocal.stages.label import _Frame, _screen
     from scipy.spatial import cKDTree
-
-    from stages.label import _Frame, _screen
 
     xy = np.array([[10.0, 10.0], [50.0, 40.0], [90.0, 80.0]])
     iop = np.array([50.0, 50.0, 4000.0])
-    frame = _Frame(None, sim.phantom, params, iop, None, np.arange(3), xy, cKDTree(xy), 10.0, sim.phantom.diameter_mm, 100.0, 100.0)
+    frame = _Frame(
+        None, sim.phantom, params, iop, None, np.arange(3), xy, cKDTree(xy), 10.0, sim.phantom.diameter_mm, 100.0, 100.0
+    )
     behind = np.array([0.0, 0.0, float(sim.phantom.xyz_mm[:, 2].max()) + 1e3])
     assert _screen(frame, {"iop": iop}, np.eye(3), behind) == (0, True)
 
@@ -402,7 +435,11 @@ def test_sequence_seeded_on_one_frame_follows_turns_and_jumps():
     """
     sim4 = simulate(SimulateParams(n_frames=8, n_systems=1, seed=11), render=False)
     p = sim4.params
-    params = LabelParams(source_image_distance_mm=p.source_image_distance_mm, pixel_pitch_mm=p.pixel_pitch_mm, image_size_px=(p.image_size_px, p.image_size_px))
+    params = LabelParams(
+        source_image_distance_mm=p.source_image_distance_mm,
+        pixel_pitch_mm=p.pixel_pitch_mm,
+        image_size_px=(p.image_size_px, p.image_size_px),
+    )
     rng = np.random.default_rng(16)
     fts = sim4.truth.frames[0]
     dets = [detections_from_truth(ft, rng) for ft in fts]
@@ -414,14 +451,22 @@ def test_sequence_seeded_on_one_frame_follows_turns_and_jumps():
 
 def test_rendered_frame_through_detection():
     """One rendered frame through detect and centroid: every label agrees with the nearest true outline."""
-    from stages.centroid import CentroidParams, centroid_beads
-    from stages.detect import DetectParams, detect_beads
+    from fluorocal.stages.centroid import CentroidParams, centroid_beads
+    from fluorocal.stages.detect import DetectParams, detect_beads
 
     p = SimulateParams(n_frames=1, seed=5)
     data = simulate(p)
     radiograph, ft = data.frames[0][0], data.truth.frames[0][0]
     c = centroid_beads(radiograph, detect_beads(radiograph, DetectParams()), CentroidParams())
-    lab = label_beads(c, data.phantom, LabelParams(source_image_distance_mm=p.source_image_distance_mm, pixel_pitch_mm=p.pixel_pitch_mm, image_size_px=(p.image_size_px,) * 2))
+    lab = label_beads(
+        c,
+        data.phantom,
+        LabelParams(
+            source_image_distance_mm=p.source_image_distance_mm,
+            pixel_pitch_mm=p.pixel_pitch_mm,
+            image_size_px=(p.image_size_px,) * 2,
+        ),
+    )
     assert lab.ok, lab.reason
     d, i = cKDTree(ft.outline_xy_px).query(lab.xy_px)
     # the nearest true outline is unmistakable (a few centroids of crowded beads are 1-2 px off) and is the label
@@ -465,15 +510,17 @@ def homography_radial_rms(object_xy: np.ndarray, image_xy: np.ndarray, centre_xy
         r2 = (d**2).sum(1) / scale**2
         return centre_xy + d * (1 + p[8] * r2 + p[9] * r2**2)[:, None]
 
-    fit = least_squares(lambda p: (model(p) - image_xy).ravel(), np.append((H / H[2, 2]).ravel()[:8], [0.0, 0.0]), x_scale="jac")
+    fit = least_squares(
+        lambda p: (model(p) - image_xy).ravel(), np.append((H / H[2, 2]).ravel()[:8], [0.0, 0.0]), x_scale="jac"
+    )
     return float(np.sqrt(np.mean(np.sum((model(fit.x) - image_xy) ** 2, axis=1))))
 
 
 @pytest.mark.parametrize("name", ["grid_centered_0", "grid_orbit_30"])
 def test_real_grid_frames(arcadis_dir, name):
-    from stages.centroid import CentroidParams, centroid_beads
-    from stages.detect import DetectParams, detect_beads
-    from stages.io import read_frames
+    from fluorocal.stages.centroid import CentroidParams, centroid_beads
+    from fluorocal.stages.detect import DetectParams, detect_beads
+    from fluorocal.stages.io import read_frames
 
     radiograph = read_frames(arcadis_dir / f"{name}.dcm")[0]
     c = centroid_beads(radiograph, detect_beads(radiograph, DetectParams(polarity="bright")), CentroidParams())
@@ -508,21 +555,41 @@ def test_square_grid_with_gaps_and_distortion():
 
 def test_cli_label(tmp_path, sim):
     """`fluorocal label` on a detections CSV: the labels CSV holds the right ids; a missing file is a one-line error."""
-    from pipeline.cli import main
-    from stages.io import write_csv
+    from fluorocal.cli import main
+    from fluorocal.stages.io import write_csv
 
     rng = np.random.default_rng(10)
     ft = sim.truth.frames[0][1]
     c, ids = detections_from_truth(ft, rng)
     header = "file,frame,x,y,sigma_x,sigma_y,rho,major,minor,angle,fit_rmse,score".split(",")
-    rows = [["a.tif", 0, *c.xy_px[i], c.sigma_x[i], c.sigma_y[i], c.rho[i], c.major_px[i], c.minor_px[i], 0.0, 0.05, 9.0] for i in range(len(c))]
+    rows = [
+        ["a.tif", 0, *c.xy_px[i], c.sigma_x[i], c.sigma_y[i], c.rho[i], c.major_px[i], c.minor_px[i], 0.0, 0.05, 9.0]
+        for i in range(len(c))
+    ]
     write_csv(tmp_path / "det.csv", header, rows)
     ph = without_roles(sim.phantom)
-    write_csv(tmp_path / "phantom.csv", ["id", "x", "y", "z", "diameter"], [[int(i), *x, d] for i, x, d in zip(ph.ids, ph.xyz_mm, ph.diameter_mm)])
+    write_csv(
+        tmp_path / "phantom.csv",
+        ["id", "x", "y", "z", "diameter"],
+        [[int(i), *x, d] for i, x, d in zip(ph.ids, ph.xyz_mm, ph.diameter_mm)],
+    )
     write_csv(tmp_path / "seeds.csv", ["id", "x", "y"], [[int(s[0]), s[1], s[2]] for s in seeds_from_truth(ft, rng)])
     p = sim.params
-    argv = ["-q", "label", str(tmp_path / "det.csv"), "--phantom", str(tmp_path / "phantom.csv"), "--sid", str(p.source_image_distance_mm),
-            "--pixel-pitch", str(p.pixel_pitch_mm), "--seeds", str(tmp_path / "seeds.csv"), "--out", str(tmp_path / "labels.csv")]
+    argv = [
+        "-q",
+        "label",
+        str(tmp_path / "det.csv"),
+        "--phantom",
+        str(tmp_path / "phantom.csv"),
+        "--sid",
+        str(p.source_image_distance_mm),
+        "--pixel-pitch",
+        str(p.pixel_pitch_mm),
+        "--seeds",
+        str(tmp_path / "seeds.csv"),
+        "--out",
+        str(tmp_path / "labels.csv"),
+    ]
     assert main(argv) == 0
     import csv
 
@@ -532,16 +599,29 @@ def test_cli_label(tmp_path, sim):
     d, i = cKDTree(c.xy_px).query([[float(r["x"]), float(r["y"])] for r in out])
     assert d.max() < 1e-5  # 6 decimals in the CSV
     assert np.array_equal(ids[i], [int(r["id"]) for r in out])
-    assert main(["-q", "label", str(tmp_path / "missing.csv"), "--lattice", "hex", "--pitch", "2", "--out", str(tmp_path / "x.csv")]) == 2
+    assert (
+        main(
+            [
+                "-q",
+                "label",
+                str(tmp_path / "missing.csv"),
+                "--lattice",
+                "hex",
+                "--pitch",
+                "2",
+                "--out",
+                str(tmp_path / "x.csv"),
+            ]
+        )
+        == 2
+    )
 
 
 def test_cli_label_overlay_reads_each_frame_file_once(tmp_path, sim, monkeypatch):
     """`--overlay` draws one PNG per frame of a multi-frame file and decodes the file once, not once per frame."""
     import cv2
-
-    import stages.io
-    from pipeline.cli import main
-    from stages.io import write_csv
+    from fluorocal.cli import main
+    from fluorocal.stages.io import write_csv
 
     rng = np.random.default_rng(10)
     ft = sim.truth.frames[0][1]
@@ -553,24 +633,47 @@ def test_cli_label_overlay_reads_each_frame_file_once(tmp_path, sim, monkeypatch
         writer.write(np.full((size, size), 128, np.uint8))
     writer.release()
     header = "file,frame,x,y,sigma_x,sigma_y,rho,major,minor,angle,fit_rmse,score".split(",")
-    rows = [[str(movie), f, *c.xy_px[i], c.sigma_x[i], c.sigma_y[i], c.rho[i], c.major_px[i], c.minor_px[i], 0.0, 0.05, 9.0] for f in (0, 1) for i in range(len(c))]
+    rows = [
+        [str(movie), f, *c.xy_px[i], c.sigma_x[i], c.sigma_y[i], c.rho[i], c.major_px[i], c.minor_px[i], 0.0, 0.05, 9.0]
+        for f in (0, 1)
+        for i in range(len(c))
+    ]
     write_csv(tmp_path / "det.csv", header, rows)
     ph = sim.phantom
-    write_csv(tmp_path / "phantom.csv", ["id", "x", "y", "z", "diameter", "role"], [[int(i), *x, d, r] for i, x, d, r in zip(ph.ids, ph.xyz_mm, ph.diameter_mm, ph.role)])
+    write_csv(
+        tmp_path / "phantom.csv",
+        ["id", "x", "y", "z", "diameter", "role"],
+        [[int(i), *x, d, r] for i, x, d, r in zip(ph.ids, ph.xyz_mm, ph.diameter_mm, ph.role)],
+    )
     reads = []
-    real = stages.io.read_frames
-    monkeypatch.setattr(stages.io, "read_frames", lambda path, *a, **k: reads.append(path) or real(path, *a, **k))
+    from fluorocal.stages import io as stages_io
+
+    real = stages_io.read_frames
+    monkeypatch.setattr(stages_io, "read_frames", lambda path, *a, **k: reads.append(path) or real(path, *a, **k))
     p = sim.params
-    argv = ["-q", "label", str(tmp_path / "det.csv"), "--phantom", str(tmp_path / "phantom.csv"), "--sid", str(p.source_image_distance_mm),
-            "--pixel-pitch", str(p.pixel_pitch_mm), "--out", str(tmp_path / "labels.csv"), "--overlay", str(tmp_path / "png")]
+    argv = [
+        "-q",
+        "label",
+        str(tmp_path / "det.csv"),
+        "--phantom",
+        str(tmp_path / "phantom.csv"),
+        "--sid",
+        str(p.source_image_distance_mm),
+        "--pixel-pitch",
+        str(p.pixel_pitch_mm),
+        "--out",
+        str(tmp_path / "labels.csv"),
+        "--overlay",
+        str(tmp_path / "png"),
+    ]
     assert main(argv) == 0
     assert sorted(x.name for x in (tmp_path / "png").iterdir()) == ["movie_000_labels.png", "movie_001_labels.png"]
     assert len(reads) == 1
 
 
 def test_label_overlay(sim, params):
-    from pipeline.overlay import render_label_overlay
-    from stages.artifacts import Radiograph
+    from fluorocal.overlay import render_label_overlay
+    from fluorocal.stages.artifacts import Radiograph
 
     rng = np.random.default_rng(15)
     ft = sim.truth.frames[0][0]

@@ -5,12 +5,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
-from pipeline.config import params_from_dict
-from stages.errors import InputError, ShapeError
-from stages.learn import (
+from fluorocal.config import params_from_dict
+from fluorocal.stages.errors import InputError, ShapeError
+from fluorocal.stages.learn import (
     CorrectionField,
     KnnModel,
     LearnParams,
@@ -22,6 +19,8 @@ from stages.learn import (
     fit_knn_field,
     grid_nodes,
 )
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 W, H = 256, 192
 
@@ -194,7 +193,9 @@ def test_joint_grid_and_points_separates_field_from_point_shifts():
 
     r = affine(xy) + np.einsum("nij,nj->ni", J, dP[bead])
     base = CorrectionField.constant(W, H)
-    field = fit_grid_with_points(xy, r, np.ones((len(bead), 2)), bead, J, LearnParams(), image_size=(W, H), tau_px=1.0, base=base, cv_rms_px=0.0)
+    field = fit_grid_with_points(
+        xy, r, np.ones((len(bead), 2)), bead, J, LearnParams(), image_size=(W, H), tau_px=1.0, base=base, cv_rms_px=0.0
+    )
     q = rng.uniform(0, [W - 1, H - 1], (500, 2))
     np.testing.assert_allclose(field.correction_at(q), affine(q), atol=1e-4)
     # the field alone (no point shifts) cannot explain the residuals: it absorbs part of J dP
@@ -204,7 +205,7 @@ def test_joint_grid_and_points_separates_field_from_point_shifts():
 
 @pytest.mark.parametrize("order", [1, 2, 3, 4])
 def test_difference_prior_null_space_is_the_polynomials_below_its_order(order):
-    from stages.learn import _difference_operator
+    from fluorocal.stages.learn import _difference_operator
 
     ny, nx = 9, 11
     D = _difference_operator(ny, nx, order)
@@ -218,13 +219,15 @@ def test_difference_prior_null_space_is_the_polynomials_below_its_order(order):
 
 
 def test_second_order_prior_is_the_thin_plate_energy():
-    from stages.learn import _difference_operator
+    from fluorocal.stages.learn import _difference_operator
 
     rng = np.random.default_rng(12)
     ny, nx = 7, 8
     v = rng.normal(size=(ny, nx))
     thin_plate = (
-        np.sum(np.diff(v, 2, axis=1) ** 2) + np.sum(np.diff(v, 2, axis=0) ** 2) + 2 * np.sum(np.diff(np.diff(v, axis=0), axis=1) ** 2)
+        np.sum(np.diff(v, 2, axis=1) ** 2)
+        + np.sum(np.diff(v, 2, axis=0) ** 2)
+        + 2 * np.sum(np.diff(np.diff(v, axis=0), axis=1) ** 2)
     )
     D = _difference_operator(ny, nx, 2)
     assert np.sum((D @ v.ravel()) ** 2) == pytest.approx(thin_plate, rel=1e-12)
@@ -253,7 +256,9 @@ def test_cv_chooses_a_higher_prior_order_for_a_strong_smooth_field():
         cv = cross_validate_smoothness(xy, r, var, image_size=(W, H), params=params)
         assert cv.order in orders and cv.order_grid.shape == cv.tau_grid_px.shape == cv.cv_cost.shape
         assert set(cv.order_grid.tolist()) == set(orders)
-        field = fit_grid_field(xy, r, var, params, image_size=(W, H), tau_px=cv.tau_px, cv_rms_px=cv.cv_rms_px, order=cv.order)
+        field = fit_grid_field(
+            xy, r, var, params, image_size=(W, H), tau_px=cv.tau_px, cv_rms_px=cv.cv_rms_px, order=cv.order
+        )
         rms[orders] = (cv.order, np.sqrt(np.mean((field.correction_at(q) - strong(q)) ** 2)))
         assert rms[orders][1] < 3 * sigma / np.sqrt(len(xy) / field.delta_px[..., 0].size / 4)
     assert rms[(2, 3, 4)][0] > 2
@@ -261,7 +266,7 @@ def test_cv_chooses_a_higher_prior_order_for_a_strong_smooth_field():
 
 
 def test_cv_neighbour_cache_gives_the_same_table_and_skips_the_queries(monkeypatch):
-    from stages import learn
+    from fluorocal.stages import learn
 
     rng = np.random.default_rng(14)
     xy, r, var = sample(rng, 2000, 0.1)
@@ -278,11 +283,13 @@ def test_cv_neighbour_cache_gives_the_same_table_and_skips_the_queries(monkeypat
     np.testing.assert_allclose(again.cv_cost, fresh.cv_cost, rtol=1e-12)
     # other coordinates invalidate it
     moved = cross_validate_k(xy + 1.0, r2, var, k_grid=(4, 16), n_folds=10, seed=0, neighbour_cache=cache)
-    np.testing.assert_allclose(moved.cv_cost, cross_validate_k(xy + 1.0, r2, var, k_grid=(4, 16), n_folds=10, seed=0).cv_cost, rtol=1e-12)
+    np.testing.assert_allclose(
+        moved.cv_cost, cross_validate_k(xy + 1.0, r2, var, k_grid=(4, 16), n_folds=10, seed=0).cv_cost, rtol=1e-12
+    )
 
 
 def test_knn_refit_with_a_given_cv_uses_its_k_without_cross_validating(monkeypatch):
-    from stages import learn
+    from fluorocal.stages import learn
 
     rng = np.random.default_rng(13)
     xy, r, var = sample(rng, 3000, 0.1)
@@ -295,8 +302,8 @@ def test_knn_refit_with_a_given_cv_uses_its_k_without_cross_validating(monkeypat
 
 
 def test_affine_shape_modes_ignore_similarities_and_see_stretches():
-    from stages._geometry import quat_to_matrix
-    from stages.learn import _affine_shape_modes
+    from fluorocal.stages._geometry import quat_to_matrix
+    from fluorocal.stages.learn import _affine_shape_modes
 
     rng = np.random.default_rng(12)
     nominal = rng.uniform(-50, 50, (200, 3))
@@ -330,7 +337,9 @@ def _bumpy_grid_field():
 @settings(deadline=None, derandomize=True, max_examples=60)
 @given(
     st.lists(
-        st.tuples(st.floats(-0.5, W - 0.5, allow_nan=False, width=64), st.floats(-0.5, H - 0.5, allow_nan=False, width=64)),
+        st.tuples(
+            st.floats(-0.5, W - 0.5, allow_nan=False, width=64), st.floats(-0.5, H - 0.5, allow_nan=False, width=64)
+        ),
         min_size=1,
         max_size=20,
     )
@@ -370,7 +379,12 @@ def test_remap_maps_are_distort_points_of_pixel_centres():
     map_x, map_y = field.remap_maps(64, 48)
     centres = np.array([[0.0, 0.0], [63.0, 47.0], [20.0, 30.0]])
     src = field.distort_points(centres)
-    got = np.column_stack([map_x[centres[:, 1].astype(int), centres[:, 0].astype(int)], map_y[centres[:, 1].astype(int), centres[:, 0].astype(int)]])
+    got = np.column_stack(
+        [
+            map_x[centres[:, 1].astype(int), centres[:, 0].astype(int)],
+            map_y[centres[:, 1].astype(int), centres[:, 0].astype(int)],
+        ]
+    )
     np.testing.assert_allclose(got, src, atol=1e-4)  # float32 storage of ~100 px values
 
 
@@ -400,10 +414,10 @@ E2E_NOISE_PX = 0.05
 @pytest.fixture(scope="module")
 def simulated():
     """Simulator geometry: true distorted outline centres + 0.05 px noise, 14 exposures, 512 px, strong distortion."""
-    from stages._geometry import quat_multiply, quat_normalize, rotvec_to_quat
-    from stages.adjust import Orientation
-    from stages.artifacts import Observations
-    from stages.simulate import SimulateParams, simulate
+    from fluorocal.stages._geometry import quat_multiply, quat_normalize, rotvec_to_quat
+    from fluorocal.stages.adjust import Orientation
+    from fluorocal.stages.artifacts import Observations
+    from fluorocal.stages.simulate import SimulateParams, simulate
 
     params = SimulateParams(n_frames=14, image_size_px=E2E_SIZE, distortion="strong", seed=3)
     data = simulate(params, render=False)
@@ -437,10 +451,17 @@ def _field_error_modulo_homography(correction_at, distortion, pts):
 
 @pytest.mark.slow
 def test_alternation_learns_the_field_and_lowers_the_cost(simulated):
-    from stages.learn import calibrate
+    from fluorocal.stages.learn import calibrate
 
     obs, phantom, initial, distortion, fov_radius_px = simulated
-    res = calibrate(obs, phantom, initial, image_size=(E2E_SIZE, E2E_SIZE), scheme="knn+iop+smooth", params=LearnParams(max_iterations=6))
+    res = calibrate(
+        obs,
+        phantom,
+        initial,
+        image_size=(E2E_SIZE, E2E_SIZE),
+        scheme="knn+iop+smooth",
+        params=LearnParams(max_iterations=6),
+    )
     hist = res.history
     assert hist[0].phase == "adjust" and len(hist) >= 3
     # the adjustment's cost (eq. 2) falls at every iteration: each Δ removes systematic residual
@@ -467,11 +488,16 @@ def test_alternation_learns_the_field_and_lowers_the_cost(simulated):
 @pytest.mark.slow
 @pytest.mark.parametrize("orders", [(2,), (2, 3, 4)])
 def test_joint_grid_refinement_gets_closer_to_the_truth(simulated, orders):
-    from stages.learn import calibrate
+    from fluorocal.stages.learn import calibrate
 
     obs, phantom, initial, distortion, fov_radius_px = simulated
     params = LearnParams(
-        max_iterations=2, acceleration="anderson", refine="grid+points", refine_iterations=4, affine_datum=True, smoothness_orders=orders,
+        max_iterations=2,
+        acceleration="anderson",
+        refine="grid+points",
+        refine_iterations=4,
+        affine_datum=True,
+        smoothness_orders=orders,
     )
     res = calibrate(obs, phantom, initial, image_size=(E2E_SIZE, E2E_SIZE), scheme="knn+iop+smooth", params=params)
     assert [h.phase for h in res.history] == ["adjust", "knn", "knn"] + ["grid"] * 4
@@ -492,11 +518,20 @@ def test_joint_grid_refinement_gets_closer_to_the_truth(simulated, orders):
 
 @pytest.mark.slow
 def test_step_tolerance_stops_the_refinement_once_the_field_stops_moving(simulated):
-    from stages.learn import calibrate
+    from fluorocal.stages.learn import calibrate
 
     obs, phantom, initial, _, _ = simulated
-    base = dict(max_iterations=2, acceleration="anderson", refine="grid+points", refine_iterations=12, affine_datum=True)
-    res = calibrate(obs, phantom, initial, image_size=(E2E_SIZE, E2E_SIZE), scheme="knn+iop+smooth", params=LearnParams(**base, step_tolerance=0.2))
+    base = dict(
+        max_iterations=2, acceleration="anderson", refine="grid+points", refine_iterations=12, affine_datum=True
+    )
+    res = calibrate(
+        obs,
+        phantom,
+        initial,
+        image_size=(E2E_SIZE, E2E_SIZE),
+        scheme="knn+iop+smooth",
+        params=LearnParams(**base, step_tolerance=0.2),
+    )
     grid = [h for h in res.history if h.phase == "grid"]
     # the rule as stated: it stopped at the first refinement step after which the correction moved by < 0.2 x RMS
     small = [h.step_px < 0.2 * h.rms_px for h in grid[1:]]
@@ -510,12 +545,12 @@ def test_step_tolerance_stops_the_refinement_once_the_field_stops_moving(simulat
 def test_intermediate_solves_at_their_cap_do_not_warn_the_final_one_does(simulated, caplog):
     import logging
 
-    from stages.adjust import AdjustParams
-    from stages.learn import _adjuster
+    from fluorocal.stages.adjust import AdjustParams
+    from fluorocal.stages.learn import _adjuster
 
     obs, phantom, initial, _, _ = simulated
     run = _adjuster(obs, phantom, initial, AdjustParams(max_iterations=1), True, fast=True)
-    with caplog.at_level(logging.WARNING, logger="stages.adjust"):
+    with caplog.at_level(logging.WARNING, logger="fluorocal.stages.adjust"):
         assert not run(np.zeros((len(obs), 2)), None, final=False).usable
         assert "not usable" not in caplog.text
         assert not run(np.zeros((len(obs), 2)), None, final=True).usable
@@ -524,7 +559,7 @@ def test_intermediate_solves_at_their_cap_do_not_warn_the_final_one_does(simulat
 
 @pytest.mark.slow
 def test_scheme_none_and_unsmoothed_knn(simulated):
-    from stages.learn import calibrate
+    from fluorocal.stages.learn import calibrate
 
     obs, phantom, initial, _, _ = simulated
     none = calibrate(obs, phantom, initial, image_size=(E2E_SIZE, E2E_SIZE), scheme="none")
@@ -541,7 +576,7 @@ def test_scheme_none_and_unsmoothed_knn(simulated):
 
 
 def test_unknown_scheme_is_an_input_error(simulated):
-    from stages.learn import calibrate
+    from fluorocal.stages.learn import calibrate
 
     obs, phantom, initial, _, _ = simulated
     with pytest.raises(InputError, match="scheme"):
@@ -554,7 +589,7 @@ def test_unknown_scheme_is_an_input_error(simulated):
 
 
 def test_gauge_removes_what_the_orientation_reproduces_and_keeps_the_rest():
-    from stages.learn import _gauge_basis, _gauge_fixed
+    from fluorocal.stages.learn import _gauge_basis, _gauge_fixed
 
     rng = np.random.default_rng(4)
     iop = (130.0, 90.0, 900.0)
@@ -571,7 +606,9 @@ def test_gauge_removes_what_the_orientation_reproduces_and_keeps_the_rest():
     scale = field.with_delta((0.004 * (nodes - iop[:2])).reshape(field.delta_px.shape))
     kept = _gauge_fixed(scale, xy, iop, with_iop=False).correction_at(xy)
     # (only its mean over the observations goes, a shift: they are not centred on the principal point)
-    assert np.sqrt(np.mean((kept - scale.correction_at(xy)) ** 2)) < 0.1 * np.sqrt(np.mean(scale.correction_at(xy) ** 2))
+    assert np.sqrt(np.mean((kept - scale.correction_at(xy)) ** 2)) < 0.1 * np.sqrt(
+        np.mean(scale.correction_at(xy) ** 2)
+    )
     # a radial field loses only its projection: applying the gauge twice changes (almost) nothing more
     radial = field.with_delta(smooth_field(nodes).reshape(field.delta_px.shape))
     once = _gauge_fixed(radial, xy, iop, with_iop=True)
@@ -608,9 +645,9 @@ def test_polynomial_scheme_fits_a_smooth_radial_distortion():
     fitted model leaves the noise.
     """
     import cv2
+    from fluorocal.stages.artifacts import Observations
+    from fluorocal.stages.learn import calibrate
 
-    from stages.artifacts import Observations
-    from stages.learn import calibrate
     from tests.stages.ba_synthetic import IMAGE_PX, make_problem
 
     kappa, noise = 0.02, 0.05
@@ -632,7 +669,10 @@ def test_polynomial_scheme_fits_a_smooth_radial_distortion():
     # the affinity is held by default (AdjustParams.fixed_additional_parameters): exactly zero, std 0
     assert not adj.ap_px[0, 5:].any() and not adj.ap_std_px[0, 5:].any() and not adj.ap_cov_px2[0, 5:].any()
     # in sample: from the unmodelled distortion to the noise (0.05 px times sqrt(redundancy) < 1); measured 0.474 -> 0.0469 px
-    assert res.history[0].rms_px > 5 * noise and res.history[-1].rms_px < 1.05 * noise, (res.history[0].rms_px, res.history[-1].rms_px)
+    assert res.history[0].rms_px > 5 * noise and res.history[-1].rms_px < 1.05 * noise, (
+        res.history[0].rms_px,
+        res.history[-1].rms_px,
+    )
     # the corrections are the model, and the stored grid reproduces it at the observations
     # (bilinear at 16 px: h²/8 |Δ''| = 32 px² * ~2e-4 /px; measured max 0.0071, RMS 0.0026 px)
     xy = obs.xy_px

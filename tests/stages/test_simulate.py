@@ -8,14 +8,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from scipy import ndimage
-
-from stages._geometry import project, quat_multiply, quat_to_matrix
-from stages.artifacts import Phantom
-from stages.errors import InputError
-from stages.simulate import (
+from fluorocal.stages._geometry import project, quat_multiply, quat_to_matrix
+from fluorocal.stages.artifacts import Phantom
+from fluorocal.stages.errors import InputError
+from fluorocal.stages.simulate import (
     ImageDistortion,
     SimulateParams,
     ideal_pixel_map,
@@ -25,6 +21,9 @@ from stages.simulate import (
     simulate,
     truth_to_dict,
 )
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import ndimage
 
 # ---------------------------------------------------------------- fixtures
 
@@ -105,7 +104,13 @@ def test_acquisition_geometry_is_in_the_specified_ranges(geometry):
     rel = [quat_to_matrix(q[1, k]) @ quat_to_matrix(q[0, k]).T for k in range(p.n_frames)]
     assert np.allclose(rel, rel[0], atol=1e-12)
     # bead images 10-25 px across (markers larger)
-    small = np.concatenate([ft.diameter_px[np.isin(ft.ids, geometry.phantom.ids[geometry.phantom.role == ""])] for per in geometry.truth.frames for ft in per])
+    small = np.concatenate(
+        [
+            ft.diameter_px[np.isin(ft.ids, geometry.phantom.ids[geometry.phantom.role == ""])]
+            for per in geometry.truth.frames
+            for ft in per
+        ]
+    )
     assert 10 * p.px_scale <= small.min() and small.max() <= 25 * p.px_scale
 
 
@@ -152,8 +157,15 @@ def test_outline_centre_differs_from_centre_projection_as_the_cone_predicts():
     iop = np.array([500.0, 500.0, c])
     r, depth, off = 20.0, 400.0, 300.0  # a large sphere far off-axis makes the effect visible
     ft = project_beads(
-        np.array([0]), np.array([[off, 0.0, depth]]), np.array([2 * r]), np.array([1.0, 0, 0, 0]), np.zeros(3), iop,
-        ImageDistortion.identity(4000), image_size_px=4000, fov_radius_px=10000,
+        np.array([0]),
+        np.array([[off, 0.0, depth]]),
+        np.array([2 * r]),
+        np.array([1.0, 0, 0, 0]),
+        np.zeros(3),
+        iop,
+        ImageDistortion.identity(4000),
+        image_size_px=4000,
+        fov_radius_px=10000,
     )
     shift = ft.outline_ideal_xy_px[0, 0] - ft.ideal_xy_px[0, 0]
     # exact: the tangent cone's silhouette edges are at angles atan(off/depth) ± asin(r/D)
@@ -173,10 +185,20 @@ def test_overlap_and_field_edge_flags_on_a_constructed_case():
     """
     c = 4400.0
     iop = np.array([511.5, 511.5, c])
-    xyz = np.array([[-40, -20, 0], [-36.3, -20, 0], [10, 20, 0], [14.2, 20, 0], [30, -30, 0], [86.0, 0, 0]], dtype=float)
+    xyz = np.array(
+        [[-40, -20, 0], [-36.3, -20, 0], [10, 20, 0], [14.2, 20, 0], [30, -30, 0], [86.0, 0, 0]], dtype=float
+    )
     ft = project_beads(
-        np.arange(6), xyz, np.full(6, 3.5), np.array([1.0, 0, 0, 0]), np.array([0, 0, -800.0]), iop,
-        ImageDistortion.identity(1024), image_size_px=1024, fov_radius_px=481.28, overlap_margin_px=2.0,
+        np.arange(6),
+        xyz,
+        np.full(6, 3.5),
+        np.array([1.0, 0, 0, 0]),
+        np.array([0, 0, -800.0]),
+        iop,
+        ImageDistortion.identity(1024),
+        image_size_px=1024,
+        fov_radius_px=481.28,
+        overlap_margin_px=2.0,
     )
     assert list(ft.ids) == [0, 1, 2, 3, 4, 5]
     # beads off the axis image slightly larger (by up to 1/cos³ of the obliquity, < 0.5 % here)
@@ -191,7 +213,9 @@ def test_overlap_and_field_edge_flags_on_a_constructed_case():
 @settings(max_examples=60, deadline=None, derandomize=True)
 @given(
     system=st.integers(0, 1),
-    points=st.lists(st.tuples(st.floats(-0.5, 1023.5, width=64), st.floats(-0.5, 1023.5, width=64)), min_size=1, max_size=40),
+    points=st.lists(
+        st.tuples(st.floats(-0.5, 1023.5, width=64), st.floats(-0.5, 1023.5, width=64)), min_size=1, max_size=40
+    ),
 )
 def test_distortion_round_trip_below_1e_3_px(system, points):
     distortion = _strong(system)
@@ -250,7 +274,7 @@ def test_edge_subsamples_map_to_ideal_rays_to_first_order():
     Bound: second derivative of the strong distortion (~5e-4 /px at the rim)
     times offset² / 2 (<= 0.25 px²) plus one-sided differences at the image border.
     """
-    from stages.simulate import _local_jacobian
+    from fluorocal.stages.simulate import _local_jacobian
 
     distortion = _strong(0)
     ideal = ideal_pixel_map(distortion, 1024)
@@ -279,8 +303,14 @@ def test_opaque_bead_centroid_is_its_outline_centre(distortion):
     ~1.3 px) whole. Residual error: edge sub-sampling (~0.01 px with 21 points).
     """
     params = SimulateParams(
-        n_frames=4, image_size_px=256, detector_size_mm=64.0, distortion=distortion, noise_scale=0.0,
-        mu_steel_per_mm=50.0, mu_acrylic_per_mm=0.0, seed=5,
+        n_frames=4,
+        image_size_px=256,
+        detector_size_mm=64.0,
+        distortion=distortion,
+        noise_scale=0.0,
+        mu_steel_per_mm=50.0,
+        mu_acrylic_per_mm=0.0,
+        seed=5,
     )
     xyz = np.array([[4.0, -3.0, 2.0], [-8.0, 5.0, -6.0], [6.0, 8.0, 7.0]])
     beads = Phantom(np.array([3, 5, 7]), xyz, np.full(3, 3.5), np.full(3, ""))
@@ -328,7 +358,9 @@ def test_frames_are_12_bit_with_a_dark_round_field():
 
 
 def test_grid_plate_renders_bright_holes():
-    data = simulate(SimulateParams(n_frames=1, phantom="grid", image_size_px=256, detector_size_mm=128.0, noise_scale=0.0))
+    data = simulate(
+        SimulateParams(n_frames=1, phantom="grid", image_size_px=256, detector_size_mm=128.0, noise_scale=0.0)
+    )
     ft, img = data.truth.frames[0][0], data.frames[0][0].image
     inner = ~ft.field_edge & ~ft.overlap
     holes = ndimage.map_coordinates(img, ft.outline_xy_px[inner][:, ::-1].T, order=1)
@@ -384,9 +416,13 @@ def test_default_frames_fall_in_the_real_frames_measured_ranges(default_frame):
     assert 1300 <= lo and hi <= 1850 and 1400 <= med <= 1800
     residual = img - ndimage.gaussian_filter(img, 3)
     # flat regions only: residual of the acrylic wall edges would inflate the figure
-    flat = (r < 0.4 * size) & away & (np.abs(ndimage.gaussian_gradient_magnitude(ndimage.gaussian_filter(img, 3), 2)) < 3)
+    flat = (
+        (r < 0.4 * size) & away & (np.abs(ndimage.gaussian_gradient_magnitude(ndimage.gaussian_filter(img, 3), 2)) < 3)
+    )
     assert 13 <= residual[flat].std() <= 20
-    small = (~ft.overlap) & (~ft.field_edge) & np.isin(ft.ids, default_frame.phantom.ids[default_frame.phantom.role == ""])
+    small = (
+        (~ft.overlap) & (~ft.field_edge) & np.isin(ft.ids, default_frame.phantom.ids[default_frame.phantom.role == ""])
+    )
     diam = ft.diameter_px[small]
     assert 17 <= np.median(diam) <= 22
     contrast, background, width = _isolated_bead_stats(img, ft.outline_xy_px[small], diam)
@@ -400,11 +436,13 @@ def test_default_frames_fall_in_the_real_frames_measured_ranges(default_frame):
 
 
 def test_cmd_simulate_writes_a_readable_dataset(tmp_path):
-    from pipeline.cli import main
-    from stages.io import read_frames, read_phantom
+    from fluorocal.cli import main
+    from fluorocal.stages.io import read_frames, read_phantom
 
     out = tmp_path / "sim"
-    assert main(["-q", "simulate", str(out), "--frames", "2", "--systems", "2", "--image-size", "128", "--seed", "4"]) == 0
+    assert (
+        main(["-q", "simulate", str(out), "--frames", "2", "--systems", "2", "--image-size", "128", "--seed", "4"]) == 0
+    )
     for name in ("phantom.csv", "reference.csv", "truth.json", "fluorocal.toml", "montage.png"):
         assert (out / name).is_file(), name
     expected = simulate(SimulateParams(n_frames=2, n_systems=2, image_size_px=128, seed=4))
@@ -429,11 +467,14 @@ def test_cmd_simulate_writes_a_readable_dataset(tmp_path):
 
 
 def test_cmd_simulate_dicom(tmp_path):
-    from pipeline.cli import main
-    from stages.io import read_frames
+    from fluorocal.cli import main
+    from fluorocal.stages.io import read_frames
 
     out = tmp_path / "dcm"
-    assert main(["-q", "simulate", str(out), "--frames", "1", "--image-size", "64", "--format", "dicom", "--noise", "0"]) == 0
+    assert (
+        main(["-q", "simulate", str(out), "--frames", "1", "--image-size", "64", "--format", "dicom", "--noise", "0"])
+        == 0
+    )
     (frame,) = read_frames(out / "frames" / "A" / "frame_000.dcm")
     assert frame.bit_depth == 12 and frame.metadata["modality"] == "XA"
     assert frame.metadata["ImagerPixelSpacing"] == [4.0, 4.0]
@@ -444,7 +485,7 @@ def test_cmd_simulate_dicom(tmp_path):
 @pytest.mark.parametrize("fmt", ["tiff", "dicom"])
 def test_cmd_simulate_same_seed_same_files(tmp_path, fmt):
     """Every written file is byte-identical across runs (no timestamps, UIDs derived from the seed)."""
-    from pipeline.cli import main
+    from fluorocal.cli import main
 
     args = ["--frames", "1", "--systems", "2", "--image-size", "64", "--format", fmt, "--seed", "9"]
     for name in ("one", "two"):

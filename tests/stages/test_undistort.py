@@ -5,11 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pydicom
 import pytest
-
-from stages.artifacts import Radiograph
-from stages.errors import InputError, ShapeError
-from stages.io import read_frames, write_frames_like, write_still
-from stages.undistort import UndistortParams, undistort_frame
+from fluorocal.stages.artifacts import Radiograph
+from fluorocal.stages.errors import InputError, ShapeError
+from fluorocal.stages.io import read_frames, write_frames_like, write_still
+from fluorocal.stages.undistort import UndistortParams, undistort_frame
 
 
 def _grid(h, w):
