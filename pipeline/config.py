@@ -22,6 +22,25 @@ class ConfigError(InputError):
     """The project configuration is invalid; the message names the key."""
 
 
+#: stage-section keys that another setting owns: (section, key) -> the owner, named in the refusal
+OWNED_ELSEWHERE = {
+    ("adjust", "estimate_iop"): "[calibration] scheme (the knn+iop schemes estimate the IOP in the adjustment)",
+    ("adjust", "additional_parameters"): "[calibration] scheme (polynomial estimates them)",
+    ("learn", "smooth"): "[calibration] scheme (knn+smooth and knn+iop+smooth smooth the kNN field)",
+    ("label", "source_image_distance_mm"): "[[systems]] source_image_distance",
+    ("label", "pixel_pitch_mm"): "[[systems]] pixel_pitch",
+    ("label", "image_size_px"): "the frames themselves",
+    ("label", "seeds"): "[[systems]] seeds",
+}
+
+
+def _reject_owned(section: str, table: dict, path: Path) -> None:
+    for key in table:
+        if (section, key) in OWNED_ELSEWHERE:
+            owner = OWNED_ELSEWHERE[(section, key)]
+            raise ConfigError(f"{_where(path, f'[{section}] ', key)}: set by {owner}; remove it from [{section}]")
+
+
 @dataclass(frozen=True)
 class PhantomConfig:
     file: Path | None = None
@@ -199,6 +218,7 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     for stage, cls in stage_params_allowed.items():
         if stage in data:
             table = _expect(data[stage], dict, f"a table [{stage}]", path, "", stage)
+            _reject_owned(stage, table, path)
             params_from_dict(cls, table, where=f"{path.name}: [{stage}] ")
             stage_params[stage] = table
     return Config(path, phantom, systems, scheme, out_dir, cache_dir, stage_params)

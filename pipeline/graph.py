@@ -1,8 +1,9 @@
 """The stage registry and graph.
 
 A :class:`Stage` declares its name, its inputs (upstream stages or the
-sources ``frame`` and ``phantom``), its frozen ``Params`` class, its
-implementation ``VERSION`` and its pure function. Per-frame stages run once
+sources ``frame`` and ``phantom``), its frozen ``Params`` class and its pure
+function; the digest of the code it runs (:mod:`fluorocal.codehash`) goes
+into every key. Per-frame stages run once
 per frame; a gathering stage runs once per project on all frames' outputs of
 its first input, which its ``gather`` function (pipeline side) turns into one
 input artifact.
@@ -32,8 +33,6 @@ class Stage:
         ``func(*inputs, params)``, pure.
     params_cls : type
         Frozen dataclass of the stage's parameters (config section ``[name]``).
-    version : int
-        Implementation version: bump it when the output's meaning changes.
     inputs : tuple of str
         Upstream stage names or sources (``"frame"``, ``"phantom"``).
     per_frame : bool
@@ -53,12 +52,18 @@ class Stage:
     name: str
     func: Callable
     params_cls: type
-    version: int
     inputs: tuple[str, ...]
     per_frame: bool = True
     gather: Callable | None = None
     context: Callable | None = None
     extras: Callable | None = None
+
+    def code_digest(self) -> str:
+        """Digest of the source of the stage's function and of the pipeline hooks it runs with, and all they import."""
+        from fluorocal.codehash import code_digest
+
+        hooks = (self.func, self.gather, self.context, self.extras)
+        return code_digest(f.__module__ for f in hooks if f is not None)
 
 
 def _label_context(config, unit, units) -> dict:
@@ -138,7 +143,7 @@ def default_stages() -> list[Stage]:
     stages = []
     for name, module, entry, params, inputs, options in REGISTRY:
         mod = importlib.import_module(module)
-        stages.append(Stage(name, getattr(mod, entry), getattr(mod, params), int(mod.VERSION), inputs, **options))
+        stages.append(Stage(name, getattr(mod, entry), getattr(mod, params), inputs, **options))
     return stages
 
 
