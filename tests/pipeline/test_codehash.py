@@ -86,7 +86,7 @@ def test_comments_and_layout_do_not_change_the_digest(package):
 
 
 def test_the_learning_stage_digest_covers_the_adjustment(monkeypatch):
-    """The learning stage runs the bundle adjustment: its digest must reach the adjustment's modules (a stale learn otherwise)."""
+    """The learning stage runs the adjustment: its digest must reach the adjustment's modules."""
     from fluorocal import codehash
 
     reached = []
