@@ -58,7 +58,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
-from fluorocal.stages.adjust import AdjustParams, adjust_bundle  # noqa: E402
+from fluorocal.stages.adjust import adjust_bundle  # noqa: E402
 from fluorocal.stages.artifacts import Observations  # noqa: E402
 
 from tests.stages.ba_synthetic import ScipyProblem, aligned_error_mm, make_problem, pycolmap_reconstruction  # noqa: E402
@@ -101,9 +101,7 @@ def side_by_side(skip_scipy: bool) -> None:
         f"{bad.mean() * 100:.1f} % outliers, noise {NOISE_PX} px, BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}"
     )
     rows = []
-    res, wall, cpu = timed(
-        lambda: adjust_bundle(obs, (syn.ids, syn.nominal_mm), syn.initial, params=AdjustParams()), repeat=3
-    )
+    res, wall, cpu = timed(lambda: adjust_bundle(obs, (syn.ids, syn.nominal_mm), syn.initial), repeat=3)
     ours, ours_cpu = wall, cpu
     rows.append(
         (

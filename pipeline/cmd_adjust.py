@@ -126,7 +126,7 @@ def run(args) -> int:
     import math
 
     import numpy as np
-    from fluorocal.stages.adjust import AdjustParams, adjust_bundle, initial_orientation
+    from fluorocal.stages.adjust import FreeParameters, SolverOptions, adjust_bundle, initial_orientation
     from fluorocal.stages.errors import InputError
     from fluorocal.stages.io import atomic_write, read_phantom, write_csv
 
@@ -138,7 +138,9 @@ def run(args) -> int:
     w, h = args.image_size
     iop = np.array([(w - 1) / 2, (h - 1) / 2, args.sid / args.pixel_pitch])
     start = initial_orientation(obs, phantom, iop)
-    res = adjust_bundle(obs, phantom, start, corrections, AdjustParams(nu=args.nu, estimate_iop=not args.fixed_iop))
+    # the flags own the choice of free parameters; the solver keeps its defaults but for ν
+    free = FreeParameters(estimate_iop=not args.fixed_iop)
+    res = adjust_bundle(obs, phantom, start, corrections, free=free, solver=SolverOptions(nu=args.nu))
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
