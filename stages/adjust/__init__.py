@@ -75,13 +75,16 @@ Examples
 >>> rng = np.random.default_rng(0)
 >>> xyz = rng.uniform(-50, 50, (40, 3))
 >>> angles = np.deg2rad(np.arange(0, 360, 40))
->>> q = np.array([rotvec_to_quat([0.3 * (-1) ** k, a, 0.0]) for k, a in enumerate(angles)])  # tilted: not all about one axis
+>>> # tilted: not all rotations about one axis
+>>> q = np.array([rotvec_to_quat([0.3 * (-1) ** k, a, 0.0]) for k, a in enumerate(angles)])
 >>> src = -np.einsum("mji,j->mi", quat_to_matrix(q), [0.0, 0.0, 700.0])
 >>> iop = np.array([512.0, 512.0, 4400.0])
 >>> xy = np.concatenate([project(xyz, q[j], src[j], iop) for j in range(len(q))])
 >>> obs = Observations(system=np.zeros(len(xy)), exposure=np.repeat(np.arange(len(q)), 40),
-...                    bead_id=np.tile(np.arange(40), len(q)), xy_px=xy, sigma_px=np.tile([0.05, 0.05, 0.0], (len(xy), 1)))
->>> start = Orientation(iop_px=[[510.0, 515.0, 4300.0]], exposure=np.arange(len(q)), q_cam_from_obj=q, source_mm=src + 1.0)
+...                    bead_id=np.tile(np.arange(40), len(q)), xy_px=xy,
+...                    sigma_px=np.tile([0.05, 0.05, 0.0], (len(xy), 1)))
+>>> start = Orientation(iop_px=[[510.0, 515.0, 4300.0]], exposure=np.arange(len(q)), q_cam_from_obj=q,
+...                     source_mm=src + 1.0)
 >>> result = adjust_bundle(obs, (np.arange(40), xyz), start)
 >>> bool(result.usable), bool(np.allclose(result.iop_px, iop, atol=1e-6))
 (True, True)

@@ -15,12 +15,13 @@ from fluorocal.stages.adjust import polynomial
 from fluorocal.stages.adjust.collinearity import State
 from fluorocal.stages.adjust.options import DataSelection, FreeParameters, SolverOptions
 from fluorocal.stages.adjust.orientation import Orientation
-from fluorocal.stages.adjust.problem import Problem, build_problem, start_points as projected_start
+from fluorocal.stages.adjust.problem import Problem, build_problem
+from fluorocal.stages.adjust.problem import start_points as projected_start
 from fluorocal.stages.adjust.result import Adjustment, summarise
-from fluorocal.stages.adjust.selection import index_of, nominal_coordinates, select_observations
+from fluorocal.stages.adjust.selection import checked_corrections, index_of, nominal_coordinates, select_observations
 from fluorocal.stages.adjust.solver import solve
 from fluorocal.stages.artifacts import Observations
-from fluorocal.stages.errors import InputError, ShapeError
+from fluorocal.stages.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -31,9 +32,9 @@ def adjust_bundle(
     initial: Orientation,
     corrections_px: np.ndarray | None = None,
     *,
-    free: FreeParameters = FreeParameters(),
-    solver: SolverOptions = SolverOptions(),
-    selection: DataSelection = DataSelection(),
+    free: FreeParameters | None = None,
+    solver: SolverOptions | None = None,
+    selection: DataSelection | None = None,
     start_points=None,
     compute_covariance: bool = True,
 ) -> Adjustment:
@@ -49,32 +50,30 @@ def adjust_bundle(
         Start values of IOP, poses (every observed epoch) and ROP.
     corrections_px : (N, 2) float64 ndarray, px, optional
         Distortion corrections Δ held constant: ideal = ``xy_px - Δ`` (default 0).
-    free : FreeParameters
-        Which parameters are estimated (default: the IOP, no additional
-        parameters). Set by the caller that owns the choice (the learning
-        loop's scheme, ``fluorocal adjust``'s flags), not by configuration.
-    solver : SolverOptions
-        The robust model and Levenberg–Marquardt's settings.
-    selection : DataSelection
-        What can enter the solve.
+    free : FreeParameters, optional
+        Which parameters are estimated (default ``FreeParameters()``: the IOP,
+        no additional parameters). Set by the caller that owns the choice (the
+        learning loop's scheme, ``fluorocal adjust``'s flags), not by configuration.
+    solver : SolverOptions, optional
+        The robust model and Levenberg–Marquardt's settings (default ``SolverOptions()``).
+    selection : DataSelection, optional
+        What can enter the solve (default ``DataSelection()``).
     start_points : dict or (ids, xyz_mm), optional
         Start values of the bead coordinates (for example a previous
         :class:`Adjustment`'s ``(bead_id, xyz_mm)`` in the learning loop); beads
         not given start at their nominal coordinates. The datum stays the
         nominal one: the start is projected onto the inner constraints.
     compute_covariance : bool
-        Compute the parameters' covariance and the observations' redundancy
-        numbers (default True). False skips the dense inverse (about two
-        thirds of a warm-started solve): standard deviations are then zero and
-        every observation gets the mean redundancy ``dof / 2N`` (the learning
-        loop's intermediate solves use this).
+        Compute the covariance and the redundancy numbers (default True).
+        False skips the dense inverse (two thirds of a warm-started solve; the
+        learning loop's intermediate solves): standard deviations are then
+        zero and every observation gets the mean redundancy ``dof / 2N``.
 
     Returns
     -------
     Adjustment
-        ``usable`` False (with ``stop_reason``) says the solve did not converge
-        or flagged too many outliers; whether that concerns the user is the
-        caller's decision (this function logs only at debug level).
+        ``usable`` False (see ``stop_reason``): not converged or too many
+        outliers; the caller decides whether that concerns the user.
 
     Raises
     ------
@@ -87,19 +86,12 @@ def adjust_bundle(
 
     Notes
     -----
-    Model and datum: see :mod:`stages.adjust`. Uncertainties are
-    ``c (J^T W J)^-1`` under the inner constraints with Huber's sandwich
-    factor ``c = K² [Σ w² s / dof] mean(w) / mean(a)²``, ``a = w ν/(ν + s/σ²)``
-    the averaged ψ', ``K = 1 + (u / 2N) var(a) / mean(a)²`` his small-sample
-    correction (``s`` squared Mahalanobis residuals, ``u`` free parameters less 7);
-    it reduces to σ̂0² for least squares [1]_. The
-    redundancy numbers are the diagonal of ``Q_vv P`` with
-    ``P = w C^-1``; ``σ0² = Σ_inliers s / Σ_inliers r``.
-
-    References
-    ----------
-    .. [1] P. J. Huber, Robust Statistics, Wiley 1981, section 7.6.
+    Model and datum: see :mod:`stages.adjust`. Uncertainties are ``c (J^T W J)^-1``
+    under the inner constraints, ``c`` Huber's sandwich factor (:func:`stages.adjust.covariance.covariance_factor`).
+    Redundancy numbers: the diagonal of ``Q_vv P``, ``P = w C^-1``; ``σ0² = Σ_inliers s / Σ_inliers r``.
     """
+    free = FreeParameters() if free is None else free
+    solver = SolverOptions() if solver is None else solver
     prepared = prepare(
         observations,
         nominal,
@@ -111,15 +103,7 @@ def adjust_bundle(
         start_points=start_points,
     )
     solved = solve(prepared.state, prepared.problem, solver)
-    return summarise(
-        observations,
-        prepared,
-        solved,
-        outlier_weight=solver.outlier_weight,
-        min_inlier_fraction=solver.min_inlier_fraction,
-        additional_parameters=free.additional_parameters,
-        compute_covariance=compute_covariance,
-    )
+    return summarise(observations, prepared, solved, solver, free.additional_parameters, compute_covariance)
 
 
 @dataclass(frozen=True)
@@ -158,12 +142,18 @@ def prepare(
     initial: Orientation,
     corrections_px=None,
     *,
-    free: FreeParameters = FreeParameters(),
-    solver: SolverOptions = SolverOptions(),
-    selection: DataSelection = DataSelection(),
+    free: FreeParameters | None = None,
+    solver: SolverOptions | None = None,
+    selection: DataSelection | None = None,
     start_points=None,
 ) -> Prepared:
-    """Check the inputs, drop what cannot be estimated and build the problem and start state (arguments as :func:`adjust_bundle`)."""
+    """Check the inputs, drop what cannot be estimated, build the problem and its start state.
+
+    Arguments as :func:`adjust_bundle`.
+    """
+    free = FreeParameters() if free is None else free
+    solver = SolverOptions() if solver is None else solver
+    selection = DataSelection() if selection is None else selection
     corrections_px = _checked_inputs(observations, initial, corrections_px)
     ids, nominal_xyz = nominal_coordinates(nominal)
     point_all = index_of(observations.bead_id, ids, "observations.bead_id not in the nominal coordinates")
@@ -224,22 +214,13 @@ def prepare(
 
 def _checked_inputs(observations, initial: Orientation, corrections_px) -> np.ndarray:
     """The corrections ``(N, 2)`` (zero if None) after checking the observations, corrections and systems."""
-    if not isinstance(observations, Observations):
-        raise InputError(f"observations must be an Observations artifact; got {type(observations).__name__}")
-    n_obs = len(observations)
-    if corrections_px is None:
-        corrections_px = np.zeros((n_obs, 2))
-    corrections_px = np.asarray(corrections_px, dtype=np.float64)
-    if corrections_px.shape != (n_obs, 2):
-        raise ShapeError(
-            f"corrections_px must have shape ({n_obs}, 2) like the observations; got {corrections_px.shape}"
-        )
+    corrections_px = checked_corrections(observations, corrections_px)
     if not np.all(np.isfinite(corrections_px)):
         raise InputError("corrections_px holds non-finite values")
     if initial.n_systems != len(observations.system_names):
         raise InputError(
-            f"initial orientation has {initial.n_systems} system(s); observations name {len(observations.system_names)}: "
-            f"{observations.system_names}"
+            f"initial orientation has {initial.n_systems} system(s); "
+            f"observations name {len(observations.system_names)}: {observations.system_names}"
         )
     if np.any(observations.sigma_px[:, :2] <= 0) or np.any(np.abs(observations.sigma_px[:, 2]) >= 1):
         raise InputError("sigma_px must have σx, σy > 0 and |ρ| < 1")

@@ -148,13 +148,16 @@ def ap_values(state: State, problem: Problem) -> np.ndarray:
 
 
 def _ap_basis(state: State, problem: Problem, *, derivatives: bool = False):
-    """The AP design matrix ``(N, 2, 7)`` at every observation (and its ``u``, ``v`` derivatives), see :func:`stages.adjust.polynomial.basis`."""
+    """The AP design matrix (N, 2, 7) at every observation, and its ``u``, ``v`` derivatives.
+
+    See :func:`stages.adjust.polynomial.basis`.
+    """
     s = problem.sys_idx
     return polynomial.basis(problem.ap_xy_px, state.iop_px[s, :2], problem.ap_radius_px[s], derivatives=derivatives)
 
 
 def _ap_columns(state: State, problem: Problem, basis: tuple, J_glob: np.ndarray) -> None:
-    """Fill the AP columns of ``J_glob`` and add the APs' dependence on the principal point to its ``xp``, ``yp`` columns.
+    """Fill the AP columns of ``J_glob``; add the APs' dependence on the principal point to its ``xp``, ``yp`` columns.
 
     ``ideal = meas - B(u, v) a`` with ``u = (x - xp) / r0``, ``v = (y - yp) / r0``:
     ``∂e/∂a = -L^-1 B`` and ``∂e/∂xp`` gains ``L^-1 (∂B/∂u a) / r0`` (``yp``: ``∂B/∂v``).

@@ -120,7 +120,12 @@ def covariance_factor(s: np.ndarray, w: np.ndarray, nu: float, scale2: float, n_
 
     ``c = K² [Σ w² s / dof] mean(w) / mean(a)²`` with ``a = w ν/(ν + s/σ²)`` the
     averaged ψ' and ``K = 1 + (u / 2N) var(a) / mean(a)²`` his small-sample
-    correction (``u = n_unknowns``, the free parameters less the 7 datum constraints).
+    correction (``u = n_unknowns``, the free parameters less the 7 datum
+    constraints; ``s`` the squared Mahalanobis residuals) [1]_.
+
+    References
+    ----------
+    .. [1] P. J. Huber, Robust Statistics, Wiley 1981, section 7.6.
     """
     if math.isinf(nu):
         return float(s.sum() / dof)

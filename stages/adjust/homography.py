@@ -28,6 +28,7 @@ class FrameFit:
     scale2: np.ndarray  # (F,) ML variance factors
     residual_px: np.ndarray  # (N, 2)
     s: np.ndarray  # (N,) squared Mahalanobis residuals
+    weight: np.ndarray  # (N,) final t-weights
     hat: np.ndarray  # (N, 2, 2) J Q J^T with the whitened Jacobian, Q = (J^T W J)^-1 of its frame
     iterations: int
     converged: np.ndarray  # (F,) bool
@@ -110,14 +111,14 @@ class _Frames:
         return np.where(bad, np.inf, per), s
 
     def weighted_normal(self, h: np.ndarray, scale2: np.ndarray, nu: float):
-        """Per frame ``H = Σ w J^T J`` (F, 8, 8) and ``b = -Σ w J^T e`` (F, 8), with the whitened J (N, 2, 8) and w (N,)."""
+        """``H = Σ w J^T J`` (F, 8, 8), ``b = -Σ w J^T e`` (F, 8) per frame; J (N, 2, 8), f, e (N, 2), w (N,)."""
         J, f = _jacobian(h, self.plate_n, self.seg, self.linv_n)
         e = whiten(self.linv_n, self.image_n - f)
         w = t_weights((e * e).sum(1), nu, scale2[self.seg])
         Jw = J * np.sqrt(w)[:, None, None]
         H = np.add.reduceat(np.matmul(Jw.transpose(0, 2, 1), Jw), self.starts, axis=0)
         b = -np.add.reduceat(np.einsum("nki,nk->ni", Jw, e * np.sqrt(w)[:, None]), self.starts, axis=0)
-        return H, b, J, f, e
+        return H, b, J, f, e, w
 
 
 def _normalised(plate_mm, image_px, sigma_px, frame_starts) -> _Frames:
@@ -180,7 +181,7 @@ def fit_homographies(
     it = 0
     while it < max_iterations and not done.all():
         it += 1
-        H, b, _, _, _ = frames.weighted_normal(h, scale2, nu)
+        H, b, _, _, _, _ = frames.weighted_normal(h, scale2, nu)
         diag = np.einsum("fii->fi", H)
         step = np.linalg.solve(H + (mu[:, None] * diag)[:, :, None] * np.eye(8), b[:, :, None])[:, :, 0]
         step[done] = 0.0
@@ -219,7 +220,7 @@ def _frame_fit(frames: _Frames, h, scale2, nu, iterations, done, history) -> Fra
     T_img_inv[:, 2, 2] = 1
     H_px = T_img_inv @ Hn @ T_plate
     H_px /= H_px[:, 2:3, 2:3]
-    H, _, J, f, e = frames.weighted_normal(h, scale2, nu)
+    H, _, J, f, e, w = frames.weighted_normal(h, scale2, nu)
     Q = np.linalg.inv(H)
     hat = np.einsum("nai,nij,nbj->nab", J, Q[frames.seg], J)
     return FrameFit(
@@ -227,6 +228,7 @@ def _frame_fit(frames: _Frames, h, scale2, nu, iterations, done, history) -> Fra
         scale2=scale2,
         residual_px=(frames.image_n - f) / is_[frames.seg, None],
         s=(e * e).sum(1),
+        weight=w,
         hat=hat,
         iterations=iterations,
         converged=done,

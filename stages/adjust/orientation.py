@@ -168,7 +168,7 @@ def _resect_frames(observations, nominal, iop_px, epochs, min_beads) -> tuple[np
 
 
 def _relative_orientations(R, T, system_names) -> tuple[np.ndarray, np.ndarray]:
-    """ROP ``(S, 4)``, ``(S, 3)`` mm: rotation-averaged ``R_s R_0^T`` and mean ``R_0 (T_s - T_0)`` over shared epochs."""
+    """ROP (S, 4), (S, 3) mm: rotation-averaged ``R_s R_0^T`` and mean ``R_0 (T_s - T_0)`` over shared epochs."""
     n_sys = len(R)
     rop_q = np.tile([1.0, 0, 0, 0], (n_sys, 1))
     rop_t = np.zeros((n_sys, 3))

@@ -17,17 +17,16 @@ from fluorocal.stages.adjust.covariance import observation_statistics
 from fluorocal.stages.adjust.homography import fit_homographies
 from fluorocal.stages.adjust.options import DataSelection, SolverOptions
 from fluorocal.stages.adjust.result import check_finite_and_freeze, scatter
-from fluorocal.stages.adjust.robust import t_weights
-from fluorocal.stages.adjust.selection import index_of, nominal_coordinates
+from fluorocal.stages.adjust.selection import checked_corrections, index_of, nominal_coordinates
 from fluorocal.stages.artifacts import SCHEMA_VERSION, Observations
-from fluorocal.stages.errors import InputError, ShapeError
+from fluorocal.stages.errors import InputError
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class PlateAdjustment:
-    """Result of :func:`adjust_plate`: one robust homography per frame, per-observation outputs like :class:`Adjustment`.
+    """Result of :func:`adjust_plate`: a robust homography per frame, per-observation outputs as in an Adjustment.
 
     Attributes
     ----------
@@ -73,8 +72,8 @@ def adjust_plate(
     nominal,
     corrections_px: np.ndarray | None = None,
     *,
-    solver: SolverOptions = SolverOptions(),
-    selection: DataSelection = DataSelection(),
+    solver: SolverOptions | None = None,
+    selection: DataSelection | None = None,
 ) -> PlateAdjustment:
     """Robust (Student-t) homography of each frame of a planar grid plate.
 
@@ -88,11 +87,12 @@ def adjust_plate(
     observations : Observations
     nominal : Phantom or dict or (ids, xyz_mm)
     corrections_px : (N, 2) float64 ndarray, px, optional
-    solver : SolverOptions
+    solver : SolverOptions, optional
         ``nu``, ``estimate_scale``, ``outlier_weight``, ``max_iterations``,
-        ``function_tolerance`` and ``min_inlier_fraction`` apply.
-    selection : DataSelection
-        Frames with fewer than ``min_beads_per_exposure`` (at least 5) beads are left out (``used`` False).
+        ``function_tolerance`` and ``min_inlier_fraction`` apply (default ``SolverOptions()``).
+    selection : DataSelection, optional
+        Frames with fewer than ``min_beads_per_exposure`` (at least 5) beads
+        are left out, ``used`` False (default ``DataSelection()``).
 
     Returns
     -------
@@ -105,36 +105,22 @@ def adjust_plate(
     EstimationError
         A frame's observations admit no homography (for example all on a line).
     """
-    if not isinstance(observations, Observations):
-        raise InputError(f"observations must be an Observations artifact; got {type(observations).__name__}")
+    solver = SolverOptions() if solver is None else solver
+    selection = DataSelection() if selection is None else selection
+    corrections_px = checked_corrections(observations, corrections_px)
     n_obs = len(observations)
-    corrections_px = np.zeros((n_obs, 2)) if corrections_px is None else np.asarray(corrections_px, dtype=np.float64)
-    if corrections_px.shape != (n_obs, 2):
-        raise ShapeError(
-            f"corrections_px must have shape ({n_obs}, 2) like the observations; got {corrections_px.shape}"
-        )
     ids, xyz = nominal_coordinates(nominal)
     point = index_of(observations.bead_id, ids, "observations.bead_id not in the nominal coordinates")
     used, order, starts = _frames(observations, max(selection.min_beads_per_exposure, 5))
-    nu = float(solver.nu)
-    fit = fit_homographies(
-        xyz[point[order], :2],
-        observations.xy_px[order] - corrections_px[order],
-        observations.sigma_px[order],
-        starts,
-        nu=nu,
-        estimate_scale=solver.estimate_scale,
-        max_iterations=solver.max_iterations,
-        function_tolerance=solver.function_tolerance,
-    )
-    seg = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(order)]))
-    w = t_weights(fit.s, nu, fit.scale2[seg])
+    ideal_px = observations.xy_px[order] - corrections_px[order]
+    fit = _fit(xyz[point[order], :2], ideal_px, observations.sigma_px[order], starts, solver)
     linv = whitening(observations.sigma_px[order])
     red, std_res, sigma0, inlier = observation_statistics(
-        fit.residual_px, fit.s, w, fit.hat, linv, solver.outlier_weight
+        fit.residual_px, fit.s, fit.weight, fit.hat, linv, solver.outlier_weight
     )
     converged = bool(fit.converged.all())
     usable = converged and float(inlier.mean()) >= solver.min_inlier_fraction
+    stop = "converged in every frame" if converged else f"{int((~fit.converged).sum())} frame(s) hit max_iterations"
     first = order[starts]
     return PlateAdjustment(
         frame_system=observations.system[first],
@@ -144,16 +130,14 @@ def adjust_plate(
         residual_px=scatter(fit.residual_px, order, n_obs),
         standardized_residual=scatter(std_res, order, n_obs),
         redundancy=scatter(red, order, n_obs),
-        weight=scatter(w, order, n_obs),
+        weight=scatter(fit.weight, order, n_obs),
         inlier=scatter(inlier, order, n_obs, False),
         used=used,
         sigma0=float(sigma0),
-        nu=nu,
+        nu=float(solver.nu),
         dof=int(2 * len(order) - 8 * len(starts)),
         iterations=int(fit.iterations),
-        stop_reason="converged in every frame"
-        if converged
-        else f"{int((~fit.converged).sum())} frame(s) hit max_iterations",
+        stop_reason=stop,
         converged=converged,
         usable=bool(usable),
         cost_history=fit.cost_history,
@@ -161,8 +145,21 @@ def adjust_plate(
     )
 
 
+def _fit(plate_mm, ideal_px, sigma_px, starts, solver: SolverOptions):
+    return fit_homographies(
+        plate_mm,
+        ideal_px,
+        sigma_px,
+        starts,
+        nu=float(solver.nu),
+        estimate_scale=solver.estimate_scale,
+        max_iterations=solver.max_iterations,
+        function_tolerance=solver.function_tolerance,
+    )
+
+
 def _frames(observations: Observations, min_beads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Used observations ``(N,)`` (frames with >= ``min_beads``), their order sorted by frame, and the frames' starts in it."""
+    """Used observations ``(N,)`` (frames with >= ``min_beads``), their order by frame, and each frame's start in it."""
     frame_key = observations.system * (int(observations.exposure.max(initial=0)) + 1) + observations.exposure
     keys, frame_idx, counts = np.unique(frame_key, return_inverse=True, return_counts=True)
     used = counts[frame_idx] >= min_beads

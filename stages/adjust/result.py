@@ -28,6 +28,7 @@ from fluorocal.stages.errors import EstimationError
 
 if TYPE_CHECKING:
     from fluorocal.stages.adjust.bundle import Prepared
+    from fluorocal.stages.adjust.options import SolverOptions
     from fluorocal.stages.adjust.solver import SolverResult
 
 log = logging.getLogger(__name__)
@@ -152,7 +153,7 @@ class Adjustment:
         check_finite_and_freeze(self)
 
     def polynomial_correction(self, system: int, xy_px: np.ndarray) -> np.ndarray:
-        """``Δ_AP`` ``(N, 2)`` px of ``system``'s estimated polynomial model at measured ``xy_px`` ``(N, 2)`` px (zero without it)."""
+        """``Δ_AP`` (N, 2) px of ``system``'s estimated polynomial model at measured ``xy_px`` (N, 2) px (or 0)."""
         return polynomial.correction(xy_px, self.iop_px[system, :2], self.ap_radius_px[system], self.ap_px[system])
 
     @property
@@ -189,29 +190,18 @@ def summarise(
     observations,
     prepared: Prepared,
     solved: SolverResult,
-    *,
-    outlier_weight: float,
-    min_inlier_fraction: float,
+    solver: SolverOptions,
     additional_parameters: str,
     compute_covariance: bool,
 ) -> Adjustment:
     """Statistics of the solution and the per-observation outputs in input order.
 
-    ``usable``: converged, finite, and at least ``min_inlier_fraction`` of the
-    used observations have a t-weight of at least ``outlier_weight``.
+    ``usable``: converged, finite, and at least ``solver.min_inlier_fraction``
+    of the used observations have a t-weight of at least ``solver.outlier_weight``.
     """
     problem, used, state = prepared.problem, prepared.used, solved.state
-    r_px, e = residuals(state, problem)
-    s = (e * e).sum(1)
-    w = t_weights(s, solved.nu, solved.scale2)
-    n_used = problem.n_obs
-    u = problem.n_free - 7
-    dof = 2 * n_used - u
-    if dof <= 0:
-        raise EstimationError(f"no redundancy: {2 * n_used} observations for {u} parameters")
-    cov = covariance(state, problem, w) if compute_covariance else without_covariance(problem, w, dof)
-    red, std_res, sigma0, inlier = observation_statistics(r_px, s, w, cov.hat, problem.linv, outlier_weight)
-    c_h = covariance_factor(s, w, solved.nu, solved.scale2, u, dof)
+    r_px, s, w, dof, cov, c_h = _fit_statistics(solved, problem, compute_covariance)
+    red, std_res, sigma0, inlier = observation_statistics(r_px, s, w, cov.hat, problem.linv, solver.outlier_weight)
 
     def std(c):
         return np.sqrt(np.clip(c_h * np.einsum("...ii->...i", c), 0.0, None))
@@ -223,8 +213,8 @@ def summarise(
         return scatter(values, where, len(observations), fill)
 
     finite = all(np.all(np.isfinite(arr)) for arr in (state.points_mm, state.q, state.source_mm, state.iop_px, r_px))
-    inlier_fraction = float(inlier.mean()) if n_used else 0.0
-    usable = bool(solved.converged and finite and inlier_fraction >= min_inlier_fraction)
+    inlier_fraction = float(inlier.mean()) if problem.n_obs else 0.0
+    usable = bool(solved.converged and finite and inlier_fraction >= solver.min_inlier_fraction)
     log.debug(
         "adjustment: %d iterations (%s), σ0 %.3g, %.2f %% outliers, dof %d%s",
         solved.iterations,
@@ -232,7 +222,7 @@ def summarise(
         sigma0,
         100 * (1 - inlier_fraction),
         dof,
-        "" if usable else f"; not usable (minimum {100 * min_inlier_fraction:.1f} % inliers)",
+        "" if usable else f"; not usable (minimum {100 * solver.min_inlier_fraction:.1f} % inliers)",
     )
     n_ap = problem.n_ap
     return Adjustment(
@@ -275,8 +265,21 @@ def summarise(
     )
 
 
+def _fit_statistics(solved: SolverResult, problem, compute_covariance: bool) -> tuple:
+    """Residuals ``r_px`` (N, 2), ``s`` (N,), t-weights (N,), ``dof``, the cofactors and their factor ``c``."""
+    r_px, e = residuals(solved.state, problem)
+    s = (e * e).sum(1)
+    w = t_weights(s, solved.nu, solved.scale2)
+    u = problem.n_free - 7
+    dof = 2 * problem.n_obs - u
+    if dof <= 0:
+        raise EstimationError(f"no redundancy: {2 * problem.n_obs} observations for {u} parameters")
+    cov = covariance(solved.state, problem, w) if compute_covariance else without_covariance(problem, w, dof)
+    return r_px, s, w, dof, cov, covariance_factor(s, w, solved.nu, solved.scale2, u, dof)
+
+
 def _global_uncertainties(problem, cov_globals: np.ndarray, c_h: float) -> tuple:
-    """Per system the IOP std ``(S, 3)`` and covariance ``(S, 3, 3)``, the ROP std ``(S, 6)`` and the APs' ``(S, 7)``, ``(S, 7, 7)``."""
+    """Per system the IOP std (S, 3) and covariance (S, 3, 3), ROP std (S, 6), the APs' std (S, 7) and cov (S, 7, 7)."""
     n_sys, n_ap = problem.n_systems, problem.n_ap
     iop_std = np.zeros((n_sys, 3))
     iop_cov = np.zeros((n_sys, 3, 3))

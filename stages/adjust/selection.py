@@ -13,8 +13,8 @@ import logging
 from typing import TYPE_CHECKING
 
 import numpy as np
-from fluorocal.stages.artifacts import Phantom, check_shape
-from fluorocal.stages.errors import EstimationError, InputError
+from fluorocal.stages.artifacts import Observations, Phantom, check_shape
+from fluorocal.stages.errors import EstimationError, InputError, ShapeError
 
 if TYPE_CHECKING:
     from fluorocal.stages.adjust.options import DataSelection
@@ -97,6 +97,27 @@ def index_of(keys: np.ndarray, table: np.ndarray, what: str) -> np.ndarray:
         missing = np.unique(keys[~ok])
         raise InputError(f"{what}: {len(missing)} value(s) not found, e.g. {missing[:5].tolist()}")
     return order[pos]
+
+
+def checked_corrections(observations, corrections_px) -> np.ndarray:
+    """The corrections Δ ``(N, 2)`` px (zero if None) after checking them and the observations' type.
+
+    Raises
+    ------
+    InputError
+        ``observations`` is not an :class:`stages.artifacts.Observations`.
+    ShapeError
+        ``corrections_px`` is not ``(N, 2)``.
+    """
+    if not isinstance(observations, Observations):
+        raise InputError(f"observations must be an Observations artifact; got {type(observations).__name__}")
+    n_obs = len(observations)
+    corrections_px = np.zeros((n_obs, 2)) if corrections_px is None else np.asarray(corrections_px, dtype=np.float64)
+    if corrections_px.shape != (n_obs, 2):
+        raise ShapeError(
+            f"corrections_px must have shape ({n_obs}, 2) like the observations; got {corrections_px.shape}"
+        )
+    return corrections_px
 
 
 def _ray_spread_deg(points_mm, sources_mm, point_idx, n_points) -> np.ndarray:

@@ -22,8 +22,8 @@ from fluorocal.stages.adjust import (
     Orientation,
     SolverOptions,
     adjust_bundle,
+    polynomial,
 )
-from fluorocal.stages.adjust import polynomial
 from fluorocal.stages.adjust.bundle import prepare
 from fluorocal.stages.adjust.collinearity import State, linearize, residuals
 from fluorocal.stages.adjust.problem import apply_step, build_problem, datum_directions
@@ -85,7 +85,7 @@ def test_version_and_output_shapes(mono, mono_result):
 
 
 def test_orientation_poses_compose_rop(biplanar):
-    """System B's pose = ROP composed with A's: the projection through poses(1) matches the camera frame of the residual functions."""
+    """System B's pose = ROP composed with A's: the projection through poses(1) matches the residuals' camera frame."""
     truth = biplanar.truth
     q_b, T_b = truth.poses(1)
     R_a = quat_to_matrix(truth.q_cam_from_obj[3])
@@ -222,7 +222,7 @@ def test_analytic_jacobian_matches_central_differences(biplanar, eliminate):
 
 
 def test_clean_solve_matches_own_covariance(mono, mono_result):
-    """0.05 px noise: the 3D error after a similarity to the truth is within 10 % of the predicted RMS; IOP within 3σ."""
+    """0.05 px noise: the 3D error after a similarity to the truth is within 10 % of the predicted RMS; IOP in 3σ."""
     res = mono_result
     err = aligned_error_mm(res.xyz_mm, mono.xyz_true_mm)
     predicted = math.sqrt(np.einsum("nii->n", res.xyz_cov_mm2).mean())
@@ -535,7 +535,7 @@ def _plate_problem(n_frames=4, seed=0):
     xyz = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
     ids = np.arange(len(xyz))
     rows, Hs = [], []
-    for f in range(n_frames):
+    for _ in range(n_frames):
         H = np.array([[6.0, 0.3, 512], [-0.2, 6.1, 500], [1e-4, -2e-4, 1.0]]) + rng.normal(
             0, [[0.05, 0.05, 5], [0.05, 0.05, 5], [5e-5, 5e-5, 0]]
         )
