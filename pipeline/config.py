@@ -26,6 +26,8 @@ class ConfigError(InputError):
 OWNED_ELSEWHERE = {
     ("adjust", "estimate_iop"): "[calibration] scheme (the knn+iop schemes estimate the IOP in the adjustment)",
     ("adjust", "additional_parameters"): "[calibration] scheme (polynomial estimates them)",
+    ("adjust", "fixed_additional_parameters"): "[learn] polynomial_fixed (the polynomial scheme's held terms)",
+    ("adjust", "compute_covariance"): "[learn] fast_intermediate (the loop decides which solves compute it)",
     ("learn", "smooth"): "[calibration] scheme (knn+smooth and knn+iop+smooth smooth the kNN field)",
     ("label", "source_image_distance_mm"): "[[systems]] source_image_distance",
     ("label", "pixel_pitch_mm"): "[[systems]] pixel_pitch",
@@ -224,8 +226,12 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     return Config(path, phantom, systems, scheme, out_dir, cache_dir, stage_params)
 
 
-def params_from_dict(cls: type, table: dict, *, where: str = ""):
+def params_from_dict(cls, table: dict, *, where: str = ""):
     """Build a frozen ``Params`` dataclass from a dict, rejecting unknown keys and wrong types.
+
+    ``cls`` may be a tuple of dataclasses whose fields do not overlap (a section that
+    holds several of them, as ``[adjust]`` holds the solver options and the data
+    selection): the keys are split by field name and a tuple of instances is returned.
 
     Examples
     --------
@@ -234,15 +240,21 @@ def params_from_dict(cls: type, table: dict, *, where: str = ""):
     ...     radius_px: float = 3.0
     >>> params_from_dict(P, {"radius_px": 4})
     P(radius_px=4.0)
+    >>> @dataclass(frozen=True)
+    ... class Q:
+    ...     n: int = 1
+    >>> params_from_dict((P, Q), {"n": 2})
+    (P(radius_px=3.0), Q(n=2))
     """
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    hints = typing.get_type_hints(cls)
-    values = {}
+    classes = cls if isinstance(cls, tuple) else (cls,)
+    owner = {f.name: c for c in classes for f in dataclasses.fields(c)}
+    values: dict[type, dict] = {c: {} for c in classes}
     for key, value in table.items():
-        if key not in fields:
-            raise ConfigError(f"{where}key '{key}': unknown; allowed keys are {', '.join(sorted(fields))}")
-        values[key] = _coerce(value, hints[key], f"{where}key '{key}'")
-    return cls(**values)
+        if key not in owner:
+            raise ConfigError(f"{where}key '{key}': unknown; allowed keys are {', '.join(sorted(owner))}")
+        values[owner[key]][key] = _coerce(value, typing.get_type_hints(owner[key])[key], f"{where}key '{key}'")
+    built = tuple(c(**values[c]) for c in classes)
+    return built if isinstance(cls, tuple) else built[0]
 
 
 def _coerce(value, hint, where: str):

@@ -134,8 +134,8 @@ REGISTRY = (
     ),
 )
 
-#: config sections that are not a stage of their own, and their Params class
-EXTRA_SECTIONS = {"adjust": ("fluorocal.stages.adjust", "AdjustParams")}
+#: config sections that are not a stage of their own, and their Params classes (keys split by field name)
+EXTRA_SECTIONS = {"adjust": ("fluorocal.stages.adjust", ("SolverOptions", "DataSelection"))}
 
 
 def default_stages() -> list[Stage]:
@@ -147,11 +147,12 @@ def default_stages() -> list[Stage]:
     return stages
 
 
-def stage_params_classes() -> dict[str, type]:
-    """Config section name -> Params class, for validating ``[detect]``, ``[adjust]`` etc."""
+def stage_params_classes() -> dict[str, type | tuple[type, ...]]:
+    """Config section name -> Params class (or classes), for validating ``[detect]``, ``[adjust]`` etc."""
     sections = {s.name: s.params_cls for s in default_stages()}
-    for section, (module, cls) in EXTRA_SECTIONS.items():
-        sections[section] = getattr(importlib.import_module(module), cls)
+    for section, (module, names) in EXTRA_SECTIONS.items():
+        mod = importlib.import_module(module)
+        sections[section] = tuple(getattr(mod, name) for name in names)
     return sections
 
 
