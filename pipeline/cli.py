@@ -208,10 +208,8 @@ def main(argv=None) -> int:
     logging.basicConfig(
         level=logging.DEBUG if args.debug else (logging.WARNING if args.quiet else logging.INFO), format="%(message)s"
     )
-    for noisy in ("PIL", "matplotlib", "fluorocal.stages.adjust"):  # the adjustment's per-solve lines are for --debug
-        logging.getLogger(noisy).setLevel(
-            logging.DEBUG if args.debug and noisy.startswith("stages") else logging.WARNING
-        )
+    for noisy in ("PIL", "matplotlib"):  # their debug lines are not fluorocal's
+        logging.getLogger(noisy).setLevel(logging.WARNING)
     if not args.debug:
         warnings.showwarning = _show_warning
     from fluorocal.stages.errors import CalibError
