@@ -1,4 +1,4 @@
-"""Tests of stages/label.py: cube phantoms from markers, seeds and a prior pose; grid plates; failures.
+"""Tests of stages/label/: cube phantoms from markers, seeds and a prior pose; grid plates; failures.
 
 Ground truth comes from the simulator's geometry (``simulate(render=False)``):
 the distorted outline centre of every visible bead, turned into detection-like
@@ -391,16 +391,17 @@ def test_prior_pose_on_a_periodic_patch_is_refused(sim, params):
 
 def test_screening_a_pose_that_sees_no_bead_counts_zero(sim, params):
     """A candidate pose with every bead behind the source scores (0 beads, sizes not contradicted), no crash."""
-    from fluorocal.stages.label import _Frame, _screen
+    from fluorocal.stages.label.cube_frame import CubeFrame
+    from fluorocal.stages.label.prior import screen
     from scipy.spatial import cKDTree
 
     xy = np.array([[10.0, 10.0], [50.0, 40.0], [90.0, 80.0]])
     iop = np.array([50.0, 50.0, 4000.0])
-    frame = _Frame(
+    frame = CubeFrame(
         None, sim.phantom, params, iop, None, np.arange(3), xy, cKDTree(xy), 10.0, sim.phantom.diameter_mm, 100.0, 100.0
     )
     behind = np.array([0.0, 0.0, float(sim.phantom.xyz_mm[:, 2].max()) + 1e3])
-    assert _screen(frame, {"iop": iop}, np.eye(3), behind) == (0, True)
+    assert screen(frame, {"iop": iop}, np.eye(3), behind) == (0, True)
 
 
 def test_random_points_fail(sim, params):
