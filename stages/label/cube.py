@@ -10,7 +10,13 @@ from fluorocal.stages.label.detections import Detections
 from fluorocal.stages.label.iterate import acceptable, iterate, rivals
 from fluorocal.stages.label.labels import Labels, failed_labels
 from fluorocal.stages.label.markers import marker_poses, pose_from_seeds
-from fluorocal.stages.label.params import STATUS_AMBIGUOUS, STATUS_LABELLED, STATUS_REJECTED, STATUS_UNMATCHED, LabelParams
+from fluorocal.stages.label.params import (
+    STATUS_AMBIGUOUS,
+    STATUS_LABELLED,
+    STATUS_REJECTED,
+    STATUS_UNMATCHED,
+    LabelParams,
+)
 from fluorocal.stages.label.prior import label_from_prior
 
 # a second pose hypothesis whose coarse score reaches this fraction of the best's is labelled too
@@ -60,15 +66,15 @@ def label_cube(
 
 
 def _label_from_poses(frame: CubeFrame, poses: list, scores: list | None) -> tuple[dict | None, str, bool]:
-    """The first acceptable labelling from ``poses`` (best first): ``(result, "", False)``, or ``(None, reason, False)``.
+    """The first acceptable labelling from ``poses`` (best first): ``(result, "", False)``, else ``(None, why, False)``.
 
     When the next pose's coarse score comes within ``_RIVAL_SCORE`` of the accepted one's and its
     labelling rivals it (:func:`fluorocal.stages.label.iterate.rivals`), the markers do not fix the
     pose: ``(None, reason, True)``, and the frame fails.
     """
     reason = "no pose hypothesis converged"
-    for i, (R, T) in enumerate(poses):
-        best = iterate(frame, R, T)
+    for i in range(len(poses)):
+        best = iterate(frame, *poses[i])
         ok, why = (False, "the labelling diverged") if best is None else acceptable(frame, best)
         if ok:
             break

@@ -110,7 +110,8 @@ class Labels:
         if not self.ok:
             return f"labelling failed: {self.reason}"
         return (
-            f"{self.n_labelled} labelled, {self.n_ambiguous} ambiguous, {self.n_unmatched} unmatched; pose from {self.pose_source}, "
+            f"{self.n_labelled} labelled, {self.n_ambiguous} ambiguous, {self.n_unmatched} unmatched; "
+            f"pose from {self.pose_source}, "
             f"RMS {self.rms_px:.2f} px pinhole, {self.rms_corrected_px:.2f} px corrected"
         )
 

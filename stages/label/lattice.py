@@ -225,8 +225,9 @@ def _local_basis(xy: np.ndarray, steps: np.ndarray, at: dict, pos_xy: np.ndarray
 
 
 def _plate_residuals(obj: np.ndarray, img: np.ndarray, iop: np.ndarray, correction_degree: int) -> np.ndarray:
-    """Distances (px) of the holes from a homography of the plate plus the low-order correction (at most
-    ``correction_degree``, lower where there are too few holes for it).
+    """Distances (px) of the holes from a homography of the plate plus the low-order correction.
+
+    The correction's degree is ``correction_degree``, lower where there are too few holes for it.
     """
     import cv2
 

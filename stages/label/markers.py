@@ -179,7 +179,10 @@ def _pair_hypotheses(frame: CubeFrame, pair: np.ndarray, markers: np.ndarray) ->
 
 
 def _single_hypotheses(frame: CubeFrame, a: int, markers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pose hypotheses ``(Rs, Ts)`` from one marker detection and two of its neighbours (see :func:`_pair_hypotheses`)."""
+    """Pose hypotheses ``(Rs, Ts)`` from one marker detection and two of its neighbours.
+
+    See :func:`_pair_hypotheses`.
+    """
     from scipy.spatial import cKDTree
 
     xyz = frame.phantom.xyz_mm

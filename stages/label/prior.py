@@ -57,8 +57,9 @@ def _rays(frame: CubeFrame, xy: np.ndarray) -> np.ndarray:
 
 
 def _depth_steps(frame: CubeFrame, depth_mm: float) -> np.ndarray:
-    """Changes of the phantom's distance from the source (mm) to try: up to ``_MAX_DEPTH_CHANGE`` of it,
-    in steps that move the detection farthest from the principal point by one assignment gate.
+    """Changes of the phantom's distance from the source (mm) to try: up to ``_MAX_DEPTH_CHANGE`` of it.
+
+    The steps move the detection farthest from the principal point by one assignment gate.
     """
     r_max = float(np.max(np.linalg.norm(frame.det_xy - frame.iop[:2], axis=1), initial=1.0))
     step = frame.params.gate_bead_diameters * frame.diam_ref_px * depth_mm / max(r_max, 1.0)
@@ -130,16 +131,18 @@ def _shift_votes(
 
 
 def _shift_strength(frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarray) -> float:
-    """Votes of the strongest peak of :func:`_shift_votes`, on a coarser grid (bins of a gate, 2 x 2 sums;
-    for comparing depths and turns, 4x faster), 0 without one.
+    """Votes of the strongest peak of :func:`_shift_votes` on a coarser grid; 0 without one.
+
+    The grid has bins of a gate and 2 x 2 sums: for comparing depths and turns, 4x faster.
     """
     vote = _shift_votes(frame, R, T, rays, bin_gates=1.0, box=2)
     return 0.0 if vote is None else float(vote[1].max())
 
 
 def _shift_peaks(frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, n_keep: int) -> list:
-    """The ``n_keep`` strongest peaks ``[(R, T, votes)]`` of :func:`_shift_votes`, at least 3 bins apart,
-    each located at the vote-weighted mean of its 3 x 3 bins.
+    """The ``n_keep`` strongest peaks ``[(R, T, votes)]`` of :func:`_shift_votes`, at least 3 bins apart.
+
+    Each is located at the vote-weighted mean of its 3 x 3 bins.
     """
     vote = _shift_votes(frame, R, T, rays)
     if vote is None:
@@ -272,9 +275,10 @@ def _best_start(frame: CubeFrame, starts: list) -> tuple[dict | None, str]:
 
 
 def screen(frame: CubeFrame, result: dict, R: np.ndarray, T: np.ndarray, min_count: float = 0.0) -> tuple[int, bool]:
-    """Beads that pose ``(R, T)`` puts within the final gate of a detection, under ``result``'s model, and
-    whether their detections' sizes fit them (:func:`sizes_consistent`; checked only for ``min_count``
-    beads or more, True below).
+    """Beads that pose ``(R, T)`` puts within the final gate of a detection, under ``result``'s model.
+
+    Returns the count and whether their detections' sizes fit them (:func:`sizes_consistent`; checked
+    only for ``min_count`` beads or more, True below).
 
     The pose is first moved across the image by the median offset of the detections within the
     assignment gate of its predictions (twice), so that a start a little off its peak counts in full.

@@ -446,7 +446,7 @@ def test_sequence_seeded_on_one_frame_follows_turns_and_jumps():
     dets = [detections_from_truth(ft, rng) for ft in fts]
     labs = label_sequence([c for c, _ in dets], without_roles(sim4.phantom), params, {0: seeds_from_truth(fts[0], rng)})
     assert [lab.pose_source for lab in labs] == ["seeds"] + ["prior"] * 7
-    for (c, ids), lab, ft in zip(dets, labs, fts):
+    for (_, ids), lab, ft in zip(dets, labs, fts):
         check_against_truth(lab, ids, ft, min_fraction=0.97)
 
 
@@ -498,7 +498,7 @@ def test_simulated_grid_has_no_slips():
 
 
 def homography_radial_rms(object_xy: np.ndarray, image_xy: np.ndarray, centre_xy: np.ndarray) -> float:
-    """RMS (px) of a homography followed by a two-term radial distortion about ``centre_xy``, fitted by least squares."""
+    """RMS (px) of a homography then a two-term radial distortion about ``centre_xy``, fitted by least squares."""
     import cv2
     from scipy.optimize import least_squares
 
