@@ -40,6 +40,7 @@ def _pixel_rays(ideal_xy: np.ndarray, iop: np.ndarray) -> np.ndarray:
 
 
 def system_raster(params: SimulateParams, system: SystemTruth) -> SystemRaster:
+    """The pixel geometry of ``system`` (computed once per system: the exact inverse distortion of every pixel)."""
     size = params.image_size_px
     ideal = ideal_pixel_map(system.distortion, size)
     axis = np.arange(size, dtype=np.float64) - (size - 1) / 2.0
