@@ -24,14 +24,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-from fluorocal.stages.simulate import (
+from fluorocal.stages.simulate import (  # noqa: E402
     SimulateParams,
-    _system_raster,
     make_acquisition,
     make_phantom,
     project_beads,
     render_frame,
-)  # noqa: E402
+    system_raster,
+)
 
 TARGET_S = 0.5
 
@@ -49,7 +49,7 @@ def main() -> int:
         return time.perf_counter() - w0, time.process_time() - c0
 
     rasters = []
-    setup = timed(lambda: rasters.append(_system_raster(params, system)))
+    setup = timed(lambda: rasters.append(system_raster(params, system)))
     raster = rasters[0]
     render, truth = [], []
     for k in range(params.n_frames):

@@ -62,7 +62,9 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages._image import background, frame_name, odd_size
+from fluorocal.stages._edges import edge_points
+from fluorocal.stages._ellipse import ellipse_axes, fit_ellipses
+from fluorocal.stages._image import frame_name
 from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, check_shape, freeze
 from fluorocal.stages.detect import BeadCandidates, EmptyFrameWarning
 from fluorocal.stages.errors import InputError
@@ -244,11 +246,14 @@ class Centroids:
         ok = self.ok
         rmse = float(np.median(self.fit_rmse_px[ok])) if ok.any() else float("nan")
         sigma = float(np.median(np.hypot(self.sigma_x[ok], self.sigma_y[ok]))) if ok.any() else float("nan")
-        return f"{int(ok.sum())} fitted, {int((~ok).sum())} failed; median fit RMSE {rmse:.3f} px, centre sigma {sigma:.3f} px"
+        return (
+            f"{int(ok.sum())} fitted, {int((~ok).sum())} failed;"
+            f" median fit RMSE {rmse:.3f} px, centre sigma {sigma:.3f} px"
+        )
 
     @property
     def sigma_px(self) -> np.ndarray:
-        """``(sigma_x, sigma_y, rho)`` per bead, (N, 3) float64, as :class:`~stages.artifacts.Observations` stores it."""
+        """``(sigma_x, sigma_y, rho)`` per bead, (N, 3) float64, as :class:`~stages.artifacts.Observations` holds it."""
         return np.column_stack([self.sigma_x, self.sigma_y, self.rho])
 
 
@@ -291,29 +296,24 @@ def centroid_beads(radiograph: Radiograph, candidates: BeadCandidates, params: C
     height, width = radiograph.shape
     if len(index) and (np.any(centre0 < 0) or np.any(centre0[:, 0] > width - 1) or np.any(centre0[:, 1] > height - 1)):
         raise InputError(
-            f"candidates lie outside the {width}x{height} radiograph {radiograph.source or ''}: detected in another frame?"
+            f"candidates lie outside the {width}x{height} radiograph {radiograph.source or ''}:"
+            " detected in another frame?"
         )
     n = len(index)
     if n == 0:
-        return _result(
-            candidates,
-            index,
-            np.empty((0, 2)),
-            np.empty((0, 5)),
-            np.empty((0, 2, 2)),
-            np.empty(0),
-            np.empty(0, np.int64),
-            np.empty(0, "<U16"),
-        )
+        return _no_beads(candidates, index)
 
-    # every blob the detector saw, accepted or not, can bend the edges of a bead next to it
-    near = _neighbours(index, candidates.xy_px, candidates.radius_px, params)
-    sigma_px = _edge_sigma(index, near, candidates.xy_px, candidates.radius_px, params)
-    points_xy, owner = _edge_points(radiograph.image, centre0, radius0, candidates.polarity, sigma_px, params)
-    points_xy, owner = _drop_near_neighbours(
-        points_xy, owner, index, near, candidates.xy_px, candidates.radius_px, params
+    points_xy, owner = _outline_points(radiograph, candidates, index, params)
+    params_fit, rmse, n_inliers, covariance = fit_ellipses(
+        points_xy,
+        owner,
+        centre0,
+        radius0,
+        n_arcs=params.n_arcs,
+        n_rounds=params.n_rounds,
+        n_iterations=params.n_iterations,
+        outlier_sigma=params.outlier_sigma,
     )
-    params_fit, rmse, n_inliers, covariance = _fit_ellipses(points_xy, owner, centre0, radius0, params)
     reason = _fit_reasons(params_fit, centre0, radius0, n_inliers, covariance, params)
     reason[(reason == "") & ~(rmse <= params.max_rmse_px)] = "rmse"
     if not np.any(reason == ""):
@@ -333,12 +333,55 @@ def centroid_beads(radiograph: Radiograph, candidates: BeadCandidates, params: C
     return _result(candidates, index, centre0, params_fit, covariance, rmse, n_inliers, reason)
 
 
+def _outline_points(radiograph: Radiograph, candidates: BeadCandidates, index, params: CentroidParams):
+    """Sub-pixel edge points of the candidates ``index``, those a neighbouring blob would pull dropped.
+
+    Returns
+    -------
+    points_xy : (P, 2) float64 ndarray, px
+    owner : (P,) int64 ndarray
+        Position in ``index`` of the bead each point belongs to.
+    """
+    # every blob the detector saw, accepted or not, can bend the edges of a bead next to it
+    near = _neighbours(index, candidates.xy_px, candidates.radius_px, params)
+    sigma_px = _edge_sigma(index, near, candidates.xy_px, candidates.radius_px, params)
+    points_xy, owner = edge_points(
+        radiograph.image,
+        candidates.xy_px[index],
+        candidates.radius_px[index],
+        candidates.polarity,
+        sigma_px,
+        annulus_fraction=params.annulus_fraction,
+        min_annulus_px=params.min_annulus_px,
+        min_cos_radial=params.min_cos_radial,
+        min_gradient_fraction=params.min_gradient_fraction,
+    )
+    points_xy, owner = _drop_near_neighbours(
+        points_xy, owner, index, near, candidates.xy_px, candidates.radius_px, params
+    )
+    return points_xy, owner
+
+
+def _no_beads(candidates: BeadCandidates, index: np.ndarray) -> Centroids:
+    """The artifact of a frame without accepted candidates (``index`` empty): every array of length 0."""
+    return _result(
+        candidates,
+        index,
+        np.empty((0, 2)),
+        np.empty((0, 5)),
+        np.empty((0, 2, 2)),
+        np.empty(0),
+        np.empty(0, np.int64),
+        np.empty(0, "<U16"),
+    )
+
+
 def _result(candidates, index, centre0, fit, covariance, rmse, n_inliers, reason) -> Centroids:
     """Assemble the artifact from the fitted ``(cx, cy, A, B, C)`` and the centres' (n, 2, 2) covariance."""
     n = len(index)
     ok = reason == ""
     xy = np.where(ok[:, None], fit[:, :2], centre0) if n else np.empty((0, 2))
-    major, minor, angle = _axes(fit[:, 2:]) if n else (np.empty(0),) * 3
+    major, minor, angle = ellipse_axes(fit[:, 2:]) if n else (np.empty(0),) * 3
     sx, sy, rho = np.full(n, np.inf), np.full(n, np.inf), np.zeros(n)
     if ok.any():
         sx[ok], sy[ok] = np.sqrt(covariance[ok, 0, 0]), np.sqrt(covariance[ok, 1, 1])
@@ -360,68 +403,6 @@ def _result(candidates, index, centre0, fit, covariance, rmse, n_inliers, reason
         source=candidates.source,
         frame_index=candidates.frame_index,
     )
-
-
-def _axes(quadratic: np.ndarray):
-    """Semi-axes and major-axis angle of ``(p - c)^T Q (p - c) = 1`` with ``Q = [[A, B], [B, C]]``.
-
-    Parameters
-    ----------
-    quadratic : (N, 3) float64 ndarray
-        ``(A, B, C)``, px^-2.
-
-    Returns
-    -------
-    major_px, minor_px, angle_rad : (N,) float64 ndarray
-    """
-    a, b, c = quadratic.T
-    half_trace, root = (a + c) / 2, np.sqrt(((a - c) / 2) ** 2 + b**2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        major = 1 / np.sqrt(half_trace - root)  # the smaller eigenvalue of Q belongs to the major axis
-        minor = 1 / np.sqrt(half_trace + root)
-    # eigenvector of the smaller eigenvalue: angle 0.5 atan2(2B, A - C) is the larger one's direction
-    angle = 0.5 * np.arctan2(2 * b, a - c) + np.pi / 2
-    angle = (angle + np.pi / 2) % np.pi - np.pi / 2
-    return major, minor, angle
-
-
-def _gaussian_gradient(image: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Derivatives along x and y of the image smoothed by a Gaussian of ``sigma_px``; two (H, W) float32, DN/px."""
-    import cv2
-
-    half = int(np.ceil(3 * sigma_px))  # the Gaussian's tails beyond 3 sigma hold 0.3 % of it
-    t = np.arange(-half, half + 1, dtype=np.float64)
-    g = np.exp(-0.5 * (t / sigma_px) ** 2)
-    g /= g.sum()
-    # normalised so that a ramp of unit slope gives 1 (cv2 correlates: sum_t dg(t) f(x + t))
-    dg = t * g
-    dg /= np.sum(t * dg)
-    gx = cv2.sepFilter2D(
-        image, cv2.CV_32F, dg.astype(np.float32), g.astype(np.float32), borderType=cv2.BORDER_REPLICATE
-    )
-    gy = cv2.sepFilter2D(
-        image, cv2.CV_32F, g.astype(np.float32), dg.astype(np.float32), borderType=cv2.BORDER_REPLICATE
-    )
-    return gx, gy
-
-
-def _annulus_owners(shape, centre0, r_out) -> np.ndarray:
-    """Image of each bead's search disc, labelled bead + 1 (0 elsewhere and on the frame's border); (H, W) uint16 or int32.
-
-    Smaller beads are drawn last, so they keep the pixels where annuli overlap.
-    """
-    import cv2
-
-    # 16-bit labels where they suffice: half the memory to fill and compare
-    owner_image = np.zeros(shape, np.uint16 if len(centre0) < 2**16 - 1 else np.int32)
-    centre_int = np.round(centre0).astype(int).tolist()
-    outer = (np.ceil(r_out) + 1).astype(int).tolist()
-    # filled discs are fast to draw (thick circles are polygons); a bead's inside is left to the radius test
-    for i in np.argsort(-r_out).tolist():
-        cv2.circle(owner_image, centre_int[i], outer[i], i + 1, -1)
-    owner_image[[0, -1], :] = 0
-    owner_image[:, [0, -1]] = 0
-    return owner_image
 
 
 def _neighbours(index, all_xy, all_radius, params: CentroidParams) -> np.ndarray:
@@ -448,9 +429,10 @@ def _neighbours(index, all_xy, all_radius, params: CentroidParams) -> np.ndarray
 
 
 def _edge_sigma(index, near, all_xy, all_radius, params: CentroidParams) -> float:
-    """Scale (px) of the edge filter for a frame: ``edge_sigma_px``, narrowed to a quarter of the typical gap between neighbouring outlines.
+    """Scale (px) of the edge filter for a frame: ``edge_sigma_px``, narrowed where beads are crowded.
 
-    A neighbour's edge pulls the gradient maxima of a bead over about twice
+    Narrowed to a quarter of the typical gap between neighbouring outlines:
+    a neighbour's edge pulls the gradient maxima of a bead over about twice
     the filter's scale; where beads are crowded (the median gap from a fitted
     bead's outline to its nearest neighbour's is small), a narrower filter
     lets it pull less, at the cost of more noise. Never below
@@ -476,86 +458,6 @@ def _edge_sigma(index, near, all_xy, all_radius, params: CentroidParams) -> floa
         if len(gap)
         else params.edge_sigma_px
     )
-
-
-def _edge_points(image, centre0, radius0, polarity, sigma_px: float, params: CentroidParams):
-    """Sub-pixel edge points around every bead.
-
-    Parameters
-    ----------
-    image : (H, W) float32 ndarray
-    centre0 : (n, 2) float64 ndarray, px
-    radius0 : (n,) float64 ndarray, px
-    polarity : {"dark", "bright"}
-    sigma_px : float
-        Scale of the edge filter (:func:`_edge_sigma`), px.
-    params : CentroidParams
-
-    Returns
-    -------
-    points_xy : (P, 2) float64 ndarray, px
-    owner : (P,) int64 ndarray
-        Bead (row of ``centre0``) each point belongs to; sorted ascending.
-    """
-    import cv2
-
-    height, width = image.shape
-    # the beads alone: a flat closing (opening) also removes steps such as a phantom wall's edge next to a
-    # bead, which would otherwise pull the gradient maxima on that side
-    square_px = odd_size(1.25 * 2 * radius0.max() + 8)
-    gx, gy = _gaussian_gradient(image - background(image, polarity, square_px, reduce=True), sigma_px)
-    magnitude = cv2.magnitude(gx, gy)
-
-    half_width = np.maximum(params.annulus_fraction * radius0, params.min_annulus_px)
-    r_in, r_out = np.maximum(radius0 - half_width, 0.0), radius0 + half_width
-    owner_image = _annulus_owners((height, width), centre0, r_out)
-    # non-maximum suppression along the gradient's dominant axis: over the frame, the pixels that are a
-    # maximum along x or along y (a 3-px dilation each); then, at those in an annulus, the test along
-    # the dominant axis (strictly greater than the pixel before it, so that a plateau gives one point)
-    along_x = cv2.compare(magnitude, cv2.dilate(magnitude, np.ones((1, 3), np.uint8)), cv2.CMP_GE)
-    along_y = cv2.compare(magnitude, cv2.dilate(magnitude, np.ones((3, 1), np.uint8)), cv2.CMP_GE)
-    candidate = cv2.bitwise_and(cv2.bitwise_or(along_x, along_y), cv2.compare(owner_image, 0, cv2.CMP_GT))
-    found = cv2.findNonZero(candidate)
-    # shape (K, 2): (x, y) of the candidate peaks (the annuli stop short of the frame's border)
-    found_xy = found.reshape(-1, 2).astype(np.int64) if found is not None else np.empty((0, 2), np.int64)
-    flat = found_xy[:, 1] * width + found_xy[:, 0]
-    gx_p, gy_p, centre_mag = gx.ravel()[flat], gy.ravel()[flat], magnitude.ravel()[flat]
-    horizontal = np.abs(gx_p) >= np.abs(gy_p)
-    step = np.where(horizontal, 1, width)
-    before, after = magnitude.ravel()[flat - step], magnitude.ravel()[flat + step]
-    owner = owner_image.ravel()[flat].astype(np.int64) - 1
-    # radial direction from the candidate centre; the gradient of a dark bead points outward, of a bright one inward
-    ux, uy = found_xy[:, 0] - centre0[owner, 0], found_xy[:, 1] - centre0[owner, 1]
-    sign = 1.0 if polarity == "dark" else -1.0
-    radial = sign * (gx_p * ux + gy_p * uy) >= params.min_cos_radial * centre_mag * np.sqrt(ux * ux + uy * uy)
-    keep = radial & (centre_mag > before) & (centre_mag >= after)
-    found_xy, owner, centre_mag, horizontal, before, after = (
-        v[keep] for v in (found_xy, owner, centre_mag, horizontal, before, after)
-    )
-
-    # a parabola through the log magnitudes: the exact peak of a Gaussian profile
-    log_b, log_a = np.log(np.maximum(before, 1e-12)), np.log(np.maximum(after, 1e-12))
-    log_c = np.log(np.maximum(centre_mag, 1e-12))
-    denominator = log_b - 2 * log_c + log_a
-    offset = np.where(denominator < 0, 0.5 * (log_b - log_a) / np.where(denominator < 0, denominator, -1.0), 0.0)
-    offset = np.clip(offset, -0.5, 0.5)
-    x = found_xy[:, 0] + np.where(horizontal, offset, 0.0)
-    y = found_xy[:, 1] + np.where(horizontal, 0.0, offset)
-
-    # sorted by bead (raster order within each)
-    dx, dy = x - centre0[owner, 0], y - centre0[owner, 1]
-    order = np.argsort(owner, kind="stable")
-    x, y, owner, centre_mag, dx, dy = (v[order] for v in (x, y, owner, centre_mag, dx, dy))
-    # per bead: drop weak maxima (noise) and points outside the annulus
-    strongest = np.zeros(len(centre0))
-    if len(owner):
-        starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
-        strongest[owner[starts]] = np.maximum.reduceat(centre_mag, starts)
-    dist = np.sqrt(dx * dx + dy * dy)
-    keep = (
-        (centre_mag >= params.min_gradient_fraction * strongest[owner]) & (dist >= r_in[owner]) & (dist <= r_out[owner])
-    )
-    return np.column_stack([x[keep], y[keep]]), owner[keep]
 
 
 def _drop_near_neighbours(points_xy, owner, index, near, all_xy, all_radius, params: CentroidParams):
@@ -606,210 +508,10 @@ def _drop_near_neighbours(points_xy, owner, index, near, all_xy, all_radius, par
     return points_xy[keep], owner[keep]
 
 
-def _solve(matrices: np.ndarray, rhs: np.ndarray, damping: float = 1e-10) -> np.ndarray:
-    """Solve stacks of small symmetric systems ``(..., k, k) x = (..., k)``, Marquardt-damped; (..., k).
-
-    ``damping`` times each diagonal is added (plus a tiny absolute ridge), so
-    a bead without points gives a zero step instead of an exception;
-    singular stacks fall back to the pseudo-inverse.
-    """
-    diagonal = np.einsum("...ii->...i", matrices)
-    damped = matrices + (damping * diagonal + 1e-300)[..., None] * np.eye(matrices.shape[-1])
-    try:
-        return np.linalg.solve(damped, rhs[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        return (np.linalg.pinv(damped) @ rhs[..., None])[..., 0]
-
-
-def _group_sum(owner: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """Sum ``values`` (P, ...) over the points of each of ``n`` groups; (n, ...).
-
-    As a sparse product ``S @ values`` with ``S[owner[p], p] = 1``: several
-    times faster than ``np.add.reduceat``, and the points need no sorting.
-    """
-    from scipy import sparse
-
-    n_points = len(owner)
-    summer = sparse.csc_matrix((np.ones(n_points), owner, np.arange(n_points + 1)), shape=(n, n_points))
-    return np.asarray(summer @ values.reshape(n_points, -1)).reshape((n,) + values.shape[1:])
-
-
-def _group_normal(owner: np.ndarray, left: np.ndarray, right: np.ndarray, n: int) -> np.ndarray:
-    """Per-group ``sum_p left_p right_p^T`` of (P, k) rows; (n, k, k).
-
-    One sparse product: ``left`` spread into a ``(n k, P)`` matrix whose
-    column ``p`` holds ``left_p`` in the rows of group ``owner[p]``, times
-    ``right``. No (P, k, k) array of products is formed.
-    """
-    from scipy import sparse
-
-    n_points, k = left.shape
-    rows = (owner[:, None] * k + np.arange(k)).ravel()
-    spread = sparse.csc_matrix((left.ravel(), rows, np.arange(0, n_points * k + 1, k)), shape=(n * k, n_points))
-    return np.asarray(spread @ right).reshape(n, k, right.shape[1])
-
-
-def _algebraic_fit(points_xy, owner, centre0, n):
-    """Direct linear fit of ``A u^2 + 2B uv + C v^2 + D u + E v = 1`` (u, v relative to ``centre0``).
-
-    Returns
-    -------
-    (n, 5) float64 ndarray
-        ``(cx, cy, A, B, C)``: centre and quadratic form; NaN where singular.
-    """
-    u = points_xy - centre0[owner]
-    # shape (P, 5): one row of the design matrix per point
-    design = np.column_stack([u[:, 0] ** 2, 2 * u[:, 0] * u[:, 1], u[:, 1] ** 2, u[:, 0], u[:, 1]])
-    normal = _group_normal(owner, design, design, n)
-    rhs = _group_sum(owner, design, n)
-    solvable = np.abs(np.linalg.det(normal)) > 1e-300
-    coef = np.full((n, 5), np.nan)
-    if solvable.any():
-        coef[solvable] = _solve(normal[solvable], rhs[solvable])
-    m = np.stack([coef[:, [0, 1]], coef[:, [1, 2]]], axis=1)  # shape (n, 2, 2)
-    g = coef[:, 3:]
-    out = np.full((n, 5), np.nan)
-    good = solvable & np.all(np.isfinite(coef), axis=1)
-    good[good] = np.linalg.det(m[good]) > 0
-    if good.any():
-        # x^T M x + g^T x = 1  <=>  (x - c)^T M (x - c) = 1 + c^T M c  with  c = -M^-1 g / 2
-        c = -0.5 * np.linalg.solve(m[good], g[good][:, :, None])[:, :, 0]
-        scale = 1 + np.einsum("ni,nij,nj->n", c, m[good], c)
-        q = m[good] / scale[:, None, None]
-        out[good] = np.column_stack([centre0[good] + c, q[:, 0, 0], q[:, 0, 1], q[:, 1, 1]])
-    return out
-
-
-def _radial_residuals(points_xy, owner, fit, with_jacobian: bool):
-    """Radial distance of each point from its bead's ellipse and its derivative.
-
-    ``r = |u| (1 - s^(-1/2))``, ``u = p - c``, ``s = u^T Q u``: the distance from
-    the point to where the ray from the centre through it crosses the ellipse.
-
-    Returns
-    -------
-    r : (P,) float64 ndarray, px
-    jacobian : (P, 5) float64 ndarray
-        ``dr / d(cx, cy, A, B, C)`` (only if ``with_jacobian``).
-    """
-    # one contiguous gather per parameter: (cx, cy, A, B, C) of each point's bead
-    cx, cy, a, b, c = (column[owner] for column in fit.T)
-    ux, uy = points_xy[:, 0] - cx, points_xy[:, 1] - cy
-    s = np.maximum(a * ux * ux + 2 * b * ux * uy + c * uy * uy, 1e-12)
-    norm = np.maximum(np.sqrt(ux * ux + uy * uy), 1e-12)  # np.hypot is several times slower
-    inv_sqrt_s = 1 / np.sqrt(s)
-    shrink = 1 - inv_sqrt_s
-    r = norm * shrink
-    if not with_jacobian:
-        return r, None
-    # dr = d|u| (1 - s^-1/2) + |u| s^-3/2 ds / 2
-    half_ds_factor = 0.5 * norm * inv_sqrt_s / s
-    radial_factor = shrink / norm
-    ux_scaled = ux * half_ds_factor
-    # shape (P, 5): one row per point
-    jac = np.column_stack(
-        [
-            -ux * radial_factor - 2 * (a * ux + b * uy) * half_ds_factor,
-            -uy * radial_factor - 2 * (b * ux + c * uy) * half_ds_factor,
-            ux * ux_scaled,
-            2 * uy * ux_scaled,
-            uy * uy * half_ds_factor,
-        ]
-    )
-    return r, jac
-
-
-def _arc_groups(points_xy, owner, centre0, n_arcs: int) -> np.ndarray:
-    """Index ``bead * n_arcs + arc`` of each point, the arcs cutting each outline into equal angles about ``centre0``; (P,)."""
-    angle = np.arctan2(points_xy[:, 1] - centre0[owner, 1], points_xy[:, 0] - centre0[owner, 0])
-    arc = np.minimum(((angle + np.pi) * (n_arcs / (2 * np.pi))).astype(np.int64), n_arcs - 1)
-    return owner * n_arcs + arc
-
-
-def _fit_ellipses(points_xy, owner, centre0, radius0, params: CentroidParams):
-    """Robust Gauss-Newton ellipse fits of all beads at once.
-
-    Parameters
-    ----------
-    points_xy : (P, 2) float64 ndarray, px
-        Edge points.
-    owner : (P,) int64 ndarray
-        Row of ``centre0`` each point belongs to.
-    centre0 : (n, 2) float64 ndarray, px
-    radius0 : (n,) float64 ndarray, px
-    params : CentroidParams
-
-    Returns
-    -------
-    fit : (n, 5) float64 ndarray
-        ``(cx, cy, A, B, C)``.
-    rmse : (n,) float64 ndarray, px
-    n_inliers : (n,) int64 ndarray
-    covariance : (n, 2, 2) float64 ndarray, px^2
-        Of each centre.
-    """
-    n, n_arcs = len(centre0), params.n_arcs
-    fit = _algebraic_fit(points_xy, owner, centre0, n)
-    # a fit that failed starts from the candidate's circle
-    circle = np.column_stack([centre0, 1 / radius0**2, np.zeros(n), 1 / radius0**2])
-    fit = np.where(np.all(np.isfinite(fit), axis=1)[:, None], fit, circle)
-    arc = _arc_groups(points_xy, owner, centre0, n_arcs)
-
-    weights = np.ones(len(owner))
-    for i_round in range(params.n_rounds):
-        r, jac = _radial_residuals(points_xy, owner, fit, True)
-        # scale per bead: 1.2533 mean |r| is sigma for Gaussian residuals, taken over the previous round's
-        # inliers (all points at first, which only makes the first trimming lenient); a floor keeps
-        # noise-free synthetic beads from rejecting good points
-        mean_abs = np.bincount(owner, weights * np.abs(r), n) / np.maximum(np.bincount(owner, weights, n), 1)
-        weights = (np.abs(r) <= params.outlier_sigma * np.maximum(1.2533 * mean_abs, 0.02)[owner]).astype(np.float64)
-        for iteration in range(params.n_iterations):
-            if iteration:
-                r, jac = _radial_residuals(points_xy, owner, fit, True)
-            wj = jac * weights[:, None]
-            # the last step's normal equations, summed per arc, also give the jackknife its pieces
-            # shape (n, n_arcs, 5, 5) and (n, n_arcs, 5)
-            hessian_arc = _group_normal(arc, wj, jac, n * n_arcs).reshape(n, n_arcs, 5, 5)
-            gradient_arc = _group_sum(arc, wj * r[:, None], n * n_arcs).reshape(n, n_arcs, 5)
-            step = _solve(hessian_arc.sum(axis=1), -gradient_arc.sum(axis=1), damping=1e-6)
-            fit = fit + np.nan_to_num(step)
-    r, _ = _radial_residuals(points_xy, owner, fit, False)
-    n_inliers = np.bincount(owner, weights, n).round().astype(np.int64)
-    rmse = np.sqrt(np.bincount(owner, weights * r * r, n) / np.maximum(n_inliers, 1))
-    return fit, rmse, n_inliers, _arc_jackknife_covariance(hessian_arc, gradient_arc)
-
-
-def _arc_jackknife_covariance(hessian_arc: np.ndarray, gradient_arc: np.ndarray) -> np.ndarray:
-    """Covariance of each centre by a delete-one-arc jackknife; (n, 2, 2) px^2.
-
-    Parameters
-    ----------
-    hessian_arc : (n, n_arcs, 5, 5) float64 ndarray
-        Gauss-Newton normal matrix ``J_a^T W J_a`` of each arc of each outline.
-    gradient_arc : (n, n_arcs, 5) float64 ndarray
-        ``J_a^T W r_a``.
-
-    Notes
-    -----
-    Dropping arc ``a`` moves the solution by ``(H - H_a)^-1 g_a`` (one
-    Gauss-Newton step from the solution, where the total gradient vanishes;
-    the pieces come from the last step, a small step from it, so their mean is
-    subtracted). Unlike ``s^2 H^-1`` this keeps the correlation of neighbouring
-    edge points (they share smoothed pixels, and real intensifier noise is
-    itself correlated), as long as it is shorter than an arc.
-    """
-    n_arcs = hessian_arc.shape[1]
-    gradient_arc = gradient_arc - gradient_arc.mean(axis=1, keepdims=True)
-    hessian = hessian_arc.sum(axis=1, keepdims=True)
-    shift = _solve(hessian - hessian_arc, gradient_arc)[..., :2]
-    shift -= shift.mean(axis=1, keepdims=True)
-    return (n_arcs - 1) / n_arcs * np.einsum("nki,nkj->nij", shift, shift)
-
-
 def _fit_reasons(fit, centre0, radius0, n_inliers, covariance, params: CentroidParams) -> np.ndarray:
     """Why each fit is unusable (``""`` when it is); (n,) str."""
     reason = np.full(len(centre0), "", dtype="<U16")
-    major, minor, _ = _axes(fit[:, 2:])
+    major, minor, _ = ellipse_axes(fit[:, 2:])
     finite = (
         np.all(np.isfinite(fit), axis=1)
         & np.isfinite(major)

@@ -49,6 +49,7 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from fluorocal.stages._fov import bead_polarity, field_of_view, fov_clearance, pixel_noise
 from fluorocal.stages._geometry import xy_to_rc
 from fluorocal.stages._image import bead_signal, frame_name, log_image, odd_size
 from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, check_shape, freeze
@@ -235,13 +236,13 @@ def detect_beads(radiograph: Radiograph, params: DetectParams) -> BeadCandidates
 
     image = radiograph.image
     name = frame_name(radiograph)
-    fov = _field_of_view(image)
+    fov = field_of_view(image)
     if fov is None:
         return _empty(radiograph, params, name, "no field of view (blank frame)")
     hull_xy, fov_mask = fov
     (cx, cy), fov_radius = cv2.minEnclosingCircle(hull_xy.astype(np.float32))
-    noise = _pixel_noise(image, fov_mask)
-    polarity = params.polarity if params.polarity != "auto" else _polarity(image, fov_mask)
+    noise = pixel_noise(image, fov_mask)
+    polarity = params.polarity if params.polarity != "auto" else bead_polarity(image, fov_mask)
     height, width = image.shape
     # the log of a 2x-reduced copy: for the size estimate, and for finding beads of 10 px and more
     half_log = log_image(cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA))
@@ -251,25 +252,10 @@ def detect_beads(radiograph: Radiograph, params: DetectParams) -> BeadCandidates
     else:
         estimate = _estimate_diameter_range(half_log, half_mask, polarity, noise, params)
         if estimate is None:
-            return _empty(
-                radiograph,
-                params,
-                name,
-                "no bead-like blob (bead-free or saturated frame)",
-                polarity,
-                (cx, cy),
-                fov_radius,
-            )
+            why = "no bead-like blob (bead-free or saturated frame)"
+            return _empty(radiograph, params, name, why, polarity, (cx, cy), fov_radius)
         d_min, d_max = estimate
-
-    if d_min >= _REDUCE_FROM_DIAMETER_PX and min(height, width) >= 128:
-        blobs, reason = _blobs(half_log, half_mask, polarity, d_min / 2, d_max / 2, noise, params)
-        # a reduced pixel i covers full pixels 2i and 2i + 1: its centre is at 2i + 0.5
-        blobs["xy_px"] = 2 * blobs["xy_px"] + 0.5
-        for key in ("radius_px", "minor_diameter_px"):
-            blobs[key] = 2 * blobs[key]
-    else:
-        blobs, reason = _blobs(log_image(image), fov_mask, polarity, d_min, d_max, noise, params)
+    blobs, reason = _frame_blobs(image, fov_mask, half_log, half_mask, polarity, d_min, d_max, noise, params)
     blobs, reason = _keep_reportable(blobs, reason, hull_xy, d_min, d_max, params)
     accepted = reason == ""
     if not accepted.any():
@@ -299,6 +285,23 @@ def detect_beads(radiograph: Radiograph, params: DetectParams) -> BeadCandidates
     )
 
 
+def _frame_blobs(image, fov_mask, half_log, half_mask, polarity, d_min, d_max, noise, params: DetectParams):
+    """:func:`_blobs` of the frame, on its 2x-reduced copy ``half_log`` when the beads are large enough.
+
+    Returns the blobs (in full-frame px) and their rejection reasons, as :func:`_blobs`.
+    """
+    height, width = image.shape
+    if d_min >= _REDUCE_FROM_DIAMETER_PX and min(height, width) >= 128:
+        blobs, reason = _blobs(half_log, half_mask, polarity, d_min / 2, d_max / 2, noise, params)
+        # a reduced pixel i covers full pixels 2i and 2i + 1: its centre is at 2i + 0.5
+        blobs["xy_px"] = 2 * blobs["xy_px"] + 0.5
+        for key in ("radius_px", "minor_diameter_px"):
+            blobs[key] = 2 * blobs[key]
+    else:
+        blobs, reason = _blobs(log_image(image), fov_mask, polarity, d_min, d_max, noise, params)
+    return blobs, reason
+
+
 def _empty(radiograph, params, name, why, polarity=None, fov_center=(0.0, 0.0), fov_radius=0.0) -> BeadCandidates:
     warnings.warn(f"{name}: {why}; no bead candidates", EmptyFrameWarning, stacklevel=3)
     return BeadCandidates(
@@ -316,91 +319,8 @@ def _empty(radiograph, params, name, why, polarity=None, fov_center=(0.0, 0.0), 
     )
 
 
-def _field_of_view(image: np.ndarray):
-    """Outline and mask of the intensifier's bright field.
-
-    Returns
-    -------
-    hull_xy : (K, 2) float64 ndarray, px
-        Convex outline of the field, ``(x, y)``.
-    mask : (H, W) uint8 ndarray
-        1 inside the outline.
-
-    or ``None`` when the frame has no bright region (blank).
-    """
-    import cv2
-
-    height, width = image.shape
-    # about 256 px across is plenty for an outline good to a reduced pixel
-    factor = max(1, min(height, width) // 256)
-    small = (
-        cv2.resize(image, (width // factor, height // factor), interpolation=cv2.INTER_AREA) if factor > 1 else image
-    )
-    # every other reduced pixel is plenty for the levels
-    sample = small[::2, ::2]
-    bright_level = float(np.percentile(sample, 99))
-    if not bright_level > 0:
-        return None
-    # a fifth of the bright level separates the field from the dark surround (below a grid plate, the
-    # vignetted rim and dense anatomy); the edge is then put at half the field's median level
-    inside = (small > 0.5 * float(np.median(sample[sample > 0.2 * bright_level]))).astype(np.uint8)
-    n, labels, stats, _ = cv2.connectedComponentsWithStatsWithAlgorithm(inside, 8, cv2.CV_32S, cv2.CCL_BBDT)
-    if n < 2:
-        return None
-    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    contours, _ = cv2.findContours((labels == largest).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    hull_small = cv2.convexHull(np.concatenate(contours)).reshape(-1, 2).astype(np.float64)
-    # a reduced pixel i covers full pixels [f*i, f*i + f - 1], centred on f*i + (f-1)/2
-    hull_xy = factor * hull_small + (factor - 1) / 2
-    hull_xy = np.clip(hull_xy, 0, [width - 1, height - 1])
-    mask = np.zeros((height, width), np.uint8)
-    cv2.fillConvexPoly(mask, np.round(hull_xy).astype(np.int32), 1)
-    return hull_xy, mask
-
-
-def _pixel_noise(image: np.ndarray, fov_mask: np.ndarray) -> float:
-    """Robust per-pixel noise sigma of the log image inside the field (MAD of horizontal differences)."""
-    # every 4th row and pair of columns is plenty for a median
-    left, right = image[::4, 0:-1:4], image[::4, 1::4]
-    n_columns = min(left.shape[1], right.shape[1])
-    diff = np.abs(
-        log_image(np.ascontiguousarray(right[:, :n_columns])) - log_image(np.ascontiguousarray(left[:, :n_columns]))
-    )
-    diff = diff[fov_mask[::4, 1::4][:, :n_columns] > 0]
-    if diff.size == 0:
-        return 1e-3
-    # the difference of two independent pixels has sqrt(2) times their noise; 1.4826 turns a MAD into a sigma
-    return max(float(1.4826 * np.median(diff) / np.sqrt(2)), 1e-4)
-
-
-def _polarity(image: np.ndarray, fov_mask: np.ndarray) -> str:
-    """``"dark"`` or ``"bright"``: which tail of the log image minus its running median is heavier.
-
-    Beads are a small fraction of the field (or, for a grid plate, a minority
-    against the plate); the median tracks the majority, so the beads form the
-    heavier tail of the residual. The test runs on every ``step``-th pixel
-    (about 128 px across, every 4th at least) with a median over about 60 full
-    px, wider than any bead.
-    """
-    import cv2
-
-    height, width = image.shape
-    step = max(4, min(height, width) // 128)
-    # a sample of the intensities, not averages (averaging would mix a grid plate's holes into it)
-    small = log_image(np.ascontiguousarray(image[::step, ::step]))
-    inside = cv2.erode(np.ascontiguousarray(fov_mask[::step, ::step]), np.ones((5, 5), np.uint8))
-    # medianBlur takes large kernels only on 8-bit data: 30 levels per unit of ln(I) is enough to compare tails
-    quantised = np.clip(small * 30, 0, 255).astype(np.uint8)
-    residual = quantised.astype(np.int16) - cv2.medianBlur(quantised, odd_size(60 / step)).astype(np.int16)
-    values = residual[inside > 0]
-    if values.size == 0:
-        return "dark"
-    low, high = np.percentile(values, [0.2, 99.8])
-    return "dark" if -low >= high else "bright"
-
-
 def _flatten(log_frame, fov_mask, polarity, d_min, d_max):
-    """Smoothed top-hat (bead contrast positive), as log contrast and as intensity change, and the change's running maximum.
+    """Smoothed top-hat (bead contrast positive) as log contrast and as intensity change; the change's running maximum.
 
     Returns
     -------
@@ -480,7 +400,8 @@ def _regions(smooth, change, local_change, fraction: float, floor: float, polari
     sxy = np.bincount(lab, dx * dy, n_blobs) / np.maximum(area, 1)
     half_trace, root = (sxx + syy) / 2, np.sqrt(((sxx - syy) / 2) ** 2 + sxy**2)
     lam_max, lam_min = np.maximum(half_trace + root, 1e-6), np.maximum(half_trace - root, 1e-6)
-    # a round bead peaks at its centre; elsewhere the value at the centre is a lower bound that rejects oddly shaped blobs
+    # a round bead peaks at its centre; elsewhere the value at the centre is a lower bound that rejects oddly
+    # shaped blobs
     centre_rc = _pixel_index(mean_xy, labels.shape)
     contrast = smooth[centre_rc[:, 0], centre_rc[:, 1]].astype(np.float64)
     blobs = {
@@ -549,26 +470,6 @@ def _blobs(log_frame, fov_mask, polarity, d_min, d_max, noise, params: DetectPar
     return blobs, np.concatenate([reason[~replaced], core_reason[rescued]])
 
 
-def _fov_clearance(points_xy: np.ndarray, hull_xy: np.ndarray) -> np.ndarray:
-    """Distance (px) from each point to the edge of the convex field outline, negative outside; (N,).
-
-    Inside a convex polygon the distance to its outline is the smallest
-    distance to the lines through its edges.
-    """
-    start, end = hull_xy, np.roll(hull_xy, -1, axis=0)
-    edge = end - start
-    length = np.hypot(edge[:, 0], edge[:, 1])
-    keep = length > 0
-    start, edge, length = start[keep], edge[keep], length[keep]
-    to_centre = hull_xy.mean(axis=0) - start[0]
-    inward = 1.0 if edge[0, 0] * to_centre[1] - edge[0, 1] * to_centre[0] >= 0 else -1.0
-    # shape (N, K): signed distance of each point to each edge line, positive on the inner side
-    cross = edge[None, :, 0] * (points_xy[:, None, 1] - start[None, :, 1]) - edge[None, :, 1] * (
-        points_xy[:, None, 0] - start[None, :, 0]
-    )
-    return (inward * cross / length).min(axis=1) if len(length) else np.full(len(points_xy), np.inf)
-
-
 def _typical_contrast(blobs: dict, plausible: np.ndarray) -> float:
     return float(np.median(blobs["contrast"][plausible])) if plausible.any() else 0.0
 
@@ -607,7 +508,7 @@ def _keep_reportable(
 ) -> tuple[dict, np.ndarray]:
     """Mark blobs cut by the field's edge, and drop those that are plainly background."""
     reason = reason.copy()
-    clearance = _fov_clearance(blobs["xy_px"], hull_xy)
+    clearance = fov_clearance(blobs["xy_px"], hull_xy)
     reason[clearance < blobs["radius_px"] + params.fov_margin_px] = "fov_edge"
     diameter = 2 * blobs["radius_px"]
     # blobs far from the bead size, or faint and of the wrong size, are background, not candidates worth reporting
@@ -620,7 +521,7 @@ def _keep_reportable(
 
 
 def _estimate_diameter_range(half_log, half_mask, polarity, noise, params: DetectParams):
-    """Expected bead diameter range ``(min, max)`` in full-frame px, from the round strong blobs of the 2x-reduced log image.
+    """Expected bead diameter range ``(min, max)``, full-frame px, from the round strong blobs of a 2x-reduced image.
 
     Returns ``None`` when there is no such blob.
     """

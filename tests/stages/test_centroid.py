@@ -18,7 +18,7 @@ from tests.stages._synthetic import bead_grid, render_beads
 SHAPE = (256, 256)
 
 
-def _fit(image, detect=DetectParams(), params=CentroidParams()):
+def _fit(image, detect=DetectParams(), params=CentroidParams()):  # noqa: B008 (frozen, immutable)
     frame = Radiograph(np.asarray(image, dtype=np.float32), 12, source="synthetic")
     return centroid_beads(frame, detect_beads(frame, detect), params)
 
@@ -177,7 +177,7 @@ def test_stray_edge_points_are_rejected():
     # the robust fit alone: 60 points on each of 3 ellipses (0.02 px noise) plus 15 % stray points up to
     # 3 px off the outline (a neighbour's edge, a scratch); the centres stay within 0.02 px, and the strays
     # that remain inliers (within 3 robust sigmas after two rounds) keep the fit RMSE below 0.1 px
-    from fluorocal.stages.centroid import _fit_ellipses
+    from fluorocal.stages._ellipse import fit_ellipses
 
     rng = np.random.default_rng(13)
     truth = np.array([[40.3, 50.7, 9.0, 8.0, 0.3], [100.1, 60.2, 5.0, 4.6, -1.0], [70.0, 120.0, 12.0, 11.0, 1.2]])
@@ -191,8 +191,16 @@ def test_stray_edge_points_are_rejected():
             np.column_stack([cx + u * np.cos(angle) - v * np.sin(angle), cy + u * np.sin(angle) + v * np.cos(angle)])
         )
         owner.append(np.full(60, i))
-    fit, rmse, n_inliers, covariance = _fit_ellipses(
-        np.concatenate(points), np.concatenate(owner), truth[:, :2] + 0.5, truth[:, 2], CentroidParams()
+    params = CentroidParams()
+    fit, rmse, n_inliers, covariance = fit_ellipses(
+        np.concatenate(points),
+        np.concatenate(owner),
+        truth[:, :2] + 0.5,
+        truth[:, 2],
+        n_arcs=params.n_arcs,
+        n_rounds=params.n_rounds,
+        n_iterations=params.n_iterations,
+        outlier_sigma=params.outlier_sigma,
     )
     assert np.allclose(fit[:, :2], truth[:, :2], atol=0.02)
     assert np.all(rmse < 0.1) and np.all(n_inliers >= 45)

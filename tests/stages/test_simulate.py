@@ -1,4 +1,4 @@
-"""Tests of the radiograph simulator (stages/simulate.py) and `fluorocal simulate` (pipeline/cmd_simulate.py)."""
+"""Tests of the radiograph simulator (stages/simulate/) and `fluorocal simulate` (pipeline/cmd_simulate.py)."""
 
 from __future__ import annotations
 
@@ -274,7 +274,7 @@ def test_edge_subsamples_map_to_ideal_rays_to_first_order():
     Bound: second derivative of the strong distortion (~5e-4 /px at the rim)
     times offset² / 2 (<= 0.25 px²) plus one-sided differences at the image border.
     """
-    from fluorocal.stages.simulate import _local_jacobian
+    from fluorocal.stages.simulate import local_jacobian
 
     distortion = _strong(0)
     ideal = ideal_pixel_map(distortion, 1024)
@@ -282,7 +282,7 @@ def test_edge_subsamples_map_to_ideal_rays_to_first_order():
     flat_idx = rng.integers(0, 1024 * 1024, 2000)
     offsets = rng.uniform(-0.5, 0.5, (2000, 2))
     y, x = np.divmod(flat_idx, 1024)
-    approx = ideal.reshape(-1, 2)[flat_idx] + np.einsum("nij,nj->ni", _local_jacobian(ideal, flat_idx), offsets)
+    approx = ideal.reshape(-1, 2)[flat_idx] + np.einsum("nij,nj->ni", local_jacobian(ideal, flat_idx), offsets)
     exact = distortion.undistort(np.column_stack([x, y]) + offsets)
     assert np.max(np.abs(approx - exact)) < 5e-4
 

@@ -1,0 +1,96 @@
+"""Phantom designs (bead cube, perforated hex plate) and their true and reference coordinates."""
+
+from __future__ import annotations
+
+import numpy as np
+from fluorocal.stages.artifacts import Phantom
+from fluorocal.stages.errors import InputError
+from fluorocal.stages.simulate.params import RNG_PHANTOM, SimulateParams
+
+
+def make_phantom(params: SimulateParams) -> tuple[Phantom, np.ndarray, np.ndarray]:
+    """Design the phantom and draw its true and reference coordinates.
+
+    Returns
+    -------
+    nominal : Phantom
+        Design coordinates (what ``phantom.csv`` holds).
+    true_xyz_mm : (N, 3) float64 ndarray, mm
+        Nominal + fabrication error (``fabrication_error_mm`` 3D RMS; in-plane only for a plate).
+    reference_xyz_mm : (N, 3) float64 ndarray, mm
+        True + survey noise (``reference_error_mm`` 3D RMS), the check points.
+
+    Examples
+    --------
+    >>> nominal, true_xyz, ref_xyz = make_phantom(SimulateParams())
+    >>> nominal.n_beads, int((nominal.role == "marker").sum())
+    (494, 8)
+    """
+    nominal = _cube_phantom(params) if params.phantom == "cube" else _grid_phantom(params)
+    rng = np.random.default_rng([params.seed, RNG_PHANTOM])
+    n = nominal.n_beads
+    dims = 3 if params.phantom == "cube" else 2
+    fab = np.zeros((n, 3))
+    fab[:, :dims] = rng.normal(scale=params.fabrication_error_mm / np.sqrt(dims), size=(n, dims))
+    true_xyz = nominal.xyz_mm + fab
+    reference_xyz = true_xyz + rng.normal(scale=params.reference_error_mm / np.sqrt(3), size=(n, 3))
+    return nominal, true_xyz, reference_xyz
+
+
+# (wall, column, row) of the grid beads replaced by larger markers: two per wall,
+# near the wall's centre (visible in every view) and placed asymmetrically so the pose is unambiguous
+_MARKER_SLOTS = ((0, 4, 3), (0, 8, 6), (1, 5, 5), (1, 9, 2), (2, 3, 6), (2, 7, 2), (3, 6, 3), (3, 8, 6))
+#: distance from a bead centre to the cube's edges (mm)
+_EDGE_CLEARANCE_MM = 6.0
+
+
+def _cube_phantom(params: SimulateParams) -> Phantom:
+    """Beads in the mid-planes of the four vertical walls, on one grid per wall.
+
+    In an oblique view the walls that overlap in projection are neighbours
+    (they meet at the corner on that side of the image), so neighbouring
+    walls' rows are offset by half ``bead_row_pitch_mm``: their beads fall
+    between each other's rows, up to perspective. Opposite walls share row
+    heights; they project onto different halves of the image.
+    """
+    half = params.cube_side_mm / 2
+    extent = params.cube_side_mm - 2 * _EDGE_CLEARANCE_MM
+    step = params.bead_row_pitch_mm / 2
+    n_levels = int(np.floor(extent / step)) + 1
+    n_cols = int(np.floor(extent / params.bead_column_pitch_mm)) + 1
+    if n_levels < 2 or n_cols < 2:
+        raise InputError(
+            f"bead_row_pitch_mm={params.bead_row_pitch_mm} and bead_column_pitch_mm={params.bead_column_pitch_mm}"
+            f" leave no bead grid on a {params.cube_side_mm} mm cube"
+        )
+    levels = (np.arange(n_levels) - (n_levels - 1) / 2) * step
+    cols = (np.arange(n_cols) - (n_cols - 1) / 2) * params.bead_column_pitch_mm
+    xyz, diam, role = [], [], []
+    for wall in range(4):
+        phi = wall * np.pi / 2
+        normal = np.array([np.cos(phi), np.sin(phi), 0.0])
+        tangent = np.array([-np.sin(phi), np.cos(phi), 0.0])
+        for row, z in enumerate(levels[wall % 2 :: 2]):
+            for col, u in enumerate(cols):
+                xyz.append(normal * (half - params.wall_thickness_mm / 2) + tangent * u + np.array([0, 0, z]))
+                is_marker = (wall, col, row) in _MARKER_SLOTS
+                diam.append(params.marker_diameter_mm if is_marker else params.bead_diameter_mm)
+                role.append("marker" if is_marker else "")
+    n = len(xyz)
+    return Phantom(np.arange(n), np.array(xyz), np.array(diam), np.array(role))
+
+
+def _grid_phantom(params: SimulateParams) -> Phantom:
+    pitch = params.grid_pitch_mm
+    radius = params.grid_size_mm / 2
+    n_rows = int(np.ceil(radius / (pitch * np.sqrt(3) / 2)))
+    rows = np.arange(-n_rows, n_rows + 1)
+    n_cols = int(np.ceil(radius / pitch)) + 1
+    cols = np.arange(-n_cols, n_cols + 1)
+    # shape (n_rows, n_cols): hex lattice, odd rows shifted by half a pitch
+    x = (cols[None, :] + 0.5 * (rows[:, None] % 2)) * pitch
+    y = np.broadcast_to(rows[:, None] * pitch * np.sqrt(3) / 2, x.shape)
+    keep = x**2 + y**2 <= radius**2
+    xyz = np.column_stack([x[keep], y[keep], np.zeros(keep.sum())])
+    n = len(xyz)
+    return Phantom(np.arange(n), xyz, np.full(n, params.grid_hole_diameter_mm), np.full(n, ""), "hex", pitch)
