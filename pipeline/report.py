@@ -6,10 +6,11 @@ writes it atomically; :func:`write_report` ties them into ``report.md``.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
-from fluorocal.stages.io import atomic_write
+from fluorocal.stages.io import write_png
 
 
 def rms_px(residual_px: np.ndarray) -> float:
@@ -28,8 +29,10 @@ def _figure(n_panels: int = 1, *, width: float = 5.0, height: float = 4.6):
 
 
 def _save(plt, fig, path: Path) -> Path:
-    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=90, format="png"))
+    png = io.BytesIO()
+    fig.savefig(png, dpi=90, format="png")
     plt.close(fig)
+    write_png(path, png.getvalue())
     return path
 
 

@@ -123,7 +123,9 @@ def frame_format(path: str | os.PathLike) -> FrameFormat:
     for fmt in FORMATS:
         if fmt.accepts_suffix(suffix):
             return fmt
-    raise InputError(f"{path}: not a frame format fluorocal reads; supported: {'; '.join(f.describe() for f in FORMATS)}")
+    raise InputError(
+        f"{path}: not a frame format fluorocal reads; supported: {'; '.join(f.describe() for f in FORMATS)}"
+    )
 
 
 def _call(path: Path, what: Callable):

@@ -202,7 +202,7 @@ def _header_map(path: Path, table: Table, header: list[str]) -> dict[str, str]:
 
 def _parse_cell(path: Path, line_no: int, column: Column, text: str):
     if not text:
-        if column.required:
+        if column.required or column.default is None:  # a column without a default has a value in every row
             raise InputError(f"{path}:{line_no}: empty cell in column {column.name}")
         return column.default
     try:
@@ -303,6 +303,20 @@ def write_table(path: str | os.PathLike, table: Table, columns: Mapping[str, Seq
             w.writerows(zip(*cells))
 
     atomic_write(path, _write)
+
+
+def columns_of(header: Sequence[str], rows) -> dict[str, tuple]:
+    """Rows (one sequence per record, in ``header`` order) as :func:`write_table`'s columns.
+
+    Examples
+    --------
+    >>> columns_of(["id", "x"], [[1, 0.5], [2, 1.5]])
+    {'id': (1, 2), 'x': (0.5, 1.5)}
+    >>> columns_of(["id", "x"], [])
+    {'id': (), 'x': ()}
+    """
+    rows = list(rows)
+    return {name: tuple(r[k] for r in rows) for k, name in enumerate(header)}
 
 
 def write_csv(path: str | os.PathLike, header: list[str], rows) -> None:
