@@ -195,11 +195,13 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
     lines = [
         "# fluorocal calibration report",
         "",
-        f"Config: `{runner.config.path}`; scheme `{result.scheme}`; made by `fluorocal run` (fluorocal {cal.meta['fluorocal_version']}).",
+        f"Config: `{runner.config.path}`; scheme `{result.scheme}`; "
+        f"made by `fluorocal run` (fluorocal {cal.meta['fluorocal_version']}).",
         "All figures are in-sample (the training frames) unless marked otherwise.",
         *([f"Excluded (labelling failed): {'; '.join(excluded)}."] if excluded else []),
         "",
-        "| system | frames | observations | inliers | outliers | RMS before (px) | RMS after (px) | xp (px) | yp (px) | c (px) | max Δ where supported (px) |",
+        "| system | frames | observations | inliers | outliers | RMS before (px) | RMS after (px) "
+        "| xp (px) | yp (px) | c (px) | max Δ where supported (px) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     plots = []
@@ -214,8 +216,10 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
         # nodes without data hold the prior's extrapolation, which can be large far outside the field of view
         max_delta = float(np.linalg.norm(field.delta_px, axis=-1)[field.support].max(initial=0.0))
         lines.append(
-            f"| {name} | {n_frames} | {int(sel.sum())} | {int(inl.sum())} | {int((sel & adj.used & ~adj.inlier).sum())} | {rms_before:.3f} | {rms_px(adj.residual_px[inl]):.3f} "
-            f"| {iop[0]:.2f} ± {iop_sd[0]:.2f} | {iop[1]:.2f} ± {iop_sd[1]:.2f} | {iop[2]:.1f} ± {iop_sd[2]:.1f} | {max_delta:.2f} |"
+            f"| {name} | {n_frames} | {int(sel.sum())} | {int(inl.sum())} "
+            f"| {int((sel & adj.used & ~adj.inlier).sum())} | {rms_before:.3f} | {rms_px(adj.residual_px[inl]):.3f} "
+            f"| {iop[0]:.2f} ± {iop_sd[0]:.2f} | {iop[1]:.2f} ± {iop_sd[1]:.2f} | {iop[2]:.1f} ± {iop_sd[2]:.1f} "
+            f"| {max_delta:.2f} |"
         )
         panels = ([("before: no correction", obs.xy_px[inl], before[inl])] if before is not None else []) + [
             ("after: calibrated", obs.xy_px[inl], adj.residual_px[inl])
@@ -236,8 +240,9 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
     st = cal.meta["statistics"]
     lines += [
         "",
-        f"Adjustment: σ0 = {st['sigma0']:.3f}, ν = {st['nu']:.1f}, {st['n_outliers']} outlier(s) flagged, {st['n_unused']} observation(s) not estimable; "
-        f"{st['iterations']} iteration(s) of the alternation, {'converged' if st['converged'] else 'not converged'} ({st['stop_reason']}), {st['wall_time_s']:.1f} s.",
+        f"Adjustment: σ0 = {st['sigma0']:.3f}, ν = {st['nu']:.1f}, {st['n_outliers']} outlier(s) flagged, "
+        f"{st['n_unused']} observation(s) not estimable; {st['iterations']} iteration(s) of the alternation, "
+        f"{'converged' if st['converged'] else 'not converged'} ({st['stop_reason']}), {st['wall_time_s']:.1f} s.",
         "",
     ]
     lines += [f"![{p.stem}]({p.name})" for p in plots]

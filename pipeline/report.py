@@ -47,7 +47,7 @@ def _image_axes(ax, size_px, title):
 
 
 def residual_maps(path: Path, panels: list[tuple[str, np.ndarray, np.ndarray]], size_px: tuple[int, int]) -> Path:
-    """Residual vectors over the image, one panel per ``(title, xy (N, 2) px, residual (N, 2) px)``, on one colour scale."""
+    """Residual vectors over the image on one colour scale; a panel per ``(title, xy (N, 2), residual (N, 2))``, px."""
     plt, fig, axes = _figure(len(panels))
     vmax = max((np.percentile(np.linalg.norm(r, axis=1), 99) for _, _, r in panels if len(r)), default=1.0)
     for ax, (title, xy, res) in zip(axes, panels):

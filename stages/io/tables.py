@@ -213,7 +213,7 @@ def _parse_cell(path: Path, line_no: int, column: Column, text: str):
 
 
 def read_table(path: str | os.PathLike, table: Table) -> dict[str, np.ndarray]:
-    """Read a CSV file by its schema: one array per column.
+    r"""Read a CSV file by its schema: one array per column.
 
     Parameters
     ----------
