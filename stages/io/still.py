@@ -72,14 +72,14 @@ def read(path: Path) -> list[Radiograph]:
             pixels = inp.read_image(spec.format)
             if pixels is None:
                 raise InputError(f"{path}: cannot decode subimage {subimage} ({inp.geterror()})")
-            frames.append(_to_radiograph(path, subimage, spec, pixels))
+            frames.append(_to_radiograph(path, subimage, spec, pixels, inp.format_name()))
             subimage += 1
     finally:
         inp.close()
     return frames
 
 
-def _to_radiograph(path: Path, index: int, spec, pixels: np.ndarray) -> Radiograph:
+def _to_radiograph(path: Path, index: int, spec, pixels: np.ndarray, format_name: str) -> Radiograph:
     pixels = np.asarray(pixels)
     if pixels.ndim == 3:
         if spec.nchannels not in (1, 2, 3, 4):
@@ -92,16 +92,20 @@ def _to_radiograph(path: Path, index: int, spec, pixels: np.ndarray) -> Radiogra
     if np.issubdtype(pixels.dtype, np.integer) and bits < native_bits:
         # OIIO rescales fewer stored bits to the container's full range; undo it
         image = np.round(image * ((2**bits - 1) / (2**native_bits - 1))).astype(np.float32)
-    meta = {"format": spec.get_string_attribute("oiio:Format", "") or path.suffix.lstrip(".").lower()}
+    meta = {"format": format_name or path.suffix.lstrip(".").lower()}  # OpenImageIO's name: "tiff", "png", ...
     return Radiograph(image, int(bits), str(path), index, meta)
 
 
-def write_still(path: str | os.PathLike, image: np.ndarray, *, attributes: dict | None = None) -> None:
+def write_still(
+    path: str | os.PathLike, image: np.ndarray, *, attributes: dict | None = None, file_format: str = ""
+) -> None:
     """Write a monochrome image atomically with OpenImageIO, in the dtype given.
 
     ``image`` is written as-is (uint8, uint16 or float32). ``attributes`` are
     OpenImageIO spec attributes, e.g. a fixed ``DateTime`` so that the same
     pixels give the same bytes (OpenImageIO stamps the current time otherwise).
+    ``file_format`` is an OpenImageIO format name (``"tiff"``, ``"png"``, ...);
+    by default the suffix of ``path`` chooses.
     """
     import OpenImageIO as oiio
 
@@ -111,7 +115,7 @@ def write_still(path: str | os.PathLike, image: np.ndarray, *, attributes: dict 
         raise InputError(f"write_still: unsupported dtype {image.dtype} for {path}")
 
     def _write(tmp):
-        out = oiio.ImageOutput.create(tmp)
+        out = oiio.ImageOutput.create(file_format or tmp)
         if out is None:
             raise InputError(f"{path}: no writer for this format ({oiio.geterror()})")
         spec = oiio.ImageSpec(image.shape[1], image.shape[0], 1, fmt)
@@ -126,7 +130,10 @@ def write_still(path: str | os.PathLike, image: np.ndarray, *, attributes: dict 
 
 
 def write_like(source: Path, frames: list[Radiograph], out_path: Path) -> None:
-    """One frame, in the source's bit depth, in the image type of ``out_path``'s suffix."""
+    """One frame, in the source's bit depth and image type (TIFF, PNG, ...: what OpenImageIO read it as)."""
     if len(frames) != 1:
         raise InputError(f"{source}: writing {len(frames)} frames to a still image is not supported")
-    write_still(out_path, to_source_dtype(frames[0]))
+    inp = _open(source)
+    file_format = inp.format_name()
+    inp.close()
+    write_still(out_path, to_source_dtype(frames[0]), file_format=file_format)
