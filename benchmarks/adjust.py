@@ -58,7 +58,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
-from fluorocal.stages.adjust import AdjustParams, adjust_bundle  # noqa: E402
+from fluorocal.stages.adjust import adjust_bundle  # noqa: E402
 from fluorocal.stages.artifacts import Observations  # noqa: E402
 
 from tests.stages.ba_synthetic import ScipyProblem, aligned_error_mm, make_problem, pycolmap_reconstruction  # noqa: E402
@@ -101,9 +101,7 @@ def side_by_side(skip_scipy: bool) -> None:
         f"{bad.mean() * 100:.1f} % outliers, noise {NOISE_PX} px, BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}"
     )
     rows = []
-    res, wall, cpu = timed(
-        lambda: adjust_bundle(obs, (syn.ids, syn.nominal_mm), syn.initial, params=AdjustParams()), repeat=3
-    )
+    res, wall, cpu = timed(lambda: adjust_bundle(obs, (syn.ids, syn.nominal_mm), syn.initial), repeat=3)
     ours, ours_cpu = wall, cpu
     rows.append(
         (
@@ -123,7 +121,7 @@ def side_by_side(skip_scipy: bool) -> None:
         sparsity = ref.sparsity()
         for loss in ("cauchy", "linear"):
             sol, wall, cpu = timed(
-                lambda: least_squares(
+                lambda loss=loss: least_squares(
                     ref.residuals,
                     ref.x0(),
                     jac_sparsity=sparsity,
@@ -156,7 +154,7 @@ def side_by_side(skip_scipy: bool) -> None:
         pycolmap.logging.minloglevel = 2  # errors only: no per-run banner
         for threads in (1, -1):
 
-            def run():
+            def run(threads=threads):
                 rec = pycolmap_reconstruction(syn, obs.xy_px)
                 opts = pycolmap.BundleAdjustmentOptions()
                 opts.print_summary = False
@@ -184,16 +182,20 @@ def side_by_side(skip_scipy: bool) -> None:
             )
 
     print(
-        f"{'solver':44s} {'wall s':>8s} {'cpu s':>7s} {'iter/nfev':>9s} {'3D rms mm':>10s} {'wall/ours':>9s} {'cpu/ours':>8s}  note"
+        f"{'solver':44s} {'wall s':>8s} {'cpu s':>7s} {'iter/nfev':>9s} {'3D rms mm':>10s} "
+        f"{'wall/ours':>9s} {'cpu/ours':>8s}  note"
     )
     for name, wall, cpu, it, err, note in rows:
         print(
             f"{name:44s} {wall:8.3f} {cpu:7.3f} {it:9d} {err:10.4f} {wall / ours:8.1f}x {cpu / ours_cpu:7.1f}x  {note}"
         )
     print(
-        f"paper's C++: {PAPER_S_PER_ITERATION} s per iteration (about 30 iterations): ours {ours:.3f} s for the whole solve = "
-        f"{PAPER_S_PER_ITERATION / ours:.0f}x one paper iteration, {30 * PAPER_S_PER_ITERATION / ours:.0f}x the paper's solve; "
-        f"{ours / res.iterations * 1000:.0f} ms per iteration here (wall; {ours_cpu / res.iterations * 1000:.0f} ms cpu)"
+        f"paper's C++: {PAPER_S_PER_ITERATION} s per iteration (about 30 iterations): "
+        f"ours {ours:.3f} s for the whole solve = "
+        f"{PAPER_S_PER_ITERATION / ours:.0f}x one paper iteration, "
+        f"{30 * PAPER_S_PER_ITERATION / ours:.0f}x the paper's solve; "
+        f"{ours / res.iterations * 1000:.0f} ms per iteration here "
+        f"(wall; {ours_cpu / res.iterations * 1000:.0f} ms cpu)"
     )
 
 
@@ -242,7 +244,8 @@ def scale_one(m: int) -> None:
 def scaling(sizes) -> None:
     print("\nPart 2: scaling, 500 beads, ~300 observations per exposure, 2 % outliers (each size in a fresh process)")
     print(
-        f"{'exposures':>9s} {'observations':>12s} {'wall s':>8s} {'cpu s':>7s} {'iterations':>10s} {'cpu ms/iter':>11s} "
+        f"{'exposures':>9s} {'observations':>12s} {'wall s':>8s} {'cpu s':>7s} {'iterations':>10s} "
+        f"{'cpu ms/iter':>11s} "
         f"{'peak MB':>8s} {'3D rms mm':>10s} {'flagged':>8s} {'cpu / cpu@first':>15s}"
     )
     base = None
@@ -257,7 +260,8 @@ def scaling(sizes) -> None:
         base = base or r["cpu"]
         print(
             f"{r['m']:9d} {r['n_obs']:12d} {r['wall']:8.2f} {r['cpu']:7.2f} {r['iterations']:10d} "
-            f"{1000 * r['cpu'] / r['iterations']:11.0f} {r['peak_mb']:8.0f} {r['err']:10.4f} {100 * r['flagged']:7.0f}% "
+            f"{1000 * r['cpu'] / r['iterations']:11.0f} {r['peak_mb']:8.0f} {r['err']:10.4f} "
+            f"{100 * r['flagged']:7.0f}% "
             f"{r['cpu'] / base:15.1f}"
         )
     print("wall > cpu means the process waited for a CPU (the machine is shared); cpu is this process's own time")

@@ -4,8 +4,8 @@ An artifact lives in ``<cache>/<stage>/<key>/``: ``manifest.json`` (key,
 stage, provenance, the artifact's structure and the sha256 of every file),
 ``arrays.npz`` (its numpy arrays), and, where the artifact offers them,
 ``table.csv`` and ``overlay.png`` for people. The key is a hash of the stage
-name, its implementation version, its parameters and its input keys
-(:func:`artifact_key`).
+name, the digest of the code that computes it (:mod:`fluorocal.codehash`),
+its parameters and its input keys (:func:`artifact_key`).
 
 Writes are atomic: everything is written into a hidden temporary directory
 beside the final one, which is renamed into place last, so an interrupted
@@ -65,9 +65,9 @@ def _jsonable(obj):
     return obj
 
 
-def artifact_key(stage: str, version: int, params, input_keys: list[str]) -> str:
-    """sha256 of ``{stage, version, params, input keys}`` in canonical JSON."""
-    payload = canonical_json({"stage": stage, "version": version, "params": params, "inputs": list(input_keys)})
+def artifact_key(stage: str, code: str, params, input_keys: list[str]) -> str:
+    """sha256 of ``{stage, code digest, params, input keys}`` in canonical JSON."""
+    payload = canonical_json({"stage": stage, "code": code, "params": params, "inputs": list(input_keys)})
     return hashlib.sha256(payload.encode()).hexdigest()
 
 

@@ -69,7 +69,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "inspect",
         help="show what each stage produced",
-        description="Table of stages: key, status (cached / stale / missing), size and summary; with STAGE, that stage's artifacts.",
+        description=(
+            "Table of stages: key, status (cached / stale / missing), size and summary; "
+            "with STAGE, that stage's artifacts."
+        ),
     )
     p.add_argument("config", type=Path, help="project TOML file")
     p.add_argument("stage", nargs="?", help="a stage name (default: all stages)")
@@ -86,7 +89,9 @@ def build_parser() -> argparse.ArgumentParser:
     c = cache_sub.add_parser(
         "clean",
         help="delete a project's cache",
-        description="Delete the project's artifact cache (or, with --stale, only entries the current config no longer uses).",
+        description=(
+            "Delete the project's artifact cache (or, with --stale, only entries the current config no longer uses)."
+        ),
     )
     c.add_argument("config", type=Path, help="project TOML file")
     c.add_argument("--stale", action="store_true", help="keep entries the current config uses (default: delete all)")
@@ -136,7 +141,8 @@ def cmd_inspect(args) -> int:
     print(f"{'stage':<10} {'key':<12} {'status':<8} {'entries':>9} {'size':>10}  summary")
     for r in rows:
         print(
-            f"{r['stage']:<10} {r['key']:<12} {r['status']:<8} {r['cached']:>4}/{r['n']:<4} {_human(r['bytes']):>10}  {r['summary']}"
+            f"{r['stage']:<10} {r['key']:<12} {r['status']:<8} {r['cached']:>4}/{r['n']:<4} "
+            f"{_human(r['bytes']):>10}  {r['summary']}"
         )
     return 0
 
@@ -202,10 +208,8 @@ def main(argv=None) -> int:
     logging.basicConfig(
         level=logging.DEBUG if args.debug else (logging.WARNING if args.quiet else logging.INFO), format="%(message)s"
     )
-    for noisy in ("PIL", "matplotlib", "fluorocal.stages.adjust"):  # the adjustment's per-solve lines are for --debug
-        logging.getLogger(noisy).setLevel(
-            logging.DEBUG if args.debug and noisy.startswith("stages") else logging.WARNING
-        )
+    for noisy in ("PIL", "matplotlib"):  # their debug lines are not fluorocal's
+        logging.getLogger(noisy).setLevel(logging.WARNING)
     if not args.debug:
         warnings.showwarning = _show_warning
     from fluorocal.stages.errors import CalibError

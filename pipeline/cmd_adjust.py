@@ -94,6 +94,46 @@ def _read_observations(path: Path):
     return obs, table, np.stack([table["delta_x"], table["delta_y"]], axis=1)
 
 
+def run(args) -> int:
+    """Read, adjust and write the outputs; return the exit code."""
+    import logging
+
+    import numpy as np
+    from fluorocal.stages.adjust import FreeParameters, SolverOptions, adjust_bundle, initial_orientation
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import read_phantom
+
+    log = logging.getLogger("fluorocal")
+    if args.sid <= 0 or args.pixel_pitch <= 0:
+        raise InputError(f"--sid and --pixel-pitch must be > 0; got {args.sid}, {args.pixel_pitch}")
+    phantom = read_phantom(args.phantom)
+    obs, rows, corrections = _read_observations(args.observations)
+    w, h = args.image_size
+    iop = np.array([(w - 1) / 2, (h - 1) / 2, args.sid / args.pixel_pitch])
+    start = initial_orientation(obs, phantom, iop)
+    # the flags own the choice of free parameters; the solver keeps its defaults but for ν
+    free = FreeParameters(estimate_iop=not args.fixed_iop)
+    res = adjust_bundle(obs, phantom, start, corrections, free=free, solver=SolverOptions(nu=args.nu))
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    _write_tables(out, obs, rows, res)
+    summary = _summary(res)
+    _write_json(out / "orientation.json", summary)
+    log.info(
+        "adjusted %d observations (%d outliers, %d unused): σ0 %.3g, %d iterations (%s), usable %s -> %s",
+        len(obs),
+        summary["outliers"],
+        summary["unused"],
+        res.sigma0,
+        res.iterations,
+        res.stop_reason,
+        res.usable,
+        out,
+    )
+    return 0 if res.usable else 1
+
+
 def _write_tables(out: Path, obs, table: dict, res) -> None:
     """``object_points.csv`` and ``observations.csv`` (the input rows with the adjustment's statistics)."""
     from fluorocal.export import write_object_points
@@ -109,31 +149,11 @@ def _write_tables(out: Path, obs, table: dict, res) -> None:
     write_table(out / "observations.csv", OBSERVATIONS, columns)
 
 
-def run(args) -> int:
-    """Read, adjust and write the outputs; return the exit code."""
-    import json
-    import logging
+def _summary(res) -> dict:
+    """The orientation and the solve's statistics, JSON-ready."""
     import math
 
-    import numpy as np
-    from fluorocal.stages.adjust import AdjustParams, adjust_bundle, initial_orientation
-    from fluorocal.stages.errors import InputError
-    from fluorocal.stages.io import atomic_write, read_phantom
-
-    log = logging.getLogger("fluorocal")
-    if args.sid <= 0 or args.pixel_pitch <= 0:
-        raise InputError(f"--sid and --pixel-pitch must be > 0; got {args.sid}, {args.pixel_pitch}")
-    phantom = read_phantom(args.phantom)
-    obs, rows, corrections = _read_observations(args.observations)
-    w, h = args.image_size
-    iop = np.array([(w - 1) / 2, (h - 1) / 2, args.sid / args.pixel_pitch])
-    start = initial_orientation(obs, phantom, iop)
-    res = adjust_bundle(obs, phantom, start, corrections, AdjustParams(nu=args.nu, estimate_iop=not args.fixed_iop))
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    _write_tables(out, obs, rows, res)
-    summary = {
+    return {
         "system_names": list(res.system_names),
         "iop_px": res.iop_px.tolist(),
         "iop_std_px": res.iop_std_px.tolist(),
@@ -158,20 +178,14 @@ def run(args) -> int:
         "unused": int((~res.used).sum()),
     }
 
+
+def _write_json(path: Path, data: dict) -> None:
+    import json
+
+    from fluorocal.stages.io import atomic_write
+
     def _write(tmp):
         with open(tmp, "w") as fh:
-            json.dump(summary, fh, indent=1)
+            json.dump(data, fh, indent=1)
 
-    atomic_write(out / "orientation.json", _write)
-    log.info(
-        "adjusted %d observations (%d outliers, %d unused): σ0 %.3g, %d iterations (%s), usable %s -> %s",
-        len(obs),
-        summary["outliers"],
-        summary["unused"],
-        res.sigma0,
-        res.iterations,
-        res.stop_reason,
-        res.usable,
-        out,
-    )
-    return 0 if res.usable else 1
+    atomic_write(path, _write)

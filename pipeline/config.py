@@ -22,6 +22,27 @@ class ConfigError(InputError):
     """The project configuration is invalid; the message names the key."""
 
 
+#: stage-section keys that another setting owns: (section, key) -> the owner, named in the refusal
+OWNED_ELSEWHERE = {
+    ("adjust", "estimate_iop"): "[calibration] scheme (the knn+iop schemes estimate the IOP in the adjustment)",
+    ("adjust", "additional_parameters"): "[calibration] scheme (polynomial estimates them)",
+    ("adjust", "fixed_additional_parameters"): "[learn] polynomial_fixed (the polynomial scheme's held terms)",
+    ("adjust", "compute_covariance"): "[learn] fast_intermediate (the loop decides which solves compute it)",
+    ("learn", "smooth"): "[calibration] scheme (knn+smooth and knn+iop+smooth smooth the kNN field)",
+    ("label", "source_image_distance_mm"): "[[systems]] source_image_distance",
+    ("label", "pixel_pitch_mm"): "[[systems]] pixel_pitch",
+    ("label", "image_size_px"): "the frames themselves",
+    ("label", "seeds"): "[[systems]] seeds",
+}
+
+
+def _reject_owned(section: str, table: dict, path: Path) -> None:
+    for key in table:
+        if (section, key) in OWNED_ELSEWHERE:
+            owner = OWNED_ELSEWHERE[(section, key)]
+            raise ConfigError(f"{_where(path, f'[{section}] ', key)}: set by {owner}; remove it from [{section}]")
+
+
 @dataclass(frozen=True)
 class PhantomConfig:
     file: Path | None = None
@@ -199,13 +220,18 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     for stage, cls in stage_params_allowed.items():
         if stage in data:
             table = _expect(data[stage], dict, f"a table [{stage}]", path, "", stage)
+            _reject_owned(stage, table, path)
             params_from_dict(cls, table, where=f"{path.name}: [{stage}] ")
             stage_params[stage] = table
     return Config(path, phantom, systems, scheme, out_dir, cache_dir, stage_params)
 
 
-def params_from_dict(cls: type, table: dict, *, where: str = ""):
+def params_from_dict(cls, table: dict, *, where: str = ""):
     """Build a frozen ``Params`` dataclass from a dict, rejecting unknown keys and wrong types.
+
+    ``cls`` may be a tuple of dataclasses whose fields do not overlap (a section that
+    holds several of them, as ``[adjust]`` holds the solver options and the data
+    selection): the keys are split by field name and a tuple of instances is returned.
 
     Examples
     --------
@@ -214,15 +240,21 @@ def params_from_dict(cls: type, table: dict, *, where: str = ""):
     ...     radius_px: float = 3.0
     >>> params_from_dict(P, {"radius_px": 4})
     P(radius_px=4.0)
+    >>> @dataclass(frozen=True)
+    ... class Q:
+    ...     n: int = 1
+    >>> params_from_dict((P, Q), {"n": 2})
+    (P(radius_px=3.0), Q(n=2))
     """
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    hints = typing.get_type_hints(cls)
-    values = {}
+    classes = cls if isinstance(cls, tuple) else (cls,)
+    owner = {f.name: c for c in classes for f in dataclasses.fields(c)}
+    values: dict[type, dict] = {c: {} for c in classes}
     for key, value in table.items():
-        if key not in fields:
-            raise ConfigError(f"{where}key '{key}': unknown; allowed keys are {', '.join(sorted(fields))}")
-        values[key] = _coerce(value, hints[key], f"{where}key '{key}'")
-    return cls(**values)
+        if key not in owner:
+            raise ConfigError(f"{where}key '{key}': unknown; allowed keys are {', '.join(sorted(owner))}")
+        values[owner[key]][key] = _coerce(value, typing.get_type_hints(owner[key])[key], f"{where}key '{key}'")
+    built = tuple(c(**values[c]) for c in classes)
+    return built if isinstance(cls, tuple) else built[0]
 
 
 def _coerce(value, hint, where: str):

@@ -1,8 +1,9 @@
 """The stage registry and graph.
 
 A :class:`Stage` declares its name, its inputs (upstream stages or the
-sources ``frame`` and ``phantom``), its frozen ``Params`` class, its
-implementation ``VERSION`` and its pure function. Per-frame stages run once
+sources ``frame`` and ``phantom``), its frozen ``Params`` class and its pure
+function; the digest of the code it runs (:mod:`fluorocal.codehash`) goes
+into every key. Per-frame stages run once
 per frame; a gathering stage runs once per project on all frames' outputs of
 its first input, which its ``gather`` function (pipeline side) turns into one
 input artifact.
@@ -32,8 +33,6 @@ class Stage:
         ``func(*inputs, params)``, pure.
     params_cls : type
         Frozen dataclass of the stage's parameters (config section ``[name]``).
-    version : int
-        Implementation version: bump it when the output's meaning changes.
     inputs : tuple of str
         Upstream stage names or sources (``"frame"``, ``"phantom"``).
     per_frame : bool
@@ -53,12 +52,18 @@ class Stage:
     name: str
     func: Callable
     params_cls: type
-    version: int
     inputs: tuple[str, ...]
     per_frame: bool = True
     gather: Callable | None = None
     context: Callable | None = None
     extras: Callable | None = None
+
+    def code_digest(self) -> str:
+        """Digest of the source of the stage's function and of the pipeline hooks it runs with, and all they import."""
+        from fluorocal.codehash import code_digest
+
+        hooks = (self.func, self.gather, self.context, self.extras)
+        return code_digest(f.__module__ for f in hooks if f is not None)
 
 
 def _label_context(config, unit, units) -> dict:
@@ -129,8 +134,8 @@ REGISTRY = (
     ),
 )
 
-#: config sections that are not a stage of their own, and their Params class
-EXTRA_SECTIONS = {"adjust": ("fluorocal.stages.adjust", "AdjustParams")}
+#: config sections that are not a stage of their own, and their Params classes (keys split by field name)
+EXTRA_SECTIONS = {"adjust": ("fluorocal.stages.adjust", ("SolverOptions", "DataSelection"))}
 
 
 def default_stages() -> list[Stage]:
@@ -138,15 +143,16 @@ def default_stages() -> list[Stage]:
     stages = []
     for name, module, entry, params, inputs, options in REGISTRY:
         mod = importlib.import_module(module)
-        stages.append(Stage(name, getattr(mod, entry), getattr(mod, params), int(mod.VERSION), inputs, **options))
+        stages.append(Stage(name, getattr(mod, entry), getattr(mod, params), inputs, **options))
     return stages
 
 
-def stage_params_classes() -> dict[str, type]:
-    """Config section name -> Params class, for validating ``[detect]``, ``[adjust]`` etc."""
+def stage_params_classes() -> dict[str, type | tuple[type, ...]]:
+    """Config section name -> Params class (or classes), for validating ``[detect]``, ``[adjust]`` etc."""
     sections = {s.name: s.params_cls for s in default_stages()}
-    for section, (module, cls) in EXTRA_SECTIONS.items():
-        sections[section] = getattr(importlib.import_module(module), cls)
+    for section, (module, names) in EXTRA_SECTIONS.items():
+        mod = importlib.import_module(module)
+        sections[section] = tuple(getattr(mod, name) for name in names)
     return sections
 
 

@@ -132,6 +132,7 @@ class Runner:
         self.keys: dict[tuple[str, int | None], str] = {}
         self.params: dict[tuple[str, int | None], tuple] = {}  # (Params, extras) of each slot, as hashed
         self.memory: dict[tuple[str, int | None], object] = {}
+        self.codes: dict[str, str] = {}  # stage name -> digest of the code that computes it
         self.report = RunReport()
         self._plan()
 
@@ -153,6 +154,7 @@ class Runner:
 
     def _plan(self) -> None:
         for stage in self.stages:
+            code = self.codes[stage.name] = stage.code_digest()
             for unit in self._stage_units(stage):
                 inputs = [k for name in stage.inputs for k in self._input_key(name, unit)]
                 if not stage.per_frame:  # the grouping of frames is part of what a gathering stage sees
@@ -162,9 +164,7 @@ class Runner:
                 params = stage_params(stage, self.config, None if unit is None else self.units[unit], self.units)
                 extras = stage.extras(self.config, self.units) if stage.extras else {}
                 self.params[(stage.name, unit)] = (params, extras)
-                self.keys[(stage.name, unit)] = artifact_key(
-                    stage.name, stage.version, {"params": params, **extras}, inputs
-                )
+                self.keys[(stage.name, unit)] = artifact_key(stage.name, code, {"params": params, **extras}, inputs)
 
     def _stage_units(self, stage: Stage) -> list[int | None]:
         return list(range(len(self.units))) if stage.per_frame else [None]
@@ -245,7 +245,7 @@ class Runner:
             raise type(exc)(f"{where}{stage.name}: {exc}") from exc
         took = time.perf_counter() - t0
         provenance = {
-            "stage_version": stage.version,
+            "code_digest": self.codes[stage.name],
             "params": dataclasses.asdict(params),
             "inputs": list(stage.inputs),
             "wall_seconds": took,

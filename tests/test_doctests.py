@@ -5,9 +5,19 @@ import importlib
 import pkgutil
 
 import fluorocal
+import fluorocal.stages
 import pytest
 
-MODULES = sorted(m.name for m in pkgutil.walk_packages(fluorocal.__path__, "fluorocal."))
+# fluorocal.stages lives in a folder of its own (stages/), so it is walked on its own
+MODULES = sorted(
+    {"fluorocal", "fluorocal.stages"}
+    | {m.name for m in pkgutil.walk_packages(fluorocal.__path__, "fluorocal.")}
+    | {m.name for m in pkgutil.walk_packages(fluorocal.stages.__path__, "fluorocal.stages.")}
+)
+
+
+def test_every_stage_module_is_collected():
+    assert {"fluorocal.stages.adjust", "fluorocal.stages.learn", "fluorocal.calibration"} <= set(MODULES)
 
 
 @pytest.mark.parametrize("name", MODULES)

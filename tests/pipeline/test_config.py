@@ -84,3 +84,23 @@ def test_polynomial_scheme_is_accepted(tmp_path):
     path = make_project(tmp_path)
     path.write_text(path.read_text() + '\n[calibration]\nscheme = "polynomial"\n')
     assert load_config(path).scheme == "polynomial"
+
+
+@pytest.mark.parametrize(
+    "section, key, value, owner",
+    [
+        ("adjust", "estimate_iop", "false", r"\[calibration\] scheme"),
+        ("learn", "smooth", "false", r"\[calibration\] scheme"),
+        ("label", "source_image_distance_mm", "1000.0", r"\[\[systems\]\] source_image_distance"),
+        ("label", "pixel_pitch_mm", "0.3", r"\[\[systems\]\] pixel_pitch"),
+    ],
+)
+def test_a_key_another_setting_owns_is_refused_naming_both(tmp_path, section, key, value, owner):
+    """Such keys used to be accepted, hashed and then silently overridden."""
+    from fluorocal.graph import stage_params_classes
+
+    path = make_project(tmp_path)
+    path.write_text(path.read_text() + f"\n[{section}]\n{key} = {value}\n")
+    with pytest.raises(ConfigError, match=rf"\[{section}\] key '{key}': set by {owner}") as info:
+        load_config(path, stage_params_allowed=stage_params_classes())
+    assert "\n" not in str(info.value)

@@ -63,9 +63,9 @@ def gather(units, artifacts, config) -> Value:
 
 def toy_stages() -> list[Stage]:
     return [
-        Stage("mean", mean, MeanParams, 1, ("frame",)),
-        Stage("scale", scale, ScaleParams, 1, ("mean",)),
-        Stage("total", total, TotalParams, 1, ("scale",), per_frame=False, gather=gather),
+        Stage("mean", mean, MeanParams, ("frame",)),
+        Stage("scale", scale, ScaleParams, ("mean",)),
+        Stage("total", total, TotalParams, ("scale",), per_frame=False, gather=gather),
     ]
 
 

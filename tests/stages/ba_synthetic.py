@@ -158,7 +158,7 @@ class ScipyProblem:
     """
 
     def __init__(self, syn: Synthetic, estimate_iop: bool = True, corrections_px=None):
-        from fluorocal.stages._ba import datum_directions
+        from fluorocal.stages.adjust.problem import datum_directions
 
         obs = syn.observations
         self.n, self.m, self.S = len(syn.ids), len(syn.initial.exposure), syn.initial.n_systems

@@ -1,4 +1,4 @@
-"""Tests of the robust bundle adjustment (stages/adjust.py, stages/_ba.py).
+"""Tests of the robust bundle adjustment (the package stages/adjust/).
 
 Synthetic problems come from tests/stages/ba_synthetic.py: beads on four faces
 of a 120 mm cube, a tilted turntable ring of exposures at ~950 mm from the
@@ -13,9 +13,21 @@ import math
 import numpy as np
 import pytest
 from fluorocal.config import params_from_dict
-from fluorocal.stages import _ba
 from fluorocal.stages._geometry import quat_to_matrix, similarity_fit
-from fluorocal.stages.adjust import VERSION, Adjustment, AdjustParams, Orientation, _prepare, adjust_bundle
+from fluorocal.stages.adjust import (
+    VERSION,
+    Adjustment,
+    DataSelection,
+    FreeParameters,
+    Orientation,
+    SolverOptions,
+    adjust_bundle,
+    polynomial,
+)
+from fluorocal.stages.adjust.bundle import prepare
+from fluorocal.stages.adjust.collinearity import State, linearize, residuals
+from fluorocal.stages.adjust.problem import apply_step, build_problem, datum_directions
+from fluorocal.stages.adjust.robust import t_cost
 from fluorocal.stages.artifacts import Observations, Phantom
 from fluorocal.stages.errors import EstimationError, InputError, ShapeError
 
@@ -24,8 +36,8 @@ from tests.stages.ba_synthetic import ScipyProblem, aligned_error_mm, make_probl
 NOISE_PX = 0.05
 
 
-def _solve(syn, **params) -> Adjustment:
-    return adjust_bundle(syn.observations, (syn.ids, syn.nominal_mm), syn.initial, params=AdjustParams(**params))
+def _solve(syn, **options) -> Adjustment:
+    return adjust_bundle(syn.observations, (syn.ids, syn.nominal_mm), syn.initial, **options)
 
 
 def _with_xy(obs: Observations, xy: np.ndarray, bead_id=None) -> Observations:
@@ -73,7 +85,7 @@ def test_version_and_output_shapes(mono, mono_result):
 
 
 def test_orientation_poses_compose_rop(biplanar):
-    """System B's pose = ROP composed with A's: the projection through poses(1) matches the camera frame of _ba."""
+    """System B's pose = ROP composed with A's: the projection through poses(1) matches the residuals' camera frame."""
     truth = biplanar.truth
     q_b, T_b = truth.poses(1)
     R_a = quat_to_matrix(truth.q_cam_from_obj[3])
@@ -89,7 +101,7 @@ def test_orientation_poses_compose_rop(biplanar):
 
 def _tiny_problem(sigma, correction):
     """One bead at (10, -20, 0) mm seen from a source at (0, 0, -1000) mm, identity rotation, c = 4400 px."""
-    problem, _ = _ba.build_problem(
+    problem, _ = build_problem(
         np.array([0]),
         np.array([0]),
         np.array([0]),
@@ -101,7 +113,7 @@ def _tiny_problem(sigma, correction):
         np.array([True]),
         "points",
     )
-    state = _ba.State(
+    state = State(
         np.array([[10.0, -20.0, 0.0]]),
         np.array([[1.0, 0, 0, 0]]),
         np.array([[0.0, 0, -1000]]),
@@ -116,12 +128,12 @@ def test_residuals_at_hand_computed_point():
     # p_cam = (10, -20, 1000): projection (512 + 4400 * 0.01, 512 - 4400 * 0.02) = (556, 424);
     # ideal = (557, 423.5) - Δ(0.5, 0.25) = (556.5, 423.25); residual (0.5, -0.75) px
     problem, state = _tiny_problem([0.1, 0.2, 0.0], np.array([[0.5, 0.25]]))
-    r, e = _ba.residuals(state, problem)
+    r, e = residuals(state, problem)
     np.testing.assert_array_equal(r, [[0.5, -0.75]])
     np.testing.assert_allclose(e, [[5.0, -3.75]], rtol=1e-15)
     # correlated: e2 = (r2 - ρ σy/σx r1) / (σy sqrt(1 - ρ²)) = (-0.75 - 0.5) / (0.2 * sqrt(0.75))
     problem, state = _tiny_problem([0.1, 0.2, 0.5], np.array([[0.5, 0.25]]))
-    r, e = _ba.residuals(state, problem)
+    r, e = residuals(state, problem)
     np.testing.assert_allclose(e, [[5.0, -1.25 / (0.2 * math.sqrt(0.75))]], rtol=1e-14)
     C = np.array([[0.01, 0.5 * 0.1 * 0.2], [0.5 * 0.1 * 0.2, 0.04]])
     assert (e**2).sum() == pytest.approx(float(r[0] @ np.linalg.solve(C, r[0])), rel=1e-13)
@@ -129,8 +141,8 @@ def test_residuals_at_hand_computed_point():
 
 def test_residuals_match_geometry_project(biplanar):
     """The adjustment's model reproduces stages/_geometry.project through Orientation.poses for both systems."""
-    prep = _prepare(biplanar.observations, (biplanar.ids, biplanar.xyz_true_mm), biplanar.truth, None, AdjustParams())
-    state = _ba.State(
+    prep = prepare(biplanar.observations, (biplanar.ids, biplanar.xyz_true_mm), biplanar.truth)
+    state = State(
         biplanar.xyz_true_mm.copy(),
         *(
             np.array(a)
@@ -143,7 +155,7 @@ def test_residuals_match_geometry_project(biplanar):
             )
         ),
     )
-    r, _ = _ba.residuals(state, prep.problem)
+    r, _ = residuals(state, prep.problem)
     noise = biplanar.observations.xy_px - biplanar.ideal_px
     np.testing.assert_allclose(r, noise[prep.used][prep.perm], atol=1e-9)
 
@@ -169,14 +181,14 @@ def test_analytic_jacobian_matches_central_differences(biplanar, eliminate):
         sigma,
         biplanar.observations.system_names,
     )
-    prep = _prepare(obs, (biplanar.ids, biplanar.nominal_mm), biplanar.initial, None, AdjustParams(schur=eliminate))
+    prep = prepare(obs, (biplanar.ids, biplanar.nominal_mm), biplanar.initial, solver=SolverOptions(schur=eliminate))
     problem, state = prep.problem, prep.state
-    e0, J_point, J_pose, J_glob = _ba.linearize(state, problem)
+    e0, J_point, J_pose, J_glob = linearize(state, problem)
     h = 1e-6
 
     def fd(d_points, d_poses, d_glob):
-        ep = _ba.residuals(_ba.apply_step(state, problem, d_points, d_poses, d_glob), problem)[1]
-        em = _ba.residuals(_ba.apply_step(state, problem, -d_points, -d_poses, -d_glob), problem)[1]
+        ep = residuals(apply_step(state, problem, d_points, d_poses, d_glob), problem)[1]
+        em = residuals(apply_step(state, problem, -d_points, -d_poses, -d_glob), problem)[1]
         return (ep - em) / (2 * h)
 
     zp, zc, zg = np.zeros((problem.n_points, 3)), np.zeros((problem.n_poses, 6)), np.zeros(problem.n_globals)
@@ -210,7 +222,7 @@ def test_analytic_jacobian_matches_central_differences(biplanar, eliminate):
 
 
 def test_clean_solve_matches_own_covariance(mono, mono_result):
-    """0.05 px noise: the 3D error after a similarity to the truth is within 10 % of the predicted RMS; IOP within 3σ."""
+    """0.05 px noise: the 3D error after a similarity to the truth is within 10 % of the predicted RMS; IOP in 3σ."""
     res = mono_result
     err = aligned_error_mm(res.xyz_mm, mono.xyz_true_mm)
     predicted = math.sqrt(np.einsum("nii->n", res.xyz_cov_mm2).mean())
@@ -238,7 +250,7 @@ def test_least_squares_matches_scipy():
     from scipy.optimize import least_squares
 
     syn = make_problem(n_beads=40, n_exposures=6, seed=4)
-    res = _solve(syn, nu=math.inf, function_tolerance=1e-12, parameter_tolerance=1e-14)
+    res = _solve(syn, solver=SolverOptions(nu=math.inf, function_tolerance=1e-12, parameter_tolerance=1e-14))
     ref = ScipyProblem(syn)
     sol = least_squares(
         ref.residuals, ref.x0(), jac="3-point", method="trf", x_scale="jac", ftol=1e-15, xtol=1e-15, gtol=1e-15
@@ -295,7 +307,7 @@ def test_gauge_and_parameter_counts(mono, mono_result):
 
 def test_inner_constraints_hold(mono_result, mono):
     """No translation, rotation or scale of the estimated points relative to the nominal ones (to first order)."""
-    D = _ba.datum_directions(mono.nominal_mm).reshape(-1, 7)
+    D = datum_directions(mono.nominal_mm).reshape(-1, 7)
     delta = (mono_result.xyz_mm - mono.nominal_mm).ravel()
     assert np.abs(D.T @ delta).max() < 1e-9 * len(mono.ids)
     s, R, t = similarity_fit(mono.nominal_mm, mono_result.xyz_mm)
@@ -303,7 +315,7 @@ def test_inner_constraints_hold(mono_result, mono):
 
 
 def test_fixed_iop_and_rop_are_bit_identical(mono):
-    res = _solve(mono, estimate_iop=False)
+    res = _solve(mono, free=FreeParameters(estimate_iop=False))
     assert np.array_equal(res.iop_px, mono.initial.iop_px)
     assert np.array_equal(res.rop_q, mono.initial.rop_q) and np.array_equal(
         res.rop_source_mm, mono.initial.rop_source_mm
@@ -313,8 +325,8 @@ def test_fixed_iop_and_rop_are_bit_identical(mono):
 
 
 def test_schur_orderings_agree(biplanar):
-    a = _solve(biplanar, schur="points", function_tolerance=1e-10)
-    b = _solve(biplanar, schur="poses", function_tolerance=1e-10)
+    a = _solve(biplanar, solver=SolverOptions(schur="points", function_tolerance=1e-10))
+    b = _solve(biplanar, solver=SolverOptions(schur="poses", function_tolerance=1e-10))
     np.testing.assert_allclose(a.xyz_mm, b.xyz_mm, atol=1e-7)
     np.testing.assert_allclose(a.iop_px, b.iop_px, atol=1e-6)
     np.testing.assert_allclose(a.xyz_std_mm, b.xyz_std_mm, rtol=1e-6)
@@ -325,11 +337,11 @@ def test_schur_orderings_agree(biplanar):
 def test_perturbing_any_parameter_increases_cost(n_systems):
     """±0.2σ in any point coordinate (every 7th bead), pose, IOP or ROP parameter raises the cost at the optimum."""
     syn = make_problem(n_beads=60, n_exposures=8, n_systems=n_systems, seed=6)
-    params = AdjustParams(function_tolerance=1e-11, parameter_tolerance=1e-14)
-    res = adjust_bundle(syn.observations, (syn.ids, syn.nominal_mm), syn.initial, params=params)
-    prep = _prepare(syn.observations, (syn.ids, syn.nominal_mm), res.orientation, None, params)
+    solver = SolverOptions(function_tolerance=1e-11, parameter_tolerance=1e-14)
+    res = adjust_bundle(syn.observations, (syn.ids, syn.nominal_mm), syn.initial, solver=solver)
+    prep = prepare(syn.observations, (syn.ids, syn.nominal_mm), res.orientation, solver=solver)
     problem = prep.problem
-    state = _ba.State(
+    state = State(
         res.xyz_mm.copy(),
         res.q_cam_from_obj.copy(),
         res.source_mm.copy(),
@@ -340,8 +352,8 @@ def test_perturbing_any_parameter_increases_cost(n_systems):
     scale2 = res.t_scale**2
 
     def cost(st):
-        e = _ba.residuals(st, problem)[1]
-        return _ba.t_cost((e * e).sum(1), res.nu, scale2)
+        e = residuals(st, problem)[1]
+        return t_cost((e * e).sum(1), res.nu, scale2)
 
     c0 = cost(state)
     zp, zc, zg = np.zeros((problem.n_points, 3)), np.zeros((problem.n_poses, 6)), np.zeros(problem.n_globals)
@@ -366,7 +378,7 @@ def test_perturbing_any_parameter_increases_cost(n_systems):
     assert len(cases) == 3 * len(range(0, problem.n_points, 7)) + 6 * problem.n_poses + problem.n_globals
     for dp, dc, dg in cases:
         for sign in (1, -1):
-            assert cost(_ba.apply_step(state, problem, sign * dp, sign * dc, sign * dg)) > c0
+            assert cost(apply_step(state, problem, sign * dp, sign * dc, sign * dg)) > c0
 
 
 def test_covariance_matches_monte_carlo():
@@ -422,11 +434,11 @@ def test_input_errors(mono):
             Orientation(np.tile(start.iop_px, (2, 1)), start.exposure, start.q_cam_from_obj, start.source_mm),
         )
     with pytest.raises(InputError, match="nu must be > 0"):
-        AdjustParams(nu=0)
+        SolverOptions(nu=0)
     with pytest.raises(InputError, match="key 'loss': unknown"):
-        params_from_dict(AdjustParams, {"nu": 4, "loss": "cauchy"})  # config tables become Params in the pipeline
+        params_from_dict(SolverOptions, {"nu": 4, "loss": "cauchy"})  # config tables become Params in the pipeline
     with pytest.raises(InputError, match="schur"):
-        AdjustParams(schur="cameras")
+        SolverOptions(schur="cameras")
     with pytest.raises(InputError, match="must be an Observations"):
         adjust_bundle(obs.xy_px, nominal, start)
 
@@ -472,7 +484,7 @@ def test_bead_seen_once_is_dropped_with_message(mono, caplog):
     first = np.flatnonzero(obs.bead_id == lone)[0]
     keep = (obs.bead_id != lone) | (np.arange(len(obs)) == first)
     sub = Observations(obs.system[keep], obs.exposure[keep], obs.bead_id[keep], obs.xy_px[keep], obs.sigma_px[keep])
-    with caplog.at_level(logging.INFO, logger="fluorocal.stages.adjust"):
+    with caplog.at_level(logging.DEBUG, logger="fluorocal.stages.adjust"):
         res = adjust_bundle(
             sub,
             Phantom(mono.ids, mono.nominal_mm, np.full(len(mono.ids), np.nan), np.full(len(mono.ids), "")),
@@ -491,7 +503,7 @@ def test_points_behind_the_source_are_rejected(mono):
     flipped = Orientation(start.iop_px, start.exposure, start.q_cam_from_obj, -start.source_mm)
     with pytest.raises(EstimationError, match="behind the X-ray source"):
         adjust_bundle(
-            mono.observations, (mono.ids, mono.nominal_mm), flipped, params=AdjustParams(min_ray_angle_deg=0.0)
+            mono.observations, (mono.ids, mono.nominal_mm), flipped, selection=DataSelection(min_ray_angle_deg=0.0)
         )
 
 
@@ -505,9 +517,9 @@ def test_estimate_nu_on_heavy_tails():
         _with_xy(syn.observations, syn.ideal_px + t_noise),
         (syn.ids, syn.nominal_mm),
         syn.initial,
-        params=AdjustParams(estimate_nu=True),
+        solver=SolverOptions(estimate_nu=True),
     )
-    light = _solve(syn, estimate_nu=True)
+    light = _solve(syn, solver=SolverOptions(estimate_nu=True))
     assert 1.5 < heavy.nu < 6
     assert light.nu > 20
 
@@ -523,7 +535,7 @@ def _plate_problem(n_frames=4, seed=0):
     xyz = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
     ids = np.arange(len(xyz))
     rows, Hs = [], []
-    for f in range(n_frames):
+    for _ in range(n_frames):
         H = np.array([[6.0, 0.3, 512], [-0.2, 6.1, 500], [1e-4, -2e-4, 1.0]]) + rng.normal(
             0, [[0.05, 0.05, 5], [0.05, 0.05, 5], [5e-5, 5e-5, 0]]
         )
@@ -614,20 +626,16 @@ def _polynomially_distorted(syn, ap=AP_TRUE, radius_px=AP_RADIUS_PX):
 
     Returns the observations and the true correction at them (``ideal = measured - Δ``).
     """
-    from fluorocal.stages import _polynomial
-
     obs = syn.observations
     pp = syn.truth.iop_px[obs.system, :2]
     measured = syn.ideal_px.copy()
     for _ in range(50):  # m = ideal + Δ(m): a contraction, |∂Δ/∂m| ~ 0.03
-        measured = syn.ideal_px + _polynomial.correction(measured, pp, radius_px, np.tile(ap, (len(obs), 1)))
+        measured = syn.ideal_px + polynomial.correction(measured, pp, radius_px, np.tile(ap, (len(obs), 1)))
     measured += obs.xy_px - syn.ideal_px
-    return _with_xy(obs, measured), _polynomial.correction(measured, pp, radius_px, np.tile(ap, (len(obs), 1)))
+    return _with_xy(obs, measured), polynomial.correction(measured, pp, radius_px, np.tile(ap, (len(obs), 1)))
 
 
 def test_polynomial_model_at_hand_computed_points():
-    from fluorocal.stages import _polynomial
-
     pp = np.array([500.0, 400.0])
     # u = 0.6, v = 0.8 (ρ = 1): each coefficient's term by hand
     xy = np.array([[560.0, 480.0]])
@@ -640,16 +648,16 @@ def test_polynomial_model_at_hand_computed_points():
         "b1": (0.6, 0.0),
         "b2": (0.8, 0.0),
     }
-    for i, name in enumerate(_polynomial.AP_NAMES):
+    for i, name in enumerate(polynomial.AP_NAMES):
         ap = np.zeros(7)
         ap[i] = 1.0
-        np.testing.assert_allclose(_polynomial.correction(xy, pp, 100.0, ap), [expected[name]], rtol=1e-14)
+        np.testing.assert_allclose(polynomial.correction(xy, pp, 100.0, ap), [expected[name]], rtol=1e-14)
     # another reference radius describes the same field with rescaled coefficients
     ap = AP_TRUE
-    other = _polynomial.rescaled(ap, 700.0, 350.0)
+    other = polynomial.rescaled(ap, 700.0, 350.0)
     pts = np.random.default_rng(0).uniform(0, 1000, (50, 2))
     np.testing.assert_allclose(
-        _polynomial.correction(pts, pp, 350.0, other), _polynomial.correction(pts, pp, 700.0, ap), rtol=1e-12
+        polynomial.correction(pts, pp, 350.0, other), polynomial.correction(pts, pp, 700.0, ap), rtol=1e-12
     )
 
 
@@ -666,17 +674,18 @@ def test_ap_jacobian_matches_central_differences(biplanar, eliminate):
     from dataclasses import replace
 
     obs, _ = _polynomially_distorted(biplanar)
-    prep = _prepare(
+    prep = prepare(
         obs,
         (biplanar.ids, biplanar.nominal_mm),
         biplanar.initial,
         None,
-        AdjustParams(schur=eliminate, additional_parameters="polynomial", fixed_additional_parameters=()),
+        free=FreeParameters(additional_parameters="polynomial", fixed_additional_parameters=()),
+        solver=SolverOptions(schur=eliminate),
     )
     problem = prep.problem
     assert problem.gcol.shape == (2, 16) and problem.n_globals == 2 * 3 + 6 + 2 * 7  # IOP, ROP of B, APs
     state = replace(prep.state, ap_px=np.array([AP_TRUE, -0.5 * AP_TRUE[::-1]]))
-    _, _, _, J_glob = _ba.linearize(state, problem)
+    _, _, _, J_glob = linearize(state, problem)
     zp, zc = np.zeros((problem.n_points, 3)), np.zeros((problem.n_poses, 6))
     h = 1e-4
     worst = 0.0
@@ -687,8 +696,8 @@ def test_ap_jacobian_matches_central_differences(biplanar, eliminate):
                 continue
             d = np.zeros(problem.n_globals)
             d[col] = h
-            ep = _ba.residuals(_ba.apply_step(state, problem, zp, zc, d), problem)[1]
-            em = _ba.residuals(_ba.apply_step(state, problem, zp, zc, -d), problem)[1]
+            ep = residuals(apply_step(state, problem, zp, zc, d), problem)[1]
+            em = residuals(apply_step(state, problem, zp, zc, -d), problem)[1]
             numeric = ((ep - em) / (2 * h))[sel]
             analytic = J_glob[sel, :, k]
             worst = max(worst, float(np.abs(analytic - numeric).max() / np.abs(analytic).max()))
@@ -703,8 +712,6 @@ def test_polynomial_distortion_is_recovered_by_the_adjustment(mono):
     IOP and the free network, may cost some accuracy but not more than 1.8x
     (measured 0.0104 vs 0.0067 mm; without the APs 0.043 mm).
     """
-    from fluorocal.stages import _polynomial
-
     obs, true_corr = _polynomially_distorted(mono)
     nominal = (mono.ids, mono.nominal_mm)
     # all seven: the tilted cube at 950 mm determines the affinity too
@@ -712,12 +719,12 @@ def test_polynomial_distortion_is_recovered_by_the_adjustment(mono):
         obs,
         nominal,
         mono.initial,
-        params=AdjustParams(additional_parameters="polynomial", fixed_additional_parameters=()),
+        free=FreeParameters(additional_parameters="polynomial", fixed_additional_parameters=()),
     )
     assert res.usable and res.additional_parameters == "polynomial"
     r0 = res.ap_radius_px[0]
-    assert r0 == pytest.approx(_polynomial.reference_radius(obs.xy_px))
-    truth = _polynomial.rescaled(AP_TRUE, AP_RADIUS_PX, r0)
+    assert r0 == pytest.approx(polynomial.reference_radius(obs.xy_px))
+    truth = polynomial.rescaled(AP_TRUE, AP_RADIUS_PX, r0)
     z = (res.ap_px[0] - truth) / res.ap_std_px[0]
     assert np.all(np.abs(z) < 3), z
     assert np.all(np.abs(res.iop_px - mono.truth.iop_px) <= 3 * res.iop_std_px)
@@ -754,6 +761,6 @@ def test_without_additional_parameters_they_are_reported_zero(mono_result):
     assert mono_result.additional_parameters == "none"
     assert mono_result.ap_px.shape == mono_result.ap_std_px.shape == (1, 7) and not mono_result.ap_px.any()
     with pytest.raises(InputError, match="additional_parameters must be 'none' or 'polynomial'"):
-        AdjustParams(additional_parameters="radial")
+        FreeParameters(additional_parameters="radial")
     with pytest.raises(InputError, match=r"fixed_additional_parameters must name some of k1, k2, .*got \['k4'\]"):
-        AdjustParams(fixed_additional_parameters=["k1", "k4"])
+        FreeParameters(fixed_additional_parameters=["k1", "k4"])

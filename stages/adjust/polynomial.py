@@ -3,7 +3,7 @@
 The classic photogrammetric self-calibration model (the "expert method" the
 paper compares with): Brown's radial and decentring distortion and Fraser's
 affinity, seven coefficients per imaging system, estimated in the bundle
-adjustment (:class:`stages.adjust.AdjustParams` ``additional_parameters``).
+adjustment (:class:`stages.adjust.FreeParameters` ``additional_parameters``).
 
 Model
 -----
@@ -26,7 +26,7 @@ term causes at ``ρ = 1``: the Jacobian columns are all of order one, like the
 principal point's, which keeps the normal equations well conditioned.
 
 The adjustment holds the affinity at zero unless asked
-(:class:`stages.adjust.AdjustParams` ``fixed_additional_parameters``): in a
+(:class:`stages.adjust.FreeParameters` ``fixed_additional_parameters``): in a
 free network a stretch or shear of the phantom nearly mimics it.
 
 In the classic unnormalised form ``ideal = x̄ + Δ_c`` with ``x̄ = x - xp`` px

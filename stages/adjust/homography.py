@@ -6,20 +6,18 @@ coordinates (plate and image centred and scaled per frame, Hartley's
 conditioning). Levenberg–Marquardt runs on every frame at once: per-frame
 8 x 8 normal equations are segment sums over the observations, the damping and
 the accept/reject decision are per frame, and the t-scale σ² is estimated per
-frame, exactly as in :mod:`stages._ba`.
+frame, with the bundle adjustment's likelihood (:mod:`stages.adjust.robust`).
 """
 
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages._ba import t_weights, whiten, whitening
+from fluorocal.stages.adjust.collinearity import whiten, whitening
+from fluorocal.stages.adjust.robust import ml_scales, t_rho, t_weights
 from fluorocal.stages.errors import EstimationError
-
-log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -30,6 +28,7 @@ class FrameFit:
     scale2: np.ndarray  # (F,) ML variance factors
     residual_px: np.ndarray  # (N, 2)
     s: np.ndarray  # (N,) squared Mahalanobis residuals
+    weight: np.ndarray  # (N,) final t-weights
     hat: np.ndarray  # (N, 2, 2) J Q J^T with the whitened Jacobian, Q = (J^T W J)^-1 of its frame
     iterations: int
     converged: np.ndarray  # (F,) bool
@@ -86,6 +85,66 @@ def _jacobian(h, plate_n, seg, linv_n) -> tuple[np.ndarray, np.ndarray]:
     return -whiten(linv_n, dfdh), f
 
 
+@dataclass(frozen=True)
+class _Frames:
+    """Observations sorted by frame, in each frame's normalised plate and image coordinates."""
+
+    plate_n: np.ndarray  # (N, 2)
+    image_n: np.ndarray  # (N, 2)
+    linv_n: np.ndarray  # (N, 3) whitening in normalised image units
+    seg: np.ndarray  # (N,) frame of each observation
+    counts: np.ndarray  # (F,) observations per frame
+    starts: np.ndarray  # (F,) first observation of each frame
+    plate_centre: np.ndarray  # (F, 2) mm
+    plate_scale: np.ndarray  # (F,) 1/mm
+    image_centre: np.ndarray  # (F, 2) px
+    image_scale: np.ndarray  # (F,) 1/px
+
+    def cost(self, h: np.ndarray, scale2: np.ndarray, nu: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per-frame cost (F,) (inf where a point maps through the horizon) and per-observation s (N,)."""
+        n_frames = len(self.starts)
+        f, d = _project(h, self.plate_n, self.seg)
+        bad = np.bincount(self.seg, d <= 0, n_frames) > 0
+        e = whiten(self.linv_n, self.image_n - f)
+        s = (e * e).sum(1)
+        per = np.bincount(self.seg, t_rho(s, nu, scale2[self.seg]), n_frames) + self.counts * np.log(scale2)
+        return np.where(bad, np.inf, per), s
+
+    def weighted_normal(self, h: np.ndarray, scale2: np.ndarray, nu: float):
+        """``H = Σ w J^T J`` (F, 8, 8), ``b = -Σ w J^T e`` (F, 8) per frame; J (N, 2, 8), f, e (N, 2), w (N,)."""
+        J, f = _jacobian(h, self.plate_n, self.seg, self.linv_n)
+        e = whiten(self.linv_n, self.image_n - f)
+        w = t_weights((e * e).sum(1), nu, scale2[self.seg])
+        Jw = J * np.sqrt(w)[:, None, None]
+        H = np.add.reduceat(np.matmul(Jw.transpose(0, 2, 1), Jw), self.starts, axis=0)
+        b = -np.add.reduceat(np.einsum("nki,nk->ni", Jw, e * np.sqrt(w)[:, None]), self.starts, axis=0)
+        return H, b, J, f, e, w
+
+
+def _normalised(plate_mm, image_px, sigma_px, frame_starts) -> _Frames:
+    n_frames = len(frame_starts)
+    counts = np.diff(np.r_[frame_starts, len(plate_mm)])
+    if np.any(counts < 5):
+        raise EstimationError(f"every frame needs >= 5 observations for a homography; got {int(counts.min())}")
+    seg = np.repeat(np.arange(n_frames), counts)
+    pc, ps = _normaliser(plate_mm, frame_starts)
+    ic, is_ = _normaliser(image_px, frame_starts)
+    # whitening in normalised image units: σ scales by the frame's image scale
+    sig_n = sigma_px * np.column_stack([is_[seg], is_[seg], np.ones(len(seg))])
+    return _Frames(
+        plate_n=(plate_mm - pc[seg]) * ps[seg, None],
+        image_n=(image_px - ic[seg]) * is_[seg, None],
+        linv_n=whitening(sig_n),
+        seg=seg,
+        counts=counts,
+        starts=np.asarray(frame_starts),
+        plate_centre=pc,
+        plate_scale=ps,
+        image_centre=ic,
+        image_scale=is_,
+    )
+
+
 def fit_homographies(
     plate_mm, image_px, sigma_px, frame_starts, *, nu, estimate_scale, max_iterations, function_tolerance
 ) -> FrameFit:
@@ -100,54 +159,34 @@ def fit_homographies(
         ``(σx px, σy px, ρ)``.
     frame_starts : (F,) int64 ndarray
         First observation of each frame.
+    nu, estimate_scale, max_iterations, function_tolerance
+        As in :class:`stages.adjust.SolverOptions`.
+
+    Raises
+    ------
+    EstimationError
+        A frame with fewer than 5 observations, or whose layout admits no homography.
     """
+    frames = _normalised(plate_mm, image_px, sigma_px, frame_starts)
     n_frames = len(frame_starts)
-    counts = np.diff(np.r_[frame_starts, len(plate_mm)])
-    if np.any(counts < 5):
-        raise EstimationError(f"every frame needs >= 5 observations for a homography; got {int(counts.min())}")
-    seg = np.repeat(np.arange(n_frames), counts)
-    pc, ps = _normaliser(plate_mm, frame_starts)
-    ic, is_ = _normaliser(image_px, frame_starts)
-    plate_n = (plate_mm - pc[seg]) * ps[seg, None]
-    image_n = (image_px - ic[seg]) * is_[seg, None]
-    # whitening in normalised image units: σ scales by the frame's image scale
-    sig_n = sigma_px * np.column_stack([is_[seg], is_[seg], np.ones(len(seg))])
-    linv_n = whitening(sig_n)
-    h = _initial(plate_n, image_n, frame_starts)
-
-    def frame_cost(hh, scale2):
-        """Per-frame cost (F,) (inf where a point maps through the horizon) and per-observation s (N,)."""
-        f, d = _project(hh, plate_n, seg)
-        bad = np.bincount(seg, d <= 0, n_frames) > 0
-        e = whiten(linv_n, image_n - f)
-        s = (e * e).sum(1)
-        s2 = scale2[seg]
-        rho = 0.5 * s / s2 if math.isinf(nu) else 0.5 * (nu + 2.0) * np.log1p(s / (nu * s2))
-        per = np.bincount(seg, rho, n_frames) + counts * np.log(scale2)
-        return np.where(bad, np.inf, per), s
-
+    h = _initial(frames.plate_n, frames.image_n, frame_starts)
     scale2 = np.ones(n_frames)
-    cost, s = frame_cost(h, scale2)
+    cost, s = frames.cost(h, scale2, nu)
     if estimate_scale:
-        scale2 = _ml_scales(s, seg, counts, nu, scale2)
-        cost, s = frame_cost(h, scale2)
+        scale2 = ml_scales(s, frames.seg, frames.counts, nu, scale2)
+        cost, s = frames.cost(h, scale2, nu)
     history = [float(cost.sum())]
     mu = np.full(n_frames, 1e-4)
     done = np.zeros(n_frames, bool)
     it = 0
     while it < max_iterations and not done.all():
         it += 1
-        J, f = _jacobian(h, plate_n, seg, linv_n)
-        e = whiten(linv_n, image_n - f)
-        w = t_weights((e * e).sum(1), nu, 1.0) if math.isinf(nu) else (nu + 2.0) / (nu + (e * e).sum(1) / scale2[seg])
-        Jw = J * np.sqrt(w)[:, None, None]
-        H = np.add.reduceat(np.matmul(Jw.transpose(0, 2, 1), Jw), frame_starts, axis=0)
-        b = -np.add.reduceat(np.einsum("nki,nk->ni", Jw, e * np.sqrt(w)[:, None]), frame_starts, axis=0)
+        H, b, _, _, _, _ = frames.weighted_normal(h, scale2, nu)
         diag = np.einsum("fii->fi", H)
         step = np.linalg.solve(H + (mu[:, None] * diag)[:, :, None] * np.eye(8), b[:, :, None])[:, :, 0]
         step[done] = 0.0
         trial = h + step
-        new_cost, s_new = frame_cost(trial, scale2)
+        new_cost, _ = frames.cost(trial, scale2, nu)
         predicted = 0.5 * ((b * step).sum(1) + mu * (diag * step * step).sum(1)) / scale2
         actual = cost - new_cost
         ok = np.isfinite(new_cost) & (actual > 0) & (predicted > 0) & ~done
@@ -155,14 +194,21 @@ def fit_homographies(
         h = np.where(ok[:, None], trial, h)
         mu = np.where(ok, np.maximum(mu * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3), 1e-12), mu * 4.0)
         cost_prev = cost.copy()
-        cost, s = frame_cost(h, scale2)
+        cost, s = frames.cost(h, scale2, nu)
         if estimate_scale:
-            scale2 = _ml_scales(s, seg, counts, nu, scale2)
-            cost, s = frame_cost(h, scale2)
+            scale2 = ml_scales(s, frames.seg, frames.counts, nu, scale2)
+            cost, s = frames.cost(h, scale2, nu)
         change = cost_prev - cost
         done |= (ok & (change <= function_tolerance)) | (~ok & (np.abs(actual) <= function_tolerance)) | (mu > 1e12)
         history.append(float(cost.sum()))
+    return _frame_fit(frames, h, scale2, nu, it, done, tuple(history))
+
+
+def _frame_fit(frames: _Frames, h, scale2, nu, iterations, done, history) -> FrameFit:
+    """Homographies in px from plate mm, and the per-observation statistics, at the solution ``h`` (F, 8)."""
+    n_frames = len(frames.starts)
     # back to pixels and plate mm: H_px = T_img^-1 H_n T_plate
+    ps, pc, is_, ic = frames.plate_scale, frames.plate_centre, frames.image_scale, frames.image_centre
     Hn = np.concatenate([h, np.ones((n_frames, 1))], axis=1).reshape(-1, 3, 3)
     T_plate = np.zeros((n_frames, 3, 3))
     T_plate[:, 0, 0] = T_plate[:, 1, 1] = ps
@@ -174,32 +220,17 @@ def fit_homographies(
     T_img_inv[:, 2, 2] = 1
     H_px = T_img_inv @ Hn @ T_plate
     H_px /= H_px[:, 2:3, 2:3]
-    J, f = _jacobian(h, plate_n, seg, linv_n)
-    e = whiten(linv_n, image_n - f)
-    s = (e * e).sum(1)
-    w = t_weights(s, nu, 1.0) if math.isinf(nu) else (nu + 2.0) / (nu + s / scale2[seg])
-    Jw = J * np.sqrt(w)[:, None, None]
-    Q = np.linalg.inv(np.add.reduceat(np.matmul(Jw.transpose(0, 2, 1), Jw), frame_starts, axis=0))
-    hat = np.einsum("nai,nij,nbj->nab", J, Q[seg], J)
-    residual_px = (image_n - f) / is_[seg, None]
+    H, _, J, f, e, w = frames.weighted_normal(h, scale2, nu)
+    Q = np.linalg.inv(H)
+    hat = np.einsum("nai,nij,nbj->nab", J, Q[frames.seg], J)
     return FrameFit(
         H=H_px,
         scale2=scale2,
-        residual_px=residual_px,
-        s=s,
+        residual_px=(frames.image_n - f) / is_[frames.seg, None],
+        s=(e * e).sum(1),
+        weight=w,
         hat=hat,
-        iterations=it,
+        iterations=iterations,
         converged=done,
-        cost_history=tuple(history),
+        cost_history=history,
     )
-
-
-def _ml_scales(s, seg, counts, nu, scale2) -> np.ndarray:
-    """Per-frame ML variance factors (vectorised EM fixed point of :func:`stages._ba.ml_scale`)."""
-    for _ in range(100):
-        w = t_weights(s, nu, 1.0) if math.isinf(nu) else (nu + 2.0) / (nu + s / scale2[seg])
-        new = np.maximum(np.bincount(seg, w * s, len(counts)) / (2.0 * counts), 1e-300)
-        if np.all(np.abs(new - scale2) <= 1e-10 * new):
-            return new
-        scale2 = new
-    return scale2
