@@ -4,9 +4,11 @@ A :class:`Stage` declares its name, its inputs (upstream stages or the
 sources ``frame`` and ``phantom``), its frozen ``Params`` class and its pure
 function; the digest of the code it runs (:mod:`fluorocal.codehash`) goes
 into every key. Per-frame stages run once
-per frame; a gathering stage runs once per project on all frames' outputs of
-its first input, which its ``gather`` function (pipeline side) turns into one
-input artifact.
+per frame; a per-system stage runs once per imaging system on its frames'
+artifacts in exposure order (a sequence) and gives one artifact per frame; a
+gathering stage runs once per project on all frames' outputs of its first
+input, which its ``gather`` function (pipeline side) turns into one input
+artifact.
 
 Stage modules are imported only when the graph is built, so ``--help`` stays
 instant.
@@ -36,17 +38,26 @@ class Stage:
     inputs : tuple of str
         Upstream stage names or sources (``"frame"``, ``"phantom"``).
     per_frame : bool
-        Run once per frame (True) or once per project (False).
+        One artifact per frame (True) or one per project (False).
+    per_system : bool
+        With ``per_frame``: computed once per imaging system, ``func(*inputs, params)``
+        taking each per-frame input as the list of the system's frames' artifacts in
+        exposure order and returning one artifact per frame, in that order. Each
+        frame's key covers every input of its system, so a changed frame recomputes
+        its system's sequence. Downstream it is a per-frame stage.
     gather : callable, optional
         For a per-project stage: ``gather(units, artifacts, context)`` turns the
         per-frame artifacts of the first input into one artifact.
     context : callable, optional
         ``context(config, unit, units) -> dict`` of Params fields the pipeline
         fills from the project (the system's geometry, the frame's size);
-        ``unit`` is the frame (None for a per-project stage).
+        ``unit`` is the frame of a per-frame stage, else None; ``units`` are
+        the frames the call covers (a per-system stage: its system's, in
+        exposure order; otherwise all).
     extras : callable, optional
         ``extras(config, units) -> dict`` of further frozen parameter objects
-        passed to ``func`` as keyword arguments (and hashed into the key).
+        passed to ``func`` as keyword arguments (and hashed into the key);
+        ``units`` as for ``context``.
     """
 
     name: str
@@ -54,6 +65,7 @@ class Stage:
     params_cls: type
     inputs: tuple[str, ...]
     per_frame: bool = True
+    per_system: bool = False
     gather: Callable | None = None
     context: Callable | None = None
     extras: Callable | None = None
@@ -67,17 +79,40 @@ class Stage:
 
 
 def _label_context(config, unit, units) -> dict:
-    system = config.systems[unit.system]
-    context = {
+    """The labelling's fields owned by ``[[systems]]``: its geometry, and its frames' size (one detector).
+
+    ``units`` are one system's frames (label is a per-system stage); their seeds go through
+    :func:`_label_extras`, so ``LabelParams.seeds`` stays empty.
+    """
+    from fluorocal.stages.errors import InputError
+
+    system = config.systems[units[0].system]
+    sizes = sorted({tuple(u.size_px) for u in units})
+    if len(sizes) > 1:
+        shown = ", ".join(f"{w}x{h}" for w, h in sizes)
+        raise InputError(f"[[systems]] {system.name}: frames differ in size ({shown} px); one system has one detector")
+    return {
         "source_image_distance_mm": system.source_image_distance_mm,
         "pixel_pitch_mm": system.pixel_pitch_mm,
-        "image_size_px": tuple(unit.size_px),
+        "image_size_px": sizes[0],
     }
-    if system.seeds is not None:
-        seeds = _seeds(system.seeds)
-        first = unit.exposure == 0
-        context["seeds"] = seeds.get((unit.path.name, unit.index), ()) + (seeds.get(("", 0), ()) if first else ())
-    return context
+
+
+def _label_extras(config, units) -> dict:
+    """``seeds_by_frame`` of one system's sequence: position in ``units`` -> ``(id, x, y)`` seeds of that frame.
+
+    Seeds without a file and frame apply to the system's first frame.
+    """
+    system = config.systems[units[0].system]
+    if system.seeds is None:
+        return {"seeds_by_frame": {}}
+    seeds = _seeds(system.seeds)
+    by_frame = {}
+    for i, unit in enumerate(units):
+        found = seeds.get((unit.path.name, unit.index), ()) + (seeds.get(("", 0), ()) if unit.exposure == 0 else ())
+        if found:
+            by_frame[i] = found
+    return {"seeds_by_frame": by_frame}
 
 
 @lru_cache(maxsize=8)
@@ -119,10 +154,10 @@ REGISTRY = (
     (
         "label",
         "fluorocal.stages.label",
-        "label_beads",
+        "label_sequence",
         "LabelParams",
         ("centroid", "phantom"),
-        {"context": _label_context},
+        {"per_system": True, "context": _label_context, "extras": _label_extras},
     ),
     (
         "learn",
@@ -174,4 +209,6 @@ def check_graph(stages: list[Stage]) -> None:
             raise ValueError(f"stage {stage.name!r} needs {missing} before it")
         if not stage.per_frame and stage.gather is None:
             raise ValueError(f"per-project stage {stage.name!r} needs a gather function")
+        if stage.per_system and not stage.per_frame:
+            raise ValueError(f"per-system stage {stage.name!r} gives one artifact per frame: per_frame must be True")
         seen.add(stage.name)

@@ -4,6 +4,8 @@ Keys are computed for every (stage, frame) first, from the frames' content
 hashes up; only entries missing from the cache (or forced) are computed, and
 an upstream artifact is read only when something downstream must be
 recomputed. A corrupt entry found on reading is recomputed with a warning.
+A per-system stage (label) is computed for a whole system at once, on its
+frames in exposure order, and stores one artifact per frame.
 """
 
 from __future__ import annotations
@@ -155,6 +157,9 @@ class Runner:
     def _plan(self) -> None:
         for stage in self.stages:
             code = self.codes[stage.name] = stage.code_digest()
+            if stage.per_system:
+                self._plan_systems(stage, code)
+                continue
             for unit in self._stage_units(stage):
                 inputs = [k for name in stage.inputs for k in self._input_key(name, unit)]
                 if not stage.per_frame:  # the grouping of frames is part of what a gathering stage sees
@@ -165,6 +170,32 @@ class Runner:
                 extras = stage.extras(self.config, self.units) if stage.extras else {}
                 self.params[(stage.name, unit)] = (params, extras)
                 self.keys[(stage.name, unit)] = artifact_key(stage.name, code, {"params": params, **extras}, inputs)
+
+    def _plan_systems(self, stage: Stage, code: str) -> None:
+        """Keys of a per-system stage: each frame's covers every input of its system, in exposure order."""
+        for group in self._systems():
+            units = [self.units[u] for u in group]
+            params = stage_params(stage, self.config, None, units)
+            extras = stage.extras(self.config, units) if stage.extras else {}
+            inputs = [k for name in stage.inputs for k in self._group_input_keys(name, group)]
+            for position, unit in enumerate(group):
+                self.params[(stage.name, unit)] = (params, extras)
+                where = f"frame {position} of {len(group)}"
+                self.keys[(stage.name, unit)] = artifact_key(
+                    stage.name, code, {"params": params, **extras}, [*inputs, where]
+                )
+
+    def _systems(self) -> list[list[int]]:
+        """Per system with frames: the indices of its units, in exposure order."""
+        groups: dict[int, list[int]] = {}
+        for i, unit in enumerate(self.units):
+            groups.setdefault(unit.system, []).append(i)
+        return [sorted(g, key=lambda i: self.units[i].exposure) for g in groups.values()]
+
+    def _group_input_keys(self, name: str, group: list[int]) -> list[str]:
+        if name == "phantom" or (name != "frame" and not self.by_name[name].per_frame):
+            return self._input_key(name, None)
+        return [k for u in group for k in self._input_key(name, u)]
 
     def _stage_units(self, stage: Stage) -> list[int | None]:
         return list(range(len(self.units))) if stage.per_frame else [None]
@@ -182,10 +213,12 @@ class Runner:
             ]
             self.report.cached[stage.name] = len(self._stage_units(stage)) - len(todo)
             self.report.computed[stage.name] = 0
+            if stage.per_system:  # one computation per system with a frame to do
+                todo = [g[0] for g in self._systems() if set(g) & set(todo)]
             bar = tqdm(
                 todo,
                 desc=f"{stage.name:>9}",
-                unit="frame" if stage.per_frame else "run",
+                unit="system" if stage.per_system else "frame" if stage.per_frame else "run",
                 leave=False,
                 disable=not (self.progress and sys.stderr.isatty()) or not todo,
             )
@@ -234,6 +267,9 @@ class Runner:
         return inputs
 
     def _compute(self, stage: Stage, unit: int | None):
+        if stage.per_system:
+            self._compute_system(stage, next(g for g in self._systems() if unit in g))
+            return self.memory[(stage.name, unit)]
         slot = (stage.name, unit)
         params, extras = self.params[slot]
         inputs = self._inputs(stage, unit)
@@ -257,6 +293,38 @@ class Runner:
         self.report.computed[stage.name] = self.report.computed.get(stage.name, 0) + 1
         self.report.seconds[stage.name] = self.report.seconds.get(stage.name, 0.0) + took
         return artifact
+
+    def _compute_system(self, stage: Stage, group: list[int]) -> None:
+        """Compute a per-system stage on the system of units ``group`` and store each frame's artifact."""
+        params, extras = self.params[(stage.name, group[0])]
+        inputs = [self._group_input(name, group) for name in stage.inputs]
+        system = self.config.systems[self.units[group[0]].system].name
+        t0 = time.perf_counter()
+        try:
+            artifacts = tuple(stage.func(*inputs, params, **extras))
+        except CalibError as exc:
+            raise type(exc)(f"system {system}: {stage.name}: {exc}") from exc
+        took = time.perf_counter() - t0
+        if len(artifacts) != len(group):
+            raise CalibError(f"system {system}: {stage.name} gave {len(artifacts)} artifacts for {len(group)} frames")
+        for position, (unit, artifact) in enumerate(zip(group, artifacts)):
+            provenance = {
+                "code_digest": self.codes[stage.name],
+                "params": dataclasses.asdict(params),
+                "inputs": list(stage.inputs),
+                "wall_seconds": took,
+                "frame": {"file": str(self.units[unit].path), "index": self.units[unit].index},
+                "sequence": {"system": system, "position": position, "n_frames": len(group)},
+            }
+            self.cache.store(stage.name, self.keys[(stage.name, unit)], artifact, provenance=provenance)
+            self.memory[(stage.name, unit)] = artifact
+        self.report.computed[stage.name] = self.report.computed.get(stage.name, 0) + len(group)
+        self.report.seconds[stage.name] = self.report.seconds.get(stage.name, 0.0) + took
+
+    def _group_input(self, name: str, group: list[int]):
+        if name == "phantom" or (name != "frame" and not self.by_name[name].per_frame):
+            return self.get(name, None)
+        return [self.get(name, u) for u in group]
 
     def status(self) -> list[dict]:
         """Per stage: key(s), status (cached / stale / missing) and size, without computing anything."""

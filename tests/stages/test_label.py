@@ -1,4 +1,4 @@
-"""Tests of stages/label.py: cube phantoms from markers, seeds and a prior pose; grid plates; failures.
+"""Tests of stages/label/: cube phantoms from markers, seeds and a prior pose; grid plates; failures.
 
 Ground truth comes from the simulator's geometry (``simulate(render=False)``):
 the distorted outline centre of every visible bead, turned into detection-like
@@ -391,16 +391,17 @@ def test_prior_pose_on_a_periodic_patch_is_refused(sim, params):
 
 def test_screening_a_pose_that_sees_no_bead_counts_zero(sim, params):
     """A candidate pose with every bead behind the source scores (0 beads, sizes not contradicted), no crash."""
-    from fluorocal.stages.label import _Frame, _screen
+    from fluorocal.stages.label.cube_frame import CubeFrame
+    from fluorocal.stages.label.prior import screen
     from scipy.spatial import cKDTree
 
     xy = np.array([[10.0, 10.0], [50.0, 40.0], [90.0, 80.0]])
     iop = np.array([50.0, 50.0, 4000.0])
-    frame = _Frame(
+    frame = CubeFrame(
         None, sim.phantom, params, iop, None, np.arange(3), xy, cKDTree(xy), 10.0, sim.phantom.diameter_mm, 100.0, 100.0
     )
     behind = np.array([0.0, 0.0, float(sim.phantom.xyz_mm[:, 2].max()) + 1e3])
-    assert _screen(frame, {"iop": iop}, np.eye(3), behind) == (0, True)
+    assert screen(frame, {"iop": iop}, np.eye(3), behind) == (0, True)
 
 
 def test_random_points_fail(sim, params):
@@ -445,7 +446,7 @@ def test_sequence_seeded_on_one_frame_follows_turns_and_jumps():
     dets = [detections_from_truth(ft, rng) for ft in fts]
     labs = label_sequence([c for c, _ in dets], without_roles(sim4.phantom), params, {0: seeds_from_truth(fts[0], rng)})
     assert [lab.pose_source for lab in labs] == ["seeds"] + ["prior"] * 7
-    for (c, ids), lab, ft in zip(dets, labs, fts):
+    for (_, ids), lab, ft in zip(dets, labs, fts):
         check_against_truth(lab, ids, ft, min_fraction=0.97)
 
 
@@ -497,7 +498,7 @@ def test_simulated_grid_has_no_slips():
 
 
 def homography_radial_rms(object_xy: np.ndarray, image_xy: np.ndarray, centre_xy: np.ndarray) -> float:
-    """RMS (px) of a homography followed by a two-term radial distortion about ``centre_xy``, fitted by least squares."""
+    """RMS (px) of a homography then a two-term radial distortion about ``centre_xy``, fitted by least squares."""
     import cv2
     from scipy.optimize import least_squares
 

@@ -1,0 +1,77 @@
+"""Automatic labelling: the phantom bead id of every detection in one frame, or in a sequence of frames.
+
+Two kinds of phantom are handled (README.md "Conventions" for pixels, poses
+and the interior orientation):
+
+- **3D bead phantoms** (a cube, :mod:`.cube`): an approximate pose is found from the marker
+  beads (role ``marker``, recognised by their larger apparent size), from a
+  few seeds ``(id, x, y)`` or from the previous frame's pose (:mod:`.markers`; with fewer
+  than three marker detections, neighbouring beads complete the P3P: beads
+  near a marker in the image are often its neighbours on the phantom). From there the
+  labelling iterates (:mod:`.iterate`): project every bead through the pose and the assumed
+  interior orientation plus a low-order 2D polynomial correction (:mod:`.correction`; the
+  image-intensifier distortion leaves residuals of 10-20 px at the field edge
+  that a pinhole cannot absorb), assign detections to projections optimally
+  within a distance gate (:mod:`.assign`, :func:`scipy.optimize.linear_sum_assignment`),
+  refine the pose (RANSAC first, then least squares together with the
+  principal distance, since the configured geometry is rough) and the
+  correction on the assigned pairs, until the assignment stops changing.
+  Because the gate only admits pairs that the current model predicts well,
+  the labelled set grows from where the model is good (near the markers and
+  the centre) outward, and the correction's degree grows with it. Beads whose
+  outlines lie within about one bead diameter of another bead's are ambiguous
+  (front and back faces of the cube overlap in the X-ray) and are left out,
+  together with the detections they absorb. A labelling is accepted only if
+  it explains most detections with small residuals and puts marker-sized
+  detections on markers. From another frame's pose (a sequence, :mod:`.prior`), the
+  orientation is taken as roughly right but the position is searched: every
+  detection-bead pair votes for the shift of the phantom across the beam that
+  would put the bead on the detection, over the whole image and a few depths;
+  the peaks of the vote are labelled, and the best labelling is kept only if
+  no distinct one (a periodic layout one row off) explains the frame about as
+  well. In a sequence (:func:`label_sequence`), a frame that still fails is
+  searched over turns about the turntable axis estimated from the frames
+  already labelled.
+- **Grid plates** (``phantom.lattice`` ``"hex"`` or ``"square"``, :mod:`.lattice`): the holes
+  are indexed on their lattice by topology, growing outward from a hole near
+  the centre with local lattice vectors re-estimated at every hole, so that
+  the distortion, missing holes and the field edge do not cause slips. The
+  object coordinates are the lattice coordinates times the pitch, z = 0, and
+  the ids encode the lattice indices (:func:`lattice_id`).
+
+A frame whose labelling fails is returned with ``ok = False`` and a
+``reason``; nothing is labelled in it (never a silent mislabelling).
+
+The pinhole helpers (camera matrix, poses to and from OpenCV, projection, P3P) are in :mod:`.camera`.
+"""
+
+from fluorocal.stages.label.frame import label_beads
+from fluorocal.stages.label.labels import Labels
+from fluorocal.stages.label.lattice import LATTICE_ID_BASE, LATTICE_ID_OFFSET, lattice_id, lattice_index, lattice_xyz_mm
+from fluorocal.stages.label.params import (
+    STATUS_AMBIGUOUS,
+    STATUS_LABELLED,
+    STATUS_REJECTED,
+    STATUS_UNMATCHED,
+    LabelParams,
+)
+from fluorocal.stages.label.sequence import label_sequence
+
+VERSION = 2
+
+__all__ = [
+    "LATTICE_ID_BASE",
+    "LATTICE_ID_OFFSET",
+    "STATUS_AMBIGUOUS",
+    "STATUS_LABELLED",
+    "STATUS_REJECTED",
+    "STATUS_UNMATCHED",
+    "VERSION",
+    "LabelParams",
+    "Labels",
+    "label_beads",
+    "label_sequence",
+    "lattice_id",
+    "lattice_index",
+    "lattice_xyz_mm",
+]

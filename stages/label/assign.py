@@ -1,0 +1,71 @@
+"""Assignment of predicted bead positions to detections, and the overlap (ambiguity) test."""
+
+from __future__ import annotations
+
+import numpy as np
+
+# detections considered per prediction in the assignment (within the gate, nearest first)
+_MAX_CANDIDATES = 4
+# cost of a forbidden pair in the assignment: larger than any sum of gated distances
+_FORBIDDEN = 1e9
+
+
+def assign(pred_xy: np.ndarray, gate_px: np.ndarray, det_xy: np.ndarray, det_tree) -> tuple[np.ndarray, np.ndarray]:
+    """Optimal one-to-one assignment of predictions to detections within per-prediction gates.
+
+    Parameters
+    ----------
+    pred_xy : (P, 2) float64 ndarray, px
+    gate_px : (P,) float64 ndarray, px
+    det_xy : (D, 2) float64 ndarray, px
+    det_tree : scipy.spatial.cKDTree of ``det_xy``
+
+    Returns
+    -------
+    i_pred, i_det : (K,) int64 ndarrays
+        Matched pairs; the total distance is minimal among assignments with the most pairs.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    if not len(pred_xy) or not len(det_xy):
+        return np.empty(0, np.int64), np.empty(0, np.int64)
+    k = min(_MAX_CANDIDATES, len(det_xy))
+    d, j = det_tree.query(pred_xy, k=k, distance_upper_bound=float(np.max(gate_px)))
+    d, j = d.reshape(len(pred_xy), k), j.reshape(len(pred_xy), k)
+    inside = d <= gate_px[:, None]
+    rows = np.nonzero(inside)[0]
+    cols = j[inside]
+    counts = inside.sum(1)
+    if not len(rows):
+        return rows, cols
+    dist = d[inside]
+    col_counts = np.bincount(cols, minlength=len(det_xy))
+    # pairs whose prediction and detection have no other candidate need no optimisation
+    simple = (counts[rows] == 1) & (col_counts[cols] == 1)
+    out_r, out_c = [rows[simple]], [cols[simple]]
+    hard_r, hard_c, hard_d = rows[~simple], cols[~simple], dist[~simple]
+    if len(hard_r):
+        ur, ir = np.unique(hard_r, return_inverse=True)
+        uc, ic = np.unique(hard_c, return_inverse=True)
+        cost = np.full((len(ur), len(uc)), _FORBIDDEN)
+        cost[ir, ic] = hard_d
+        a, b = linear_sum_assignment(cost)
+        good = cost[a, b] < _FORBIDDEN
+        out_r.append(ur[a[good]])
+        out_c.append(uc[b[good]])
+    return np.concatenate(out_r), np.concatenate(out_c)
+
+
+def ambiguous(pred_xy: np.ndarray, diam_px: np.ndarray, factor: float) -> np.ndarray:
+    """Beads whose projection lies within ``factor`` x the mean of both diameters of another's."""
+    from scipy.spatial import cKDTree
+
+    amb = np.zeros(len(pred_xy), dtype=bool)
+    if len(pred_xy) < 2:
+        return amb
+    pairs = cKDTree(pred_xy).query_pairs(r=factor * float(np.max(diam_px)), output_type="ndarray")
+    if len(pairs):
+        d = np.linalg.norm(pred_xy[pairs[:, 0]] - pred_xy[pairs[:, 1]], axis=1)
+        close = pairs[d < factor * 0.5 * (diam_px[pairs[:, 0]] + diam_px[pairs[:, 1]])]
+        amb[close.ravel()] = True
+    return amb

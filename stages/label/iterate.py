@@ -1,0 +1,254 @@
+"""The labelling iteration of a 3D phantom from a start pose, its pose solvers, and the acceptance tests.
+
+From a start pose, every bead is projected through the pose and the assumed interior orientation plus a
+low-order 2D polynomial correction, detections are assigned to projections within a gate, the pose
+(RANSAC first, then least squares with the principal distance) and the correction are refined on the
+assigned pairs, until the assignment stops changing (see :mod:`fluorocal.stages.label`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from fluorocal.stages.label.assign import ambiguous, assign
+from fluorocal.stages.label.camera import camera_matrix, pose_from_cv, pose_to_cv, project_cam
+from fluorocal.stages.label.correction import Correction, fit_correction, max_degree
+from fluorocal.stages.label.cube_frame import CubeFrame, visible
+
+# ... and if its labelling explains this fraction of the best's, with other labels, the frame is ambiguous
+_RIVAL_LABELS = 0.95
+# correction degree at each labelling iteration (then the configured degree)
+_DEGREE_SCHEDULE = (0, 1, 3, 5)
+# c is refined only when the labelled beads' depths spread by this fraction of their mean depth (std)
+_MIN_DEPTH_SPREAD = 0.02
+# ... in the first iterations after the coarse pose only (it settles in two)
+_C_ITERATIONS = 2
+
+
+def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
+    """Assign, refine pose and correction, repeat until the assignment is stable."""
+    p = frame.params
+    xyz = frame.phantom.xyz_mm
+    scale = 0.5 * float(np.hypot(frame.width, frame.height))
+    corr = Correction(frame.iop[:2].copy(), scale)
+    previous, target_degree = None, 0
+    for it in range(p.max_iterations):
+        vis, ideal, diam = visible(frame, R, T)
+        if len(vis) < 4:
+            return None
+        pred = corr.apply(ideal[vis])
+        amb = ambiguous(pred, diam[vis], p.ambiguity_bead_diameters)
+        i_pred, i_det = assign(pred, p.gate_bead_diameters * diam[vis], frame.det_xy, frame.det_tree)
+        key = (vis[i_pred].tobytes(), i_det.tobytes())
+        if key == previous and corr.degree >= target_degree:
+            break
+        previous = key
+        use = ~amb[i_pred]
+        beads, dets = vis[i_pred[use]], i_det[use]
+        if len(beads) < 6:
+            return None
+        obj = xyz[beads]
+        measured = frame.det_xy[dets]
+        if it == 0:
+            R, T, inl = ransac_pose(frame, obj, measured, R, T)
+            beads, dets, measured, obj = beads[inl], dets[inl], measured[inl], obj[inl]
+        else:
+            img = corr.undo(measured, ideal[beads])
+            if it <= _C_ITERATIONS:
+                R, T, c = solve_pose_and_c(frame, obj, img, R, T)
+            else:
+                (R, T), c = solve_pose(frame, obj, img, R, T), frame.iop[2]
+            if c != frame.iop[2]:
+                iop = np.array([frame.iop[0], frame.iop[1], c])
+                frame = replace(frame, iop=iop, K=camera_matrix(iop))
+        ideal_now = project_cam((obj - T) @ R.T, frame.iop)
+        target_degree = min(p.correction_degree, max_degree(len(beads)))
+        degree = min(target_degree, _DEGREE_SCHEDULE[min(it, len(_DEGREE_SCHEDULE) - 1)])
+        if degree > 0:
+            corr = fit_correction(ideal_now, measured, degree, frame.iop[:2], scale)
+        else:
+            corr = Correction(frame.iop[:2], scale)
+
+    # final labels: pairs within the final gate of the final prediction
+    vis, ideal, diam = visible(frame, R, T)
+    pred = corr.apply(ideal[vis])
+    i_pred, i_det = assign(pred, p.gate_bead_diameters * diam[vis], frame.det_xy, frame.det_tree)
+    resid = np.linalg.norm(pred[i_pred] - frame.det_xy[i_det], axis=1)
+    # overlap is judged on the measured outlines where a bead was detected, on the prediction elsewhere
+    where = pred.copy()
+    where[i_pred] = frame.det_xy[i_det]
+    # apparent diameters: the pinhole's, scaled by the local magnification of the distortion correction
+    h = 1.0
+    jac = np.stack([corr.apply(ideal[vis] + [h, 0.0]) - pred, corr.apply(ideal[vis] + [0.0, h]) - pred], axis=-1) / h
+    size = diam[vis] * np.sqrt(np.abs(np.linalg.det(jac)))
+    amb = ambiguous(where, size, p.ambiguity_bead_diameters)
+    close = resid <= p.final_gate_bead_diameters * diam[vis][i_pred]
+    lab = close & ~amb[i_pred]
+    ambig = amb[i_pred]
+    beads, dets = vis[i_pred[lab]], i_det[lab]
+    ideal_lab = ideal[beads]
+    pin = np.linalg.norm(ideal_lab - frame.det_xy[dets], axis=1)
+    return {
+        "R": R,
+        "T": T,
+        "iop": frame.iop,
+        "bead": beads,
+        "det": dets,
+        "ambiguous_det": i_det[ambig],
+        "n_labelled": len(beads),
+        "n_ambiguous": int(ambig.sum()),
+        "rms_px": float(np.sqrt(np.mean(pin**2))) if len(pin) else np.nan,
+        "rms_corrected_px": float(np.sqrt(np.mean(resid[lab] ** 2))) if lab.any() else np.nan,
+        "sizes_consistent": sizes_consistent(frame, R, T, beads, dets),
+        "corr": corr,
+    }
+
+
+def solve_pose(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.ndarray, T: np.ndarray):
+    """Refine a pose on correspondences (Levenberg-Marquardt from the current pose)."""
+    import cv2
+
+    if len(obj) < 6:
+        return R, T
+    rvec, tvec = pose_to_cv(R, T)
+    ok, rvec, tvec = cv2.solvePnP(
+        obj,
+        img,
+        frame.K,
+        None,
+        rvec.reshape(3, 1).copy(),
+        tvec.reshape(3, 1).copy(),
+        useExtrinsicGuess=True,
+        flags=cv2.SOLVEPNP_ITERATIVE,
+    )
+    if not ok or not np.all(np.isfinite(tvec)):
+        return R, T
+    return pose_from_cv(rvec, tvec)
+
+
+def solve_pose_and_c(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.ndarray, T: np.ndarray):
+    """Refine the pose and the principal distance ``c`` together (least squares from the current values).
+
+    The configured source-image distance and pixel pitch are rough; a wrong ``c`` leaves a perspective
+    error across the depth of a 3D phantom that the 2D correction cannot absorb. ``c`` is observable
+    only through that depth, so it is refined only when the labelled beads span enough of it.
+
+    Returns
+    -------
+    R : (3, 3) float64 ndarray
+    T : (3,) float64 ndarray, mm
+    c : float, px
+    """
+    import cv2
+    from scipy.optimize import least_squares
+
+    c0 = float(frame.iop[2])
+    R, T = solve_pose(frame, obj, img, R, T)
+    z = (obj - T) @ R[2]
+    if len(obj) < 30 or np.std(z) < _MIN_DEPTH_SPREAD * np.mean(z):
+        return R, T, c0
+    rvec, tvec = pose_to_cv(R, T)
+
+    def residuals(x):
+        Rx, _ = cv2.Rodrigues(x[:3])
+        p_cam = obj @ Rx.T + x[3:6]
+        return (project_cam(p_cam, np.array([frame.iop[0], frame.iop[1], c0 * np.exp(x[6])])) - img).ravel()
+
+    fit = least_squares(residuals, np.concatenate([rvec, tvec, [0.0]]), method="lm", x_scale="jac")
+    c = c0 * float(np.exp(fit.x[6]))
+    if not (fit.success and 0.5 * c0 < c < 2.0 * c0):
+        return R, T, c0
+    return (*pose_from_cv(fit.x[:3], fit.x[3:6]), c)
+
+
+def ransac_pose(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.ndarray, T: np.ndarray):
+    """Robust pose on a coarse assignment; returns the pose and the inlier mask."""
+    import cv2
+
+    if len(obj) < 6:
+        return R, T, np.ones(len(obj), dtype=bool)
+    rvec, tvec = pose_to_cv(R, T)
+    thr = frame.params.ransac_threshold_bead_diameters * frame.diam_ref_px
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+        obj,
+        img,
+        frame.K,
+        None,
+        rvec.reshape(3, 1).copy(),
+        tvec.reshape(3, 1).copy(),
+        useExtrinsicGuess=True,
+        iterationsCount=frame.params.ransac_iterations,
+        reprojectionError=thr,
+        confidence=0.999,
+        flags=cv2.SOLVEPNP_ITERATIVE,
+    )
+    mask = np.zeros(len(obj), dtype=bool)
+    if not ok or inliers is None or len(inliers) < 6:
+        return R, T, np.ones(len(obj), dtype=bool)
+    mask[inliers.ravel()] = True
+    return (*pose_from_cv(rvec, tvec), mask)
+
+
+def sizes_consistent(frame: CubeFrame, R: np.ndarray, T: np.ndarray, beads: np.ndarray, dets: np.ndarray) -> bool:
+    """False if beads of distinct diameters (markers) were given detections of the wrong size — a wrong pose.
+
+    The predicted apparent diameter ``c D / z`` of each labelled bead is compared with its detection's,
+    after removing their median ratio (edge definition, blur and the guessed magnification scale both).
+    Phantoms whose beads all have about one diameter pass unchecked.
+    """
+    d_mm = frame.bead_diam_mm[beads]
+    measured = frame.det.size_px[frame.det_idx[dets]]
+    known = np.isfinite(d_mm) & np.isfinite(measured) & (measured > 0)
+    if known.sum() < 3:
+        return True
+    spread = float(np.nanmax(frame.bead_diam_mm) / np.nanmedian(frame.bead_diam_mm))
+    if spread < 1.15:
+        return True
+    z = (frame.phantom.xyz_mm[beads[known]] - T) @ R[2]
+    log_ratio = np.log(measured[known] / (frame.iop[2] * d_mm[known] / z))
+    off = np.abs(log_ratio - np.median(log_ratio)) > 0.5 * np.log(spread)
+    distinct = np.abs(np.log(d_mm[known] / np.nanmedian(frame.bead_diam_mm))) > 0.5 * np.log(spread)
+    # one or two borderline sizes are tolerated; a wrong pose swaps many
+    return int(off.sum()) <= max(2, int(0.5 * distinct.sum()))
+
+
+def acceptable(frame: CubeFrame, result: dict) -> tuple[bool, str]:
+    """``(True, "")`` if the labelling ``result`` of :func:`iterate` is sound, else ``(False, reason)``."""
+    p = frame.params
+    n_valid = len(frame.det_idx)
+    n_lab = result["n_labelled"]
+    if n_lab < p.min_labelled:
+        return False, f"only {n_lab} beads labelled (min_labelled = {p.min_labelled})"
+    explained = (n_lab + result["n_ambiguous"]) / max(n_valid, 1)
+    if explained < p.min_labelled_fraction:
+        return False, (
+            f"only {explained:.0%} of {n_valid} detections explained by the phantom "
+            f"(min_labelled_fraction = {p.min_labelled_fraction})"
+        )
+    limit = max(p.max_rms_floor_px, p.max_rms_bead_diameters * frame.diam_ref_px)
+    if not result["rms_corrected_px"] <= limit:
+        # right labels leave centroid noise and unmodelled distortion; chance matches spread over the gate
+        rms = result["rms_corrected_px"]
+        return False, f"labelling residuals of {rms:.2f} px RMS exceed {limit:.2f} px: chance matches, not a fit"
+    if not result["sizes_consistent"]:
+        return (
+            False,
+            "the labelling puts beads of one diameter on detections of another (markers misplaced): wrong pose",
+        )
+    return True, ""
+
+
+def rivals(best: dict, other: dict) -> bool:
+    """True if ``other`` labels about as many detections as ``best``, mostly with other ids."""
+    if other["n_labelled"] < _RIVAL_LABELS * best["n_labelled"]:
+        return False
+    return agreement(best, other) < 0.9
+
+
+def agreement(a: dict, b: dict) -> float:
+    """Fraction of ``a``'s labelled detections that ``b`` gives the same bead."""
+    if not len(a["det"]):
+        return 0.0
+    same = dict(zip(b["det"].tolist(), b["bead"].tolist()))
+    return float(np.mean([same.get(d) == k for d, k in zip(a["det"].tolist(), a["bead"].tolist())]))
