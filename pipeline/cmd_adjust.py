@@ -1,20 +1,22 @@
 """`fluorocal adjust`: run the robust bundle adjustment alone on labelled observations (debugging).
 
-Input: an observations CSV as written by `fluorocal label`
-(file,frame,id,x,y,sigma_x,sigma_y,rho; px, x right, y down, top-left pixel
-centre at 0,0), optionally with a `system` column (names; default "A") and
-`dx`,`dy` distortion corrections (px, ideal = measured - correction). Frames
-of each system are numbered in sorted (file, frame) order; frames of different
-systems with the same number are one epoch (a biplanar pair). A phantom CSV
+Input: an observations CSV as written by `fluorocal label`, or the
+observations.csv or label.csv of `fluorocal run` (file,id,x,y,sigma_x,sigma_y,
+rho; px, x right, y down, top-left pixel centre at 0,0), optionally with
+`frame` (default 0), `system` (names; default "A"), `exposure` and
+`delta_x`,`delta_y` distortion corrections (px, ideal = measured - correction;
+`dx`,`dy` accepted). Without an exposure column, frames of each system are
+numbered in sorted (file, frame) order; frames of different systems with the
+same exposure are one epoch (a biplanar pair). A phantom CSV
 id,x,y,z (mm) gives the nominal bead coordinates.
 
 Start values: each frame is resected (OpenCV solvePnP) with c = SID / pixel
 pitch and the principal point at the image centre (--image-size).
 
 Outputs in DIR: object_points.csv (id,x,y,z,sx,sy,sz; mm, in the nominal
-frame), observations.csv (the input rows plus system,exposure,rx,ry residuals
-in px, standardized wx,wy, redundancy numbers redx,redy, t-weight, inlier,
-used) and orientation.json (IOP with standard deviations, poses, ROP,
+frame), observations.csv (the input rows plus system,exposure,residual_x,
+residual_y in px, standardized wx,wy, redundancy numbers redx,redy, t-weight,
+inlier, used) and orientation.json (IOP with standard deviations, poses, ROP,
 sigma0, iterations, stop reason, usable).
 """
 
@@ -63,60 +65,33 @@ def add_parser(subparsers) -> None:
 
 
 def _read_observations(path: Path):
-    """Observations, the (file, frame, row) keys in input order, and the corrections (N, 2)."""
-    import csv
-
+    """Observations, the table as read (:data:`~fluorocal.stages.io.OBSERVATIONS`) and the corrections (N, 2) px."""
     import numpy as np
     from fluorocal.stages.artifacts import Observations
     from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import OBSERVATIONS, read_table
 
-    if not path.is_file():
-        raise InputError(f"{path}: observations file not found")
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        header = [h.strip() for h in (reader.fieldnames or [])]
-        need = ["file", "frame", "id", "x", "y", "sigma_x", "sigma_y", "rho"]
-        missing = [c for c in need if c not in header]
-        if missing:
-            raise InputError(f"{path}: observations CSV needs columns {','.join(need)}; missing {','.join(missing)}")
-        rows = []
-        for line_no, row in enumerate(reader, start=2):
-            row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
-            try:
-                rows.append(
-                    (
-                        row.get("system") or "A",
-                        row["file"],
-                        int(row["frame"]),
-                        int(row["id"]),
-                        *(float(row[c]) for c in ("x", "y", "sigma_x", "sigma_y", "rho")),
-                        float(row.get("dx") or 0.0),
-                        float(row.get("dy") or 0.0),
-                    )
-                )
-            except ValueError as exc:
-                raise InputError(f"{path}:{line_no}: not a number ({exc})") from exc
-    if not rows:
+    table = read_table(path, OBSERVATIONS)
+    if not len(table["id"]):
         raise InputError(f"{path}: no observations")
-    names = tuple(sorted({r[0] for r in rows}))
-    system = np.array([names.index(r[0]) for r in rows])
-    exposure = np.empty(len(rows), dtype=np.int64)
-    for s in range(len(names)):
-        frames = sorted({(r[1], r[2]) for r, sy in zip(rows, system) if sy == s})
-        number = {f: i for i, f in enumerate(frames)}
-        for k, (r, sy) in enumerate(zip(rows, system)):
-            if sy == s:
-                exposure[k] = number[(r[1], r[2])]
-    table = np.array([r[4:] for r in rows], dtype=np.float64)
+    names = tuple(sorted(set(table["system"].tolist())))
+    system = np.searchsorted(np.array(names), table["system"])
+    exposure = table.get("exposure")
+    if exposure is None:  # number each system's frames in sorted (file, frame) order
+        exposure = np.empty(len(system), dtype=np.int64)
+        keys = list(zip(table["file"].tolist(), table["frame"].tolist()))
+        for s in range(len(names)):
+            number = {f: i for i, f in enumerate(sorted({k for k, sy in zip(keys, system) if sy == s}))}
+            exposure[system == s] = [number[k] for k, sy in zip(keys, system) if sy == s]
     obs = Observations(
         system=system,
         exposure=exposure,
-        bead_id=np.array([r[3] for r in rows]),
-        xy_px=table[:, 0:2],
-        sigma_px=table[:, 2:5],
+        bead_id=table["id"],
+        xy_px=np.stack([table["x"], table["y"]], axis=1),
+        sigma_px=np.stack([table["sigma_x"], table["sigma_y"], table["rho"]], axis=1),
         system_names=names,
     )
-    return obs, rows, table[:, 5:7]
+    return obs, table, np.stack([table["delta_x"], table["delta_y"]], axis=1)
 
 
 def run(args) -> int:
@@ -159,59 +134,19 @@ def run(args) -> int:
     return 0 if res.usable else 1
 
 
-_OBSERVATION_COLUMNS = [
-    "file",
-    "frame",
-    "system",
-    "exposure",
-    "id",
-    "x",
-    "y",
-    "sigma_x",
-    "sigma_y",
-    "rho",
-    "dx",
-    "dy",
-    "rx",
-    "ry",
-    "wx",
-    "wy",
-    "redx",
-    "redy",
-    "weight",
-    "inlier",
-    "used",
-]
+def _write_tables(out: Path, obs, table: dict, res) -> None:
+    """``object_points.csv`` and ``observations.csv`` (the input rows with the adjustment's statistics)."""
+    from fluorocal.export import write_object_points
+    from fluorocal.stages.io import OBSERVATIONS, write_table
 
-
-def _write_tables(out: Path, obs, rows, res) -> None:
-    """object_points.csv and observations.csv (the input rows with the adjustment's per-observation outputs)."""
-    from fluorocal.stages.io import write_csv
-
-    write_csv(
-        out / "object_points.csv",
-        ["id", "x", "y", "z", "sx", "sy", "sz"],
-        [[int(i), *map(float, p), *map(float, sd)] for i, p, sd in zip(res.bead_id, res.xyz_mm, res.xyz_std_mm)],
-    )
-    table = []
-    for k, r in enumerate(rows):
-        table.append(
-            [
-                r[1],
-                r[2],
-                r[0],
-                int(obs.exposure[k]),
-                r[3],
-                *r[4:11],
-                *map(float, res.residual_px[k]),
-                *map(float, res.standardized_residual[k]),
-                *map(float, res.redundancy[k]),
-                float(res.weight[k]),
-                int(res.inlier[k]),
-                int(res.used[k]),
-            ]
-        )
-    write_csv(out / "observations.csv", _OBSERVATION_COLUMNS, table)
+    write_object_points(out / "object_points.csv", res.bead_id, res.xyz_mm, res.xyz_std_mm)
+    columns = {name: table[name] for name in ("system", "file", "frame", "id", "x", "y", "sigma_x", "sigma_y", "rho")}
+    columns.update(exposure=obs.exposure, delta_x=table["delta_x"], delta_y=table["delta_y"])
+    columns.update(residual_x=res.residual_px[:, 0], residual_y=res.residual_px[:, 1])
+    columns.update(wx=res.standardized_residual[:, 0], wy=res.standardized_residual[:, 1])
+    columns.update(redx=res.redundancy[:, 0], redy=res.redundancy[:, 1], weight=res.weight)
+    columns.update(inlier=res.inlier, used=res.used)
+    write_table(out / "observations.csv", OBSERVATIONS, columns)
 
 
 def _summary(res) -> dict:

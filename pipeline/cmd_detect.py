@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+#: the columns written, in order (the table's schema is :data:`fluorocal.stages.io.DETECTIONS`)
 COLUMNS = ["file", "frame", "x", "y", "sigma_x", "sigma_y", "rho", "major", "minor", "angle", "fit_rmse", "score"]
 
 
@@ -78,7 +79,7 @@ def run(args) -> int:
     from fluorocal.stages.centroid import CentroidParams, centroid_beads
     from fluorocal.stages.detect import DetectParams, detect_beads
     from fluorocal.stages.errors import InputError
-    from fluorocal.stages.io import read_frames, write_csv
+    from fluorocal.stages.io import DETECTIONS, columns_of, read_frames, write_table
     from tqdm import tqdm
 
     log = logging.getLogger("fluorocal")
@@ -112,7 +113,7 @@ def run(args) -> int:
                 candidates.n_accepted,
                 int(beads.ok.sum()),
             )
-    write_csv(args.out, COLUMNS, rows)
+    write_table(args.out, DETECTIONS, columns_of(COLUMNS, rows))
     log.info("%d beads in %d frames of %d files -> %s", len(rows), n_frames, len(args.files), args.out)
     return 0
 
@@ -142,15 +143,7 @@ def _rows(file: str, frame_index: int, beads) -> list[list]:
 
 
 def _write_overlay(path: Path, frame, candidates, beads) -> None:
-    import cv2
     from fluorocal.overlay import render_overlay
-    from fluorocal.stages.errors import InputError
-    from fluorocal.stages.io import atomic_write
+    from fluorocal.stages.io import write_png
 
-    image = render_overlay(frame, candidates, beads)
-
-    def _write(tmp):
-        if not cv2.imwrite(tmp, image):
-            raise InputError(f"{path}: cannot write the overlay PNG")
-
-    atomic_write(path, _write)
+    write_png(path, render_overlay(frame, candidates, beads))

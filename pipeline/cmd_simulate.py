@@ -163,7 +163,7 @@ def write_dataset(data, outdir: Path, *, fmt: str = "tiff", replace: bool = Fals
 
     import numpy as np
     from fluorocal.stages.errors import InputError
-    from fluorocal.stages.io import atomic_write, write_csv, write_still
+    from fluorocal.stages.io import atomic_write, write_csv, write_dicom, write_still
     from fluorocal.stages.simulate import truth_to_dict
 
     if fmt not in FORMATS:
@@ -182,12 +182,7 @@ def write_dataset(data, outdir: Path, *, fmt: str = "tiff", replace: bool = Fals
             if fmt == "tiff":
                 write_still(path, pixels, attributes={"DateTime": _TIFF_DATETIME, "compression": "zip"})
             else:
-                atomic_write(
-                    path,
-                    lambda tmp, s=s, k=k, pixels=pixels: _dicom_dataset(data, s, k, pixels).save_as(
-                        tmp, enforce_file_format=True
-                    ),
-                )
+                write_dicom(path, _dicom_dataset(data, s, k, pixels), pixels)
             written.append(path)
 
     phantom = data.phantom

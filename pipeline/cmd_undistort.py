@@ -71,7 +71,8 @@ def run(args) -> int:
         size = (frames[0].shape[1], frames[0].shape[0])
         if size != tuple(field.image_size_px):
             raise InputError(
-                f"{path}: frame is {size[0]}x{size[1]} px; system {args.system} was calibrated at {field.image_size_px[0]}x{field.image_size_px[1]}"
+                f"{path}: frame is {size[0]}x{size[1]} px; "
+                f"system {args.system} was calibrated at {field.image_size_px[0]}x{field.image_size_px[1]}"
             )
         corrected = [undistort_frame(f, map_x, map_y, params) for f in frames]
         write_frames_like(path, corrected, out_dir / path.name)

@@ -1,12 +1,16 @@
 """Outputs of ``fluorocal run`` in the project's output directory.
 
-- ``<stage>.csv`` for each per-frame stage that has a table (detections,
-  centroids, labels), over all frames;
-- ``calibration.json`` with ``field_<system>.npz`` (:mod:`pipeline.calibration`);
+- ``<stage>.csv`` for each per-frame stage that has a table (today: ``label.csv``,
+  system, file, exposure, id, x, y, σx, σy, ρ), over all frames;
+- ``calibration.json`` with ``field_<system>.npz`` (:mod:`fluorocal.calibration`);
 - ``object_points.csv`` (id,x,y,z,sx,sy,sz mm);
 - ``observations.csv`` (system, file, exposure, id, x, y, σx, σy, ρ, the
   correction Δ, the residuals and the inlier flag);
 - ``report.md`` with its PNG plots.
+
+The tables follow the schemas :data:`fluorocal.stages.io.OBSERVATIONS` and
+:data:`fluorocal.stages.io.OBJECT_POINTS`, so ``fluorocal adjust`` reads
+``observations.csv`` and ``label.csv`` back as they are.
 
 Every file is written atomically (temporary name, then rename), so an
 interrupted run never leaves a half-written output.
@@ -21,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 from fluorocal.report import rms_px
-from fluorocal.stages.io import atomic_write, write_csv
+from fluorocal.stages.io import OBJECT_POINTS, OBSERVATIONS, atomic_write, columns_of, write_table
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +55,7 @@ def _stage_tables(runner) -> list[Path]:
             rows.extend([name, unit.path.name, unit.exposure, *row] for row in r)
         if header is not None:
             path = out_dir / f"{stage.name}.csv"
-            write_csv(path, header, rows)
+            write_table(path, OBSERVATIONS, columns_of(header, rows))
             written.append(path)
     return written
 
@@ -122,64 +126,64 @@ def export_calibration(runner) -> list[Path]:
     cal = calibration_from_result(runner, result)
     written = cal.save(out_dir / "calibration.json")
 
-    sx, sy, sz = adj.xyz_std_mm.T
-    rows = [
-        [int(i), *map(float, p), float(a), float(b), float(c)]
-        for i, p, a, b, c in zip(adj.bead_id, adj.xyz_mm, sx, sy, sz)
-    ]
-    write_csv(out_dir / "object_points.csv", ["id", "x", "y", "z", "sx", "sy", "sz"], rows)
+    write_object_points(out_dir / "object_points.csv", adj.bead_id, adj.xyz_mm, adj.xyz_std_mm)
     written.append(out_dir / "object_points.csv")
-
-    files = {(u.system, u.exposure): u.path.name for u in runner.units}
-    names = obs.system_names
-    rows = [
-        [
-            names[s],
-            files[(s, e)],
-            int(e),
-            int(i),
-            float(x),
-            float(y),
-            float(sg[0]),
-            float(sg[1]),
-            float(sg[2]),
-            float(d[0]),
-            float(d[1]),
-            float(v[0]),
-            float(v[1]),
-            int(inl),
-        ]
-        for s, e, i, (x, y), sg, d, v, inl in zip(
-            obs.system,
-            obs.exposure,
-            obs.bead_id,
-            obs.xy_px,
-            obs.sigma_px,
-            result.corrections_px,
-            adj.residual_px,
-            adj.inlier,
-        )
-    ]
-    header = [
-        "system",
-        "file",
-        "exposure",
-        "id",
-        "x",
-        "y",
-        "sigma_x",
-        "sigma_y",
-        "rho",
-        "delta_x",
-        "delta_y",
-        "residual_x",
-        "residual_y",
-        "inlier",
-    ]
-    write_csv(out_dir / "observations.csv", header, rows)
+    write_observations(
+        out_dir / "observations.csv",
+        obs,
+        files={(u.system, u.exposure): u.path.name for u in runner.units},
+        corrections_px=result.corrections_px,
+        residual_px=adj.residual_px,
+        inlier=adj.inlier,
+    )
     written.append(out_dir / "observations.csv")
     written += write_report(out_dir, runner, obs, result, cal, excluded)
     return written
+
+
+def write_object_points(path: Path, bead_id, xyz_mm, xyz_std_mm) -> None:
+    """``object_points.csv``: adjusted bead centres and their standard deviations, mm (:data:`OBJECT_POINTS`)."""
+    xyz_mm, xyz_std_mm = np.asarray(xyz_mm), np.asarray(xyz_std_mm)
+    columns = {"id": bead_id, "x": xyz_mm[:, 0], "y": xyz_mm[:, 1], "z": xyz_mm[:, 2]}
+    columns.update(sx=xyz_std_mm[:, 0], sy=xyz_std_mm[:, 1], sz=xyz_std_mm[:, 2])
+    write_table(path, OBJECT_POINTS, columns)
+
+
+def write_observations(path: Path, obs, *, files: dict, corrections_px, residual_px, inlier) -> None:
+    """``observations.csv`` (:data:`~fluorocal.stages.io.OBSERVATIONS`; ``fluorocal adjust`` reads it).
+
+    Parameters
+    ----------
+    path : Path
+        The file to write.
+    obs : fluorocal.stages.artifacts.Observations
+        The labelled bead centres, px, and their covariances.
+    files : dict
+        ``(system index, exposure) -> file name`` of each frame.
+    corrections_px : (N, 2) float ndarray, px
+        The learned correction Δ at each observation (ideal = measured - Δ).
+    residual_px : (N, 2) float ndarray, px
+        The final residuals.
+    inlier : (N,) bool ndarray
+        Whether the robust adjustment kept each observation.
+    """
+    columns = {
+        "system": [obs.system_names[s] for s in obs.system],
+        "file": [files[(s, e)] for s, e in zip(obs.system.tolist(), obs.exposure.tolist())],
+        "exposure": obs.exposure,
+        "id": obs.bead_id,
+        "x": obs.xy_px[:, 0],
+        "y": obs.xy_px[:, 1],
+        "sigma_x": obs.sigma_px[:, 0],
+        "sigma_y": obs.sigma_px[:, 1],
+        "rho": obs.sigma_px[:, 2],
+        "delta_x": corrections_px[:, 0],
+        "delta_y": corrections_px[:, 1],
+        "residual_x": residual_px[:, 0],
+        "residual_y": residual_px[:, 1],
+        "inlier": inlier,
+    }
+    write_table(path, OBSERVATIONS, columns)
 
 
 def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[Path]:
@@ -191,11 +195,13 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
     lines = [
         "# fluorocal calibration report",
         "",
-        f"Config: `{runner.config.path}`; scheme `{result.scheme}`; made by `fluorocal run` (fluorocal {cal.meta['fluorocal_version']}).",
+        f"Config: `{runner.config.path}`; scheme `{result.scheme}`; "
+        f"made by `fluorocal run` (fluorocal {cal.meta['fluorocal_version']}).",
         "All figures are in-sample (the training frames) unless marked otherwise.",
         *([f"Excluded (labelling failed): {'; '.join(excluded)}."] if excluded else []),
         "",
-        "| system | frames | observations | inliers | outliers | RMS before (px) | RMS after (px) | xp (px) | yp (px) | c (px) | max Δ where supported (px) |",
+        "| system | frames | observations | inliers | outliers | RMS before (px) | RMS after (px) "
+        "| xp (px) | yp (px) | c (px) | max Δ where supported (px) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     plots = []
@@ -210,8 +216,10 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
         # nodes without data hold the prior's extrapolation, which can be large far outside the field of view
         max_delta = float(np.linalg.norm(field.delta_px, axis=-1)[field.support].max(initial=0.0))
         lines.append(
-            f"| {name} | {n_frames} | {int(sel.sum())} | {int(inl.sum())} | {int((sel & adj.used & ~adj.inlier).sum())} | {rms_before:.3f} | {rms_px(adj.residual_px[inl]):.3f} "
-            f"| {iop[0]:.2f} ± {iop_sd[0]:.2f} | {iop[1]:.2f} ± {iop_sd[1]:.2f} | {iop[2]:.1f} ± {iop_sd[2]:.1f} | {max_delta:.2f} |"
+            f"| {name} | {n_frames} | {int(sel.sum())} | {int(inl.sum())} "
+            f"| {int((sel & adj.used & ~adj.inlier).sum())} | {rms_before:.3f} | {rms_px(adj.residual_px[inl]):.3f} "
+            f"| {iop[0]:.2f} ± {iop_sd[0]:.2f} | {iop[1]:.2f} ± {iop_sd[1]:.2f} | {iop[2]:.1f} ± {iop_sd[2]:.1f} "
+            f"| {max_delta:.2f} |"
         )
         panels = ([("before: no correction", obs.xy_px[inl], before[inl])] if before is not None else []) + [
             ("after: calibrated", obs.xy_px[inl], adj.residual_px[inl])
@@ -232,8 +240,9 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
     st = cal.meta["statistics"]
     lines += [
         "",
-        f"Adjustment: σ0 = {st['sigma0']:.3f}, ν = {st['nu']:.1f}, {st['n_outliers']} outlier(s) flagged, {st['n_unused']} observation(s) not estimable; "
-        f"{st['iterations']} iteration(s) of the alternation, {'converged' if st['converged'] else 'not converged'} ({st['stop_reason']}), {st['wall_time_s']:.1f} s.",
+        f"Adjustment: σ0 = {st['sigma0']:.3f}, ν = {st['nu']:.1f}, {st['n_outliers']} outlier(s) flagged, "
+        f"{st['n_unused']} observation(s) not estimable; {st['iterations']} iteration(s) of the alternation, "
+        f"{'converged' if st['converged'] else 'not converged'} ({st['stop_reason']}), {st['wall_time_s']:.1f} s.",
         "",
     ]
     lines += [f"![{p.stem}]({p.name})" for p in plots]

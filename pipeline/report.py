@@ -6,10 +6,11 @@ writes it atomically; :func:`write_report` ties them into ``report.md``.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
-from fluorocal.stages.io import atomic_write
+from fluorocal.stages.io import write_png
 
 
 def rms_px(residual_px: np.ndarray) -> float:
@@ -28,8 +29,10 @@ def _figure(n_panels: int = 1, *, width: float = 5.0, height: float = 4.6):
 
 
 def _save(plt, fig, path: Path) -> Path:
-    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=90, format="png"))
+    png = io.BytesIO()
+    fig.savefig(png, dpi=90, format="png")
     plt.close(fig)
+    write_png(path, png.getvalue())
     return path
 
 
@@ -44,7 +47,7 @@ def _image_axes(ax, size_px, title):
 
 
 def residual_maps(path: Path, panels: list[tuple[str, np.ndarray, np.ndarray]], size_px: tuple[int, int]) -> Path:
-    """Residual vectors over the image, one panel per ``(title, xy (N, 2) px, residual (N, 2) px)``, on one colour scale."""
+    """Residual vectors over the image on one colour scale; a panel per ``(title, xy (N, 2), residual (N, 2))``, px."""
     plt, fig, axes = _figure(len(panels))
     vmax = max((np.percentile(np.linalg.norm(r, axis=1), 99) for _, _, r in panels if len(r)), default=1.0)
     for ax, (title, xy, res) in zip(axes, panels):

@@ -57,7 +57,8 @@ def test_adjust_command_writes_outputs(tmp_path):
         assert len(list(csv.DictReader(fh))) == len(syn.ids)
     with open(out / "observations.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert len(rows) == len(syn.observations) and {"rx", "ry", "weight", "inlier", "used"} <= set(rows[0])
+    assert len(rows) == len(syn.observations)
+    assert {"residual_x", "residual_y", "weight", "inlier", "used"} <= set(rows[0])  # the observations schema's names
 
 
 def test_adjust_command_reports_missing_columns(tmp_path, capsys):

@@ -1,0 +1,70 @@
+"""Frame and table readers and writers: the only place where stages' data meets files.
+
+- :mod:`~fluorocal.stages.io.frames`: the registry of frame formats (DICOM, video, stills) and
+  :func:`read_frames`, :func:`probe_frames`, :func:`write_frames_like`, each one loop over it;
+  the formats themselves in :mod:`~fluorocal.stages.io.dicom`, :mod:`~fluorocal.stages.io.video`
+  and :mod:`~fluorocal.stages.io.still`.
+- :mod:`~fluorocal.stages.io.tables`: one schema per CSV table, :func:`read_table` and :func:`write_table`.
+- :mod:`~fluorocal.stages.io.atomic`: :func:`atomic_write` and the one PNG writer :func:`write_png`.
+"""
+
+from fluorocal.stages.io.atomic import atomic_write, write_png
+from fluorocal.stages.io.dicom import write_dicom
+from fluorocal.stages.io.frames import (
+    DICOM_SUFFIXES,
+    FORMATS,
+    VIDEO_SUFFIXES,
+    FrameFormat,
+    frame_format,
+    probe_frames,
+    read_frames,
+    write_frames_like,
+)
+from fluorocal.stages.io.still import write_still
+from fluorocal.stages.io.tables import (
+    DETECTIONS,
+    LABELS,
+    OBJECT_POINTS,
+    OBSERVATIONS,
+    PHANTOM,
+    SEEDS,
+    TABLES,
+    Column,
+    Table,
+    columns_of,
+    read_phantom,
+    read_seeds,
+    read_table,
+    write_csv,
+    write_table,
+)
+
+__all__ = [
+    "DETECTIONS",
+    "DICOM_SUFFIXES",
+    "FORMATS",
+    "LABELS",
+    "OBJECT_POINTS",
+    "OBSERVATIONS",
+    "PHANTOM",
+    "SEEDS",
+    "TABLES",
+    "VIDEO_SUFFIXES",
+    "Column",
+    "FrameFormat",
+    "Table",
+    "atomic_write",
+    "columns_of",
+    "frame_format",
+    "probe_frames",
+    "read_frames",
+    "read_phantom",
+    "read_seeds",
+    "read_table",
+    "write_csv",
+    "write_dicom",
+    "write_frames_like",
+    "write_png",
+    "write_still",
+    "write_table",
+]

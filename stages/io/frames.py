@@ -1,0 +1,178 @@
+"""The registry of frame formats and the three calls that loop over it: read, probe, write-like.
+
+Frames reach the stages as :class:`fluorocal.stages.artifacts.Radiograph`
+(float32, larger = brighter) with their source bit depth and metadata beside them.
+
+Each :class:`FrameFormat` entry knows its files by content (a signature in the
+first bytes) and, failing that, by suffix; every file is first offered to
+every entry by content, then by suffix, in the order of :data:`FORMATS`:
+
+- DICOM (single and multi-frame) via pydicom (:mod:`fluorocal.stages.io.dicom`);
+- video (``.avi``, ``.mp4``, ``.mov``, ``.mkv``, ...) via OpenCV (:mod:`fluorocal.stages.io.video`);
+- TIFF, PNG and other stills via OpenImageIO (:mod:`fluorocal.stages.io.still`).
+
+The registry is a tuple in this module: nothing read from disk chooses the code that runs.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from fluorocal.stages.artifacts import Radiograph
+from fluorocal.stages.errors import InputError
+from fluorocal.stages.io import dicom, still, video
+
+#: bytes read from the start of a file for the content sniffers (DICOM's signature ends at byte 132)
+_HEAD_BYTES = 160
+
+
+@dataclass(frozen=True)
+class FrameFormat:
+    """One frame format: how to recognise, probe, read and write back its files.
+
+    Attributes
+    ----------
+    name : str
+        Shown in messages.
+    suffixes : tuple of str
+        The usual suffixes (lower case, with the dot), shown in messages.
+    accepts_suffix : callable (str) -> bool
+        Whether a lower-case suffix is this format's: the fallback when no content sniffer claims a file.
+    sniff_content : callable (bytes) -> bool
+        Whether the first bytes of a file are this format's signature.
+    probe : callable (Path) -> (int, (int, int))
+        Frame count and ``(width, height)`` px, without decoding pixels where the format allows.
+    read : callable (Path) -> list of Radiograph
+        Every frame of the file.
+    write_like : callable (Path, list of Radiograph, Path) -> None
+        Write frames to the output path in the source's format, bit depth and metadata, atomically.
+    """
+
+    name: str
+    suffixes: tuple[str, ...]
+    accepts_suffix: Callable[[str], bool]
+    sniff_content: Callable[[bytes], bool]
+    probe: Callable[[Path], tuple[int, tuple[int, int]]]
+    read: Callable[[Path], list[Radiograph]]
+    write_like: Callable[[Path, list[Radiograph], Path], None]
+
+    def describe(self) -> str:
+        """The name with its usual suffixes, for messages."""
+        return f"{self.name} ({' '.join(self.suffixes)})"
+
+
+DICOM = FrameFormat(
+    dicom.NAME,
+    dicom.SUFFIXES,
+    dicom.SUFFIXES.__contains__,
+    dicom.sniff_content,
+    dicom.probe,
+    dicom.read,
+    dicom.write_like,
+)
+VIDEO = FrameFormat(
+    video.NAME,
+    video.SUFFIXES,
+    video.SUFFIXES.__contains__,
+    video.sniff_content,
+    video.probe,
+    video.read,
+    video.write_like,
+)
+STILL = FrameFormat(
+    still.NAME,
+    still.COMMON_SUFFIXES,
+    still.accepts_suffix,
+    still.sniff_content,
+    still.probe,
+    still.read,
+    still.write_like,
+)
+
+#: every supported frame format, in the order files are offered to them
+FORMATS: tuple[FrameFormat, ...] = (DICOM, VIDEO, STILL)
+
+#: kept for callers of the earlier module
+VIDEO_SUFFIXES = set(video.SUFFIXES)
+DICOM_SUFFIXES = set(dicom.SUFFIXES)
+
+
+def frame_format(path: str | os.PathLike) -> FrameFormat:
+    """The entry of :data:`FORMATS` that ``path`` belongs to: by content first, then by suffix.
+
+    Raises
+    ------
+    InputError
+        The file is missing, or no format claims it (the message lists the formats supported).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(_HEAD_BYTES)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc})") from exc
+    for fmt in FORMATS:
+        if fmt.sniff_content(head):
+            return fmt
+    suffix = path.suffix.lower()
+    for fmt in FORMATS:
+        if fmt.accepts_suffix(suffix):
+            return fmt
+    raise InputError(
+        f"{path}: not a frame format fluorocal reads; supported: {'; '.join(f.describe() for f in FORMATS)}"
+    )
+
+
+def _call(path: Path, what: Callable):
+    """Run one format's reader, naming the file in whatever a library raises."""
+    try:
+        return what(path)
+    except InputError:
+        raise
+    except Exception as exc:  # library errors differ by format; name the file
+        raise InputError(f"{path}: cannot read as an image ({type(exc).__name__}: {exc})") from exc
+
+
+def read_frames(path: str | os.PathLike) -> list[Radiograph]:
+    """Read every frame of an image, DICOM or video file.
+
+    Raises
+    ------
+    InputError
+        The file is missing, unreadable, of no supported format or holds no monochrome frame.
+    """
+    path = Path(path)
+    return _call(path, frame_format(path).read)
+
+
+def probe_frames(path: str | os.PathLike) -> tuple[int, tuple[int, int]]:
+    """Number of frames in a file and their size ``(width, height)`` px, from the header where possible.
+
+    Raises
+    ------
+    InputError
+        The file is missing, unreadable or of no supported format.
+    """
+    path = Path(path)
+    return _call(path, frame_format(path).probe)
+
+
+def write_frames_like(source: str | os.PathLike, frames: list[Radiograph], out_path: str | os.PathLike) -> None:
+    """Write ``frames`` to ``out_path`` in the format, bit depth and metadata of ``source``, atomically.
+
+    DICOM: the source's data set is copied with new pixel data (uncompressed),
+    a new SOP Instance UID and a derivation note. Stills: the same type via
+    OpenImageIO. Video: the same container and codec via OpenCV.
+
+    Raises
+    ------
+    InputError
+        ``source`` is of no supported format, or its format cannot hold the frames given.
+    """
+    source = Path(source)
+    frame_format(source).write_like(source, frames, Path(out_path))

@@ -1,0 +1,373 @@
+"""CSV tables: one declarative schema per table, one reader and one writer for all of them.
+
+Every table fluorocal reads or writes is a :class:`Table` of :class:`Column` s
+below (:data:`TABLES`). :func:`read_table` checks the header, parses every
+cell by its column's type and names the file, line and column of anything it
+cannot use; :func:`write_table` writes the columns given, in the schema's
+order, atomically. Columns the schema does not know are ignored on reading
+and refused on writing. Units: px with the top-left pixel centre at (0, 0),
+x right, y down; mm in the phantom's frame.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from fluorocal.stages.errors import InputError
+from fluorocal.stages.io.atomic import atomic_write
+
+_NUMPY_DTYPE = {int: np.int64, float: np.float64, bool: np.bool_, str: np.str_}
+_FALSE = ("0", "false", "no")
+
+
+@dataclass(frozen=True)
+class Column:
+    """One column of a CSV table.
+
+    Attributes
+    ----------
+    name : str
+        The header name.
+    dtype : {int, float, bool, str}
+        Cell type. Booleans are written ``1``/``0`` and read false from ``0``, ``false`` or ``no``.
+    unit : str
+        ``px``, ``mm``, ``rad`` or ``""``; documentation only.
+    required : bool
+        A file without this column is refused; an empty cell is refused.
+    default : object
+        For an optional column: the value of an empty cell, and of every row when the column is absent.
+        ``None``: an absent column is left out of what :func:`read_table` returns.
+    digits : int or None
+        Float columns: decimals written; ``None`` writes the shortest text that reads back the same float64.
+    aliases : tuple of str
+        Older header names accepted on reading.
+    """
+
+    name: str
+    dtype: type = float
+    unit: str = ""
+    required: bool = True
+    default: object = None
+    digits: int | None = None
+    aliases: tuple[str, ...] = ()
+
+    def parse(self, text: str):
+        """The value of one cell (stripped text); ``ValueError`` when it is not of the column's type."""
+        if self.dtype is bool:
+            return text.lower() not in _FALSE
+        return self.dtype(text)
+
+    def format(self, value) -> str:
+        """The text of one cell."""
+        if self.dtype is float:
+            value = float(value)
+            return repr(value) if self.digits is None else f"{value:.{self.digits}f}"
+        if self.dtype is bool:
+            return "1" if value else "0"
+        return str(int(value)) if self.dtype is int else str(value)
+
+
+@dataclass(frozen=True)
+class Table:
+    """A CSV table: its name (for messages) and its columns, in the order they are written."""
+
+    name: str
+    columns: tuple[Column, ...]
+
+    def __post_init__(self):
+        names = [c.name for c in self.columns]
+        if len(set(names)) != len(names):
+            raise InputError(f"table {self.name}: column names repeat: {names}")
+
+    def column(self, name: str) -> Column:
+        """The column called ``name``."""
+        for c in self.columns:
+            if c.name == name:
+                return c
+        raise InputError(f"table {self.name} has no column {name!r}; it has {','.join(self.names)}")
+
+    @property
+    def names(self) -> list[str]:
+        """Every column name, in order."""
+        return [c.name for c in self.columns]
+
+    def describe(self) -> str:
+        """The required columns, then the optional ones in brackets: ``id,x,y,z [diameter,role]``."""
+        optional = ",".join(c.name for c in self.columns if not c.required)
+        return ",".join(c.name for c in self.columns if c.required) + (f" [{optional}]" if optional else "")
+
+
+def _f(name: str, unit: str, **kw) -> Column:
+    return Column(name, float, unit, **kw)
+
+
+def _opt(name: str, dtype: type, default, unit: str = "", **kw) -> Column:
+    return Column(name, dtype, unit, required=False, default=default, **kw)
+
+
+#: phantom bead centres (``[phantom] file``; ``fluorocal simulate`` writes it with reference.csv)
+PHANTOM = Table(
+    "phantom",
+    (
+        Column("id", int),
+        _f("x", "mm", digits=6),
+        _f("y", "mm", digits=6),
+        _f("z", "mm", digits=6),
+        _opt("diameter", float, math.nan, "mm", digits=6),
+        _opt("role", str, ""),
+    ),
+)
+#: manual seeds of the labelling (rows without a file belong to the first frame)
+SEEDS = Table(
+    "seeds",
+    (Column("id", int), _f("x", "px", digits=6), _f("y", "px", digits=6), _opt("file", str, ""), _opt("frame", int, 0)),
+)
+#: fitted beads of single frames, written by ``fluorocal detect``, read by ``fluorocal label``
+DETECTIONS = Table(
+    "detections",
+    (
+        Column("file", str),
+        Column("frame", int),
+        _f("x", "px"),
+        _f("y", "px"),
+        _f("sigma_x", "px"),
+        _f("sigma_y", "px"),
+        _f("rho", ""),
+        _f("major", "px"),
+        _f("minor", "px"),
+        _opt("angle", float, math.nan, "rad"),
+        _opt("fit_rmse", float, math.nan, "px"),
+        _opt("score", float, math.nan),
+        _opt("ok", bool, True),
+    ),
+)
+#: labelled bead centres: ``fluorocal label`` writes file..rho; ``fluorocal run`` (observations.csv and the
+#: label stage's table) adds system, exposure, the correction Δ, residuals and inlier; ``fluorocal adjust``
+#: reads any of these and writes them back with its own adjustment statistics
+OBSERVATIONS = Table(
+    "observations",
+    (
+        _opt("system", str, "A"),
+        Column("file", str),
+        _opt("frame", int, 0),
+        _opt("exposure", int, None),
+        Column("id", int),
+        _f("x", "px"),
+        _f("y", "px"),
+        _f("sigma_x", "px"),
+        _f("sigma_y", "px"),
+        _f("rho", ""),
+        _opt("delta_x", float, 0.0, "px", aliases=("dx",)),
+        _opt("delta_y", float, 0.0, "px", aliases=("dy",)),
+        _opt("residual_x", float, None, "px", aliases=("rx",)),
+        _opt("residual_y", float, None, "px", aliases=("ry",)),
+        _opt("wx", float, None),
+        _opt("wy", float, None),
+        _opt("redx", float, None),
+        _opt("redy", float, None),
+        _opt("weight", float, None),
+        _opt("inlier", bool, None),
+        _opt("used", bool, None),
+    ),
+)
+#: what ``fluorocal label`` writes: the observations table's file, frame, id, x, y, sigma_x, sigma_y, rho
+LABELS = OBSERVATIONS
+#: adjusted bead centres and their standard deviations (``fluorocal run`` and ``fluorocal adjust``)
+OBJECT_POINTS = Table(
+    "object_points",
+    (Column("id", int), *(_f(n, "mm", digits=6) for n in ("x", "y", "z", "sx", "sy", "sz"))),
+)
+#: every table schema
+TABLES: tuple[Table, ...] = (PHANTOM, SEEDS, DETECTIONS, OBSERVATIONS, OBJECT_POINTS)
+
+
+def _header_map(path: Path, table: Table, header: list[str]) -> dict[str, str]:
+    """Schema column name -> the header name it has in this file; refuses a file missing a required column."""
+    found = {}
+    for c in table.columns:
+        name = next((n for n in (c.name, *c.aliases) if n in header), None)
+        if name is not None:
+            found[c.name] = name
+    missing = [c.name for c in table.columns if c.required and c.name not in found]
+    if missing:
+        raise InputError(f"{path}: {table.name} CSV needs columns {table.describe()}; missing {','.join(missing)}")
+    return found
+
+
+def _parse_cell(path: Path, line_no: int, column: Column, text: str):
+    if not text:
+        if column.required or column.default is None:  # a column without a default has a value in every row
+            raise InputError(f"{path}:{line_no}: empty cell in column {column.name}")
+        return column.default
+    try:
+        return column.parse(text)
+    except ValueError:
+        kind = "an integer" if column.dtype is int else "a number"
+        raise InputError(f"{path}:{line_no}: not {kind} in column {column.name}: {text!r}") from None
+
+
+def read_table(path: str | os.PathLike, table: Table) -> dict[str, np.ndarray]:
+    r"""Read a CSV file by its schema: one array per column.
+
+    Parameters
+    ----------
+    path : path-like
+        The CSV file (a header row, then one row per record).
+    table : Table
+        Its schema.
+
+    Returns
+    -------
+    dict of str to (N,) ndarray
+        Every column of the schema present in the file, and every absent optional
+        column that has a default (filled with it), under the schema's names.
+
+    Raises
+    ------
+    InputError
+        The file is missing, lacks a required column, or has a cell that is empty in a
+        required column or not of its column's type (naming file, line and column).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     _ = (Path(d) / "p.csv").write_text("id,x,y,z\n7,1.5,0,-2\n")
+    ...     t = read_table(Path(d) / "p.csv", PHANTOM)
+    >>> t["id"], t["z"], t["role"]
+    (array([7]), array([-2.]), array([''], dtype='<U1'))
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: {table.name} file not found")
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        header = [h.strip() for h in (reader.fieldnames or [])]
+        found = _header_map(path, table, header)
+        present = [table.column(n) for n in found]
+        values: dict[str, list] = {c.name: [] for c in present}
+        for line_no, row in enumerate(reader, start=2):
+            row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
+            for c in present:
+                values[c.name].append(_parse_cell(path, line_no, c, row.get(found[c.name], "")))
+    n_rows = len(next(iter(values.values()), []))
+    out = {}
+    for c in table.columns:
+        if c.name in values:
+            out[c.name] = np.array(values[c.name], dtype=_NUMPY_DTYPE[c.dtype])
+        elif c.default is not None:
+            out[c.name] = np.array([c.default] * n_rows, dtype=_NUMPY_DTYPE[c.dtype])
+    return out
+
+
+def write_table(path: str | os.PathLike, table: Table, columns: Mapping[str, Sequence]) -> None:
+    """Write columns of a table atomically, in the schema's column order.
+
+    Parameters
+    ----------
+    path : path-like
+        The CSV file to write.
+    table : Table
+        Its schema.
+    columns : mapping of str to sequence
+        Column name -> one value per row; every required column, any optional ones.
+
+    Raises
+    ------
+    InputError
+        A column the schema does not know, a required one missing, or columns of different lengths.
+    """
+    unknown = [n for n in columns if n not in table.names]
+    missing = [c.name for c in table.columns if c.required and c.name not in columns]
+    if unknown or missing:
+        raise InputError(
+            f"{path}: {table.name} table: unknown column(s) {','.join(unknown) or '-'}; "
+            f"missing {','.join(missing) or '-'}"
+        )
+    present = [c for c in table.columns if c.name in columns]
+    lengths = {c.name: len(columns[c.name]) for c in present}
+    if len(set(lengths.values())) > 1:
+        raise InputError(f"{path}: {table.name} table: columns differ in length: {lengths}")
+    cells = [[c.format(v) for v in columns[c.name]] for c in present]
+
+    def _write(tmp):
+        with open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow([c.name for c in present])
+            w.writerows(zip(*cells))
+
+    atomic_write(path, _write)
+
+
+def columns_of(header: Sequence[str], rows) -> dict[str, tuple]:
+    """Rows (one sequence per record, in ``header`` order) as :func:`write_table`'s columns.
+
+    Examples
+    --------
+    >>> columns_of(["id", "x"], [[1, 0.5], [2, 1.5]])
+    {'id': (1, 2), 'x': (0.5, 1.5)}
+    >>> columns_of(["id", "x"], [])
+    {'id': (), 'x': ()}
+    """
+    rows = list(rows)
+    return {name: tuple(r[k] for r in rows) for k, name in enumerate(header)}
+
+
+def write_csv(path: str | os.PathLike, header: list[str], rows) -> None:
+    """Write a CSV table without a schema atomically (floats with 6 decimals), e.g. a cache entry's table."""
+
+    def fmt(v):
+        return f"{v:.6f}" if isinstance(v, (float, np.floating)) else str(v)
+
+    def _write(tmp):
+        with open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(header)
+            for row in rows:
+                w.writerow([fmt(v) for v in row])
+
+    atomic_write(path, _write)
+
+
+def read_phantom(path: str | os.PathLike, *, lattice: str = "", pitch_mm: float = 0.0):
+    """Read a phantom CSV ``id,x,y,z[,diameter][,role]`` (mm) as a :class:`~fluorocal.stages.artifacts.Phantom`.
+
+    Raises
+    ------
+    InputError
+        Missing file, missing column, or a value that is not a number, naming the line.
+    """
+    from fluorocal.stages.artifacts import Phantom
+
+    t = read_table(path, PHANTOM)
+    if not len(t["id"]):
+        raise InputError(f"{path}: phantom CSV has no beads")
+    xyz = np.stack([t["x"], t["y"], t["z"]], axis=1)
+    try:
+        return Phantom(t["id"], xyz, t["diameter"], t["role"], lattice, pitch_mm)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from exc
+
+
+def read_seeds(path: str | os.PathLike) -> dict:
+    """Manual seeds ``id,x,y[,file[,frame]]`` (px): ``{(file name or "", frame): ((id, x, y), ...)}``.
+
+    Rows without a file belong to the first frame of the sequence (key ``("", 0)``).
+
+    Raises
+    ------
+    InputError
+        Missing file or column, or a value that is not a number, naming the line.
+    """
+    t = read_table(path, SEEDS)
+    seeds: dict = {}
+    for i, x, y, file, frame in zip(t["id"], t["x"], t["y"], t["file"], t["frame"]):
+        key = (Path(file).name, int(frame)) if file else ("", 0)
+        seeds.setdefault(key, []).append((float(int(i)), float(x), float(y)))
+    return {k: tuple(v) for k, v in seeds.items()}

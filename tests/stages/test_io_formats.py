@@ -1,0 +1,158 @@
+"""The frame-format registry: sniffing by content then suffix, one-line errors, the one DICOM and PNG writers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pydicom
+import pytest
+from fluorocal.stages.errors import InputError
+from fluorocal.stages.io import (
+    FORMATS,
+    FrameFormat,
+    atomic_write,
+    frame_format,
+    probe_frames,
+    read_frames,
+    write_dicom,
+    write_frames_like,
+    write_png,
+    write_still,
+)
+from fluorocal.stages.io.atomic import PNG_SIGNATURE
+from fluorocal.stages.io.frames import DICOM, STILL, VIDEO
+
+
+def _dataset(rows: int, cols: int, *, bits_stored: int = 12):
+    """A minimal monochrome XA data set (no pixel data yet)."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, XRayAngiographicImageStorage, generate_uid
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = XRayAngiographicImageStorage
+    meta.MediaStorageSOPInstanceUID = uid = generate_uid(entropy_srcs=["test"])
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = XRayAngiographicImageStorage, uid, "XA"
+    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+    ds.Rows, ds.Columns = rows, cols
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, bits_stored, bits_stored - 1, 0
+    ds.ImagerPixelSpacing = [0.25, 0.25]
+    return ds
+
+
+def test_registry_is_a_tuple_of_entries_in_code():
+    assert isinstance(FORMATS, tuple) and FORMATS == (DICOM, VIDEO, STILL)
+    assert all(isinstance(f, FrameFormat) and callable(f.read) and callable(f.write_like) for f in FORMATS)
+
+
+def test_write_dicom_single_and_multi_frame(tmp_path):
+    pixels = (np.arange(3 * 20 * 16).reshape(3, 20, 16) % 4096).astype(np.uint16)
+    write_dicom(tmp_path / "one.dcm", _dataset(20, 16), pixels[0])
+    write_dicom(tmp_path / "three.dcm", _dataset(20, 16), pixels)
+    assert probe_frames(tmp_path / "one.dcm") == (1, (16, 20))
+    assert probe_frames(tmp_path / "three.dcm") == (3, (16, 20))
+    frames = read_frames(tmp_path / "three.dcm")
+    assert [f.bit_depth for f in frames] == [12] * 3 and frames[0].metadata["ImagerPixelSpacing"] == [0.25, 0.25]
+    np.testing.assert_array_equal(np.stack([f.image for f in frames]), pixels.astype(np.float32))
+    with pytest.raises(InputError, match=r"bad.dcm: pixels must have shape \(\[F,\] 20, 16\); got \(16, 20\)"):
+        write_dicom(tmp_path / "bad.dcm", _dataset(20, 16), pixels[0].T)
+    assert not (tmp_path / "bad.dcm").exists()
+
+
+def test_content_decides_before_the_suffix(tmp_path):
+    img = (np.arange(12 * 10).reshape(12, 10) * 7).astype(np.uint16)
+    write_dicom(tmp_path / "really_dicom.tif", _dataset(12, 10, bits_stored=16), img)
+    write_still(tmp_path / "really_tiff.dcm", img, file_format="tiff")
+    assert frame_format(tmp_path / "really_dicom.tif") is DICOM
+    assert frame_format(tmp_path / "really_tiff.dcm") is STILL
+    (dcm,) = read_frames(tmp_path / "really_dicom.tif")
+    (tif,) = read_frames(tmp_path / "really_tiff.dcm")
+    assert dcm.metadata["format"] == "dicom" and tif.metadata["format"] == "tiff"
+    np.testing.assert_array_equal(dcm.image, tif.image)
+    write_frames_like(tmp_path / "really_tiff.dcm", [tif], tmp_path / "out.dcm")  # a TIFF, as its source
+    assert frame_format(tmp_path / "out.dcm") is STILL and read_frames(tmp_path / "out.dcm")[0].bit_depth == 16
+
+
+def test_suffix_decides_when_no_signature_matches(tmp_path):
+    bad = tmp_path / "garbage.png"
+    bad.write_bytes(b"not an image at all")
+    assert frame_format(bad) is STILL
+    with pytest.raises(InputError, match="garbage.png: cannot read"):
+        read_frames(bad)
+
+
+def test_unknown_format_is_one_line_naming_the_file_and_the_formats(tmp_path):
+    odd = tmp_path / "notes.xyz"
+    odd.write_text("hello")
+    for call in (read_frames, probe_frames, frame_format):
+        with pytest.raises(InputError) as err:
+            call(odd)
+        message = str(err.value)
+        assert "\n" not in message and message.startswith(f"{odd}: not a frame format")
+        assert all(f.name in message for f in FORMATS) and ".dcm" in message and ".avi" in message
+    with pytest.raises(InputError, match="nope.tif: no such file"):
+        probe_frames(tmp_path / "nope.tif")
+
+
+def test_video_probe_counts_what_read_returns(tmp_path):
+    import cv2
+
+    writer = cv2.VideoWriter(str(tmp_path / "v.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (32, 24), isColor=False)
+    for k in range(4):
+        writer.write(np.full((24, 32), 40 * (k + 1), np.uint8))
+    writer.release()
+    # a video named like a still is still a video: AVI's RIFF signature decides
+    (tmp_path / "v.avi").rename(tmp_path / "v.png")
+    assert frame_format(tmp_path / "v.png") is VIDEO
+    assert probe_frames(tmp_path / "v.png") == (len(read_frames(tmp_path / "v.png")), (32, 24)) == (4, (32, 24))
+
+
+@pytest.mark.parametrize("dtype, bits", [(np.uint8, 8), (np.uint16, 16)])
+def test_still_written_like_its_source_keeps_type_and_depth(tmp_path, dtype, bits):
+    img = (np.arange(20 * 30).reshape(20, 30) % 250).astype(dtype)
+    write_still(tmp_path / "src.tif", img)
+    frames = read_frames(tmp_path / "src.tif")
+    write_frames_like(tmp_path / "src.tif", frames, tmp_path / "out.tif")
+    (back,) = read_frames(tmp_path / "out.tif")
+    assert back.bit_depth == bits and back.metadata["format"] == "tiff"
+    np.testing.assert_array_equal(back.image, img.astype(np.float32))
+    with pytest.raises(InputError, match="writing 2 frames to a still image"):
+        write_frames_like(tmp_path / "src.tif", frames * 2, tmp_path / "two.tif")
+
+
+def test_real_dicom_written_like_keeps_tags(arcadis_dir, tmp_path):
+    src = arcadis_dir / "beads_centered_0.dcm"
+    frames = read_frames(src)
+    write_frames_like(src, frames, tmp_path / "u.dcm")
+    a, b = pydicom.dcmread(src), pydicom.dcmread(tmp_path / "u.dcm")
+    assert b.SOPInstanceUID != a.SOPInstanceUID and b.ImageType[:2] == ["DERIVED", "SECONDARY"]
+    assert (b.Rows, b.Columns, b.BitsStored, b.Modality) == (a.Rows, a.Columns, a.BitsStored, a.Modality)
+    np.testing.assert_array_equal(b.pixel_array, a.pixel_array)
+
+
+def test_write_png_from_an_array_or_encoded_bytes(tmp_path):
+    import cv2
+
+    bgr = np.zeros((8, 10, 3), np.uint8)
+    bgr[2:5, 3:7] = (10, 200, 30)
+    write_png(tmp_path / "a.png", bgr)
+    np.testing.assert_array_equal(cv2.imread(str(tmp_path / "a.png")), bgr)
+    encoded = (tmp_path / "a.png").read_bytes()
+    assert encoded.startswith(PNG_SIGNATURE)
+    write_png(tmp_path / "b.png", encoded)
+    assert (tmp_path / "b.png").read_bytes() == encoded
+    with pytest.raises(InputError, match="c.png: the bytes given are not a PNG"):
+        write_png(tmp_path / "c.png", b"GIF89a")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png"]  # no temporary file left
+
+
+def test_atomic_write_leaves_nothing_when_the_writer_fails(tmp_path):
+    def _fail(tmp):
+        with open(tmp, "w") as fh:
+            fh.write("half")
+        raise RuntimeError("interrupted")
+
+    with pytest.raises(RuntimeError):
+        atomic_write(tmp_path / "x.csv", _fail)
+    assert list(tmp_path.iterdir()) == []
