@@ -19,7 +19,7 @@ from fluorocal.stages.learn.result import IterationRecord, LearnResult
 logger = logging.getLogger(__name__)
 
 
-def calibrate_polynomial(observations, phantom, initial, sizes, grid: GridSpec, adjust_params) -> LearnResult:
+def calibrate_polynomial(observations, phantom, initial, sizes, spec: GridSpec, adjust_params) -> LearnResult:
     """Scheme ``polynomial``: the adjustment estimates the IOP and each system's global polynomial model; no kNN loop.
 
     Iteration 0 is the plain adjustment (no correction: the "before" of the
@@ -27,14 +27,14 @@ def calibrate_polynomial(observations, phantom, initial, sizes, grid: GridSpec, 
     model (:mod:`fluorocal.stages._polynomial`: the coefficients ``adjust_params`` does
     not hold fixed, by default all but the affinity ``b1, b2``), warm-started
     from it. Each system's model is sampled at the nodes of the usual grid
-    (``grid.spacing_px``) relative to its estimated principal point;
+    (``spec.spacing_px``) relative to its estimated principal point;
     ``corrections_px`` is the model itself at every observation. Node
     ``sigma_px`` is the model's standard uncertainty there propagated from the
     coefficients' covariance, ``sqrt((σ²_Δx + σ²_Δy) / 2)`` with
     ``σ²_Δ = b C_ap b^T`` (``b`` the node's row of the design matrix; the
     principal point's own uncertainty is not included), and ``support`` marks
-    nodes with ``grid.min_support`` used observations within
-    ``grid.support_radius_px``, as for the learned fields.
+    nodes with ``spec.min_support`` used observations within
+    ``spec.support_radius_px``, as for the learned fields.
     """
     t0 = time.perf_counter()
     xy = observations.xy_px
@@ -49,7 +49,7 @@ def calibrate_polynomial(observations, phantom, initial, sizes, grid: GridSpec, 
     for s, (w, h) in enumerate(sizes):
         rows = np.flatnonzero(observations.system == s)
         corrections[rows] = adj.polynomial_correction(s, xy[rows])
-        grid = CorrectionField.constant(w, h, spacing_px=grid.spacing_px)
+        grid = CorrectionField.constant(w, h, spacing_px=spec.spacing_px)
         nodes = grid.nodes_px
         B = _polynomial.basis(nodes, adj.iop_px[s, :2], adj.ap_radius_px[s])
         var = np.einsum("nci,ij,ncj->n", B, adj.ap_cov_px2[s], B) / 2
@@ -57,7 +57,7 @@ def calibrate_polynomial(observations, phantom, initial, sizes, grid: GridSpec, 
             grid.with_delta(
                 adj.polynomial_correction(s, nodes).reshape(grid.delta_px.shape),
                 sigma_px=np.sqrt(var).reshape(grid.sigma_px.shape),
-                support=grid.support_mask(xy[rows[adj.used[rows]]], nodes).reshape(grid.support.shape),
+                support=spec.support_mask(xy[rows[adj.used[rows]]], nodes).reshape(grid.support.shape),
             )
         )
     step = float(np.abs(corrections).max(initial=0.0))
