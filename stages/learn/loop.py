@@ -13,9 +13,13 @@ the first iteration to the candidates near the previous ``k``), (2)
 ``Δ += δ`` at every observation (inliers and outliers, so an outlier
 that turns out to be an inlier is corrected alike), (3) the adjustment
 with ``Δ`` held constant, warm-started from the previous solution.
-The loop stops when the combined cost (equation 2 + equation 3) changes by
-less than ``params.tolerance`` per observation, or after
-``params.max_iterations``.
+A phase ends when the combined cost (equation 2 + equation 3) changes by
+less than ``params.tolerance`` per observation, when the correction moves by
+less than ``params.step_tolerance`` times the inlier RMS at every observation,
+or at its iteration cap (``params.max_iterations`` for the kNN phase,
+``params.refine_iterations`` for the refinement). With ``params.refine`` the
+end of the kNN phase starts the gridded refinement; the end of the last phase
+ends the loop.
 
 With ``acceleration="anderson"`` the iterate is the vector of all node
 values of the gridded fields: the update ``x <- x + δ(x)`` is a fixed-point
@@ -222,7 +226,14 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     history = state.history + (IterationRecord(iteration, phase, out.cost, fit_cost, total, ks, out.rms_px, step),)
     logger.info(
         "iteration %d (%s): cost %.6g + %.6g = %.6g, RMS %.4f px, step %.4f px, k %s",
-        *(iteration, phase, out.cost, fit_cost, total, out.rms_px, step, ks),
+        iteration,
+        phase,
+        out.cost,
+        fit_cost,
+        total,
+        out.rms_px,
+        step,
+        ks,
     )
     prev = _previous_total(history)
     if plan.acceleration == "anderson" and prev is not None and total > prev:
@@ -342,7 +353,9 @@ def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory)
     base = state.grids[s]
     if mem.tau_px is None:
         cv = cross_validate_smoothness(
-            *(xy, r, var),
+            xy,
+            r,
+            var,
             image_size=plan.sizes[s],
             grid=params.grid,
             tau_grid_px=params.tau_grid_px,
@@ -354,7 +367,9 @@ def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory)
         mem = replace(mem, cv=cv, tau_px=cv.tau_px)
         logger.info(
             "system %s: gridded refinement, smoothness order %d, tau %.3g px (CV)",
-            *(observations.system_names[s], cv.order, cv.tau_px),
+            observations.system_names[s],
+            cv.order,
+            cv.tau_px,
         )
     fit = dict(image_size=plan.sizes[s], tau_px=mem.tau_px, grid=params.grid, base=base, order=mem.cv.order)
     if plan.refine != "grid+points":
@@ -364,7 +379,11 @@ def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory)
     w_obs = t_weight / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
     shape = plan.adjuster.nominal_shape(adj) if params.affine_datum else None
     model = fit_grid_with_points(
-        *(xy, r, w_obs, bead, J),
+        xy,
+        r,
+        w_obs,
+        bead,
+        J,
         cv_rms_px=mem.cv.cv_rms_px,
         shape_mm=shape,
         max_cg_iterations=LOOP_CG_ITERATIONS,
@@ -436,12 +455,26 @@ def _result(plan: _Plan, scheme: str, state: _State, converged: bool, reason: st
     if learned:
         logger.info(
             "scheme %s: %s after %d iterations (%.1f s, of which %.1f s in the adjustment)",
-            *(scheme, reason, state.iteration, wall, plan.adjuster.seconds),
+            scheme,
+            reason,
+            state.iteration,
+            wall,
+            plan.adjuster.seconds,
         )
     cv = tuple(m.cv for m in state.memory) if learned else ()
     return LearnResult(
-        *(scheme, fields, pointwise, state.corrections, state.adj, state.history, cv, converged, reason),
-        *(wall, plan.adjuster.seconds, initial_residual),
+        scheme=scheme,
+        fields=fields,
+        pointwise=pointwise,
+        corrections_px=state.corrections,
+        adjustment=state.adj,
+        history=state.history,
+        cv=cv,
+        converged=converged,
+        stop_reason=reason,
+        wall_time_s=wall,
+        adjust_time_s=plan.adjuster.seconds,
+        initial_residual_px=initial_residual,
     )
 
 
