@@ -51,12 +51,23 @@ from fluorocal.stages.learn import LearnParams, calibrate  # noqa: E402
 NOISE_PX = 0.05
 
 #: the paper's loop as written (learn from the adjustment's inliers, no gauge, every solve in full)
-PLAIN = {"training": "inliers", "field_gauge": "none", "fast_intermediate": False}
+PLAIN = {"preset": "paper"}
+
+#: our loop with the options the recommended preset changed since at their former defaults
+#: (one smoothness order, no step rule): the base of the ablations below
+OURS = {
+    "acceleration": "anderson",
+    "refine": "grid+points",
+    "max_iterations": 3,
+    "affine_datum": True,
+    "smoothness_orders": (2,),
+    "step_tolerance": 0.0,
+}
 
 RECOMMENDED = "ours: recommended [learn] block (+ stop when the field stops moving)"
 
 METHODS = {
-    # name: (scheme, LearnParams overrides)
+    # name: (scheme, LearnParams overrides); each run also sets max_iterations (--iterations) unless given here
     "none": ("none", {}),
     # the expert method the paper compares with: global radial + decentring + affinity model in the adjustment
     "polynomial": ("polynomial", {}),
@@ -76,65 +87,16 @@ METHODS = {
         "knn+iop+smooth",
         {**PLAIN, "acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True},
     ),
-    # the defaults: local outlier test, field gauge, fast intermediate solves
-    "ours: same + local outliers + gauge + fast solves": (
-        "knn+iop+smooth",
-        {"acceleration": "anderson", "refine": "grid+points", "max_iterations": 3, "affine_datum": True},
-    ),
-    # the recommended [learn] block: the same with the smoothness prior's order chosen by CV with its weight
-    "ours: same + prior order by CV": (
-        "knn+iop+smooth",
-        {
-            "acceleration": "anderson",
-            "refine": "grid+points",
-            "max_iterations": 3,
-            "affine_datum": True,
-            "smoothness_orders": (2, 3, 4),
-        },
-    ),
-    # the recommended [learn] block (pipeline/cmd_simulate.py RECOMMENDED_LEARN)
-    RECOMMENDED: (
-        "knn+iop+smooth",
-        {
-            "acceleration": "anderson",
-            "refine": "grid+points",
-            "max_iterations": 3,
-            "affine_datum": True,
-            "smoothness_orders": (2, 3, 4),
-            "step_tolerance": 0.05,
-        },
-    ),
-    # ablations of the defaults
-    "ours defaults without gauge": (
-        "knn+iop+smooth",
-        {
-            "acceleration": "anderson",
-            "refine": "grid+points",
-            "max_iterations": 3,
-            "affine_datum": True,
-            "field_gauge": "none",
-        },
-    ),
-    "ours defaults with full intermediate solves": (
-        "knn+iop+smooth",
-        {
-            "acceleration": "anderson",
-            "refine": "grid+points",
-            "max_iterations": 3,
-            "affine_datum": True,
-            "fast_intermediate": False,
-        },
-    ),
-    "ours defaults with inlier training": (
-        "knn+iop+smooth",
-        {
-            "acceleration": "anderson",
-            "refine": "grid+points",
-            "max_iterations": 3,
-            "affine_datum": True,
-            "training": "inliers",
-        },
-    ),
+    # local outlier test, field gauge, fast intermediate solves (the recommended preset's)
+    "ours: same + local outliers + gauge + fast solves": ("knn+iop+smooth", OURS),
+    # the same with the smoothness prior's order chosen by CV with its weight
+    "ours: same + prior order by CV": ("knn+iop+smooth", {**OURS, "smoothness_orders": (2, 3, 4)}),
+    # LearnParams' defaults, the recommended preset (the iteration cap restated: --iterations sets the others')
+    RECOMMENDED: ("knn+iop+smooth", {"preset": "recommended", "max_iterations": 3}),
+    # ablations of our loop
+    "ours defaults without gauge": ("knn+iop+smooth", {**OURS, "field_gauge": "none"}),
+    "ours defaults with full intermediate solves": ("knn+iop+smooth", {**OURS, "fast_intermediate": False}),
+    "ours defaults with inlier training": ("knn+iop+smooth", {**OURS, "training": "inliers"}),
 }
 
 

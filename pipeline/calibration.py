@@ -29,8 +29,8 @@ from fluorocal.stages._geometry import (
     quat_to_matrix,
 )
 from fluorocal.stages.errors import ArtifactError, InputError
+from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.io import atomic_write
-from fluorocal.stages.learn import CorrectionField
 
 SCHEMA = "fluorocal-calibration"
 SCHEMA_VERSION = 1
@@ -81,7 +81,8 @@ class Calibration:
             raise ArtifactError(f"{path}: cannot read calibration ({exc})") from exc
         if doc.get("schema") != SCHEMA or doc.get("schema_version") != SCHEMA_VERSION:
             raise ArtifactError(
-                f"{path}: not a {SCHEMA} v{SCHEMA_VERSION} file (schema {doc.get('schema')!r} v{doc.get('schema_version')!r})"
+                f"{path}: not a {SCHEMA} v{SCHEMA_VERSION} file "
+                f"(schema {doc.get('schema')!r} v{doc.get('schema_version')!r})"
             )
         systems = []
         try:

@@ -1,0 +1,162 @@
+"""The adjustment seen from the alternation: every call into :mod:`fluorocal.stages.adjust` lives here.
+
+The learning runs the robust bundle adjustment with the correction held
+constant (:class:`Adjuster`), reads what the regression needs from its result
+(:func:`adjustment_outcome`, :func:`point_jacobians`, :meth:`Adjuster.nominal_shape`)
+and starts from a resection (:func:`start_orientation`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+from fluorocal.stages._geometry import quat_to_matrix
+from fluorocal.stages.adjust import (
+    AdjustParams,
+    Orientation,
+    _lookup,
+    _nominal_table,
+    adjust_bundle,
+    initial_orientation,
+)
+
+logger = logging.getLogger(__name__)
+
+#: smallest redundancy number used for a residual's variance (a nearly determined observation
+#: has a tiny residual variance; flooring it keeps such points from dominating equation 3)
+MIN_REDUNDANCY = 0.05
+
+
+class Adjuster:
+    """``adjuster(corrections_px, previous, final=True) -> Adjustment``: the adjustment with Δ held constant.
+
+    ``previous`` is None (start from ``initial``) or a previous
+    :class:`fluorocal.stages.adjust.Adjustment`, from which the solve is
+    warm-started in the poses, IOP, ROP *and* object points (the points as
+    ``start_points``, so every solve's inner constraints refer to the same
+    nominal design). With ``fast``, a solve that is not ``final`` runs
+    without the covariance, with fewer iterations and a looser cost
+    tolerance. ``additional_parameters`` applies to every solve: the kNN
+    schemes keep "none", so the learned field is the whole correction.
+    ``seconds`` accumulates the time spent solving.
+    """
+
+    def __init__(
+        self,
+        observations,
+        phantom,
+        initial,
+        adjust_params,
+        estimate_iop: bool,
+        fast: bool = False,
+        additional_parameters: str = "none",
+    ):
+        self.observations, self.initial, self.fast = observations, initial, fast
+        self.final_params = replace(
+            adjust_params if adjust_params is not None else AdjustParams(),
+            estimate_iop=estimate_iop,
+            additional_parameters=additional_parameters,
+        )
+        # intermediate solves: no covariance, fewer iterations and a looser cost tolerance: 1e-6 per observation
+        # (at least 1e-3), far below the noise the inexact field fits leave in the combined cost
+        self.fast_params = replace(
+            self.final_params,
+            compute_covariance=False,
+            function_tolerance=max(self.final_params.function_tolerance, 1e-3, 1e-6 * len(observations.xy_px)),
+            max_iterations=min(self.final_params.max_iterations, 10),
+        )
+        self.nominal = _nominal_table(phantom)
+        self.seconds = 0.0
+
+    def __call__(self, corrections_px, previous, final=True):
+        t0 = time.perf_counter()
+        intermediate = self.fast and not final
+        try:
+            adj = self._solve(corrections_px, previous, self.fast_params if intermediate else self.final_params)
+        finally:
+            self.seconds += time.perf_counter() - t0
+        # an intermediate solve stopped at its iteration cap is expected, not the user's concern
+        if not intermediate and not adj.usable:
+            inliers = 100 * float(adj.inlier[adj.used].mean()) if adj.used.any() else 0.0
+            logger.warning("adjustment not usable: %s, %.1f %% inliers", adj.stop_reason, inliers)
+        return adj
+
+    def nominal_shape(self, adj) -> tuple[np.ndarray, np.ndarray]:
+        """The adjusted bead coordinates ``(n_beads, 3)`` mm of ``adj`` and the nominal design's of the same beads."""
+        nominal_ids, nominal_xyz = self.nominal
+        return adj.xyz_mm, nominal_xyz[_lookup(adj.bead_id, nominal_ids, "bead ids of the adjustment")]
+
+    def _solve(self, corrections_px, previous, params):
+        observations, initial = self.observations, self.initial
+        if previous is None:
+            return adjust_bundle(observations, self.nominal, initial, corrections_px, params)
+        # epochs the adjustment dropped keep their initial pose
+        q, src = initial.q_cam_from_obj.copy(), initial.source_mm.copy()
+        at = np.searchsorted(initial.exposure, previous.exposure)
+        q[at], src[at] = previous.q_cam_from_obj, previous.source_mm
+        warm = Orientation(
+            previous.iop_px, initial.exposure, q, src, previous.rop_q, previous.rop_source_mm, initial.system_names
+        )
+        return adjust_bundle(
+            observations, self.nominal, warm, corrections_px, params, start_points=(previous.bead_id, previous.xyz_mm)
+        )
+
+
+def start_orientation(observations, phantom, iop_guess_px):
+    """Start values of every pose by resection (:func:`fluorocal.stages.adjust.initial_orientation`)."""
+    return initial_orientation(observations, phantom, np.asarray(iop_guess_px, dtype=np.float64))
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What the alternation needs from an :class:`fluorocal.stages.adjust.Adjustment`."""
+
+    residuals_px: np.ndarray
+    residual_var_px2: np.ndarray
+    inlier: np.ndarray
+    cost: float
+    rms_px: float
+
+
+def adjustment_outcome(adj, sigma_px: np.ndarray) -> Outcome:
+    """Residuals ``(xy - Δ) - projection``, their variances ``σ0² σ² r`` and the inlier mask."""
+    inlier = adj.inlier & adj.used
+    red = np.clip(adj.redundancy, MIN_REDUNDANCY, None)
+    var = (adj.sigma0 * sigma_px[:, :2]) ** 2 * red
+    rms = float(np.sqrt(np.mean(adj.residual_px[inlier] ** 2))) if inlier.any() else float("nan")
+    return Outcome(adj.residual_px, var, inlier, float(adj.cost_history[-1]), rms)
+
+
+def point_jacobians(adj, observations, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bead index ``(n,)`` into ``adj.bead_id`` and ``d projection / d P`` ``(n, 2, 3)`` px/mm of observations ``rows``.
+
+    From the collinearity equation ``x = xp + c p_x / p_z`` with
+    ``p = R (P - T)`` at the adjustment's estimate (``R``, ``T`` the pose of
+    the observation's system and epoch).
+    """
+    order = np.argsort(adj.bead_id)
+    bead = order[np.searchsorted(adj.bead_id, observations.bead_id[rows], sorter=order)]
+    epoch = np.searchsorted(adj.exposure, observations.exposure[rows])
+    system = observations.system[rows]
+    orientation = adj.orientation
+    R = np.empty((len(rows), 3, 3))
+    T = np.empty((len(rows), 3))
+    for s in np.unique(system):
+        q_s, T_s = orientation.poses(int(s))
+        at = system == s
+        R[at] = quat_to_matrix(q_s[epoch[at]])
+        T[at] = T_s[epoch[at]]
+    c = adj.iop_px[system, 2]
+    p = np.einsum("nij,nj->ni", R, adj.xyz_mm[bead] - T)
+    # shape (n, 2, 3): c / p_z [[1, 0, -p_x/p_z], [0, 1, -p_y/p_z]] R
+    D = np.zeros((len(rows), 2, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 0, 2] = -p[:, 0] / p[:, 2]
+    D[:, 1, 2] = -p[:, 1] / p[:, 2]
+    return bead, (c / p[:, 2])[:, None, None] * D @ R
+
+
+__all__ = ["Adjuster", "Outcome", "adjustment_outcome", "point_jacobians", "start_orientation"]

@@ -1,0 +1,305 @@
+"""The gridded least-squares field (beyond the paper): node values fitted to the residuals under a smoothness prior.
+
+:func:`fit_grid_field` minimises equation 3 with the bilinear grid field
+itself as the regression function, plus a difference prior on the node
+values (:func:`difference_operator`); :func:`cross_validate_smoothness`
+chooses the prior's order and weight by shuffled K-fold cross-validation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from fluorocal.stages.artifacts import freeze
+from fluorocal.stages.field import CorrectionField, bilinear_design
+from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec, check_training, node_coordinates
+
+#: forward-difference stencils of the smoothness prior's orders
+DIFFERENCE_STENCILS = {1: (-1.0, 1.0), 2: (1.0, -2.0, 1.0), 3: (-1.0, 3.0, -3.0, 1.0), 4: (1.0, -4.0, 6.0, -4.0, 1.0)}
+
+#: candidate smoothness priors of the cross-validation, px
+DEFAULT_TAU_GRID_PX = (0.03, 0.1, 0.3, 1.0, 3.0)
+
+
+def difference_operator(n_y: int, n_x: int, order: int):
+    """Sparse ``D`` whose ``|D v|²`` is the discrete ``order``-th order energy of node values ``v``.
+
+    The rows are the mixed differences ``Δx^(m-a) Δy^a v`` weighted by
+    ``sqrt(C(m, a))``, ``a = 0 .. m`` (row-major ``v``, x fastest): for
+    ``m = 2`` the thin-plate energy (second differences along x and y and the
+    √2-weighted cross difference). Its null space is the polynomials of total
+    degree below ``m``.
+    """
+    from math import comb
+
+    from scipy.sparse import diags, identity, kron, vstack
+
+    def diff(n, k):
+        if k == 0:
+            return identity(n)
+        c = DIFFERENCE_STENCILS[k]
+        return diags(list(c), list(range(k + 1)), shape=(max(n - k, 0), n))
+
+    return vstack(
+        [np.sqrt(comb(order, a)) * kron(diff(n_y, a), diff(n_x, order - a)) for a in range(order + 1)]
+    ).tocsr()
+
+
+def factor_spd(M):
+    """Sparse LU of a symmetric positive definite matrix: a symmetric fill-reducing ordering, no pivoting.
+
+    Several times faster than SuperLU's default (COLAMD, partial pivoting) on
+    the grid's normal matrices, whose band widens with the prior's order; an
+    SPD matrix needs no pivoting for stability.
+    """
+    from scipy.sparse.linalg import splu
+
+    return splu(M.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+
+
+def _grid_solve(A, DtD, w, r, tau_px, base=None):
+    """Node values ``v`` minimising ``Σ w (r - A v)² + |D (base + v)|² / τ²`` per component; ``(n_nodes, 2)``.
+
+    ``base`` ``(n_nodes, 2)`` is the field already accumulated: the prior acts
+    on the total field, so the alternation's fixed point is the regularised
+    fit, not a pure least-squares one.
+    """
+    return solve_normal(grid_normal(A, w, r), DtD, tau_px, base)
+
+
+def grid_normal(A, w, r):
+    """The data part of :func:`_grid_solve`'s normal equations: ``([A^T W_c A per component], A^T W r, max w)``.
+
+    One matrix serves both components when their weights are equal (the usual case).
+    """
+    AtW = [A.T.multiply(w[:, c]).tocsr() for c in range(2)]
+    N0 = AtW[0] @ A
+    N = [N0, N0 if np.array_equal(w[:, 1], w[:, 0]) else AtW[1] @ A]
+    return N, np.column_stack([AtW[c] @ r[:, c] for c in range(2)]), float(w.max())
+
+
+def solve_normal(normal, DtD, tau_px, base=None):
+    """Solve the normal equations of :func:`_grid_normal` with the prior ``DtD / τ²`` on ``base + v``."""
+    from scipy.sparse import diags
+
+    N, b, w_max = normal
+    reg = DtD / tau_px**2
+    # a tiny ridge keeps nodes far from all data (fixed only through the prior's null space) determined
+    ridge = diags(np.full(b.shape[0], 1e-10 * max(w_max, 1.0)))
+    out = np.empty(b.shape)
+    lu = None
+    for c in range(2):
+        if lu is None or N[c] is not N[0]:
+            lu = factor_spd(N[c] + reg + ridge)
+        rhs = b[:, c] if base is None else b[:, c] - reg @ base[:, c]
+        out[:, c] = lu.solve(rhs)
+    return out
+
+
+@dataclass(frozen=True)
+class GridCvReport:
+    """Cross-validation of the smoothness of the gridded least-squares field.
+
+    Attributes
+    ----------
+    tau_grid_px : (T,) float64 ndarray, px
+        Candidate prior standard deviations of a node's difference of the
+        prior's order, as evaluated (``tau_grid_px`` of the parameters in
+        increasing order, for each order in turn, up to the first rise of the cost).
+    cv_cost : (T,) float64 ndarray
+        Mean out-of-fold equation-3 cost per observation.
+    tau_px : float
+        The chosen candidate.
+    cv_rms_px : float
+        Out-of-fold RMS per component at ``tau_px``.
+    order : int
+        The chosen order of the difference prior.
+    order_grid : (T,) int64 ndarray or None
+        The order of each candidate (None: all ``order``).
+    """
+
+    tau_grid_px: np.ndarray
+    cv_cost: np.ndarray
+    tau_px: float
+    cv_rms_px: float
+    order: int = 2
+    order_grid: np.ndarray | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "tau_grid_px", np.asarray(self.tau_grid_px, dtype=np.float64))
+        object.__setattr__(self, "cv_cost", np.asarray(self.cv_cost, dtype=np.float64))
+        object.__setattr__(self, "order", int(self.order))
+        order_grid = np.full(len(self.tau_grid_px), self.order) if self.order_grid is None else self.order_grid
+        object.__setattr__(self, "order_grid", np.asarray(order_grid, dtype=np.int64))
+        freeze(self)
+
+
+def cross_validate_smoothness(
+    xy_px,
+    residuals_px,
+    residual_var_px2,
+    *,
+    image_size,
+    grid: GridSpec = DEFAULT_GRID,
+    tau_grid_px=DEFAULT_TAU_GRID_PX,
+    orders=(2,),
+    n_folds: int = 5,
+    seed: int = 0,
+    base_px=None,
+) -> GridCvReport:
+    """Choose the smoothness prior of :func:`fit_grid_field` by shuffled K-fold CV of equation 3.
+
+    Parameters
+    ----------
+    xy_px, residuals_px, residual_var_px2, image_size, grid
+        As in :func:`fit_grid_field`.
+    tau_grid_px : sequence of float, px
+        Candidate prior standard deviations (default 0.03, 0.1, 0.3, 1, 3 px).
+    orders : sequence of int
+        Candidate orders of the difference prior (default ``(2,)``).
+    n_folds, seed : int
+        Folds (default 5) and the seed of their shuffling (default 0).
+    base_px : (H_g, W_g, 2) or (n_nodes, 2) float64 ndarray, px, optional
+        The field accumulated so far (see Notes).
+
+    Returns
+    -------
+    GridCvReport
+        Candidates: every order with the ``τ`` in increasing order, up to the
+        first whose cost rises (each candidate costs a sparse factorisation per fold).
+
+    Notes
+    -----
+    With ``base_px`` the prior acts on ``base + δ``; the fit of ``δ`` to the
+    residuals ``r`` is then the fit of the total field to ``r + base(x)``, so
+    the out-of-fold cost judges the total field, not the update.
+    """
+    base = None if base_px is None else np.asarray(base_px, dtype=np.float64).reshape(-1, 2)
+    xy, r, var = check_training(xy_px, residuals_px, residual_var_px2)
+    xn, yn = grid.nodes(image_size)
+    A = bilinear_design(xn, yn, xy)
+    w = 1.0 / var
+    n = len(xy)
+    folds = np.array_split(np.random.default_rng(seed).permutation(n), min(n_folds, n))
+    # the data part of each fold's normal equations, shared by every candidate
+    normals = [
+        grid_normal(A[train], w[train], r[train])
+        for train in (np.setdiff1d(np.arange(n), test, assume_unique=True) for test in folds)
+    ]
+    tests = [(A[test], w[test], r[test]) for test in folds]
+    evaluated = []  # (order, tau, cost, sq)
+    for order in orders:
+        DtD = _prior_normal(len(yn), len(xn), order)
+        for tau in sorted(tau_grid_px):
+            cost = sq = 0.0
+            for normal, (A_test, w_test, r_test) in zip(normals, tests):
+                err = r_test - A_test @ solve_normal(normal, DtD, tau, base)
+                cost += float(np.sum(w_test * err**2))
+                sq += float(np.sum(err**2))
+            cost /= n
+            rising = bool(evaluated) and evaluated[-1][0] == order and cost > evaluated[-1][2]
+            evaluated.append((order, tau, cost, sq))
+            if rising:
+                # past this order's minimum (taken as unimodal in log tau): larger ones only fit more of the noise
+                break
+    orders, taus, costs, sqs = (np.array(c) for c in zip(*evaluated))
+    best = int(np.argmin(costs))
+    return GridCvReport(taus, costs, float(taus[best]), float(np.sqrt(sqs[best] / (2 * n))), int(orders[best]), orders)
+
+
+def _prior_normal(n_y: int, n_x: int, order: int):
+    """``D^T D`` of :func:`difference_operator`, sparse CSR."""
+    D = difference_operator(n_y, n_x, int(order))
+    return (D.T @ D).tocsr()
+
+
+def fit_grid_field(
+    xy_px: np.ndarray,
+    residuals_px: np.ndarray,
+    residual_var_px2: np.ndarray,
+    *,
+    image_size: tuple[int, int],
+    tau_px: float,
+    grid: GridSpec = DEFAULT_GRID,
+    cv_rms_px: float | None = None,
+    base: CorrectionField | None = None,
+    order: int = 2,
+) -> CorrectionField:
+    """Fit the node values of a bilinear grid to the residuals directly (weighted least squares).
+
+    Minimises ``Σ_i (r_i - g(x_i))^T C_r^-1 (r_i - g(x_i)) + |D (base + δ)|² / τ²``: equation 3
+    with ``g`` the bilinear grid field instead of a kNN average, plus a
+    thin-plate smoothness prior ``D`` (second differences of the node values,
+    standard deviation ``τ`` px). Unlike the kNN mean it does not blur the field
+    over a neighbourhood, so its fixed point in the alternation is the field
+    itself rather than a smoothed copy of it.
+
+    Parameters
+    ----------
+    xy_px, residuals_px, residual_var_px2
+        As in :func:`fluorocal.stages.learn.knn.fit_knn_field`.
+    image_size : (int, int)
+        ``(width, height)`` px.
+    tau_px : float
+        Prior standard deviation of a second difference, px (see :func:`cross_validate_smoothness`).
+    grid : GridSpec
+        Nodes and support rule (default 16 px, 32 px, 3).
+    cv_rms_px : float, optional
+        Out-of-fold RMS for the node uncertainty (default: the in-sample RMS).
+    base : CorrectionField, optional
+        The field accumulated so far, on the same grid: the prior then acts on
+        ``base + δ`` (the alternation's total field) and the returned ``δ`` is the update.
+    order : int
+        Order of the difference prior (default 2, the thin-plate energy; see
+        ``LearnParams.smoothness_orders``).
+
+    Returns
+    -------
+    CorrectionField
+        The update ``δ``, with node uncertainty ``cv_rms / sqrt(n_eff)``
+        (``n_eff`` the bilinear weight the observations put on the node).
+    """
+    xy, r, var = check_training(xy_px, residuals_px, residual_var_px2)
+    width, height = (int(s) for s in image_size)
+    xn, yn = grid.nodes((width, height))
+    A = bilinear_design(xn, yn, xy)
+    v = _grid_solve(
+        A,
+        _prior_normal(len(yn), len(xn), order),
+        1.0 / var,
+        r,
+        float(tau_px),
+        None if base is None else base.delta_px.reshape(-1, 2),
+    )
+    if cv_rms_px is None:
+        cv_rms_px = float(np.sqrt(np.mean((r - A @ v) ** 2)))
+    return grid_result(xn, yn, v, A, xy, cv_rms_px, grid, (width, height))
+
+
+def grid_result(xn, yn, values, A, xy, cv_rms_px, grid: GridSpec, image_size) -> CorrectionField:
+    """A least-squares grid field with node uncertainty ``cv_rms / sqrt(n_eff)`` and support mask.
+
+    ``n_eff`` is the bilinear weight the observations put on the node.
+    """
+    n_eff = np.asarray(A.sum(axis=0)).ravel()
+    sigma = cv_rms_px / np.sqrt(np.maximum(n_eff, 1e-3))
+    shape = (len(yn), len(xn))
+    return CorrectionField(
+        xn,
+        yn,
+        values.reshape(shape + (2,)),
+        sigma.reshape(shape),
+        grid.support_mask(xy, node_coordinates(xn, yn)).reshape(shape),
+        *image_size,
+    )
+
+
+__all__ = [
+    "DIFFERENCE_STENCILS",
+    "GridCvReport",
+    "cross_validate_smoothness",
+    "difference_operator",
+    "fit_grid_field",
+    "grid_result",
+]

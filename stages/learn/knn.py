@@ -1,0 +1,324 @@
+"""The kNN regression of residual vectors over the image, and its neighbourhood size by cross-validation.
+
+Chow et al., section IV after equation 2: a k-nearest-neighbour regression of
+the adjustment's residual vectors learns the deterministic part ``δ`` of the
+residuals (distortion); ``k`` comes from shuffled K-fold cross-validation of
+the equation-3 cost, never from the in-sample fit (which would chase noise).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from functools import cached_property
+
+import numpy as np
+from fluorocal.stages.artifacts import check_shape, freeze
+from fluorocal.stages.errors import InputError
+from fluorocal.stages.field import CorrectionField
+from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec, check_training, node_coordinates
+from scipy.spatial import KDTree
+
+logger = logging.getLogger(__name__)
+
+#: candidate neighbourhood sizes of the cross-validation: roughly sqrt(2) steps
+DEFAULT_K_GRID = (1, 2, 3, 4, 6, 8, 11, 16, 23, 32, 45, 64, 90, 128, 181, 256)
+
+
+def weighted_neighbour_means(values, weights, idx, ks):
+    """Inverse-variance weighted means of the first ``k`` neighbours, for each ``k`` in ``ks``.
+
+    Parameters
+    ----------
+    values, weights : (N, 2) float64 ndarray
+    idx : (M, K) int ndarray
+        Neighbour indices, nearest first.
+    ks : sequence of int, each <= K
+
+    Returns
+    -------
+    (M, len(ks), 2) float64 ndarray
+    """
+    w = weights[idx]  # shape (M, K, 2)
+    cw = np.cumsum(w, axis=1)
+    cwr = np.cumsum(w * values[idx], axis=1)
+    sel = np.asarray(ks) - 1
+    return cwr[:, sel] / cw[:, sel]
+
+
+@dataclass(frozen=True)
+class KnnModel:
+    """A kNN regressor of residual vectors over the image.
+
+    The prediction at ``x`` is, per component, the inverse-variance weighted
+    mean of the residuals of the ``k`` nearest training points: the
+    minimiser of equation 3 of the paper for a field that is constant over
+    the neighbourhood.
+
+    Attributes
+    ----------
+    points_px : (N, 2) float64 ndarray, px
+        Training coordinates (measured).
+    values_px : (N, 2) float64 ndarray, px
+        Training residual vectors.
+    weights : (N, 2) float64 ndarray, 1/px²
+        Inverse residual variances (diagonal of ``C_r^-1``).
+    k : int
+        Neighbourhood size (clipped to N when used).
+    """
+
+    points_px: np.ndarray
+    values_px: np.ndarray
+    weights: np.ndarray
+    k: int
+
+    def __post_init__(self):
+        for name in ("points_px", "values_px", "weights"):
+            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64))
+        n = len(self.points_px)
+        check_shape("points_px", self.points_px, (n, 2))
+        check_shape("values_px", self.values_px, (n, 2))
+        check_shape("weights", self.weights, (n, 2))
+        if n == 0:
+            raise InputError("KnnModel needs at least one training point")
+        if self.k < 1:
+            raise InputError(f"k must be >= 1; got {self.k}")
+        freeze(self)
+
+    @cached_property
+    def tree(self) -> KDTree:
+        """KD-tree over the training points (built on first use)."""
+        return KDTree(self.points_px)
+
+    @property
+    def k_used(self) -> int:
+        return min(int(self.k), len(self.points_px))
+
+    def neighbours(self, xy_px: np.ndarray, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Distances ``(M, k)`` px and indices ``(M, k)`` of the nearest training points."""
+        k = self.k_used if k is None else min(k, len(self.points_px))
+        dist, idx = self.tree.query(np.asarray(xy_px, dtype=np.float64).reshape(-1, 2), k=k)
+        return dist.reshape(-1, k), idx.reshape(-1, k)
+
+    def correction_at(self, xy_px: np.ndarray) -> np.ndarray:
+        """KNN prediction ``(M, 2)`` px at measured coordinates ``xy_px`` ``(M, 2)`` px."""
+        xy = np.asarray(xy_px, dtype=np.float64).reshape(-1, 2)
+        if len(xy) == 0:
+            return np.empty((0, 2))
+        _, idx = self.neighbours(xy)
+        return weighted_neighbour_means(self.values_px, self.weights, idx, [self.k_used])[:, 0]
+
+    def scaled(self, factor: float) -> "KnnModel":
+        """The same regressor with its values multiplied by ``factor`` (over-relaxation)."""
+        return replace(self, values_px=self.values_px * factor)
+
+
+@dataclass(frozen=True)
+class CvReport:
+    """Cross-validation of the neighbourhood size.
+
+    Attributes
+    ----------
+    k_grid : (K,) int64 ndarray
+        Candidates evaluated.
+    cv_cost : (K,) float64 ndarray
+        Mean out-of-fold equation-3 cost per observation,
+        ``mean_i (r_i - g(x_i))^T C_r^-1 (r_i - g(x_i))`` (dimensionless; 2 for
+        a perfect model of the deterministic part and correct variances).
+    k : int
+        The chosen ``k`` (smallest cost).
+    cv_rms_px : float
+        Out-of-fold RMS per component of ``r - g`` at the chosen ``k``, px.
+    n_points : int
+        Observations used.
+    """
+
+    k_grid: np.ndarray
+    cv_cost: np.ndarray
+    k: int
+    cv_rms_px: float
+    n_points: int
+
+    def __post_init__(self):
+        object.__setattr__(self, "k_grid", np.asarray(self.k_grid, dtype=np.int64))
+        object.__setattr__(self, "cv_cost", np.asarray(self.cv_cost, dtype=np.float64))
+        freeze(self)
+
+    def table(self) -> str:
+        """The CV table as text, one ``k cost`` line per candidate, the chosen one starred."""
+        return "\n".join(f"{k:5d} {c:12.6g}{' *' if k == self.k else ''}" for k, c in zip(self.k_grid, self.cv_cost))
+
+
+def cross_validate_k(
+    xy_px: np.ndarray,
+    residuals_px: np.ndarray,
+    residual_var_px2: np.ndarray,
+    *,
+    k_grid,
+    n_folds: int,
+    seed: int,
+    neighbour_cache: dict | None = None,
+) -> CvReport:
+    """Choose ``k`` by shuffled K-fold cross-validation of the equation-3 cost.
+
+    Parameters
+    ----------
+    xy_px : (N, 2) float64 ndarray, px
+        Measured coordinates of the (inlier) observations.
+    residuals_px : (N, 2) float64 ndarray, px
+        Residual vectors of the adjustment.
+    residual_var_px2 : (N, 2) or (N,) float64 ndarray, px²
+        Variances of the residuals (the diagonal of ``C_r``).
+    k_grid : sequence of int
+    n_folds : int
+    seed : int
+        Seed of the shuffling of the observations into folds.
+    neighbour_cache : dict, optional
+        Filled with each fold's neighbour indices, and reused by a later call
+        on the same coordinates, folds and at most as many neighbours (they
+        depend on the coordinates only, not on the residuals: the
+        alternation's iterations share them).
+
+    Returns
+    -------
+    CvReport
+
+    Notes
+    -----
+    Each observation is predicted only from the other folds, so a ``k`` that
+    fits noise (``k = 1`` reproduces each residual in sample) pays for it
+    out of fold. The cost is equation 3,
+    ``G = (r - g)^T C_r^-1 (r - g)`` with diagonal ``C_r``, averaged over the
+    observations.
+    """
+    xy, r, var = check_training(xy_px, residuals_px, residual_var_px2)
+    n = len(xy)
+    n_folds = min(int(n_folds), n)
+    if n_folds < 2:
+        raise InputError(f"cross-validation needs at least 2 observations; got {n}")
+    w = 1.0 / var
+    folds = np.array_split(np.random.default_rng(seed).permutation(n), n_folds)
+    n_train_min = n - max(len(f) for f in folds)
+    ks = np.array([k for k in sorted(set(int(k) for k in k_grid)) if k <= n_train_min], dtype=np.int64)
+    if len(ks) == 0:
+        raise InputError(f"k_grid {tuple(k_grid)} has no candidate <= the training fold size {n_train_min}")
+    cache = neighbour_cache if neighbour_cache is not None else {}
+    _fill_neighbour_cache(cache, xy, folds, seed, int(ks[-1]))
+    cost = np.zeros(len(ks))
+    sq = np.zeros(len(ks))
+    for test, idx in zip(folds, cache["idx"]):
+        train = np.setdiff1d(np.arange(n), test, assume_unique=True)
+        g = weighted_neighbour_means(r[train], w[train], idx[:, : ks[-1]], ks)  # shape (n_test, K, 2)
+        err = r[test][:, None, :] - g
+        cost += np.sum(w[test][:, None, :] * err**2, axis=(0, 2))
+        sq += np.sum(err**2, axis=(0, 2))
+    cost /= n
+    best = int(np.argmin(cost))
+    return CvReport(ks, cost, int(ks[best]), float(np.sqrt(sq[best] / (2 * n))), n)
+
+
+def _fill_neighbour_cache(cache: dict, xy: np.ndarray, folds: list, seed: int, k_max: int) -> None:
+    """Each fold's ``k_max`` nearest training neighbours of its test points, unless ``cache`` holds them already."""
+    n_folds = len(folds)
+    if (
+        cache.get("n_folds") == n_folds
+        and cache.get("seed") == seed
+        and cache.get("k", 0) >= k_max
+        and np.array_equal(cache.get("xy"), xy)
+    ):
+        return
+    cache.clear()
+    cache.update(xy=xy.copy(), n_folds=n_folds, seed=seed, k=k_max, idx=[])
+    for test in folds:
+        train = np.setdiff1d(np.arange(len(xy)), test, assume_unique=True)
+        _, idx = KDTree(xy[train]).query(xy[test], k=k_max)
+        cache["idx"].append(idx.reshape(len(test), -1).astype(np.int32))
+
+
+def node_statistics(model: KnnModel, nodes_px: np.ndarray, cv_rms_px: float, grid: GridSpec):
+    """Per-node uncertainty ``cv_rms / sqrt(n_eff)`` and support mask, both ``(n_nodes,)``."""
+    _, idx = model.neighbours(nodes_px)
+    w = model.weights[idx].mean(axis=2)  # shape (n_nodes, k)
+    n_eff = w.sum(1) ** 2 / np.sum(w**2, axis=1)
+    sigma = cv_rms_px / np.sqrt(n_eff)
+    counts = np.array([len(c) for c in model.tree.query_ball_point(nodes_px, r=grid.support_radius_px)])
+    return sigma, counts >= grid.min_support
+
+
+def fit_knn_field(
+    xy_px: np.ndarray,
+    residuals_px: np.ndarray,
+    residual_var_px2: np.ndarray,
+    *,
+    image_size: tuple[int, int],
+    grid: GridSpec = DEFAULT_GRID,
+    smooth: bool = True,
+    k_grid=DEFAULT_K_GRID,
+    n_folds: int = 10,
+    seed: int = 0,
+    cv: CvReport | None = None,
+    neighbour_cache: dict | None = None,
+) -> tuple[CorrectionField | KnnModel, CvReport]:
+    """Learn the deterministic part of the residuals: one kNN regression step.
+
+    Parameters
+    ----------
+    xy_px : (N, 2) float64 ndarray, px
+        Measured coordinates of the inlier observations of one system.
+    residuals_px : (N, 2) float64 ndarray, px
+        Their adjustment residuals, measured minus projected (after the
+        current correction), so that ``Δ += δ`` reduces them.
+    residual_var_px2 : (N, 2) or (N,) float64 ndarray, px²
+        Residual variances, the diagonal of ``C_r`` (equation 3's weights are their inverses).
+    image_size : (int, int)
+        ``(width, height)`` of the image in px.
+    grid : GridSpec
+        Nodes and support rule of the gridded field (default 16 px, 32 px, 3).
+    smooth : bool
+        Resample the kNN prediction onto the grid and interpolate it
+        bilinearly (the paper's "smoothed kNN", default True); False returns
+        the kNN regressor itself. The scheme decides it.
+    k_grid, n_folds, seed
+        Of :func:`cross_validate_k` (defaults: :data:`DEFAULT_K_GRID`, 10, 0).
+    cv : CvReport, optional
+        A cross-validation already run on (nearly) the same observations: its
+        ``k`` and out-of-fold RMS are used and none is run (the refit after
+        the local outlier test, which drops a few observations).
+    neighbour_cache : dict, optional
+        Passed to :func:`cross_validate_k`.
+
+    Returns
+    -------
+    field : CorrectionField or KnnModel
+        With ``smooth`` the kNN prediction at the grid nodes (with
+        uncertainty and support); otherwise the kNN regressor itself.
+    cv : CvReport
+        The cross-validation table (``k`` vs mean equation-3 cost).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> xy = rng.uniform(0, 64, (400, 2))
+    >>> r = np.full((400, 2), 0.3) + rng.normal(0, 0.05, (400, 2))
+    >>> field, cv = fit_knn_field(xy, r, np.full(400, 0.05**2), image_size=(64, 64))
+    >>> bool(np.allclose(field.correction_at(np.array([[32.0, 32.0]])), 0.3, atol=0.03))
+    True
+    """
+    xy, r, var = check_training(xy_px, residuals_px, residual_var_px2)
+    width, height = (int(s) for s in image_size)
+    if cv is None:
+        cv = cross_validate_k(xy, r, var, k_grid=k_grid, n_folds=n_folds, seed=seed, neighbour_cache=neighbour_cache)
+        logger.debug("kNN cross-validation over %d points:\n%s", len(xy), cv.table())
+    model = KnnModel(xy, r, 1.0 / var, cv.k)
+    if not smooth:
+        return model, cv
+    xn, yn = grid.nodes((width, height))
+    nodes = node_coordinates(xn, yn)
+    delta = model.correction_at(nodes).reshape(len(yn), len(xn), 2)
+    sigma, support = node_statistics(model, nodes, cv.cv_rms_px, grid)
+    return CorrectionField(
+        xn, yn, delta, sigma.reshape(delta.shape[:2]), support.reshape(delta.shape[:2]), width, height
+    ), cv
+
+
+__all__ = ["DEFAULT_K_GRID", "KnnModel", "CvReport", "cross_validate_k", "fit_knn_field", "node_statistics"]

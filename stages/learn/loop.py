@@ -1,0 +1,501 @@
+"""The alternation of the robust adjustment and the regression of its residuals (Chow et al., section IV).
+
+:func:`calibrate` is a short loop over small functions of a frozen loop state
+(:class:`_State`): regress every system's residuals (:func:`_regress`), add
+the update to the correction, accelerated and gauge-fixed
+(:func:`_update_field`), adjust again with the correction held, record the
+iteration, and decide (:func:`_decide`) whether to go on, to switch to the
+gridded refinement, or to stop.
+
+Each outer iteration: (1) per system, the kNN regression ``δ`` of the
+inlier residuals (``k`` by cross-validation of equation 3, restricted after
+the first iteration to the candidates near the previous ``k``), (2)
+``Δ += δ`` at every observation (inliers and outliers, so an outlier
+that turns out to be an inlier is corrected alike), (3) the adjustment
+with ``Δ`` held constant, warm-started from the previous solution.
+A phase ends when the combined cost (equation 2 + equation 3) changes by
+less than ``params.tolerance`` per observation, when the correction moves by
+less than ``params.step_tolerance`` times the inlier RMS at every observation,
+or at its iteration cap (``params.max_iterations`` for the kNN phase,
+``params.refine_iterations`` for the refinement). With ``params.refine`` the
+end of the kNN phase starts the gridded refinement; the end of the last phase
+ends the loop.
+
+With ``acceleration="anderson"`` the iterate is the vector of all node
+values of the gridded fields: the update ``x <- x + δ(x)`` is a fixed-point
+iteration, and Anderson acceleration combines the last few iterates;
+a step that raises the combined cost restarts its history.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from fluorocal.stages.errors import EstimationError, InputError
+from fluorocal.stages.field import CorrectionField, PointwiseField
+from fluorocal.stages.learn.adjuster import Adjuster, Outcome, adjustment_outcome, point_jacobians
+from fluorocal.stages.learn.anderson import Anderson, anderson_step
+from fluorocal.stages.learn.gauge import gauge_fixed
+from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
+from fluorocal.stages.learn.joint import fit_grid_with_points
+from fluorocal.stages.learn.knn import fit_knn_field, node_statistics
+from fluorocal.stages.learn.params import LearnParams, scheme_flags
+from fluorocal.stages.learn.polynomial import calibrate_polynomial
+from fluorocal.stages.learn.result import IterationRecord, LearnResult
+
+logger = logging.getLogger(__name__)
+
+#: conjugate-gradient cap of the joint field-and-points step inside the loop: an inexact inner
+#: solve is enough, since the next iteration starts from the new residuals
+LOOP_CG_ITERATIONS = 100
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """What the scheme and the parameters make of the loop, constant while it runs.
+
+    The unsmoothed schemes run without Anderson acceleration and without the
+    gridded refinement (both combine gridded fields).
+    """
+
+    params: LearnParams
+    observations: object
+    rows: tuple  # per system, the rows of its observations
+    sizes: tuple  # per system, (width, height) px
+    adjuster: Adjuster
+    estimate_iop: bool
+    smooth: bool
+    refine: str
+    acceleration: str
+
+    @property
+    def xy(self) -> np.ndarray:
+        return self.observations.xy_px
+
+
+@dataclass(frozen=True)
+class _Memory:
+    """One system's regression memory: the last cross-validation, the kNN's ``k`` and neighbours, the prior's ``τ``."""
+
+    cv: object = None
+    k_prev: int | None = None
+    tau_px: float | None = None
+    neighbour_cache: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class _State:
+    """The loop's state after an iteration."""
+
+    iteration: int
+    phase: str  # "knn", then "grid" (the refinement)
+    phase_start: int
+    corrections: np.ndarray  # shape (N, 2): Δ at every observation
+    adj: object  # the adjustment with Δ held at ``corrections``
+    out: Outcome
+    grids: tuple  # of CorrectionField, the smoothed schemes' fields
+    pointwise: tuple  # of PointwiseField, the unsmoothed schemes' fields
+    memory: tuple  # of _Memory
+    anderson: Anderson
+    history: tuple  # of IterationRecord
+    updates: tuple = ()  # the last regression's update per system
+
+
+def calibrate(
+    observations,
+    phantom,
+    initial,
+    *,
+    image_size,
+    scheme: str = "knn+iop+smooth",
+    params: LearnParams | None = None,
+    adjust_params=None,
+) -> LearnResult:
+    """Alternate the robust adjustment and the kNN regression of its residuals (paper, section IV).
+
+    Parameters
+    ----------
+    observations : Observations
+        Labelled measured coordinates of every system.
+    phantom : Phantom
+        Nominal bead coordinates (the adjustment's datum).
+    initial
+        Initial orientation for :func:`fluorocal.stages.adjust.adjust_bundle`.
+    image_size : (int, int) or (S, 2) array_like
+        ``(width, height)`` px of each system's images.
+    scheme : str
+        ``"knn"``, ``"knn+iop"``, ``"knn+smooth"``, ``"knn+iop+smooth"`` (the
+        paper's four; "iop" = the adjustment estimates the interior
+        orientation, otherwise it is held at its initial value and the field
+        absorbs it), ``"none"`` (adjustment only, IOP estimated) or
+        ``"polynomial"`` (no kNN loop: the adjustment estimates the IOP and
+        the global polynomial model, see
+        :func:`fluorocal.stages.learn.polynomial.calibrate_polynomial`).
+    params : LearnParams, optional
+        Default ``LearnParams()``: the recommended preset (``acceleration`` and ``refine`` go
+        beyond the paper); ``LearnParams(preset="paper")`` is the paper's loop.
+        Whether the field is smoothed is the scheme's.
+    adjust_params : AdjustParams, optional
+        Of the adjustment (its IOP flag is set from the scheme).
+
+    Returns
+    -------
+    LearnResult
+
+    Notes
+    -----
+    The iteration and its stopping rule: see the module's docstring.
+    """
+    t0 = time.perf_counter()
+    params = LearnParams() if params is None else params
+    learn, estimate_iop, smooth = scheme_flags(scheme)
+    sizes = _image_sizes(image_size, len(observations.system_names))
+    if scheme == "polynomial":
+        return calibrate_polynomial(observations, phantom, initial, sizes, params.grid, adjust_params)
+    adjuster = Adjuster(observations, phantom, initial, adjust_params, estimate_iop, fast=params.fast_intermediate)
+    plan = _plan(params, observations, sizes, adjuster, estimate_iop, smooth)
+    adj = adjuster(np.zeros((len(observations.xy_px), 2)), None, final=not learn)
+    out = adjustment_outcome(adj, observations.sigma_px)
+    logger.info("scheme %s: initial adjustment cost %.6g, inlier RMS %.4f px", scheme, out.cost, out.rms_px)
+    state = _initial_state(plan, adj, out)
+    if not learn:
+        return _result(plan, scheme, state, True, "scheme 'none' learns nothing", t0, adj.residual_px)
+    while True:
+        state = _iterate(plan, state)
+        action, converged, reason = _decide(plan, state)
+        if action == "refine":
+            state = replace(state, phase="grid", phase_start=state.iteration + 1, anderson=state.anderson.restarted())
+        elif action == "stop":
+            break
+    if params.fast_intermediate:
+        # the final solve, warm-started, with the covariance and redundancy numbers
+        state = replace(state, adj=adjuster(state.corrections, state.adj, final=True))
+    return _result(plan, scheme, state, converged, reason, t0, adj.residual_px)
+
+
+def _image_sizes(image_size, n_systems: int) -> tuple[tuple[int, int], ...]:
+    arr = np.asarray(image_size, dtype=np.int64)
+    if arr.shape == (2,):
+        arr = np.tile(arr, (n_systems, 1))
+    if arr.shape != (n_systems, 2) or np.any(arr < 1):
+        raise InputError(
+            f"image_size must be (width, height) or one per system, shape ({n_systems}, 2); got {arr.shape}"
+        )
+    return tuple((int(w), int(h)) for w, h in arr)
+
+
+def _plan(params: LearnParams, observations, sizes, adjuster: Adjuster, estimate_iop: bool, smooth: bool) -> _Plan:
+    rows = tuple(np.flatnonzero(observations.system == s) for s in range(len(sizes)))
+    # Anderson and the gridded refinement combine gridded fields: the unsmoothed schemes run without them
+    refine = params.refine if smooth else "none"
+    acceleration = "none" if params.acceleration == "anderson" and not smooth else params.acceleration
+    return _Plan(params, observations, rows, sizes, adjuster, estimate_iop, smooth, refine, acceleration)
+
+
+def _initial_state(plan: _Plan, adj, out: Outcome) -> _State:
+    """Iteration 0: the adjustment with no correction, zero fields."""
+    spacing = plan.params.grid_spacing_px
+    return _State(
+        iteration=0,
+        phase="knn",
+        phase_start=1,
+        corrections=np.zeros((len(plan.xy), 2)),
+        adj=adj,
+        out=out,
+        grids=tuple(CorrectionField.constant(w, h, spacing_px=spacing) for w, h in plan.sizes),
+        pointwise=tuple(PointwiseField((), w, h) for w, h in plan.sizes),
+        memory=tuple(_Memory() for _ in plan.sizes),
+        anderson=Anderson(plan.params.anderson_depth),
+        history=(IterationRecord(0, "adjust", out.cost, 0.0, out.cost, (), out.rms_px, 0.0),),
+    )
+
+
+def _iterate(plan: _Plan, state: _State) -> _State:
+    """One outer iteration: regress, update the correction, adjust with it held, record."""
+    iteration, phase = state.iteration + 1, state.phase
+    updates, memory, fit_cost = _regress(plan, state)
+    corrections, grids, pointwise, anderson = _update_field(plan, state, updates)
+    adj = plan.adjuster(corrections, state.adj, final=False)
+    out = adjustment_outcome(adj, plan.observations.sigma_px)
+    total = out.cost + fit_cost
+    step = float(np.max(np.abs(corrections - state.corrections))) if len(corrections) else 0.0
+    ks = tuple(int(m.k_prev or 0) if phase == "knn" else 0 for m in memory)
+    history = state.history + (IterationRecord(iteration, phase, out.cost, fit_cost, total, ks, out.rms_px, step),)
+    logger.info(
+        "iteration %d (%s): cost %.6g + %.6g = %.6g, RMS %.4f px, step %.4f px, k %s",
+        iteration,
+        phase,
+        out.cost,
+        fit_cost,
+        total,
+        out.rms_px,
+        step,
+        ks,
+    )
+    prev = _previous_total(history)
+    if plan.acceleration == "anderson" and prev is not None and total > prev:
+        anderson = anderson.restarted()
+    return _State(
+        iteration, phase, state.phase_start, corrections, adj, out, grids, pointwise, memory, anderson, history, updates
+    )
+
+
+def _previous_total(history: tuple) -> float | None:
+    """The combined cost of the iteration before the last, if it is of the same phase."""
+    return history[-2].cost_total if len(history) > 2 and history[-2].phase == history[-1].phase else None
+
+
+def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
+    """``(action, converged, reason)``: ``"continue"``, ``"refine"`` (start the refinement) or ``"stop"``."""
+    params, last, n_obs = plan.params, state.history[-1], len(plan.xy)
+    prev = _previous_total(state.history)
+    small_change = prev is not None and abs(last.cost_total - prev) < params.tolerance * max(n_obs, 1)
+    small_step = prev is not None and last.step_px < params.step_tolerance * last.rms_px
+    done = small_change or small_step
+    cap = params.max_iterations if state.phase == "knn" else params.refine_iterations
+    if not done and state.iteration - state.phase_start + 1 < cap:
+        return "continue", False, ""
+    if state.phase == "knn" and plan.refine != "none":
+        return "refine", False, ""
+    if small_change:
+        reason = (
+            f"combined cost changed by {abs(last.cost_total - prev):.3g} < {params.tolerance} x {n_obs} observations"
+        )
+    elif small_step:
+        reason = (
+            f"the correction moved by at most {last.step_px:.3g} px < {params.step_tolerance} x the residual RMS "
+            f"{last.rms_px:.3g} px"
+        )
+    elif state.phase == "grid":
+        reason = f"maximum number of refinement iterations ({params.refine_iterations}) reached"
+    else:
+        reason = f"maximum number of iterations ({params.max_iterations}) reached"
+    return "stop", done, reason
+
+
+# ---------------------------------------------------------------------------------------------
+# the regression step
+# ---------------------------------------------------------------------------------------------
+
+
+def _regress(plan: _Plan, state: _State) -> tuple[tuple, tuple, float]:
+    """Every system's update, its regression memory after it, and the in-sample equation-3 cost of the updates."""
+    updates, memory, fit_cost = [], [], 0.0
+    for s in range(len(plan.sizes)):
+        model, sel, mem = _regress_system(plan, state, s)
+        r, var = state.out.residuals_px[sel], state.out.residual_var_px2[sel]
+        fit_cost += float(np.sum((r - model.correction_at(plan.xy[sel])) ** 2 / var))
+        updates.append(model)
+        memory.append(mem)
+    return tuple(updates), tuple(memory), fit_cost
+
+
+def _regress_system(plan: _Plan, state: _State, s: int):
+    """System ``s``'s update, the observations it was fitted to and its memory after it.
+
+    With ``training="local"``, gross errors are what the field cannot explain:
+    fit to all, test every observation against the fitted field, refit without the misfits.
+    """
+    params, out, rows = plan.params, state.out, plan.rows[s]
+    local = params.training == "local"
+    sel = rows[state.adj.used[rows]] if local else rows[out.inlier[rows]]
+    if len(sel) < params.n_folds:
+        raise EstimationError(
+            f"system {plan.observations.system_names[s]} has {len(sel)} inlier observations; "
+            f"the regression needs at least {params.n_folds}"
+        )
+    model, mem = _fit(plan, state, s, sel, state.memory[s])
+    if not local:
+        return model, sel, mem
+    candidates = sel
+    r, var = out.residuals_px[candidates], out.residual_var_px2[candidates]
+    z2 = np.sum((r - model.correction_at(plan.xy[candidates])) ** 2 / var, axis=1)
+    keep = z2 <= params.outlier_chi2 * max(float(np.median(z2)) / (2 * np.log(2)), 1e-300)
+    sel = candidates[keep] if keep.sum() >= params.n_folds else candidates
+    if len(sel) < len(candidates):
+        model, mem = _fit(plan, state, s, sel, mem, refit=True)
+    return model, sel, mem
+
+
+def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refit: bool = False):
+    """One regression of system ``s`` on observations ``sel``: the update and the memory after it.
+
+    ``refit``: the same kNN step again (after the local outlier test), with the ``k`` just chosen.
+    """
+    if state.phase == "grid":
+        return _fit_grid(plan, state, s, sel, mem)
+    params = plan.params
+    r, var = state.out.residuals_px[sel], state.out.residual_var_px2[sel]
+    knn = dict(image_size=plan.sizes[s], grid=params.grid, smooth=plan.smooth, n_folds=params.n_folds, seed=params.seed)
+    if refit:
+        model, _ = fit_knn_field(plan.xy[sel], r, var, cv=mem.cv, **knn)
+        return model, mem
+    k_grid = _restricted_k_grid(params.k_grid, mem.k_prev)
+    model, cv = fit_knn_field(plan.xy[sel], r, var, k_grid=k_grid, neighbour_cache=mem.neighbour_cache, **knn)
+    return model, replace(mem, cv=cv, k_prev=cv.k)
+
+
+def _restricted_k_grid(k_grid: tuple, k_prev: int | None, span: int = 3) -> tuple:
+    """The candidates within ``span`` grid steps of the previous choice (all of them at first)."""
+    if k_prev is None or k_prev not in k_grid:
+        return k_grid
+    i = k_grid.index(k_prev)
+    return k_grid[max(i - span, 0) : i + span + 1]
+
+
+def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory):
+    """The refinement's update of system ``s``: the gridded least squares, jointly with the points or not."""
+    params, adj, observations = plan.params, state.adj, plan.observations
+    xy, r, var = plan.xy[sel], state.out.residuals_px[sel], state.out.residual_var_px2[sel]
+    base = state.grids[s]
+    if mem.tau_px is None:
+        cv = cross_validate_smoothness(
+            xy,
+            r,
+            var,
+            image_size=plan.sizes[s],
+            grid=params.grid,
+            tau_grid_px=params.tau_grid_px,
+            orders=params.smoothness_orders,
+            n_folds=params.smoothness_folds,
+            seed=params.seed,
+            base_px=base.delta_px,
+        )
+        mem = replace(mem, cv=cv, tau_px=cv.tau_px)
+        logger.info(
+            "system %s: gridded refinement, smoothness order %d, tau %.3g px (CV)",
+            observations.system_names[s],
+            cv.order,
+            cv.tau_px,
+        )
+    fit = dict(image_size=plan.sizes[s], tau_px=mem.tau_px, grid=params.grid, base=base, order=mem.cv.order)
+    if plan.refine != "grid+points":
+        return fit_grid_field(xy, r, var, cv_rms_px=mem.cv.cv_rms_px, **fit), mem
+    bead, J = point_jacobians(adj, observations, sel)
+    t_weight = adj.weight[sel, None] if params.training == "inliers" else 1.0
+    w_obs = t_weight / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
+    shape = plan.adjuster.nominal_shape(adj) if params.affine_datum else None
+    model = fit_grid_with_points(
+        xy,
+        r,
+        w_obs,
+        bead,
+        J,
+        cv_rms_px=mem.cv.cv_rms_px,
+        shape_mm=shape,
+        max_cg_iterations=LOOP_CG_ITERATIONS,
+        **fit,
+    )
+    return model, mem
+
+
+# ---------------------------------------------------------------------------------------------
+# the update of the correction
+# ---------------------------------------------------------------------------------------------
+
+
+def _update_field(plan: _Plan, state: _State, updates: tuple):
+    """``Δ += δ``: the corrections at every observation, the fields and the acceleration's memory after it."""
+    corrections = state.corrections.copy()
+    xy, rows = plan.xy, plan.rows
+    if plan.smooth:
+        return _update_grids(plan, state, updates, corrections)
+    factor = plan.params.relaxation if plan.acceleration == "overrelax" else 1.0
+    pointwise = tuple(f.add(u.scaled(factor)) for f, u in zip(state.pointwise, updates))
+    for s, u in enumerate(updates):
+        corrections[rows[s]] += factor * u.correction_at(xy[rows[s]])
+    return corrections, state.grids, pointwise, state.anderson
+
+
+def _update_grids(plan: _Plan, state: _State, updates: tuple, corrections: np.ndarray):
+    """The gridded fields' update: plain, over-relaxed or Anderson-accelerated, then gauge-fixed."""
+    params, xy, rows = plan.params, plan.xy, plan.rows
+    x = np.concatenate([g.delta_px.ravel() for g in state.grids])
+    dx = np.concatenate([u.delta_px.ravel() for u in updates])
+    anderson = state.anderson
+    if plan.acceleration == "anderson":
+        mask = np.concatenate([np.repeat(u.support.ravel(), 2) for u in updates])
+        x_new, anderson = anderson_step(anderson, x, x + dx, mask)
+    elif plan.acceleration == "overrelax":
+        x_new = x + params.relaxation * dx
+    else:
+        x_new = x + dx
+    grids = _split_nodes(state.grids, updates, x_new)
+    if params.field_gauge != "none":
+        grids = [gauge_fixed(g, xy[rows[s]], state.adj.iop_px[s], plan.estimate_iop) for s, g in enumerate(grids)]
+    for s, g in enumerate(grids):
+        corrections[rows[s]] = g.correction_at(xy[rows[s]])
+    return corrections, tuple(grids), state.pointwise, anderson
+
+
+def _split_nodes(grids, updates, x_new):
+    """New gridded fields from the flattened node vector ``x_new`` (sigma and support of the updates)."""
+    out, start = [], 0
+    for g, u in zip(grids, updates):
+        n = g.delta_px.size
+        out.append(
+            g.with_delta(x_new[start : start + n].reshape(g.delta_px.shape), sigma_px=u.sigma_px, support=u.support)
+        )
+        start += n
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the result
+# ---------------------------------------------------------------------------------------------
+
+
+def _result(plan: _Plan, scheme: str, state: _State, converged: bool, reason: str, t0: float, initial_residual):
+    learned = state.iteration > 0
+    fields, pointwise = _stored_fields(plan, state) if learned else (_identity_fields(plan.sizes), None)
+    wall = time.perf_counter() - t0
+    if learned:
+        logger.info(
+            "scheme %s: %s after %d iterations (%.1f s, of which %.1f s in the adjustment)",
+            scheme,
+            reason,
+            state.iteration,
+            wall,
+            plan.adjuster.seconds,
+        )
+    cv = tuple(m.cv for m in state.memory) if learned else ()
+    return LearnResult(
+        scheme=scheme,
+        fields=fields,
+        pointwise=pointwise,
+        corrections_px=state.corrections,
+        adjustment=state.adj,
+        history=state.history,
+        cv=cv,
+        converged=converged,
+        stop_reason=reason,
+        wall_time_s=wall,
+        adjust_time_s=plan.adjuster.seconds,
+        initial_residual_px=initial_residual,
+    )
+
+
+def _identity_fields(sizes) -> tuple:
+    return tuple(CorrectionField.constant(w, h) for w, h in sizes)
+
+
+def _stored_fields(plan: _Plan, state: _State) -> tuple[tuple, tuple | None]:
+    """The gridded fields to store, and the unsmoothed schemes' exact (pointwise) fields."""
+    if plan.smooth:
+        return state.grids, None
+    fields = []
+    for s, (model, mem) in enumerate(zip(state.updates, state.memory)):
+        grid = state.pointwise[s].to_grid(plan.params.grid_spacing_px)
+        sigma, support = node_statistics(model, grid.nodes_px, mem.cv.cv_rms_px, plan.params.grid)
+        fields.append(
+            grid.with_delta(
+                grid.delta_px, sigma_px=sigma.reshape(grid.sigma_px.shape), support=support.reshape(grid.support.shape)
+            )
+        )
+    return tuple(fields), state.pointwise
+
+
+__all__ = ["calibrate"]

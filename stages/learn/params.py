@@ -1,0 +1,296 @@
+"""The learning's parameters, its schemes and its two presets (``recommended``, the default, and ``paper``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from fluorocal.stages.errors import InputError
+from fluorocal.stages.learn.grid import DEFAULT_TAU_GRID_PX, DIFFERENCE_STENCILS
+from fluorocal.stages.learn.knn import DEFAULT_K_GRID
+from fluorocal.stages.learn.nodes import GridSpec
+
+#: calibration schemes: the adjustment alone, the paper's four, and the global polynomial model in the adjustment
+SCHEMES = ("none", "knn", "knn+iop", "knn+smooth", "knn+iop+smooth", "polynomial")
+
+#: the values a preset gives the fields left unset (None); explicit values always win
+PRESETS = {
+    # the accelerated loop: a few kNN steps, then the gridded field refined jointly with the points
+    # (its smoothness prior's order and weight chosen by cross-validation), stopped once the field stops moving
+    "recommended": {
+        "acceleration": "anderson",
+        "refine": "grid+points",
+        "affine_datum": True,
+        "smoothness_orders": (2, 3, 4),
+        "max_iterations": 3,
+        "step_tolerance": 0.05,
+        "training": "local",
+        "field_gauge": "orientation",
+        "fast_intermediate": True,
+    },
+    # Chow et al.'s loop as written: learn from the inliers, plain fixed-point steps, every solve in full
+    "paper": {
+        "acceleration": "none",
+        "refine": "none",
+        "affine_datum": False,
+        "smoothness_orders": (2,),
+        "max_iterations": 30,
+        "step_tolerance": 0.0,
+        "training": "inliers",
+        "field_gauge": "none",
+        "fast_intermediate": False,
+    },
+}
+
+
+def scheme_flags(scheme: str) -> tuple[bool, bool, bool]:
+    """``(learn, estimate_iop, smooth)`` of a scheme name (``none`` and ``polynomial`` learn no kNN field).
+
+    Examples
+    --------
+    >>> scheme_flags("knn+iop"), scheme_flags("knn+smooth")
+    ((True, True, False), (True, False, True))
+    """
+    if scheme not in SCHEMES:
+        raise InputError(f"scheme must be one of {', '.join(SCHEMES)}; got {scheme!r}")
+    if scheme in ("none", "polynomial"):
+        return False, True, True
+    parts = set(scheme.split("+"))
+    return True, "iop" in parts, "smooth" in parts
+
+
+@dataclass(frozen=True)
+class LearnParams:
+    """Parameters of the kNN regression and of the alternation.
+
+    Fields marked *(preset)* default to None, "the preset's value": construction
+    fills them from :data:`PRESETS` ``[preset]``, so an instance (and the
+    cache key hashed from it) always holds the resolved values, and a value
+    given explicitly always wins over the preset's. ``dataclasses.replace``
+    keeps the resolved values: replacing ``preset`` alone changes nothing else.
+    Whether the kNN field is smoothed (gridded) is not a parameter here: the
+    scheme decides it (``[calibration] scheme``, ``knn+smooth`` and
+    ``knn+iop+smooth``).
+
+    Attributes
+    ----------
+    preset : str
+        ``"recommended"`` (default): Anderson acceleration, then the gridded
+        field refined jointly with the object points with the affine datum and
+        a smoothness prior whose order and weight are chosen by
+        cross-validation, stopped once the field stops moving. ``"paper"``:
+        Chow et al.'s loop as written (plain fixed-point steps, learning from
+        the adjustment's inliers, no field gauge, every solve in full, up to 30
+        iterations), for comparison.
+    k_grid : tuple of int
+        Candidate neighbourhood sizes for the cross-validation (default
+        1, 2, 3, 4, 6, ..., 181, 256: roughly ``sqrt(2)`` steps). Candidates larger
+        than a training fold are dropped.
+    n_folds : int
+        Folds of the cross-validation (default 10, as in the paper).
+    grid_spacing_px : float
+        Largest spacing between grid nodes (default 16 px); the nodes are
+        spread evenly over ``[-0.5, W - 0.5]`` and ``[-0.5, H - 0.5]``.
+    seed : int
+        Seed of the fold shuffling (default 0).
+    support_radius_px : float or None
+        Radius within which a node counts observations for the support mask
+        (default None: twice ``grid_spacing_px``).
+    min_support : int
+        Observations needed within ``support_radius_px`` of a node for it to be
+        supported (default 3).
+    max_iterations : int *(preset)*
+        Cap on the kNN alternation's outer iterations (recommended 3: kNN steps
+        before the refinement; paper 30, its typical count).
+    tolerance : float
+        Stop when the combined cost changes by less than ``tolerance`` per
+        observation between iterations (default 1e-4).
+    step_tolerance : float *(preset)*
+        Also stop when the largest change of the correction at any observation
+        falls below this fraction of the inlier residual RMS (recommended 0.05;
+        paper 0: off, its criterion alone). Inexact inner solves leave the
+        combined cost a little noisy near the fixed point; the step still shows
+        that the field has stopped moving.
+    acceleration : str *(preset)*
+        ``"none"`` (the paper's plain fixed-point loop), ``"overrelax"``
+        (``Δ += relaxation δ``) or ``"anderson"`` (recommended: Anderson
+        acceleration of the gridded field's fixed-point iteration; the
+        unsmoothed schemes run it as ``"none"``).
+    relaxation : float
+        Step factor of ``"overrelax"`` (default 1.5; 1 is the plain loop).
+    anderson_depth : int
+        Past iterates Anderson acceleration combines (default 10).
+    refine : str *(preset)*
+        ``"none"`` (paper: the kNN only), ``"grid"``: once the kNN
+        alternation has converged, continue alternating with the gridded
+        least-squares field of :func:`~fluorocal.stages.learn.grid.fit_grid_field`,
+        or ``"grid+points"`` (recommended): the same with the field estimated
+        jointly with the object points
+        (:func:`~fluorocal.stages.learn.joint.fit_grid_with_points`). The
+        unsmoothed schemes run without a refinement.
+    tau_grid_px : tuple of float
+        Candidate smoothness priors (px, standard deviation of a node's
+        difference of the prior's order) for the refinement, chosen by
+        cross-validation (default 0.03, 0.1, 0.3, 1, 3 px; the prior acts on
+        the total field, whose strong radial part has second differences of
+        ~0.1 px at a 16 px spacing near the rim of a 1024 px image, so smaller
+        values bias it).
+    smoothness_folds : int
+        Folds of that cross-validation (default 5: it runs once per system and
+        each fold costs a sparse factorisation per candidate).
+    smoothness_orders : tuple of int *(preset)*
+        Candidate orders ``m`` of the difference prior (recommended
+        ``(2, 3, 4)``; paper ``(2,)``: the thin-plate energy, second
+        differences). The prior penalises the discrete ``m``-th order energy
+        ``Σ_a C(m, a) (∂^m Δ / ∂x^(m-a) ∂y^a)²`` (null space: the polynomials
+        of degree below ``m``); a higher order assumes a smoother field and
+        biases its large-scale, strong part (the radial distortion) less, so it
+        can smooth the noise harder. With several candidates the
+        cross-validation chooses the order together with ``τ`` (each order
+        costs ``len(tau_grid_px)`` candidates more).
+    refine_iterations : int
+        Cap on the alternation's iterations with the gridded least-squares field (default 15).
+    affine_datum : bool *(preset)*
+        With ``refine="grid+points"``: hold the phantom's affine shape beyond a
+        similarity (stretches and shears: 5 degrees of freedom) at the nominal
+        design's while refining (recommended True, paper False: its inner
+        constraints only; left unset it is False whenever ``refine`` is not
+        ``"grid+points"``). In a free network these deformations trade off
+        against an image aspect ratio or shear of the field through weak
+        perspective effects only; see
+        :func:`~fluorocal.stages.learn.joint.fit_grid_with_points`. If a real
+        phantom is stretched or sheared as a whole, that error passes into
+        the result: set it False then.
+    training : str *(preset)*
+        Which observations each regression learns from. ``"inliers"``: the
+        adjustment's inliers (paper). ``"local"`` (recommended): every
+        observation the adjustment used, less those the fitted field itself
+        cannot explain (squared standardised misfit above ``outlier_chi2``
+        times its median / ln 4, the robust scale of a 2-D Gaussian), refitted
+        without them. While the distortion is still unmodelled the
+        adjustment's t-weights flag the strongly distorted rim of the field as
+        outliers, so an inlier-only regression never learns the rim and the
+        loop stalls; gross errors (mislabels), unlike distortion, are not
+        shared by their neighbours, which is what the local test uses. With
+        ``"local"`` the joint refinement also weights observations by their
+        variances only, not their t-weights.
+    field_gauge : str *(preset)*
+        ``"orientation"`` (recommended): after every update, remove from each
+        system's field its least-squares component (over the observations)
+        that the orientation parameters reproduce exactly: an image rotation
+        and the two "keystone" fields of a common rotation of every pose
+        (absorbed, biplanar, by the ROP), and, when the IOP are estimated, a
+        principal-point shift and a principal-distance scaling. These trade
+        one for one between field and adjustment; left free they let the
+        IOP (and the alternation's fixed point) drift without bound, as on a
+        turntable set. The IOP then are the best pinhole over the observed
+        area, and the field the departure from it. ``"none"`` (paper): the
+        field keeps whatever the loop leaves in it.
+    outlier_chi2 : float
+        Threshold of the local outlier test of ``training="local"`` (default
+        23: a 2-D Gaussian exceeds it with probability 1e-5).
+    fast_intermediate : bool *(preset)*
+        Solve the loop's intermediate adjustments without the covariance and
+        redundancy numbers (each observation gets the mean redundancy), with
+        ``function_tolerance`` at least 1e-3 and at most 10 iterations (they
+        are warm-started), and only the final solve in full (recommended
+        True). False (paper): every solve with the given AdjustParams.
+
+    Examples
+    --------
+    >>> LearnParams().refine, LearnParams(preset="paper").refine
+    ('grid+points', 'none')
+    >>> p = LearnParams(preset="paper", max_iterations=5)
+    >>> p.max_iterations, p.training
+    (5, 'inliers')
+    >>> LearnParams(refine="grid").affine_datum
+    False
+    """
+
+    preset: str = "recommended"
+    k_grid: tuple = DEFAULT_K_GRID
+    n_folds: int = 10
+    grid_spacing_px: float = 16.0
+    seed: int = 0
+    support_radius_px: float | None = None
+    min_support: int = 3
+    max_iterations: int | None = None
+    tolerance: float = 1e-4
+    step_tolerance: float | None = None
+    acceleration: str | None = None
+    relaxation: float = 1.5
+    anderson_depth: int = 10
+    refine: str | None = None
+    tau_grid_px: tuple = DEFAULT_TAU_GRID_PX
+    smoothness_folds: int = 5
+    smoothness_orders: tuple[int, ...] | None = None
+    refine_iterations: int = 15
+    affine_datum: bool | None = None
+    training: str | None = None
+    field_gauge: str | None = None
+    outlier_chi2: float = 23.0
+    fast_intermediate: bool | None = None
+
+    def __post_init__(self):
+        self._resolve_preset()
+        self._check_choices()
+        self._check_numbers()
+
+    def _resolve_preset(self):
+        if self.preset not in PRESETS:
+            raise InputError(f"preset must be one of {', '.join(PRESETS)}; got {self.preset!r}")
+        values = PRESETS[self.preset]
+        refine = self.refine if self.refine is not None else values["refine"]
+        for name, value in values.items():
+            if getattr(self, name) is None:
+                # the affine datum constrains the joint refinement's point shifts: unset, it follows refine
+                value = value and refine == "grid+points" if name == "affine_datum" else value
+                object.__setattr__(self, name, value)
+
+    def _check_choices(self):
+        if self.acceleration not in ("none", "overrelax", "anderson"):
+            raise InputError(f"acceleration must be 'none', 'overrelax' or 'anderson'; got {self.acceleration!r}")
+        if self.refine not in ("none", "grid", "grid+points"):
+            raise InputError(f"refine must be 'none', 'grid' or 'grid+points'; got {self.refine!r}")
+        if self.affine_datum and self.refine != "grid+points":
+            raise InputError(
+                f"affine_datum needs refine='grid+points' (it constrains the point shifts); got refine={self.refine!r}"
+            )
+        if self.training not in ("inliers", "local"):
+            raise InputError(f"training must be 'inliers' or 'local'; got {self.training!r}")
+        if self.field_gauge not in ("none", "orientation"):
+            raise InputError(f"field_gauge must be 'none' or 'orientation'; got {self.field_gauge!r}")
+        object.__setattr__(self, "smoothness_orders", tuple(sorted({int(m) for m in self.smoothness_orders})))
+        if not self.smoothness_orders or not set(self.smoothness_orders) <= set(DIFFERENCE_STENCILS):
+            raise InputError(
+                f"smoothness_orders must hold orders among {tuple(DIFFERENCE_STENCILS)}; got {self.smoothness_orders}"
+            )
+
+    def _check_numbers(self):
+        object.__setattr__(self, "k_grid", tuple(sorted({int(k) for k in self.k_grid})))
+        if not self.k_grid or self.k_grid[0] < 1:
+            raise InputError(f"k_grid must hold positive integers; got {self.k_grid}")
+        if self.n_folds < 2:
+            raise InputError(f"n_folds must be >= 2; got {self.n_folds}")
+        if not self.grid_spacing_px > 0:
+            raise InputError(f"grid_spacing_px must be > 0; got {self.grid_spacing_px}")
+        object.__setattr__(self, "tau_grid_px", tuple(float(t) for t in self.tau_grid_px))
+        if not self.tau_grid_px or min(self.tau_grid_px) <= 0:
+            raise InputError(f"tau_grid_px must hold positive values; got {self.tau_grid_px}")
+        if not 0 < self.relaxation < 2:
+            raise InputError(f"relaxation must lie in (0, 2); got {self.relaxation}")
+        if self.max_iterations < 1:
+            raise InputError(f"max_iterations must be >= 1; got {self.max_iterations}")
+        if not self.step_tolerance >= 0:
+            raise InputError(f"step_tolerance must be >= 0; got {self.step_tolerance}")
+        if not self.outlier_chi2 > 0:
+            raise InputError(f"outlier_chi2 must be > 0; got {self.outlier_chi2}")
+
+    @property
+    def support_radius(self) -> float:
+        """Support radius in px (``support_radius_px`` or twice the grid spacing)."""
+        return float(self.support_radius_px if self.support_radius_px is not None else 2 * self.grid_spacing_px)
+
+    @property
+    def grid(self) -> GridSpec:
+        """The node grid and support rule of the learned fields."""
+        return GridSpec(self.grid_spacing_px, self.support_radius, self.min_support)
