@@ -44,7 +44,7 @@ from fluorocal.stages._geometry import (
     rotvec_to_quat,
     similarity_fit,
 )  # noqa: E402
-from fluorocal.stages.adjust import AdjustParams, Orientation, adjust_bundle  # noqa: E402
+from fluorocal.stages.adjust import FreeParameters, Orientation, adjust_bundle  # noqa: E402
 from fluorocal.stages.artifacts import Observations  # noqa: E402
 from fluorocal.stages.learn import LearnParams, calibrate  # noqa: E402
 
@@ -152,7 +152,7 @@ def held_out(test_obs, test_init, nominal, true_xyz, corrections, iop_px):
         test_init.rop_source_mm,
         test_init.system_names,
     )
-    adj = adjust_bundle(test_obs, nominal, init, corrections, AdjustParams(estimate_iop=False))
+    adj = adjust_bundle(test_obs, nominal, init, corrections, free=FreeParameters(estimate_iop=False))
     truth = true_xyz[np.searchsorted(nominal.ids, adj.bead_id)]
     scale, R, t = similarity_fit(adj.xyz_mm, truth)
     err = np.linalg.norm(scale * adj.xyz_mm @ R.T + t - truth, axis=1)

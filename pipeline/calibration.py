@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from fluorocal.stages._geometry import (
+    camera_matrix,
     check_points,
     image_rays,
     intersect_rays,
@@ -182,7 +183,7 @@ class Calibration:
             "xp": xp,
             "yp": yp,
             "c": c,
-            "K": np.array([[c, 0, xp], [0, c, yp], [0, 0, 1.0]]),
+            "K": camera_matrix(s.iop_px),
             "image_size_px": s.image_size_px,
         }
 

@@ -98,7 +98,7 @@ def run(args) -> int:
     """Read, adjust and write the outputs; return the exit code."""
     import logging
 
-    import numpy as np
+    from fluorocal.stages._geometry import iop_guess
     from fluorocal.stages.adjust import FreeParameters, SolverOptions, adjust_bundle, initial_orientation
     from fluorocal.stages.errors import InputError
     from fluorocal.stages.io import read_phantom
@@ -109,7 +109,7 @@ def run(args) -> int:
     phantom = read_phantom(args.phantom)
     obs, rows, corrections = _read_observations(args.observations)
     w, h = args.image_size
-    iop = np.array([(w - 1) / 2, (h - 1) / 2, args.sid / args.pixel_pitch])
+    iop = iop_guess((w, h), args.sid, args.pixel_pitch)
     start = initial_orientation(obs, phantom, iop)
     # the flags own the choice of free parameters; the solver keeps its defaults but for ν
     free = FreeParameters(estimate_iop=not args.fixed_iop)

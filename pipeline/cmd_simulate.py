@@ -55,18 +55,6 @@ from pathlib import Path
 
 FORMATS = {"tiff": ".tif", "dicom": ".dcm"}
 
-#: the accelerated loop (README.md, "Config"): a few kNN steps, then the gridded field refined jointly with the points
-#: (its smoothness prior's order and weight chosen by cross-validation)
-RECOMMENDED_LEARN = (
-    "[learn]",
-    'acceleration = "anderson"',
-    'refine = "grid+points"',
-    "affine_datum = true",
-    "smoothness_orders = [2, 3, 4]",
-    "max_iterations = 3",
-    "step_tolerance = 0.05",
-)
-
 
 def add_parser(subparsers) -> None:
     """Register the ``simulate`` subcommand."""
@@ -245,8 +233,6 @@ def _config_text(data, suffix: str) -> str:
         "",
         "[calibration]",
         'scheme = "knn+iop+smooth"',
-        "",
-        *RECOMMENDED_LEARN,
         "",
         "[output]",
         'dir = "out"',

@@ -124,20 +124,21 @@ def _seeds(path):
 
 def _learn_extras(config, units) -> dict:
     from fluorocal.config import params_from_dict
-    from fluorocal.stages.adjust import AdjustParams
+    from fluorocal.stages._geometry import iop_guess
     from fluorocal.stages.learn import CalibrationSetup
 
     sizes, guesses = [], []
     for s, system in enumerate(config.systems):
         w, h = next(u.size_px for u in units if u.system == s)
         sizes.append((w, h))
-        guesses.append(((w - 1) / 2, (h - 1) / 2, system.source_image_distance_mm / system.pixel_pitch_mm))
-    adjust = params_from_dict(
-        AdjustParams, config.stage_params.get("adjust", {}), where=f"{config.path.name}: [adjust] "
+        guesses.append(tuple(iop_guess((w, h), system.source_image_distance_mm, system.pixel_pitch_mm)))
+    solver, selection = params_from_dict(
+        _section_classes("adjust"), config.stage_params.get("adjust", {}), where=f"{config.path.name}: [adjust] "
     )
     return {
         "setup": CalibrationSetup(scheme=config.scheme, image_size_px=tuple(sizes), iop_guess_px=tuple(guesses)),
-        "adjust": adjust,
+        "solver": solver,
+        "selection": selection,
     }
 
 
@@ -185,10 +186,13 @@ def default_stages() -> list[Stage]:
 def stage_params_classes() -> dict[str, type | tuple[type, ...]]:
     """Config section name -> Params class (or classes), for validating ``[detect]``, ``[adjust]`` etc."""
     sections = {s.name: s.params_cls for s in default_stages()}
-    for section, (module, names) in EXTRA_SECTIONS.items():
-        mod = importlib.import_module(module)
-        sections[section] = tuple(getattr(mod, name) for name in names)
-    return sections
+    return {**sections, **{section: _section_classes(section) for section in EXTRA_SECTIONS}}
+
+
+def _section_classes(section: str) -> tuple[type, ...]:
+    module, names = EXTRA_SECTIONS[section]
+    mod = importlib.import_module(module)
+    return tuple(getattr(mod, name) for name in names)
 
 
 def downstream(stages: list[Stage], names: set[str]) -> set[str]:

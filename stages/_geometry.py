@@ -108,6 +108,31 @@ def rotvec_to_quat(rotvec: np.ndarray) -> np.ndarray:
     return np.concatenate([np.cos(half), rotvec * scale], axis=-1)
 
 
+def camera_matrix(iop_px) -> np.ndarray:
+    """OpenCV's camera matrix ``K`` (3, 3) of the interior orientation ``(xp, yp, c)`` px.
+
+    Examples
+    --------
+    >>> camera_matrix([511.5, 511.5, 4000.0]).tolist()
+    [[4000.0, 0.0, 511.5], [0.0, 4000.0, 511.5], [0.0, 0.0, 1.0]]
+    """
+    xp, yp, c = (float(v) for v in iop_px)
+    return np.array([[c, 0.0, xp], [0.0, c, yp], [0.0, 0.0, 1.0]])
+
+
+def iop_guess(image_size_px, source_image_distance_mm: float, pixel_pitch_mm: float) -> np.ndarray:
+    """Start values ``(xp, yp, c)`` px: the principal point at the image centre, ``c = SID / pitch``.
+
+    Examples
+    --------
+    >>> iop_guess((1024, 1024), 1100.0, 0.25).tolist()
+    [511.5, 511.5, 4400.0]
+    """
+    width, height = image_size_px
+    c = source_image_distance_mm / pixel_pitch_mm if pixel_pitch_mm > 0 else np.nan
+    return np.array([(width - 1) / 2, (height - 1) / 2, c])
+
+
 def to_camera(points_mm: np.ndarray, q: np.ndarray, source_mm: np.ndarray) -> np.ndarray:
     """Object points ``(N, 3)`` into the camera frame of pose ``(q, T)``: ``R(q) (P - T)``."""
     R = quat_to_matrix(q)

@@ -13,7 +13,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages._geometry import matrix_to_quat, quat_multiply, quat_normalize, quat_to_matrix
+from fluorocal.stages._geometry import camera_matrix, matrix_to_quat, quat_multiply, quat_normalize, quat_to_matrix
 from fluorocal.stages.adjust.selection import index_of, nominal_coordinates
 from fluorocal.stages.artifacts import SCHEMA_VERSION, Observations, check_shape, freeze
 from fluorocal.stages.errors import EstimationError, InputError
@@ -153,7 +153,7 @@ def _resect_frames(observations, nominal, iop_px, epochs, min_beads) -> tuple[np
     R = np.full((n_sys, len(epochs), 3, 3), np.nan)
     T = np.full((n_sys, len(epochs), 3), np.nan)
     for s in range(n_sys):
-        K = np.array([[iop_px[s, 2], 0, iop_px[s, 0]], [0, iop_px[s, 2], iop_px[s, 1]], [0, 0, 1.0]])
+        K = camera_matrix(iop_px[s])
         for j, ep in enumerate(epochs):
             sel = (observations.system == s) & (observations.exposure == ep)
             if sel.sum() < min_beads:

@@ -12,20 +12,6 @@ from __future__ import annotations
 import numpy as np
 
 
-def camera_matrix(iop: np.ndarray) -> np.ndarray:
-    """OpenCV's camera matrix ``K`` (3, 3) of the interior orientation ``iop = (xp, yp, c)`` (px).
-
-    Examples
-    --------
-    >>> camera_matrix(np.array([511.5, 511.5, 4000.0]))
-    array([[4000. ,    0. ,  511.5],
-           [   0. , 4000. ,  511.5],
-           [   0. ,    0. ,    1. ]])
-    """
-    xp, yp, c = iop
-    return np.array([[c, 0.0, xp], [0.0, c, yp], [0.0, 0.0, 1.0]])
-
-
 def pose_to_cv(R: np.ndarray, source_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """OpenCV ``(rvec (3,), tvec (3,))`` of our pose ``(R, T)``."""
     import cv2

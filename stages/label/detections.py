@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from fluorocal.stages._geometry import iop_guess
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.label.params import LabelParams
 
@@ -64,10 +65,11 @@ def assumed_iop(det: Detections, centroids, params: LabelParams, *, need_c: bool
             "params.source_image_distance_mm and params.pixel_pitch_mm must be > 0 to label a 3D phantom; "
             f"got {params.source_image_distance_mm}, {params.pixel_pitch_mm}"
         )
-    c = params.source_image_distance_mm / params.pixel_pitch_mm if params.pixel_pitch_mm > 0 else np.nan
     size = _image_size(centroids, params)
+    guess = iop_guess(size or (1, 1), params.source_image_distance_mm, params.pixel_pitch_mm)
     if size is not None:
-        return np.array([(size[0] - 1) / 2, (size[1] - 1) / 2, c])
+        return guess
+    c = guess[2]  # the principal point comes from the detections below
     pts = det.xy_px[det.valid]
     if not len(pts):
         return np.array([0.0, 0.0, c])

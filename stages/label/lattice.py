@@ -12,9 +12,9 @@ import heapq
 import logging
 
 import numpy as np
-from fluorocal.stages._geometry import matrix_to_quat
+from fluorocal.stages._geometry import camera_matrix, matrix_to_quat
 from fluorocal.stages.artifacts import Phantom
-from fluorocal.stages.label.camera import camera_matrix, pose_from_cv, project_cam
+from fluorocal.stages.label.camera import pose_from_cv, project_cam
 from fluorocal.stages.label.correction import fit_correction, n_terms
 from fluorocal.stages.label.detections import Detections
 from fluorocal.stages.label.labels import Labels, failed_labels

@@ -97,7 +97,7 @@ class CalibrationSetup:
 
 
 def learn_calibration(
-    observations, phantom, params: LearnParams, *, setup: CalibrationSetup, adjust=None
+    observations, phantom, params: LearnParams, *, setup: CalibrationSetup, solver=None, selection=None
 ) -> LearnResult:
     """Calibrate from labelled observations: start values by resection, then :func:`calibrate`.
 
@@ -109,7 +109,8 @@ def learn_calibration(
     params : LearnParams
     setup : CalibrationSetup
         The scheme (which decides, among others, whether the field is smoothed), image sizes and IOP guesses.
-    adjust : AdjustParams, optional
+    solver, selection : SolverOptions, DataSelection, optional
+        The adjustment's settings from ``[adjust]`` (the free parameters are the scheme's).
 
     Raises
     ------
@@ -131,5 +132,6 @@ def learn_calibration(
         image_size=setup.image_size_px,
         scheme=setup.scheme,
         params=params,
-        adjust_params=adjust,
+        solver=solver,
+        selection=selection,
     )

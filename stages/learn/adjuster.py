@@ -15,12 +15,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 from fluorocal.stages._geometry import quat_to_matrix
 from fluorocal.stages.adjust import (
-    AdjustParams,
+    DataSelection,
+    FreeParameters,
     Orientation,
-    _lookup,
-    _nominal_table,
+    SolverOptions,
     adjust_bundle,
+    index_of,
     initial_orientation,
+    nominal_coordinates,
 )
 
 logger = logging.getLogger(__name__)
@@ -39,9 +41,10 @@ class Adjuster:
     ``start_points``, so every solve's inner constraints refer to the same
     nominal design). With ``fast``, a solve that is not ``final`` runs
     without the covariance, with fewer iterations and a looser cost
-    tolerance. ``additional_parameters`` applies to every solve: the kNN
-    schemes keep "none", so the learned field is the whole correction.
-    ``seconds`` accumulates the time spent solving.
+    tolerance. ``free`` says which parameters every solve estimates: the
+    scheme's choice (the kNN schemes estimate no additional parameters, so
+    the learned field is the whole correction). ``seconds`` accumulates the
+    time spent solving.
     """
 
     def __init__(
@@ -49,33 +52,30 @@ class Adjuster:
         observations,
         phantom,
         initial,
-        adjust_params,
-        estimate_iop: bool,
+        *,
+        free: FreeParameters,
+        solver: SolverOptions | None = None,
+        selection: DataSelection | None = None,
         fast: bool = False,
-        additional_parameters: str = "none",
     ):
         self.observations, self.initial, self.fast = observations, initial, fast
-        self.final_params = replace(
-            adjust_params if adjust_params is not None else AdjustParams(),
-            estimate_iop=estimate_iop,
-            additional_parameters=additional_parameters,
-        )
+        self.free, self.selection = free, selection or DataSelection()
+        self.final_solver = solver or SolverOptions()
         # intermediate solves: no covariance, fewer iterations and a looser cost tolerance: 1e-6 per observation
         # (at least 1e-3), far below the noise the inexact field fits leave in the combined cost
-        self.fast_params = replace(
-            self.final_params,
-            compute_covariance=False,
-            function_tolerance=max(self.final_params.function_tolerance, 1e-3, 1e-6 * len(observations.xy_px)),
-            max_iterations=min(self.final_params.max_iterations, 10),
+        self.fast_solver = replace(
+            self.final_solver,
+            function_tolerance=max(self.final_solver.function_tolerance, 1e-3, 1e-6 * len(observations.xy_px)),
+            max_iterations=min(self.final_solver.max_iterations, 10),
         )
-        self.nominal = _nominal_table(phantom)
+        self.nominal = nominal_coordinates(phantom)
         self.seconds = 0.0
 
     def __call__(self, corrections_px, previous, final=True):
         t0 = time.perf_counter()
         intermediate = self.fast and not final
         try:
-            adj = self._solve(corrections_px, previous, self.fast_params if intermediate else self.final_params)
+            adj = self._solve(corrections_px, previous, intermediate)
         finally:
             self.seconds += time.perf_counter() - t0
         # an intermediate solve stopped at its iteration cap is expected, not the user's concern
@@ -87,12 +87,18 @@ class Adjuster:
     def nominal_shape(self, adj) -> tuple[np.ndarray, np.ndarray]:
         """The adjusted bead coordinates ``(n_beads, 3)`` mm of ``adj`` and the nominal design's of the same beads."""
         nominal_ids, nominal_xyz = self.nominal
-        return adj.xyz_mm, nominal_xyz[_lookup(adj.bead_id, nominal_ids, "bead ids of the adjustment")]
+        return adj.xyz_mm, nominal_xyz[index_of(adj.bead_id, nominal_ids, "bead ids of the adjustment")]
 
-    def _solve(self, corrections_px, previous, params):
+    def _solve(self, corrections_px, previous, intermediate: bool):
         observations, initial = self.observations, self.initial
+        options = {
+            "free": self.free,
+            "solver": self.fast_solver if intermediate else self.final_solver,
+            "selection": self.selection,
+            "compute_covariance": not intermediate,
+        }
         if previous is None:
-            return adjust_bundle(observations, self.nominal, initial, corrections_px, params)
+            return adjust_bundle(observations, self.nominal, initial, corrections_px, **options)
         # epochs the adjustment dropped keep their initial pose
         q, src = initial.q_cam_from_obj.copy(), initial.source_mm.copy()
         at = np.searchsorted(initial.exposure, previous.exposure)
@@ -100,9 +106,8 @@ class Adjuster:
         warm = Orientation(
             previous.iop_px, initial.exposure, q, src, previous.rop_q, previous.rop_source_mm, initial.system_names
         )
-        return adjust_bundle(
-            observations, self.nominal, warm, corrections_px, params, start_points=(previous.bead_id, previous.xyz_mm)
-        )
+        start = (previous.bead_id, previous.xyz_mm)
+        return adjust_bundle(observations, self.nominal, warm, corrections_px, start_points=start, **options)
 
 
 def start_orientation(observations, phantom, iop_guess_px):

@@ -34,6 +34,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from fluorocal.stages.adjust import FreeParameters
 from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.field import CorrectionField, PointwiseField
 from fluorocal.stages.learn.adjuster import Adjuster, Outcome, adjustment_outcome, point_jacobians
@@ -112,7 +113,8 @@ def calibrate(
     image_size,
     scheme: str = "knn+iop+smooth",
     params: LearnParams | None = None,
-    adjust_params=None,
+    solver=None,
+    selection=None,
 ) -> LearnResult:
     """Alternate the robust adjustment and the kNN regression of its residuals (paper, section IV).
 
@@ -138,8 +140,12 @@ def calibrate(
         Default ``LearnParams()``: the recommended preset (``acceleration`` and ``refine`` go
         beyond the paper); ``LearnParams(preset="paper")`` is the paper's loop.
         Whether the field is smoothed is the scheme's.
-    adjust_params : AdjustParams, optional
-        Of the adjustment (its IOP flag is set from the scheme).
+    solver : SolverOptions, optional
+        The adjustment's solver options (``[adjust]``; default ``SolverOptions()``).
+    selection : DataSelection, optional
+        Which observations enter the adjustment (``[adjust]``; default ``DataSelection()``).
+        Which parameters it estimates is the scheme's: the IOP for ``"iop"`` schemes and
+        ``"none"``, the polynomial model's for ``"polynomial"``.
 
     Returns
     -------
@@ -154,8 +160,14 @@ def calibrate(
     learn, estimate_iop, smooth = scheme_flags(scheme)
     sizes = _image_sizes(image_size, len(observations.system_names))
     if scheme == "polynomial":
-        return calibrate_polynomial(observations, phantom, initial, sizes, params.grid, adjust_params)
-    adjuster = Adjuster(observations, phantom, initial, adjust_params, estimate_iop, fast=params.fast_intermediate)
+        fixed = params.polynomial_fixed
+        return calibrate_polynomial(
+            observations, phantom, initial, sizes, params.grid, fixed=fixed, solver=solver, selection=selection
+        )
+    free = FreeParameters(estimate_iop=estimate_iop)
+    adjuster = Adjuster(
+        observations, phantom, initial, free=free, solver=solver, selection=selection, fast=params.fast_intermediate
+    )
     plan = _plan(params, observations, sizes, adjuster, estimate_iop, smooth)
     adj = adjuster(np.zeros((len(observations.xy_px), 2)), None, final=not learn)
     out = adjustment_outcome(adj, observations.sigma_px)

@@ -193,7 +193,12 @@ class LearnParams:
         redundancy numbers (each observation gets the mean redundancy), with
         ``function_tolerance`` at least 1e-3 and at most 10 iterations (they
         are warm-started), and only the final solve in full (recommended
-        True). False (paper): every solve with the given AdjustParams.
+        True). False (paper): every solve with the ``[adjust]`` solver options, in full.
+    polynomial_fixed : tuple of str
+        Scheme ``polynomial`` only: its coefficients held at zero (default
+        ``("b1", "b2")``, the affinity; ``()`` estimates all of k1-k3, p1, p2,
+        b1, b2). The scheme owns the adjustment's additional parameters, so
+        this is where they are chosen.
 
     Examples
     --------
@@ -229,6 +234,7 @@ class LearnParams:
     field_gauge: str | None = None
     outlier_chi2: float = 23.0
     fast_intermediate: bool | None = None
+    polynomial_fixed: tuple[str, ...] = ("b1", "b2")
 
     def __post_init__(self):
         self._resolve_preset()

@@ -1,6 +1,6 @@
 """Scheme ``polynomial``: the expert method the paper compares with, a global model estimated in the adjustment.
 
-A radial + decentring (+ affinity) model per system (:mod:`fluorocal.stages._polynomial`),
+A radial + decentring (+ affinity) model per system (:mod:`fluorocal.stages.adjust.polynomial`),
 sampled onto the same grid as the learned fields; no kNN loop.
 """
 
@@ -10,7 +10,7 @@ import logging
 import time
 
 import numpy as np
-from fluorocal.stages import _polynomial
+from fluorocal.stages.adjust import FreeParameters, polynomial
 from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.learn.adjuster import Adjuster, adjustment_outcome
 from fluorocal.stages.learn.nodes import GridSpec
@@ -19,13 +19,15 @@ from fluorocal.stages.learn.result import IterationRecord, LearnResult
 logger = logging.getLogger(__name__)
 
 
-def calibrate_polynomial(observations, phantom, initial, sizes, spec: GridSpec, adjust_params) -> LearnResult:
+def calibrate_polynomial(
+    observations, phantom, initial, sizes, spec: GridSpec, *, fixed: tuple, solver=None, selection=None
+) -> LearnResult:
     """Scheme ``polynomial``: the adjustment estimates the IOP and each system's global polynomial model; no kNN loop.
 
     Iteration 0 is the plain adjustment (no correction: the "before" of the
     report, as in the other schemes); iteration 1 the adjustment with the
-    model (:mod:`fluorocal.stages._polynomial`: the coefficients ``adjust_params`` does
-    not hold fixed, by default all but the affinity ``b1, b2``), warm-started
+    model (:mod:`fluorocal.stages.adjust.polynomial`: the coefficients not in
+    ``fixed``, by default all but the affinity ``b1, b2``), warm-started
     from it. Each system's model is sampled at the nodes of the usual grid
     (``spec.spacing_px``) relative to its estimated principal point;
     ``corrections_px`` is the model itself at every observation. Node
@@ -38,8 +40,10 @@ def calibrate_polynomial(observations, phantom, initial, sizes, spec: GridSpec, 
     """
     t0 = time.perf_counter()
     xy = observations.xy_px
-    plain = Adjuster(observations, phantom, initial, adjust_params, True, fast=True)
-    model = Adjuster(observations, phantom, initial, adjust_params, True, additional_parameters="polynomial")
+    options = {"solver": solver, "selection": selection}
+    plain = Adjuster(observations, phantom, initial, free=FreeParameters(estimate_iop=True), fast=True, **options)
+    terms = FreeParameters(estimate_iop=True, additional_parameters="polynomial", fixed_additional_parameters=fixed)
+    model = Adjuster(observations, phantom, initial, free=terms, **options)
     zero = np.zeros((len(xy), 2))
     first = plain(zero, None, final=False)
     adj = model(zero, first)
@@ -51,7 +55,7 @@ def calibrate_polynomial(observations, phantom, initial, sizes, spec: GridSpec, 
         corrections[rows] = adj.polynomial_correction(s, xy[rows])
         grid = CorrectionField.constant(w, h, spacing_px=spec.spacing_px)
         nodes = grid.nodes_px
-        B = _polynomial.basis(nodes, adj.iop_px[s, :2], adj.ap_radius_px[s])
+        B = polynomial.basis(nodes, adj.iop_px[s, :2], adj.ap_radius_px[s])
         var = np.einsum("nci,ij,ncj->n", B, adj.ap_cov_px2[s], B) / 2
         fields.append(
             grid.with_delta(

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages._geometry import check_points, project, quat_to_matrix, to_camera
+from fluorocal.stages._geometry import camera_matrix, check_points, project, quat_to_matrix, to_camera
 from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.simulate.distortion import ImageDistortion
@@ -99,7 +99,7 @@ def _circle_ellipse(
     the circle ``α² + β² = r²`` images to the conic ``Q = H⁻ᵀ diag(1, 1, -r²) H⁻¹``.
     """
     xp, yp, c = iop
-    K = np.array([[c, 0, xp], [0, c, yp], [0, 0, 1.0]])
+    K = camera_matrix((xp, yp, c))
     # shape (N, 3, 3)
     H = K @ np.stack([e1_cam, e2_cam, centre_cam], axis=-1)
     Hinv = np.linalg.inv(H)

@@ -553,11 +553,11 @@ def test_step_tolerance_stops_the_refinement_once_the_field_stops_moving(simulat
 def test_intermediate_solves_at_their_cap_do_not_warn_the_final_one_does(simulated, caplog):
     import logging
 
-    from fluorocal.stages.adjust import AdjustParams
+    from fluorocal.stages.adjust import FreeParameters, SolverOptions
     from fluorocal.stages.learn.adjuster import Adjuster
 
     obs, phantom, initial, _, _ = simulated
-    run = Adjuster(obs, phantom, initial, AdjustParams(max_iterations=1), True, fast=True)
+    run = Adjuster(obs, phantom, initial, free=FreeParameters(), solver=SolverOptions(max_iterations=1), fast=True)
     with caplog.at_level(logging.WARNING, logger="fluorocal.stages.adjust"):
         assert not run(np.zeros((len(obs), 2)), None, final=False).usable
         assert "not usable" not in caplog.text
@@ -717,7 +717,7 @@ def test_polynomial_scheme_fits_a_smooth_radial_distortion():
     adj = res.adjustment
     assert res.scheme == "polynomial" and [h.phase for h in res.history] == ["adjust", "polynomial"] and res.converged
     assert adj.additional_parameters == "polynomial" and np.all(adj.ap_std_px[0, :5] > 0)
-    # the affinity is held by default (AdjustParams.fixed_additional_parameters): exactly zero, std 0
+    # the affinity is held by default (LearnParams.polynomial_fixed): exactly zero, std 0
     assert not adj.ap_px[0, 5:].any() and not adj.ap_std_px[0, 5:].any() and not adj.ap_cov_px2[0, 5:].any()
     # in sample: from the unmodelled distortion to the noise (0.05 px times sqrt(redundancy) < 1);
     # measured 0.474 -> 0.0469 px
