@@ -24,11 +24,13 @@ ambiguous orange, unmatched red, rejected grey.
 from __future__ import annotations
 
 import argparse
-import csv
 import logging
 from pathlib import Path
 
 log = logging.getLogger(__name__)
+
+#: the columns written, in order: file and frame, then those of ``Labels.to_table`` (schema ``stages.io.LABELS``)
+COLUMNS = ["file", "frame", "id", "x", "y", "sigma_x", "sigma_y", "rho"]
 
 
 def add_parser(subparsers) -> None:
@@ -89,7 +91,7 @@ def run(args) -> int:
     """Label every frame of the detections file; return the exit code."""
     from fluorocal.stages.artifacts import Phantom
     from fluorocal.stages.errors import InputError
-    from fluorocal.stages.io import read_frames, read_phantom, write_csv
+    from fluorocal.stages.io import LABELS, columns_of, read_frames, read_phantom, write_table
     from fluorocal.stages.label import LabelParams, label_sequence
 
     frames = _read_detections(args.detections)
@@ -133,36 +135,36 @@ def run(args) -> int:
                 log.warning("%s: %s", where, lab.summary())
                 continue
             log.info("%s: %s", where, lab.summary())
-            header, table = lab.to_table()
-            rows.extend([f, frame, *r] for r in table)
-    write_csv(args.out, ["file", "frame", *header], rows)
+            rows.extend([f, frame, *r] for r in lab.to_table()[1])
+    write_table(args.out, LABELS, columns_of(COLUMNS, rows))
     log.info("wrote %d labels from %d of %d frames to %s", len(rows), len(keys) - n_failed, len(keys), args.out)
     return 0
 
 
 def _read_detections(path: Path) -> dict:
-    """``{(file, frame): Centroids}`` from a detections CSV."""
+    """``{(file, frame): Centroids}`` from a detections CSV (:data:`~fluorocal.stages.io.DETECTIONS`).
+
+    A detection is ok unless its ``ok`` cell is false (no ``ok`` column: every one is) or one of its
+    x, y, sigma_x, sigma_y, rho, major, minor is not finite.
+    """
     import numpy as np
     from fluorocal.stages.centroid import Centroids
     from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import DETECTIONS, read_table
 
-    need = ("file", "frame", "x", "y", "sigma_x", "sigma_y", "rho", "major", "minor")
-    grouped: dict = {}
-    for line_no, row in _csv_rows(path, need):
-        try:
-            key = (row["file"], int(row["frame"]))
-            values = [float(row[c]) for c in need[2:]]
-        except ValueError as exc:
-            raise InputError(f"{path}:{line_no}: not a number ({exc})") from exc
-        ok = row.get("ok", "1").strip().lower() not in ("0", "false", "no")
-        grouped.setdefault(key, []).append(values + [float(ok)])
-    if not grouped:
+    t = read_table(path, DETECTIONS)
+    if not len(t["file"]):
         raise InputError(f"{path}: detections CSV has no rows")
+    # shape (N, 7): x, y, sigma_x, sigma_y, rho, major, minor
+    values = np.stack([t[c] for c in ("x", "y", "sigma_x", "sigma_y", "rho", "major", "minor")], axis=1)
+    ok = t["ok"] & np.all(np.isfinite(values), axis=1)
+    keys = list(zip(t["file"].tolist(), t["frame"].tolist()))
+    rows: dict = {}
+    for i, key in enumerate(keys):
+        rows.setdefault(key, []).append(i)
     out = {}
-    for key, values in grouped.items():
-        a = np.array(values)
-        n = len(a)
-        ok = a[:, 7].astype(bool) & np.all(np.isfinite(a[:, :7]), axis=1)
+    for key, idx in rows.items():
+        a, k, n = values[idx], ok[idx], len(idx)
         out[key] = Centroids(
             a[:, 0:2],
             a[:, 2],
@@ -174,8 +176,8 @@ def _read_detections(path: Path) -> dict:
             np.zeros(n),
             np.zeros(n, np.int64),
             np.zeros(n),
-            ok,
-            np.where(ok, "", "input"),
+            k,
+            np.where(k, "", "input"),
             np.arange(n),
             key[0],
             key[1],
@@ -198,34 +200,11 @@ def _read_seeds(path: Path, keys: list) -> dict:
     return out
 
 
-def _csv_rows(path: Path, need: tuple):
-    from fluorocal.stages.errors import InputError
-
-    if not path.is_file():
-        raise InputError(f"{path}: no such file")
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        header = [h.strip() for h in (reader.fieldnames or [])]
-        missing = [c for c in need if c not in header]
-        if missing:
-            raise InputError(f"{path}: missing column(s) {','.join(missing)}")
-        for line_no, row in enumerate(reader, start=2):
-            yield line_no, {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
-
-
 def _write_overlay(path: Path, file: str, frame_index: int, frames, centroids, labels) -> None:
-    import cv2
+    from fluorocal.overlay import render_label_overlay
     from fluorocal.stages.errors import InputError
-    from fluorocal.stages.io import atomic_write
+    from fluorocal.stages.io import write_png
 
     if not 0 <= frame_index < len(frames):
         raise InputError(f"{file}: has no frame {frame_index} for the overlay")
-    from fluorocal.overlay import render_label_overlay
-
-    image = render_label_overlay(frames[frame_index], centroids, labels)
-
-    def _write(tmp):
-        if not cv2.imwrite(tmp, image):
-            raise InputError(f"{path}: cannot write the overlay PNG")
-
-    atomic_write(path, _write)
+    write_png(path, render_label_overlay(frames[frame_index], centroids, labels))

@@ -151,7 +151,7 @@ def write_dataset(data, outdir: Path, *, fmt: str = "tiff", replace: bool = Fals
 
     import numpy as np
     from fluorocal.stages.errors import InputError
-    from fluorocal.stages.io import atomic_write, write_csv, write_dicom, write_still
+    from fluorocal.stages.io import PHANTOM, write_dicom, write_png, write_still, write_table
     from fluorocal.stages.simulate import truth_to_dict
 
     if fmt not in FORMATS:
@@ -174,25 +174,17 @@ def write_dataset(data, outdir: Path, *, fmt: str = "tiff", replace: bool = Fals
             written.append(path)
 
     phantom = data.phantom
-    rows = [
-        (int(i), *map(float, xyz), float(d), r)
-        for i, xyz, d, r in zip(phantom.ids, phantom.xyz_mm, phantom.diameter_mm, phantom.role)
-    ]
-    write_csv(outdir / "phantom.csv", ["id", "x", "y", "z", "diameter", "role"], rows)
-    ref_rows = [(int(i), *map(float, xyz)) for i, xyz in zip(phantom.ids, data.truth.reference_xyz_mm)]
-    write_csv(outdir / "reference.csv", ["id", "x", "y", "z"], ref_rows)
+    xyz, ref = phantom.xyz_mm, data.truth.reference_xyz_mm
+    nominal = {"id": phantom.ids, "x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}
+    write_table(outdir / "phantom.csv", PHANTOM, {**nominal, "diameter": phantom.diameter_mm, "role": phantom.role})
+    write_table(outdir / "reference.csv", PHANTOM, {"id": phantom.ids, "x": ref[:, 0], "y": ref[:, 1], "z": ref[:, 2]})
     written += [outdir / "phantom.csv", outdir / "reference.csv"]
 
     truth_text = json.dumps(truth_to_dict(data), separators=(",", ":"))
     written.append(_write_text(outdir / "truth.json", truth_text + "\n"))
     written.append(_write_text(outdir / "fluorocal.toml", _config_text(data, suffix)))
     if any(data.frames):
-        import cv2
-
-        ok, png = cv2.imencode(".png", montage(data), [cv2.IMWRITE_PNG_COMPRESSION, 9])
-        if not ok:
-            raise InputError("montage.png: PNG encoding failed")
-        atomic_write(outdir / "montage.png", lambda tmp: Path(tmp).write_bytes(png.tobytes()))
+        write_png(outdir / "montage.png", montage(data), compression=9)
         written.append(outdir / "montage.png")
     return written
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from fluorocal.stages.errors import InputError
-from fluorocal.stages.io import atomic_write
+from fluorocal.stages.io import write_png
 
 
 def write_stage_overlay(runner, stage: str, frame: int) -> Path:
@@ -13,7 +13,6 @@ def write_stage_overlay(runner, stage: str, frame: int) -> Path:
 
     Computes (and caches) what the overlay needs if it is not cached yet.
     """
-    import cv2
     from fluorocal.overlay import render_label_overlay, render_overlay
 
     radiograph = runner.get("frame", frame)
@@ -31,8 +30,5 @@ def write_stage_overlay(runner, stage: str, frame: int) -> Path:
         / "overlays"
         / f"{stage}_{runner.config.systems[unit.system].name}_{unit.exposure:04d}.png"
     )
-    ok, png = cv2.imencode(".png", image)
-    if not ok:
-        raise InputError(f"{path}: PNG encoding failed")
-    atomic_write(path, lambda tmp: Path(tmp).write_bytes(png.tobytes()))
+    write_png(path, image)
     return path

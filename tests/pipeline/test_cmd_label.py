@@ -1,0 +1,83 @@
+"""`fluorocal label` between `fluorocal detect` and `fluorocal adjust`: each reads what the one before writes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fluorocal.cli import main
+from fluorocal.stages.io import DETECTIONS, OBSERVATIONS, read_table
+
+_HEADER = "file,frame,x,y,sigma_x,sigma_y,rho,major,minor"
+
+
+def test_detect_label_adjust_round_trip(tmp_path):
+    """Detect -> label -> adjust on a small simulated sequence, every table passed on as the command wrote it."""
+    sim = tmp_path / "sim"
+    # one system, 4 frames of 512 px (0.5 mm pixels, SID 1100 mm): enough beads per frame to label each one
+    assert (
+        main(["-q", "simulate", str(sim), "--frames", "4", "--systems", "1", "--seed", "3"] + ["--image-size", "512"])
+        == 0
+    )
+    geometry = ["--sid", "1100", "--pixel-pitch", "0.5", "--image-size", "512", "512"]
+    frames = sorted(str(p) for p in (sim / "frames" / "A").glob("*.tif"))
+    assert main(["-q", "detect", *frames, "--out", str(tmp_path / "det.csv")]) == 0
+    label = ["-q", "label", str(tmp_path / "det.csv"), "--phantom", str(sim / "phantom.csv"), *geometry]
+    assert main([*label, "--out", str(tmp_path / "labels.csv")]) == 0
+    adjust = ["-q", "adjust", "--observations", str(tmp_path / "labels.csv"), "--phantom", str(sim / "phantom.csv")]
+    assert main([*adjust, *geometry, "--out", str(tmp_path / "out")]) == 0
+
+    det = read_table(tmp_path / "det.csv", DETECTIONS)
+    labels = read_table(tmp_path / "labels.csv", OBSERVATIONS)
+    assert (tmp_path / "labels.csv").read_text().splitlines()[0] == "file,frame,id,x,y,sigma_x,sigma_y,rho"
+    assert set(labels["file"]) == set(frames) and len(labels["id"]) > 4 * 200
+    # every label is a detection, its values passed on exactly (both tables write floats in full)
+    detected = {
+        (f, int(k), x, y, sx) for f, k, x, y, sx in zip(*(det[c] for c in ("file", "frame", "x", "y", "sigma_x")))
+    }
+    assert all(r in detected for r in zip(*(labels[c] for c in ("file", "frame", "x", "y", "sigma_x"))))
+    adjusted = read_table(tmp_path / "out" / "observations.csv", OBSERVATIONS)
+    assert np.array_equal(adjusted["id"], labels["id"]) and np.array_equal(adjusted["x"], labels["x"])
+    assert np.array_equal(adjusted["exposure"], np.searchsorted(np.array(frames), labels["file"]))
+
+
+def test_ok_column_and_non_finite_values(tmp_path):
+    """No ``ok`` column: every detection is ok; ``ok`` false or a non-finite value makes it not ok."""
+    from fluorocal.cmd_label import _read_detections
+
+    path = tmp_path / "det.csv"
+    path.write_text(f"{_HEADER}\na.tif,0,1,2,0.1,0.1,0,3,3\na.tif,0,5,6,0.1,nan,0,3,3\nb.tif,2,1,2,0.1,0.1,0,3,3\n")
+    got = _read_detections(path)
+    assert sorted(got) == [("a.tif", 0), ("b.tif", 2)]
+    assert got[("a.tif", 0)].ok.tolist() == [True, False] and got[("a.tif", 0)].reason.tolist() == ["", "input"]
+    path.write_text(
+        f"{_HEADER},ok\na.tif,0,1,2,0.1,0.1,0,3,3,0\na.tif,0,5,6,0.1,0.1,0,3,3,\na.tif,0,7,8,0.1,0.1,0,3,3,1\n"
+    )
+    np.testing.assert_array_equal(_read_detections(path)[("a.tif", 0)].ok, [False, True, True])
+    np.testing.assert_array_equal(_read_detections(path)[("a.tif", 0)].xy_px, [[1, 2], [5, 6], [7, 8]])
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (f"{_HEADER}\na.tif,0,1,2,0.1,0.1,0,3,3\na.tif,0,x1,2,0.1,0.1,0,3,3\n", r"det.csv:3: not a number in column x"),
+        (f"{_HEADER}\na.tif,one,1,2,0.1,0.1,0,3,3\n", r"det.csv:2: not an integer in column frame"),
+        ("file,frame,x,y,sigma_x,sigma_y,rho\na.tif,0,1,2,0.1,0.1,0\n", r"missing major,minor"),
+        (f"{_HEADER}\n", r"det.csv: detections CSV has no rows"),
+    ],
+)
+def test_bad_detections_name_file_line_and_column(tmp_path, capsys, text, message):
+    (tmp_path / "det.csv").write_text(text)
+    argv = [
+        "-q",
+        "label",
+        str(tmp_path / "det.csv"),
+        "--lattice",
+        "hex",
+        "--pitch",
+        "2",
+        "--out",
+        str(tmp_path / "l.csv"),
+    ]
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "l.csv").exists()
