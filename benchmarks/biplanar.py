@@ -12,7 +12,7 @@ epochs are held out. Per method:
 2. every bead seen by both systems at a held-out epoch is undistorted with
    each system's learned correction and intersected from its two rays
    (calibrated IOP and ROP) in system A's camera frame
-   (``stages._geometry.intersect_rays``, as ``Calibration.intersect``);
+   (``stages.geometry.intersect_rays``, as ``Calibration.intersect``);
 3. per held-out epoch, a 6-parameter rigid transform (no scale: the ROP's
    baseline carries it) maps the intersected points onto the true bead
    centres; the errors are the 3D distances after it, mm, out of sample.
@@ -42,7 +42,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluorocal.stages._geometry import (
+from fluorocal.stages.geometry import (
     image_rays,
     intersect_rays,
     matrix_to_quat,
@@ -133,7 +133,7 @@ def true_ideal(acq, obs) -> np.ndarray:
     ideal = obs.xy_px.copy()
     for s, system in enumerate(acq.systems):
         sel = obs.system == s
-        ideal[sel] = system.distortion.undistort(obs.xy_px[sel])
+        ideal[sel] = system.distortion.undistort_points(obs.xy_px[sel])
     return ideal
 
 

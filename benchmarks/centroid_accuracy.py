@@ -88,7 +88,7 @@ def opencv_fit_ellipse(image, xy, radius, polarity):
 
 
 def skimage_canny_ellipse(image, xy, radius, polarity):
-    from fluorocal.stages._geometry import rc_to_xy
+    from fluorocal.stages.geometry import rc_to_xy
     from skimage.feature import canny
     from skimage.measure import EllipseModel
 

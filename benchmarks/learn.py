@@ -9,7 +9,7 @@ uniform split). Per system and method:
 - out-of-sample 3D error: the held-out exposures adjusted with the learned
   correction and the calibrated IOP held fixed (object points and poses
   free), RMS 3D distance to the true bead centres after a 7-parameter
-  similarity (``stages._geometry.similarity_fit``), mm;
+  similarity (``stages.geometry.similarity_fit``), mm;
 - out-of-sample reprojection RMS of that adjustment (inliers, px);
 - field error: ideal coordinates from the learned correction against the true
   ones after the best homography, RMS over the inner 80 % (radius) of the
@@ -36,7 +36,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fluorocal.stages import simulate as sim  # noqa: E402
-from fluorocal.stages._geometry import (
+from fluorocal.stages.adjust import FreeParameters, Orientation, adjust_bundle  # noqa: E402
+from fluorocal.stages.artifacts import Observations  # noqa: E402
+from fluorocal.stages.geometry import (
     matrix_to_quat,
     quat_multiply,
     quat_normalize,
@@ -44,8 +46,6 @@ from fluorocal.stages._geometry import (
     rotvec_to_quat,
     similarity_fit,
 )  # noqa: E402
-from fluorocal.stages.adjust import FreeParameters, Orientation, adjust_bundle  # noqa: E402
-from fluorocal.stages.artifacts import Observations  # noqa: E402
 from fluorocal.stages.learn import LearnParams, calibrate  # noqa: E402
 
 NOISE_PX = 0.05
@@ -176,7 +176,7 @@ def field_error_px(correction, support_at, distortion, size: int, fov_radius_px:
 def _modulo_homography(correction, distortion, pts, covered):
     import cv2
 
-    true_ideal = distortion.undistort(pts)
+    true_ideal = distortion.undistort_points(pts)
     learned = pts - correction(pts)
     H, _ = cv2.findHomography(learned[covered], true_ideal[covered], 0)
     err = np.linalg.norm(cv2.perspectiveTransform(learned[None], H)[0] - true_ideal, axis=1)
@@ -258,7 +258,7 @@ def run_set(args, seed: int, names) -> list:
         init_tr = _system_orientation(train[1], acq, s)
         init_te = _system_orientation(test[1], acq, s)
         system = acq.systems[s]
-        true_corr = te.xy_px - system.distortion.undistort(te.xy_px)
+        true_corr = te.xy_px - system.distortion.undistort_points(te.xy_px)
         e3, rp = held_out(te, init_te, nominal, true_xyz, true_corr, system.iop_px[None])
         rows.append((system.name, "oracle (true distortion + IOP)", e3, rp, (0.0, 0.0), 0.0, 0, ""))
         for name in names:

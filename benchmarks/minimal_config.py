@@ -38,7 +38,7 @@ import numpy as np  # noqa: E402
 from fluorocal import Calibration  # noqa: E402
 from fluorocal.cli import main as fluorocal_main  # noqa: E402
 from fluorocal.cmd_simulate import write_dataset  # noqa: E402
-from fluorocal.stages._geometry import similarity_fit  # noqa: E402
+from fluorocal.stages.geometry import similarity_fit  # noqa: E402
 from fluorocal.stages.simulate import ImageDistortion, SimulateParams, simulate  # noqa: E402
 
 GEOMETRIES = {
@@ -99,7 +99,7 @@ def field_error_px(root: Path, truth: dict, size_px: int) -> dict[str, float]:
     out = {}
     for system in truth["systems"]:
         name = system["name"]
-        true_ideal = ImageDistortion.from_dict(system["distortion"]).undistort(pts)
+        true_ideal = ImageDistortion.from_dict(system["distortion"]).undistort_points(pts)
         covered = cal.systems[name].field.support_at(pts)
         ideal = cal.undistort_points(name, pts)
         H, _ = cv2.findHomography(ideal[covered], true_ideal[covered], 0)

@@ -19,7 +19,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from fluorocal.stages._geometry import (
+from fluorocal.stages.errors import ArtifactError, InputError
+from fluorocal.stages.field import CorrectionField
+from fluorocal.stages.geometry import (
     camera_matrix,
     check_points,
     image_rays,
@@ -29,8 +31,6 @@ from fluorocal.stages._geometry import (
     quat_normalize,
     quat_to_matrix,
 )
-from fluorocal.stages.errors import ArtifactError, InputError
-from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.io import atomic_write
 
 SCHEMA = "fluorocal-calibration"

@@ -98,9 +98,9 @@ def run(args) -> int:
     """Read, adjust and write the outputs; return the exit code."""
     import logging
 
-    from fluorocal.stages._geometry import iop_guess
     from fluorocal.stages.adjust import FreeParameters, SolverOptions, adjust_bundle, initial_orientation
     from fluorocal.stages.errors import InputError
+    from fluorocal.stages.geometry import iop_guess
     from fluorocal.stages.io import read_phantom
 
     log = logging.getLogger("fluorocal")

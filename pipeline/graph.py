@@ -124,7 +124,7 @@ def _seeds(path):
 
 def _learn_extras(config, units) -> dict:
     from fluorocal.config import params_from_dict
-    from fluorocal.stages._geometry import iop_guess
+    from fluorocal.stages.geometry import iop_guess
     from fluorocal.stages.learn import CalibrationSetup
 
     sizes, guesses = [], []

@@ -1,7 +1,7 @@
 """Image helpers shared by the detect and centroid stages (private).
 
 Images are ``(H, W)`` float32 arrays indexed ``img[y, x]``; see
-``stages/_geometry.py`` for the pixel convention.
+``stages/geometry.py`` for the pixel convention.
 """
 
 from __future__ import annotations

@@ -42,7 +42,7 @@ costs a handful of array operations.
 A frame whose accepted candidates all fail (anatomy taken for beads in a
 bead-free frame) gives an :class:`~stages.detect.EmptyFrameWarning`.
 
-Coordinates follow ``stages/_geometry.py``: ``(x, y)`` with x = column, y = row,
+Coordinates follow ``stages/geometry.py``: ``(x, y)`` with x = column, y = row,
 the centre of the top-left pixel at ``(0, 0)``; angles in radians from +x
 toward +y.
 

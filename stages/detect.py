@@ -38,7 +38,7 @@ least 10 px wide, steps 4-6 also run on a 2x-reduced copy (the candidates'
 centres need only be good to a few tenths of a pixel: the centroid stage
 refines them).
 
-Coordinates follow ``stages/_geometry.py``: ``(x, y)`` with x = column, y = row,
+Coordinates follow ``stages/geometry.py``: ``(x, y)`` with x = column, y = row,
 the centre of the top-left pixel at ``(0, 0)``.
 """
 
@@ -50,10 +50,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from fluorocal.stages._fov import bead_polarity, field_of_view, fov_clearance, pixel_noise
-from fluorocal.stages._geometry import xy_to_rc
 from fluorocal.stages._image import bead_signal, frame_name, log_image, odd_size
 from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, check_shape, freeze
 from fluorocal.stages.errors import InputError, ShapeError
+from fluorocal.stages.geometry import xy_to_rc
 
 VERSION = 2
 

@@ -1,7 +1,7 @@
 """Robust bundle adjustment: Student-t maximum likelihood, free network, interior orientation, biplanar constraint.
 
 The model is the collinearity equation (paper section IV, eq. 1; conventions
-in :mod:`stages._geometry`)::
+in :mod:`stages.geometry`)::
 
     ideal_o = xy_o - Δ_o = (xp_s, yp_s) + c_s * (p_x, p_y) / p_z,
     p = R_s (R_j (P_i - T_j) - b_s)
@@ -70,7 +70,7 @@ Modules (after COLMAP's split of its bundle adjuster):
 Examples
 --------
 >>> import numpy as np
->>> from fluorocal.stages._geometry import project, quat_to_matrix, rotvec_to_quat
+>>> from fluorocal.stages.geometry import project, quat_to_matrix, rotvec_to_quat
 >>> from fluorocal.stages.artifacts import Observations
 >>> rng = np.random.default_rng(0)
 >>> xyz = rng.uniform(-50, 50, (40, 3))

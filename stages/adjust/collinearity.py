@@ -33,8 +33,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from fluorocal.stages._geometry import quat_to_matrix
 from fluorocal.stages.adjust import polynomial
+from fluorocal.stages.geometry import quat_to_matrix
 
 if TYPE_CHECKING:
     from fluorocal.stages.adjust.problem import Problem

@@ -1,6 +1,6 @@
 """Orientation of an acquisition (:class:`Orientation`) and its start values by resection (:func:`initial_orientation`).
 
-Conventions (:mod:`stages._geometry`): the reference system's (system 0)
+Conventions (:mod:`stages.geometry`): the reference system's (system 0)
 pose of epoch ``j`` is ``p_0 = R_j (P - T_j)``; system ``s`` sees
 ``p_s = R_s (p_0 - b_s)`` with its relative orientation (ROP) ``(R_s, b_s)``,
 the same for the whole acquisition (biplanar: frames of different systems
@@ -13,10 +13,10 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages._geometry import camera_matrix, matrix_to_quat, quat_multiply, quat_normalize, quat_to_matrix
 from fluorocal.stages.adjust.selection import index_of, nominal_coordinates
 from fluorocal.stages.artifacts import SCHEMA_VERSION, Observations, check_shape, freeze
 from fluorocal.stages.errors import EstimationError, InputError
+from fluorocal.stages.geometry import camera_matrix, matrix_to_quat, quat_multiply, quat_normalize, quat_to_matrix
 
 log = logging.getLogger(__name__)
 

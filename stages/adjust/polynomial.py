@@ -115,13 +115,13 @@ def basis(xy_px: np.ndarray, pp_px: np.ndarray, radius_px, *, derivatives: bool 
     return B, dB_du, dB_dv
 
 
-def correction(xy_px: np.ndarray, pp_px: np.ndarray, radius_px, ap_px: np.ndarray) -> np.ndarray:
+def correction_at(xy_px: np.ndarray, pp_px: np.ndarray, radius_px, ap_px: np.ndarray) -> np.ndarray:
     """``Δ`` ``(N, 2)`` px of the model at measured ``xy_px`` ``(N, 2)`` px (``ap_px`` ``(7,)`` or ``(N, 7)``).
 
     Examples
     --------
     >>> ap = np.array([2.0, 0, 0, 0, 0, 0, 0])  # k1: 2 px outwards at the reference radius
-    >>> correction(np.array([[612.0, 512.0]]), np.array([512.0, 512.0]), 100.0, ap)
+    >>> correction_at(np.array([[612.0, 512.0]]), np.array([512.0, 512.0]), 100.0, ap)
     array([[2., 0.]])
     """
     B = basis(xy_px, pp_px, radius_px)

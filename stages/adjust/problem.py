@@ -13,10 +13,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages._geometry import quat_multiply, quat_normalize, rotvec_to_quat
 from fluorocal.stages.adjust import polynomial
 from fluorocal.stages.adjust.collinearity import State, ap_values, whitening
 from fluorocal.stages.adjust.selection import nominal_coordinates
+from fluorocal.stages.geometry import quat_multiply, quat_normalize, rotvec_to_quat
 
 N_GLOBAL_COLS = 9  # per observation: IOP (3) + ROP rotation (3) + ROP translation (3); the APs follow
 

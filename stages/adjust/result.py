@@ -154,7 +154,7 @@ class Adjustment:
 
     def polynomial_correction(self, system: int, xy_px: np.ndarray) -> np.ndarray:
         """``Δ_AP`` (N, 2) px of ``system``'s estimated polynomial model at measured ``xy_px`` (N, 2) px (or 0)."""
-        return polynomial.correction(xy_px, self.iop_px[system, :2], self.ap_radius_px[system], self.ap_px[system])
+        return polynomial.correction_at(xy_px, self.iop_px[system, :2], self.ap_radius_px[system], self.ap_px[system])
 
     @property
     def orientation(self) -> Orientation:

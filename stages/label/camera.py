@@ -2,7 +2,7 @@
 
 Poses are kept as ``(R, T)``: ``R`` (3, 3) rotates object vectors into the camera frame and ``T``
 (mm) is the X-ray source in object space, so ``p_cam = R (P - T)`` (README.md "Conventions";
-:mod:`fluorocal.stages._geometry` has the same model with quaternions). OpenCV's camera frame
+:mod:`fluorocal.stages.geometry` has the same model with quaternions). OpenCV's camera frame
 (x right, y down, z forward) is ours; it maps object to camera as ``p = R P + t``, so ``t = -R T``
 and ``T = -R^T t``.
 """
@@ -46,7 +46,7 @@ def pose_batch_from_cv(rvecs, tvecs) -> tuple[np.ndarray, np.ndarray]:
 def project_cam(p_cam: np.ndarray, iop: np.ndarray) -> np.ndarray:
     """Pinhole image points ``(..., 2)`` px of camera-frame points ``(..., 3)``; NaN or inf behind the source.
 
-    The projection of :func:`fluorocal.stages._geometry.project`, ``x = xp + c p_x / p_z``, on points
+    The projection of :func:`fluorocal.stages.geometry.project`, ``x = xp + c p_x / p_z``, on points
     already in the camera frame (the labelling keeps poses as rotation matrices).
 
     Examples

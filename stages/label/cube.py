@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-from fluorocal.stages._geometry import matrix_to_quat, quat_to_matrix
 from fluorocal.stages.artifacts import Phantom
+from fluorocal.stages.geometry import matrix_to_quat, quat_to_matrix
 from fluorocal.stages.label.cube_frame import CubeFrame, make_cube_frame
 from fluorocal.stages.label.detections import Detections
 from fluorocal.stages.label.iterate import acceptable, iterate, rivals

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from fluorocal.stages._geometry import camera_matrix
 from fluorocal.stages.artifacts import Phantom
+from fluorocal.stages.geometry import camera_matrix
 from fluorocal.stages.label.camera import project_cam
 from fluorocal.stages.label.detections import Detections
 from fluorocal.stages.label.params import LabelParams

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages._geometry import iop_guess
 from fluorocal.stages.errors import InputError
+from fluorocal.stages.geometry import iop_guess
 from fluorocal.stages.label.params import LabelParams
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from fluorocal.stages._geometry import camera_matrix
+from fluorocal.stages.geometry import camera_matrix
 from fluorocal.stages.label.assign import ambiguous, assign
 from fluorocal.stages.label.camera import pose_from_cv, pose_to_cv, project_cam
 from fluorocal.stages.label.correction import Correction, fit_correction, max_degree

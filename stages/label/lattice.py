@@ -12,8 +12,8 @@ import heapq
 import logging
 
 import numpy as np
-from fluorocal.stages._geometry import camera_matrix, matrix_to_quat
 from fluorocal.stages.artifacts import Phantom
+from fluorocal.stages.geometry import camera_matrix, matrix_to_quat
 from fluorocal.stages.label.camera import pose_from_cv, project_cam
 from fluorocal.stages.label.correction import fit_correction, n_terms
 from fluorocal.stages.label.detections import Detections

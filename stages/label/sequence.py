@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from fluorocal.stages._geometry import quat_to_matrix
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.errors import InputError
+from fluorocal.stages.geometry import quat_to_matrix
 from fluorocal.stages.label.frame import label_beads, label_frame
 from fluorocal.stages.label.labels import Labels
 from fluorocal.stages.label.params import LabelParams

@@ -13,7 +13,6 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-from fluorocal.stages._geometry import quat_to_matrix
 from fluorocal.stages.adjust import (
     DataSelection,
     FreeParameters,
@@ -24,6 +23,7 @@ from fluorocal.stages.adjust import (
     initial_orientation,
     nominal_coordinates,
 )
+from fluorocal.stages.geometry import quat_to_matrix
 
 logger = logging.getLogger(__name__)
 

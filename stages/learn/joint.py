@@ -14,8 +14,8 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages._geometry import similarity_fit
 from fluorocal.stages.field import CorrectionField, bilinear_design
+from fluorocal.stages.geometry import similarity_fit
 from fluorocal.stages.learn.grid import difference_operator, factor_spd, grid_result
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec
 from scipy.sparse import block_diag, csr_matrix, diags, vstack

@@ -5,7 +5,7 @@ from ``np.random.default_rng`` seeded by ``params.seed``, one stream per
 purpose, so the geometry does not depend on whether frames are rendered);
 file writing lives in ``pipeline/cmd_simulate.py``.
 
-Model, in the order light travels (conventions: ``stages/_geometry.py``):
+Model, in the order light travels (conventions: ``stages/geometry.py``):
 
 1. **Phantom** (:func:`make_phantom`). ``"cube"``: 3.5 mm steel beads set in
    the mid-planes of the four vertical walls of an open acrylic box (no lid

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from fluorocal.stages._geometry import project, quat_to_matrix, to_camera
+from fluorocal.stages.geometry import project, quat_to_matrix, to_camera
 from fluorocal.stages.simulate.acquisition import SystemTruth
 from fluorocal.stages.simulate.params import FIBONACCI, SimulateParams
 from fluorocal.stages.simulate.raster import SystemRaster, local_jacobian
@@ -139,7 +139,7 @@ def feature_line_integrals(params, raster: SystemRaster, system: SystemTruth, q,
             return _sphere_chords(rays, centres, radii, c_px)
 
     # box around each feature's distorted centre: radius in px with 10 % for distortion and obliquity, + 2 px
-    centre_px = system.distortion.distort(project(xyz_mm, q, source_mm, iop))
+    centre_px = system.distortion.distort_points(project(xyz_mm, q, source_mm, iop))
     half_px = np.ceil(c_px * radius / np.linalg.norm(centre_cam, axis=1) * 1.1 + 2).astype(np.int64)
     pix_list, feat_list = [], []
     for h in np.unique(half_px):

@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages._geometry import matrix_to_quat, quat_to_matrix
 from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.errors import InputError
+from fluorocal.stages.geometry import matrix_to_quat, quat_to_matrix
 from fluorocal.stages.simulate.distortion import ImageDistortion, make_distortion
 from fluorocal.stages.simulate.params import RNG_ACQ, SYSTEM_NAMES, SimulateParams
 

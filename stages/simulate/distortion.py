@@ -115,13 +115,13 @@ class ImageDistortion:
         comps = [map_coordinates(c, coords, order=3, prefilter=False, mode="nearest") for c in self.field_coeffs_px]
         return np.stack(comps, axis=-1).reshape(xy.shape)
 
-    def distort(self, xy_ideal: np.ndarray) -> np.ndarray:
+    def distort_points(self, xy_ideal: np.ndarray) -> np.ndarray:
         """Forward map: ideal pinhole coordinates ``(..., 2)`` px -> distorted (measured) px.
 
         Examples
         --------
         >>> d = ImageDistortion(np.array([50.0, 50.0]), 50.0, k1=0.01)
-        >>> d.distort(np.array([[100.0, 50.0]]))
+        >>> d.distort_points(np.array([[100.0, 50.0]]))
         array([[100.5,  50. ]])
         """
         xy = np.asarray(xy_ideal, dtype=np.float64)
@@ -129,7 +129,7 @@ class ImageDistortion:
             raise InputError(f"xy_ideal must have shape (..., 2); got {xy.shape}")
         return self._parametric(xy) + self._field(xy)
 
-    def undistort(self, xy_distorted: np.ndarray, *, tol_px: float = 1e-10, max_iter: int = 50) -> np.ndarray:
+    def undistort_points(self, xy_distorted: np.ndarray, *, tol_px: float = 1e-10, max_iter: int = 50) -> np.ndarray:
         """Inverse map: distorted (measured) ``(..., 2)`` px -> ideal px, by Newton iteration.
 
         The Jacobian omits the random field's gradient (|∇field| < 0.05), so
@@ -157,10 +157,10 @@ class ImageDistortion:
             xy = xy - _solve2(jac, residual)
         raise EstimationError(f"undistort did not converge to tol_px={tol_px} in {max_iter} iterations")
 
-    def correction(self, xy_measured: np.ndarray) -> np.ndarray:
+    def correction_at(self, xy_measured: np.ndarray) -> np.ndarray:
         """DESIGN's correction Δ on measured coordinates: ``ideal = measured - Δ(measured)``."""
         xy = np.asarray(xy_measured, dtype=np.float64)
-        return xy - self.undistort(xy)
+        return xy - self.undistort_points(xy)
 
     def correction_grid(self, image_size_px: int, step_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Δ sampled on a regular grid of measured coordinates covering the image.
@@ -176,7 +176,7 @@ class ImageDistortion:
         if axis[-1] < image_size_px - 1:
             axis = np.append(axis, image_size_px - 1.0)
         gx, gy = np.meshgrid(axis, axis)
-        return axis, axis.copy(), self.correction(np.stack([gx, gy], axis=-1))
+        return axis, axis.copy(), self.correction_at(np.stack([gx, gy], axis=-1))
 
     def to_dict(self) -> dict:
         """JSON-serialisable parameters (floats kept exact)."""
@@ -282,7 +282,7 @@ def ideal_pixel_map(distortion: ImageDistortion, image_size_px: int) -> np.ndarr
     The inverse distortion is solved exactly (Newton) on a lattice every 1-8 px,
     interpolated by a bicubic spline as a starting point and polished by Newton
     steps on every pixel until the forward map returns each pixel centre to
-    1e-7 px (tested against :meth:`ImageDistortion.undistort`: < 1e-6 px).
+    1e-7 px (tested against :meth:`ImageDistortion.undistort_points`: < 1e-6 px).
     """
     from scipy.interpolate import RectBivariateSpline
 
@@ -295,13 +295,13 @@ def ideal_pixel_map(distortion: ImageDistortion, image_size_px: int) -> np.ndarr
     step = float(np.clip(distortion.field_spacing_px / 16, 1.0, 8.0))
     coarse = np.unique(np.append(np.arange(-4 * step, image_size_px + 4 * step, step), image_size_px - 1))
     cx, cy = np.meshgrid(coarse, coarse)
-    ideal_coarse = distortion.undistort(np.stack([cx, cy], axis=-1))
+    ideal_coarse = distortion.undistort_points(np.stack([cx, cy], axis=-1))
     guess = np.stack([RectBivariateSpline(coarse, coarse, ideal_coarse[..., i])(axis, axis) for i in range(2)], axis=-1)
     # Newton polish: the spline start is within ~1e-4 px and each step gains a factor |∇field| < 0.05.
     # The Jacobian of the first step is reused: over 1e-4 px it changes by far less than that factor.
     _, jac = distortion._parametric(guess, jacobian=True)
     for _ in range(5):
-        residual = distortion.distort(guess) - target
+        residual = distortion.distort_points(guess) - target
         if np.max(np.abs(residual)) < 1e-7:
             break
         guess = guess - _solve2(jac, residual)

@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages._geometry import camera_matrix, check_points, project, quat_to_matrix, to_camera
 from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.errors import InputError
+from fluorocal.stages.geometry import camera_matrix, check_points, project, quat_to_matrix, to_camera
 from fluorocal.stages.simulate.distortion import ImageDistortion
 from fluorocal.stages.simulate.params import N_OUTLINE
 
@@ -29,7 +29,7 @@ class FrameTruth:
     ideal_xy_px : (N, 2) float64 ndarray, px
         Pinhole projection of the sphere (or hole) centre.
     distorted_xy_px : (N, 2) float64 ndarray, px
-        ``distortion.distort(ideal_xy_px)``.
+        ``distortion.distort_points(ideal_xy_px)``.
     outline_ideal_xy_px : (N, 2) float64 ndarray, px
         Centre of the ideal outline ellipse (exact conic centre).
     outline_xy_px : (N, 2) float64 ndarray, px
@@ -169,10 +169,10 @@ def _project_outlines(
     t = np.linspace(0, 2 * np.pi, N_OUTLINE, endpoint=False)
     # shape (N, N_OUTLINE, 2)
     ring = centre[:, None, :] + np.einsum("nij,mj->nmi", axes, np.column_stack([np.cos(t), np.sin(t)]))
-    ring_d = distortion.distort(ring)
+    ring_d = distortion.distort_points(ring)
     outline_xy, area = _polygon_centroid_area(ring_d)
     radius_max = np.max(np.linalg.norm(ring_d - outline_xy[:, None, :], axis=-1), axis=1)
-    return _Outlines(ideal, distortion.distort(ideal), centre, outline_xy, 2 * np.sqrt(area / np.pi), radius_max)
+    return _Outlines(ideal, distortion.distort_points(ideal), centre, outline_xy, 2 * np.sqrt(area / np.pi), radius_max)
 
 
 def _field_flags(o: _Outlines, image_size_px: int, fov_radius_px: float, margin: float):

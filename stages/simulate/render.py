@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from fluorocal.stages._geometry import check_points
+from fluorocal.stages.geometry import check_points
 from fluorocal.stages.simulate.absorption import background_line_integral, feature_line_integrals
 from fluorocal.stages.simulate.acquisition import SystemTruth
 from fluorocal.stages.simulate.params import SimulateParams

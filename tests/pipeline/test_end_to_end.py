@@ -138,7 +138,7 @@ def test_learned_field_moves_toward_the_truth(project):
         )
 
     for system in truth["systems"]:
-        true_ideal = ImageDistortion.from_dict(system["distortion"]).undistort(pts)
+        true_ideal = ImageDistortion.from_dict(system["distortion"]).undistort_points(pts)
         support = cal.systems[system["name"]].field.support_at(pts)
 
         # 4 frames per system at 512 px learn the field only coarsely (measured 0.19 / 0.11 px against 0.44 px with no
@@ -172,7 +172,7 @@ def test_polynomial_scheme_end_to_end_reuses_the_labels(project, caplog):
     pts = np.column_stack([a.ravel() for a in np.meshgrid(g, g)])
     pts = pts[np.linalg.norm(pts - centre, axis=1) < 0.7 * radius]
     for system in truth["systems"]:
-        true_ideal = ImageDistortion.from_dict(system["distortion"]).undistort(pts)
+        true_ideal = ImageDistortion.from_dict(system["distortion"]).undistort_points(pts)
         # measured 0.44 -> 0.34 px on system A: the simulator's distortion has local components no global model follows
         assert _error_modulo_homography(
             cal.undistort_points(system["name"], pts), true_ideal

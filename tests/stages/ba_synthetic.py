@@ -17,9 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages._geometry import project, quat_multiply, quat_to_matrix, rotvec_to_quat
 from fluorocal.stages.adjust import Orientation
 from fluorocal.stages.artifacts import Observations
+from fluorocal.stages.geometry import project, quat_multiply, quat_to_matrix, rotvec_to_quat
 
 IMAGE_PX = 1024
 
@@ -140,7 +140,7 @@ def make_problem(
 
 def aligned_error_mm(estimate_mm: np.ndarray, truth_mm: np.ndarray) -> np.ndarray:
     """Per point 3D error (mm) after the least-squares 7-parameter similarity of the estimate onto the truth."""
-    from fluorocal.stages._geometry import similarity_fit
+    from fluorocal.stages.geometry import similarity_fit
 
     s, R, t = similarity_fit(estimate_mm, truth_mm)
     return np.linalg.norm(s * estimate_mm @ R.T + t - truth_mm, axis=1)

@@ -13,7 +13,6 @@ import math
 import numpy as np
 import pytest
 from fluorocal.config import params_from_dict
-from fluorocal.stages._geometry import quat_to_matrix, similarity_fit
 from fluorocal.stages.adjust import (
     VERSION,
     Adjustment,
@@ -30,6 +29,7 @@ from fluorocal.stages.adjust.problem import apply_step, build_problem, datum_dir
 from fluorocal.stages.adjust.robust import t_cost
 from fluorocal.stages.artifacts import Observations, Phantom
 from fluorocal.stages.errors import EstimationError, InputError, ShapeError
+from fluorocal.stages.geometry import quat_to_matrix, similarity_fit
 
 from tests.stages.ba_synthetic import ScipyProblem, aligned_error_mm, make_problem
 
@@ -140,7 +140,7 @@ def test_residuals_at_hand_computed_point():
 
 
 def test_residuals_match_geometry_project(biplanar):
-    """The adjustment's model reproduces stages/_geometry.project through Orientation.poses for both systems."""
+    """The adjustment's model reproduces stages/geometry.project through Orientation.poses for both systems."""
     prep = prepare(biplanar.observations, (biplanar.ids, biplanar.xyz_true_mm), biplanar.truth)
     state = State(
         biplanar.xyz_true_mm.copy(),
@@ -630,9 +630,9 @@ def _polynomially_distorted(syn, ap=AP_TRUE, radius_px=AP_RADIUS_PX):
     pp = syn.truth.iop_px[obs.system, :2]
     measured = syn.ideal_px.copy()
     for _ in range(50):  # m = ideal + Δ(m): a contraction, |∂Δ/∂m| ~ 0.03
-        measured = syn.ideal_px + polynomial.correction(measured, pp, radius_px, np.tile(ap, (len(obs), 1)))
+        measured = syn.ideal_px + polynomial.correction_at(measured, pp, radius_px, np.tile(ap, (len(obs), 1)))
     measured += obs.xy_px - syn.ideal_px
-    return _with_xy(obs, measured), polynomial.correction(measured, pp, radius_px, np.tile(ap, (len(obs), 1)))
+    return _with_xy(obs, measured), polynomial.correction_at(measured, pp, radius_px, np.tile(ap, (len(obs), 1)))
 
 
 def test_polynomial_model_at_hand_computed_points():
@@ -651,13 +651,13 @@ def test_polynomial_model_at_hand_computed_points():
     for i, name in enumerate(polynomial.AP_NAMES):
         ap = np.zeros(7)
         ap[i] = 1.0
-        np.testing.assert_allclose(polynomial.correction(xy, pp, 100.0, ap), [expected[name]], rtol=1e-14)
+        np.testing.assert_allclose(polynomial.correction_at(xy, pp, 100.0, ap), [expected[name]], rtol=1e-14)
     # another reference radius describes the same field with rescaled coefficients
     ap = AP_TRUE
     other = polynomial.rescaled(ap, 700.0, 350.0)
     pts = np.random.default_rng(0).uniform(0, 1000, (50, 2))
     np.testing.assert_allclose(
-        polynomial.correction(pts, pp, 350.0, other), polynomial.correction(pts, pp, 700.0, ap), rtol=1e-12
+        polynomial.correction_at(pts, pp, 350.0, other), polynomial.correction_at(pts, pp, 700.0, ap), rtol=1e-12
     )
 
 
@@ -737,7 +737,7 @@ def test_polynomial_distortion_is_recovered_by_the_adjustment(mono):
     assert err < 1.8 * oracle and err < 0.4 * plain, (err, oracle, plain)
     assert err == pytest.approx(math.sqrt(np.einsum("nii->n", res.xyz_cov_mm2).mean()), rel=0.25)
     # the reported model is the one the residuals were computed with: r = (xy - Δ_AP(xy)) - projection
-    from fluorocal.stages._geometry import project
+    from fluorocal.stages.geometry import project
 
     point = np.searchsorted(res.bead_id, obs.bead_id)
     projected = np.empty_like(obs.xy_px)

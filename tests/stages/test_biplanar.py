@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fluorocal.stages._geometry import project
+from fluorocal.stages.geometry import project
 from fluorocal.stages.learn import LearnParams, calibrate
 
 from benchmarks.biplanar import RECOMMENDED, biplanar_errors, biplanar_pairs, learned_ideal, summarise, true_rig
@@ -36,7 +36,7 @@ def _exact_observations(test_obs, true_xyz, ids, acq):
             ideal = project(
                 true_xyz[np.searchsorted(ids, test_obs.bead_id[sel])], acq.q[s, k], acq.source_mm[s, k], system.iop_px
             )
-            xy[sel] = system.distortion.distort(ideal)
+            xy[sel] = system.distortion.distort_points(ideal)
     return xy
 
 
@@ -48,7 +48,7 @@ def test_true_rig_and_true_correction_reproduce_the_true_beads(biplanar):
     ideal = np.empty_like(measured)
     for s, system in enumerate(acq.systems):
         sel = test_obs.system == s
-        ideal[sel] = system.distortion.undistort(measured[sel])
+        ideal[sel] = system.distortion.undistort_points(measured[sel])
     iop, rop_q, rop_source = true_rig(acq)
     err = biplanar_errors(test_obs, ideal, iop, rop_q, rop_source, nominal.ids, true_xyz)
     assert len(err) == len(biplanar_pairs(test_obs)[0]) > 50 * N_EPOCHS

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fluorocal.stages._geometry import xy_to_rc
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.detect import BeadCandidates, DetectParams, EmptyFrameWarning, detect_beads
 from fluorocal.stages.errors import InputError, ShapeError
+from fluorocal.stages.geometry import xy_to_rc
 from fluorocal.stages.io import read_frames
 from scipy.spatial import cKDTree
 

@@ -1,9 +1,9 @@
-"""Tests of the shared geometry helpers in stages/_geometry.py: the rigid/similarity fit and ray intersection."""
+"""Tests of the shared geometry helpers in stages/geometry.py: the rigid/similarity fit and ray intersection."""
 
 from __future__ import annotations
 
 import numpy as np
-from fluorocal.stages._geometry import (
+from fluorocal.stages.geometry import (
     image_rays,
     intersect_rays,
     project,

@@ -13,10 +13,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from fluorocal.stages._geometry import project, quat_to_matrix, rotvec_to_quat
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.centroid import Centroids
 from fluorocal.stages.errors import InputError
+from fluorocal.stages.geometry import project, quat_to_matrix, rotvec_to_quat
 from fluorocal.stages.label import (
     STATUS_AMBIGUOUS,
     STATUS_LABELLED,

@@ -301,7 +301,7 @@ def test_knn_refit_with_a_given_cv_uses_its_k_without_cross_validating(monkeypat
 
 
 def test_affine_shape_modes_ignore_similarities_and_see_stretches():
-    from fluorocal.stages._geometry import quat_to_matrix
+    from fluorocal.stages.geometry import quat_to_matrix
     from fluorocal.stages.learn.joint import affine_shape_modes
 
     rng = np.random.default_rng(12)
@@ -416,9 +416,9 @@ PLAIN = dict(acceleration="none", refine="none", smoothness_orders=(2,), max_ite
 @pytest.fixture(scope="module")
 def simulated():
     """Simulator geometry: true distorted outline centres + 0.05 px noise, 14 exposures, 512 px, strong distortion."""
-    from fluorocal.stages._geometry import quat_multiply, quat_normalize, rotvec_to_quat
     from fluorocal.stages.adjust import Orientation
     from fluorocal.stages.artifacts import Observations
+    from fluorocal.stages.geometry import quat_multiply, quat_normalize, rotvec_to_quat
     from fluorocal.stages.simulate import SimulateParams, simulate
 
     params = SimulateParams(n_frames=14, image_size_px=E2E_SIZE, distortion="strong", seed=3)
@@ -445,7 +445,7 @@ def simulated():
 
 def _field_error_modulo_homography(correction_at, distortion, pts):
     """RMS px between learned and true ideal coordinates after the best homography (it absorbs IOP and pose)."""
-    true_ideal = distortion.undistort(pts)
+    true_ideal = distortion.undistort_points(pts)
     learned = pts - correction_at(pts)
     H, _ = cv2.findHomography(learned, true_ideal, 0)
     return float(np.sqrt(np.mean(np.sum((cv2.perspectiveTransform(learned[None], H)[0] - true_ideal) ** 2, axis=1))))

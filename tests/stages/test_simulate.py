@@ -8,9 +8,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from fluorocal.stages._geometry import project, quat_multiply, quat_to_matrix
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.errors import InputError
+from fluorocal.stages.geometry import project, quat_multiply, quat_to_matrix
 from fluorocal.stages.simulate import (
     ImageDistortion,
     SimulateParams,
@@ -140,7 +140,7 @@ def test_reprojection_from_truth_json_reproduces_stored_projections(geometry):
         ideal = project(xyz, q, source, np.array(system["iop_px"]))
         distortion = ImageDistortion.from_dict(system["distortion"])
         np.testing.assert_allclose(ideal, beads["ideal_xy_px"], atol=1e-6, rtol=0)
-        np.testing.assert_allclose(distortion.distort(ideal), beads["distorted_xy_px"], atol=1e-6, rtol=0)
+        np.testing.assert_allclose(distortion.distort_points(ideal), beads["distorted_xy_px"], atol=1e-6, rtol=0)
         n_checked += len(xyz)
     assert n_checked > 1000
 
@@ -220,8 +220,8 @@ def test_overlap_and_field_edge_flags_on_a_constructed_case():
 def test_distortion_round_trip_below_1e_3_px(system, points):
     distortion = _strong(system)
     xy = np.array(points)
-    assert np.max(np.abs(distortion.distort(distortion.undistort(xy)) - xy)) < 1e-3
-    assert np.max(np.abs(distortion.undistort(distortion.distort(xy)) - xy)) < 1e-3
+    assert np.max(np.abs(distortion.distort_points(distortion.undistort_points(xy)) - xy)) < 1e-3
+    assert np.max(np.abs(distortion.undistort_points(distortion.distort_points(xy)) - xy)) < 1e-3
 
 
 def test_distortion_levels_have_the_specified_size():
@@ -230,10 +230,10 @@ def test_distortion_levels_have_the_specified_size():
     edge = np.array([[511.5 + 481.0, 511.5], [511.5, 511.5 - 481.0], [511.5 - 340.0, 511.5 + 340.0]])
     for system in (0, 1):
         strong = _strong(system)
-        shift = np.linalg.norm(strong.distort(edge) - edge, axis=1)
+        shift = np.linalg.norm(strong.distort_points(edge) - edge, axis=1)
         assert np.all((8 < shift) & (shift < 30))
         radial_only = replace(strong, s_rad=0.0, p1=0.0, p2=0.0, field_coeffs_px=np.zeros((2, 1, 1)))
-        radial = np.linalg.norm(radial_only.distort(edge) - edge, axis=1)
+        radial = np.linalg.norm(radial_only.distort_points(edge) - edge, axis=1)
         assert np.all((10 <= radial) & (radial <= 20))
         g = np.linspace(0, size - 1, 64)
         field = strong._field(np.stack(np.meshgrid(g, g), axis=-1))
@@ -243,10 +243,10 @@ def test_distortion_levels_have_the_specified_size():
         first_below = (np.argmax(np.array(lag) < np.exp(-1)) + 1) * (g[1] - g[0])
         assert 40 <= first_below <= 110
     mild = make_distortion(SimulateParams(distortion="mild", seed=11), 0)
-    assert np.max(np.linalg.norm(mild.distort(edge) - edge, axis=1)) < 10
+    assert np.max(np.linalg.norm(mild.distort_points(edge) - edge, axis=1)) < 10
     assert make_distortion(SimulateParams(distortion="none"), 0).is_identity
     # the two systems differ
-    assert not np.allclose(_strong(0).distort(edge), _strong(1).distort(edge))
+    assert not np.allclose(_strong(0).distort_points(edge), _strong(1).distort_points(edge))
 
 
 def test_correction_grid_follows_the_design_convention():
@@ -255,7 +255,7 @@ def test_correction_grid_follows_the_design_convention():
     gx, gy, delta = distortion.correction_grid(256, 16.0)
     measured = np.stack(np.meshgrid(gx, gy), axis=-1)
     assert gx[0] == 0 and gx[-1] == 255 and delta.shape == (len(gy), len(gx), 2)
-    np.testing.assert_allclose(distortion.distort(measured - delta), measured, atol=1e-8)
+    np.testing.assert_allclose(distortion.distort_points(measured - delta), measured, atol=1e-8)
 
 
 def test_rendering_inverse_map_is_exact_per_pixel():
@@ -264,7 +264,7 @@ def test_rendering_inverse_map_is_exact_per_pixel():
     ideal = ideal_pixel_map(distortion, 512)
     rng = np.random.default_rng(0)
     rc = rng.integers(0, 512, size=(500, 2))
-    exact = distortion.undistort(rc[:, ::-1].astype(float))
+    exact = distortion.undistort_points(rc[:, ::-1].astype(float))
     assert np.max(np.abs(ideal[rc[:, 0], rc[:, 1]] - exact)) < 1e-6
 
 
@@ -283,7 +283,7 @@ def test_edge_subsamples_map_to_ideal_rays_to_first_order():
     offsets = rng.uniform(-0.5, 0.5, (2000, 2))
     y, x = np.divmod(flat_idx, 1024)
     approx = ideal.reshape(-1, 2)[flat_idx] + np.einsum("nij,nj->ni", local_jacobian(ideal, flat_idx), offsets)
-    exact = distortion.undistort(np.column_stack([x, y]) + offsets)
+    exact = distortion.undistort_points(np.column_stack([x, y]) + offsets)
     assert np.max(np.abs(approx - exact)) < 5e-4
 
 
