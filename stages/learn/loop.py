@@ -159,15 +159,12 @@ def calibrate(
     params = LearnParams() if params is None else params
     learn, estimate_iop, smooth = scheme_flags(scheme)
     sizes = _image_sizes(image_size, len(observations.system_names))
+    settings = {"solver": solver, "selection": selection}
     if scheme == "polynomial":
         fixed = params.polynomial_fixed
-        return calibrate_polynomial(
-            observations, phantom, initial, sizes, params.grid, fixed=fixed, solver=solver, selection=selection
-        )
+        return calibrate_polynomial(observations, phantom, initial, sizes, params.grid, fixed=fixed, **settings)
     free = FreeParameters(estimate_iop=estimate_iop)
-    adjuster = Adjuster(
-        observations, phantom, initial, free=free, solver=solver, selection=selection, fast=params.fast_intermediate
-    )
+    adjuster = Adjuster(observations, phantom, initial, free=free, fast=params.fast_intermediate, **settings)
     plan = _plan(params, observations, sizes, adjuster, estimate_iop, smooth)
     adj = adjuster(np.zeros((len(observations.xy_px), 2)), None, final=not learn)
     out = adjustment_outcome(adj, observations.sigma_px)
