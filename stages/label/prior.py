@@ -275,7 +275,7 @@ def _best_start(frame: CubeFrame, starts: list) -> tuple[dict | None, str]:
     for other in accepted[1:]:
         if rivals(best, other):
             return None, (
-                f"two shifts of the previous frame's pose explain the frame about equally well "
+                f"pose from the neighbouring frame is ambiguous: two shifts of it explain the frame about equally well "
                 f"({best['n_labelled']} vs {other['n_labelled']} labels)"
             )
     return best, ""
