@@ -4,7 +4,9 @@ The neighbouring frame's pose fixes the orientation roughly but not the position
 pair votes for the shift of the phantom across the beam that would put the bead on the detection, over
 the whole image and a few depths; the peaks of the vote are labelled, and the best labelling is kept only
 if no distinct one (a periodic layout one row off) explains the frame about as well. A frame that still
-fails is searched over turns about the sequence's turntable axis.
+fails is searched over turns about the sequence's turntable axis. A labelling found so is kept only if
+no pose the phantom's near-symmetries allow (a cube half turned) explains the frame as well, unless the
+beads' sizes or a much nearer prior orientation rule it out: a frame is never labelled by a guess.
 """
 
 from __future__ import annotations
@@ -48,6 +50,9 @@ def label_from_prior(
     the best labelling is kept only if no distinct one explains the frame about as well
     (:func:`_best_start`). When that fails and the sequence's turntable ``axis`` (camera frame) is
     known, the search is repeated over turns of the phantom about that axis (:func:`_turn_starts`).
+    Last, a phantom that looks alike after a turn (a cube of identical walls) allows the found pose's
+    symmetric rivals, which a frame without markers cannot tell from it: the labelling is kept only if
+    the beads' sizes or, failing them, the prior's orientation single it out (:func:`resolve_symmetry`).
     """
     rays = _rays(frame, frame.det_xy)
     best, why = _best_start(frame, _shift_starts(frame, R0, T0, rays))
