@@ -332,15 +332,24 @@ def resolve_symmetry(frame: CubeFrame, best: dict, R_prior: np.ndarray) -> tuple
        prior than any symmetric rival; a step comparable with the symmetry's angle leaves both at
        similar distances, and the prior does not say which;
     3. otherwise the frame fails: "pose from the neighbouring frame is ambiguous: ...".
+
+    A rival that the prior rules out is not labelled when no labelled bead of ``best``'s is off its size
+    (it could not win on sizes either).
     """
     xyz = frame.phantom.xyz_mm
     centre = xyz.mean(0)
     own, _ = screen(frame, best, best["R"], best["T"])
     found = [(best, None)]
+    a_best = turn_angle(best["R"], R_prior)
+    clean = best["size_evidence"] is None or best["size_evidence"][1] == 0
     for Rg, t, _ in phantom_symmetries(xyz):
         # the pose that shows the phantom moved by g: x -> Rg (x - centre) + centre + t
         R = best["R"] @ Rg
         T = centre - Rg.T @ (centre + t - best["T"])
+        if clean and a_best * _PRIOR_MARGIN <= turn_angle(R, R_prior):
+            # the prior rules this rival out, and its sizes could not: no bead of best's is off its size, so
+            # the rival, the same detections relabelled, cannot fit more markers by _SIZE_MARGIN
+            continue
         n, sizes_ok = screen(frame, best, R, T, _SCREEN_RIVAL * own)
         if n < _SCREEN_RIVAL * own or not sizes_ok:
             continue
