@@ -31,7 +31,12 @@ and the interior orientation):
   no distinct one (a periodic layout one row off) explains the frame about as
   well. In a sequence (:func:`label_sequence`), a frame that still fails is
   searched over turns about the turntable axis estimated from the frames
-  already labelled.
+  already labelled. A phantom that looks alike after a turn (its
+  near-symmetries, measured from its coordinates, :mod:`.symmetry`) lets a
+  frame without markers be explained by a turned pose as well: the labelling
+  from a prior is kept only if the beads' sizes, or a prior orientation much
+  nearer it than to every such rival, single it out; otherwise the frame fails
+  ("pose from the neighbouring frame is ambiguous").
 - **Grid plates** (``phantom.lattice`` ``"hex"`` or ``"square"``, :mod:`.lattice`): the holes
   are indexed on their lattice by topology, growing outward from a hole near
   the centre with local lattice vectors re-estimated at every hole, so that

@@ -28,7 +28,9 @@ def label_beads(centroids, phantom: Phantom, params: LabelParams, prior_pose: tu
         labelling (ignored when seeds are given). Its orientation is taken as roughly right, its position not:
         the phantom's shift across the beam is searched over the whole image and its distance over a few %,
         every clear peak is labelled, and the best labelling is kept only if no distinct one explains the
-        frame about as well (a periodic bead layout could otherwise slip by a row).
+        frame about as well (a periodic bead layout could otherwise slip by a row), nor a pose that a symmetry
+        of the phantom allows, unless the beads' sizes or a much nearer prior orientation rule it out (a cube
+        of identical walls looks alike half turned).
 
     Returns
     -------

@@ -90,6 +90,7 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
     beads, dets = vis[i_pred[lab]], i_det[lab]
     ideal_lab = ideal[beads]
     pin = np.linalg.norm(ideal_lab - frame.det_xy[dets], axis=1)
+    evidence = size_evidence(frame, R, T, beads, dets)
     return {
         "R": R,
         "T": T,
@@ -101,7 +102,8 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
         "n_ambiguous": int(ambig.sum()),
         "rms_px": float(np.sqrt(np.mean(pin**2))) if len(pin) else np.nan,
         "rms_corrected_px": float(np.sqrt(np.mean(resid[lab] ** 2))) if lab.any() else np.nan,
-        "sizes_consistent": sizes_consistent(frame, R, T, beads, dets),
+        "sizes_consistent": evidence is None or evidence[1] <= max(2, int(0.5 * evidence[2])),
+        "size_evidence": evidence,
         "corr": corr,
     }
 
@@ -194,24 +196,40 @@ def ransac_pose(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.ndarra
 def sizes_consistent(frame: CubeFrame, R: np.ndarray, T: np.ndarray, beads: np.ndarray, dets: np.ndarray) -> bool:
     """False if beads of distinct diameters (markers) were given detections of the wrong size — a wrong pose.
 
+    See :func:`size_evidence`; one or two borderline sizes are tolerated (a wrong pose swaps many).
+    Phantoms whose beads all have about one diameter pass unchecked.
+    """
+    evidence = size_evidence(frame, R, T, beads, dets)
+    if evidence is None:
+        return True
+    return evidence[1] <= max(2, int(0.5 * evidence[2]))
+
+
+def size_evidence(
+    frame: CubeFrame, R: np.ndarray, T: np.ndarray, beads: np.ndarray, dets: np.ndarray
+) -> tuple[int, int, int] | None:
+    """How the sizes of labelled detections fit their beads: ``(n_fit, n_off, n_distinct)``, or None.
+
     The predicted apparent diameter ``c D / z`` of each labelled bead is compared with its detection's,
     after removing their median ratio (edge definition, blur and the guessed magnification scale both).
-    Phantoms whose beads all have about one diameter pass unchecked.
+    A ratio off by more than half the log-spread of the phantom's diameters is off. ``n_distinct`` counts
+    the labelled beads of a distinct diameter (markers), ``n_fit`` those of them whose size fits, and
+    ``n_off`` every labelled bead whose size is off. None when the sizes say nothing: fewer than 3
+    known sizes, or beads all of about one diameter.
     """
     d_mm = frame.bead_diam_mm[beads]
     measured = frame.det.size_px[frame.det_idx[dets]]
     known = np.isfinite(d_mm) & np.isfinite(measured) & (measured > 0)
     if known.sum() < 3:
-        return True
+        return None
     spread = float(np.nanmax(frame.bead_diam_mm) / np.nanmedian(frame.bead_diam_mm))
     if spread < 1.15:
-        return True
+        return None
     z = (frame.phantom.xyz_mm[beads[known]] - T) @ R[2]
     log_ratio = np.log(measured[known] / (frame.iop[2] * d_mm[known] / z))
     off = np.abs(log_ratio - np.median(log_ratio)) > 0.5 * np.log(spread)
     distinct = np.abs(np.log(d_mm[known] / np.nanmedian(frame.bead_diam_mm))) > 0.5 * np.log(spread)
-    # one or two borderline sizes are tolerated; a wrong pose swaps many
-    return int(off.sum()) <= max(2, int(0.5 * distinct.sum()))
+    return int((distinct & ~off).sum()), int(off.sum()), int(distinct.sum())
 
 
 def acceptable(frame: CubeFrame, result: dict) -> tuple[bool, str]:

@@ -4,7 +4,9 @@ The neighbouring frame's pose fixes the orientation roughly but not the position
 pair votes for the shift of the phantom across the beam that would put the bead on the detection, over
 the whole image and a few depths; the peaks of the vote are labelled, and the best labelling is kept only
 if no distinct one (a periodic layout one row off) explains the frame about as well. A frame that still
-fails is searched over turns about the sequence's turntable axis.
+fails is searched over turns about the sequence's turntable axis. A labelling found so is kept only if
+no pose the phantom's near-symmetries allow (a cube half turned) explains the frame as well, unless the
+beads' sizes or a much nearer prior orientation rule it out: a frame is never labelled by a guess.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from dataclasses import replace
 import numpy as np
 from fluorocal.stages.label.cube_frame import CubeFrame, coarse_score, visible
 from fluorocal.stages.label.iterate import acceptable, agreement, iterate, rivals, sizes_consistent
+from fluorocal.stages.label.symmetry import phantom_symmetries, turn_angle
 
 # from another frame's pose: peaks of the shift vote kept as starts, sought among this many of the strongest bins
 _N_PEAKS = 8
@@ -29,6 +32,10 @@ _N_DEPTH_DETECTIONS = 80
 _N_TURN_DETECTIONS = 120
 _N_TURNS = 4
 _N_TURN_CANDIDATES = 12
+# symmetric rivals: sizes that fit markers by this many more rule a rival out; else the prior decides, when
+# every other is this many times as far from it as the nearest
+_SIZE_MARGIN = 2
+_PRIOR_MARGIN = 3.0
 
 
 def label_from_prior(
@@ -43,12 +50,17 @@ def label_from_prior(
     the best labelling is kept only if no distinct one explains the frame about as well
     (:func:`_best_start`). When that fails and the sequence's turntable ``axis`` (camera frame) is
     known, the search is repeated over turns of the phantom about that axis (:func:`_turn_starts`).
+    Last, a phantom that looks alike after a turn (a cube of identical walls) allows the found pose's
+    symmetric rivals, which a frame without markers cannot tell from it: the labelling is kept only if
+    the beads' sizes or, failing them, the prior's orientation single it out (:func:`resolve_symmetry`).
     """
     rays = _rays(frame, frame.det_xy)
     best, why = _best_start(frame, _shift_starts(frame, R0, T0, rays))
-    if best is not None or axis is None:
+    if best is None and axis is not None:
+        best, why = _best_start(frame, _turn_starts(frame, R0, T0, axis))
+    if best is None:
         return best, why
-    return _best_start(frame, _turn_starts(frame, R0, T0, axis))
+    return resolve_symmetry(frame, best, R0)
 
 
 def _rays(frame: CubeFrame, xy: np.ndarray) -> np.ndarray:
@@ -268,7 +280,7 @@ def _best_start(frame: CubeFrame, starts: list) -> tuple[dict | None, str]:
     for other in accepted[1:]:
         if rivals(best, other):
             return None, (
-                f"two shifts of the previous frame's pose explain the frame about equally well "
+                f"pose from the neighbouring frame is ambiguous: two shifts of it explain the frame about equally well "
                 f"({best['n_labelled']} vs {other['n_labelled']} labels)"
             )
     return best, ""
@@ -299,3 +311,65 @@ def screen(frame: CubeFrame, result: dict, R: np.ndarray, T: np.ndarray, min_cou
     close = d <= p.final_gate_bead_diameters * diam[vis]
     n = int(close.sum())
     return n, n < min_count or sizes_consistent(sub, R, T, vis[close], j[close])
+
+
+def resolve_symmetry(frame: CubeFrame, best: dict, R_prior: np.ndarray) -> tuple[dict | None, str]:
+    """The labelling from a prior pose among those the phantom's near-symmetries allow; ``(None, reason)`` if unsure.
+
+    A frame without markers shows a phantom that looks alike after a symmetry ``g`` (a cube turned by a
+    quarter or half turn, :func:`~fluorocal.stages.label.symmetry.phantom_symmetries`) as it shows the
+    phantom itself, so the labelling ``best`` found near the prior pose has rivals: ``best``'s pose moved
+    by each ``g``. Each rival that screens about as well (:func:`screen`) is labelled in full; those that
+    are acceptable and label about as many detections with other ids (:func:`rivals`) are candidates
+    with ``best``. Then, in turn:
+
+    1. the sizes: a candidate whose labelled markers fit their detections' sizes by ``_SIZE_MARGIN`` more
+       (fits minus misfits, :func:`~fluorocal.stages.label.iterate.size_evidence`) than another's rules
+       that other out;
+    2. the prior: of the candidates left, the one nearest the prior pose is kept if every other is at
+       least ``_PRIOR_MARGIN`` times as far from it (rotation angles). The neighbour's pose is close to
+       the frame's when the sequence steps by small turns, and then the found pose is much nearer the
+       prior than any symmetric rival; a step comparable with the symmetry's angle leaves both at
+       similar distances, and the prior does not say which;
+    3. otherwise the frame fails: "pose from the neighbouring frame is ambiguous: ...".
+
+    A rival that the prior rules out is not labelled when no labelled bead of ``best``'s is off its size
+    (it could not win on sizes either).
+    """
+    xyz = frame.phantom.xyz_mm
+    centre = xyz.mean(0)
+    own, _ = screen(frame, best, best["R"], best["T"])
+    found = [(best, None)]
+    a_best = turn_angle(best["R"], R_prior)
+    clean = best["size_evidence"] is None or best["size_evidence"][1] == 0
+    for Rg, t, _ in phantom_symmetries(xyz):
+        # the pose that shows the phantom moved by g: x -> Rg (x - centre) + centre + t
+        R = best["R"] @ Rg
+        T = centre - Rg.T @ (centre + t - best["T"])
+        if clean and a_best * _PRIOR_MARGIN <= turn_angle(R, R_prior):
+            # the prior rules this rival out, and its sizes could not: no bead of best's is off its size, so
+            # the rival, the same detections relabelled, cannot fit more markers by _SIZE_MARGIN
+            continue
+        n, sizes_ok = screen(frame, best, R, T, _SCREEN_RIVAL * own)
+        if n < _SCREEN_RIVAL * own or not sizes_ok:
+            continue
+        other = iterate(frame, R, T)
+        if other is not None and acceptable(frame, other)[0] and rivals(best, other):
+            if all(agreement(other, f) < 0.9 for f, _ in found):
+                found.append((other, Rg))
+    if len(found) == 1:
+        return best, ""
+    fit = [0 if f["size_evidence"] is None else f["size_evidence"][0] - f["size_evidence"][1] for f, _ in found]
+    found = [f for f, s in zip(found, fit) if s > max(fit) - _SIZE_MARGIN]
+    angles = np.degrees([turn_angle(f["R"], R_prior) for f, _ in found])
+    order = np.argsort(angles)
+    if len(found) == 1 or angles[order[0]] * _PRIOR_MARGIN <= angles[order[1]]:
+        return found[order[0]][0], ""
+    near, far = order[:2]
+    g = found[far][1] if found[far][1] is not None else found[near][1]
+    return None, (
+        f"pose from the neighbouring frame is ambiguous: the phantom looks alike turned by "
+        f"{np.degrees(turn_angle(g, np.eye(3))):.0f} deg, and two such poses label the frame about as well "
+        f"({found[near][0]['n_labelled']} and {found[far][0]['n_labelled']} labels), "
+        f"{angles[near]:.0f} and {angles[far]:.0f} deg from the neighbour's"
+    )
