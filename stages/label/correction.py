@@ -26,13 +26,13 @@ class Correction:
         # shape (N, n_terms)
         return np.column_stack([u ** (d - k) * v**k for d in range(self.degree + 1) for k in range(d + 1)])
 
-    def apply(self, xy: np.ndarray) -> np.ndarray:
+    def distort_points(self, xy: np.ndarray) -> np.ndarray:
         """Predicted measured positions of ideal points ``xy``."""
         if not len(self.coef) or not len(xy):
             return xy
         return xy + self.basis(xy) @ self.coef
 
-    def undo(self, measured: np.ndarray, ideal_guess: np.ndarray) -> np.ndarray:
+    def undistort_points(self, measured: np.ndarray, ideal_guess: np.ndarray) -> np.ndarray:
         """Approximately ideal positions of ``measured`` points, given nearby ideal predictions."""
         if not len(self.coef) or not len(measured):
             return measured

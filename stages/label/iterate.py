@@ -38,7 +38,7 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
         vis, ideal, diam = visible(frame, R, T)
         if len(vis) < 4:
             return None
-        pred = corr.apply(ideal[vis])
+        pred = corr.distort_points(ideal[vis])
         amb = ambiguous(pred, diam[vis], p.ambiguity_bead_diameters)
         i_pred, i_det = assign(pred, p.gate_bead_diameters * diam[vis], frame.det_xy, frame.det_tree)
         key = (vis[i_pred].tobytes(), i_det.tobytes())
@@ -55,7 +55,7 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
             R, T, inl = ransac_pose(frame, obj, measured, R, T)
             beads, dets, measured, obj = beads[inl], dets[inl], measured[inl], obj[inl]
         else:
-            img = corr.undo(measured, ideal[beads])
+            img = corr.undistort_points(measured, ideal[beads])
             if it <= _C_ITERATIONS:
                 R, T, c = solve_pose_and_c(frame, obj, img, R, T)
             else:
@@ -73,7 +73,7 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
 
     # final labels: pairs within the final gate of the final prediction
     vis, ideal, diam = visible(frame, R, T)
-    pred = corr.apply(ideal[vis])
+    pred = corr.distort_points(ideal[vis])
     i_pred, i_det = assign(pred, p.gate_bead_diameters * diam[vis], frame.det_xy, frame.det_tree)
     resid = np.linalg.norm(pred[i_pred] - frame.det_xy[i_det], axis=1)
     # overlap is judged on the measured outlines where a bead was detected, on the prediction elsewhere
@@ -81,7 +81,13 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
     where[i_pred] = frame.det_xy[i_det]
     # apparent diameters: the pinhole's, scaled by the local magnification of the distortion correction
     h = 1.0
-    jac = np.stack([corr.apply(ideal[vis] + [h, 0.0]) - pred, corr.apply(ideal[vis] + [0.0, h]) - pred], axis=-1) / h
+    jac = (
+        np.stack(
+            [corr.distort_points(ideal[vis] + [h, 0.0]) - pred, corr.distort_points(ideal[vis] + [0.0, h]) - pred],
+            axis=-1,
+        )
+        / h
+    )
     size = diam[vis] * np.sqrt(np.abs(np.linalg.det(jac)))
     amb = ambiguous(where, size, p.ambiguity_bead_diameters)
     close = resid <= p.final_gate_bead_diameters * diam[vis][i_pred]

@@ -239,7 +239,7 @@ def _plate_residuals(obj: np.ndarray, img: np.ndarray, iop: np.ndarray, correcti
     while degree > 0 and len(obj) < 3 * n_terms(degree):
         degree -= 1
     scale = 0.5 * float(np.hypot(*np.ptp(img, axis=0))) or 1.0
-    pred = fit_correction(from_h, img, degree, iop[:2], scale).apply(from_h) if degree > 0 else from_h
+    pred = fit_correction(from_h, img, degree, iop[:2], scale).distort_points(from_h) if degree > 0 else from_h
     return np.linalg.norm(pred - img, axis=1)
 
 

@@ -300,7 +300,7 @@ def screen(frame: CubeFrame, result: dict, R: np.ndarray, T: np.ndarray, min_cou
     vis, ideal, diam = visible(sub, R, T)
     if not len(vis):
         return 0, True
-    pred = result["corr"].apply(ideal[vis])
+    pred = result["corr"].distort_points(ideal[vis])
     for _ in range(2):
         d, j = frame.det_tree.query(pred, distance_upper_bound=p.gate_bead_diameters * frame.diam_ref_px)
         hit = np.isfinite(d)
