@@ -204,8 +204,10 @@ def _config_text(data, suffix: str) -> str:
     """The project TOML (DESIGN.md format) for the written data set."""
     p = data.params
     lines = [
-        f"# fluorocal project for a simulated data set: fluorocal simulate --seed {p.seed} --frames {p.n_frames} --systems {p.n_systems}",
-        f"#   --image-size {p.image_size_px} --distortion {p.distortion} --phantom {p.phantom}. Ground truth: truth.json.",
+        "# fluorocal project for a simulated data set: fluorocal simulate "
+        f"--seed {p.seed} --frames {p.n_frames} --systems {p.n_systems}",
+        f"#   --image-size {p.image_size_px} --distortion {p.distortion} --phantom {p.phantom}. "
+        "Ground truth: truth.json.",
         "",
         "[phantom]",
         'file = "phantom.csv"',
@@ -218,7 +220,8 @@ def _config_text(data, suffix: str) -> str:
             "[[systems]]",
             f'name = "{name}"',
             f'frames = "frames/{name}/*{suffix}"',
-            f"source_image_distance = {p.source_image_distance_mm:g}   # mm, approximate (nominal; the truth differs by up to 1 %)",
+            f"source_image_distance = {p.source_image_distance_mm:g}   "
+            "# mm, approximate (nominal; the truth differs by up to 1 %)",
             f"pixel_pitch = {p.pixel_pitch_mm:g}              # mm at the detector",
         ]
     lines += [

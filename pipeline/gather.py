@@ -33,7 +33,8 @@ def observations_from_labels(units, labels, config) -> Observations:
     names = tuple(s.name for s in config.systems)
     if not parts:
         raise InputError(
-            "no frame could be labelled; check the phantom file, the [[systems]] geometry and `fluorocal inspect CONFIG label`"
+            "no frame could be labelled; check the phantom file, the [[systems]] geometry "
+            "and `fluorocal inspect CONFIG label`"
         )
     system, exposure, bead_id, xy, sigma = (np.concatenate(p) for p in zip(*parts))
     for s, name in enumerate(names):

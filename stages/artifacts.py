@@ -163,9 +163,8 @@ class Observations:
         if not (np.all(np.isfinite(self.xy_px)) and np.all(np.isfinite(self.sigma_px))):
             raise ShapeError("observations hold non-finite coordinates or sigmas")
         if n and (self.system.min() < 0 or self.system.max() >= len(self.system_names)):
-            raise ShapeError(
-                f"system indices must lie in [0, {len(self.system_names)}); got {self.system.min()}..{self.system.max()}"
-            )
+            lo, hi = self.system.min(), self.system.max()
+            raise ShapeError(f"system indices must lie in [0, {len(self.system_names)}); got {lo}..{hi}")
         freeze(self)
 
     def __len__(self) -> int:

@@ -225,7 +225,8 @@ def image_rays(
 
     Examples
     --------
-    >>> o, d = image_rays(np.array([[612.0, 512.0]]), np.array([512.0, 512.0, 1000.0]), np.array([1.0, 0, 0, 0]), np.zeros(3))
+    >>> iop, q = np.array([512.0, 512.0, 1000.0]), np.array([1.0, 0, 0, 0])
+    >>> o, d = image_rays(np.array([[612.0, 512.0]]), iop, q, np.zeros(3))
     >>> np.round(d * np.sqrt(1.01), 6)
     array([[0.1, 0. , 1. ]])
     """
