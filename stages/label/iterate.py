@@ -114,22 +114,20 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
     }
 
 
+def _pnp_arguments(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.ndarray, T: np.ndarray) -> tuple:
+    """The positional arguments of OpenCV's PnP solvers, starting from the pose ``(R, T)``, no lens model."""
+    rvec, tvec = pose_to_cv(R, T)
+    return obj, img, frame.K, None, rvec.reshape(3, 1).copy(), tvec.reshape(3, 1).copy()
+
+
 def solve_pose(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.ndarray, T: np.ndarray):
     """Refine a pose on correspondences (Levenberg-Marquardt from the current pose)."""
     import cv2
 
     if len(obj) < 6:
         return R, T
-    rvec, tvec = pose_to_cv(R, T)
     ok, rvec, tvec = cv2.solvePnP(
-        obj,
-        img,
-        frame.K,
-        None,
-        rvec.reshape(3, 1).copy(),
-        tvec.reshape(3, 1).copy(),
-        useExtrinsicGuess=True,
-        flags=cv2.SOLVEPNP_ITERATIVE,
+        *_pnp_arguments(frame, obj, img, R, T), useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE
     )
     if not ok or not np.all(np.isfinite(tvec)):
         return R, T
@@ -177,15 +175,9 @@ def ransac_pose(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.ndarra
 
     if len(obj) < 6:
         return R, T, np.ones(len(obj), dtype=bool)
-    rvec, tvec = pose_to_cv(R, T)
     thr = frame.params.ransac_threshold_bead_diameters * frame.diam_ref_px
     ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-        obj,
-        img,
-        frame.K,
-        None,
-        rvec.reshape(3, 1).copy(),
-        tvec.reshape(3, 1).copy(),
+        *_pnp_arguments(frame, obj, img, R, T),
         useExtrinsicGuess=True,
         iterationsCount=frame.params.ransac_iterations,
         reprojectionError=thr,

@@ -83,12 +83,7 @@ def marker_poses(frame: CubeFrame, n_keep: int = 4):
         order = plausible[_prerank(frame, Rs[plausible], Ts[plausible])]
     else:
         order = plausible[np.lexsort((mean_d[plausible], -n_matched[plausible]))]
-    top = []
-    for h in order:
-        if len(top) == _N_VERIFY:
-            break
-        if not any(_same_pose(Rs[h], Ts[h], R, T) for R, T in top):
-            top.append((Rs[h], Ts[h]))
+    top = _distinct_poses(Rs, Ts, order)
     # verify the best marker hypotheses on all beads
     scores = np.array([coarse_score(frame, R, T) for R, T in top])
     if scores.max(initial=0) < _GOOD_COARSE * len(frame.det_idx):
@@ -212,16 +207,21 @@ def _rank_hypotheses(frame: CubeFrame, Rs: np.ndarray, Ts: np.ndarray, n_keep: i
     """The ``n_keep`` best distinct poses: pre-ranked on a sample of the beads, then scored on all of them."""
     if not len(Rs):
         return [], []
-    order = _prerank(frame, Rs, Ts)
+    top = _distinct_poses(Rs, Ts, _prerank(frame, Rs, Ts))
+    scores = np.array([coarse_score(frame, R, T) for R, T in top])
+    keep = np.argsort(-scores, kind="stable")[:n_keep]
+    return [top[k] for k in keep], scores[keep].tolist()
+
+
+def _distinct_poses(Rs: np.ndarray, Ts: np.ndarray, order: np.ndarray) -> list:
+    """The first :data:`_N_VERIFY` poses ``(R, T)`` taken in ``order`` that differ from every pose taken before."""
     top = []
     for h in order:
         if len(top) == _N_VERIFY:
             break
         if not any(_same_pose(Rs[h], Ts[h], R, T) for R, T in top):
             top.append((Rs[h], Ts[h]))
-    scores = np.array([coarse_score(frame, R, T) for R, T in top])
-    keep = np.argsort(-scores, kind="stable")[:n_keep]
-    return [top[k] for k in keep], scores[keep].tolist()
+    return top
 
 
 def _prerank(frame: CubeFrame, Rs: np.ndarray, Ts: np.ndarray) -> np.ndarray:
