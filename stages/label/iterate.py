@@ -79,17 +79,7 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
     # overlap is judged on the measured outlines where a bead was detected, on the prediction elsewhere
     where = pred.copy()
     where[i_pred] = frame.det_xy[i_det]
-    # apparent diameters: the pinhole's, scaled by the local magnification of the distortion correction
-    h = 1.0
-    jac = (
-        np.stack(
-            [corr.distort_points(ideal[vis] + [h, 0.0]) - pred, corr.distort_points(ideal[vis] + [0.0, h]) - pred],
-            axis=-1,
-        )
-        / h
-    )
-    size = diam[vis] * np.sqrt(np.abs(np.linalg.det(jac)))
-    amb = ambiguous(where, size, p.ambiguity_bead_diameters)
+    amb = ambiguous(where, _apparent_diameters(corr, ideal[vis], pred, diam[vis]), p.ambiguity_bead_diameters)
     close = resid <= p.final_gate_bead_diameters * diam[vis][i_pred]
     lab = close & ~amb[i_pred]
     ambig = amb[i_pred]
@@ -112,6 +102,16 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
         "size_evidence": evidence,
         "corr": corr,
     }
+
+
+def _apparent_diameters(corr: Correction, ideal: np.ndarray, pred: np.ndarray, diam: np.ndarray) -> np.ndarray:
+    """The pinhole's diameters ``diam`` scaled by the local magnification of ``corr`` (``pred = corr(ideal)``)."""
+    h = 1.0
+    jac = (
+        np.stack([corr.distort_points(ideal + [h, 0.0]) - pred, corr.distort_points(ideal + [0.0, h]) - pred], axis=-1)
+        / h
+    )
+    return diam * np.sqrt(np.abs(np.linalg.det(jac)))
 
 
 def _pnp_arguments(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.ndarray, T: np.ndarray) -> tuple:

@@ -599,12 +599,7 @@ def test_cli_label(tmp_path, sim):
     c, ids = detections_from_truth(ft, rng)
     argv = _label_cli_argv(tmp_path, sim, c, [("a.tif", 0)], without_roles(sim.phantom), roles=False)
     write_csv(tmp_path / "seeds.csv", ["id", "x", "y"], [[int(s[0]), s[1], s[2]] for s in seeds_from_truth(ft, rng)])
-    argv += [
-        "--seeds",
-        str(tmp_path / "seeds.csv"),
-        "--out",
-        str(tmp_path / "labels.csv"),
-    ]
+    argv += ["--seeds", str(tmp_path / "seeds.csv"), "--out", str(tmp_path / "labels.csv")]
     assert main(argv) == 0
     import csv
 
@@ -652,12 +647,7 @@ def test_cli_label_overlay_reads_each_frame_file_once(tmp_path, sim, monkeypatch
 
     real = stages_io.read_frames
     monkeypatch.setattr(stages_io, "read_frames", lambda path, *a, **k: reads.append(path) or real(path, *a, **k))
-    argv += [
-        "--out",
-        str(tmp_path / "labels.csv"),
-        "--overlay",
-        str(tmp_path / "png"),
-    ]
+    argv += ["--out", str(tmp_path / "labels.csv"), "--overlay", str(tmp_path / "png")]
     assert main(argv) == 0
     assert sorted(x.name for x in (tmp_path / "png").iterdir()) == ["movie_000_labels.png", "movie_001_labels.png"]
     assert len(reads) == 1
