@@ -58,7 +58,10 @@ from benchmarks.learn import METHODS, NOISE_PX, RECOMMENDED, simulated_sets  # n
 DEFAULT_SCHEMES = ("none", RECOMMENDED)
 
 #: TABLE I of the paper (real ARCADIS pairs): average RMSE, mm, and % improvement
-PAPER = "paper TABLE I: no calibration 0.59-0.68 mm (0.60 mm with 75 pairs) -> kNN + IOP + smoothing 0.31-0.32 mm, 46.2-53.8 % (47.2 % with 75 pairs)"
+PAPER = (
+    "paper TABLE I: no calibration 0.59-0.68 mm (0.60 mm with 75 pairs) -> "
+    "kNN + IOP + smoothing 0.31-0.32 mm, 46.2-53.8 % (47.2 % with 75 pairs)"
+)
 TARGET_PERCENT = 47.0
 
 
@@ -151,7 +154,10 @@ def summarise(err_mm) -> dict:
 
 
 def rig_error(iop_px, rop_q, rop_source_mm, acq) -> tuple[float, float, float, float]:
-    """Calibrated against true rig, system B: ROP rotation (deg), ROP source (mm), baseline length (mm), c of A and B (px, worst)."""
+    """Calibrated against the true rig, system B.
+
+    Returns ROP rotation (deg), ROP source (mm), baseline length (mm), c of A and B (px, worst).
+    """
     iop_t, q_t, src_t = true_rig(acq)
     dq = quat_multiply(rop_q[1], q_t[1] * [1, -1, -1, -1])
     angle = float(np.degrees(2 * np.arccos(min(abs(dq[0]), 1.0))))
@@ -193,8 +199,9 @@ def main(argv=None) -> None:
     test_obs = test[0]
     n_pairs = len(biplanar_pairs(test_obs)[0])
     print(
-        f"simulated {len(train[0])} training + {len(test_obs)} held-out observations ({args.frames} + {args.frames} epochs x 2 systems, "
-        f"{args.size} px, noise {NOISE_PX} px) in {time.perf_counter() - t0:.1f} s; {n_pairs} held-out bead pairs seen by both systems"
+        f"simulated {len(train[0])} training + {len(test_obs)} held-out observations "
+        f"({args.frames} + {args.frames} epochs x 2 systems, {args.size} px, noise {NOISE_PX} px) "
+        f"in {time.perf_counter() - t0:.1f} s; {n_pairs} held-out bead pairs seen by both systems"
     )
 
     rows = []
@@ -221,18 +228,21 @@ def main(argv=None) -> None:
         rig = rig_error(adj.iop_px, adj.rop_q, adj.rop_source_mm, acq)
         rows.append((name, stats, wall, rig))
         print(
-            f"  {name} ({scheme}): mean {stats['mean']:.4f} mm, RMS {stats['rms']:.4f} mm, {wall:.1f} s, {len(res.history) - 1} it, {res.stop_reason}",
+            f"  {name} ({scheme}): mean {stats['mean']:.4f} mm, RMS {stats['rms']:.4f} mm, {wall:.1f} s, "
+            f"{len(res.history) - 1} it, {res.stop_reason}",
             flush=True,
         )
 
     base = next((r[1] for r in rows if r[0] == "none"), None)
     print()
     print(
-        "Out-of-sample two-ray intersection, held-out epochs, after a per-epoch 6-parameter rigid fit to the true bead centres (mm):"
+        "Out-of-sample two-ray intersection, held-out epochs, after a per-epoch 6-parameter rigid fit to the true "
+        "bead centres (mm):"
     )
     print()
     print(
-        "| method | pairs | mean 3D (mm) | RMS 3D (mm) | X RMSE | Y RMSE | Z RMSE | avg RMSE (mm) | improvement, mean (%) | improvement, avg RMSE (%) | wall (s) |"
+        "| method | pairs | mean 3D (mm) | RMS 3D (mm) | X RMSE | Y RMSE | Z RMSE | avg RMSE (mm) | improvement, mean "
+        "(%) | improvement, avg RMSE (%) | wall (s) |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, st, wall, _ in rows:
@@ -243,7 +253,8 @@ def main(argv=None) -> None:
         )
         x, y, z = st["axes"]
         print(
-            f"| {name} | {st['n']} | {st['mean']:.4f} | {st['rms']:.4f} | {x:.4f} | {y:.4f} | {z:.4f} | {st['avg_rmse']:.4f} | {imp[0]} | {imp[1]} | {wall:.1f} |"
+            f"| {name} | {st['n']} | {st['mean']:.4f} | {st['rms']:.4f} | {x:.4f} | {y:.4f} | {z:.4f} | "
+            f"{st['avg_rmse']:.4f} | {imp[0]} | {imp[1]} | {wall:.1f} |"
         )
     print()
     print(PAPER + f"; target: improvement >= {TARGET_PERCENT:.0f} %")
@@ -251,11 +262,13 @@ def main(argv=None) -> None:
     # a field that shifts, rotates or scales the image trades with xp, yp, c and the ROP rotation:
     # (and the unmodelled distortion pulls them for "none"): only the rays they make together are compared above
     print(
-        "Calibrated rig against the truth (system B relative to A; traded against the field or the unmodelled distortion):"
+        "Calibrated rig against the truth (system B relative to A; traded against the field or the unmodelled "
+        "distortion):"
     )
     print()
     print(
-        "| method | ROP rotation error (deg) | ROP source error (mm) | baseline length error (mm) | worst c error (px) |"
+        "| method | ROP rotation error (deg) | ROP source error (mm) | baseline length error (mm) | worst c error "
+        "(px) |"
     )
     print("|---|---|---|---|---|")
     for name, _, _, (angle, src, base_len, dc) in rows[1:]:

@@ -78,7 +78,8 @@ class Tally:
         fps = self.frames / self.seconds if self.seconds else float("nan")
         return (
             f"{self.name:<34} {self.frames:>6} {self.failed:>6} {self.eligible:>8} {pct:>8.2f}% {self.amb_eligible:>8} "
-            f"{self.labelled:>8} {self.wrong:>6} {wrong:>7.3f}% {fps:>7.1f} {self.detections / max(self.frames, 1):>6.0f}"
+            f"{self.labelled:>8} {self.wrong:>6} {wrong:>7.3f}% {fps:>7.1f} "
+            f"{self.detections / max(self.frames, 1):>6.0f}"
         )
 
 
@@ -110,8 +111,9 @@ def main(argv=None) -> int:
     sp = SimulateParams(n_frames=args.frames, n_systems=2, seed=args.seed)
     data = simulate(sp, render=False)
     print(
-        f"simulated {args.frames} x 2 frames (geometry only) in {time.perf_counter() - t0:.1f} s; phantom {data.phantom.n_beads} beads, "
-        f"{int((data.phantom.role == 'marker').sum())} markers; distortion {sp.distortion}"
+        f"simulated {args.frames} x 2 frames (geometry only) in {time.perf_counter() - t0:.1f} s; "
+        f"phantom {data.phantom.n_beads} beads, {int((data.phantom.role == 'marker').sum())} markers; "
+        f"distortion {sp.distortion}"
     )
     params = LabelParams(
         source_image_distance_mm=sp.source_image_distance_mm,
@@ -128,13 +130,13 @@ def main(argv=None) -> int:
             frames.append((s, ft, c, ids))
 
     markers = Tally("markers only")
-    for s, ft, c, ids in frames:
+    for _, ft, c, ids in frames:
         t = time.process_time()
         lab = label_beads(c, data.phantom, params)
         markers.add(lab, ids, ft, time.process_time() - t)
 
     seeded = Tally("seeds (6 per frame), no markers")
-    for s, ft, c, ids in frames:
+    for _, ft, c, ids in frames:
         p = replace(params, seeds=seeds_from_truth(ft, rng))
         t = time.process_time()
         lab = label_beads(c, no_markers, p)
@@ -146,7 +148,7 @@ def main(argv=None) -> int:
         t = time.process_time()
         labs = label_sequence([f[2] for f in sel], no_markers, params, {0: seeds_from_truth(sel[0][1], rng)})
         dt = (time.process_time() - t) / len(sel)
-        for (_, ft, c, ids), lab in zip(sel, labs):
+        for (_, ft, _, ids), lab in zip(sel, labs):
             chained.add(lab, ids, ft, dt)
 
     print()
@@ -166,7 +168,8 @@ def main(argv=None) -> int:
     slow = [m.name for m in modes if not m.frames / m.seconds >= 20.0]
     print()
     print(
-        f"targets (all three modes): labelled >= 99 %: {'met' if ok_label else 'NOT met'}; wrong <= 0.05 %: {'met' if ok_wrong else 'NOT met'}; "
+        f"targets (all three modes): labelled >= 99 %: {'met' if ok_label else 'NOT met'}; wrong <= 0.05 %: "
+        f"{'met' if ok_wrong else 'NOT met'}; "
         f">= 20 frames/s: {'met' if not slow else 'NOT met (' + ', '.join(slow) + ')'}"
     )
     print(f"total {time.perf_counter() - t0:.1f} s")
@@ -201,8 +204,8 @@ def _rendered_check(sp: SimulateParams, n_frames: int, params: LabelParams) -> N
     print()
     print(
         f"rendered cross-check ({n_frames_total} frames rendered in {t_render:.0f} s, detect + centroid + label): "
-        f"{n_failed} failed, {n_labelled} labels of {n_det} usable detections, {n_wrong} not on the nearest true outline, "
-        f"labelling {n_frames_total / t_label:.1f} frames/s"
+        f"{n_failed} failed, {n_labelled} labels of {n_det} usable detections, "
+        f"{n_wrong} not on the nearest true outline, labelling {n_frames_total / t_label:.1f} frames/s"
     )
 
 

@@ -19,7 +19,8 @@ uniform split). Per system and method:
 The oracle is the same held-out adjustment handed the true correction and the
 true IOP; "no calibration" is scheme ``none`` (IOP estimated, no field).
 
-Usage: ``python benchmarks/learn.py [--frames N] [--systems S] [--size PX] [--seed N | --seeds a,b,...] [--schemes a,b,...]``
+Usage: ``python benchmarks/learn.py [--frames N] [--systems S] [--size PX]
+[--seed N | --seeds a,b,...] [--schemes a,b,...]``
 (defaults: 75 training + 75 held-out exposures, 1 system, 1024 px, every scheme).
 """
 
@@ -191,7 +192,8 @@ def main(argv=None) -> None:
     ap.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
     ap.add_argument(
         "--seeds",
-        help="comma-separated seeds, each a new simulated set; adds a table of the 3D error relative to each set's oracle",
+        help="comma-separated seeds, each a new simulated set; "
+        "adds a table of the 3D error relative to each set's oracle",
     )
     ap.add_argument("--schemes", default=",".join(METHODS), help="comma-separated methods (default: all)")
     ap.add_argument(
@@ -209,13 +211,15 @@ def main(argv=None) -> None:
     rows = {seed: run_set(args, seed, names) for seed in seeds}
     print()
     print(
-        "| seed | system | method | out-of-sample 3D (mm) | out-of-sample reproj. RMS (px) | field error mod H, covered (px) | same, inner 80 % (px) | wall (s) | iterations |"
+        "| seed | system | method | out-of-sample 3D (mm) | out-of-sample reproj. RMS (px) | field error mod H, "
+        "covered (px) | same, inner 80 % (px) | wall (s) | iterations |"
     )
     print("|---|---|---|---|---|---|---|---|---|")
     for seed, per_set in rows.items():
         for sysname, name, e3, rp, ferr, wall, it, _ in per_set:
             print(
-                f"| {seed} | {sysname} | {name} | {e3:.4f} | {rp:.4f} | {ferr[0]:.4f} | {ferr[1]:.4f} | {wall:.1f} | {it} |"
+                f"| {seed} | {sysname} | {name} | {e3:.4f} | {rp:.4f} | {ferr[0]:.4f} | {ferr[1]:.4f} | {wall:.1f} | "
+                f"{it} |"
             )
     if len(seeds) > 1:
         print("\nout-of-sample 3D error / the same set's oracle, per seed and mean:")
@@ -227,7 +231,8 @@ def main(argv=None) -> None:
                 if row[1] == name
             ]
             print(
-                f"  {name}: {', '.join(f'{r:.2f}x' for r in ratios)}; mean {np.mean(ratios):.2f}x, worst {max(ratios):.2f}x"
+                f"  {name}: {', '.join(f'{r:.2f}x' for r in ratios)}; mean {np.mean(ratios):.2f}x, worst "
+                f"{max(ratios):.2f}x"
             )
 
 
@@ -242,12 +247,16 @@ def _with_oracle(per_set):
 
 
 def run_set(args, seed: int, names) -> list:
-    """One simulated set: the oracle and every method, per system; rows ``(system, method, 3D, reproj, field, wall, iterations, stop)``."""
+    """One simulated set: the oracle and every method, per system.
+
+    Rows ``(system, method, 3D, reproj, field, wall, iterations, stop)``.
+    """
     t0 = time.perf_counter()
     (train, test), nominal, true_xyz, acq, p = simulated_sets(args.frames, args.systems, args.size, seed)
     print(
         f"seed {seed}: simulated {len(train[0])} training + {len(test[0])} held-out observations "
-        f"({args.frames} + {args.frames} exposures x {args.systems} system(s), {args.size} px, noise {NOISE_PX} px) in {time.perf_counter() - t0:.1f} s"
+        f"({args.frames} + {args.frames} exposures x {args.systems} system(s), {args.size} px, noise {NOISE_PX} px) "
+        f"in {time.perf_counter() - t0:.1f} s"
     )
     rows = []
     for s in range(args.systems):

@@ -55,7 +55,7 @@ def main() -> int:
     for k in range(params.n_frames):
         truth.append(
             timed(
-                lambda: project_beads(
+                lambda k=k: project_beads(
                     nominal.ids,
                     true_xyz,
                     nominal.diameter_mm,
@@ -70,7 +70,7 @@ def main() -> int:
         )
         render.append(
             timed(
-                lambda: render_frame(
+                lambda k=k: render_frame(
                     params,
                     system,
                     acq.q[0, k],
@@ -85,12 +85,14 @@ def main() -> int:
     wall, cpu = np.median(render, axis=0)
     print(f"simulate: {params.image_size_px}² px, {nominal.n_beads} beads, distortion={params.distortion}, 1 core")
     print(
-        f"  render per frame     {wall:6.3f} s wall  {cpu:6.3f} s CPU   (median of {params.n_frames}; target <= {TARGET_S} s: {'OK' if min(wall, cpu) <= TARGET_S else 'SLOW'})"
+        f"  render per frame     {wall:6.3f} s wall  {cpu:6.3f} s CPU   (median of {params.n_frames}; target <= "
+        f"{TARGET_S} s: {'OK' if min(wall, cpu) <= TARGET_S else 'SLOW'})"
     )
     wall, cpu = np.median(truth, axis=0)
     print(f"  truth per frame      {wall:6.3f} s wall  {cpu:6.3f} s CPU   (projections, outline centres, flags)")
     print(
-        f"  set-up per system    {setup[0]:6.3f} s wall  {setup[1]:6.3f} s CPU   (exact inverse distortion of every pixel, once per system)"
+        f"  set-up per system    {setup[0]:6.3f} s wall  {setup[1]:6.3f} s CPU   (exact inverse distortion of every "
+        "pixel, once per system)"
     )
     return 0
 

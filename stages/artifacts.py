@@ -25,6 +25,16 @@ def freeze(obj) -> None:
             value.flags.writeable = False
 
 
+def as_arrays(obj, dtype, *names: str, shape: tuple | None = (-1,)) -> None:
+    """Set the named fields of a frozen dataclass instance to ndarrays of ``dtype`` (call from ``__post_init__``).
+
+    Each is reshaped to ``shape`` (default: 1-D); ``shape=None`` keeps the shape given.
+    """
+    for name in names:
+        value = np.asarray(getattr(obj, name), dtype=dtype)
+        object.__setattr__(obj, name, value if shape is None else value.reshape(shape))
+
+
 def check_shape(name: str, arr: np.ndarray, shape: tuple) -> None:
     """Raise :class:`ShapeError` unless ``arr.shape`` matches ``shape`` (``None`` = any size)."""
     if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
@@ -102,10 +112,10 @@ class Phantom:
     schema_version: int = SCHEMA_VERSION
 
     def __post_init__(self):
-        object.__setattr__(self, "ids", np.asarray(self.ids, dtype=np.int64))
-        object.__setattr__(self, "xyz_mm", np.asarray(self.xyz_mm, dtype=np.float64).reshape(-1, 3))
-        object.__setattr__(self, "diameter_mm", np.asarray(self.diameter_mm, dtype=np.float64))
-        object.__setattr__(self, "role", np.asarray(self.role, dtype=str))
+        as_arrays(self, np.int64, "ids", shape=None)
+        as_arrays(self, np.float64, "xyz_mm", shape=(-1, 3))
+        as_arrays(self, np.float64, "diameter_mm", shape=None)
+        as_arrays(self, str, "role", shape=None)
         n = len(self.ids)
         check_shape("xyz_mm", self.xyz_mm, (n, 3))
         check_shape("diameter_mm", self.diameter_mm, (n,))
@@ -150,10 +160,9 @@ class Observations:
     schema_version: int = SCHEMA_VERSION
 
     def __post_init__(self):
-        for name, dtype in (("system", np.int64), ("exposure", np.int64), ("bead_id", np.int64)):
-            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=dtype).reshape(-1))
-        object.__setattr__(self, "xy_px", np.asarray(self.xy_px, dtype=np.float64).reshape(-1, 2))
-        object.__setattr__(self, "sigma_px", np.asarray(self.sigma_px, dtype=np.float64).reshape(-1, 3))
+        as_arrays(self, np.int64, "system", "exposure", "bead_id")
+        as_arrays(self, np.float64, "xy_px", shape=(-1, 2))
+        as_arrays(self, np.float64, "sigma_px", shape=(-1, 3))
         object.__setattr__(self, "system_names", tuple(self.system_names))
         n = len(self.system)
         for name in ("exposure", "bead_id"):

@@ -65,7 +65,7 @@ import numpy as np
 from fluorocal.stages._edges import edge_points
 from fluorocal.stages._ellipse import ellipse_axes, fit_ellipses
 from fluorocal.stages._image import frame_name
-from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, check_shape, freeze
+from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, as_arrays, check_shape, freeze
 from fluorocal.stages.detect import BeadCandidates, EmptyFrameWarning
 from fluorocal.stages.errors import InputError
 
@@ -222,13 +222,11 @@ class Centroids:
     _FLOATS = ("sigma_x", "sigma_y", "rho", "major_px", "minor_px", "angle_rad", "fit_rmse_px", "score")
 
     def __post_init__(self):
-        object.__setattr__(self, "xy_px", np.asarray(self.xy_px, dtype=np.float64).reshape(-1, 2))
-        for name in self._FLOATS:
-            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64).reshape(-1))
-        for name in ("n_edges", "candidate_index"):
-            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.int64).reshape(-1))
-        object.__setattr__(self, "ok", np.asarray(self.ok, dtype=bool).reshape(-1))
-        object.__setattr__(self, "reason", np.asarray(self.reason, dtype="<U16").reshape(-1))
+        as_arrays(self, np.float64, "xy_px", shape=(-1, 2))
+        as_arrays(self, np.float64, *self._FLOATS)
+        as_arrays(self, np.int64, "n_edges", "candidate_index")
+        as_arrays(self, bool, "ok")
+        as_arrays(self, "<U16", "reason")
         n = len(self.xy_px)
         for name in self._FLOATS + ("n_edges", "candidate_index", "ok", "reason"):
             check_shape(name, getattr(self, name), (n,))

@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 from fluorocal.stages._fov import bead_polarity, field_of_view, fov_clearance, pixel_noise
 from fluorocal.stages._image import bead_signal, frame_name, log_image, odd_size
-from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, check_shape, freeze
+from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, as_arrays, check_shape, freeze
 from fluorocal.stages.errors import InputError, ShapeError
 from fluorocal.stages.geometry import xy_to_rc
 
@@ -177,11 +177,10 @@ class BeadCandidates:
     schema_version: int = SCHEMA_VERSION
 
     def __post_init__(self):
-        object.__setattr__(self, "xy_px", np.asarray(self.xy_px, dtype=np.float64).reshape(-1, 2))
-        for name in ("radius_px", "contrast", "score"):
-            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64).reshape(-1))
-        object.__setattr__(self, "accepted", np.asarray(self.accepted, dtype=bool).reshape(-1))
-        object.__setattr__(self, "reason", np.asarray(self.reason, dtype="<U16").reshape(-1))
+        as_arrays(self, np.float64, "xy_px", shape=(-1, 2))
+        as_arrays(self, np.float64, "radius_px", "contrast", "score")
+        as_arrays(self, bool, "accepted")
+        as_arrays(self, "<U16", "reason")
         object.__setattr__(self, "fov_center_xy_px", tuple(float(v) for v in self.fov_center_xy_px))
         n = len(self.xy_px)
         for name in ("radius_px", "contrast", "score", "accepted", "reason"):

@@ -79,17 +79,7 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
     # overlap is judged on the measured outlines where a bead was detected, on the prediction elsewhere
     where = pred.copy()
     where[i_pred] = frame.det_xy[i_det]
-    # apparent diameters: the pinhole's, scaled by the local magnification of the distortion correction
-    h = 1.0
-    jac = (
-        np.stack(
-            [corr.distort_points(ideal[vis] + [h, 0.0]) - pred, corr.distort_points(ideal[vis] + [0.0, h]) - pred],
-            axis=-1,
-        )
-        / h
-    )
-    size = diam[vis] * np.sqrt(np.abs(np.linalg.det(jac)))
-    amb = ambiguous(where, size, p.ambiguity_bead_diameters)
+    amb = ambiguous(where, _apparent_diameters(corr, ideal[vis], pred, diam[vis]), p.ambiguity_bead_diameters)
     close = resid <= p.final_gate_bead_diameters * diam[vis][i_pred]
     lab = close & ~amb[i_pred]
     ambig = amb[i_pred]
@@ -114,22 +104,30 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
     }
 
 
+def _apparent_diameters(corr: Correction, ideal: np.ndarray, pred: np.ndarray, diam: np.ndarray) -> np.ndarray:
+    """The pinhole's diameters ``diam`` scaled by the local magnification of ``corr`` (``pred = corr(ideal)``)."""
+    h = 1.0
+    jac = (
+        np.stack([corr.distort_points(ideal + [h, 0.0]) - pred, corr.distort_points(ideal + [0.0, h]) - pred], axis=-1)
+        / h
+    )
+    return diam * np.sqrt(np.abs(np.linalg.det(jac)))
+
+
+def _pnp_arguments(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.ndarray, T: np.ndarray) -> tuple:
+    """The positional arguments of OpenCV's PnP solvers, starting from the pose ``(R, T)``, no lens model."""
+    rvec, tvec = pose_to_cv(R, T)
+    return obj, img, frame.K, None, rvec.reshape(3, 1).copy(), tvec.reshape(3, 1).copy()
+
+
 def solve_pose(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.ndarray, T: np.ndarray):
     """Refine a pose on correspondences (Levenberg-Marquardt from the current pose)."""
     import cv2
 
     if len(obj) < 6:
         return R, T
-    rvec, tvec = pose_to_cv(R, T)
     ok, rvec, tvec = cv2.solvePnP(
-        obj,
-        img,
-        frame.K,
-        None,
-        rvec.reshape(3, 1).copy(),
-        tvec.reshape(3, 1).copy(),
-        useExtrinsicGuess=True,
-        flags=cv2.SOLVEPNP_ITERATIVE,
+        *_pnp_arguments(frame, obj, img, R, T), useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE
     )
     if not ok or not np.all(np.isfinite(tvec)):
         return R, T
@@ -177,15 +175,9 @@ def ransac_pose(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.ndarra
 
     if len(obj) < 6:
         return R, T, np.ones(len(obj), dtype=bool)
-    rvec, tvec = pose_to_cv(R, T)
     thr = frame.params.ransac_threshold_bead_diameters * frame.diam_ref_px
     ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-        obj,
-        img,
-        frame.K,
-        None,
-        rvec.reshape(3, 1).copy(),
-        tvec.reshape(3, 1).copy(),
+        *_pnp_arguments(frame, obj, img, R, T),
         useExtrinsicGuess=True,
         iterationsCount=frame.params.ransac_iterations,
         reprojectionError=thr,

@@ -6,7 +6,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages.artifacts import SCHEMA_VERSION, check_shape, freeze
+from fluorocal.stages.artifacts import SCHEMA_VERSION, as_arrays, check_shape, freeze
 from fluorocal.stages.label.params import STATUS_REJECTED, STATUS_UNMATCHED
 
 log = logging.getLogger(__name__)
@@ -76,13 +76,12 @@ class Labels:
     schema_version: int = SCHEMA_VERSION
 
     def __post_init__(self):
-        for name in ("det_index", "bead_id"):
-            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.int64).reshape(-1))
-        for name, width in (("xy_px", 2), ("sigma_px", 3), ("object_xyz_mm", 3)):
-            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64).reshape(-1, width))
-        object.__setattr__(self, "detection_status", np.asarray(self.detection_status, dtype=np.int8).reshape(-1))
-        for name, n in (("q", 4), ("source_mm", 3), ("iop", 3)):
-            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=np.float64).reshape(n))
+        as_arrays(self, np.int64, "det_index", "bead_id")
+        as_arrays(self, np.float64, "xy_px", shape=(-1, 2))
+        as_arrays(self, np.float64, "sigma_px", "object_xyz_mm", shape=(-1, 3))
+        as_arrays(self, np.int8, "detection_status")
+        as_arrays(self, np.float64, "q", shape=(4,))
+        as_arrays(self, np.float64, "source_mm", "iop", shape=(3,))
         n = len(self.det_index)
         check_shape("bead_id", self.bead_id, (n,))
         check_shape("xy_px", self.xy_px, (n, 2))

@@ -83,12 +83,7 @@ def marker_poses(frame: CubeFrame, n_keep: int = 4):
         order = plausible[_prerank(frame, Rs[plausible], Ts[plausible])]
     else:
         order = plausible[np.lexsort((mean_d[plausible], -n_matched[plausible]))]
-    top = []
-    for h in order:
-        if len(top) == _N_VERIFY:
-            break
-        if not any(_same_pose(Rs[h], Ts[h], R, T) for R, T in top):
-            top.append((Rs[h], Ts[h]))
+    top = _distinct_poses(Rs, Ts, order)
     # verify the best marker hypotheses on all beads
     scores = np.array([coarse_score(frame, R, T) for R, T in top])
     if scores.max(initial=0) < _GOOD_COARSE * len(frame.det_idx):
@@ -151,19 +146,16 @@ def _pair_hypotheses(frame: CubeFrame, pair: np.ndarray, markers: np.ndarray) ->
     markers to the two detections, P3P is solved with a third correspondence between one of the detections
     nearest to a marker detection in the image and one of the ordinary beads nearest to that marker.
     """
-    from scipy.spatial import cKDTree
-
     xyz = frame.phantom.xyz_mm
     ordinary = np.flatnonzero(~marker_mask(frame))
     k_img = min(_PAIR_NEAR_DETECTIONS, len(frame.det_idx) - 2)
     k_obj = min(_PAIR_NEAR_BEADS, len(ordinary))
     if k_img < 1 or k_obj < 1:
-        return np.empty((0, 3, 3)), np.empty((0, 3))
+        return _poses([], [])
     # for each marker detection its nearest other detections; for each marker its nearest ordinary beads
     _, near_det = frame.det_tree.query(frame.det_xy[pair], k=k_img + 3)
     near_det = [[d for d in row if d not in pair][:k_img] for row in near_det]
-    _, near = cKDTree(xyz[ordinary]).query(xyz[markers], k=k_obj)
-    near_bead = dict(zip(markers.tolist(), ordinary[np.asarray(near).reshape(len(markers), -1)]))
+    near_bead = dict(zip(markers.tolist(), _nearest_beads(xyz, ordinary, markers, k_obj)))
     rvecs, tvecs = [], []
     for i, j in itertools.permutations(markers.tolist(), 2):
         for m_bead, neighbours in ((i, near_det[0]), (j, near_det[1])):
@@ -173,9 +165,7 @@ def _pair_hypotheses(frame: CubeFrame, pair: np.ndarray, markers: np.ndarray) ->
                     rv, tv = p3p(xyz[[i, j, k]], img, frame.K)
                     rvecs.extend(rv)
                     tvecs.extend(tv)
-    if not rvecs:
-        return np.empty((0, 3, 3)), np.empty((0, 3))
-    return pose_batch_from_cv(rvecs, tvecs)
+    return _poses(rvecs, tvecs)
 
 
 def _single_hypotheses(frame: CubeFrame, a: int, markers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -183,18 +173,15 @@ def _single_hypotheses(frame: CubeFrame, a: int, markers: np.ndarray) -> tuple[n
 
     See :func:`_pair_hypotheses`.
     """
-    from scipy.spatial import cKDTree
-
     xyz = frame.phantom.xyz_mm
     ordinary = np.flatnonzero(~marker_mask(frame))
     k_img = min(_PAIR_NEAR_DETECTIONS + 1, len(frame.det_idx) - 1)
     k_obj = min(_PAIR_NEAR_BEADS, len(ordinary))
     if k_img < 2 or k_obj < 2:
-        return np.empty((0, 3, 3)), np.empty((0, 3))
+        return _poses([], [])
     _, near_det = frame.det_tree.query(frame.det_xy[a], k=k_img + 1)
     near_det = [d for d in near_det if d != a][:k_img]
-    _, near = cKDTree(xyz[ordinary]).query(xyz[markers], k=k_obj)
-    near = ordinary[np.asarray(near).reshape(len(markers), -1)]
+    near = _nearest_beads(xyz, ordinary, markers, k_obj)
     rvecs, tvecs = [], []
     for i, beads in zip(markers.tolist(), near):
         for d1, d2 in itertools.combinations(near_det, 2):
@@ -203,6 +190,19 @@ def _single_hypotheses(frame: CubeFrame, a: int, markers: np.ndarray) -> tuple[n
                 rv, tv = p3p(xyz[[i, k1, k2]], img, frame.K)
                 rvecs.extend(rv)
                 tvecs.extend(tv)
+    return _poses(rvecs, tvecs)
+
+
+def _nearest_beads(xyz_mm: np.ndarray, beads: np.ndarray, markers: np.ndarray, k: int) -> np.ndarray:
+    """``(M, k)`` int: for each of the ``markers`` its ``k`` nearest ``beads`` on the phantom."""
+    from scipy.spatial import cKDTree
+
+    _, near = cKDTree(xyz_mm[beads]).query(xyz_mm[markers], k=k)
+    return beads[np.asarray(near).reshape(len(markers), -1)]
+
+
+def _poses(rvecs: list, tvecs: list) -> tuple[np.ndarray, np.ndarray]:
+    """``(Rs (H, 3, 3), Ts (H, 3))`` of OpenCV's pose solutions ``rvecs``, ``tvecs`` (none: empty arrays)."""
     if not rvecs:
         return np.empty((0, 3, 3)), np.empty((0, 3))
     return pose_batch_from_cv(rvecs, tvecs)
@@ -212,16 +212,21 @@ def _rank_hypotheses(frame: CubeFrame, Rs: np.ndarray, Ts: np.ndarray, n_keep: i
     """The ``n_keep`` best distinct poses: pre-ranked on a sample of the beads, then scored on all of them."""
     if not len(Rs):
         return [], []
-    order = _prerank(frame, Rs, Ts)
+    top = _distinct_poses(Rs, Ts, _prerank(frame, Rs, Ts))
+    scores = np.array([coarse_score(frame, R, T) for R, T in top])
+    keep = np.argsort(-scores, kind="stable")[:n_keep]
+    return [top[k] for k in keep], scores[keep].tolist()
+
+
+def _distinct_poses(Rs: np.ndarray, Ts: np.ndarray, order: np.ndarray) -> list:
+    """The first :data:`_N_VERIFY` poses ``(R, T)`` taken in ``order`` that differ from every pose taken before."""
     top = []
     for h in order:
         if len(top) == _N_VERIFY:
             break
         if not any(_same_pose(Rs[h], Ts[h], R, T) for R, T in top):
             top.append((Rs[h], Ts[h]))
-    scores = np.array([coarse_score(frame, R, T) for R, T in top])
-    keep = np.argsort(-scores, kind="stable")[:n_keep]
-    return [top[k] for k in keep], scores[keep].tolist()
+    return top
 
 
 def _prerank(frame: CubeFrame, Rs: np.ndarray, Ts: np.ndarray) -> np.ndarray:

@@ -61,6 +61,35 @@ class FrameTruth:
     def __len__(self) -> int:
         return len(self.ids)
 
+    @property
+    def visible(self) -> np.ndarray:
+        """``(N,) bool``: the beads that overlap no other and keep clear of the field's rim."""
+        return ~self.overlap & ~self.field_edge
+
+    def match(self, xy_px: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Match measured centres to the beads: a centre within a quarter of a bead's diameter finds it.
+
+        Parameters
+        ----------
+        xy_px : (M, 2) float64 ndarray, px
+            Measured centres (for example the fitted centroids of a frame).
+
+        Returns
+        -------
+        found : (N,) bool ndarray
+            The :attr:`visible` beads whose nearest measured centre is within a quarter of their diameter.
+        nearest : (N,) int64 ndarray
+            Row of ``xy_px`` nearest to each bead.
+        false : (M,) bool ndarray
+            The measured centres farther than a quarter of its diameter from the nearest bead's outline centre.
+        """
+        from scipy.spatial import cKDTree
+
+        d, nearest = cKDTree(xy_px).query(self.outline_xy_px)
+        found = self.visible & (d < self.diameter_px / 4)
+        d_back, k = cKDTree(self.outline_xy_px).query(xy_px)
+        return found, nearest, d_back > self.diameter_px[k] / 4
+
     #: per-bead array fields, in the order of ``to_dict``
     BEAD_FIELDS = (
         "ids",

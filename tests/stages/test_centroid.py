@@ -317,11 +317,9 @@ def test_simulator_small_beads():
     frame, truth = data.frames[0][0], data.truth.frames[0][0]
     beads = centroid_beads(frame, detect_beads(frame, DetectParams()), CentroidParams())
     found_xy = beads.xy_px[beads.ok]
-    visible = ~truth.overlap & ~truth.field_edge
-    d, j = cKDTree(found_xy).query(truth.outline_xy_px)
-    found = visible & (d < truth.diameter_px / 4)
+    found, j, _ = truth.match(found_xy)
     assert np.median(truth.diameter_px[found]) < 6.5
-    assert found.sum() >= 0.97 * visible.sum()
+    assert found.sum() >= 0.97 * truth.visible.sum()
     assert _rms(found_xy[j[found]] - truth.outline_xy_px[found]) <= 0.05
 
 
@@ -332,13 +330,10 @@ def test_simulator_ground_truth(simulated):
     errors, n_visible, n_found, n_detected, n_false = [], 0, 0, 0, 0
     for truth, beads in simulated:
         found_xy = beads.xy_px[beads.ok]
-        visible = ~truth.overlap & ~truth.field_edge
-        d, j = cKDTree(found_xy).query(truth.outline_xy_px)
-        found = visible & (d < truth.diameter_px / 4)
-        n_visible += visible.sum()
+        found, j, false = truth.match(found_xy)
+        n_visible += truth.visible.sum()
         n_found += found.sum()
-        d_back, k = cKDTree(truth.outline_xy_px).query(found_xy)
-        n_false += int(np.sum(d_back > truth.diameter_px[k] / 4))
+        n_false += int(np.sum(false))
         n_detected += len(found_xy)
         big = found & (truth.diameter_px >= 10)
         errors.append(found_xy[j[big]] - truth.outline_xy_px[big])

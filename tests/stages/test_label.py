@@ -554,29 +554,29 @@ def test_square_grid_with_gaps_and_distortion():
     assert np.abs(A @ coef - truth).max() < 1e-9
 
 
-def test_cli_label(tmp_path, sim):
-    """`fluorocal label` on a detections CSV: the labels CSV holds the right ids; a missing file is a one-line error."""
-    from fluorocal.cli import main
+def _label_cli_argv(tmp_path, sim, c, frames, phantom, *, roles: bool) -> list:
+    """`fluorocal label` arguments up to its options, on CSVs written to ``tmp_path``.
+
+    ``det.csv`` holds ``c`` as the detections of each ``(file, frame)``, ``phantom.csv`` the ``phantom``
+    (with its ``role`` column if ``roles``).
+    """
     from fluorocal.stages.io import write_csv
 
-    rng = np.random.default_rng(10)
-    ft = sim.truth.frames[0][1]
-    c, ids = detections_from_truth(ft, rng)
     header = "file,frame,x,y,sigma_x,sigma_y,rho,major,minor,angle,fit_rmse,score".split(",")
     rows = [
-        ["a.tif", 0, *c.xy_px[i], c.sigma_x[i], c.sigma_y[i], c.rho[i], c.major_px[i], c.minor_px[i], 0.0, 0.05, 9.0]
+        [file, f, *c.xy_px[i], c.sigma_x[i], c.sigma_y[i], c.rho[i], c.major_px[i], c.minor_px[i], 0.0, 0.05, 9.0]
+        for file, f in frames
         for i in range(len(c))
     ]
     write_csv(tmp_path / "det.csv", header, rows)
-    ph = without_roles(sim.phantom)
+    ph = phantom
     write_csv(
         tmp_path / "phantom.csv",
-        ["id", "x", "y", "z", "diameter"],
-        [[int(i), *x, d] for i, x, d in zip(ph.ids, ph.xyz_mm, ph.diameter_mm)],
+        ["id", "x", "y", "z", "diameter", *(["role"] if roles else [])],
+        [[int(i), *x, d, *([r] if roles else [])] for i, x, d, r in zip(ph.ids, ph.xyz_mm, ph.diameter_mm, ph.role)],
     )
-    write_csv(tmp_path / "seeds.csv", ["id", "x", "y"], [[int(s[0]), s[1], s[2]] for s in seeds_from_truth(ft, rng)])
     p = sim.params
-    argv = [
+    return [
         "-q",
         "label",
         str(tmp_path / "det.csv"),
@@ -586,11 +586,20 @@ def test_cli_label(tmp_path, sim):
         str(p.source_image_distance_mm),
         "--pixel-pitch",
         str(p.pixel_pitch_mm),
-        "--seeds",
-        str(tmp_path / "seeds.csv"),
-        "--out",
-        str(tmp_path / "labels.csv"),
     ]
+
+
+def test_cli_label(tmp_path, sim):
+    """`fluorocal label` on a detections CSV: the labels CSV holds the right ids; a missing file is a one-line error."""
+    from fluorocal.cli import main
+    from fluorocal.stages.io import write_csv
+
+    rng = np.random.default_rng(10)
+    ft = sim.truth.frames[0][1]
+    c, ids = detections_from_truth(ft, rng)
+    argv = _label_cli_argv(tmp_path, sim, c, [("a.tif", 0)], without_roles(sim.phantom), roles=False)
+    write_csv(tmp_path / "seeds.csv", ["id", "x", "y"], [[int(s[0]), s[1], s[2]] for s in seeds_from_truth(ft, rng)])
+    argv += ["--seeds", str(tmp_path / "seeds.csv"), "--out", str(tmp_path / "labels.csv")]
     assert main(argv) == 0
     import csv
 
@@ -622,7 +631,6 @@ def test_cli_label_overlay_reads_each_frame_file_once(tmp_path, sim, monkeypatch
     """`--overlay` draws one PNG per frame of a multi-frame file and decodes the file once, not once per frame."""
     import cv2
     from fluorocal.cli import main
-    from fluorocal.stages.io import write_csv
 
     rng = np.random.default_rng(10)
     ft = sim.truth.frames[0][1]
@@ -633,40 +641,13 @@ def test_cli_label_overlay_reads_each_frame_file_once(tmp_path, sim, monkeypatch
     for _ in range(2):
         writer.write(np.full((size, size), 128, np.uint8))
     writer.release()
-    header = "file,frame,x,y,sigma_x,sigma_y,rho,major,minor,angle,fit_rmse,score".split(",")
-    rows = [
-        [str(movie), f, *c.xy_px[i], c.sigma_x[i], c.sigma_y[i], c.rho[i], c.major_px[i], c.minor_px[i], 0.0, 0.05, 9.0]
-        for f in (0, 1)
-        for i in range(len(c))
-    ]
-    write_csv(tmp_path / "det.csv", header, rows)
-    ph = sim.phantom
-    write_csv(
-        tmp_path / "phantom.csv",
-        ["id", "x", "y", "z", "diameter", "role"],
-        [[int(i), *x, d, r] for i, x, d, r in zip(ph.ids, ph.xyz_mm, ph.diameter_mm, ph.role)],
-    )
+    argv = _label_cli_argv(tmp_path, sim, c, [(str(movie), 0), (str(movie), 1)], sim.phantom, roles=True)
     reads = []
     from fluorocal.stages import io as stages_io
 
     real = stages_io.read_frames
     monkeypatch.setattr(stages_io, "read_frames", lambda path, *a, **k: reads.append(path) or real(path, *a, **k))
-    p = sim.params
-    argv = [
-        "-q",
-        "label",
-        str(tmp_path / "det.csv"),
-        "--phantom",
-        str(tmp_path / "phantom.csv"),
-        "--sid",
-        str(p.source_image_distance_mm),
-        "--pixel-pitch",
-        str(p.pixel_pitch_mm),
-        "--out",
-        str(tmp_path / "labels.csv"),
-        "--overlay",
-        str(tmp_path / "png"),
-    ]
+    argv += ["--out", str(tmp_path / "labels.csv"), "--overlay", str(tmp_path / "png")]
     assert main(argv) == 0
     assert sorted(x.name for x in (tmp_path / "png").iterdir()) == ["movie_000_labels.png", "movie_001_labels.png"]
     assert len(reads) == 1
