@@ -87,8 +87,12 @@ def field_file(path: Path, name) -> Path:
 
 def _read_field(file: Path, w: int, h: int) -> CorrectionField:
     try:
-        with np.load(file, allow_pickle=False) as npz:
-            return CorrectionField(*(npz[k] for k in FIELD_ARRAYS), w, h)
+        with open(file, "rb") as fh:  # opened here so that a corrupt file is closed too
+            npz = np.load(fh, allow_pickle=False)
+            if not isinstance(npz, np.lib.npyio.NpzFile):
+                raise ValueError("a single array, not an .npz archive of the field's arrays")
+            with npz:
+                return CorrectionField(*(npz[k] for k in FIELD_ARRAYS), w, h)
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise ArtifactError(f"{file}: unreadable or corrupt field file ({type(exc).__name__}: {exc})") from exc
 

@@ -51,7 +51,7 @@ def run(args) -> int:
     from fluorocal.calibration import Calibration
     from fluorocal.stages.errors import InputError
     from fluorocal.stages.io import read_frames, write_frames_like
-    from fluorocal.stages.undistort import UndistortParams, check_maps, undistort_frame
+    from fluorocal.stages.undistort import UndistortParams, check_maps, check_shift, undistort_frame
     from tqdm import tqdm
 
     out_dir = _check_paths(args.inputs, args.out)  # every input and the output before any work
@@ -60,8 +60,9 @@ def run(args) -> int:
     if field is None:
         raise InputError(f"--system {args.system!r} is not in {args.calibration}; it has {', '.join(cal.system_names)}")
     params = UndistortParams(interpolation=args.interpolation)
-    map_x, map_y = field.field.remap_maps(*field.image_size_px)  # every input must have the calibrated size
     try:
+        check_shift(field.field.delta_px, *field.image_size_px)  # the nodes first: a huge field overflows the maps
+        map_x, map_y = field.field.remap_maps(*field.image_size_px)  # every input must have the calibrated size
         check_maps(map_x, map_y)
     except InputError as exc:
         raise InputError(f"{args.calibration}: system {args.system}: {exc}") from exc

@@ -23,6 +23,7 @@ import os
 import re
 import secrets
 import shutil
+import stat
 from collections.abc import Callable
 from pathlib import Path
 
@@ -140,6 +141,8 @@ def publish(out_dir: str | os.PathLike, write: Callable[[Path], list[Path]]) -> 
     sweep(out_dir)
     staging = _side_folder(out_dir, "staging")
     staging.mkdir()
+    if out_dir.is_dir():
+        os.chmod(staging, stat.S_IMODE(out_dir.stat().st_mode))  # the new set keeps the folder's permissions
     try:
         written = write(staging)
         if not written:
