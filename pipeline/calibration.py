@@ -15,10 +15,13 @@ documents every key. Usage::
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from fluorocal.outputs import inside, safe_name
 from fluorocal.stages.errors import ArtifactError, InputError
 from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.geometry import (
@@ -36,6 +39,8 @@ from fluorocal.stages.io import atomic_write
 SCHEMA = "fluorocal-calibration"
 SCHEMA_VERSION = 1
 FIELD_ARRAYS = ("x_nodes_px", "y_nodes_px", "delta_px", "sigma_px", "support")
+#: largest image side a calibration may give, px (DICOM's Rows and Columns are 16-bit)
+MAX_IMAGE_SIDE_PX = 65535
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,62 @@ class SystemCalibration:
     rop_q: np.ndarray
     rop_source_mm: np.ndarray
     field: CorrectionField
+
+
+def _image_size(value, path: Path) -> tuple[int, int]:
+    ok = (
+        isinstance(value, list)
+        and len(value) == 2
+        and all(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_IMAGE_SIDE_PX for v in value)
+    )
+    if not ok:
+        raise ArtifactError(
+            f"{path}: image_size_px must be [width, height], integers in 1..{MAX_IMAGE_SIDE_PX}; got {value!r}"
+        )
+    return value[0], value[1]
+
+
+def field_file(path: Path, name) -> Path:
+    """The field file ``name`` a calibration at ``path`` refers to: a bare name, in the calibration's folder.
+
+    Raises
+    ------
+    ArtifactError
+        ``name`` is not a bare file name (absolute, a folder, ``..``) or resolves outside the folder.
+    """
+    if not isinstance(name, str) or not name or Path(name).name != name or name in (".", "..") or "\\" in name:
+        raise ArtifactError(f"{path}: field file must be a bare file name beside the calibration; got {name!r}")
+    try:
+        return inside(path.parent, name)
+    except InputError as exc:
+        raise ArtifactError(f"{path}: field file {name!r}: {exc}") from exc
+
+
+def _read_field(file: Path, w: int, h: int) -> CorrectionField:
+    try:
+        with open(file, "rb") as fh:  # opened here so that a corrupt file is closed too
+            npz = np.load(fh, allow_pickle=False)
+            if not isinstance(npz, np.lib.npyio.NpzFile):
+                raise ValueError("a single array, not an .npz archive of the field's arrays")
+            with npz:
+                return CorrectionField(*(npz[k] for k in FIELD_ARRAYS), w, h)
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise ArtifactError(f"{file}: unreadable or corrupt field file ({type(exc).__name__}: {exc})") from exc
+
+
+def _system_from_doc(s: dict, path: Path) -> "SystemCalibration":
+    w, h = _image_size(s["image_size_px"], path)
+    field = _read_field(field_file(path, s["field"]["file"]), w, h)
+    iop = s["iop_px"]
+    return SystemCalibration(
+        s["name"],
+        (w, h),
+        np.array([iop["xp"], iop["yp"], iop["c"]], dtype=float),
+        np.array(s.get("iop_std_px", [0.0, 0.0, 0.0]), dtype=float),
+        np.array(s["rop"]["q_cam_from_ref"], dtype=float),
+        np.array(s["rop"]["source_in_ref_camera_mm"], dtype=float),
+        field,
+    )
 
 
 class Calibration:
@@ -70,44 +131,36 @@ class Calibration:
     def load(cls, path: str | Path) -> "Calibration":
         """Read ``calibration.json`` and the field files beside it.
 
+        Each system's ``field.file`` is a bare file name, read from the
+        calibration's own folder: an absolute path, a folder or ``..`` is refused.
+
         Raises
         ------
         ArtifactError
-            Missing or unreadable file, another schema, or a schema version this fluorocal does not know.
+            Missing, unreadable or corrupt file (the JSON or a field ``.npz``), another schema, a schema
+            version this fluorocal does not know, or values out of range; the message names the file.
         """
         path = Path(path)
         try:
             doc = json.loads(path.read_text())
         except (OSError, ValueError) as exc:
             raise ArtifactError(f"{path}: cannot read calibration ({exc})") from exc
+        if not isinstance(doc, dict):
+            raise ArtifactError(f"{path}: not a {SCHEMA} file (a JSON {type(doc).__name__}, not an object)")
         if doc.get("schema") != SCHEMA or doc.get("schema_version") != SCHEMA_VERSION:
             raise ArtifactError(
                 f"{path}: not a {SCHEMA} v{SCHEMA_VERSION} file "
                 f"(schema {doc.get('schema')!r} v{doc.get('schema_version')!r})"
             )
-        systems = []
         try:
-            for s in doc["systems"]:
-                with np.load(path.parent / s["field"]["file"], allow_pickle=False) as npz:
-                    w, h = s["image_size_px"]
-                    field = CorrectionField(*(npz[k] for k in FIELD_ARRAYS), w, h)
-                iop = s["iop_px"]
-                systems.append(
-                    SystemCalibration(
-                        s["name"],
-                        (int(w), int(h)),
-                        np.array([iop["xp"], iop["yp"], iop["c"]]),
-                        np.array(s.get("iop_std_px", [0.0, 0.0, 0.0])),
-                        np.array(s["rop"]["q_cam_from_ref"]),
-                        np.array(s["rop"]["source_in_ref_camera_mm"]),
-                        field,
-                    )
-                )
+            systems = [_system_from_doc(s, path) for s in doc["systems"]]
             exposures = {
                 int(e["exposure"]): (np.array(e["q_cam_from_obj"]), np.array(e["source_mm"]))
                 for e in doc.get("exposures", [])
             }
         except (KeyError, TypeError, ValueError, OSError) as exc:
+            if isinstance(exc, ArtifactError):
+                raise
             raise ArtifactError(f"{path}: malformed calibration ({type(exc).__name__}: {exc})") from exc
         meta = {k: v for k, v in doc.items() if k not in ("systems", "exposures")}
         return cls(systems, exposures, meta)
@@ -118,7 +171,7 @@ class Calibration:
         written, systems = [], []
         for name in self._order:
             s = self.systems[name]
-            field_file = path.parent / f"field_{name}.npz"
+            field_file = inside(path.parent, f"field_{safe_name(name, what='system name')}.npz")
             atomic_write(field_file, lambda tmp, f=s.field: np.savez(tmp, **{k: getattr(f, k) for k in FIELD_ARRAYS}))
             written.append(field_file)
             magnitude = (

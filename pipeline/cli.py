@@ -109,23 +109,25 @@ def _load(config_path: Path):
     return load_config(config_path, stage_params_allowed=stage_params_classes())
 
 
-def _runner(args, **kw):
+def _runner(args, config=None, **kw):
     from fluorocal.cache import ArtifactCache
     from fluorocal.graph import default_stages
     from fluorocal.run import Runner
 
-    config = _load(args.config)
+    config = _load(args.config) if config is None else config
     return Runner(config, default_stages(), ArtifactCache(config.cache_dir), progress=not args.quiet, **kw)
 
 
 def cmd_run(args) -> int:
-    from fluorocal.export import export_outputs
+    from fluorocal.export import check_outputs, export_outputs
 
-    runner = _runner(args, force=args.force, until=args.until)
+    config = _load(args.config)
+    out_dir = check_outputs(config)  # before any work: names, the output folder, leftovers of a killed run
+    runner = _runner(args, config, force=args.force, until=args.until)
     runner.run()
     written = export_outputs(runner)
-    log.info("wrote %d file(s) to %s", len(written), runner.config.output_dir)
-    report = Path(runner.config.output_dir) / "report.md"
+    log.info("wrote %d file(s) to %s", len(written), out_dir)
+    report = out_dir / "report.md"
     if report in written:
         table = [line for line in report.read_text().splitlines() if line.startswith("|")]
         print("\n".join(table))

@@ -51,21 +51,21 @@ def run(args) -> int:
     from fluorocal.calibration import Calibration
     from fluorocal.stages.errors import InputError
     from fluorocal.stages.io import read_frames, write_frames_like
-    from fluorocal.stages.undistort import UndistortParams, undistort_frame
+    from fluorocal.stages.undistort import UndistortParams, check_maps, check_shift, undistort_frame
     from tqdm import tqdm
 
+    out_dir = _check_paths(args.inputs, args.out)  # every input and the output before any work
     cal = Calibration.load(args.calibration)
     field = cal.systems.get(args.system)
     if field is None:
         raise InputError(f"--system {args.system!r} is not in {args.calibration}; it has {', '.join(cal.system_names)}")
-    out_dir = args.out.resolve()
-    for path in args.inputs:  # check every input before writing anything
-        if not path.is_file():
-            raise InputError(f"{path}: no such file")
-        if path.resolve().parent == out_dir:
-            raise InputError(f"{path}: input lies in the output directory {out_dir}; choose another --out")
     params = UndistortParams(interpolation=args.interpolation)
-    map_x, map_y = field.field.remap_maps(*field.image_size_px)  # every input must have the calibrated size
+    try:
+        check_shift(field.field.delta_px, *field.image_size_px)  # the nodes first: a huge field overflows the maps
+        map_x, map_y = field.field.remap_maps(*field.image_size_px)  # every input must have the calibrated size
+        check_maps(map_x, map_y)
+    except InputError as exc:
+        raise InputError(f"{args.calibration}: system {args.system}: {exc}") from exc
     for path in tqdm(args.inputs, desc="undistort", unit="file", disable=args.quiet or None):
         frames = read_frames(path)
         size = (frames[0].shape[1], frames[0].shape[0])
@@ -75,6 +75,33 @@ def run(args) -> int:
                 f"system {args.system} was calibrated at {field.image_size_px[0]}x{field.image_size_px[1]}"
             )
         corrected = [undistort_frame(f, map_x, map_y, params) for f in frames]
+        out_dir.mkdir(parents=True, exist_ok=True)
         write_frames_like(path, corrected, out_dir / path.name)
     logging.getLogger("fluorocal").info("wrote %d undistorted file(s) to %s", len(args.inputs), out_dir)
     return 0
+
+
+def _check_paths(inputs: list[Path], out: Path) -> Path:
+    """The resolved output folder, after refusing a file as ``--out``, missing inputs and colliding output names.
+
+    Output names are the inputs' file names; two inputs whose names differ only in case are refused
+    too, as they would overwrite each other on a case-insensitive file system.
+    """
+    from fluorocal.stages.errors import InputError
+
+    out_dir = out.resolve()
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out} is a file; give a folder for the undistorted frames")
+    seen: dict[str, Path] = {}
+    for path in inputs:
+        if not path.is_file():
+            raise InputError(f"{path}: no such file" + (" (a folder)" if path.is_dir() else ""))
+        if path.resolve().parent == out_dir:
+            raise InputError(f"{path}: input lies in the output directory {out_dir}; choose another --out")
+        other = seen.setdefault(path.name.casefold(), path)
+        if other is not path:
+            raise InputError(
+                f"inputs {other} and {path} would both be written as {out_dir / path.name}; "
+                "undistort them in separate runs with separate --out folders"
+            )
+    return out_dir

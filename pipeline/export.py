@@ -12,8 +12,12 @@ The tables follow the schemas :data:`fluorocal.stages.io.OBSERVATIONS` and
 :data:`fluorocal.stages.io.OBJECT_POINTS`, so ``fluorocal adjust`` reads
 ``observations.csv`` and ``label.csv`` back as they are.
 
-Every file is written atomically (temporary name, then rename), so an
-interrupted run never leaves a half-written output.
+The outputs are published as a set (:func:`fluorocal.outputs.publish`):
+written into a staging folder beside the output folder and swapped in, so a
+reader sees the previous run's complete set or this run's, never a mixture,
+and an interrupted run leaves the previous set. Every file name is built from
+checked names (:func:`fluorocal.outputs.safe_name`) inside its folder
+(:func:`fluorocal.outputs.inside`).
 """
 
 from __future__ import annotations
@@ -24,22 +28,56 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import numpy as np
+from fluorocal.outputs import check_output_dir, inside, publish, safe_name, sweep
 from fluorocal.report import rms_px
 from fluorocal.stages.io import OBJECT_POINTS, OBSERVATIONS, atomic_write, columns_of, write_table
 
 log = logging.getLogger(__name__)
 
 
+def check_outputs(config) -> Path:
+    """Check, before any work, that the run's outputs can be written; return the output folder, resolved.
+
+    The system names must be safe file names (:func:`~fluorocal.outputs.safe_name`), the output
+    folder a folder (or absent) that holds none of the project's inputs or cache, with a writable
+    parent. What an interrupted run left beside it is swept (:func:`~fluorocal.outputs.sweep`).
+
+    Raises
+    ------
+    InputError
+        Naming the system or the path at fault.
+    """
+    for system in config.systems:
+        safe_name(system.name, what="system name")
+    keep_out = [("the config", config.path), ("the cache", config.cache_dir)]
+    if getattr(config.phantom, "file", None) is not None:
+        keep_out.append(("the phantom", config.phantom.file))
+    for system in config.systems:
+        keep_out += [(f"frame {f} of system {system.name}", f) for f in system.frames]
+        if system.seeds is not None:
+            keep_out.append((f"the seeds of system {system.name}", system.seeds))
+    out_dir = check_output_dir(config.output_dir, keep_out=keep_out)
+    sweep(out_dir)
+    return out_dir
+
+
 def export_outputs(runner) -> list[Path]:
-    """Write every output the run's stages support; return the paths written."""
-    written = _stage_tables(runner)
-    if "learn" in runner.by_name:
-        written += export_calibration(runner)
-    return written
+    """Publish every output the run's stages support as one set; return the paths written.
+
+    A run with nothing to write (``--until`` an early stage) leaves the output folder as it is.
+    """
+
+    def write(staging: Path) -> list[Path]:
+        written = _stage_tables(runner, staging)
+        if "learn" in runner.by_name:
+            written += export_calibration(runner, staging)
+        return written
+
+    return publish(runner.config.output_dir, write)
 
 
-def _stage_tables(runner) -> list[Path]:
-    out_dir = Path(runner.config.output_dir)
+def _stage_tables(runner, out_dir: Path | None = None) -> list[Path]:
+    out_dir = Path(runner.config.output_dir if out_dir is None else out_dir)
     written = []
     for stage in runner.stages:
         if not stage.per_frame:
@@ -54,7 +92,7 @@ def _stage_tables(runner) -> list[Path]:
             name = runner.config.systems[unit.system].name
             rows.extend([name, unit.path.name, unit.exposure, *row] for row in r)
         if header is not None:
-            path = out_dir / f"{stage.name}.csv"
+            path = inside(out_dir, f"{safe_name(stage.name, what='stage name')}.csv")
             write_table(path, OBSERVATIONS, columns_of(header, rows))
             written.append(path)
     return written
@@ -111,11 +149,11 @@ def calibration_from_result(runner, result):
     return Calibration(systems, exposures, meta)
 
 
-def export_calibration(runner) -> list[Path]:
-    """Write the calibration, its tables and its report."""
+def export_calibration(runner, out_dir: Path | None = None) -> list[Path]:
+    """Write the calibration, its tables and its report into ``out_dir`` (default: the run's output folder)."""
     from fluorocal.gather import failed_frames, observations_from_labels
 
-    out_dir = Path(runner.config.output_dir)
+    out_dir = Path(runner.config.output_dir if out_dir is None else out_dir)
     result = runner.get("learn", None)
     labels = [runner.get("label", u) for u in range(len(runner.units))]
     obs = observations_from_labels(runner.units, labels, runner.config)
@@ -124,19 +162,19 @@ def export_calibration(runner) -> list[Path]:
         log.warning("%d frame(s) excluded, labelling failed: %s", len(excluded), "; ".join(excluded))
     adj = result.adjustment
     cal = calibration_from_result(runner, result)
-    written = cal.save(out_dir / "calibration.json")
+    written = cal.save(inside(out_dir, "calibration.json"))
 
-    write_object_points(out_dir / "object_points.csv", adj.bead_id, adj.xyz_mm, adj.xyz_std_mm)
-    written.append(out_dir / "object_points.csv")
+    write_object_points(inside(out_dir, "object_points.csv"), adj.bead_id, adj.xyz_mm, adj.xyz_std_mm)
+    written.append(inside(out_dir, "object_points.csv"))
     write_observations(
-        out_dir / "observations.csv",
+        inside(out_dir, "observations.csv"),
         obs,
         files={(u.system, u.exposure): u.path.name for u in runner.units},
         corrections_px=result.corrections_px,
         residual_px=adj.residual_px,
         inlier=adj.inlier,
     )
-    written.append(out_dir / "observations.csv")
+    written.append(inside(out_dir, "observations.csv"))
     written += write_report(out_dir, runner, obs, result, cal, excluded)
     return written
 
@@ -206,6 +244,7 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
     ]
     plots = []
     for s, name in enumerate(obs.system_names):
+        file_name = safe_name(name, what="system name")
         sel = obs.system == s
         inl = sel & adj.inlier
         size = cal.systems[name].image_size_px
@@ -224,9 +263,11 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
         panels = ([("before: no correction", obs.xy_px[inl], before[inl])] if before is not None else []) + [
             ("after: calibrated", obs.xy_px[inl], adj.residual_px[inl])
         ]
-        plots.append(report.residual_maps(out_dir / f"residuals_{name}.png", panels, size))
+        plots.append(report.residual_maps(inside(out_dir, f"residuals_{file_name}.png"), panels, size))
         plots.append(
-            report.field_map(out_dir / f"field_{name}.png", result.fields[s], f"learned correction Δ, system {name}")
+            report.field_map(
+                inside(out_dir, f"field_{file_name}.png"), result.fields[s], f"learned correction Δ, system {name}"
+            )
         )
         labels, rms_b, rms_a = [], [], []
         for u in (u for u in runner.units if u.system == s):
@@ -235,8 +276,10 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
                 labels.append(u.path.stem)
                 rms_b.append(rms_px(before[f]) if before is not None else np.nan)
                 rms_a.append(rms_px(adj.residual_px[f]))
-        plots.append(report.frame_rms(out_dir / f"frames_{name}.png", labels, np.array(rms_b), np.array(rms_a)))
-    plots.append(report.convergence(out_dir / "convergence.png", result.history))
+        plots.append(
+            report.frame_rms(inside(out_dir, f"frames_{file_name}.png"), labels, np.array(rms_b), np.array(rms_a))
+        )
+    plots.append(report.convergence(inside(out_dir, "convergence.png"), result.history))
     st = cal.meta["statistics"]
     lines += [
         "",
@@ -246,6 +289,6 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
         "",
     ]
     lines += [f"![{p.stem}]({p.name})" for p in plots]
-    path = out_dir / "report.md"
+    path = inside(out_dir, "report.md")
     atomic_write(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
     return plots + [path]

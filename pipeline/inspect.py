@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from fluorocal.outputs import inside, safe_name
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io import write_png
 
@@ -25,10 +26,7 @@ def write_stage_overlay(runner, stage: str, frame: int) -> Path:
     else:
         raise InputError(f"stage {stage!r} has no per-frame overlay; use detect, centroid or label")
     unit = runner.units[frame]
-    path = (
-        Path(runner.config.output_dir)
-        / "overlays"
-        / f"{stage}_{runner.config.systems[unit.system].name}_{unit.exposure:04d}.png"
-    )
+    system = safe_name(runner.config.systems[unit.system].name, what="system name")
+    path = inside(inside(runner.config.output_dir, "overlays"), f"{safe_name(stage)}_{system}_{unit.exposure:04d}.png")
     write_png(path, image)
     return path

@@ -35,6 +35,59 @@ class UndistortParams:
     border_value: float = 0.0
 
 
+def check_shift(shift_px, width_px: int, height_px: int) -> None:
+    """Refuse displacements ``(..., 2)`` px that would move pixels beyond a ``width_px`` x ``height_px`` image.
+
+    Every displacement must be finite and shorter than half the image's larger
+    side: a correction that large puts much of the frame outside itself (a
+    field of 1e30 px would write an all-dark frame).
+
+    Raises
+    ------
+    InputError
+        Naming the largest displacement and the bound.
+
+    Examples
+    --------
+    >>> check_shift(np.array([[0.5, -3.0]]), 64, 48)
+    >>> check_shift(np.array([[1e30, 0.0]]), 64, 48)
+    Traceback (most recent call last):
+    ...
+    fluorocal.stages.errors.InputError: the correction moves pixels by up to 1e+30 px; ...
+    """
+    shift_px = np.asarray(shift_px, dtype=np.float64)
+    if not np.all(np.isfinite(shift_px)):
+        raise InputError("the correction is not finite everywhere (NaN or infinite displacements)")
+    # max |component| first: the norm of 1e200 would overflow
+    largest = float(np.abs(shift_px).max(initial=0.0))
+    if largest < 1e100:
+        largest = float(np.linalg.norm(shift_px.reshape(-1, 2), axis=1).max(initial=0.0))
+    bound = max(int(width_px), int(height_px)) / 2
+    if not largest < bound:
+        raise InputError(
+            f"the correction moves pixels by up to {largest:.3g} px; a {width_px}x{height_px} px image allows less "
+            f"than {bound:g} px (half its larger side)"
+        )
+
+
+def check_maps(map_x: np.ndarray, map_y: np.ndarray) -> None:
+    """Refuse inverse maps ``(H, W)`` (as :func:`undistort_frame` takes them) that move pixels beyond the image.
+
+    See :func:`check_shift` for the rule.
+
+    Examples
+    --------
+    >>> yy, xx = np.mgrid[0:3, 0:4].astype(np.float32)
+    >>> check_maps(xx + 0.5, yy)
+    """
+    map_x, map_y = np.asarray(map_x, dtype=np.float64), np.asarray(map_y, dtype=np.float64)
+    if map_x.ndim != 2 or map_x.shape != map_y.shape:
+        raise ShapeError(f"map_x and map_y must be 2-D of one shape; got {map_x.shape} and {map_y.shape}")
+    h, w = map_x.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    check_shift(np.stack([map_x - xx, map_y - yy], axis=-1), w, h)
+
+
 def undistort_frame(
     radiograph: Radiograph, map_x: np.ndarray, map_y: np.ndarray, params: UndistortParams
 ) -> Radiograph:

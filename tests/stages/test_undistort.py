@@ -76,3 +76,18 @@ def test_dicom_written_like_the_source(arcadis_dir, tmp_path):
     assert ds_out.SOPInstanceUID != ds_in.SOPInstanceUID and ds_out.PatientID == ds_in.PatientID
     assert "fluorocal" in ds_out.DerivationDescription
     np.testing.assert_array_equal(ds_out.pixel_array, ds_in.pixel_array)  # identity maps: same pixels
+
+
+def test_maps_moving_pixels_beyond_the_image_are_refused():
+    from fluorocal.stages.undistort import check_maps
+
+    xx, yy = _grid(40, 50)
+    check_maps(xx + 3, yy - 2)  # a few pixels: a real correction
+    with pytest.raises(InputError, match="moves pixels by up to 1e\\+30 px"):
+        check_maps(xx + 1e30, yy)
+    with pytest.raises(InputError, match="moves pixels by up to 25 px"):  # half of the 50 px side is too far
+        check_maps(xx + 25, yy)
+    nan = yy.copy()
+    nan[3, 4] = np.nan
+    with pytest.raises(InputError, match="not finite"):
+        check_maps(xx, nan)

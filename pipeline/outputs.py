@@ -1,0 +1,218 @@
+"""Where ``fluorocal`` may write: sanitised names, paths kept inside their folder, outputs published as a set.
+
+Every output file name is built from names that passed :func:`safe_name` and
+joined with :func:`inside`, which refuses a path that resolves outside its
+folder (``..``, an absolute name, a symbolic link pointing elsewhere).
+
+:func:`publish` writes a run's outputs into a staging folder beside the
+output folder and swaps it in: the previous set is renamed aside, the new one
+renamed in, the previous one deleted. A reader sees the previous complete set
+or the new one, never a mixture; a run killed midway leaves the previous set
+(or, killed between the two renames, the previous set aside, which the next
+run puts back). Entries of the output folder that are not part of a published
+set (``overlays/`` of ``fluorocal inspect``, files a user put there) are
+carried over into the new set. Folders left by a killed run, and only those
+named as this module names them, are swept at the start of the next publish.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import secrets
+import shutil
+import stat
+from collections.abc import Callable
+from pathlib import Path
+
+from fluorocal.stages.errors import InputError
+
+log = logging.getLogger(__name__)
+
+#: longest name :func:`safe_name` accepts (file systems allow 255 bytes; names get prefixes and suffixes)
+MAX_NAME_LENGTH = 64
+_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
+#: the file in a published set listing the set's own entries
+MANIFEST = ".fluorocal-outputs.json"
+_SIDE = re.compile(r"\.(?P<out>.+)\.fluorocal-(?P<kind>staging|old)-(?P<pid>[0-9]+)-[0-9a-f]{8}")
+
+
+def safe_name(text, *, what: str = "name") -> str:
+    """Return ``text`` if it can be part of a file name, else raise :class:`InputError`.
+
+    A safe name is 1 to :data:`MAX_NAME_LENGTH` letters, digits, ``-``, ``_``
+    and ``.``, not starting with ``.``: no separator, no ``..``, nothing hidden.
+    System names are used in output file names (``field_<system>.npz``), so
+    the config loader checks them with this rule.
+
+    Examples
+    --------
+    >>> safe_name("A")
+    'A'
+    >>> safe_name("B/../../../escaped", what="system name")
+    Traceback (most recent call last):
+    ...
+    fluorocal.stages.errors.InputError: system name 'B/../../../escaped' cannot be part of a file name: ...
+    """
+    if not isinstance(text, str) or len(text) > MAX_NAME_LENGTH or not _NAME.fullmatch(text):
+        shown = text if not isinstance(text, str) or len(text) <= 80 else text[:80] + "..."
+        raise InputError(
+            f"{what} {shown!r} cannot be part of a file name: use 1 to {MAX_NAME_LENGTH} letters, digits, "
+            "'-', '_' or '.', not starting with '.'"
+        )
+    return text
+
+
+def inside(folder: str | os.PathLike, name: str) -> Path:
+    """``folder / name``, refused with :class:`InputError` unless it resolves to an entry inside ``folder``.
+
+    Examples
+    --------
+    >>> inside("out", "report.md").name
+    'report.md'
+    >>> inside("out", "../escaped.png")
+    Traceback (most recent call last):
+    ...
+    fluorocal.stages.errors.InputError: '../escaped.png' resolves outside the folder ...
+    """
+    folder = Path(folder)
+    root = folder.resolve()
+    path = (folder / name).resolve()
+    if Path(name).is_absolute() or path == root or root not in path.parents:
+        raise InputError(f"{name!r} resolves outside the folder {root}; refusing to write or read it")
+    return folder / name
+
+
+# --- publishing a set -------------------------------------------------------------------------
+
+
+def check_output_dir(out_dir: str | os.PathLike, *, keep_out: list[tuple[str, Path]]) -> Path:
+    """Check before any work that ``out_dir`` can hold a published set; return it resolved.
+
+    Parameters
+    ----------
+    out_dir : path
+        The output folder (it may not exist yet).
+    keep_out : list of (str, Path)
+        What must not lie inside it, with what it is (``[("the config", path), ...]``):
+        the folder is swapped as a whole, so it must not hold the project's inputs or cache.
+
+    Raises
+    ------
+    InputError
+        ``out_dir`` is a file, holds one of ``keep_out``, or its parent is not a writable folder.
+    """
+    out_dir = Path(out_dir).resolve()
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"output {out_dir} is a file; [output] dir must name a folder")
+    for what, path in keep_out:
+        path = Path(path).resolve()
+        if path == out_dir or out_dir in path.parents:
+            raise InputError(
+                f"output folder {out_dir} holds {what} ({path}); its content is replaced as a whole by each run, "
+                "choose an [output] dir of its own"
+            )
+    parent = next((p for p in out_dir.parents if p.exists()), None)
+    if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write the output folder {out_dir}: {parent} is not a writable folder")
+    return out_dir
+
+
+def publish(out_dir: str | os.PathLike, write: Callable[[Path], list[Path]]) -> list[Path]:
+    """Call ``write(staging)`` to write a set of outputs, then swap the set in as ``out_dir``.
+
+    Parameters
+    ----------
+    out_dir : path
+        The output folder.
+    write : callable
+        Writes the set into the folder it is given (with :func:`inside`) and
+        returns the paths written there.
+
+    Returns
+    -------
+    list of Path
+        The written paths, under ``out_dir``; when ``write`` writes nothing, ``out_dir`` is left as it is.
+    """
+    out_dir = Path(out_dir).resolve()
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    sweep(out_dir)
+    staging = _side_folder(out_dir, "staging")
+    staging.mkdir()
+    if out_dir.is_dir():
+        os.chmod(staging, stat.S_IMODE(out_dir.stat().st_mode))  # the new set keeps the folder's permissions
+    try:
+        written = write(staging)
+        if not written:
+            shutil.rmtree(staging)
+            return []
+        names = sorted({p.relative_to(staging).parts[0] for p in written})
+        (staging / MANIFEST).write_text(json.dumps({"entries": names}, indent=1))
+        _swap(out_dir, staging)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return [out_dir / p.relative_to(staging) for p in written]
+
+
+def sweep(out_dir: str | os.PathLike) -> None:
+    """Remove what killed runs left beside ``out_dir``; put back a previous set a kill left aside."""
+    out_dir = Path(out_dir).resolve()
+    if not out_dir.parent.is_dir():
+        return
+    for side in sorted(out_dir.parent.iterdir()):
+        m = _SIDE.fullmatch(side.name)
+        if m is None or m["out"] != out_dir.name or not side.is_dir() or _alive(int(m["pid"])):
+            continue
+        if m["kind"] == "old" and not out_dir.exists():
+            log.warning("restoring the previous outputs %s left aside by an interrupted run", out_dir)
+            os.rename(side, out_dir)
+            continue
+        if m["kind"] == "old":
+            _carry_over(side, out_dir)
+        log.info("removing %s, left by an interrupted run", side)
+        shutil.rmtree(side)
+
+
+def _side_folder(out_dir: Path, kind: str) -> Path:
+    return out_dir.parent / f".{out_dir.name}.fluorocal-{kind}-{os.getpid()}-{secrets.token_hex(4)}"
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return False  # this process has no publish in progress while it sweeps
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True
+    return True
+
+
+def _swap(out_dir: Path, staging: Path) -> None:
+    if not out_dir.exists():
+        os.rename(staging, out_dir)
+        return
+    old = _side_folder(out_dir, "old")
+    os.rename(out_dir, old)
+    try:
+        os.rename(staging, out_dir)
+    except BaseException:
+        os.rename(old, out_dir)
+        raise
+    _carry_over(old, out_dir)
+    shutil.rmtree(old)
+
+
+def _carry_over(old: Path, new: Path) -> None:
+    """Move the entries of ``old`` that are not a published output (and not in ``new``) into ``new``."""
+    try:
+        published = set(json.loads((old / MANIFEST).read_text())["entries"])
+    except (OSError, ValueError, KeyError, TypeError):
+        published = set()  # a folder written before sets were published: keep what the new set does not replace
+    for entry in old.iterdir():
+        if entry.name != MANIFEST and entry.name not in published and not (new / entry.name).exists():
+            os.rename(entry, new / entry.name)
