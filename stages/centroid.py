@@ -69,8 +69,6 @@ from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, as_arrays, ch
 from fluorocal.stages.detect import BeadCandidates, EmptyFrameWarning
 from fluorocal.stages.errors import InputError
 
-VERSION = 2
-
 log = logging.getLogger(__name__)
 
 #: fit failure reasons

@@ -55,8 +55,6 @@ from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, as_arrays, ch
 from fluorocal.stages.errors import InputError, ShapeError
 from fluorocal.stages.geometry import xy_to_rc
 
-VERSION = 2
-
 log = logging.getLogger(__name__)
 
 POLARITIES = ("auto", "dark", "bright")

@@ -14,8 +14,6 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError, ShapeError
 
-VERSION = 1
-
 _INTERPOLATION = {"nearest": 0, "linear": 1, "cubic": 2, "lanczos": 4}  # cv2.INTER_* values
 
 

@@ -97,10 +97,7 @@ from fluorocal.stages.adjust.plate import PlateAdjustment, adjust_plate
 from fluorocal.stages.adjust.result import Adjustment
 from fluorocal.stages.adjust.selection import index_of, nominal_coordinates
 
-VERSION = 1
-
 __all__ = [
-    "VERSION",
     "SolverOptions",
     "FreeParameters",
     "DataSelection",

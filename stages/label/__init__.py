@@ -62,8 +62,6 @@ from fluorocal.stages.label.params import (
 )
 from fluorocal.stages.label.sequence import label_sequence
 
-VERSION = 2
-
 __all__ = [
     "LATTICE_ID_BASE",
     "LATTICE_ID_OFFSET",
@@ -71,7 +69,6 @@ __all__ = [
     "STATUS_LABELLED",
     "STATUS_REJECTED",
     "STATUS_UNMATCHED",
-    "VERSION",
     "LabelParams",
     "Labels",
     "label_beads",

@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 from fluorocal.config import params_from_dict
 from fluorocal.stages.adjust import (
-    VERSION,
     Adjustment,
     DataSelection,
     FreeParameters,
@@ -68,10 +67,9 @@ def biplanar():
 # --------------------------------------------------------------------------- shape / smoke
 
 
-def test_version_and_output_shapes(mono, mono_result):
+def test_output_shapes(mono, mono_result):
     res, obs = mono_result, mono.observations
     n, m = len(mono.ids), len(mono.initial.exposure)
-    assert VERSION == 1
     assert res.xyz_mm.shape == res.xyz_std_mm.shape == (n, 3) and res.xyz_cov_mm2.shape == (n, 3, 3)
     assert res.iop_px.shape == res.iop_std_px.shape == (1, 3)
     assert res.q_cam_from_obj.shape == (m, 4) and res.source_mm.shape == (m, 3) and res.pose_std.shape == (m, 6)
