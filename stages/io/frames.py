@@ -109,6 +109,8 @@ def frame_format(path: str | os.PathLike) -> FrameFormat:
         The file is missing, or no format claims it (the message lists the formats supported).
     """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a frame file")
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     try:
