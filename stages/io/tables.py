@@ -447,11 +447,11 @@ def check_phantom_units(path, xyz_mm: np.ndarray, diameter_mm: np.ndarray) -> No
     from scipy.spatial import cKDTree
 
     extent = float(np.ptp(xyz_mm, axis=0).max())
-    distance, neighbour = cKDTree(xyz_mm).query(xyz_mm, k=2)
+    distance, _ = cKDTree(xyz_mm).query(xyz_mm, k=2)
     if not distance[:, 1].all():
         i = int(np.argmin(distance[:, 1]))
-        j = int(neighbour[i, 1])
-        raise InputError(f"{path}: lines {min(i, j) + 2} and {max(i, j) + 2} place two beads at the same point")
+        i, j = np.flatnonzero(np.all(xyz_mm == xyz_mm[i], axis=1))[:2]
+        raise InputError(f"{path}: lines {i + 2} and {j + 2} place two beads at the same point")
     spacing = float(np.median(distance[:, 1]))
     diameters = diameter_mm[np.isfinite(diameter_mm)]
     found = f"the phantom spans {extent:.3g} mm, beads {spacing:.3g} mm apart"
