@@ -67,7 +67,10 @@ class Column:
         """The value of one cell (stripped text); ``ValueError`` when it is not of the column's type."""
         if self.dtype is bool:
             return text.lower() not in _FALSE
-        return self.dtype(text)
+        value = self.dtype(text)
+        if self.dtype is int and not -(2**63) <= value < 2**63:
+            raise ValueError(f"{text} does not fit in 64 bits")
+        return value
 
     def format(self, value) -> str:
         """The text of one cell."""

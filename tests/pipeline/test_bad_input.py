@@ -303,3 +303,10 @@ def test_any_os_error_is_one_line_exit_2_and_raised_with_debug(tmp_path, capsys,
     assert rc == 2 and err.startswith(f"fluorocal: error: {expected}")
     with pytest.raises(type(exc)):
         main(["--debug", "run", str(cfg)])
+
+
+def test_integer_too_large_for_64_bits_names_the_line(tmp_path):
+    path = tmp_path / "p.csv"
+    path.write_text(f"id,x,y,z\n1,0,0,0\n{2**63},10,0,0\n")
+    with pytest.raises(InputError, match=r"p.csv:3: not an integer in column id"):
+        read_phantom(path)
