@@ -143,11 +143,11 @@ def _call(path: Path, what: Callable):
 
 
 def _one_line(text: str) -> str:
-    """A message on one line: runs of whitespace, newlines included, become one space.
+    r"""A message on one line: runs of whitespace, newlines included, become one space.
 
     Examples
     --------
-    >>> _one_line("read error\\n  PNG: truncated ")
+    >>> _one_line("read error\n  PNG: truncated ")
     'read error PNG: truncated'
     """
     return " ".join(text.split())
