@@ -4,13 +4,15 @@ The config loader (random text, and a valid config with random values put under 
 every CSV reader (random bytes, and random cells under each schema's header) and the frame
 readers (random bytes behind each format's suffix and signature) either return or raise a
 :class:`~fluorocal.stages.errors.CalibError` subclass whose message is one line. Bounded and
-derandomised, so CI stays fast and a failure reproduces.
+derandomised, so CI stays fast and a failure reproduces; for a longer hunt set ``FUZZ_N=2000``
+(examples per test) and ``FUZZ_RANDOM=1`` (new random examples each run).
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+import os
 
 import pytest
 from fluorocal.config import load_config
@@ -23,8 +25,8 @@ from hypothesis import strategies as st
 from tests.pipeline.toy import make_project
 
 FUZZ = settings(
-    max_examples=int(__import__("os").environ.get("FUZZ_N", 50)),
-    derandomize=not __import__("os").environ.get("FUZZ_RANDOM"),
+    max_examples=int(os.environ.get("FUZZ_N", 50)),
+    derandomize=not os.environ.get("FUZZ_RANDOM"),
     deadline=None,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
