@@ -23,6 +23,7 @@ argument), 130 interrupted. Add --debug for a traceback.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import sys
@@ -204,6 +205,28 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"fluorocal: warning: {message}", file=sys.stderr)
 
 
+def os_error_message(exc: OSError) -> str:
+    """One line for an error of the file system, naming the path and what to do.
+
+    Examples
+    --------
+    >>> import errno
+    >>> os_error_message(OSError(errno.ENOSPC, "No space left on device", "out/report.md"))
+    'no space left on device writing out/report.md; free some space and run again (finished stages are cached)'
+    >>> os_error_message(PermissionError(errno.EACCES, "Permission denied", "out"))
+    'permission denied: out; fix its permissions or choose another folder'
+    """
+    path = exc.filename if exc.filename is not None else "a file"
+    if exc.errno == errno.ENOSPC:
+        return f"no space left on device writing {path}; free some space and run again (finished stages are cached)"
+    what = (exc.strerror or type(exc).__name__).lower()
+    if isinstance(exc, PermissionError):
+        return f"{what}: {path}; fix its permissions or choose another folder"
+    if isinstance(exc, (IsADirectoryError, NotADirectoryError, FileExistsError)):
+        return f"{what}: {path}; a file and a folder are in each other's place"
+    return f"{what}: {path}"
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -222,6 +245,11 @@ def main(argv=None) -> int:
         if args.debug:
             raise
         print(f"fluorocal: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # permissions, a full disk, a folder where a file belongs, ...: name the path
+        if args.debug:
+            raise
+        print(f"fluorocal: error: {os_error_message(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("fluorocal: interrupted", file=sys.stderr)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import glob
+import math
+import os
 import tomllib
 import types
 import typing
@@ -81,6 +83,10 @@ class Config:
         return self.path.parent
 
 
+#: plausible ranges of the [[systems]] numbers, mm: (key, low, high); outside them a unit or typing slip is likelier
+SYSTEM_RANGES_MM = (("source_image_distance", 100.0, 5000.0), ("pixel_pitch", 0.01, 5.0))
+
+
 def _where(path: Path, section: str, key: str) -> str:
     return f"{path.name}: {section}key '{key}'"
 
@@ -105,12 +111,20 @@ def _resolve_frames(value, root: Path, path: Path, section: str) -> tuple[Path, 
         matches = sorted(glob.glob(str(root / value)))
         if not matches:
             raise ConfigError(f"{_where(path, section, 'frames')}: no file matches {value!r} (relative to {root})")
+        folders = [m for m in matches if os.path.isdir(m)]
+        if folders:
+            raise ConfigError(
+                f"{_where(path, section, 'frames')}: {value!r} matches the folder {folders[0]}; "
+                "use a pattern that matches frame files only (e.g. frames/*.dcm)"
+            )
         return tuple(Path(m) for m in matches)
     if isinstance(value, list) and value and all(isinstance(v, str) for v in value):
         files = tuple(root / v for v in value)
-        missing = [str(f) for f in files if not f.is_file()]
-        if missing:
-            raise ConfigError(f"{_where(path, section, 'frames')}: file not found: {missing[0]}")
+        for f in files:
+            if f.is_dir():
+                raise ConfigError(f"{_where(path, section, 'frames')}: {f} is a folder; list frame files")
+            if not f.is_file():
+                raise ConfigError(f"{_where(path, section, 'frames')}: file not found: {f}")
         return files
     raise ConfigError(
         f"{_where(path, section, 'frames')}: expected a glob string or a non-empty list of files; got {value!r}"
@@ -125,6 +139,7 @@ def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
         f = root / _expect(table["file"], str, "a file name", path, section, "file")
         if not f.is_file():
             raise ConfigError(f"{_where(path, section, 'file')}: phantom file not found: {f}")
+        _check_phantom_file(f, path)
         if "lattice" not in table:
             return PhantomConfig(file=f)
     else:
@@ -135,22 +150,38 @@ def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
     if lattice not in ("hex", "square"):
         raise ConfigError(f'{_where(path, section, "lattice")}: expected "hex" or "square"; got {lattice!r}')
     pitch = float(_expect(table.get("pitch"), (int, float), "a positive number (mm)", path, section, "pitch"))
-    if pitch <= 0:
+    if not (math.isfinite(pitch) and pitch > 0):
         raise ConfigError(f"{_where(path, section, 'pitch')}: expected a positive number (mm); got {pitch}")
+    if pitch < 1.0:  # grid plates' pitches are millimetres; a smaller number is a unit slip
+        guess = "metres: multiply by 1000" if pitch < 0.05 else "inches: multiply by 25.4"
+        raise ConfigError(f"{_where(path, section, 'pitch')}: {pitch:g} mm looks like {guess} (pitch is in mm)")
     return PhantomConfig(file=f, lattice=lattice, pitch_mm=pitch)
 
 
+def _check_phantom_file(file: Path, path: Path) -> None:
+    """Read the phantom once at load, so a bad file is refused before any stage runs."""
+    from fluorocal.stages.io import read_phantom
+
+    try:
+        read_phantom(file)
+    except InputError as exc:
+        raise ConfigError(f"{_where(path, '[phantom] ', 'file')}: {exc}") from exc
+
+
 def _system(table: dict, i: int, root: Path, path: Path) -> SystemConfig:
-    name = table.get("name", f"#{i + 1}")
     section = f"[[systems]] #{i + 1} "
+    _expect(table, dict, "a [[systems]] table", path, "", "systems")
     _reject_unknown(table, {"name", "frames", "source_image_distance", "pixel_pitch", "seeds"}, path, section)
-    _expect(table.get("name"), str, 'a name such as "A"', path, section, "name")
+    name = _expect(table.get("name"), str, 'a name such as "A"', path, section, "name")
+    if not name.strip():
+        raise ConfigError(f'{_where(path, section, "name")}: expected a non-empty name such as "A"; got {name!r}')
     numbers = {}
-    for key, unit in (("source_image_distance", "mm"), ("pixel_pitch", "mm")):
-        v = _expect(table.get(key), (int, float), f"a positive number ({unit})", path, section, key)
-        if v <= 0:
-            raise ConfigError(f"{_where(path, section, key)}: expected a positive number ({unit}); got {v}")
-        numbers[key] = float(v)
+    for key, low, high in SYSTEM_RANGES_MM:
+        expected = f"a positive number (mm) in {low:g}..{high:g} mm"
+        v = float(_expect(table.get(key), (int, float), expected, path, section, key))
+        if not (math.isfinite(v) and low <= v <= high):
+            raise ConfigError(f"{_where(path, section, key)}: expected {expected}; got {v:g}")
+        numbers[key] = v
     frames = _resolve_frames(table.get("frames"), root, path, section)
     seeds = None
     if "seeds" in table:
@@ -158,6 +189,51 @@ def _system(table: dict, i: int, root: Path, path: Path) -> SystemConfig:
         if not seeds.is_file():
             raise ConfigError(f"{_where(path, section, 'seeds')}: seeds file not found: {seeds}")
     return SystemConfig(name, frames, numbers["source_image_distance"], numbers["pixel_pitch"], seeds)
+
+
+def read_text(path: Path) -> str:
+    """A config file's text: UTF-8 (a byte-order mark is allowed).
+
+    Raises
+    ------
+    ConfigError
+        The file cannot be read or is not UTF-8 text.
+    """
+    try:
+        return path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path.name}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset {exc.start}); save it as UTF-8"
+        ) from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
+def check_writable_dir(folder: Path, *, where: str) -> None:
+    """Refuse a folder fluorocal must write into that is a file, or that cannot be created or written.
+
+    The folder need not exist: then its nearest existing parent must be a writable folder.
+    Called at load, so the refusal comes before any stage runs.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``where`` (the file and key), the path and what to do.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     check_writable_dir(Path(d) / "out" / "sub", where="p.toml: [output] key 'dir'")
+    """
+    folder = Path(folder)
+    probe = folder
+    while not probe.exists() and probe.parent != probe:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ConfigError(f"{where}: {probe} is a file, not a folder; remove it or choose another folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise ConfigError(f"{where}: {probe} is not writable; fix its permissions or choose another folder")
 
 
 def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | None = None) -> Config:
@@ -180,7 +256,7 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(read_text(path))
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path.name}: not valid TOML ({exc})") from exc
     stage_params_allowed = stage_params_allowed or {}
@@ -192,29 +268,31 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
         raise ConfigError(f"{path.name}: key 'phantom': missing; add a [phantom] table with file = \"phantom.csv\"")
     phantom = _phantom(data["phantom"], root, path)
     systems_raw = data.get("systems")
-    if not isinstance(systems_raw, list) or not systems_raw or len(systems_raw) > 2:
+    if not isinstance(systems_raw, list) or not 1 <= len(systems_raw) <= 2:
         raise ConfigError(f"{path.name}: key 'systems': expected one or two [[systems]] tables; got {systems_raw!r}")
     systems = tuple(_system(t, i, root, path) for i, t in enumerate(systems_raw))
     names = [s.name for s in systems]
     if len(set(names)) != len(names):
         raise ConfigError(f"{path.name}: [[systems]] key 'name': names must differ; got {names}")
 
-    calibration = data.get("calibration", {})
+    calibration = _expect(data.get("calibration", {}), dict, "a table [calibration]", path, "", "calibration")
     _reject_unknown(calibration, {"scheme"}, path, "[calibration] ")
     scheme = calibration.get("scheme", "knn+iop+smooth")
     from fluorocal.stages.learn import SCHEMES
 
-    if scheme not in SCHEMES:
+    if not isinstance(scheme, str) or scheme not in SCHEMES:
         raise ConfigError(
             f"{_where(path, '[calibration] ', 'scheme')}: expected one of {', '.join(SCHEMES)}; got {scheme!r}"
         )
 
-    output = data.get("output", {})
+    output = _expect(data.get("output", {}), dict, "a table [output]", path, "", "output")
     _reject_unknown(output, {"dir"}, path, "[output] ")
     out_dir = root / _expect(output.get("dir", "out"), str, "a directory name", path, "[output] ", "dir")
-    cache = data.get("cache", {})
+    cache = _expect(data.get("cache", {}), dict, "a table [cache]", path, "", "cache")
     _reject_unknown(cache, {"dir"}, path, "[cache] ")
     cache_dir = root / _expect(cache.get("dir", ".fluorocal"), str, "a directory name", path, "[cache] ", "dir")
+    for section, folder in (("[output] ", out_dir), ("[cache] ", cache_dir)):
+        check_writable_dir(folder, where=_where(path, section, "dir"))
 
     stage_params = {}
     for stage, cls in stage_params_allowed.items():
@@ -253,7 +331,10 @@ def params_from_dict(cls, table: dict, *, where: str = ""):
         if key not in owner:
             raise ConfigError(f"{where}key '{key}': unknown; allowed keys are {', '.join(sorted(owner))}")
         values[owner[key]][key] = _coerce(value, typing.get_type_hints(owner[key])[key], f"{where}key '{key}'")
-    built = tuple(c(**values[c]) for c in classes)
+    try:
+        built = tuple(c(**values[c]) for c in classes)
+    except (TypeError, ValueError) as exc:  # a Params class's own checks (InputError is a ValueError)
+        raise ConfigError(f"{where.rstrip()} {exc}".strip()) from exc
     return built if isinstance(cls, tuple) else built[0]
 
 

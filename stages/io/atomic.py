@@ -7,7 +7,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from fluorocal.stages.errors import InputError
+from fluorocal.stages.errors import CalibError, InputError
 
 #: the eight bytes every PNG file starts with
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -25,18 +25,27 @@ def atomic_write(path: str | os.PathLike, writer) -> None:
     The temporary file sits in the same directory (same file system) and keeps
     the suffix, so format detection by extension still works; it is removed if
     ``writer`` fails, so nothing half-written is ever left under ``path``.
+
+    Raises
+    ------
+    OSError
+        Whatever the file system raised (a full disk, a read-only folder, ...), with
+        ``path`` as its ``filename`` (not the temporary file's), so a message can name it.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+        os.close(fd)
         writer(tmp)
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the file the usual permissions
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
+    except BaseException as exc:
+        if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and not isinstance(exc, CalibError) and exc.errno is not None:
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
         raise
 
 

@@ -109,6 +109,8 @@ def frame_format(path: str | os.PathLike) -> FrameFormat:
         The file is missing, or no format claims it (the message lists the formats supported).
     """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a frame file")
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     try:
@@ -132,10 +134,23 @@ def _call(path: Path, what: Callable):
     """Run one format's reader, naming the file in whatever a library raises."""
     try:
         return what(path)
-    except InputError:
+    except InputError as exc:
+        if "\n" in str(exc):  # a library's message of several lines
+            raise InputError(_one_line(str(exc))) from exc
         raise
     except Exception as exc:  # library errors differ by format; name the file
-        raise InputError(f"{path}: cannot read as an image ({type(exc).__name__}: {exc})") from exc
+        raise InputError(f"{path}: cannot read as an image ({type(exc).__name__}: {_one_line(str(exc))})") from exc
+
+
+def _one_line(text: str) -> str:
+    r"""A message on one line: runs of whitespace, newlines included, become one space.
+
+    Examples
+    --------
+    >>> _one_line("read error\n  PNG: truncated ")
+    'read error PNG: truncated'
+    """
+    return " ".join(text.split())
 
 
 def read_frames(path: str | os.PathLike) -> list[Radiograph]:

@@ -24,6 +24,12 @@ from fluorocal.stages.io.atomic import atomic_write
 
 _NUMPY_DTYPE = {int: np.int64, float: np.float64, bool: np.bool_, str: np.str_}
 _FALSE = ("0", "false", "no")
+#: most beads a phantom file may hold: real phantoms have hundreds to a few thousand
+MAX_PHANTOM_BEADS = 100_000
+#: a phantom smaller than this (mm) on every axis, or with beads closer than this, was not written in mm
+_MIN_PHANTOM_EXTENT_MM = 1.0
+#: bead diameters below this (mm) cannot be imaged: a diameter in metres
+_MIN_BEAD_DIAMETER_MM = 0.1
 
 
 @dataclass(frozen=True)
@@ -61,7 +67,10 @@ class Column:
         """The value of one cell (stripped text); ``ValueError`` when it is not of the column's type."""
         if self.dtype is bool:
             return text.lower() not in _FALSE
-        return self.dtype(text)
+        value = self.dtype(text)
+        if self.dtype is int and not -(2**63) <= value < 2**63:
+            raise ValueError(f"{text} does not fit in 64 bits")
+        return value
 
     def format(self, value) -> str:
         """The text of one cell."""
@@ -212,7 +221,7 @@ def _parse_cell(path: Path, line_no: int, column: Column, text: str):
         raise InputError(f"{path}:{line_no}: not {kind} in column {column.name}: {text!r}") from None
 
 
-def read_table(path: str | os.PathLike, table: Table) -> dict[str, np.ndarray]:
+def read_table(path: str | os.PathLike, table: Table, *, max_rows: int | None = None) -> dict[str, np.ndarray]:
     r"""Read a CSV file by its schema: one array per column.
 
     Parameters
@@ -221,6 +230,8 @@ def read_table(path: str | os.PathLike, table: Table) -> dict[str, np.ndarray]:
         The CSV file (a header row, then one row per record).
     table : Table
         Its schema.
+    max_rows : int, optional
+        Refuse a file with more records than this (read no further).
 
     Returns
     -------
@@ -231,8 +242,9 @@ def read_table(path: str | os.PathLike, table: Table) -> dict[str, np.ndarray]:
     Raises
     ------
     InputError
-        The file is missing, lacks a required column, or has a cell that is empty in a
-        required column or not of its column's type (naming file, line and column).
+        The file is missing, a folder, unreadable or not UTF-8 text (a byte-order mark is allowed),
+        has more than ``max_rows`` records, lacks a required column, or has a cell that is empty
+        in a required column or not of its column's type (naming file, line and column).
 
     Examples
     --------
@@ -244,18 +256,18 @@ def read_table(path: str | os.PathLike, table: Table) -> dict[str, np.ndarray]:
     (array([7]), array([-2.]), array([''], dtype='<U1'))
     """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; a {table.name} CSV file is expected")
     if not path.is_file():
         raise InputError(f"{path}: {table.name} file not found")
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        header = [h.strip() for h in (reader.fieldnames or [])]
-        found = _header_map(path, table, header)
-        present = [table.column(n) for n in found]
-        values: dict[str, list] = {c.name: [] for c in present}
-        for line_no, row in enumerate(reader, start=2):
-            row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
-            for c in present:
-                values[c.name].append(_parse_cell(path, line_no, c, row.get(found[c.name], "")))
+    try:
+        values = _read_rows(path, table, max_rows)
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x}); save it as UTF-8 CSV") from None
+    except csv.Error as exc:
+        raise InputError(f"{path}: not a readable CSV file ({exc})") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
     n_rows = len(next(iter(values.values()), []))
     out = {}
     for c in table.columns:
@@ -264,6 +276,23 @@ def read_table(path: str | os.PathLike, table: Table) -> dict[str, np.ndarray]:
         elif c.default is not None:
             out[c.name] = np.array([c.default] * n_rows, dtype=_NUMPY_DTYPE[c.dtype])
     return out
+
+
+def _read_rows(path: Path, table: Table, max_rows: int | None) -> dict[str, list]:
+    """Every record's cells, parsed, per schema column present in the file."""
+    with open(path, newline="", encoding="utf-8-sig") as fh:  # utf-8-sig: a spreadsheet's byte-order mark
+        reader = csv.DictReader(fh)
+        header = [h.strip() for h in (reader.fieldnames or [])]
+        found = _header_map(path, table, header)
+        present = [table.column(n) for n in found]
+        values: dict[str, list] = {c.name: [] for c in present}
+        for line_no, row in enumerate(reader, start=2):
+            if max_rows is not None and line_no - 1 > max_rows:
+                raise InputError(f"{path}: more than {max_rows} {table.name} rows; is this the right file?")
+            row = {k.strip(): (v.strip() if isinstance(v, str) else "") for k, v in row.items() if k is not None}
+            for c in present:
+                values[c.name].append(_parse_cell(path, line_no, c, row.get(found[c.name], "")))
+    return values
 
 
 def write_table(path: str | os.PathLike, table: Table, columns: Mapping[str, Sequence]) -> None:
@@ -338,17 +367,29 @@ def write_csv(path: str | os.PathLike, header: list[str], rows) -> None:
 def read_phantom(path: str | os.PathLike, *, lattice: str = "", pitch_mm: float = 0.0):
     """Read a phantom CSV ``id,x,y,z[,diameter][,role]`` (mm) as a :class:`~fluorocal.stages.artifacts.Phantom`.
 
+    At most :data:`MAX_PHANTOM_BEADS` beads. Coordinates must be finite; diameters
+    finite and positive where given. A phantom whose size says it was written in
+    metres or inches (:func:`check_phantom_units`) is refused with the guess.
+
     Raises
     ------
     InputError
-        Missing file, missing column, or a value that is not a number, naming the line.
+        Missing file, missing column, a value that is not a number or not finite (naming the line),
+        too many beads, or coordinates that are not in mm.
     """
     from fluorocal.stages.artifacts import Phantom
 
-    t = read_table(path, PHANTOM)
+    t = read_table(path, PHANTOM, max_rows=MAX_PHANTOM_BEADS)
     if not len(t["id"]):
         raise InputError(f"{path}: phantom CSV has no beads")
     xyz = np.stack([t["x"], t["y"], t["z"]], axis=1)
+    _check_finite(path, {"x": t["x"], "y": t["y"], "z": t["z"]})
+    diameter = t["diameter"]
+    bad = ~np.isnan(diameter) & ~(np.isfinite(diameter) & (diameter > 0))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(f"{path}:{i + 2}: diameter must be a positive number of mm (or empty); got {diameter[i]}")
+    check_phantom_units(path, xyz, diameter)
     try:
         return Phantom(t["id"], xyz, t["diameter"], t["role"], lattice, pitch_mm)
     except InputError as exc:
@@ -366,8 +407,67 @@ def read_seeds(path: str | os.PathLike) -> dict:
         Missing file or column, or a value that is not a number, naming the line.
     """
     t = read_table(path, SEEDS)
+    _check_finite(path, {"x": t["x"], "y": t["y"]})
     seeds: dict = {}
     for i, x, y, file, frame in zip(t["id"], t["x"], t["y"], t["file"], t["frame"]):
         key = (Path(file).name, int(frame)) if file else ("", 0)
         seeds.setdefault(key, []).append((float(int(i)), float(x), float(y)))
     return {k: tuple(v) for k, v in seeds.items()}
+
+
+def _check_finite(path, columns: dict[str, np.ndarray]) -> None:
+    """Refuse NaN or infinite cells, naming the first one's line and column."""
+    for name, values in columns.items():
+        bad = ~np.isfinite(values)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InputError(f"{path}:{i + 2}: column {name} must be a finite number; got {values[i]}")
+
+
+def check_phantom_units(path, xyz_mm: np.ndarray, diameter_mm: np.ndarray) -> None:
+    """Refuse bead coordinates whose size says they are in metres or inches, with the guess.
+
+    Real phantoms span centimetres and hold beads millimetres apart and at least
+    0.1 mm across. A phantom spanning under 1 mm, or with beads under 0.05 mm apart
+    (median nearest neighbour) or under 0.1 mm across, was written in metres; beads
+    0.05..1 mm apart, in inches. A single bead is not judged.
+
+    Raises
+    ------
+    InputError
+        Naming the file, the extent or spacing found and the factor to apply.
+
+    Examples
+    --------
+    >>> check_phantom_units("p.csv", np.array([[0, 0, 0], [10.0, 0, 0], [0, 10, 5]]), np.full(3, np.nan))
+    >>> check_phantom_units("p.csv", np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0.005]]), np.full(3, np.nan))
+    Traceback (most recent call last):
+    ...
+    fluorocal.stages.errors.InputError: p.csv: the phantom spans 0.01 mm, ... looks like metres; multiply ... 1000 ...
+    """
+    if len(xyz_mm) < 2:
+        return
+    from scipy.spatial import cKDTree
+
+    extent = float(np.ptp(xyz_mm, axis=0).max())
+    distance, _ = cKDTree(xyz_mm).query(xyz_mm, k=2)
+    if not distance[:, 1].all():
+        i = int(np.argmin(distance[:, 1]))
+        i, j = np.flatnonzero(np.all(xyz_mm == xyz_mm[i], axis=1))[:2]
+        raise InputError(f"{path}: lines {i + 2} and {j + 2} place two beads at the same point")
+    spacing = float(np.median(distance[:, 1]))
+    diameters = diameter_mm[np.isfinite(diameter_mm)]
+    found = f"the phantom spans {extent:.3g} mm, beads {spacing:.3g} mm apart"
+    if len(diameters) and float(np.median(diameters)) < _MIN_BEAD_DIAMETER_MM:
+        found += f", {float(np.median(diameters)):.3g} mm across"
+        guess = "metres", 1000
+    elif extent < _MIN_PHANTOM_EXTENT_MM or spacing < 0.05:
+        guess = "metres", 1000
+    elif spacing < _MIN_PHANTOM_EXTENT_MM:
+        guess = "inches", 25.4
+    else:
+        return
+    raise InputError(
+        f"{path}: {found}: looks like {guess[0]}; multiply the coordinates (and diameters) by {guess[1]:g} "
+        "(the phantom CSV is in mm)"
+    )
