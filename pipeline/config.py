@@ -17,6 +17,7 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from fluorocal.outputs import safe_name
 from fluorocal.stages.errors import InputError
 
 
@@ -271,6 +272,8 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     if not isinstance(systems_raw, list) or not 1 <= len(systems_raw) <= 2:
         raise ConfigError(f"{path.name}: key 'systems': expected one or two [[systems]] tables; got {systems_raw!r}")
     systems = tuple(_system(t, i, root, path) for i, t in enumerate(systems_raw))
+    for i, system in enumerate(systems):  # names become file names (field_<name>.npz)
+        safe_name(system.name, what=f"{path.name}: [[systems]] #{i + 1} key 'name': system name")
     names = [s.name for s in systems]
     if len(set(names)) != len(names):
         raise ConfigError(f"{path.name}: [[systems]] key 'name': names must differ; got {names}")
