@@ -402,11 +402,15 @@ class ArtifactCache:
     def lock(self, stage: str, key: str, *, blocking: bool = True):
         """Hold the entry's lock (``fcntl.flock`` on ``<root>/.locks/<stage>.<key>.lock``); reentrant in a process.
 
-        Yields whether the lock is held (always True when ``blocking``). Without
-        ``fcntl`` (not POSIX) this holds nothing and yields True.
+        Yields whether the lock is held (always True when ``blocking``; False without
+        ``blocking`` when another process, or this one, holds it). Without ``fcntl``
+        (not POSIX) this holds nothing between processes.
         """
         self.entry_dir(stage, key)  # checks the names
         path = os.path.abspath(self.root / LOCKS / f"{stage}.{key}.lock")
+        if _HELD.get(path) and not blocking:  # held by this process: a live writer
+            yield False
+            return
         if fcntl is None or _HELD.get(path):
             _HELD[path] = _HELD.get(path, 0) + 1
             try:
