@@ -6,7 +6,7 @@ scalars) and a dict of numpy arrays. Decoding never imports anything and never c
 anything a manifest names: a dataclass name is looked up in an explicit registry of
 the project's own artifact types (:func:`artifact_types`), built in code from the
 stages' return annotations, the dataclass fields they declare and the classes listed
-in :data:`NESTED_TYPES`. A name not in the registry is an :class:`UntrustedData` error,
+in :data:`ARTIFACT_CLASSES`. A name not in the registry is an :class:`UntrustedData` error,
 which the cache turns into a miss.
 """
 
@@ -22,8 +22,12 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-#: artifact classes held in fields the stages' annotations leave untyped (``tuple``, ``object``): module -> names
-NESTED_TYPES = {
+#: the project's own artifact classes, module -> names: what the stages return, and the classes held in fields
+#: their annotations leave untyped (``tuple``, ``object``). Other stages' (tests' toys) come from their annotations.
+ARTIFACT_CLASSES = {
+    "fluorocal.stages.detect": ("BeadCandidates",),
+    "fluorocal.stages.centroid": ("Centroids",),
+    "fluorocal.stages.label": ("Labels",),
     "fluorocal.stages.adjust": ("Adjustment",),
     "fluorocal.stages.field": ("CorrectionField", "PointwiseField"),
     "fluorocal.stages.learn.knn": ("KnnModel", "CvReport"),
@@ -44,7 +48,7 @@ def type_name(cls: type) -> str:
 
 
 def artifact_types(stages=()) -> dict[str, type]:
-    """Registry name -> class of every dataclass the ``stages`` return, the classes nested in them and NESTED_TYPES.
+    """Registry name -> class of ARTIFACT_CLASSES, of the dataclasses the ``stages`` return, and of those nested in them.
 
     Parameters
     ----------
@@ -66,7 +70,7 @@ def artifact_types(stages=()) -> dict[str, type]:
     found: dict[str, type] = {}
     for stage in stages:
         _walk(_return_hint(stage.func), found)
-    for module, names in NESTED_TYPES.items():
+    for module, names in ARTIFACT_CLASSES.items():
         mod = importlib.import_module(module)
         for name in names:
             _walk(getattr(mod, name), found)
@@ -118,7 +122,7 @@ def encode(obj, arrays: dict, path: str, types: dict[str, type]):
         if types.get(name) is not type(obj):
             raise TypeError(
                 f"artifact field {path} is a {name}, not a registered artifact type (annotate the stage's "
-                "return type, or list the class in fluorocal.artifact_codec.NESTED_TYPES)"
+                "return type, or list the class in fluorocal.artifact_codec.ARTIFACT_CLASSES)"
             )
         fields = {
             f.name: encode(getattr(obj, f.name), arrays, f"{path}.{f.name}", types) for f in dataclasses.fields(obj)

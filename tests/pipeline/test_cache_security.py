@@ -234,3 +234,12 @@ def test_leftover_temporaries_are_swept_on_start_but_not_a_live_writer_s(project
     assert not dead.exists() and live.exists() and foreign.exists()
     _runner(project).run()
     assert not live.exists() and foreign.exists()
+
+
+def test_the_registry_holds_the_project_s_artifact_classes_and_nothing_else():
+    from fluorocal.artifact_codec import artifact_types
+    from fluorocal.graph import default_stages
+
+    names = {name.rsplit(":", 1)[1] for name in artifact_types(default_stages())}
+    assert {"BeadCandidates", "Centroids", "Labels", "LearnResult", "Adjustment", "CorrectionField"} <= names
+    assert all(name.startswith("fluorocal.stages.") for name in artifact_types(default_stages()))
