@@ -48,7 +48,7 @@ def type_name(cls: type) -> str:
 
 
 def artifact_types(stages=()) -> dict[str, type]:
-    """Registry name -> class of ARTIFACT_CLASSES, of the dataclasses the ``stages`` return, and of those nested in them.
+    """Registry name -> class: ARTIFACT_CLASSES, the dataclasses the ``stages`` return, and those nested in them.
 
     Parameters
     ----------
