@@ -206,6 +206,9 @@ class ArtifactCache:
             return None
         try:
             raw = (entry / MANIFEST).read_bytes()
+            if not (entry / CHECKSUM).exists() and _older_format(raw):
+                log.debug("cache entry %s/%s has an older format; recomputing", stage, key[:12])
+                return None  # a plain miss: the previous format had no manifest checksum
             if hashlib.sha256(raw).hexdigest() != (entry / CHECKSUM).read_text().strip():
                 raise ValueError(f"{MANIFEST} does not match {CHECKSUM}")
             manifest = json.loads(raw)
@@ -446,6 +449,15 @@ def _check_manifest(manifest, stage: str, key: str) -> None:
     files = manifest.get("files")
     if not isinstance(files, dict) or ARRAYS not in files or not set(files) <= DATA_FILES:
         raise ValueError(f"manifest lists files other than {', '.join(sorted(DATA_FILES))}")
+
+
+def _older_format(raw: bytes) -> bool:
+    """Whether a manifest says it is of an earlier format (read as data only, never decoded)."""
+    try:
+        version = json.loads(raw).get("format_version")
+    except (ValueError, AttributeError):
+        return False
+    return isinstance(version, int) and not isinstance(version, bool) and version < FORMAT_VERSION
 
 
 def _only_cache_files(root: Path) -> bool:

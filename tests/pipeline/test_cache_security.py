@@ -243,3 +243,13 @@ def test_the_registry_holds_the_project_s_artifact_classes_and_nothing_else():
     names = {name.rsplit(":", 1)[1] for name in artifact_types(default_stages())}
     assert {"BeadCandidates", "Centroids", "Labels", "LearnResult", "Adjustment", "CorrectionField"} <= names
     assert all(name.startswith("fluorocal.stages.") for name in artifact_types(default_stages()))
+
+
+def test_an_entry_of_the_previous_format_is_a_quiet_miss(project):
+    runner = _runner(project)
+    runner.run()
+    entry = runner.cache.entry_dir("total", runner.keys[("total", None)])
+    _rewrite_manifest(entry, lambda m: m.update(format_version=1), fix_checksum=False)
+    (entry / CHECKSUM).unlink()  # as the previous format wrote it
+    CALLS.clear()
+    assert _runner(project).run().computed["total"] == 1 and CALLS == {"total": 1}  # no CacheWarning (an error here)
