@@ -91,7 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
         "clean",
         help="delete a project's cache",
         description=(
-            "Delete the project's artifact cache (or, with --stale, only entries the current config no longer uses)."
+            "Delete the project's artifact cache (or, with --stale, only entries the current config no longer uses). "
+            "Only what the cache wrote is deleted, and only in a folder holding the cache's marker file."
         ),
     )
     c.add_argument("config", type=Path, help="project TOML file")

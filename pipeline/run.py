@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
+from fluorocal.artifact_codec import artifact_types
 from fluorocal.cache import ArtifactCache, artifact_key, file_sha256
 from fluorocal.config import Config, params_from_dict
 from fluorocal.graph import SOURCES, Stage, check_graph, downstream
@@ -47,11 +48,29 @@ class FrameUnit:
 
 @dataclass
 class RunReport:
-    """What a run did: per stage, how many artifacts were computed and how many came from the cache."""
+    """What a run did: per stage, how many artifacts were computed and how many came from the cache.
 
-    computed: dict = field(default_factory=dict)
-    cached: dict = field(default_factory=dict)
+    ``outcomes[stage][unit]`` is ``"computed"`` or ``"cached"``; an artifact counted
+    cached and then recomputed (its entry turned out unreadable) counts computed.
+    """
+
+    outcomes: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
+
+    def record(self, stage: str, units, how: str) -> None:
+        """Count ``units`` of ``stage`` as ``how`` (``"computed"`` or ``"cached"``); computed is final."""
+        slots = self.outcomes.setdefault(stage, {})
+        for unit in units:
+            if slots.get(unit) != "computed":
+                slots[unit] = how
+
+    @property
+    def computed(self) -> dict:
+        return {name: sum(h == "computed" for h in slots.values()) for name, slots in self.outcomes.items()}
+
+    @property
+    def cached(self) -> dict:
+        return {name: sum(h == "cached" for h in slots.values()) for name, slots in self.outcomes.items()}
 
     @property
     def total_computed(self) -> int:
@@ -59,12 +78,13 @@ class RunReport:
 
     def lines(self) -> list[str]:
         out = []
-        for name in self.cached:
-            c, k = self.computed.get(name, 0), self.cached[name]
+        computed, cached = self.computed, self.cached
+        for name in self.outcomes:
+            c, k = computed[name], cached[name]
             took = f" in {self.seconds.get(name, 0.0):.2f} s" if c else ""
             out.append(f"{name}: {c} computed{took}, {k} cached")
         if not self.total_computed:
-            out.append(f"nothing recomputed: all {sum(self.cached.values())} artifacts were cached")
+            out.append(f"nothing recomputed: all {sum(cached.values())} artifacts were cached")
         return out
 
 
@@ -188,6 +208,7 @@ class Runner:
         if until:
             stages = stages[: names.index(until) + 1]
         self.config, self.stages, self.cache = config, stages, cache
+        cache.register(artifact_types(stages))  # what entries may decode into: these stages' artifact classes
         self.by_name = {s.name: s for s in stages}
         self.force = downstream(stages, set(force)) if force else set()
         self.progress = progress
@@ -265,16 +286,20 @@ class Runner:
     # --- execution ----------------------------------------------------------------------------
 
     def run(self) -> RunReport:
+        """Compute every entry missing from the cache (or unreadable there); the cache is complete afterwards."""
         from tqdm import tqdm
 
+        self.cache.prepare_root()
+        self.cache.sweep()
         for stage in self.stages:
+            units = self._stage_units(stage)
             todo = [
                 u
-                for u in self._stage_units(stage)
-                if stage.name in self.force or not self.cache.has(stage.name, self.keys[(stage.name, u)])
+                for u in units
+                if stage.name in self.force or not self.cache.verify(stage.name, self.keys[(stage.name, u)])
             ]
-            self.report.cached[stage.name] = len(self._stage_units(stage)) - len(todo)
-            self.report.computed[stage.name] = 0
+            self.report.record(stage.name, [u for u in units if u not in todo], "cached")
+            self.report.outcomes.setdefault(stage.name, {})
             if stage.per_system:  # one computation per system with a frame to do
                 todo = [g[0] for g in self._systems() if set(g) & set(todo)]
             bar = tqdm(
@@ -329,9 +354,25 @@ class Runner:
         return inputs
 
     def _compute(self, stage: Stage, unit: int | None):
+        """Compute (and store) the artifact of ``stage`` for ``unit``, under the entry's lock.
+
+        Another process may have stored the entry while this one waited for the
+        lock: then it is read, not computed again.
+        """
         if stage.per_system:
             self._compute_system(stage, next(g for g in self._systems() if unit in g))
             return self.memory[(stage.name, unit)]
+        slot = (stage.name, unit)
+        with self.cache.lock(stage.name, self.keys[slot]):
+            if stage.name not in self.force:
+                artifact = self.cache.load(stage.name, self.keys[slot], warn=False)
+                if artifact is not None:
+                    self.memory[slot] = artifact
+                    self.report.record(stage.name, [unit], "cached")
+                    return artifact
+            return self._compute_one(stage, unit)
+
+    def _compute_one(self, stage: Stage, unit: int | None):
         slot = (stage.name, unit)
         params, extras = self.params[slot]
         inputs = self._inputs(stage, unit)
@@ -352,12 +393,26 @@ class Runner:
             provenance["frame"] = {"file": str(self.units[unit].path), "index": self.units[unit].index}
         self.cache.store(stage.name, self.keys[slot], artifact, provenance=provenance)
         self.memory[slot] = artifact
-        self.report.computed[stage.name] = self.report.computed.get(stage.name, 0) + 1
+        self.report.record(stage.name, [unit], "computed")
         self.report.seconds[stage.name] = self.report.seconds.get(stage.name, 0.0) + took
         return artifact
 
     def _compute_system(self, stage: Stage, group: list[int]) -> None:
-        """Compute a per-system stage on the system of units ``group`` and store each frame's artifact."""
+        """Compute a per-system stage on the system of units ``group`` and store each frame's artifact.
+
+        Under the lock of the system's first entry; if another process stored the
+        whole system meanwhile, its entries are read instead.
+        """
+        with self.cache.lock(stage.name, self.keys[(stage.name, group[0])]):
+            if stage.name not in self.force:
+                found = [self.cache.load(stage.name, self.keys[(stage.name, u)], warn=False) for u in group]
+                if all(a is not None for a in found):
+                    self.memory.update({(stage.name, u): a for u, a in zip(group, found)})
+                    self.report.record(stage.name, group, "cached")
+                    return
+            self._compute_system_now(stage, group)
+
+    def _compute_system_now(self, stage: Stage, group: list[int]) -> None:
         params, extras = self.params[(stage.name, group[0])]
         inputs = [self._group_input(name, group) for name in stage.inputs]
         system = self.config.systems[self.units[group[0]].system].name
@@ -380,7 +435,7 @@ class Runner:
             }
             self.cache.store(stage.name, self.keys[(stage.name, unit)], artifact, provenance=provenance)
             self.memory[(stage.name, unit)] = artifact
-        self.report.computed[stage.name] = self.report.computed.get(stage.name, 0) + len(group)
+        self.report.record(stage.name, group, "computed")
         self.report.seconds[stage.name] = self.report.seconds.get(stage.name, 0.0) + took
 
     def _group_input(self, name: str, group: list[int]):

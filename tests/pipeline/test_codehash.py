@@ -23,14 +23,14 @@ FILES = {
     "first.py": """
         from tests.pipeline.toy import Value
 
-        def mean(radiograph, params):
+        def mean(radiograph, params) -> Value:
             return Value([radiograph.image.mean() + params.offset])
     """,
     "second.py": """
         from . import _helper
         from tests.pipeline.toy import Value
 
-        def scale(value, params):
+        def scale(value, params) -> Value:
             # the helper is imported lazily elsewhere too; both forms are followed
             from codehash_toy._helper import twice
 

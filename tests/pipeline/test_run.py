@@ -152,11 +152,12 @@ def test_unknown_stage_in_force_is_an_input_error(project):
 def test_round_trip_preserves_arrays_and_metadata(tmp_path):
     cache = ArtifactCache(tmp_path / "c")
     art = toy.Value(np.arange(5.0), note="x")
-    cache.store("s", "k" * 64, art)
-    back = cache.load("s", "k" * 64)
+    cache.register({"tests.pipeline.toy:Value": toy.Value})
+    cache.store("s", "a" * 64, art)
+    back = cache.load("s", "a" * 64)
     assert back.note == "x" and np.array_equal(back.value, art.value)
     assert not back.value.flags.writeable
-    assert (tmp_path / "c" / "s" / ("k" * 64) / "table.csv").read_text().startswith("value")
+    assert (tmp_path / "c" / "s" / ("a" * 64) / "table.csv").read_text().startswith("value")
 
 
 def test_status_reports_cached_stale_missing(project):
@@ -172,3 +173,29 @@ def test_status_reports_cached_stale_missing(project):
         for r in Runner(config, toy_stages(), ArtifactCache(config.cache_dir), progress=False).status()
     }
     assert status == {"mean": "cached", "scale": "stale", "total": "stale"}
+
+
+def test_a_corrupt_entry_found_on_a_rerun_is_recomputed_and_reported(project, caplog):
+    """The summary said "nothing recomputed" while an unreadable entry was recomputed afterwards (issue 13)."""
+    runner, _ = _run(project)
+    npz = runner.cache.entry_dir("scale", runner.keys[("scale", 1)]) / "arrays.npz"
+    npz.write_bytes(npz.read_bytes()[:20])
+    CALLS.clear()
+    with pytest.warns(CacheWarning, match="scale"), caplog.at_level(logging.INFO, logger="fluorocal.run"):
+        rerun, report = _run(project)
+    assert CALLS == {"scale": 1}
+    assert report.computed == {"mean": 0, "scale": 1, "total": 0}
+    assert report.cached == {"mean": 3, "scale": 2, "total": 1}
+    assert "nothing recomputed" not in caplog.text and "scale: 1 computed" in caplog.text
+    assert rerun.cache.verify("scale", rerun.keys[("scale", 1)])  # the cache is whole again
+
+
+def test_an_artifact_counted_cached_then_recomputed_counts_computed():
+    from fluorocal.run import RunReport
+
+    report = RunReport()
+    report.record("label", [0, 1, 2], "cached")
+    report.record("label", [0, 1, 2], "computed")  # a system's sequence recomputed after all
+    report.record("label", [1], "cached")
+    assert report.computed == {"label": 3} and report.cached == {"label": 0}
+    assert not any("nothing recomputed" in line for line in report.lines())

@@ -62,7 +62,7 @@ class RunningParams:
     start: float = 0.0
 
 
-def running(values: list, params: RunningParams) -> tuple:
+def running(values: list, params: RunningParams) -> tuple[Value, ...]:
     """A per-system toy: the running sum over a system's frames, so each frame depends on those before it."""
     CALLS["running"] += 1
     out, acc = [], params.start

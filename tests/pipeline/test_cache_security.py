@@ -1,0 +1,255 @@
+"""The cache under attack and under load (issue 13).
+
+No code from a manifest, tampering detected, ``cache clean`` deletes only its own entries,
+concurrent runs agree, leftovers are swept.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import multiprocessing
+import os
+
+import numpy as np
+import pytest
+from fluorocal.artifact_codec import UntrustedData, decode
+from fluorocal.cache import CHECKSUM, MANIFEST, MARKER, ArtifactCache, CacheWarning
+from fluorocal.cli import main
+from fluorocal.config import load_config
+from fluorocal.run import Runner
+from fluorocal.stages.errors import InputError
+
+from tests.pipeline import toy
+from tests.pipeline.toy import CALLS, make_project, toy_stages
+
+
+def _runner(cfg, **kw):
+    config = load_config(cfg, stage_params_allowed={s.name: s.params_cls for s in toy_stages()})
+    return Runner(config, toy_stages(), ArtifactCache(config.cache_dir), progress=False, **kw)
+
+
+def _files(root):
+    """Every file under ``root`` with its content hash: what must survive a refused clean."""
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
+
+
+def _rewrite_manifest(entry, edit, *, fix_checksum: bool) -> None:
+    manifest = json.loads((entry / MANIFEST).read_text())
+    edit(manifest)
+    raw = json.dumps(manifest, indent=1).encode()
+    (entry / MANIFEST).write_bytes(raw)
+    if fix_checksum:  # an attacker who knows the format recomputes the checksum too
+        (entry / CHECKSUM).write_text(hashlib.sha256(raw).hexdigest() + "\n")
+
+
+@pytest.fixture()
+def project(tmp_path):
+    CALLS.clear()
+    return make_project(tmp_path / "project")
+
+
+# --- finding 1: code execution from the cache ------------------------------------------------------
+
+
+@pytest.mark.parametrize("fix_checksum", [True, False], ids=["checksum-recomputed", "checksum-stale"])
+def test_a_manifest_naming_os_system_runs_nothing_and_is_recomputed(project, tmp_path, fix_checksum):
+    runner = _runner(project)
+    runner.run()
+    marker = tmp_path / "pwned"
+    entry = runner.cache.entry_dir("scale", runner.keys[("scale", 0)])
+
+    def inject(manifest):
+        manifest["artifact"] = {"__dataclass__": "os:system", "fields": {"command": f"touch {marker}"}}
+
+    _rewrite_manifest(entry, inject, fix_checksum=fix_checksum)
+    CALLS.clear()
+    rerun = _runner(project)
+    with pytest.warns(CacheWarning, match="scale/.*unreadable"):
+        report = rerun.run()
+    assert not marker.exists()
+    assert report.computed == {"mean": 0, "scale": 1, "total": 0} and CALLS == {"scale": 1}
+    assert rerun.get("scale", 0).value[0] == pytest.approx(200.0)
+    assert rerun.cache.load("scale", rerun.keys[("scale", 0)]).value[0] == pytest.approx(200.0)  # replaced
+    assert not marker.exists()
+
+
+def test_inspect_reads_no_untrusted_type(project, tmp_path, capsys):
+    runner = _runner(project)
+    runner.run()
+    marker = tmp_path / "pwned"
+    key = runner.keys[("scale", 0)]
+
+    def inject(manifest):
+        manifest["artifact"] = {"__dataclass__": "os:system", "fields": {"command": f"touch {marker}"}}
+
+    _rewrite_manifest(runner.cache.entry_dir("scale", key), inject, fix_checksum=True)
+    assert runner.cache.manifest("scale", key) is None  # what `fluorocal inspect` prints from
+    with pytest.warns(CacheWarning, match="unregistered type"):
+        assert runner.cache.load("scale", key) is None
+    assert not marker.exists()
+
+
+def test_decoding_builds_only_registered_classes_with_their_own_fields():
+    types = {"tests.pipeline.toy:Value": toy.Value}
+    tree = {"__dataclass__": "tests.pipeline.toy:Value", "fields": {"value": {"__array__": "v"}, "note": "x"}}
+    value = decode(tree, {"v": np.ones(2)}, types)
+    assert isinstance(value, toy.Value) and value.note == "x"
+    for tree in (
+        {"__dataclass__": "builtins:eval", "fields": {}},
+        {"__dataclass__": "tests.pipeline.toy:Value", "fields": {"__class__": 1}},
+        {"__dataclass__": "tests.pipeline.toy:Value", "fields": {"value": {"__array__": "missing"}}},
+        {"__import__": "os"},
+        [1, 2],
+    ):
+        with pytest.raises(UntrustedData):
+            decode(tree, {}, types)
+
+
+def test_a_hand_edited_number_in_a_manifest_is_detected(project):
+    runner = _runner(project)
+    runner.run()
+    key = runner.keys[("total", None)]
+
+    def edit(manifest):
+        manifest["provenance"]["wall_seconds"] += 1.0
+
+    _rewrite_manifest(runner.cache.entry_dir("total", key), edit, fix_checksum=False)
+    CALLS.clear()
+    rerun = _runner(project)
+    with pytest.warns(CacheWarning, match=f"total/{key[:12]} unreadable .*{CHECKSUM}"):
+        report = rerun.run()
+    assert report.computed["total"] == 1 and CALLS == {"total": 1}
+    assert rerun.cache.verify("total", key)
+
+
+# --- finding 2: cache clean ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("cache_dir", [".", ".."])
+def test_cache_clean_refuses_a_folder_it_did_not_create(tmp_path, cache_dir, capsys):
+    cfg = make_project(tmp_path / "project", extra_toml=f'\n[cache]\ndir = "{cache_dir}"\n')
+    (tmp_path / "sibling").mkdir()
+    (tmp_path / "sibling" / "keep.txt").write_text("precious")
+    before = _files(tmp_path)
+    assert main(["-q", "cache", "clean", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "not a fluorocal cache" in err
+    assert str((cfg.parent / cache_dir)) in err
+    assert _files(tmp_path) == before
+
+
+def test_a_run_refuses_a_cache_folder_holding_other_files(tmp_path):
+    cfg = make_project(tmp_path / "project", extra_toml='\n[cache]\ndir = "."\n')
+    before = _files(tmp_path)
+    with pytest.raises(InputError, match="not a fluorocal cache"):
+        _runner(cfg).run()
+    assert _files(tmp_path) == before
+
+
+def test_cache_clean_deletes_only_the_cache_s_own_entries(project):
+    runner = _runner(project)
+    runner.run()
+    root = runner.cache.root
+    assert (root / MARKER).is_file()
+    (root / "mean" / "notes.txt").write_text("mine")  # someone else's files inside the cache folder
+    (root / "README").write_text("mine too")
+    assert main(["-q", "cache", "clean", str(project)]) == 0
+    left = sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+    assert left == [MARKER, "README", "mean", "mean/notes.txt"]
+    (root / "mean" / "notes.txt").unlink()
+    (root / "README").unlink()
+    assert main(["-q", "cache", "clean", str(project)]) == 0
+    assert not root.exists()  # nothing but its own files left: the folder goes too
+    assert (project.parent / "phantom.csv").is_file() and len(list((project.parent / "frames").iterdir())) == 3
+
+
+def test_cache_clean_does_not_follow_symlinks(project, tmp_path):
+    runner = _runner(project)
+    runner.run()
+    outside = tmp_path / "outside"
+    (outside / ("b" * 64)).mkdir(parents=True)
+    (outside / ("b" * 64) / "data").write_text("x")
+    os.symlink(outside, runner.cache.root / "linked")
+    os.symlink(outside / ("b" * 64), runner.cache.root / "mean" / ("c" * 64))
+    runner.cache.clean()
+    assert (outside / ("b" * 64) / "data").read_text() == "x"
+
+
+# --- finding 6: concurrency ------------------------------------------------------------------------
+
+
+def _worker(cfg: str):
+    """One process's run of the toy pipeline: its total and how many artifacts it computed."""
+    CALLS.clear()
+    runner = _runner(cfg)
+    report = runner.run()
+    return float(runner.get("total", None).value[0]), report.total_computed
+
+
+def test_four_processes_on_one_cache_all_succeed_with_identical_results(tmp_path):
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(4) as pool:
+        for rep in range(4):
+            cfg = make_project(tmp_path / f"rep{rep}")
+            results = pool.map(_worker, [str(cfg)] * 4, chunksize=1)
+            assert [total for total, _ in results] == [pytest.approx(1200.0)] * 4
+            # the lock per entry: each of the 7 artifacts computed by exactly one process
+            assert sum(n for _, n in results) == 7
+            cache = ArtifactCache(cfg.parent / ".fluorocal")
+            assert not [p for p in cache.root.rglob(".tmp-*")]
+
+
+def test_an_entry_published_meanwhile_is_accepted_and_a_broken_one_replaced(tmp_path):
+    cache = ArtifactCache(tmp_path / "c", types={"tests.pipeline.toy:Value": toy.Value})
+    key = "d" * 64
+    cache.store("mean", key, toy.Value(np.array([1.0])))
+    cache.store("mean", key, toy.Value(np.array([1.0])))  # the rename meets an intact entry: kept
+    assert cache.load("mean", key).value[0] == 1.0
+    (cache.entry_dir("mean", key) / "arrays.npz").write_bytes(b"broken")
+    cache.store("mean", key, toy.Value(np.array([2.0])))  # a broken entry is displaced
+    assert cache.load("mean", key).value[0] == 2.0
+    assert sorted(p.name for p in (cache.root / "mean").iterdir()) == [key]
+
+
+# --- finding 8: leftovers ----------------------------------------------------------------------------
+
+
+def test_leftover_temporaries_are_swept_on_start_but_not_a_live_writer_s(project):
+    runner = _runner(project)
+    runner.run()
+    stage_dir = runner.cache.root / "mean"
+    dead = stage_dir / f".tmp-{'e' * 64}-abc_12"
+    live = stage_dir / f".tmp-{'f' * 64}-xyz_34"
+    foreign = stage_dir / ".tmp-someone-else"
+    for d in (dead, live, foreign):
+        d.mkdir()
+        (d / "arrays.npz").write_bytes(b"half")
+    with runner.cache.lock("mean", "f" * 64):
+        _runner(project).run()
+    assert not dead.exists() and live.exists() and foreign.exists()
+    _runner(project).run()
+    assert not live.exists() and foreign.exists()
+
+
+def test_the_registry_holds_the_project_s_artifact_classes_and_nothing_else():
+    from fluorocal.artifact_codec import artifact_types
+    from fluorocal.graph import default_stages
+
+    names = {name.rsplit(":", 1)[1] for name in artifact_types(default_stages())}
+    assert {"BeadCandidates", "Centroids", "Labels", "LearnResult", "Adjustment", "CorrectionField"} <= names
+    assert all(name.startswith("fluorocal.stages.") for name in artifact_types(default_stages()))
+
+
+def test_an_entry_of_the_previous_format_is_a_quiet_miss(project):
+    runner = _runner(project)
+    runner.run()
+    entry = runner.cache.entry_dir("total", runner.keys[("total", None)])
+    _rewrite_manifest(entry, lambda m: m.update(format_version=1), fix_checksum=False)
+    (entry / CHECKSUM).unlink()  # as the previous format wrote it
+    CALLS.clear()
+    assert _runner(project).run().computed["total"] == 1 and CALLS == {"total": 1}  # no CacheWarning (an error here)
