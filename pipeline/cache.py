@@ -252,6 +252,11 @@ class ArtifactCache:
             try:
                 self._write(tmp, stage, key, artifact, provenance, overlay)
                 self._publish(tmp, final, stage, key)
+            except OSError as exc:
+                shutil.rmtree(tmp, ignore_errors=True)
+                if exc.filename is None:  # numpy and pathlib leave it out: name the entry (a full disk, say)
+                    raise OSError(exc.errno, exc.strerror, str(final)) from exc
+                raise
             except BaseException:
                 shutil.rmtree(tmp, ignore_errors=True)
                 raise
