@@ -17,6 +17,7 @@ named as this module names them, are swept at the start of the next publish.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -28,6 +29,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 from fluorocal.stages.errors import InputError
+
+try:  # POSIX
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +144,8 @@ def publish(out_dir: str | os.PathLike, write: Callable[[Path], list[Path]]) -> 
     """
     out_dir = Path(out_dir).resolve()
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    sweep(out_dir)
+    with _publishing(out_dir):
+        sweep(out_dir)
     staging = _side_folder(out_dir, "staging")
     staging.mkdir()
     if out_dir.is_dir():
@@ -150,7 +157,8 @@ def publish(out_dir: str | os.PathLike, write: Callable[[Path], list[Path]]) -> 
             return []
         names = sorted({p.relative_to(staging).parts[0] for p in written})
         (staging / MANIFEST).write_text(json.dumps({"entries": names}, indent=1))
-        _swap(out_dir, staging)
+        with _publishing(out_dir):  # runs finishing at once swap their sets in one after the other
+            _swap(out_dir, staging)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
@@ -174,6 +182,18 @@ def sweep(out_dir: str | os.PathLike) -> None:
             _carry_over(side, out_dir)
         log.info("removing %s, left by an interrupted run", side)
         shutil.rmtree(side)
+
+
+@contextlib.contextmanager
+def _publishing(out_dir: Path):
+    """An exclusive lock on publishing into ``out_dir``'s parent (POSIX ``flock`` on the folder itself: no file)."""
+    fd = os.open(out_dir.parent, os.O_RDONLY)
+    try:
+        if fcntl is not None:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing releases the lock
 
 
 def _side_folder(out_dir: Path, kind: str) -> Path:

@@ -14,3 +14,32 @@ def arcadis_dir() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real radiographs not present at {SHARED_DATA} (they live only in ../shared/data)")
     return SHARED_DATA
+
+
+#: the small biplanar project the end-to-end modules share (4 + 4 frames of 512 px)
+E2E_SIM = {"n_frames": 4, "n_systems": 2, "image_size_px": 512, "seed": 3}
+
+
+@pytest.fixture(scope="session")
+def calibrated_project(tmp_path_factory) -> Path:
+    """A simulated project after one `fluorocal run`: simulated and calibrated once per test session.
+
+    Modules that change it take a copy (:func:`copy_project`); the cache comes along, so their own runs
+    recompute only what they change.
+    """
+    from fluorocal.cli import main
+    from fluorocal.cmd_simulate import write_dataset
+    from fluorocal.stages.simulate import SimulateParams, simulate
+
+    root = tmp_path_factory.mktemp("calibrated") / "project"
+    write_dataset(simulate(SimulateParams(**E2E_SIM)), root)
+    assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
+    return root
+
+
+def copy_project(source: Path, destination: Path) -> Path:
+    """A copy of a project folder (frames, config, cache and outputs) at ``destination``."""
+    import shutil
+
+    shutil.copytree(source, destination, symlinks=True)
+    return destination

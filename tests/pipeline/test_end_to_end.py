@@ -9,20 +9,18 @@ import numpy as np
 import pytest
 from fluorocal import Calibration
 from fluorocal.cli import main
-from fluorocal.cmd_simulate import write_dataset
 from fluorocal.stages.io import read_frames
-from fluorocal.stages.simulate import ImageDistortion, SimulateParams, simulate
+from fluorocal.stages.simulate import ImageDistortion, SimulateParams
 
-PARAMS = SimulateParams(n_frames=4, n_systems=2, image_size_px=512, seed=3)
+from tests.conftest import E2E_SIM, copy_project
+
+PARAMS = SimulateParams(**E2E_SIM)
 
 
 @pytest.fixture(scope="module")
-def project(tmp_path_factory):
-    root = tmp_path_factory.mktemp("e2e")
-    write_dataset(simulate(PARAMS), root)
-    cfg = root / "fluorocal.toml"  # as the simulator writes it, with the recommended [learn] block
-    assert main(["--quiet", "run", str(cfg)]) == 0
-    return root
+def project(tmp_path_factory, calibrated_project):
+    """The session's calibrated project (its config as the simulator writes it: no [learn] block), copied."""
+    return copy_project(calibrated_project, tmp_path_factory.mktemp("e2e") / "project")
 
 
 def _rows(path):

@@ -21,21 +21,19 @@ import numpy as np
 import pytest
 from fluorocal import Calibration, outputs
 from fluorocal.cli import main
-from fluorocal.cmd_simulate import write_dataset
 from fluorocal.outputs import inside, publish, safe_name
 from fluorocal.stages.errors import ArtifactError, InputError
-from fluorocal.stages.simulate import SimulateParams, simulate
+from fluorocal.stages.simulate import SimulateParams
 
-PARAMS = SimulateParams(n_frames=4, n_systems=2, image_size_px=512, seed=3)
+from tests.conftest import E2E_SIM, copy_project
+
+PARAMS = SimulateParams(**E2E_SIM)
 
 
 @pytest.fixture(scope="module")
-def project(tmp_path_factory):
-    root = tmp_path_factory.mktemp("outsec") / "a" / "b" / "project"  # room above it for an escape to land in
-    root.mkdir(parents=True)
-    write_dataset(simulate(PARAMS), root)
-    assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
-    return root
+def project(tmp_path_factory, calibrated_project):
+    # room above it for an escape to land in
+    return copy_project(calibrated_project, tmp_path_factory.mktemp("outsec") / "a" / "b" / "project")
 
 
 def _snapshot(folder: Path) -> dict:
