@@ -23,7 +23,9 @@ Targets (issue 11): object points within 0.02 mm, field within 0.05 px modulo a 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
+import io
 import json
 import os
 import sys
@@ -117,7 +119,8 @@ def one_set(geometry: str, seed: int, frames: int, size_px: int, keep: Path | No
     truth = json.loads((root / "truth.json").read_text())
     cfg = write_minimal_config(root, truth)
     t0, c0 = time.perf_counter(), time.process_time()
-    code = fluorocal_main(["--quiet", "run", str(cfg)])
+    with contextlib.redirect_stdout(io.StringIO()):  # the run's own summary table; this prints its own
+        code = fluorocal_main(["--quiet", "run", str(cfg)])
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     if code != 0:
         raise SystemExit(f"fluorocal run {cfg} exited {code}")
