@@ -61,7 +61,9 @@ def one_round(cfg: Path, n: int, kill_after_s: float | None) -> tuple[list[int],
     """Start ``n`` runs at once (after a killed one, if asked); their exit codes and the results' digest."""
     reset(cfg)
     if kill_after_s is not None:
-        victim = subprocess.Popen(_fluorocal("run", str(cfg)), env=_env(), stderr=subprocess.DEVNULL)
+        victim = subprocess.Popen(
+            _fluorocal("run", str(cfg)), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
         time.sleep(kill_after_s)
         victim.send_signal(signal.SIGKILL)
         victim.wait()
