@@ -26,6 +26,7 @@ Modules, one job each
   smoothness by :func:`cross_validate_smoothness` (beyond the paper).
 - :mod:`.joint`: :func:`fit_grid_with_points`, the gridded field jointly with
   3D shifts of the object points (beyond the paper).
+- :mod:`.robust`: gross errors in the regressions: the local screen, the misfit test, bounded CV costs.
 - :mod:`.gauge`: what the orientation reproduces exactly, removed from a field.
 - :mod:`.anderson`: Anderson acceleration of the fixed-point iteration.
 - :mod:`.adjuster`: every call into :mod:`fluorocal.stages.adjust`.

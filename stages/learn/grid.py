@@ -14,6 +14,7 @@ import numpy as np
 from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.field import CorrectionField, bilinear_design
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec, check_training, node_coordinates
+from fluorocal.stages.learn.robust import capped_cost
 
 #: forward-difference stencils of the smoothness prior's orders
 DIFFERENCE_STENCILS = {1: (-1.0, 1.0), 2: (1.0, -2.0, 1.0), 3: (-1.0, 3.0, -3.0, 1.0), 4: (1.0, -4.0, 6.0, -4.0, 1.0)}
@@ -147,6 +148,7 @@ def cross_validate_smoothness(
     n_folds: int = 5,
     seed: int = 0,
     base_px=None,
+    cost_cap: float | None = None,
 ) -> GridCvReport:
     """Choose the smoothness prior of :func:`fit_grid_field` by shuffled K-fold CV of equation 3.
 
@@ -162,6 +164,9 @@ def cross_validate_smoothness(
         Folds (default 5) and the seed of their shuffling (default 0).
     base_px : (H_g, W_g, 2) or (n_nodes, 2) float64 ndarray, px, optional
         The field accumulated so far (see Notes).
+    cost_cap : float, optional
+        Bound on each observation's out-of-fold cost (default None: unbounded),
+        as in :func:`fluorocal.stages.learn.knn.cross_validate_k`.
 
     Returns
     -------
@@ -188,24 +193,41 @@ def cross_validate_smoothness(
         for train in (np.setdiff1d(np.arange(n), test, assume_unique=True) for test in folds)
     ]
     tests = [(A[test], w[test], r[test]) for test in folds]
-    evaluated = []  # (order, tau, cost, sq)
+    evaluated = []  # (order, tau, cost, RMS)
     for order in orders:
         DtD = _prior_normal(len(yn), len(xn), order)
         for tau in sorted(tau_grid_px):
-            cost = sq = 0.0
-            for normal, (A_test, w_test, r_test) in zip(normals, tests):
-                err = r_test - A_test @ solve_normal(normal, DtD, tau, base)
-                cost += float(np.sum(w_test * err**2))
-                sq += float(np.sum(err**2))
-            cost /= n
+            cost, rms = _out_of_fold(normals, tests, DtD, tau, base, cost_cap)
             rising = bool(evaluated) and evaluated[-1][0] == order and cost > evaluated[-1][2]
-            evaluated.append((order, tau, cost, sq))
+            evaluated.append((order, tau, cost, rms))
             if rising:
                 # past this order's minimum (taken as unimodal in log tau): larger ones only fit more of the noise
                 break
-    orders, taus, costs, sqs = (np.array(c) for c in zip(*evaluated))
+    orders, taus, costs, rms = (np.array(c) for c in zip(*evaluated))
     best = int(np.argmin(costs))
-    return GridCvReport(taus, costs, float(taus[best]), float(np.sqrt(sqs[best] / (2 * n))), int(orders[best]), orders)
+    return GridCvReport(taus, costs, float(taus[best]), float(rms[best]), int(orders[best]), orders)
+
+
+def _out_of_fold(normals, tests, DtD, tau_px, base, cost_cap):
+    """Mean out-of-fold equation-3 cost (each observation's bounded at ``cost_cap``) and RMS per component.
+
+    With ``cost_cap`` the RMS is that of the observations below it.
+    """
+    cost = sq = 0.0
+    n = n_sq = 0
+    for normal, (A_test, w_test, r_test) in zip(normals, tests):
+        err = r_test - A_test @ solve_normal(normal, DtD, tau_px, base)
+        n += len(err)
+        if cost_cap is None:
+            cost += float(np.sum(w_test * err**2))
+            sq += float(np.sum(err**2))
+            n_sq += len(err)
+        else:
+            z2 = np.sum(w_test * err**2, axis=1)
+            cost += float(np.sum(capped_cost(z2, cost_cap)))
+            sq += float(np.sum(err[z2 <= cost_cap] ** 2))
+            n_sq += int(np.sum(z2 <= cost_cap))
+    return cost / n, float(np.sqrt(sq / (2 * max(n_sq, 1))))
 
 
 def _prior_normal(n_y: int, n_x: int, order: int):

@@ -17,6 +17,7 @@ from fluorocal.stages.artifacts import check_shape, freeze
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec, check_training, node_coordinates
+from fluorocal.stages.learn.robust import capped_cost
 from scipy.spatial import KDTree
 
 logger = logging.getLogger(__name__)
@@ -158,6 +159,7 @@ def cross_validate_k(
     n_folds: int,
     seed: int,
     neighbour_cache: dict | None = None,
+    cost_cap: float | None = None,
 ) -> CvReport:
     """Choose ``k`` by shuffled K-fold cross-validation of the equation-3 cost.
 
@@ -178,6 +180,11 @@ def cross_validate_k(
         on the same coordinates, folds and at most as many neighbours (they
         depend on the coordinates only, not on the residuals: the
         alternation's iterations share them).
+    cost_cap : float, optional
+        Bound on each observation's out-of-fold cost ``(r - g)^T C_r^-1 (r - g)``
+        (default None: unbounded), see :func:`fluorocal.stages.learn.robust.capped_cost`:
+        a gross error then costs every candidate alike. The out-of-fold RMS
+        is then that of the observations below the bound.
 
     Returns
     -------
@@ -206,15 +213,32 @@ def cross_validate_k(
     _fill_neighbour_cache(cache, xy, folds, seed, int(ks[-1]))
     cost = np.zeros(len(ks))
     sq = np.zeros(len(ks))
+    n_sq = np.zeros(len(ks))
     for test, idx in zip(folds, cache["idx"]):
         train = np.setdiff1d(np.arange(n), test, assume_unique=True)
         g = weighted_neighbour_means(r[train], w[train], idx[:, : ks[-1]], ks)  # shape (n_test, K, 2)
-        err = r[test][:, None, :] - g
-        cost += np.sum(w[test][:, None, :] * err**2, axis=(0, 2))
-        sq += np.sum(err**2, axis=(0, 2))
+        fold = _fold_costs(r[test][:, None, :] - g, w[test][:, None, :], cost_cap)
+        cost, sq, n_sq = cost + fold[0], sq + fold[1], n_sq + fold[2]
     cost /= n
     best = int(np.argmin(cost))
-    return CvReport(ks, cost, int(ks[best]), float(np.sqrt(sq[best] / (2 * n))), n)
+    return CvReport(ks, cost, int(ks[best]), float(np.sqrt(sq[best] / (2 * max(n_sq[best], 1)))), n)
+
+
+def _fold_costs(err, w, cost_cap):
+    """One fold's summed cost, squared error and count per candidate, from its errors ``(n_test, K, 2)``.
+
+    With ``cost_cap`` each observation's cost is bounded at it, and the squared
+    error counts only the observations below it (it sets the nodes' uncertainty).
+    """
+    if cost_cap is None:
+        return np.sum(w * err**2, axis=(0, 2)), np.sum(err**2, axis=(0, 2)), len(err)
+    z2 = np.sum(w * err**2, axis=2)  # shape (n_test, K)
+    below = z2 <= cost_cap
+    return (
+        np.sum(capped_cost(z2, cost_cap), axis=0),
+        np.sum(np.where(below, np.sum(err**2, axis=2), 0.0), 0),
+        below.sum(0),
+    )
 
 
 def _fill_neighbour_cache(cache: dict, xy: np.ndarray, folds: list, seed: int, k_max: int) -> None:
@@ -258,6 +282,7 @@ def fit_knn_field(
     seed: int = 0,
     cv: CvReport | None = None,
     neighbour_cache: dict | None = None,
+    cost_cap: float | None = None,
 ) -> tuple[CorrectionField | KnnModel, CvReport]:
     """Learn the deterministic part of the residuals: one kNN regression step.
 
@@ -284,7 +309,7 @@ def fit_knn_field(
         A cross-validation already run on (nearly) the same observations: its
         ``k`` and out-of-fold RMS are used and none is run (the refit after
         the local outlier test, which drops a few observations).
-    neighbour_cache : dict, optional
+    neighbour_cache, cost_cap : optional
         Passed to :func:`cross_validate_k`.
 
     Returns
@@ -307,7 +332,9 @@ def fit_knn_field(
     xy, r, var = check_training(xy_px, residuals_px, residual_var_px2)
     width, height = (int(s) for s in image_size)
     if cv is None:
-        cv = cross_validate_k(xy, r, var, k_grid=k_grid, n_folds=n_folds, seed=seed, neighbour_cache=neighbour_cache)
+        cv = cross_validate_k(
+            xy, r, var, k_grid=k_grid, n_folds=n_folds, seed=seed, neighbour_cache=neighbour_cache, cost_cap=cost_cap
+        )
         logger.debug("kNN cross-validation over %d points:\n%s", len(xy), cv.table())
     model = KnnModel(xy, r, 1.0 / var, cv.k)
     if not smooth:

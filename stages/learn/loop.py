@@ -46,6 +46,7 @@ from fluorocal.stages.learn.knn import fit_knn_field, node_statistics
 from fluorocal.stages.learn.params import LearnParams, scheme_flags
 from fluorocal.stages.learn.polynomial import calibrate_polynomial
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
+from fluorocal.stages.learn.robust import local_screen, misfit_inliers
 
 logger = logging.getLogger(__name__)
 
@@ -103,6 +104,7 @@ class _State:
     anderson: Anderson
     history: tuple  # of IterationRecord
     updates: tuple = ()  # the last regression's update per system
+    trained: np.ndarray | None = None  # shape (N,): the observations the last regression learned from
 
 
 def calibrate(
@@ -225,7 +227,7 @@ def _initial_state(plan: _Plan, adj, out: Outcome) -> _State:
 def _iterate(plan: _Plan, state: _State) -> _State:
     """One outer iteration: regress, update the correction, adjust with it held, record."""
     iteration, phase = state.iteration + 1, state.phase
-    updates, memory, fit_cost = _regress(plan, state)
+    updates, memory, fit_cost, trained = _regress(plan, state)
     corrections, grids, pointwise, anderson = _update_field(plan, state, updates)
     adj = plan.adjuster(corrections, state.adj, final=False)
     out = adjustment_outcome(adj, plan.observations.sigma_px)
@@ -248,7 +250,19 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     if plan.acceleration == "anderson" and prev is not None and total > prev:
         anderson = anderson.restarted()
     return _State(
-        iteration, phase, state.phase_start, corrections, adj, out, grids, pointwise, memory, anderson, history, updates
+        iteration,
+        phase,
+        state.phase_start,
+        corrections,
+        adj,
+        out,
+        grids,
+        pointwise,
+        memory,
+        anderson,
+        history,
+        updates,
+        trained,
     )
 
 
@@ -290,23 +304,31 @@ def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
 # ---------------------------------------------------------------------------------------------
 
 
-def _regress(plan: _Plan, state: _State) -> tuple[tuple, tuple, float]:
-    """Every system's update, its regression memory after it, and the in-sample equation-3 cost of the updates."""
+def _regress(plan: _Plan, state: _State) -> tuple[tuple, tuple, float, np.ndarray]:
+    """Every system's update, its regression memory after it, the in-sample equation-3 cost of the updates.
+
+    And the mask ``(N,)`` of the observations the updates were fitted to.
+    """
     updates, memory, fit_cost = [], [], 0.0
+    trained = np.zeros(len(plan.xy), bool)
     for s in range(len(plan.sizes)):
         model, sel, mem = _regress_system(plan, state, s)
+        trained[sel] = True
         r, var = state.out.residuals_px[sel], state.out.residual_var_px2[sel]
         fit_cost += float(np.sum((r - model.correction_at(plan.xy[sel])) ** 2 / var))
         updates.append(model)
         memory.append(mem)
-    return tuple(updates), tuple(memory), fit_cost
+    return tuple(updates), tuple(memory), fit_cost, trained
 
 
 def _regress_system(plan: _Plan, state: _State, s: int):
     """System ``s``'s update, the observations it was fitted to and its memory after it.
 
-    With ``training="local"``, gross errors are what the field cannot explain:
-    fit to all, test every observation against the fitted field, refit without the misfits.
+    With ``training="local"``, gross errors are what the field cannot explain
+    (:mod:`fluorocal.stages.learn.robust`): screen every used observation
+    against its neighbours' median residual, cross-validate and fit to those
+    it keeps (each out-of-fold cost bounded at the screen's threshold), test
+    every observation against the fitted field, refit to those it explains.
     """
     params, out, rows = plan.params, state.out, plan.rows[s]
     local = params.training == "local"
@@ -316,26 +338,41 @@ def _regress_system(plan: _Plan, state: _State, s: int):
             f"system {plan.observations.system_names[s]} has {len(sel)} inlier observations; "
             f"the regression needs at least {params.n_folds}"
         )
-    model, mem = _fit(plan, state, s, sel, state.memory[s])
     if not local:
+        model, mem = _fit(plan, state, s, sel, state.memory[s])
         return model, sel, mem
     candidates = sel
     r, var = out.residuals_px[candidates], out.residual_var_px2[candidates]
-    z2 = np.sum((r - model.correction_at(plan.xy[candidates])) ** 2 / var, axis=1)
-    keep = z2 <= params.outlier_chi2 * max(float(np.median(z2)) / (2 * np.log(2)), 1e-300)
-    sel = candidates[keep] if keep.sum() >= params.n_folds else candidates
-    if len(sel) < len(candidates):
-        model, mem = _fit(plan, state, s, sel, mem, refit=True)
-    return model, sel, mem
+    screen = local_screen(plan.xy[candidates], r, var, chi2=params.screen_chi2)
+    sel = _enough(candidates, screen.keep, params.n_folds)
+    model, mem = _fit(plan, state, s, sel, state.memory[s], cost_cap=screen.cost_cap)
+    explained, _ = misfit_inliers(r, model.correction_at(plan.xy[candidates]), var, params.outlier_chi2)
+    refit = _enough(candidates, explained, params.n_folds)
+    if not np.array_equal(refit, sel):
+        model, mem = _fit(plan, state, s, refit, mem, refit=True)
+    logger.debug(
+        "system %s: %d observations, %d left out by the local screen, %d by the field's misfit",
+        plan.observations.system_names[s],
+        len(candidates),
+        len(candidates) - len(sel),
+        len(candidates) - len(refit),
+    )
+    return model, refit, mem
 
 
-def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refit: bool = False):
+def _enough(candidates: np.ndarray, keep: np.ndarray, n_min: int) -> np.ndarray:
+    """``candidates[keep]``, or all of them when fewer than ``n_min`` would be kept."""
+    return candidates[keep] if keep.sum() >= n_min else candidates
+
+
+def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refit: bool = False, cost_cap=None):
     """One regression of system ``s`` on observations ``sel``: the update and the memory after it.
 
     ``refit``: the same kNN step again (after the local outlier test), with the ``k`` just chosen.
+    ``cost_cap`` bounds each observation's out-of-fold cost in the cross-validations.
     """
     if state.phase == "grid":
-        return _fit_grid(plan, state, s, sel, mem)
+        return _fit_grid(plan, state, s, sel, mem, cost_cap)
     params = plan.params
     r, var = state.out.residuals_px[sel], state.out.residual_var_px2[sel]
     knn = dict(image_size=plan.sizes[s], grid=params.grid, smooth=plan.smooth, n_folds=params.n_folds, seed=params.seed)
@@ -343,7 +380,9 @@ def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refi
         model, _ = fit_knn_field(plan.xy[sel], r, var, cv=mem.cv, **knn)
         return model, mem
     k_grid = _restricted_k_grid(params.k_grid, mem.k_prev)
-    model, cv = fit_knn_field(plan.xy[sel], r, var, k_grid=k_grid, neighbour_cache=mem.neighbour_cache, **knn)
+    model, cv = fit_knn_field(
+        plan.xy[sel], r, var, k_grid=k_grid, neighbour_cache=mem.neighbour_cache, cost_cap=cost_cap, **knn
+    )
     return model, replace(mem, cv=cv, k_prev=cv.k)
 
 
@@ -355,7 +394,7 @@ def _restricted_k_grid(k_grid: tuple, k_prev: int | None, span: int = 3) -> tupl
     return k_grid[max(i - span, 0) : i + span + 1]
 
 
-def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory):
+def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, cost_cap=None):
     """The refinement's update of system ``s``: the gridded least squares, jointly with the points or not."""
     params, adj, observations = plan.params, state.adj, plan.observations
     xy, r, var = plan.xy[sel], state.out.residuals_px[sel], state.out.residual_var_px2[sel]
@@ -372,6 +411,7 @@ def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory)
             n_folds=params.smoothness_folds,
             seed=params.seed,
             base_px=base.delta_px,
+            cost_cap=cost_cap,
         )
         mem = replace(mem, cv=cv, tau_px=cv.tau_px)
         logger.info(
@@ -484,6 +524,7 @@ def _result(plan: _Plan, scheme: str, state: _State, converged: bool, reason: st
         wall_time_s=wall,
         adjust_time_s=plan.adjuster.seconds,
         initial_residual_px=initial_residual,
+        trained=state.trained,
     )
 
 

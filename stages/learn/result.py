@@ -67,6 +67,8 @@ class LearnResult:
         Part of ``wall_time_s`` spent in :func:`fluorocal.stages.adjust.adjust_bundle`.
     initial_residual_px : (N, 2) float64 ndarray or None, px
         Residuals of the first adjustment, with no correction (the "before" of the report).
+    trained : (N,) bool ndarray or None
+        The observations the last regression learned from (None when nothing was learned).
 
     For scheme ``polynomial`` the ``adjustment`` is the one that estimated
     the model (its ``ap_px``, ``ap_std_px``; held at no correction), and
@@ -85,6 +87,7 @@ class LearnResult:
     wall_time_s: float
     adjust_time_s: float = 0.0
     initial_residual_px: np.ndarray | None = None
+    trained: np.ndarray | None = None
 
     def summary(self) -> str:
         """One line: scheme, in-sample RMS before and after, iterations and how the loop stopped."""

@@ -1,0 +1,129 @@
+"""The learning loop under gross errors (issue 13): the local screen, bounded CV costs, the loop end to end."""
+
+import cv2
+import numpy as np
+import pytest
+from fluorocal.stages.learn import LearnParams, calibrate, cross_validate_k
+from fluorocal.stages.learn.robust import local_screen
+
+NOISE_PX = 0.05
+
+
+def _radial(xy, size=512.0):
+    """A strong smooth field: up to ~4 px at the corners, like the simulator's strong distortion."""
+    c = (size - 1) / 2
+    d = (xy - c) / c
+    return 2.0 * d * np.sum(d**2, axis=1, keepdims=True)
+
+
+def _gross(rng, n, fraction=0.05):
+    """Rows and displacements of ``fraction`` of ``n`` observations moved by 3-15 px in a random direction."""
+    rows = rng.choice(n, int(fraction * n), replace=False)
+    length, angle = rng.uniform(3, 15, len(rows)), rng.uniform(0, 2 * np.pi, len(rows))
+    return rows, length[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+
+
+def test_local_screen_catches_gross_errors_and_keeps_a_strong_smooth_field():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 511, (3000, 2))
+    r = _radial(xy) + rng.normal(0, NOISE_PX, xy.shape)
+    rows, moved = _gross(rng, len(xy))
+    r[rows] += moved
+    screen = local_screen(xy, r, np.full(xy.shape, NOISE_PX**2), chi2=LearnParams().screen_chi2)
+    clean = np.ones(len(xy), bool)
+    clean[rows] = False
+    # every gross error is >= 3 px = 60 sigma off its neighbours' median: all caught
+    assert not screen.keep[rows].any()
+    # the field's curvature over 16 neighbours (~10 px) is far below the screen's ~20 sigma: clean ones stay
+    assert screen.keep[clean].mean() > 0.995
+
+
+def test_bounded_cv_cost_chooses_k_as_on_clean_data():
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(0, 511, (3000, 2))
+    r = _radial(xy) + rng.normal(0, NOISE_PX, xy.shape)
+    var = np.full(xy.shape, NOISE_PX**2)
+    kw = dict(k_grid=(4, 8, 16, 32, 64, 128), n_folds=10, seed=0)
+    clean = cross_validate_k(xy, r, var, **kw)
+    rows, moved = _gross(rng, len(xy), 0.01)
+    bad = r.copy()
+    bad[rows] += moved
+    # a gross error costs up to (15 / 0.05)^2 = 9e4 out of fold against ~2 per clean one: unbounded,
+    # 1 % of them decide k (measured: 32 against 4); bounded (at screen_chi2 x the noise scale, as the
+    # loop does), every candidate pays alike
+    capped = cross_validate_k(xy, bad, var, cost_cap=LearnParams().screen_chi2, **kw)
+    assert capped.k == clean.k
+    # the RMS of the observations below the bound: measured 0.085 against 0.073 px clean (the gross errors
+    # still pull their clean neighbours' out-of-fold means; in the loop the screen removes them first),
+    # unbounded 0.69 px
+    assert capped.cv_rms_px == pytest.approx(clean.cv_rms_px, rel=0.25)
+
+
+def test_screen_threshold_is_validated():
+    from fluorocal.stages.errors import InputError
+
+    with pytest.raises(InputError, match="screen_chi2"):
+        LearnParams(screen_chi2=0)
+
+
+@pytest.fixture(scope="module")
+def small_set():
+    """14 exposures, 512 px, strong distortion, true outline centres + 0.05 px noise, and start values."""
+    from fluorocal.stages.adjust import Orientation
+    from fluorocal.stages.artifacts import Observations
+    from fluorocal.stages.geometry import quat_multiply, quat_normalize, rotvec_to_quat
+    from fluorocal.stages.simulate import SimulateParams, simulate
+
+    size = 512
+    params = SimulateParams(n_frames=14, image_size_px=size, distortion="strong", seed=4)
+    data = simulate(params, render=False)
+    frames = data.truth.frames[0]
+    keep = [~(f.overlap | f.field_edge) for f in frames]
+    rng = np.random.default_rng(11)
+    xy = np.concatenate([f.outline_xy_px[k] for f, k in zip(frames, keep)])
+    xy = xy + rng.normal(0, NOISE_PX, xy.shape)
+    exposure = np.concatenate([np.full(k.sum(), f.exposure) for f, k in zip(frames, keep)])
+    ids = np.concatenate([f.ids[k] for f, k in zip(frames, keep)])
+    acq = data.truth.acquisition
+    n = params.n_frames
+    q = quat_normalize(quat_multiply(np.array([rotvec_to_quat(v) for v in rng.normal(0, 0.01, (n, 3))]), acq.q[0]))
+    iop = [[(size - 1) / 2, (size - 1) / 2, acq.systems[0].iop_px[2] * 1.01]]
+    initial = Orientation(iop, np.arange(n), q, acq.source_mm[0] + rng.normal(0, 3, (n, 3)))
+    rows, moved = _gross(rng, len(xy))
+
+    def observations(points):
+        return Observations(
+            np.zeros(len(points)), exposure, ids, points, np.tile([NOISE_PX, NOISE_PX, 0.0], (len(points), 1))
+        )
+
+    bad = xy.copy()
+    bad[rows] += moved
+    return observations(xy), observations(bad), rows, data.phantom, initial, size, params.fov_radius_px
+
+
+def test_gross_errors_leave_the_learned_field_as_on_clean_data(small_set):
+    clean_obs, bad_obs, rows, phantom, initial, size, fov_radius_px = small_set
+    runs = [calibrate(o, phantom, initial, image_size=(size, size), params=LearnParams()) for o in (clean_obs, bad_obs)]
+    clean, bad = (r.fields[0] for r in runs)
+    g = np.linspace(0, size - 1, 48)
+    pts = np.column_stack([a.ravel() for a in np.meshgrid(g, g)])
+    c = (size - 1) / 2
+    pts = pts[
+        (np.hypot(pts[:, 0] - c, pts[:, 1] - c) < 0.8 * fov_radius_px) & clean.support_at(pts) & bad.support_at(pts)
+    ]
+    a, b = pts - bad.correction_at(pts), pts - clean.correction_at(pts)
+    H, _ = cv2.findHomography(a, b, 0)
+    diff = np.linalg.norm(cv2.perspectiveTransform(a[None], H)[0] - b, axis=1)
+    # modulo a homography: 14 exposures fix the principal point only to ~3 px (its std), and the loop's
+    # path through that weak direction differs between the runs. Measured 0.018 px (seed 3: 0.031 px);
+    # before the loop was made robust 0.17 px (0.29 px). What is left is the clean field's own noise
+    # (node sigma ~0.1 px) seen through the 5 % of observations dropped with the gross errors
+    # (0.1 x sqrt(0.05) ~ 0.02 px) and the loop's different path; 0.08 px is 2.5 times the worst measured.
+    assert np.sqrt(np.mean(diff**2)) < 0.08
+    res, adj = runs[1], runs[1].adjustment
+    contaminated = np.zeros(len(bad_obs), bool)
+    contaminated[rows] = True
+    # no gross error the final adjustment flags was learned from (the few it accepts sit on beads
+    # with too few observations to tell: measured 3 of 157)
+    assert not np.any(res.trained & ~adj.inlier & contaminated)
+    assert np.sum(res.trained & contaminated) <= 0.05 * len(rows)
