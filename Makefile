@@ -18,10 +18,10 @@ demo: $(STAMP)
 	$(BIN)/fluorocal run demo/data/fluorocal.toml
 	$(BIN)/fluorocal inspect demo/data/fluorocal.toml
 
-# one BLAS/OpenMP thread per test process: the suite's own numerics are small, and oversubscribed threads
-# cost more than they give on a small machine
+# one test process per core (pytest-xdist), each with one BLAS/OpenMP thread: the suite's numerics are small,
+# and oversubscribed threads cost more than they give
 test: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -q
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
