@@ -14,6 +14,7 @@ from __future__ import annotations
 import ast
 import hashlib
 import importlib.util
+from functools import lru_cache
 from pathlib import Path
 
 
@@ -42,8 +43,8 @@ def code_digest(modules) -> str:
         source = _module_source(name)
         if source is None:
             continue
-        seen[name] = _tree_digest(source)
-        todo.extend(m for m in _imported_modules(name, source) if m.split(".")[0] in scope and m not in seen)
+        seen[name], imported = _analyse(name, *source)
+        todo.extend(m for m in imported if m.split(".")[0] in scope and m not in seen)
     h = hashlib.sha256()
     for name in sorted(seen):
         h.update(f"{name}:{seen[name]}\n".encode())
@@ -65,24 +66,24 @@ def _module_source(name: str) -> tuple[Path, str] | None:
     return None if path is None else (path, path.read_text(encoding="utf-8"))
 
 
-def _tree_digest(source: tuple[Path, str]) -> str:
-    path, text = source
-    return hashlib.sha256(ast.dump(ast.parse(text, filename=str(path))).encode()).hexdigest()
+@lru_cache(maxsize=512)
+def _analyse(name: str, path: Path, text: str) -> tuple[str, tuple[str, ...]]:
+    """The digest of a module's syntax tree and the dotted names of the modules it imports.
 
-
-def _imported_modules(name: str, source: tuple[Path, str]) -> list[str]:
-    """Dotted names of the modules ``name`` imports anywhere in its body (function-level imports included)."""
-    path, text = source
+    Cached by the source text itself, so the stages' shared modules are parsed once per process and an
+    edited file is parsed anew. Imports anywhere in the body count (function-level ones included).
+    """
+    tree = ast.parse(text, filename=str(path))
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = []
-    for node in ast.walk(ast.parse(text, filename=str(path))):
+    for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             found += [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
             base = _absolute(node.module or "", node.level, package)
             # ``from a.b import c``: c may be a submodule of a.b or a name defined in it
             found += [base] + [f"{base}.{alias.name}" for alias in node.names if alias.name != "*"]
-    return found
+    return hashlib.sha256(ast.dump(tree).encode()).hexdigest(), tuple(found)
 
 
 def _absolute(module: str, level: int, package: str) -> str:
