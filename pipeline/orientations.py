@@ -282,9 +282,9 @@ def inspect_calibration(path: Path, out_dir: Path | None = None) -> list[str]:
         w, h = s.image_size_px
         listed = s.orientations
         lines.append(f"system {name}: {w}x{h} px, {len(listed) or 1} field(s)")
-        for o in listed:
-            mag = np.linalg.norm(o.field.delta_px, axis=-1)[o.field.support]
-            lines.append(f"  {o.describe()}: max |Δ| {mag.max(initial=0):.2f} px where supported")
+        for label, field in [(o.describe(), o.field) for o in listed] or [("one field, no named orientation", s.field)]:
+            mag = np.linalg.norm(field.delta_px, axis=-1)[field.support]
+            lines.append(f"  {label}: max |Δ| {mag.max(initial=0):.2f} px where supported")
         if len(listed) > 1:
             out_dir.mkdir(parents=True, exist_ok=True)
             paths, report = orientation_report(out_dir, name, listed)

@@ -433,6 +433,7 @@ def test_inspect_a_calibration(undistort_setup, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "system A: 64x48 px, 3 field(s)" in out and "system B: 64x48 px, 1 field(s)" in out
     assert "  o30 (orbit 30°, tilt 0°): max |Δ| 2.00 px where supported" in out
+    assert "  one field, no named orientation: max |Δ| 0.71 px where supported" in out  # B: |(0.5, 0.5)|
     # against o0 (nearest 0°): o30's Δ − Δref = (−2, 2), RMS per coordinate 2, max 2√2
     assert f"| o30 | 30 | 0 | 2.000 | {2 * math.sqrt(2):.3f} | 0.000 | 0.000 |" in out
     assert (tmp_path / "plots" / "orientations_A.png").is_file()
