@@ -20,16 +20,20 @@ amplitudes in px for a 1024-px image, scaled with the image):
            + s (-Δb_y, Δb_x)                    change across the axis: the whole image shifts
 
   Both non-uniform terms are tangential, apart from the small radial part;
-  no homography absorbs them. ``a_t`` makes the RMS over the field of view,
-  modulo a homography, of the twist term ``orientation_distortion_px`` per
-  unit ``|Δb_xy|``, ``a_z`` that of the axial term ``_AXIAL_RATIO`` times as
-  much per unit ``|Δb_z|``; ``s`` is ``_SHIFT_PX`` px per unit ``|Δb_xy|``.
+  no homography absorbs them. ``a_t`` makes the RMS over the disc
+  ``|ρ| <= 0.94`` (the default field of view), modulo a homography, of the
+  twist term ``orientation_distortion_px`` per unit ``|Δb_xy|``, ``a_z`` that
+  of the axial term ``_AXIAL_RATIO`` times as much per unit ``|Δb_z|``; ``s``
+  is ``_SHIFT_PX`` px per unit ``|Δb_xy|``. ``ρ`` is in ideal coordinates, so
+  under a pincushion the measured field of view sees a little less.
 
-With the default field (dip 65°, heading 315°) the change modulo a homography
-is 0.20 px at 15° (orbit or tilt), 0.38 px at 30°, 0.53 px at 45° and 0.63 px
-at 60°, the real C-arm's figures (``../shared/data/README.md``), and turning
-the other way gives more (0.7-0.9 px at -60°): the field is not symmetric
-about the centred orientation.
+With the default field (dip 65°, heading 315°) and strong distortion, the
+centred orientation's correction leaves, modulo a homography over the field
+of view (truth correction grids, seeds 0-4), 0.20-0.21 px at 15° (orbit or
+tilt), 0.37-0.39 px at 30°, 0.52-0.54 px at 45° and 0.62-0.66 px at 60°: the
+real C-arm's figures (``../shared/data/README.md``). Turning the other way
+gives more (0.8 px at -60°): the field is not symmetric about the centred
+orientation.
 """
 
 from __future__ import annotations

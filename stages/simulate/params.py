@@ -89,8 +89,9 @@ class SimulateParams:
     orientation_distortion_px : float, default 0.96
         Sensitivity of the distortion to the earth's field (px at 1024): RMS over the field of
         view, modulo a homography, of the change per unit change of the field across the
-        intensifier's axis. The defaults give the real C-arm's figures: 0.2 px at 15 degrees,
-        0.38 px at 30, 0.53 at 45, 0.63 at 60 (orbit or tilt). 0 turns it off.
+        intensifier's axis (:mod:`.orientation`). The defaults give the real C-arm's figures:
+        the centred correction leaves 0.20 px at 15 degrees, 0.37-0.39 px at 30, 0.52-0.54 at 45,
+        0.62-0.66 at 60 (orbit or tilt). 0 turns it off.
     reference_error_mm : float, default 0.025
         3D RMS of reference - true (survey noise of the check points).
     turntable_translation_mm, turntable_height_mm : float, default 10.0, 15.0
