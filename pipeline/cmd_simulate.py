@@ -82,7 +82,9 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "outdir", type=Path, metavar="OUTDIR", help="output directory (must be empty or absent unless --force)"
     )
-    p.add_argument("--frames", type=int, default=12, metavar="N", help="exposures per system (default: 12)")
+    p.add_argument(
+        "--frames", type=int, default=12, metavar="N", help="exposures per system, or per orientation (default: 12)"
+    )
     p.add_argument("--systems", type=int, choices=(1, 2), default=1, help="1 = monoplanar, 2 = biplanar (default: 1)")
     p.add_argument("--seed", type=int, default=0, help="random seed; same seed, same bytes (default: 0)")
     p.add_argument(
