@@ -7,6 +7,7 @@ import logging
 import numpy as np
 from fluorocal.stages.artifacts import Phantom, Radiograph
 from fluorocal.stages.simulate.acquisition import Acquisition, make_acquisition
+from fluorocal.stages.simulate.orientation import angle_codes
 from fluorocal.stages.simulate.params import RNG_NOISE, SimulateParams
 from fluorocal.stages.simulate.phantom import make_phantom
 from fluorocal.stages.simulate.projection import project_beads
@@ -60,7 +61,7 @@ def simulate(
         log.debug(
             "system %s: %d exposures, %.0f visible beads per frame",
             system.name,
-            params.n_frames,
+            params.n_exposures,
             np.mean([len(f) for f in per_system]),
         )
         frames.append(_render_system(params, acq, s, true_xyz, diameter, on_frame) if render else ())
@@ -72,9 +73,9 @@ def simulate(
 
 def _project_system(params: SimulateParams, acq: Acquisition, s: int, ids, true_xyz, diameter) -> tuple:
     """Truth of every exposure of system ``s``: a tuple of :class:`FrameTruth`."""
-    system = acq.systems[s]
     per_system = []
-    for k in range(params.n_frames):
+    for k in range(params.n_exposures):
+        system = acq.system_at(s, k)
         per_system.append(
             project_beads(
                 ids,
@@ -95,15 +96,36 @@ def _project_system(params: SimulateParams, acq: Acquisition, s: int, ids, true_
     return tuple(per_system)
 
 
+def _noise_rng(params: SimulateParams, acq: Acquisition, s: int, k: int) -> np.random.Generator:
+    """Exposure ``k``'s noise stream; in a grid sequence keyed by its orientation and its index there.
+
+    So an orientation's frames are the same whichever other orientations are simulated with it.
+    """
+    o = int(acq.exposure_orientation[k])
+    if o < 0:
+        return np.random.default_rng([params.seed, RNG_NOISE, s, k])
+    orbit, tilt = params.orientations_deg[o]
+    return np.random.default_rng([params.seed, RNG_NOISE, s, *angle_codes(orbit, tilt), k % params.n_frames])
+
+
 def _render_system(params: SimulateParams, acq: Acquisition, s: int, true_xyz, diameter, on_frame) -> tuple:
     """Radiographs of every exposure of system ``s``, each with its own noise stream: a tuple of :class:`Radiograph`."""
-    system = acq.systems[s]
-    raster = system_raster(params, system)
+    rasters = {}  # per orientation: the pixel geometry through its distortion
     rendered = []
-    for k in range(params.n_frames):
-        rng = np.random.default_rng([params.seed, RNG_NOISE, s, k])
+    for k in range(params.n_exposures):
+        system = acq.system_at(s, k)
+        o = int(acq.exposure_orientation[k])
+        if o not in rasters:
+            rasters = {o: system_raster(params, system)}  # exposures come grouped by orientation
         image = render_frame(
-            params, system, acq.q[s, k], acq.source_mm[s, k], true_xyz, diameter, rng=rng, raster=raster
+            params,
+            system,
+            acq.q[s, k],
+            acq.source_mm[s, k],
+            true_xyz,
+            diameter,
+            rng=_noise_rng(params, acq, s, k),
+            raster=rasters[o],
         )
         meta = {
             "format": "simulated",
@@ -112,6 +134,9 @@ def _render_system(params: SimulateParams, acq: Acquisition, s: int, true_xyz, d
             "ImagerPixelSpacing": [params.pixel_pitch_mm, params.pixel_pitch_mm],
             "DistanceSourceToDetector": system.source_image_distance_mm,
         }
+        if o >= 0:
+            orientation = acq.orientations[o]
+            meta.update(orientation=orientation.name, orbit_deg=orientation.orbit_deg, tilt_deg=orientation.tilt_deg)
         rendered.append(
             Radiograph(image.astype(np.float32), params.bit_depth, f"simulated/{system.name}/frame_{k:03d}", 0, meta)
         )
