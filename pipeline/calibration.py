@@ -150,7 +150,7 @@ def _system_from_doc(s: dict, path: Path) -> "SystemCalibration":
         s["name"],
         (w, h),
         np.array([iop["xp"], iop["yp"], iop["c"]], dtype=float),
-        np.array(s.get("iop_std_px", [0.0, 0.0, 0.0]), dtype=float),
+        np.array([np.nan if v is None else v for v in s.get("iop_std_px", [0.0, 0.0, 0.0])], dtype=float),
         np.array(s["rop"]["q_cam_from_ref"], dtype=float),
         np.array(s["rop"]["source_in_ref_camera_mm"], dtype=float),
         field,
@@ -271,7 +271,7 @@ class Calibration:
                 "name": name,
                 "image_size_px": list(s.image_size_px),
                 "iop_px": dict(zip(("xp", "yp", "c"), map(float, s.iop_px))),
-                "iop_std_px": [float(v) for v in s.iop_std_px],
+                "iop_std_px": [float(v) if np.isfinite(v) else None for v in s.iop_std_px],
                 "rop": {
                     "q_cam_from_ref": [float(v) for v in s.rop_q],
                     "source_in_ref_camera_mm": [float(v) for v in s.rop_source_mm],

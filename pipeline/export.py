@@ -98,7 +98,7 @@ def _stage_tables(runner, out_dir: Path | None = None) -> list[Path]:
     return written
 
 
-def _fluorocal_version() -> str:
+def fluorocal_version() -> str:
     try:
         return version("fluorocal")
     except PackageNotFoundError:
@@ -126,7 +126,7 @@ def calibration_from_result(runner, result):
     ]
     exposures = {int(e): (q, t) for e, q, t in zip(adj.exposure, adj.q_cam_from_obj, adj.source_mm)}
     meta = {
-        "fluorocal_version": _fluorocal_version(),
+        "fluorocal_version": fluorocal_version(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "config": str(runner.config.path),
         "scheme": result.scheme,
@@ -160,6 +160,10 @@ def export_calibration(runner, out_dir: Path | None = None) -> list[Path]:
     excluded = failed_frames(runner.units, labels)
     if excluded:
         log.warning("%d frame(s) excluded, labelling failed: %s", len(excluded), "; ".join(excluded))
+    if runner.config.phantom.lattice:
+        from fluorocal.export_plate import export_plate
+
+        return export_plate(runner, result, obs, excluded, out_dir)
     adj = result.adjustment
     cal = calibration_from_result(runner, result)
     written = cal.save(inside(out_dir, "calibration.json"))

@@ -10,6 +10,7 @@ from fluorocal.stages.errors import InputError
 from fluorocal.stages.geometry import quat_to_matrix
 from fluorocal.stages.label.frame import label_beads, label_frame
 from fluorocal.stages.label.labels import Labels
+from fluorocal.stages.label.lattice_sequence import number_lattice_sequence
 from fluorocal.stages.label.params import LabelParams
 
 # the turntable axis is estimated from the sequence once its labelled frames span this turn
@@ -74,6 +75,8 @@ def label_sequence(
         if not out[i].ok and prior is not None:
             out[i] = run(i, prior)
         prior = keep(i) or prior
+    if phantom.lattice:  # one numbering of the plate's holes across the frames
+        return number_lattice_sequence(out, phantom.lattice, phantom.pitch_mm)
     return tuple(out)
 
 
