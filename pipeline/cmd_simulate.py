@@ -318,7 +318,12 @@ def _orientation_lines(data, system: str, suffix: str) -> list[str]:
 
     acq = data.truth.acquisition
     if not acq.orientations:
-        return []
+        if data.params.phantom != "grid":
+            return []
+        # a plate moved by hand between frames at one C-arm position: the frames share one field
+        return [
+            'orientations = [{name = "centred", frames = "frames/' + system + "/*" + suffix + '", orbit = 0, tilt = 0}]'
+        ]
     lines = ["orientations = ["]
     for i, o in enumerate(acq.orientations):
         files = ", ".join(

@@ -22,7 +22,9 @@ class Groups:
 
 
 def frame_orientations(observations, orientations) -> Groups:
-    """Group the frames into orientations, numbered per system in order of first appearance.
+    """Group the labelled frames into orientations, numbered in order of first appearance.
+
+    An orientation none of whose frames was labelled gets no field (its frames are reported as failed).
 
     Raises
     ------
@@ -31,7 +33,10 @@ def frame_orientations(observations, orientations) -> Groups:
     """
     names, systems, angles, of_frame = [], [], [], {}
     index: dict[tuple[int, str], int] = {}
+    frames = set(zip(observations.system.tolist(), observations.exposure.tolist()))
     for system, exposure, name, orbit, tilt in orientations:
+        if (int(system), int(exposure)) not in frames:
+            continue
         key = (int(system), str(name))
         pair = (np.nan if orbit is None else float(orbit), np.nan if tilt is None else float(tilt))
         if key not in index:
@@ -42,7 +47,6 @@ def frame_orientations(observations, orientations) -> Groups:
         elif not np.allclose(angles[index[key]], pair, equal_nan=True):
             raise InputError(f"orientation {name!r} is given two sets of angles: {angles[index[key]]} and {pair}")
         of_frame[(int(system), int(exposure))] = index[key]
-    frames = set(zip(observations.system.tolist(), observations.exposure.tolist()))
     missing = sorted(frames - set(of_frame))
     if missing:
         raise InputError(f"frames (system, exposure) {missing[:5]} have no orientation")

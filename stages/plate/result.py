@@ -95,8 +95,9 @@ class PlateCalibration:
         before = float(np.sqrt(np.mean(self.initial_residual_px[inl] ** 2))) if inl.any() else float("nan")
         after = float(np.sqrt(np.mean(self.residual_px[inl] ** 2))) if inl.any() else float("nan")
         est = self.plate_estimated
+        rms_mm = float(np.sqrt(np.mean(self.plate_error_mm[est] ** 2))) if est.any() else 0.0
         plate = (
-            f"plate errors {float(np.sqrt(np.mean(self.plate_error_mm[est] ** 2))):.4f} mm RMS over {int(est.sum())} holes"
+            f"plate errors {rms_mm:.4f} mm RMS over {int(est.sum())} holes"
             if est.any()
             else "plate taken as nominal (one frame per hole)"
         )

@@ -109,7 +109,7 @@ class PlateProblem:
 
 @dataclass(frozen=True)
 class SolveSettings:
-    """How :func:`solve_plate` models the plate and the fields (set from :class:`~fluorocal.stages.plate.PlateParams`)."""
+    """How :func:`solve_plate` models the plate and the fields (from :class:`~fluorocal.stages.plate.PlateParams`)."""
 
     grid: GridSpec
     orders: tuple
@@ -319,14 +319,8 @@ def _smoothness(problem, target, var, base, devs, settings: SolveSettings) -> tu
     chosen_base = cv(problem.xy_px, target - _at(problem, devs), var, settings.grid)
     if problem.n_orientations == 1:
         return chosen_base, settings.start_smoothness
-    rest = target - base.correction_at(problem.xy_px)
     # one prior for every orientation's deviation: each is a smooth effect of the same cause
-    return chosen_base, cv(problem.xy_px, rest - _orientation_means(problem, rest), var, _deviation_grid(settings))
-
-
-def _orientation_means(problem, values) -> np.ndarray:
-    """Nothing: the deviations are cross-validated on the residuals as they are (kept for clarity of intent)."""
-    return np.zeros_like(values)
+    return chosen_base, cv(problem.xy_px, target - base.correction_at(problem.xy_px), var, _deviation_grid(settings))
 
 
 def _base_field(problem, target, var, settings: SolveSettings, smoothness) -> CorrectionField:
@@ -395,7 +389,7 @@ def _plate_errors(problem, fields, fit, estimated, plate_sigma_mm, plate_norm) -
 
 
 def _largest_change_px(problem, fields, new_fields, error_mm, new_error, H) -> float:
-    """RMS change of the corrections at the centres, or of the plate errors seen in the image, whichever is larger (px)."""
+    """RMS change of the corrections at the centres or of the plate errors seen in the image, the larger (px)."""
     change = _corrected(problem, fields) - _corrected(problem, new_fields)
     px_per_mm = float(np.sqrt(np.abs(np.linalg.det(H[:, :2, :2]))).mean())
     plate = (new_error - error_mm) * px_per_mm
