@@ -142,12 +142,12 @@ def _learn_extras(config, units) -> dict:
         scheme=config.scheme,
         image_size_px=tuple(sizes),
         iop_guess_px=tuple(guesses),
-        orientations=_plate_orientations(config, units),
+        orientations=plate_orientations(config, units),
     )
     return {"setup": setup, "solver": solver, "selection": selection, "plate": plate}
 
 
-def _plate_orientations(config, units) -> tuple:
+def plate_orientations(config, units) -> tuple:
     """A grid plate's ``(system, exposure, orientation, orbit_deg, tilt_deg)`` per frame; () for a 3D phantom.
 
     Raises

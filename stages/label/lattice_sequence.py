@@ -118,7 +118,7 @@ def match_fingerprints(frame: Fingerprint, reference: Fingerprint, lattice: str)
 
 
 def _best_shift(ij, offset, ij_ref, offset_ref, n_best: int = 3):
-    """The ``n_best`` shifts ``t`` (and their correlations) best aligning ``offset`` at ``ij + t`` with the reference."""
+    """The ``n_best`` shifts ``t``, and their correlations, that align ``offset`` at ``ij + t`` with the reference."""
     lo = np.minimum(ij.min(0), ij_ref.min(0))
     size = np.maximum(ij.max(0), ij_ref.max(0)) - lo + 1
     shape = tuple(int(v) for v in 2 * size)

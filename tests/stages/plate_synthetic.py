@@ -25,7 +25,7 @@ def distortion_px(xy: np.ndarray, angle: float = 0.0) -> np.ndarray:
     u, v = (xy[:, 0] - c) / c, (xy[:, 1] - c) / c
     r2 = u * u + v * v
     radial = 3.0 * r2 + 0.8 * np.sin(3 * u) * np.cos(2 * v)
-    s = 0.6 * np.sin(angle) * r2
+    s = 1.5 * np.sin(angle) * r2 * r2
     return np.column_stack([radial * u - s * v, radial * v + s * u])
 
 

@@ -1,0 +1,164 @@
+"""`fluorocal run` on grid plates: a simulated sequence against its truth, and the real ARCADIS frames.
+
+The real frames (../shared/data, skipped when absent) carry the issue's targets: each frame's holes,
+scored on alternate lattice rows left out of the fit, against the plate's self-calibrated layout by a
+homography, within 0.06 px RMS; and the README's walk-through: one orientation's grid frame calibrates,
+the spine frame is undistorted.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fluorocal import Calibration
+from fluorocal.cli import main
+
+from tests.stages.plate_truth import field_error_px, truth_field
+
+REAL_ORIENTATIONS = {
+    "centred": ("grid_centered_0.dcm", 0, 0),
+    "orbit30": ("grid_orbit_30.dcm", 30, 0),
+    "tilt15": ("grid_tilt_15.dcm", 0, 15),
+    "tilt30": ("grid_tilt_30.dcm", 0, 30),
+    "tilt45": ("grid_tilt_45.dcm", 0, 45),
+    "tilt60": ("grid_tilt_60.dcm", 0, 60),
+}
+
+
+def real_grid_config(folder: Path, arcadis: Path, names) -> Path:
+    """A project on the real grid frames of the named orientations (the DICOMs record no angles: given here)."""
+    groups = ",\n".join(
+        f'  {{name = "{n}", frames = ["{arcadis / REAL_ORIENTATIONS[n][0]}"], orbit = {REAL_ORIENTATIONS[n][1]}, '
+        f"tilt = {REAL_ORIENTATIONS[n][2]}}}"
+        for n in names
+    )
+    frames = ", ".join(f'"{arcadis / REAL_ORIENTATIONS[n][0]}"' for n in names)
+    text = (
+        '[phantom]\nlattice = "hex"\npitch = 3.3\n\n[[systems]]\nname = "arcadis"\n'
+        f"frames = [{frames}]\nsource_image_distance = 1000\npixel_pitch = 0.21\norientations = [\n{groups}\n]\n"
+    )
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "fluorocal.toml").write_text(text)
+    return folder / "fluorocal.toml"
+
+
+@pytest.fixture(scope="module")
+def simulated_grid(tmp_path_factory):
+    """A simulated plate moved by hand between three 1024² frames at one C-arm orientation, calibrated once.
+
+    (A 512 px frame cannot resolve the holes.)
+    """
+    from fluorocal.cmd_simulate import write_dataset
+    from fluorocal.stages.simulate import SimulateParams, simulate
+
+    root = tmp_path_factory.mktemp("grid") / "project"
+    params = SimulateParams(phantom="grid", n_frames=3, seed=4)
+    write_dataset(simulate(params), root)
+    assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
+    return root
+
+
+def test_simulated_grid_outputs(simulated_grid):
+    out = simulated_grid / "out"
+    doc = json.loads((out / "calibration.json").read_text())
+    (system,) = doc["systems"]
+    assert [o["name"] for o in system["orientations"]] == ["centred"]
+    assert system["iop_std_px"] == [None, None, None]  # a plate fixes no interior orientation: said, not faked
+    assert "not estimated" in doc["interior_orientation"]
+    report = (out / "report.md").read_text()
+    assert "The plate's own errors, estimated" in report
+    rows = (out / "object_points.csv").read_text().splitlines()
+    assert rows[0] == "id,x,y,z,sx,sy,sz" and len(rows) > 500
+
+
+def test_simulated_grid_fields_match_truth(simulated_grid):
+    truth = json.loads((simulated_grid / "truth.json").read_text())
+    cal = Calibration.load(simulated_grid / "out" / "calibration.json")
+    size = truth["image_size_px"]
+    true = truth_field(truth["systems"][0]["correction_grid"], size, size)
+    # the issue's target for a field: within 0.05 px of the truth modulo a homography
+    assert field_error_px(cal.field("A", "centred"), true, truth["fov"]) < 0.05
+
+
+def test_real_grid_frames_held_out_rows(arcadis_dir, tmp_path):
+    """The issue's real-data target on two of the six frames (each scored twice: even rows out, odd rows out)."""
+    from fluorocal.cache import ArtifactCache
+    from fluorocal.config import load_config
+    from fluorocal.gather import observations_from_labels
+    from fluorocal.graph import default_stages, plate_orientations
+    from fluorocal.run import Runner
+    from fluorocal.stages.label.lattice import lattice_index
+    from fluorocal.stages.plate import PlateParams
+    from fluorocal.stages.plate.holdout import holdout_score
+    from fluorocal.stages.plate.problem import frame_orientations, plate_problem
+
+    config = load_config(real_grid_config(tmp_path, arcadis_dir, list(REAL_ORIENTATIONS)))
+    runner = Runner(config, default_stages(), ArtifactCache(config.cache_dir), until="label", progress=False)
+    runner.run()
+    labels = [runner.get("label", u) for u in range(len(runner.units))]
+    assert all(lab.ok for lab in labels)
+    obs = observations_from_labels(runner.units, labels, config)
+    groups = frame_orientations(obs, plate_orientations(config, runner.units))
+    problem, index = plate_problem(obs, config.phantom, 0, groups, (1024, 1024))
+    row = lattice_index(index["hole_ids"])[:, 1]
+    score = holdout_score(problem, PlateParams().settings(config.phantom.pitch_mm, True), row, frames=[0, 4])
+    # the issue: <= 0.06 px RMS on held-out holes; against the nominal lattice every peer is stuck at >= 0.165
+    assert score.rms(score.residual_px) < 0.06
+    assert score.rms(score.nominal_residual_px) > 0.15
+
+
+def test_real_walkthrough_grid_to_spine(arcadis_dir, tmp_path):
+    """README: the centred grid frame calibrates its orientation; the spine frame and the grid frame are undistorted."""
+    config = real_grid_config(tmp_path / "project", arcadis_dir, ["centred"])
+    assert main(["--quiet", "run", str(config)]) == 0
+    cal_path = tmp_path / "project" / "out" / "calibration.json"
+    out = tmp_path / "undistorted"
+    spine, grid = arcadis_dir / "spine_centered_0.dcm", arcadis_dir / "grid_centered_0.dcm"
+    assert (
+        main(
+            [
+                "--quiet",
+                "undistort",
+                "--calibration",
+                str(cal_path),
+                "--system",
+                "arcadis",
+                "--orientation",
+                "centred",
+                "--out",
+                str(out),
+                str(spine),
+                str(grid),
+            ]
+        )
+        == 0
+    )
+    from fluorocal.stages.io import read_frames
+
+    written = read_frames(out / "spine_centered_0.dcm")[0]
+    source = read_frames(spine)[0]
+    assert written.image.shape == source.image.shape and written.bit_depth == source.bit_depth
+    # the undistorted grid frame: its holes lie on a homography of the lattice to within the plate's own errors
+    # (0.19 px per component on this plate), where the raw frame is 1.5 px off
+    assert _lattice_rms_px(out / "grid_centered_0.dcm") < 0.3
+    assert _lattice_rms_px(grid) > 1.0
+
+
+def _lattice_rms_px(path: Path) -> float:
+    """RMS per component of the frame's holes about the best homography of the nominal lattice, px."""
+    import cv2
+    from fluorocal.stages.artifacts import Phantom
+    from fluorocal.stages.centroid import CentroidParams, centroid_beads
+    from fluorocal.stages.detect import DetectParams, detect_beads
+    from fluorocal.stages.io import read_frames
+    from fluorocal.stages.label import LabelParams, label_beads
+
+    frame = read_frames(path)[0]
+    centroids = centroid_beads(frame, detect_beads(frame, DetectParams()), CentroidParams())
+    labels = label_beads(centroids, Phantom([], [], [], [], "hex", 3.3), LabelParams(image_size_px=(1024, 1024)))
+    H, _ = cv2.findHomography(labels.object_xyz_mm[:, :2], labels.xy_px, 0)
+    mapped = cv2.perspectiveTransform(labels.object_xyz_mm[None, :, :2], H)[0]
+    return float(np.sqrt(np.mean((labels.xy_px - mapped) ** 2)))
