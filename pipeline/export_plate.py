@@ -182,13 +182,21 @@ def _orientation_of_obs(result, obs) -> np.ndarray:
 
 
 def _smoothness_lines(result) -> list[str]:
-    return [
-        f"System {name}: the field common to its orientations has a difference prior of order "
-        f"{result.smoothness_order[s, 0]}, τ = {result.smoothness_tau_px[s, 0]:g} px; each orientation's deviation "
-        f"from it order {result.smoothness_order[s, 1]}, τ = {result.smoothness_tau_px[s, 1]:g} px "
-        "(both chosen by cross-validation)."
-        for s, name in enumerate(result.system_names)
-    ]
+    lines = []
+    for s, name in enumerate(result.system_names):
+        line = (
+            f"System {name}: the field common to its orientations has a difference prior of order "
+            f"{result.smoothness_order[s, 0]}, τ = {result.smoothness_tau_px[s, 0]:g} px"
+        )
+        if (result.orientation_system == s).sum() > 1:
+            line += (
+                f"; each orientation's deviation from it order {result.smoothness_order[s, 1]}, "
+                f"τ = {result.smoothness_tau_px[s, 1]:g} px (both chosen by cross-validation)."
+            )
+        else:
+            line += " (chosen by cross-validation); one orientation, so no deviation from it."
+        lines.append(line)
+    return lines
 
 
 def _plate_lines(result, pitch_mm: float) -> list[str]:

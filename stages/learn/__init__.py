@@ -138,6 +138,7 @@ def learn_calibration(
             image_size_px=setup.image_size_px,
             orientations=setup.orientations,
             learn_fields=setup.scheme != "none",
+            solver=solver,
         )
     initial = start_orientation(observations, phantom, setup.iop_guess_px)
     return calibrate(

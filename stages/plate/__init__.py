@@ -25,12 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.learn.nodes import GridSpec
-from fluorocal.stages.plate.problem import frame_orientations, plate_problem
+from fluorocal.stages.plate.problem import frame_orientations, plate_problem, stacked
 from fluorocal.stages.plate.result import PlateCalibration
 from fluorocal.stages.plate.solve import PlateProblem, PlateSolution, SolveSettings, solve_plate
-
-#: squared standardised residual beyond which an observation counts as an outlier (2 dof, 0.1 %)
-OUTLIER_CHI2 = 13.8
 
 
 @dataclass(frozen=True)
@@ -52,8 +49,6 @@ class PlateParams:
     plate_sigma_pitch : float
         Prior standard deviation of a hole's manufacturing error, in pitches (default 0.02: a drilled
         plate is good to a few hundredths of a millimetre at a pitch of a few millimetres).
-    nu : float
-        Degrees of freedom of the Student-t likelihood (default 4, the adjustment's).
     max_iterations : int
         Cap on the alternation (default 30).
     tolerance_px : float
@@ -66,15 +61,15 @@ class PlateParams:
     smoothness_orders: tuple[int, ...] = (3,)
     tau_grid_px: tuple[float, ...] = (0.03, 0.1, 0.3, 1.0)
     plate_sigma_pitch: float = 0.02
-    nu: float = 4.0
     max_iterations: int = 30
     tolerance_px: float = 1e-3
 
     def __post_init__(self):
         object.__setattr__(self, "smoothness_orders", tuple(int(o) for o in self.smoothness_orders))
         object.__setattr__(self, "tau_grid_px", tuple(float(t) for t in self.tau_grid_px))
-        if not self.spacing_px > 0 or not self.plate_sigma_pitch > 0 or not self.nu > 0 or not self.tolerance_px > 0:
-            raise InputError("spacing_px, plate_sigma_pitch, nu and tolerance_px must be > 0")
+        positive = ("spacing_px", "orientation_spacing_px", "plate_sigma_pitch", "tolerance_px")
+        if not all(getattr(self, name) > 0 for name in positive):
+            raise InputError(f"{', '.join(positive)} must be > 0")
         if not self.tau_grid_px or min(self.tau_grid_px) <= 0:
             raise InputError(f"tau_grid_px must be positive values; got {self.tau_grid_px}")
         if not self.smoothness_orders or not set(self.smoothness_orders) <= {1, 2, 3, 4}:
@@ -82,8 +77,13 @@ class PlateParams:
         if int(self.max_iterations) < 1:
             raise InputError(f"max_iterations must be >= 1; got {self.max_iterations}")
 
-    def settings(self, pitch_mm: float, estimate_plate: bool, learn_fields: bool = True) -> SolveSettings:
-        """The solve's settings for a plate of ``pitch_mm`` (no field at all unless ``learn_fields``)."""
+    def settings(
+        self, pitch_mm: float, estimate_plate: bool, learn_fields: bool = True, nu: float = 4.0
+    ) -> SolveSettings:
+        """The solve's settings for a plate of ``pitch_mm`` (no field at all unless ``learn_fields``).
+
+        ``nu``: the Student-t degrees of freedom, the adjustment's (``[adjust] nu``).
+        """
         return SolveSettings(
             grid=GridSpec(spacing_px=self.spacing_px, support_radius_px=2 * self.spacing_px),
             orders=self.smoothness_orders,
@@ -92,14 +92,14 @@ class PlateParams:
             deviation_spacing_px=self.orientation_spacing_px,
             plate_sigma_mm=self.plate_sigma_pitch * pitch_mm,
             estimate_plate=estimate_plate,
-            nu=self.nu,
+            nu=nu,
             max_iterations=int(self.max_iterations) if learn_fields else 0,
             tolerance_px=self.tolerance_px,
         )
 
 
 def calibrate_plate(
-    observations, phantom, params: PlateParams, *, image_size_px, orientations, learn_fields: bool = True
+    observations, phantom, params: PlateParams, *, image_size_px, orientations, learn_fields: bool = True, solver=None
 ) -> PlateCalibration:
     """Self-calibrate a grid plate and one correction field per orientation, per system.
 
@@ -116,6 +116,8 @@ def calibrate_plate(
         ``(system, exposure, orientation name, orbit_deg, tilt_deg)`` of every frame.
     learn_fields : bool
         False: homographies of the nominal plate only, no field and no plate errors (scheme ``none``).
+    solver : SolverOptions, optional
+        The adjustment's likelihood (``nu``) and outlier rule (``outlier_weight``), from ``[adjust]``.
 
     Returns
     -------
@@ -130,26 +132,21 @@ def calibrate_plate(
     """
     if not phantom.lattice:
         raise InputError("calibrate_plate needs a grid plate (phantom.lattice 'hex' or 'square')")
+    from fluorocal.stages.adjust import SolverOptions
+
+    solver = SolverOptions() if solver is None else solver
     t0 = time.perf_counter()
     groups = frame_orientations(observations, orientations)
     parts = []
     for s in range(len(observations.system_names)):
         problem, index = plate_problem(observations, phantom, s, groups, image_size_px[s])
         estimate = learn_fields and len(np.unique(problem.frame)) > 1
-        settings = params.settings(phantom.pitch_mm, estimate, learn_fields)
+        settings = params.settings(phantom.pitch_mm, estimate, learn_fields, solver.nu)
         parts.append((problem, index, solve_plate(problem, settings)))
-    return _result(observations, groups, parts, params, time.perf_counter() - t0)
-
-
-def _result(observations, groups, parts, params: PlateParams, wall_time_s: float) -> PlateCalibration:
-    """Stack the systems' solutions into one artifact, observations back in their input order."""
-    from fluorocal.stages.plate.problem import stacked
-
-    return stacked(observations, groups, parts, wall_time_s, OUTLIER_CHI2)
+    return stacked(observations, groups, parts, time.perf_counter() - t0, solver.outlier_weight)
 
 
 __all__ = [
-    "OUTLIER_CHI2",
     "PlateCalibration",
     "PlateParams",
     "PlateProblem",

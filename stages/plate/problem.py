@@ -87,8 +87,11 @@ def plate_problem(observations, phantom, system: int, groups: Groups, image_size
     return problem, {"rows": rows, "exposures": exposures, "hole_ids": hole_ids, "orientations": orientations}
 
 
-def stacked(observations, groups: Groups, parts, wall_time_s: float, outlier_chi2: float) -> PlateCalibration:
-    """One :class:`PlateCalibration` of the systems' ``(problem, index, solution)``, rows in input order."""
+def stacked(observations, groups: Groups, parts, wall_time_s: float, outlier_weight: float) -> PlateCalibration:
+    """One :class:`PlateCalibration` of the systems' ``(problem, index, solution)``, rows in input order.
+
+    An observation is an outlier when its Student-t weight is below ``outlier_weight`` (the adjustment's rule).
+    """
     n = len(observations.system)
     residual, initial, weight = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n)
     fields = [None] * len(groups.names)
@@ -119,8 +122,7 @@ def stacked(observations, groups: Groups, parts, wall_time_s: float, outlier_chi
                 sol.plate_estimated,
             )
         )
-    nu_weight = weight.max(initial=1.0)  # the t weight of a zero residual, (ν + 2) / ν
-    inlier = weight >= nu_weight * _weight_ratio_at(outlier_chi2, nu_weight)
+    inlier = weight >= outlier_weight
     f_sys, f_exp, f_or, H = (np.concatenate(c) for c in zip(*frames))
     h_sys, h_id, nominal, err, err_std, est = (np.concatenate(c) for c in zip(*holes))
     converged = all(sol.converged for _, _, sol in parts)
@@ -152,9 +154,3 @@ def stacked(observations, groups: Groups, parts, wall_time_s: float, outlier_chi
         float(wall_time_s),
         tuple(observations.system_names),
     )
-
-
-def _weight_ratio_at(chi2: float, zero_weight: float) -> float:
-    """Ratio of the t weight at squared standardised residual ``chi2`` to that at zero: ``ν / (ν + chi2)``."""
-    nu = 2.0 / (zero_weight - 1.0) if zero_weight > 1.0 else np.inf
-    return nu / (nu + chi2) if np.isfinite(nu) else 0.0
