@@ -22,6 +22,7 @@ Run: .venv/bin/python benchmarks/plate.py [--skip-sim] [--skip-real]   (about 5 
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import sys
@@ -70,20 +71,28 @@ def real_frames() -> None:
     poly_nom, poly_lay = _polynomial_peer(problem, row, 9, layout)
     names = [groups.names[o] for o in index["orientations"]]
     print("\n## Real ARCADIS grid frames: held-out alternate lattice rows, px per component (RMS)\n")
-    print("| frame | fluorocal vs self-calibrated layout | fluorocal vs nominal lattice "
-          "| fluorocal, plate taken as nominal | polynomial 9 vs nominal | polynomial 9 vs self-calibrated layout |")
+    print(
+        "| frame | fluorocal vs self-calibrated layout | fluorocal vs nominal lattice "
+        "| fluorocal, plate taken as nominal | polynomial 9 vs nominal | polynomial 9 vs self-calibrated layout |"
+    )
     print("|---|---|---|---|---|---|")
     per, per_nom = ours.per_frame(), nominal.per_frame()
     for f, name in enumerate(names):
         a, b = per[f]
-        print(f"| {name} | {a / np.sqrt(2):.4f} | {b / np.sqrt(2):.4f} | {per_nom[f][0] / np.sqrt(2):.4f} "
-              f"| {poly_nom[f]:.4f} | {poly_lay[f]:.4f} |")
+        print(
+            f"| {name} | {a / np.sqrt(2):.4f} | {b / np.sqrt(2):.4f} | {per_nom[f][0] / np.sqrt(2):.4f} "
+            f"| {poly_nom[f]:.4f} | {poly_lay[f]:.4f} |"
+        )
     rms = ours.rms(ours.residual_px) / np.sqrt(2)
-    print(f"| all | {rms:.4f} | {ours.rms(ours.nominal_residual_px) / np.sqrt(2):.4f} "
-          f"| {nominal.rms(nominal.residual_px) / np.sqrt(2):.4f} | {np.sqrt(np.mean(np.square(poly_nom))):.4f} "
-          f"| {np.sqrt(np.mean(np.square(poly_lay))):.4f} |")
-    print(f"\nheld-out RMS {rms:.4f} px per component ({rms * np.sqrt(2):.4f} px as a length): target <= 0.06 px: "
-          f"{'met' if rms * np.sqrt(2) <= 0.06 else 'NOT met'}; {2 * problem.n_frames} solves in {cpu:.1f} s CPU")
+    print(
+        f"| all | {rms:.4f} | {ours.rms(ours.nominal_residual_px) / np.sqrt(2):.4f} "
+        f"| {nominal.rms(nominal.residual_px) / np.sqrt(2):.4f} | {np.sqrt(np.mean(np.square(poly_nom))):.4f} "
+        f"| {np.sqrt(np.mean(np.square(poly_lay))):.4f} |"
+    )
+    print(
+        f"\nheld-out RMS {rms:.4f} px per component ({rms * np.sqrt(2):.4f} px as a length): target <= 0.06 px: "
+        f"{'met' if rms * np.sqrt(2) <= 0.06 else 'NOT met'}; {2 * problem.n_frames} solves in {cpu:.1f} s CPU"
+    )
 
 
 def _full_layout(problem, pitch_mm: float) -> np.ndarray:
@@ -138,9 +147,12 @@ def simulated(label: str, sim_args: dict) -> None:
         wall = time.perf_counter() - t0
         truth = json.loads((root / "truth.json").read_text())
         out = root / "out"
-        obs = np.genfromtxt(out / "observations.csv", delimiter=",", names=True, dtype=None, encoding=None)
-        first = obs["file"] == sorted(set(obs["file"]))[0]
-        match = true_layout(truth, np.column_stack([obs["x"][first], obs["y"][first]]), obs["id"][first])
+        with open(out / "observations.csv") as fh:
+            rows = list(csv.DictReader(fh))
+        first_file = min(r["file"] for r in rows)
+        first = [r for r in rows if r["file"] == first_file]
+        xy = np.array([[float(r["x"]), float(r["y"])] for r in first])
+        match = true_layout(truth, xy, np.array([int(r["id"]) for r in first]))
         pts = np.genfromtxt(out / "object_points.csv", delimiter=",", names=True)
         est = {int(i): (x, y, s) for i, x, y, s in zip(pts["id"], pts["x"], pts["y"], pts["sx"])}
         ids = [k for k in match if k in est]
@@ -158,9 +170,11 @@ def simulated(label: str, sim_args: dict) -> None:
             for o in orientations
         ]
     layout_est = layout_error_mm(E[estimated], T[estimated])
-    print(f"| {label} | {len(ids)} ({int(estimated.sum())} estimated) | {layout_est:.4f} "
-          f"| {layout_error_mm(E, T):.4f} | {layout_error_mm(N, T):.4f} | {max(field_err):.4f} "
-          f"| {np.mean(field_err):.4f} | {wall:.1f} |")
+    print(
+        f"| {label} | {len(ids)} ({int(estimated.sum())} estimated) | {layout_est:.4f} "
+        f"| {layout_error_mm(E, T):.4f} | {layout_error_mm(N, T):.4f} | {max(field_err):.4f} "
+        f"| {np.mean(field_err):.4f} | {wall:.1f} |"
+    )
 
 
 def main(argv=None) -> int:
@@ -175,8 +189,10 @@ def main(argv=None) -> int:
             print(f"real frames not present at {ARCADIS}: skipped")
     if not args.skip_sim:
         print("\n## Simulated plates (plate errors 0.02 mm), against the truth\n")
-        print("| set | holes matched | layout vs truth, estimated holes (mm) | layout vs truth, all (mm) "
-              "| nominal vs truth (mm) | field vs truth, worst orientation (px) | mean (px) | run wall (s) |")
+        print(
+            "| set | holes matched | layout vs truth, estimated holes (mm) | layout vs truth, all (mm) "
+            "| nominal vs truth (mm) | field vs truth, worst orientation (px) | mean (px) | run wall (s) |"
+        )
         print("|---|---|---|---|---|---|---|---|")
         simulated("plate moved by hand, 6 frames, one orientation (seed 5)", {"n_frames": 6, "seed": 5})
         orientations = ((0, 0), (0, 15), (0, 30), (0, 45), (0, 60), (30, 0))

@@ -43,12 +43,16 @@ class PlateParams:
         (default 64: the change with orientation is smooth, the earth's field acting on the intensifier).
     smoothness_orders : tuple of int
         Candidate orders of the fields' difference prior (default ``(3,)``); with the weights
-        ``tau_grid_px``, chosen per orientation by 5-fold cross-validation.
+        ``tau_grid_px``, chosen by 5-fold cross-validation (a hole's observations in one fold), once for
+        the field common to the orientations and once for their deviations.
     tau_grid_px : tuple of float
         Candidate prior standard deviations, px (default 0.03, 0.1, 0.3, 1).
     plate_sigma_pitch : float
-        Prior standard deviation of a hole's manufacturing error, in pitches (default 0.02: a drilled
-        plate is good to a few hundredths of a millimetre at a pitch of a few millimetres).
+        Prior standard deviation of a hole's manufacturing error, in pitches (default 0.01: a drilled
+        plate is good to a few hundredths of a millimetre at a pitch of a few millimetres; the real
+        ARCADIS plate's errors are about 0.012 pitch). It decides what the frames determine only
+        weakly, the plate's smooth deformations, which it leaves to the fields: a looser prior lets
+        them drift into the layout (a simulated plate of 0.02 mm: 0.0064 mm off at 0.02, 0.0031 at 0.01).
     max_iterations : int
         Cap on the alternation (default 30).
     tolerance_px : float
@@ -60,7 +64,7 @@ class PlateParams:
     orientation_spacing_px: float = 64.0
     smoothness_orders: tuple[int, ...] = (3,)
     tau_grid_px: tuple[float, ...] = (0.03, 0.1, 0.3, 1.0)
-    plate_sigma_pitch: float = 0.02
+    plate_sigma_pitch: float = 0.01
     max_iterations: int = 30
     tolerance_px: float = 1e-3
 

@@ -195,8 +195,8 @@ def solve_plate(problem: PlateProblem, settings: SolveSettings) -> PlateSolution
         target, var = _targets(problem, fit, error_mm)
         if iteration == _CV_ITERATION:  # chosen once the plate's errors are mostly out of the residuals
             smoothness = _smoothness(problem, target, var, base, devs, settings)
-        base = _base_field(problem, target - _at(problem, devs), var, settings, smoothness[0])
-        devs = _deviations(problem, target - base.correction_at(problem.xy_px), var, settings, smoothness[1])
+        base = _base_field(problem, target - _at(problem, devs), var, settings, smoothness[0], devs)
+        devs = _deviations(problem, target - base.correction_at(problem.xy_px), var, settings, smoothness[1], base)
         new_fields = _combined(base, devs)
         new_error, error_std_mm = _plate_errors(
             problem, new_fields, fit, estimated, settings.plate_sigma_mm, plate_norm
@@ -323,16 +323,18 @@ def _smoothness(problem, target, var, base, devs, settings: SolveSettings) -> tu
     return chosen_base, cv(problem.xy_px, target - base.correction_at(problem.xy_px), var, _deviation_grid(settings))
 
 
-def _base_field(problem, target, var, settings: SolveSettings, smoothness) -> CorrectionField:
+def _base_field(problem, target, var, settings: SolveSettings, smoothness, devs) -> CorrectionField:
     """The field common to every orientation, fitted to all frames, less its homography (the datum)."""
     order, tau = smoothness
     field = fit_grid_field(
         problem.xy_px, target, var, image_size=problem.image_size, tau_px=tau, grid=settings.grid, order=order
     )
-    return _without_homography(field, problem.xy_px)
+    mean_dev = np.mean([dev.delta_px for dev in devs], axis=0)
+    rest = devs[0].with_delta(mean_dev).correction_at  # the orientations' mean deviation
+    return _without_homography(field, problem.xy_px, rest)
 
 
-def _deviations(problem, target, var, settings: SolveSettings, smoothness) -> tuple:
+def _deviations(problem, target, var, settings: SolveSettings, smoothness, base: CorrectionField) -> tuple:
     """Each orientation's smooth deviation from the base field, less its homography; zero with one orientation."""
     if problem.n_orientations == 1:
         return _zero_deviations(problem, settings)
@@ -350,16 +352,25 @@ def _deviations(problem, target, var, settings: SolveSettings, smoothness) -> tu
             grid=grid,
             order=order,
         )
-        out.append(_without_homography(field, problem.xy_px[sel]))
+        out.append(_without_homography(field, problem.xy_px[sel], base.correction_at))
     return tuple(out)
 
 
-def _without_homography(field: CorrectionField, xy_px: np.ndarray) -> CorrectionField:
-    """The field less its least-squares homography component at ``xy_px`` (the datum)."""
-    norm = Normaliser.of(xy_px)
-    B = homography_modes(norm.forward(xy_px)).reshape(-1, 8)
+def _without_homography(field: CorrectionField, xy_px: np.ndarray, rest) -> CorrectionField:
+    """The field less its least-squares homography component at ``xy_px`` (the datum).
+
+    What a frame's homography absorbs is a homography of the *ideal* image, ``m - Δ(m)``: the modes
+    are evaluated there, ``Δ`` being this field plus ``rest(xy)`` (the rest of the orientation's
+    correction). At the measured points instead, a distortion of many pixels would leave part of the
+    gauge free, and the alternation would drift along it into the plate's errors.
+    """
+    ideal = xy_px - field.correction_at(xy_px) - rest(xy_px)
+    nodes = field.nodes_px
+    ideal_nodes = nodes - field.correction_at(nodes) - rest(nodes)
+    norm = Normaliser.of(ideal)
+    B = homography_modes(norm.forward(ideal)).reshape(-1, 8)
     coef, *_ = np.linalg.lstsq(B, field.correction_at(xy_px).ravel(), rcond=None)
-    at_nodes = homography_modes(norm.forward(field.nodes_px)).reshape(-1, 8) @ coef
+    at_nodes = homography_modes(norm.forward(ideal_nodes)).reshape(-1, 8) @ coef
     return field.with_delta(field.delta_px - at_nodes.reshape(field.delta_px.shape))
 
 

@@ -59,9 +59,11 @@ def test_datum_no_homography_in_plate_errors_or_fields(moved_plate):
     coef = np.linalg.lstsq(modes, sol.plate_error_mm[est].ravel(), rcond=None)[0]
     # least-squares homography component of the errors: zero up to rounding (removed exactly each iteration)
     assert np.abs(modes @ coef).max() < 1e-9
-    xy = problem.xy_px
-    fmodes = homography_modes(Normaliser.of(xy).forward(xy)).reshape(-1, 8)
-    fcoef = np.linalg.lstsq(fmodes, sol.fields[0].correction_at(xy).ravel(), rcond=None)[0]
+    # the field's: a homography of the ideal image (what the frames' homographies absorb), modes at m - Δ(m)
+    delta = sol.fields[0].correction_at(problem.xy_px)
+    ideal = problem.xy_px - delta
+    fmodes = homography_modes(Normaliser.of(ideal).forward(ideal)).reshape(-1, 8)
+    fcoef = np.linalg.lstsq(fmodes, delta.ravel(), rcond=None)[0]
     assert np.abs(fmodes @ fcoef).max() < 1e-6
 
 
