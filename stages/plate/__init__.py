@@ -12,9 +12,9 @@ From one frame the plate is taken as nominal (its errors cannot be told from the
 further frame in which the plate sits elsewhere on the image (another orientation, or the plate moved)
 separates the two.
 
-Modules: :mod:`.homography` (normalisation, homography modes), :mod:`.problem` (observations indexed per
-system), :mod:`.solve` (the alternation), :mod:`.holdout` (the held-out score), :mod:`.result`
-(:class:`PlateCalibration`).
+Modules: :mod:`.homography` (normalisation, the homography modes of the datum), :mod:`.problem`
+(observations indexed per system), :mod:`.solve` (the alternation), :mod:`.holdout` (the held-out
+score), :mod:`.result` (:class:`PlateCalibration`).
 """
 
 from __future__ import annotations

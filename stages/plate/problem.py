@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from fluorocal.stages.errors import InputError
-from fluorocal.stages.label.lattice import lattice_xyz_mm
+from fluorocal.stages.label.lattice import lattice_index, lattice_xyz_mm
 from fluorocal.stages.plate.result import PlateCalibration
 from fluorocal.stages.plate.solve import PlateProblem
 
@@ -70,8 +70,6 @@ def plate_problem(observations, phantom, system: int, groups: Groups, image_size
     rows = rows[np.argsort(observations.exposure[rows], kind="stable")]
     exposures, frame = np.unique(observations.exposure[rows], return_inverse=True)
     hole_ids, hole = np.unique(observations.bead_id[rows], return_inverse=True)
-    from fluorocal.stages.label.lattice import lattice_index
-
     global_orient = np.array([groups.of_frame[(system, int(e))] for e in exposures])
     orientations, local = np.unique(global_orient, return_inverse=True)
     nominal = lattice_xyz_mm(lattice_index(hole_ids), phantom.lattice, phantom.pitch_mm)[:, :2]
