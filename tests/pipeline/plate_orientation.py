@@ -46,27 +46,37 @@ REAL_FRAMES = {
 }
 
 
-def write_real_project(root: Path, data_dir: Path) -> Path:
-    """A project config at ``root`` on the real grid frames of :data:`REAL_FRAMES`, with their angles.
+def write_project(path: Path, frames: dict, *, phantom: str, geometry: str, output_dir: str = "out") -> Path:
+    """A one-system project config at ``path``: one orientation per frame (name -> file), at :data:`ANGLES_DEG`.
 
-    The geometry is approximate (the DICOMs record none); a plate calibration needs only the pitch's
-    scale. Returns the config's path.
+    ``phantom`` and ``geometry`` are the TOML lines of ``[phantom]`` and of the system's geometry.
     """
-    files = {name: (Path(data_dir) / file).resolve() for name, file in REAL_FRAMES.items()}
     groups = ",\n".join(
         f"  {{name = {json.dumps(n)}, frames = [{json.dumps(str(f))}], orbit = {ANGLES_DEG[n][0]}, "
         f"tilt = {ANGLES_DEG[n][1]}}}"
-        for n, f in files.items()
+        for n, f in frames.items()
     )
-    frames = ", ".join(json.dumps(str(f)) for f in files.values())
-    text = (
-        '[phantom]\nlattice = "hex"\npitch = 3.3\n\n[[systems]]\nname = "arcadis"\n'
-        f"frames = [{frames}]\nsource_image_distance = 1000\npixel_pitch = 0.21\norientations = [\n{groups},\n]\n"
+    files = ", ".join(json.dumps(str(f)) for f in frames.values())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(
+        f'[phantom]\n{phantom}\n\n[[systems]]\nname = "A"\nframes = [{files}]\n{geometry}\n'
+        f"orientations = [\n{groups},\n]\n\n[output]\ndir = {json.dumps(output_dir)}\n"
     )
-    root.mkdir(parents=True, exist_ok=True)
-    path = root / "fluorocal.toml"
-    path.write_text(text)
     return path
+
+
+def write_real_project(root: Path, data_dir: Path) -> Path:
+    """A project config in ``root`` on the real grid frames of :data:`REAL_FRAMES`, with their angles.
+
+    The geometry is approximate (the DICOMs record none): a plate calibration needs only the pitch's
+    scale. Returns the config's path.
+    """
+    return write_project(
+        root / "fluorocal.toml",
+        {name: (Path(data_dir) / file).resolve() for name, file in REAL_FRAMES.items()},
+        phantom='lattice = "hex"\npitch = 3.3',
+        geometry="source_image_distance = 1000\npixel_pitch = 0.21",
+    )
 
 
 @dataclass(frozen=True)
@@ -175,6 +185,7 @@ class HeldOutFrame:
 
     name: str
     angles_deg: tuple  # (orbit, tilt)
+    hole_id: np.ndarray  # (M,) lattice ids
     xy_px: np.ndarray  # (M, 2) measured centres
     layout_mm: np.ndarray  # (M, 2) nominal + estimated plate error
 
@@ -198,7 +209,7 @@ def held_out_frame(seq: Sequence, cal, fields, name: str) -> HeldOutFrame:
     for f in fields:
         keep &= f.field.support_at(xy)
     k = k[keep]
-    return HeldOutFrame(name, seq.angles_of(name), xy[keep], cal.nominal_mm[k] + cal.plate_error_mm[k])
+    return HeldOutFrame(name, seq.angles_of(name), ids[keep], xy[keep], cal.nominal_mm[k] + cal.plate_error_mm[k])
 
 
 def nearest(fields, angles_deg, count: int = 2) -> list:
