@@ -142,7 +142,8 @@ def test_simulated_held_out_orientation_through_interpolation(simulated, name):
     reason="stages/plate's alternation does not settle on this sequence: its largest change falls to ~1e-3 px, "
     "then grows (a hole's plate error and a local field spike feed each other while the hole's other "
     "observations are down-weighted), and after 30 iterations the fields are ~0.10 px from the truth, "
-    "against ~0.033 px when stopped at iteration 8 (see the issue 12 orientation report)",
+    "against ~0.033 px when stopped at iteration 8 (benchmarks/orientation.py, and with --plate "
+    "max_iterations=8)",
 )
 @pytest.mark.parametrize("name", HELD_OUT)
 def test_simulated_interpolated_field_against_truth(simulated, name):
