@@ -148,7 +148,7 @@ def stacked(observations, groups: Groups, parts, wall_time_s: float, outlier_wei
         inlier,
         iterations,
         converged,
-        "converged" if converged else f"stopped after {iterations} iterations, still moving",
+        "; ".join(f"{observations.system_names[s]}: {sol.stop_reason}" for s, (_, _, sol) in enumerate(parts)),
         float(wall_time_s),
         tuple(observations.system_names),
     )

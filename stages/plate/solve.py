@@ -45,6 +45,8 @@ log = logging.getLogger(__name__)
 
 #: the alternation's iteration at which the fields' smoothness is cross-validated (before it: the start value)
 _CV_ITERATION = 3
+#: iterations without a smaller change after which the alternation stops at its best state
+_PATIENCE = 3
 
 
 @dataclass(frozen=True)
@@ -150,6 +152,7 @@ class PlateSolution:
         cross-validation.
     iterations : int
     converged : bool
+    stop_reason : str
     """
 
     fields: tuple
@@ -163,6 +166,7 @@ class PlateSolution:
     smoothness: tuple
     iterations: int
     converged: bool
+    stop_reason: str = ""
 
     def corrected(self, problem: PlateProblem) -> np.ndarray:
         """The problem's centres corrected by their orientation's field, ``m - Δ_o(m)`` ``(N, 2)`` px."""
@@ -186,8 +190,10 @@ def solve_plate(problem: PlateProblem, settings: SolveSettings) -> PlateSolution
     fields = _combined(base, devs)
     smoothness = (settings.start_smoothness, settings.start_smoothness)
     converged = settings.max_iterations == 0
+    stop = "no field: homographies only" if converged else f"{settings.max_iterations} iterations, still moving"
     iteration = 0
     initial = None
+    best = None  # (change, iteration, fields, error_mm, error_std_mm): the state nearest a fixed point
     for iteration in range(1, settings.max_iterations + 1):
         fit = _homographies(problem, fields, error_mm, settings.nu)
         if iteration == 1:
@@ -198,14 +204,23 @@ def solve_plate(problem: PlateProblem, settings: SolveSettings) -> PlateSolution
         base = _base_field(problem, target - _at(problem, devs), var, settings, smoothness[0], devs)
         devs = _deviations(problem, target - base.correction_at(problem.xy_px), var, settings, smoothness[1], base)
         new_fields = _combined(base, devs)
-        new_error, error_std_mm = _plate_errors(
-            problem, new_fields, fit, estimated, settings.plate_sigma_mm, plate_norm
-        )
+        new_error, new_std = _plate_errors(problem, new_fields, fit, estimated, settings.plate_sigma_mm, plate_norm)
         moved = _largest_change_px(problem, fields, new_fields, error_mm, new_error, fit.H)
-        fields, error_mm = new_fields, new_error
+        fields, error_mm, error_std_mm = new_fields, new_error, new_std
         log.debug("plate iteration %d: largest change %.2e px", iteration, moved)
-        if moved < settings.tolerance_px and iteration > _CV_ITERATION:
+        if iteration <= _CV_ITERATION:
+            continue
+        if best is None or moved < best[0]:
+            best = (moved, iteration, fields, error_mm, error_std_mm)
+        if moved < settings.tolerance_px:
             converged = True
+            stop = f"converged in {iteration} iterations (change {moved:.1e} px)"
+            break
+        if iteration - best[1] >= _PATIENCE:
+            # the change has stopped falling: robust weights and a thinly supported field feeding each
+            # other can make the alternation wander off; the state nearest a fixed point is kept
+            change, iteration, fields, error_mm, error_std_mm = best
+            stop = f"kept iteration {iteration}, nearest a fixed point (change {change:.1e} px; it rose after)"
             break
     fit = _homographies(problem, fields, error_mm, settings.nu)
     if initial is None:
@@ -224,6 +239,7 @@ def solve_plate(problem: PlateProblem, settings: SolveSettings) -> PlateSolution
         tuple(smoothness),
         iteration,
         converged,
+        stop,
     )
 
 
