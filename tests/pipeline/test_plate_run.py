@@ -162,3 +162,16 @@ def _lattice_rms_px(path: Path) -> float:
     H, _ = cv2.findHomography(labels.object_xyz_mm[:, :2], labels.xy_px, 0)
     mapped = cv2.perspectiveTransform(labels.object_xyz_mm[None, :, :2], H)[0]
     return float(np.sqrt(np.mean((labels.xy_px - mapped) ** 2)))
+
+
+def test_bead_phantom_with_several_orientations_is_refused(tmp_path, capsys):
+    """A bead phantom's system is one orientation (the phantom moves, the C-arm does not): groups are refused."""
+    from tests.pipeline.toy import make_project
+
+    groups = 'orientations = [{name = "a", frames = ["frames/f0.tif"]}, {name = "b", frames = "frames/f[12].tif"}]\n'
+    cfg = make_project(tmp_path, extra_toml=groups)
+    rc = main(["run", str(cfg)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "Traceback" not in err
+    assert "orientations" in err and "3D bead phantom" in err
+    assert not (tmp_path / "out").exists()
