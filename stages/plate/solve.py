@@ -252,11 +252,8 @@ def _estimable_holes(problem: PlateProblem) -> np.ndarray:
 
 
 def _corrected(problem: PlateProblem, fields) -> np.ndarray:
-    out = np.empty_like(problem.xy_px)
-    for o, field in enumerate(fields):
-        sel = problem.orientation == o
-        out[sel] = field.undistort_points(problem.xy_px[sel])
-    return out
+    """Each observation corrected by its orientation's field, ``m - Δ_o(m)`` ``(N, 2)`` px."""
+    return problem.xy_px - _at(problem, fields)
 
 
 def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -302,12 +299,12 @@ def _zero_deviations(problem: PlateProblem, settings: SolveSettings) -> tuple:
     )
 
 
-def _at(problem: PlateProblem, devs) -> np.ndarray:
-    """Each observation's orientation deviation ``(N, 2)`` px."""
+def _at(problem: PlateProblem, fields) -> np.ndarray:
+    """Each observation's value ``(N, 2)`` px of its orientation's field (one per orientation)."""
     out = np.zeros_like(problem.xy_px)
-    for o, dev in enumerate(devs):
+    for o, field in enumerate(fields):
         sel = problem.orientation == o
-        out[sel] = dev.correction_at(problem.xy_px[sel])
+        out[sel] = field.correction_at(problem.xy_px[sel])
     return out
 
 
