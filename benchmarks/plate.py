@@ -16,7 +16,7 @@
    error was estimated and over all), and each orientation's field against the true correction modulo
    a homography over the field of view, px per component (target <= 0.05 px).
 
-Run: .venv/bin/python benchmarks/plate.py [--skip-sim] [--skip-real]   (about 5 minutes here)
+Run: .venv/bin/python benchmarks/plate.py [--skip-sim] [--skip-real] [--plate KEY=VALUE ...]   (about 5 minutes here)
 """
 
 from __future__ import annotations
@@ -49,7 +49,6 @@ def real_frames() -> None:
     from fluorocal.graph import default_stages, plate_orientations
     from fluorocal.run import Runner
     from fluorocal.stages.label.lattice import lattice_index
-    from fluorocal.stages.plate import PlateParams
     from fluorocal.stages.plate.holdout import holdout_score
     from fluorocal.stages.plate.problem import frame_orientations, plate_problem
 
@@ -66,9 +65,9 @@ def real_frames() -> None:
     row = lattice_index(index["hole_ids"])[:, 1]
     pitch = config.phantom.pitch_mm
     t0 = time.process_time()
-    ours = holdout_score(problem, PlateParams().settings(pitch, True), row)
+    ours = holdout_score(problem, PLATE.settings(pitch, True), row)
     cpu = time.process_time() - t0
-    nominal = holdout_score(problem, PlateParams().settings(pitch, False), row)
+    nominal = holdout_score(problem, PLATE.settings(pitch, False), row)
     layout = _full_layout(problem, pitch)
     poly_nom, poly_lay = _polynomial_peer(problem, row, 9, layout)
     names = [groups.names[o] for o in index["orientations"]]
@@ -98,10 +97,9 @@ def real_frames() -> None:
 
 
 def _full_layout(problem, pitch_mm: float) -> np.ndarray:
-    from fluorocal.stages.plate import PlateParams
     from fluorocal.stages.plate.solve import solve_plate
 
-    sol = solve_plate(problem, PlateParams().settings(pitch_mm, True))
+    sol = solve_plate(problem, PLATE.settings(pitch_mm, True))
     return problem.nominal_mm + sol.plate_error_mm
 
 
@@ -144,6 +142,9 @@ def simulated(label: str, sim_args: dict) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "project"
         write_dataset(simulate(SimulateParams(phantom="grid", **sim_args)), root)
+        if PLATE_TOML:  # the --plate settings, as the project's [plate] section
+            with open(root / "fluorocal.toml", "a") as fh:
+                fh.write("\n[plate]\n" + PLATE_TOML)
         t0 = time.perf_counter()
         with contextlib.redirect_stdout(io.StringIO()):  # the run's own summary table is not the benchmark's
             assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
@@ -180,11 +181,30 @@ def simulated(label: str, sim_args: dict) -> None:
     )
 
 
+PLATE = None  # the [plate] settings of this run (--plate)
+PLATE_TOML = ""  # the same, as TOML lines
+
+
+def _plate_params(pairs):
+    """``PlateParams`` from ``KEY=VALUE`` strings (values as Python literals)."""
+    import ast
+
+    from fluorocal.stages.plate import PlateParams
+
+    return PlateParams(**{k: ast.literal_eval(v) for k, v in (p.split("=", 1) for p in pairs)})
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--skip-real", action="store_true", help="skip the real frames")
     ap.add_argument("--skip-sim", action="store_true", help="skip the simulated plates")
+    ap.add_argument(
+        "--plate", action="append", default=[], metavar="KEY=VALUE", help="a [plate] setting (default: none)"
+    )
     args = ap.parse_args(argv)
+    global PLATE, PLATE_TOML
+    PLATE = _plate_params(args.plate)
+    PLATE_TOML = "".join(f"{pair.split('=', 1)[0]} = {pair.split('=', 1)[1]}\n" for pair in args.plate)
     if not args.skip_real:
         if ARCADIS.is_dir():
             real_frames()

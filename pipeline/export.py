@@ -120,7 +120,7 @@ def calibration_from_result(runner, result):
             adj.iop_std_px[s],
             adj.rop_q[s],
             adj.rop_source_mm[s],
-            result.fields[s],
+            **_field_or_orientation(runner.config.systems[s], result.fields[s]),
         )
         for s, name in enumerate(names)
     ]
@@ -147,6 +147,16 @@ def calibration_from_result(runner, result):
         },
     }
     return Calibration(systems, exposures, meta)
+
+
+def _field_or_orientation(system, field) -> dict:
+    """A bead phantom's system is one orientation: named (with its angles) when the config's group names it."""
+    from fluorocal.stages.orientation import OrientationField
+
+    if len(system.orientations) != 1:
+        return {"field": field}
+    group = system.orientations[0]
+    return {"orientations": (OrientationField(group.name, group.orbit_deg, group.tilt_deg, field),)}
 
 
 def export_calibration(runner, out_dir: Path | None = None) -> list[Path]:

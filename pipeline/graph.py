@@ -132,6 +132,7 @@ def _learn_extras(config, units) -> dict:
         w, h = next(u.size_px for u in units if u.system == s)
         sizes.append((w, h))
         guesses.append(tuple(iop_guess((w, h), system.source_image_distance_mm, system.pixel_pitch_mm)))
+    _check_phantom_sections(config)
     solver, selection = params_from_dict(
         _section_classes("adjust"), config.stage_params.get("adjust", {}), where=f"{config.path.name}: [adjust] "
     )
@@ -145,6 +146,19 @@ def _learn_extras(config, units) -> dict:
         orientations=plate_orientations(config, units),
     )
     return {"setup": setup, "solver": solver, "selection": selection, "plate": plate}
+
+
+def _check_phantom_sections(config) -> None:
+    """Refuse the section of the other kind of phantom: ``[learn]`` for a grid plate, ``[plate]`` for a bead phantom."""
+    from fluorocal.stages.errors import InputError
+
+    unused = "learn" if config.phantom.lattice else "plate"
+    if unused in config.stage_params:
+        kind, owner = ("a grid plate", "[plate]") if config.phantom.lattice else ("a 3D bead phantom", "[learn]")
+        raise InputError(
+            f"{config.path.name}: [{unused}] does not apply to {kind} (its calibration's settings are in {owner}); "
+            f"remove the [{unused}] section"
+        )
 
 
 def plate_orientations(config, units) -> tuple:

@@ -280,7 +280,7 @@ def field_change(reference: CorrectionField, other: CorrectionField) -> FieldCha
     """How ``other`` differs from ``reference`` (same grid), as is and modulo a homography.
 
     The homography maps the reference's ideal node positions ``n - Δ_ref(n)`` onto the other's
-    ``n - Δ(n)`` by least squares (scikit-image's normalised DLT, ``ProjectiveTransform``); what remains is
+    ``n - Δ(n)`` by least squares (:func:`fluorocal.stages.geometry.homography_fit`); what remains is
     ``H(n - Δ_ref) - (n - Δ)``, equal to ``Δ - Δ_ref`` when ``H`` is the identity.
 
     Examples
@@ -290,7 +290,7 @@ def field_change(reference: CorrectionField, other: CorrectionField) -> FieldCha
     >>> round(c.max_px, 6), round(c.max_mod_h_px, 6)
     (0.5, 0.0)
     """
-    from skimage.transform import ProjectiveTransform
+    from fluorocal.stages.geometry import homography_fit
 
     check_same_grid([reference, other], "field_change")
     support = reference.support & other.support
@@ -299,10 +299,9 @@ def field_change(reference: CorrectionField, other: CorrectionField) -> FieldCha
     ideal_ref = nodes - reference.delta_px[support]
     ideal = nodes - other.delta_px[support]
     mod_h = np.full(support.shape + (2,), np.nan)
-    if len(nodes) >= 4:
-        h = ProjectiveTransform.from_estimate(ideal_ref, ideal)
-        if h:  # a failed estimate (degenerate nodes) is falsy
-            mod_h[support] = h(ideal_ref) - ideal
+    fit = homography_fit(ideal_ref, ideal)
+    if fit is not None:  # None: too few or degenerate nodes
+        mod_h[support] = -fit[1]
     rest = mod_h[support]
 
     def rms(d):

@@ -7,7 +7,7 @@ be read from the geometry alone once the plate moved by half a pitch or more (a 
 It can be read from the plate itself: its manufacturing errors (rows displaced, alternate rows offset,
 each hole off by a little) are the same in every frame, a fingerprint that moves with the plate.
 
-Each frame's fingerprint is what a homography and a smooth polynomial leave of its hole centres,
+Each frame's fingerprint is what a homography and a smooth field leave of its hole centres,
 mapped back onto the plate (:func:`fingerprint`). A frame is renumbered onto the first labelled frame's
 numbering by the lattice symmetry and shift under which the two fingerprints agree best: for each of the
 lattice's symmetries, one FFT cross-correlation over all shifts (:func:`match_fingerprints`). When the
@@ -18,12 +18,15 @@ otherwise it fails, with the reason.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
 from fluorocal.stages.label.labels import Labels, failed_labels
 from fluorocal.stages.label.lattice import lattice_basis, lattice_id, lattice_index, lattice_xyz_mm
 from fluorocal.stages.label.params import STATUS_REJECTED
+
+log = logging.getLogger(__name__)
 
 #: the geometric pairing is trusted when the holes moved less than this fraction of the pitch
 _MAX_MOVE_PITCH = 0.33
@@ -66,13 +69,14 @@ def fingerprint(labels: Labels, lattice: str) -> Fingerprint:
     few pitches; what it leaves is the plate's errors and the noise.
     """
     import cv2
+    from fluorocal.stages.geometry import homography_fit
     from fluorocal.stages.learn.grid import fit_grid_field
     from fluorocal.stages.learn.nodes import GridSpec
 
     ij = lattice_index(labels.bead_id)
     plate = ij @ lattice_basis(lattice).T  # plate coordinates in pitches
-    H, _ = cv2.findHomography(plate, labels.xy_px, 0)
-    mapped = cv2.perspectiveTransform(plate[None].astype(np.float64), H)[0]
+    H, residual = homography_fit(plate, labels.xy_px)
+    mapped = labels.xy_px - residual
     pitch_px = float(np.sqrt(abs(np.linalg.det(H[:2, :2]))))
     grid = GridSpec(spacing_px=_FINGERPRINT_SPACING_PITCH * pitch_px)
     size = tuple(int(np.ceil(v)) + 1 for v in labels.xy_px.max(axis=0))
@@ -146,6 +150,7 @@ def _best_shift(ij, offset, ij_ref, offset_ref, n_best: int = 3):
 def _renumbered(frame: Labels, reference: Labels, ref_print: Fingerprint, lattice: str, pitch_mm: float) -> Labels:
     """``frame`` on ``reference``'s numbering, or failed when neither its plate errors nor its position tell."""
     M, t, corr, margin = match_fingerprints(fingerprint(frame, lattice), ref_print, lattice)
+    log.info("plate fingerprint against the first frame: correlation %.3f, lead %.3f", corr, margin)
     ij = lattice_index(frame.bead_id)
     if corr >= _MIN_CORRELATION and margin >= _MIN_MARGIN:
         mapped = ij @ M.T + t
@@ -157,7 +162,7 @@ def _renumbered(frame: Labels, reference: Labels, ref_print: Fingerprint, lattic
                 frame.iop,
                 f"the plate moved by a third of a hole pitch or more from the first frame and its manufacturing "
                 f"errors are too small to follow it (fingerprint correlation {corr:.2f}, lead {margin:.2f}); "
-                "take the frames without moving the plate by hand, or use a plate with a marked hole",
+                "keep the plate still between frames (it may shift by less than a third of a pitch)",
                 "lattice",
             )
     return replace(frame, bead_id=lattice_id(mapped), object_xyz_mm=lattice_xyz_mm(mapped, lattice, pitch_mm))

@@ -39,6 +39,7 @@ Modules, one job each
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from fluorocal.stages.field import CorrectionField, PointwiseField, grid_nodes
 from fluorocal.stages.learn.adjuster import start_orientation
@@ -49,6 +50,9 @@ from fluorocal.stages.learn.loop import calibrate
 from fluorocal.stages.learn.nodes import GridSpec
 from fluorocal.stages.learn.params import PRESETS, SCHEMES, LearnParams
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
+
+if TYPE_CHECKING:  # the plate's modules import the learning's: imported where used (see learn_calibration)
+    from fluorocal.stages.plate import PlateCalibration
 
 VERSION = 1
 
@@ -102,7 +106,7 @@ class CalibrationSetup:
 
 def learn_calibration(
     observations, phantom, params: LearnParams, *, setup: CalibrationSetup, solver=None, selection=None, plate=None
-) -> LearnResult:
+) -> LearnResult | PlateCalibration:
     """Calibrate from labelled observations: start values by resection, then :func:`calibrate`.
 
     A grid plate is calibrated by :func:`fluorocal.stages.plate.calibrate_plate` instead (a field per

@@ -51,8 +51,8 @@ class PlateParams:
         Prior standard deviation of a hole's manufacturing error, in pitches (default 0.01: a drilled
         plate is good to a few hundredths of a millimetre at a pitch of a few millimetres; the real
         ARCADIS plate's errors are about 0.012 pitch). It decides what the frames determine only
-        weakly, the plate's smooth deformations, which it leaves to the fields: a looser prior lets
-        them drift into the layout (a simulated plate of 0.02 mm: 0.0064 mm off at 0.02, 0.0031 at 0.01).
+        weakly, the plate's smooth deformations, which it leaves to the fields; a looser prior lets
+        them drift into the layout (``benchmarks/plate.py --plate plate_sigma_pitch=0.02`` shows it).
     max_iterations : int
         Cap on the alternation (default 30).
     tolerance_px : float
@@ -81,13 +81,15 @@ class PlateParams:
         if int(self.max_iterations) < 1:
             raise InputError(f"max_iterations must be >= 1; got {self.max_iterations}")
 
-    def settings(
-        self, pitch_mm: float, estimate_plate: bool, learn_fields: bool = True, nu: float = 4.0
-    ) -> SolveSettings:
-        """The solve's settings for a plate of ``pitch_mm`` (no field at all unless ``learn_fields``).
+    def settings(self, pitch_mm: float, estimate_plate: bool, *, learn_fields: bool = True, solver=None):
+        """The solve's :class:`SolveSettings` for a plate of ``pitch_mm`` (no field at all unless ``learn_fields``).
 
-        ``nu``: the Student-t degrees of freedom, the adjustment's (``[adjust] nu``).
+        ``solver``: the adjustment's :class:`~fluorocal.stages.adjust.SolverOptions` (``[adjust]``: the
+        Student-t ``nu``, the homographies' iterations and tolerance, the scale's estimation; default
+        ``SolverOptions()``).
         """
+        from fluorocal.stages.adjust import SolverOptions
+
         return SolveSettings(
             grid=GridSpec(spacing_px=self.spacing_px, support_radius_px=2 * self.spacing_px),
             orders=self.smoothness_orders,
@@ -95,8 +97,8 @@ class PlateParams:
             start_smoothness=(max(self.smoothness_orders), float(np.median(self.tau_grid_px))),
             deviation_spacing_px=self.orientation_spacing_px,
             plate_sigma_mm=self.plate_sigma_pitch * pitch_mm,
-            estimate_plate=estimate_plate,
-            nu=nu,
+            estimate_plate=estimate_plate and learn_fields,
+            solver=SolverOptions() if solver is None else solver,
             max_iterations=int(self.max_iterations) if learn_fields else 0,
             tolerance_px=self.tolerance_px,
         )
@@ -145,7 +147,7 @@ def calibrate_plate(
     for s in range(len(observations.system_names)):
         problem, index = plate_problem(observations, phantom, s, groups, image_size_px[s])
         estimate = learn_fields and len(np.unique(problem.frame)) > 1
-        settings = params.settings(phantom.pitch_mm, estimate, learn_fields, solver.nu)
+        settings = params.settings(phantom.pitch_mm, estimate, learn_fields=learn_fields, solver=solver)
         parts.append((problem, index, solve_plate(problem, settings)))
     return stacked(observations, groups, parts, time.perf_counter() - t0, solver.outlier_weight)
 

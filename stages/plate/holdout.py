@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from fluorocal.stages.geometry import homography_fit
 from fluorocal.stages.plate.solve import PlateProblem, SolveSettings, solve_plate
 
 
@@ -58,8 +59,6 @@ def holdout_score(problem: PlateProblem, settings: SolveSettings, row: np.ndarra
     frames : sequence of int, optional
         Frames to score (default all).
     """
-    import cv2
-
     out_frame, out_res, out_nom = [], [], []
     for f in range(problem.n_frames) if frames is None else frames:
         for parity in (0, 1):
@@ -69,8 +68,6 @@ def holdout_score(problem: PlateProblem, settings: SolveSettings, row: np.ndarra
             corrected = field.undistort_points(problem.xy_px[test])
             for layout, out in ((solution.plate_error_mm, out_res), (0.0, out_nom)):
                 target = problem.nominal_mm[problem.hole[test]] + (layout[problem.hole[test]] if np.ndim(layout) else 0)
-                H, _ = cv2.findHomography(target, corrected, 0)
-                mapped = cv2.perspectiveTransform(target[None].astype(np.float64), H)[0]
-                out.append(corrected - mapped)
+                out.append(homography_fit(target, corrected)[1])
             out_frame.append(np.full(int(test.sum()), f))
     return HoldoutScore(np.concatenate(out_frame), np.vstack(out_res), np.vstack(out_nom))

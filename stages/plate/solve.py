@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from fluorocal.stages.adjust.homography import fit_homographies
-from fluorocal.stages.errors import EstimationError
+from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
 from fluorocal.stages.learn.nodes import GridSpec
@@ -47,6 +47,8 @@ log = logging.getLogger(__name__)
 _CV_ITERATION = 3
 #: iterations without a smaller change after which the alternation stops at its best state
 _PATIENCE = 3
+#: a hole's error is estimated only if the plate carried it this far across the image between its frames, px
+_MIN_MOVE_PX = 1.0
 
 
 @dataclass(frozen=True)
@@ -81,7 +83,7 @@ class PlateProblem:
 
     def __post_init__(self):
         if np.any(np.diff(self.frame) < 0):
-            raise EstimationError("the plate's observations must be sorted by frame")
+            raise InputError("the plate's observations must be sorted by frame")
 
     @property
     def n_frames(self) -> int:
@@ -120,7 +122,7 @@ class SolveSettings:
     deviation_spacing_px: float
     plate_sigma_mm: float
     estimate_plate: bool
-    nu: float
+    solver: object  # SolverOptions: nu, max_iterations, function_tolerance, estimate_scale of the homographies
     max_iterations: int  # 0: homographies of the nominal plate only, no field
     tolerance_px: float
 
@@ -190,14 +192,15 @@ def solve_plate(problem: PlateProblem, settings: SolveSettings) -> PlateSolution
     fields = _combined(base, devs)
     smoothness = (settings.start_smoothness, settings.start_smoothness)
     converged = settings.max_iterations == 0
-    stop = "no field: homographies only" if converged else f"{settings.max_iterations} iterations, still moving"
+    stop = "no field: homographies only" if converged else f"{settings.max_iterations} iterations"
     iteration = 0
     initial = None
     best = None  # (change, iteration, fields, error_mm, error_std_mm): the state nearest a fixed point
     for iteration in range(1, settings.max_iterations + 1):
-        fit = _homographies(problem, fields, error_mm, settings.nu)
+        fit = _homographies(problem, fields, error_mm, settings.solver)
         if iteration == 1:
             initial = problem.xy_px - _apply(fit.H[problem.frame], problem.nominal_mm[problem.hole])
+            estimated &= _moved_holes(problem, fit.H)
         target, var = _targets(problem, fit, error_mm)
         if iteration == _CV_ITERATION:  # chosen once the plate's errors are mostly out of the residuals
             smoothness = _smoothness(problem, target, var, base, devs, settings)
@@ -216,13 +219,17 @@ def solve_plate(problem: PlateProblem, settings: SolveSettings) -> PlateSolution
             converged = True
             stop = f"converged in {iteration} iterations (change {moved:.1e} px)"
             break
-        if iteration - best[1] >= _PATIENCE:
-            # the change has stopped falling: robust weights and a thinly supported field feeding each
-            # other can make the alternation wander off; the state nearest a fixed point is kept
-            change, iteration, fields, error_mm, error_std_mm = best
-            stop = f"kept iteration {iteration}, nearest a fixed point (change {change:.1e} px; it rose after)"
+        if iteration - best[1] >= _PATIENCE or iteration == settings.max_iterations:
+            # the change has stopped falling (or the cap is reached): robust weights and a thinly supported
+            # field feeding each other can make the alternation wander off; the state nearest a fixed point is kept
+            stop = (
+                f"kept iteration {best[1]} of {iteration}, nearest a fixed point (change {best[0]:.1e} px)"
+                if best[1] < iteration
+                else f"{iteration} iterations, still moving (change {moved:.1e} px)"
+            )
+            _, iteration, fields, error_mm, error_std_mm = best
             break
-    fit = _homographies(problem, fields, error_mm, settings.nu)
+    fit = _homographies(problem, fields, error_mm, settings.solver)
     if initial is None:
         initial = problem.xy_px - _apply(fit.H[problem.frame], problem.nominal_mm[problem.hole])
     layout = problem.nominal_mm[problem.hole] + error_mm[problem.hole]
@@ -241,6 +248,22 @@ def solve_plate(problem: PlateProblem, settings: SolveSettings) -> PlateSolution
         converged,
         stop,
     )
+
+
+def _moved_holes(problem: PlateProblem, H: np.ndarray) -> np.ndarray:
+    """Holes the plate carried across the image by at least :data:`_MIN_MOVE_PX` between their frames.
+
+    A hole that stays put (the plate still, whatever the C-arm did) shows its error at one place of the
+    image, where the field common to the orientations can take it as well: only the plate's motion
+    tells the two apart.
+    """
+    at = _apply(H[problem.frame], problem.nominal_mm[problem.hole])
+    n = len(problem.nominal_mm)
+    lo = np.full((n, 2), np.inf)
+    hi = np.full((n, 2), -np.inf)
+    np.minimum.at(lo, problem.hole, at)
+    np.maximum.at(hi, problem.hole, at)
+    return np.hypot(*(hi - lo).T) >= _MIN_MOVE_PX
 
 
 def _estimable_holes(problem: PlateProblem) -> np.ndarray:
@@ -262,7 +285,7 @@ def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
     return p[:, :2] / p[:, 2:3]
 
 
-def _homographies(problem: PlateProblem, fields, error_mm, nu):
+def _homographies(problem: PlateProblem, fields, error_mm, solver):
     starts = np.flatnonzero(np.r_[True, problem.frame[1:] != problem.frame[:-1]])
     if len(starts) != problem.n_frames:
         raise EstimationError(f"{problem.n_frames - len(starts)} frame(s) of the plate have no observation")
@@ -271,10 +294,10 @@ def _homographies(problem: PlateProblem, fields, error_mm, nu):
         _corrected(problem, fields),
         problem.sigma_px,
         starts,
-        nu=nu,
-        estimate_scale=True,
-        max_iterations=50,
-        function_tolerance=1e-6,
+        nu=float(solver.nu),
+        estimate_scale=solver.estimate_scale,
+        max_iterations=solver.max_iterations,
+        function_tolerance=solver.function_tolerance,
     )
 
 
@@ -326,6 +349,7 @@ def _smoothness(problem, target, var, base, devs, settings: SolveSettings) -> tu
             grid=grid,
             tau_grid_px=settings.tau_grid_px,
             orders=settings.orders,
+            groups=problem.hole,
         )
         return report.order, report.tau_px
 
@@ -387,7 +411,7 @@ def _without_homography(field: CorrectionField, xy_px: np.ndarray, rest) -> Corr
     return field.with_delta(field.delta_px - at_nodes.reshape(field.delta_px.shape))
 
 
-def _plate_errors(problem, fields, fit, estimated, plate_sigma_mm, plate_norm) -> np.ndarray:
+def _plate_errors(problem, fields, fit, estimated, plate_sigma_mm, plate_norm) -> tuple[np.ndarray, np.ndarray]:
     """Per hole, the shrunk mean offset of its corrected centres mapped back onto the plate, less a homography.
 
     Returns the errors ``(K, 2)`` mm and their standard uncertainty per component ``(K,)`` mm.

@@ -112,10 +112,16 @@ def test_real_grid_frames_held_out_rows(arcadis_dir, tmp_path):
 
 
 def test_real_walkthrough_grid_to_spine(arcadis_dir, tmp_path):
-    """README: the centred grid frame calibrates its orientation; the spine frame and the grid frame are undistorted."""
-    config = real_grid_config(tmp_path / "project", arcadis_dir, ["centred"])
+    """README: the centred grid frame calibrates its orientation; the spine frame and the grid frame are undistorted.
+
+    The README's own config (fixtures/arcadis/centred.toml), its frames pointed at ``arcadis_dir``.
+    """
+    fixture = Path(__file__).resolve().parents[2] / "fixtures" / "arcadis" / "centred.toml"
+    (tmp_path / "project").mkdir()
+    config = tmp_path / "project" / "centred.toml"
+    config.write_text(fixture.read_text().replace("../../../shared/data/arcadis", str(arcadis_dir)))
     assert main(["--quiet", "run", str(config)]) == 0
-    cal_path = tmp_path / "project" / "out" / "calibration.json"
+    cal_path = tmp_path / "project" / "out-centred" / "calibration.json"
     out = tmp_path / "undistorted"
     spine, grid = arcadis_dir / "spine_centered_0.dcm", arcadis_dir / "grid_centered_0.dcm"
     assert (
@@ -176,3 +182,37 @@ def test_bead_phantom_with_several_orientations_is_refused(tmp_path, capsys):
     assert rc == 2 and len(err.splitlines()) == 1 and "Traceback" not in err
     assert "orientations" in err and "3D bead phantom" in err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("section, lattice", [("plate", False), ("learn", True)])
+def test_section_of_the_other_phantom_is_refused(tmp_path, capsys, section, lattice):
+    """[plate] with a bead phantom, [learn] with a grid plate: refused, not silently ignored."""
+    from tests.pipeline.toy import make_project
+
+    cfg = make_project(tmp_path, extra_toml=f"\n[{section}]\nmax_iterations = 3\n")
+    if lattice:
+        cfg.write_text(cfg.read_text().replace('file = "phantom.csv"', 'lattice = "hex"\npitch = 3.6'))
+    rc = main(["run", str(cfg)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "Traceback" not in err
+    assert f"[{section}] does not apply" in err
+
+
+def test_bead_phantom_orientation_named_in_the_calibration(calibrated_project, tmp_path):
+    """One named group for a bead phantom's system: the calibration carries its name and angles."""
+    from tests.conftest import copy_project
+
+    project = copy_project(calibrated_project, tmp_path / "project")
+    cfg = project / "fluorocal.toml"
+    text = cfg.read_text()
+    text = text.replace(
+        'frames = "frames/A/',
+        'orientations = [{name = "lab", frames = "frames/A/*.tif", orbit = 0, tilt = 0}]\nframes = "frames/A/',
+        1,
+    )
+    cfg.write_text(text)
+    assert main(["--quiet", "run", str(cfg)]) == 0
+    cal = Calibration.load(project / "out" / "calibration.json")
+    assert cal.orientation_names("A") == ["lab"]
+    xy = np.array([[100.0, 200.0]])
+    assert np.array_equal(cal.undistort_points("A", xy, orientation="lab"), cal.undistort_points("A", xy))

@@ -11,9 +11,9 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from fluorocal.stages.field import CorrectionField, bilinear
+from fluorocal.stages.geometry import homography_fit
 from scipy.spatial import cKDTree
 
 
@@ -34,9 +34,7 @@ def true_layout(truth: dict, obs_xy_px: np.ndarray, obs_id: np.ndarray, frame: i
 
 def layout_error_mm(estimated_mm: np.ndarray, true_mm: np.ndarray) -> float:
     """RMS per component of ``estimated - H(true)`` with ``H`` the least-squares homography."""
-    H, _ = cv2.findHomography(true_mm.astype(np.float64), estimated_mm.astype(np.float64), 0)
-    mapped = cv2.perspectiveTransform(true_mm[None].astype(np.float64), H)[0]
-    return float(np.sqrt(np.mean((estimated_mm - mapped) ** 2)))
+    return float(np.sqrt(np.mean(homography_fit(true_mm, estimated_mm)[1] ** 2)))
 
 
 def truth_field(grid: dict, width: int, height: int) -> CorrectionField:
@@ -59,6 +57,4 @@ def field_error_px(field: CorrectionField, true_field: CorrectionField, fov: dic
     pts = pts[field.support_at(pts)]
     ideal_est = pts - field.correction_at(pts)
     ideal_true = pts - bilinear(true_field.x_nodes_px, true_field.y_nodes_px, true_field.delta_px, pts)
-    H, _ = cv2.findHomography(ideal_true, ideal_est, 0)
-    mapped = cv2.perspectiveTransform(ideal_true[None], H)[0]
-    return float(np.sqrt(np.mean((ideal_est - mapped) ** 2)))
+    return float(np.sqrt(np.mean(homography_fit(ideal_true, ideal_est)[1] ** 2)))
