@@ -299,6 +299,14 @@ class Calibration:
 
     # --- the API -----------------------------------------------------------------------------
 
+    def _check_geometry(self) -> None:
+        """Refuse geometry (IOP, poses, rays) from a calibration that estimated none: a grid plate's."""
+        if self.meta.get("geometry_estimated", True) is False:
+            raise InputError(
+                "this calibration comes from a grid plate: it holds the distortion only, no interior "
+                "orientation, pose or relative orientation; calibrate with a 3D bead phantom for those"
+            )
+
     def _system(self, system: str) -> SystemCalibration:
         if system not in self.systems:
             raise InputError(f"system {system!r} is not in this calibration; it has {', '.join(self._order)}")
@@ -370,6 +378,7 @@ class Calibration:
 
     def intrinsics(self, system: str) -> dict:
         """``{"xp", "yp", "c", "K", "image_size_px"}``: principal point and distance (px) and the 3×3 camera matrix."""
+        self._check_geometry()
         s = self._system(system)
         xp, yp, c = s.iop_px
         return {
@@ -382,6 +391,7 @@ class Calibration:
 
     def pose(self, system: str, exposure: int) -> tuple[np.ndarray, np.ndarray]:
         """``(q, T)`` of ``system`` at a training ``exposure``: the reference pose composed with the ROP."""
+        self._check_geometry()
         s = self._system(system)
         if exposure not in self.exposures:
             raise InputError(f"exposure {exposure} is not a training exposure of this calibration")
@@ -394,6 +404,7 @@ class Calibration:
 
         ``orientation`` chooses the field as in :meth:`field`.
         """
+        self._check_geometry()
         q, T = self.pose(system, exposure)
         return self.distort_points(
             system, project(check_points("xyz_mm", xyz_mm, 3), q, T, self._system(system).iop_px), orientation
@@ -406,6 +417,7 @@ class Calibration:
         reference system's camera frame (the rig frame of a biplanar pair).
         ``orientation`` chooses the field as in :meth:`field`.
         """
+        self._check_geometry()
         s = self._system(system)
         ideal = self.undistort_points(system, xy, orientation)
         # the ROP is the system's pose in the reference camera frame
@@ -434,6 +446,7 @@ class Calibration:
         miss_mm : (N,) float64 ndarray, mm
             RMS distance of the point from its rays (a consistency check).
         """
+        self._check_geometry()
         if len(observations) < 2:
             raise InputError(f"intersect needs the same points seen by >= 2 systems; got {list(observations)}")
         orientations = orientations or {}

@@ -58,6 +58,7 @@ def plate_calibration(runner, result):
         "config": str(runner.config.path),
         "scheme": "plate" if runner.config.scheme != "none" else "none",
         "interior_orientation": IOP_NOTE,
+        "geometry_estimated": False,
         "statistics": {
             "n_observations": int(len(inl)),
             "n_inliers": int(inl.sum()),
@@ -191,10 +192,13 @@ def _smoothness_lines(result) -> list[str]:
         if (result.orientation_system == s).sum() > 1:
             line += (
                 f"; each orientation's deviation from it order {result.smoothness_order[s, 1]}, "
-                f"τ = {result.smoothness_tau_px[s, 1]:g} px (both chosen by cross-validation)."
+                f"τ = {result.smoothness_tau_px[s, 1]:g} px"
+                + (" (both chosen by cross-validation)." if result.iterations >= 3 else " (start values).")
             )
         else:
-            line += " (chosen by cross-validation); one orientation, so no deviation from it."
+            line += (
+                " (chosen by cross-validation)" if result.iterations >= 3 else " (start value)"
+            ) + "; one orientation."
         lines.append(line)
     return lines
 
@@ -203,9 +207,10 @@ def _plate_lines(result, pitch_mm: float) -> list[str]:
     est = result.plate_estimated
     if not est.any():
         return [
-            "The plate is taken as nominal: every hole was seen in one frame only, so its manufacturing errors "
-            "cannot be told from the distortion (calibrate from two frames or more, the plate moved between them "
-            "or the C-arm turned, to estimate them)."
+            "The plate is taken as nominal: its manufacturing errors were not estimated (one frame, a plate that "
+            "did not move across the image between frames, or scheme none), so they cannot be told from the "
+            "distortion here. Calibrate from two frames or more with the plate carried across the image between "
+            "them (the C-arm turned, or the plate moved) to estimate them."
         ]
     err = result.plate_error_mm[est]
     return [

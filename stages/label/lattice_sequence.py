@@ -28,6 +28,8 @@ from fluorocal.stages.label.params import STATUS_REJECTED
 
 log = logging.getLogger(__name__)
 
+#: a frame with fewer holes than this fraction of the sequence's best frame is not numbered (not the plate)
+_MIN_HOLE_FRACTION = 0.2
 #: the geometric pairing is trusted when the holes moved less than this fraction of the pitch
 _MAX_MOVE_PITCH = 0.33
 #: a fingerprint match is trusted when its correlation is at least this ...
@@ -42,16 +44,36 @@ _FINGERPRINT_TAU_PX = 10.0
 
 
 def number_lattice_sequence(labels_seq, lattice: str, pitch_mm: float) -> tuple[Labels, ...]:
-    """Renumber the labelled frames of a grid-plate sequence onto the first labelled frame's numbering."""
+    """Renumber the labelled frames of a grid-plate sequence onto the numbering of its frame with the most holes.
+
+    A frame with fewer than :data:`_MIN_HOLE_FRACTION` of that frame's holes fails: it is not the plate
+    (a bead frame "labelled" as a few holes) or too little of it to be followed.
+    """
     out = list(labels_seq)
     ok = [i for i, lab in enumerate(out) if lab.ok]
+    if not ok:
+        return tuple(out)
+    ref = max(ok, key=lambda i: len(out[i]))
+    reference = out[ref]
+    for i in ok:
+        if len(out[i]) < _MIN_HOLE_FRACTION * len(reference):
+            out[i] = _failed(
+                out[i],
+                f"only {len(out[i])} holes where frame {ref} of the sequence has {len(reference)}: "
+                "not the plate, or too little of it",
+            )
+    ok = [i for i in ok if out[i].ok]
     if len(ok) < 2:
         return tuple(out)
-    reference = out[ok[0]]
     ref_print = fingerprint(reference, lattice)
-    for i in ok[1:]:
-        out[i] = _renumbered(out[i], reference, ref_print, lattice, pitch_mm)
+    for i in ok:
+        if i != ref:
+            out[i] = _renumbered(out[i], reference, ref_print, lattice, pitch_mm)
     return tuple(out)
+
+
+def _failed(frame: Labels, why: str) -> Labels:
+    return failed_labels(frame.detection_status != STATUS_REJECTED, frame.iop, why, "lattice")
 
 
 @dataclass(frozen=True)
@@ -139,7 +161,7 @@ def _best_shift(ij, offset, ij_ref, offset_ref, n_best: int = 3):
     overlap = np.fft.irfft2(np.conj(a[..., 2]) * b[..., 2], s=shape, axes=(0, 1))
     energy = float(np.sqrt(np.sum((offset - offset.mean(0)) ** 2) * np.sum((offset_ref - offset_ref.mean(0)) ** 2)))
     # normalise by the overlap so a shift sharing few holes cannot win by luck
-    n = max(len(ij), len(ij_ref))
+    n = min(len(ij), len(ij_ref))
     corr = np.where(overlap > 0.25 * n, cross / max(energy, 1e-30) * n / np.maximum(overlap, 1.0), 0.0)
     flat = np.argsort(corr, axis=None)[::-1][:n_best]
     shifts = np.column_stack(np.unravel_index(flat, shape))
@@ -150,20 +172,18 @@ def _best_shift(ij, offset, ij_ref, offset_ref, n_best: int = 3):
 def _renumbered(frame: Labels, reference: Labels, ref_print: Fingerprint, lattice: str, pitch_mm: float) -> Labels:
     """``frame`` on ``reference``'s numbering, or failed when neither its plate errors nor its position tell."""
     M, t, corr, margin = match_fingerprints(fingerprint(frame, lattice), ref_print, lattice)
-    log.info("plate fingerprint against the first frame: correlation %.3f, lead %.3f", corr, margin)
+    log.info("plate fingerprint against the reference frame: correlation %.3f, lead %.3f", corr, margin)
     ij = lattice_index(frame.bead_id)
     if corr >= _MIN_CORRELATION and margin >= _MIN_MARGIN:
         mapped = ij @ M.T + t
     else:
         mapped = _nearest_numbering(frame, reference)
         if mapped is None:
-            return failed_labels(
-                frame.detection_status != STATUS_REJECTED,
-                frame.iop,
-                f"the plate moved by a third of a hole pitch or more from the first frame and its manufacturing "
-                f"errors are too small to follow it (fingerprint correlation {corr:.2f}, lead {margin:.2f}); "
-                "keep the plate still between frames (it may shift by less than a third of a pitch)",
-                "lattice",
+            return _failed(
+                frame,
+                f"the plate moved by a third of a hole pitch or more from the reference frame and its "
+                f"manufacturing errors are too small to follow it (fingerprint correlation {corr:.2f}, lead "
+                f"{margin:.2f}); keep the plate still between frames (it may shift by less than a third of a pitch)",
             )
     return replace(frame, bead_id=lattice_id(mapped), object_xyz_mm=lattice_xyz_mm(mapped, lattice, pitch_mm))
 

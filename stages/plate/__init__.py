@@ -29,6 +29,15 @@ from fluorocal.stages.plate.problem import frame_orientations, plate_problem, st
 from fluorocal.stages.plate.result import PlateCalibration
 from fluorocal.stages.plate.solve import PlateProblem, PlateSolution, SolveSettings, solve_plate
 
+#: each setting's allowed range: node spacings from a few px to a quarter of a 1024-px frame (a field needs a few
+#: nodes a side), the plate prior from a ten-thousandth of a pitch to a pitch, the tolerance below a pixel
+_RANGES = (
+    ("spacing_px", 4.0, 256.0),
+    ("orientation_spacing_px", 4.0, 256.0),
+    ("plate_sigma_pitch", 1e-4, 1.0),
+    ("tolerance_px", 1e-9, 1.0),
+)
+
 
 @dataclass(frozen=True)
 class PlateParams:
@@ -71,11 +80,16 @@ class PlateParams:
     def __post_init__(self):
         object.__setattr__(self, "smoothness_orders", tuple(int(o) for o in self.smoothness_orders))
         object.__setattr__(self, "tau_grid_px", tuple(float(t) for t in self.tau_grid_px))
-        positive = ("spacing_px", "orientation_spacing_px", "plate_sigma_pitch", "tolerance_px")
-        if not all(getattr(self, name) > 0 for name in positive):
-            raise InputError(f"{', '.join(positive)} must be > 0")
-        if not self.tau_grid_px or min(self.tau_grid_px) <= 0:
-            raise InputError(f"tau_grid_px must be positive values; got {self.tau_grid_px}")
+        for name, low, high in _RANGES:
+            value = getattr(self, name)
+            if not (np.isfinite(value) and low <= value <= high):
+                raise InputError(f"{name} must lie in [{low:g}, {high:g}]; got {value}")
+        if self.orientation_spacing_px < self.spacing_px:
+            raise InputError(
+                f"orientation_spacing_px ({self.orientation_spacing_px:g}) must be >= spacing_px ({self.spacing_px:g})"
+            )
+        if not self.tau_grid_px or not all(np.isfinite(t) and t > 0 for t in self.tau_grid_px):
+            raise InputError(f"tau_grid_px must be finite values > 0; got {self.tau_grid_px}")
         if not self.smoothness_orders or not set(self.smoothness_orders) <= {1, 2, 3, 4}:
             raise InputError(f"smoothness_orders must be among 1, 2, 3, 4; got {self.smoothness_orders}")
         if int(self.max_iterations) < 1:

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from fluorocal.stages.adjust.homography import fit_homographies
+from fluorocal.stages.adjust.robust import t_weights
 from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
@@ -285,7 +286,30 @@ def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
     return p[:, :2] / p[:, 2:3]
 
 
-def _homographies(problem: PlateProblem, fields, error_mm, solver):
+@dataclass(frozen=True)
+class _Fit:
+    """The frames' homographies, with one Student-t scale for all frames and the weights under it."""
+
+    H: np.ndarray  # (F, 3, 3)
+    scale2: float
+    weight: np.ndarray  # (N,)
+
+
+def _homographies(problem: PlateProblem, fields, error_mm, solver) -> _Fit:
+    """The frames' homographies, their Student-t weights recomputed under one scale pooled over the frames.
+
+    The fit estimates a scale per frame; fed back through the plate's errors, a frame that fits a
+    little better draws every hole's error to itself, fits better still, and its scale shrinks toward
+    zero. One pooled scale keeps the frames on an equal footing.
+    """
+    fit = _frame_homographies(problem, fields, error_mm, solver)
+    counts = np.bincount(problem.frame, minlength=problem.n_frames)
+    scale2 = float(np.sum(fit.scale2 * counts) / counts.sum())
+    weight = t_weights(fit.s, float(solver.nu), scale2)
+    return _Fit(fit.H, scale2, weight)
+
+
+def _frame_homographies(problem: PlateProblem, fields, error_mm, solver):
     starts = np.flatnonzero(np.r_[True, problem.frame[1:] != problem.frame[:-1]])
     if len(starts) != problem.n_frames:
         raise EstimationError(f"{problem.n_frames - len(starts)} frame(s) of the plate have no observation")
@@ -306,13 +330,13 @@ def _targets(problem: PlateProblem, fit, error_mm):
     layout = problem.nominal_mm[problem.hole] + error_mm[problem.hole]
     target = problem.xy_px - _apply(fit.H[problem.frame], layout)
     # one variance for both components: one factorisation serves both in the grid fit
-    var = np.mean(problem.sigma_px[:, :2] ** 2, axis=1) * fit.scale2[problem.frame] / np.maximum(fit.weight, 1e-6)
+    var = np.mean(problem.sigma_px[:, :2] ** 2, axis=1) * fit.scale2 / np.maximum(fit.weight, 1e-6)
     return target, var
 
 
 def _deviation_grid(settings: SolveSettings) -> GridSpec:
     spacing = settings.deviation_spacing_px
-    return GridSpec(spacing_px=spacing, support_radius_px=2 * spacing, min_support=settings.grid.min_support)
+    return GridSpec(spacing_px=spacing, support_radius_px=spacing, min_support=settings.grid.min_support)
 
 
 def _zero_deviations(problem: PlateProblem, settings: SolveSettings) -> tuple:
@@ -332,9 +356,19 @@ def _at(problem: PlateProblem, fields) -> np.ndarray:
 
 
 def _combined(base: CorrectionField, devs) -> tuple:
-    """Each orientation's field on the base grid: the base plus the orientation's deviation at its nodes."""
+    """Each orientation's field on the base grid: the base plus the orientation's deviation at its nodes.
+
+    Supported where the base is and where the orientation's own frames support its deviation: elsewhere
+    the deviation is the prior's extrapolation.
+    """
     nodes = base.nodes_px
-    return tuple(base.with_delta(base.delta_px + dev.correction_at(nodes).reshape(base.delta_px.shape)) for dev in devs)
+    return tuple(
+        base.with_delta(
+            base.delta_px + dev.correction_at(nodes).reshape(base.delta_px.shape),
+            support=base.support & dev.support_at(nodes).reshape(base.support.shape),
+        )
+        for dev in devs
+    )
 
 
 def _smoothness(problem, target, var, base, devs, settings: SolveSettings) -> tuple:
@@ -424,7 +458,7 @@ def _plate_errors(problem, fields, fit, estimated, plate_sigma_mm, plate_norm) -
     offset = on_plate - problem.nominal_mm[problem.hole]
     # the centre's variance in plate mm: px variance over the frame's scale (px per mm)² (the homography's local scale)
     px_per_mm = np.sqrt(np.abs(np.linalg.det(fit.H[:, :2, :2])))[problem.frame]
-    var_mm = np.mean(problem.sigma_px[:, :2] ** 2, axis=1) * fit.scale2[problem.frame] / px_per_mm**2
+    var_mm = np.mean(problem.sigma_px[:, :2] ** 2, axis=1) * fit.scale2 / px_per_mm**2
     w = fit.weight / var_mm
     total_w = np.bincount(problem.hole, w, n_holes)
     for c in range(2):

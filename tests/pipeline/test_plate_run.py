@@ -68,6 +68,12 @@ def test_simulated_grid_outputs(simulated_grid):
     assert [o["name"] for o in system["orientations"]] == ["centred"]
     assert system["iop_std_px"] == [None, None, None]  # a plate fixes no interior orientation: said, not faked
     assert "not estimated" in doc["interior_orientation"]
+    cal = Calibration.load(out / "calibration.json")
+    from fluorocal.stages.errors import InputError
+
+    for call in (lambda: cal.intrinsics("A"), lambda: cal.rays("A", [[1.0, 2.0]])):
+        with pytest.raises(InputError, match="grid plate"):  # no geometry to give: refused, never made up
+            call()
     report = (out / "report.md").read_text()
     assert "The plate's own errors, estimated" in report
     rows = (out / "object_points.csv").read_text().splitlines()

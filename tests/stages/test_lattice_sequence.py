@@ -2,8 +2,9 @@
 
 Frames of the synthetic plate (tests/stages/plate_synthetic.py) are given arbitrary numberings — a
 random lattice symmetry and shift each, as the per-frame lattice growth gives — and must come back on
-the first frame's numbering, hole for hole, from the plate's own errors; a perfect plate moved by more
-than a third of a pitch cannot be followed and must fail with its reason, never be misnumbered.
+one numbering, hole for hole (the same physical hole, the same id in every frame), from the plate's own
+errors; a perfect plate moved by more than a third of a pitch cannot be followed and must fail with its
+reason, never be misnumbered.
 """
 
 from __future__ import annotations
@@ -55,24 +56,44 @@ def test_frames_renumbered_onto_the_first(turn_deg, shift_mm):
     frames, truth = _frames(problem, ids, seed=1)
     numbered = number_lattice_sequence(frames, "hex", PITCH_MM)
     assert all(lab.ok for lab in numbered)
-    # the first frame keeps the true numbering, so every frame must now carry the true ids, hole for hole
+    _assert_one_numbering(numbered, truth)
+
+
+def _assert_one_numbering(numbered, truth):
+    """Every labelled frame maps each true hole to one id, the same in every frame (a bijection)."""
+    id_of = {}
     for lab, true_ids in zip(numbered, truth):
-        assert np.array_equal(lab.bead_id, true_ids)
-        assert np.allclose(lab.object_xyz_mm, lattice_xyz_mm(lattice_index(true_ids), "hex", PITCH_MM))
+        if not lab.ok:
+            continue
+        for t, new in zip(true_ids.tolist(), lab.bead_id.tolist()):
+            assert id_of.setdefault(t, new) == new
+        assert np.allclose(lab.object_xyz_mm, lattice_xyz_mm(lattice_index(lab.bead_id), "hex", PITCH_MM))
+    assert len(set(id_of.values())) == len(id_of)
 
 
 def test_perfect_plate_moved_far_fails_with_reason():
     problem, ids, _ = make_plate(6, 2, turn_deg=30, shift_mm=10, plate_error_mm=0.0, noise_px=0.02)
     frames, _ = _frames(problem, ids, seed=2)
     numbered = number_lattice_sequence(frames, "hex", PITCH_MM)
-    assert numbered[0].ok
-    assert not numbered[1].ok
-    assert "manufacturing errors are too small" in numbered[1].reason
+    assert sum(lab.ok for lab in numbered) == 1  # the reference frame
+    failed = next(lab for lab in numbered if not lab.ok)
+    assert "manufacturing errors are too small" in failed.reason
+
+
+def test_a_frame_of_a_few_holes_is_not_numbered():
+    """A bead frame "labelled" as a handful of holes is not the plate: it fails, the plate's frames do not."""
+    problem, ids, _ = make_plate(10, 3, turn_deg=5, shift_mm=2, plate_error_mm=0.02, noise_px=0.02)
+    frames, truth = _frames(problem, ids, seed=4)
+    few = _labels(frames[0].bead_id[:12], frames[0].xy_px[:12])
+    numbered = number_lattice_sequence([few, *frames[1:]], "hex", PITCH_MM)
+    assert not numbered[0].ok and "not the plate" in numbered[0].reason
+    assert all(lab.ok for lab in numbered[1:])
+    _assert_one_numbering(numbered[1:], truth[1:])
 
 
 def test_perfect_plate_barely_moved_numbered_by_position():
     problem, ids, _ = make_plate(7, 2, turn_deg=0.2, shift_mm=0.4, plate_error_mm=0.0, noise_px=0.02)
     frames, truth = _frames(problem, ids, seed=3)
     numbered = number_lattice_sequence(frames, "hex", PITCH_MM)
-    assert numbered[1].ok
-    assert np.array_equal(numbered[1].bead_id, truth[1])
+    assert all(lab.ok for lab in numbered)
+    _assert_one_numbering(numbered, truth)

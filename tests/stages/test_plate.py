@@ -124,5 +124,9 @@ def test_params_refuse_bad_values():
 
     with pytest.raises(InputError, match="smoothness_orders"):
         PlateParams(smoothness_orders=(7,))
-    with pytest.raises(InputError, match="> 0"):
+    with pytest.raises(InputError, match="plate_sigma_pitch must lie in"):
         PlateParams(plate_sigma_pitch=0.0)
+    with pytest.raises(InputError, match="spacing_px must lie in"):
+        PlateParams(spacing_px=float("inf"))
+    with pytest.raises(InputError, match="tau_grid_px"):
+        PlateParams(tau_grid_px=(float("inf"),))
