@@ -222,3 +222,17 @@ def test_bead_phantom_orientation_named_in_the_calibration(calibrated_project, t
     assert cal.orientation_names("A") == ["lab"]
     xy = np.array([[100.0, 200.0]])
     assert np.array_equal(cal.undistort_points("A", xy, orientation="lab"), cal.undistort_points("A", xy))
+
+
+def test_grid_plate_systems_need_not_pair_frames(tmp_path):
+    """Two systems with a grid plate each are calibrated apart: unequal frame counts are not a pairing error."""
+    from fluorocal.config import load_config
+    from fluorocal.run import frame_units
+
+    from tests.pipeline.toy import make_two_system_project
+
+    cfg = make_two_system_project(tmp_path)
+    cfg.write_text(cfg.read_text().replace('file = "phantom.csv"', 'lattice = "hex"\npitch = 3.6'))
+    (tmp_path / "frames" / "B" / "f1.tif").unlink()
+    units = frame_units(load_config(cfg))
+    assert [sum(u.system == s for u in units) for s in (0, 1)] == [3, 2]
