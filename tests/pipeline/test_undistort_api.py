@@ -327,3 +327,25 @@ def test_maps_computed_in_blocks_of_rows_equal_one_inversion_of_every_pixel():
     # spacing at 2048 px (1.2e-4 px): at most one rounding step of the float32 maps
     np.testing.assert_allclose(map_x, src[:, 0].reshape(70, 2048), rtol=0, atol=1.3e-4)
     np.testing.assert_allclose(map_y, src[:, 1].reshape(70, 2048), rtol=0, atol=1.3e-4)
+
+
+def test_streamed_multipage_tiff_equals_frame_by_frame(saved, tmp_path):
+    frames = [_frame(seed) for seed in range(3)]
+    src = tmp_path / "pages.tif"
+    assert cv2.imwritemulti(str(src), frames)
+    assert _undistort(saved, tmp_path / "u", src) == 0
+    back = read_frames(tmp_path / "u" / "pages.tif")
+    cal = Calibration.load(saved)
+    assert len(back) == 3 and all(b.bit_depth == 16 for b in back)
+    for b, f in zip(back, frames):
+        np.testing.assert_array_equal(b.image, cal.undistort_image("B", f))
+
+
+def test_a_frame_of_the_wrong_size_writes_nothing(saved, tmp_path, capsys):
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.tif"), _frame())
+    cv2.imwrite(str(folder / "b.tif"), _frame()[:, :-1])
+    assert _undistort(saved, tmp_path / "u", folder) == 2
+    assert "b.tif: frame is 95x64 px; system B was calibrated at 96x64" in capsys.readouterr().err
+    assert not (tmp_path / "u").exists()
