@@ -21,6 +21,11 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # imported when run: `fluorocal undistort --help` loads neither OpenCV nor OpenImageIO
+    from fluorocal.stages.io import StoredFrames
+    from fluorocal.stages.undistort import UndistortParams
 
 
 def add_parser(subparsers) -> None:
@@ -117,10 +122,10 @@ class _Job:
 
     path: Path
     out: Path
-    maps: tuple
-    params: object  # UndistortParams
+    maps: tuple  # (map_x, map_y)
+    params: UndistortParams
     n_frames: int
-    stored: object = None  # StoredFrames
+    stored: StoredFrames | None = None
 
     def remap(self, frame):
         from fluorocal.stages.undistort import remap_image, undistort_frame
