@@ -263,6 +263,24 @@ def test_stream_raises_the_first_failure_and_stops_every_step(where):
 # --- fluorocal undistort: streamed output equals frame by frame ------------------------------------------
 
 
+def _dicom(path, frames: np.ndarray, photometric: str, syntax: str) -> pydicom.Dataset:
+    """A 12-bit multi-frame XA-like DICOM of ``frames`` (F, H, W) uint16, saved to ``path``."""
+    from pydicom import uid
+    from pydicom.dataset import FileMetaDataset
+
+    ds = pydicom.Dataset()
+    ds.file_meta = FileMetaDataset()
+    ds.file_meta.TransferSyntaxUID = getattr(uid, syntax)
+    ds.file_meta.MediaStorageSOPClassUID = ds.SOPClassUID = uid.SecondaryCaptureImageStorage
+    ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID = uid.generate_uid()
+    ds.Modality, ds.PatientID, ds.PhotometricInterpretation = "XA", "P1", photometric
+    ds.Rows, ds.Columns, ds.NumberOfFrames, ds.SamplesPerPixel = H, W, len(frames), 1
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
+    ds.PixelData = frames.tobytes()
+    ds.save_as(path, enforce_file_format=True)
+    return ds
+
+
 def _undistort(saved, out, *inputs, system="B"):
     args = ["--quiet", "undistort", *map(str, inputs), "--calibration", str(saved), "--system", system]
     return main(args + ["--out", str(out)])
@@ -284,27 +302,19 @@ def test_streamed_folder_equals_frame_by_frame(saved, tmp_path):
         np.testing.assert_array_equal(back.image, cal.undistort_image("B", f).astype(np.float32))
 
 
-@pytest.mark.parametrize("photometric", ["MONOCHROME2", "MONOCHROME1"])
-def test_streamed_multiframe_dicom_equals_frame_by_frame(saved, tmp_path, photometric):
-    from pydicom.dataset import FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, SecondaryCaptureImageStorage, generate_uid
+@pytest.mark.parametrize(
+    "photometric, syntax", [("MONOCHROME2", "ImplicitVRLittleEndian"), ("MONOCHROME1", "ExplicitVRLittleEndian")]
+)
+def test_streamed_multiframe_dicom_equals_frame_by_frame(saved, tmp_path, photometric, syntax):
+    from pydicom import uid
 
-    frames = np.stack([_frame(seed) for seed in range(3)])
-    ds = pydicom.Dataset()
-    ds.file_meta = FileMetaDataset()
-    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds.file_meta.MediaStorageSOPClassUID = ds.SOPClassUID = SecondaryCaptureImageStorage
-    ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID = generate_uid()
-    ds.Modality, ds.PatientID, ds.PhotometricInterpretation = "XA", "P1", photometric
-    ds.Rows, ds.Columns, ds.NumberOfFrames, ds.SamplesPerPixel = H, W, 3, 1
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
-    ds.PixelData = frames.tobytes()
     src = tmp_path / "run.dcm"
-    ds.save_as(src, enforce_file_format=True)
+    ds = _dicom(src, np.stack([_frame(seed) for seed in range(3)]), photometric, syntax)
     assert _undistort(saved, tmp_path / "u", src) == 0
     out = pydicom.dcmread(tmp_path / "u" / "run.dcm")
     assert out.SOPInstanceUID != ds.SOPInstanceUID and out.PatientID == "P1" and out.NumberOfFrames == 3
     assert out.PhotometricInterpretation == photometric and out.ImageType[:2] == ["DERIVED", "SECONDARY"]
+    assert out.file_meta.TransferSyntaxUID == uid.ExplicitVRLittleEndian
     # frame by frame through the old path: read (MONOCHROME1 inverted), undistort, write like the source
     cal = Calibration.load(saved)
     maps = cal.remap_maps("B")
@@ -349,3 +359,17 @@ def test_a_frame_of_the_wrong_size_writes_nothing(saved, tmp_path, capsys):
     assert _undistort(saved, tmp_path / "u", folder) == 2
     assert "b.tif: frame is 95x64 px; system B was calibrated at 96x64" in capsys.readouterr().err
     assert not (tmp_path / "u").exists()
+
+
+@pytest.mark.parametrize("suffix", [".tif", ".dcm"])
+def test_a_stream_short_of_frames_leaves_no_file(tmp_path, suffix):
+    from fluorocal.stages.io import write_stored_like
+
+    src = tmp_path / f"src{suffix}"
+    if suffix == ".tif":
+        assert cv2.imwritemulti(str(src), [_frame(0), _frame(1)])
+    else:
+        _dicom(src, np.stack([_frame(0), _frame(1)]), "MONOCHROME2", "ExplicitVRLittleEndian")
+    with pytest.raises(InputError, match=r"expected 2 frame\(s\).*got 1"):
+        write_stored_like(src, iter([_frame(0)]), tmp_path / f"out{suffix}", 2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"src{suffix}"]  # no output, no temporary file
