@@ -446,12 +446,15 @@ class Calibration:
         """
         s = self._system(system)
         w, h = _output_size(s.image_size_px if image_size is None else image_size)
-        field = self.field(system, orientation)  # refuses a bad orientation before any cache is touched
-        memo = (system, json.dumps(orientation_key(orientation)), (w, h))
+        try:
+            memo = (system, json.dumps(orientation_key(orientation)), (w, h))
+        except (TypeError, ValueError):
+            memo = None  # not an orientation: self.field says why
         if memo not in self._maps:
+            field = self.field(system, orientation)  # refuses a bad orientation before any cache is touched
             compute = lambda: self._computed_maps(system, field, orientation, (w, h))  # noqa: E731
             self._maps[memo] = cached_maps(self.path, self._content_sha256, system, orientation, (w, h), compute)
-        map_x, map_y = self._maps[memo]
+        map_x, map_y = self._maps[memo]  # a memo hit skips the field: interpolating one costs milliseconds
         return map_x, map_y
 
     def _computed_maps(self, system: str, field: CorrectionField, orientation, size: tuple[int, int]) -> np.ndarray:
