@@ -13,6 +13,9 @@ calibration named like it (``calibration.json`` -> ``calibration.maps/``):
   ``np.load(allow_pickle=False)``, written atomically;
 - an unreadable or corrupt entry is a miss: warned about (:class:`MapCacheWarning`), deleted and
   recomputed; a folder that cannot be written costs only the cache (warned about too).
+
+Warnings name the caller of :meth:`~fluorocal.Calibration.remap_maps` (``stacklevel=4``).
+Entries of earlier calibration contents are not removed: delete the folder to reclaim the space.
 """
 
 from __future__ import annotations
@@ -100,7 +103,7 @@ def load_maps(folder: Path, key: str, size_px: tuple[int, int]) -> np.ndarray | 
             return maps
         except (OSError, ValueError, EOFError) as exc:
             warnings.warn(
-                f"{file}: corrupt cached undistortion maps ({exc}); recomputing", MapCacheWarning, stacklevel=3
+                f"{file}: corrupt cached undistortion maps ({exc}); recomputing", MapCacheWarning, stacklevel=4
             )
             file.unlink(missing_ok=True)
     return None
@@ -115,5 +118,5 @@ def store_maps(folder: Path, key: str, maps: np.ndarray) -> None:
         warnings.warn(
             f"{file}: cannot cache the undistortion maps ({exc}); they are recomputed on every run",
             MapCacheWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
