@@ -23,6 +23,8 @@ _OIIO_DTYPE = {np.dtype(np.uint8): "uint8", np.dtype(np.uint16): "uint16", np.dt
 _STORED_DTYPE = {"uint8": np.dtype(np.uint8), "uint16": np.dtype(np.uint16)}
 #: OpenImageIO's format names that OpenCV encodes as fast as cv2.imwrite, with OpenCV's suffix for them
 _CV2_SUFFIX = {"tiff": ".tiff", "png": ".png"}
+#: OpenImageIO's format names of the single images OpenCV reads as OpenImageIO does (one grey channel, as stored)
+_CV2_READS = ("tiff", "png", "jpeg", "bmp", "pnm")
 
 
 def sniff_content(head: bytes) -> bool:
@@ -136,8 +138,8 @@ def write_still(
 def open_stored(path: Path) -> StoredFrames | None:
     """The frames as stored, read one at a time; None unless every subimage is one channel of 8 or 16 bits in full.
 
-    A single image is read by OpenCV (which releases the GIL while it decodes), the subimages of
-    a multi-page TIFF by OpenImageIO. Stills display their stored values: black is 0. Colour
+    A single TIFF, PNG, JPEG, BMP or PNM image is read by OpenCV (which releases the GIL while it
+    decodes), other types and the subimages of a multi-page TIFF by OpenImageIO. Stills display their stored values: black is 0. Colour
     images, floats and bit depths below their container's (which OpenImageIO rescales) take the
     general path (:func:`read`, :func:`write_like`).
     """
@@ -146,6 +148,7 @@ def open_stored(path: Path) -> StoredFrames | None:
         specs = []
         while inp.seek_subimage(len(specs), 0):
             specs.append(inp.spec())
+        by_opencv = len(specs) == 1 and inp.format_name() in _CV2_READS
     finally:
         inp.close()
     dtype = _STORED_DTYPE.get(str(specs[0].format)) if specs else None
@@ -158,14 +161,16 @@ def open_stored(path: Path) -> StoredFrames | None:
     ):
         return None
     size = (specs[0].width, specs[0].height)
-    frames = (check_stored(path, f, dtype, size, i) for i, f in enumerate(_iter_stored(path, len(specs), dtype)))
+    frames = (
+        check_stored(path, f, dtype, size, i) for i, f in enumerate(_iter_stored(path, len(specs), dtype, by_opencv))
+    )
     return StoredFrames(len(specs), size, dtype, 0.0, frames)
 
 
-def _iter_stored(path: Path, n_frames: int, dtype: np.dtype):
+def _iter_stored(path: Path, n_frames: int, dtype: np.dtype, by_opencv: bool):
     import cv2
 
-    if n_frames == 1:
+    if by_opencv:
         frame = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if frame is None:
             raise InputError(f"{path}: OpenCV cannot decode this image")
