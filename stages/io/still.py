@@ -139,9 +139,9 @@ def open_stored(path: Path) -> StoredFrames | None:
     """The frames as stored, read one at a time; None unless every subimage is one channel of 8 or 16 bits in full.
 
     A single TIFF, PNG, JPEG, BMP or PNM image is read by OpenCV (which releases the GIL while it
-    decodes), other types and the subimages of a multi-page TIFF by OpenImageIO. Stills display their stored values: black is 0. Colour
-    images, floats and bit depths below their container's (which OpenImageIO rescales) take the
-    general path (:func:`read`, :func:`write_like`).
+    decodes), other types and the subimages of a multi-page TIFF by OpenImageIO. Stills display
+    their stored values: black is 0. Colour images, floats and bit depths below their container's
+    (which OpenImageIO rescales) take the general path (:func:`read`, :func:`write_like`).
     """
     inp = _open(path)
     try:
