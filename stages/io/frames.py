@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -222,11 +222,7 @@ def open_stored(path: str | os.PathLike) -> StoredFrames | None:
     if fmt.open_stored is None:
         return None
     stored = _call(path, fmt.open_stored)
-    return (
-        None
-        if stored is None
-        else StoredFrames(stored.n_frames, stored.size_px, stored.dtype, stored.black, _named(path, stored.frames))
-    )
+    return None if stored is None else replace(stored, frames=_named(path, stored.frames))
 
 
 def _named(path: Path, frames):
