@@ -14,11 +14,15 @@ exposure's pose; the scheme and the statistics of the solve. README.md,
     ideal_xy = cal.undistort_points("A", [[512.3, 100.7]])
     ideal_xy = cal.undistort_points("A", [[512.3, 100.7]], orientation="orbit30")
     ideal_xy = cal.undistort_points("A", [[512.3, 100.7]], orientation={"orbit": 15, "tilt": 0})
+    map_x, map_y = cal.remap_maps("A")  # as cv2.initUndistortRectifyMap's: cv2.remap(frame, map_x, map_y, ...)
+    ideal_frame = cal.undistort_image("A", frame)  # the same, with the maps cached beside the calibration
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import operator
 import zipfile
 import zlib
 from collections.abc import Mapping
@@ -26,8 +30,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from fluorocal.maps import cached_maps, orientation_key
 from fluorocal.outputs import inside, safe_name
-from fluorocal.stages.errors import ArtifactError, InputError
+from fluorocal.stages.errors import ArtifactError, InputError, ShapeError
 from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.geometry import (
     camera_matrix,
@@ -41,6 +46,7 @@ from fluorocal.stages.geometry import (
 )
 from fluorocal.stages.io import atomic_write
 from fluorocal.stages.orientation import OrientationField, interpolate_field
+from fluorocal.stages.undistort import UndistortParams, check_maps, check_shift, remap_image
 
 SCHEMA = "fluorocal-calibration"
 #: the version written; version 1 (one field per system, no orientations) is read as well
@@ -49,6 +55,8 @@ READ_VERSIONS = (1, 2)
 FIELD_ARRAYS = ("x_nodes_px", "y_nodes_px", "delta_px", "sigma_px", "support")
 #: largest image side a calibration may give, px (DICOM's Rows and Columns are 16-bit)
 MAX_IMAGE_SIDE_PX = 65535
+#: the frame dtypes cv2.remap resamples
+_REMAP_DTYPES = tuple(np.dtype(t) for t in (np.uint8, np.uint16, np.int16, np.float32, np.float64))
 
 
 @dataclass(frozen=True)
@@ -103,6 +111,17 @@ def _image_size(value, path: Path) -> tuple[int, int]:
             f"{path}: image_size_px must be [width, height], integers in 1..{MAX_IMAGE_SIDE_PX}; got {value!r}"
         )
     return value[0], value[1]
+
+
+def _output_size(value) -> tuple[int, int]:
+    """``(width, height)``: two integers in 1..:data:`MAX_IMAGE_SIDE_PX`, else InputError."""
+    try:
+        w, h = (operator.index(v) for v in value)
+    except (TypeError, ValueError):
+        raise InputError(f"image_size must be (width, height) in px, two integers; got {value!r}") from None
+    if not (1 <= w <= MAX_IMAGE_SIDE_PX and 1 <= h <= MAX_IMAGE_SIDE_PX):
+        raise InputError(f"image_size must be (width, height) in 1..{MAX_IMAGE_SIDE_PX} px; got {value!r}")
+    return w, h
 
 
 def field_file(path: Path, name) -> Path:
@@ -167,6 +186,19 @@ def _orientation_from_doc(o: dict, path: Path, field_of) -> OrientationField:
     return OrientationField(name, o.get("orbit_deg"), o.get("tilt_deg"), field_of(o["field"]))
 
 
+def _content_sha256(path: Path, raw: bytes, doc: dict) -> str:
+    """SHA-256 of a calibration's JSON bytes and of each field file it names, in sorted order of name."""
+    names = set()
+    for s in doc["systems"]:
+        names.update(
+            entry["file"] for entry in [s.get("field")] + [o["field"] for o in s.get("orientations", [])] if entry
+        )
+    digest = hashlib.sha256(raw)
+    for name in sorted(names):
+        digest.update(name.encode() + b"\0" + field_file(path, name).read_bytes())
+    return digest.hexdigest()
+
+
 def _field_entry(field: CorrectionField, file_name: str) -> dict:
     """A field's entry in ``calibration.json``: its file and a summary over the supported nodes."""
     magnitude = np.linalg.norm(field.delta_px, axis=-1)[field.support] if field.support.any() else np.zeros(1)
@@ -203,6 +235,9 @@ class Calibration:
         self._order = [s.name for s in systems]
         self.exposures = exposures  # epoch -> (q (4,), source_mm (3,)) of the reference system
         self.meta = meta
+        self.path: Path | None = None  # the file it was loaded from: its map cache lies beside it
+        self._content_sha256: str | None = None  # of that file and its field files
+        self._maps: dict = {}  # (system, orientation, size) -> read-only (2, H, W) float32 maps
 
     # --- files -------------------------------------------------------------------------------
 
@@ -221,7 +256,8 @@ class Calibration:
         """
         path = Path(path)
         try:
-            doc = json.loads(path.read_text())
+            raw = path.read_bytes()
+            doc = json.loads(raw)
         except (OSError, ValueError) as exc:
             raise ArtifactError(f"{path}: cannot read calibration ({exc})") from exc
         if not isinstance(doc, dict):
@@ -242,7 +278,9 @@ class Calibration:
                 raise
             raise ArtifactError(f"{path}: malformed calibration ({type(exc).__name__}: {exc})") from exc
         meta = {k: v for k, v in doc.items() if k not in ("systems", "exposures")}
-        return cls(systems, exposures, meta)
+        cal = cls(systems, exposures, meta)
+        cal.path, cal._content_sha256 = path, _content_sha256(path, raw, doc)
+        return cal
 
     def save(self, path: str | Path) -> list[Path]:
         """Write ``calibration.json`` and its field files (:func:`_field_files`) atomically; return the paths.
@@ -375,6 +413,103 @@ class Calibration:
     def distort_points(self, system: str, xy, orientation=None) -> np.ndarray:
         """Ideal pinhole ``(N, 2)`` px -> measured ``(N, 2)`` px (the inverse of :meth:`undistort_points`)."""
         return self.field(system, orientation).distort_points(check_points("xy", xy, 2))
+
+    def remap_maps(self, system: str, image_size=None, orientation=None) -> tuple[np.ndarray, np.ndarray]:
+        """Inverse maps that undistort ``system``'s frames with ``cv2.remap``, as ``cv2.initUndistortRectifyMap``'s.
+
+        ``cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR)`` resamples a measured frame onto the
+        ideal pinhole image. The maps are computed once per (calibration, system, orientation,
+        size): kept in memory, and cached on disk beside a loaded calibration (:mod:`fluorocal.maps`).
+
+        Parameters
+        ----------
+        system : str
+            A system name.
+        image_size : (int, int), optional
+            ``(width, height)`` px of the undistorted output (default: the calibrated image size), as
+            ``newImageSize``; the source is always a frame of the calibrated size.
+        orientation : None, str or dict
+            As in :meth:`field`: None (the one field), a name, or ``{"orbit": deg, "tilt": deg}``.
+
+        Returns
+        -------
+        map_x, map_y : (H, W) float32 ndarray, px, read-only
+            The measured (distorted) source coordinate of each output pixel centre (README.md,
+            "Conventions"). Float32 maps are OpenCV's fastest here and exact; ``cv2.convertMaps``'s
+            fixed-point pair is slower (``benchmarks/undistort.py``).
+
+        Raises
+        ------
+        InputError
+            An unknown system or orientation (:meth:`field`), a size that is not two positive
+            integers, or a field that moves pixels beyond the image (naming the system).
+        """
+        s = self._system(system)
+        w, h = _output_size(s.image_size_px if image_size is None else image_size)
+        try:
+            memo = (system, json.dumps(orientation_key(orientation)), (w, h))
+        except (TypeError, ValueError):
+            memo = None  # not an orientation: self.field says why
+        if memo not in self._maps:
+            field = self.field(system, orientation)  # refuses a bad orientation before any cache is touched
+            compute = lambda: self._computed_maps(system, field, orientation, (w, h))  # noqa: E731
+            self._maps[memo] = cached_maps(self.path, self._content_sha256, system, orientation, (w, h), compute)
+        map_x, map_y = self._maps[memo]  # a memo hit skips the field: interpolating one costs milliseconds
+        return map_x, map_y
+
+    def _computed_maps(self, system: str, field: CorrectionField, orientation, size: tuple[int, int]) -> np.ndarray:
+        """The ``(2, H, W)`` float32 maps of ``field``, after refusing a field that moves pixels beyond the image."""
+        try:
+            check_shift(field.delta_px, *self.systems[system].image_size_px)  # before a huge field overflows maps
+            maps = np.stack(field.remap_maps(*size))
+            check_maps(*maps)
+        except InputError as exc:
+            where = f"{self.path or 'calibration'}: system {system}"
+            raise InputError(
+                where + ("" if orientation is None else f", orientation {orientation}") + f": {exc}"
+            ) from exc
+        return maps
+
+    def undistort_image(
+        self, system: str, image, orientation=None, *, interpolation: str = "linear", border_value: float = 0.0
+    ) -> np.ndarray:
+        """A frame of ``system`` resampled onto its ideal pinhole image: :meth:`remap_maps` + ``cv2.remap``.
+
+        Parameters
+        ----------
+        system : str
+            A system name.
+        image : (H, W) ndarray, uint8, uint16, int16, float32 or float64
+            A measured frame of the calibrated size, in its own dtype (kept; no float copy is made).
+        orientation : None, str or dict
+            As in :meth:`field`.
+        interpolation : str
+            ``"linear"`` (default), ``"cubic"``, ``"lanczos"`` or ``"nearest"``.
+        border_value : float
+            Output pixels whose source falls outside the frame (default 0).
+
+        Returns
+        -------
+        (H, W) ndarray of ``image``'s dtype
+            As :func:`fluorocal.stages.undistort.remap_image` gives it (cubic and Lanczos clipped to the
+            frame's value range).
+
+        Raises
+        ------
+        InputError
+            Not a 2-D frame of the calibrated size or of a dtype OpenCV remaps, or as :meth:`remap_maps`.
+        """
+        image = np.asarray(image)
+        s = self._system(system)
+        if image.ndim != 2 or image.shape != (s.image_size_px[1], s.image_size_px[0]):
+            raise ShapeError(
+                f"image must be one frame of system {system}'s calibrated size, shape "
+                f"({s.image_size_px[1]}, {s.image_size_px[0]}); got {image.shape}"
+            )
+        if image.dtype not in _REMAP_DTYPES:
+            raise InputError(f"image dtype must be one of {', '.join(map(str, _REMAP_DTYPES))}; got {image.dtype}")
+        map_x, map_y = self.remap_maps(system, orientation=orientation)
+        return remap_image(image, map_x, map_y, UndistortParams(interpolation, float(border_value)))
 
     def intrinsics(self, system: str) -> dict:
         """``{"xp", "yp", "c", "K", "image_size_px"}``: principal point and distance (px) and the 3×3 camera matrix."""

@@ -1,9 +1,13 @@
 """`fluorocal undistort`: remove a system's learned distortion from clinical or experimental frames.
 
-Each INPUT (DICOM, TIFF, PNG or video) is resampled onto the ideal pinhole
-image of the calibrated system and written to OUTDIR under the same name, in
-the input's own format, bit depth and metadata (DICOM: a new SOP Instance
-UID and a derivation note).
+Each INPUT (DICOM, TIFF, PNG or video; a file of one or many frames, or a
+folder of them) is resampled onto the ideal pinhole image of the calibrated
+system and written to OUTDIR under the same name, in the input's own format,
+bit depth and metadata (DICOM: a new SOP Instance UID and a derivation note).
+Frames stream: one is read while another is remapped and a third written, so
+memory holds a few frames however many there are. The undistortion maps are
+computed once per orientation and cached beside the calibration
+(calibration.maps/).
 
 An image intensifier's distortion changes with the C-arm's orientation, so a
 calibration may hold a field per orientation. --orientation chooses one by
@@ -15,7 +19,13 @@ one field, or the orientation named like each input's file stem.
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # imported when run: `fluorocal undistort --help` loads neither OpenCV nor OpenImageIO
+    from fluorocal.stages.io import StoredFrames
+    from fluorocal.stages.undistort import UndistortParams
 
 
 def add_parser(subparsers) -> None:
@@ -26,7 +36,13 @@ def add_parser(subparsers) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("inputs", nargs="+", type=Path, metavar="INPUT", help="frames to undistort")
+    p.add_argument(
+        "inputs",
+        nargs="+",
+        type=Path,
+        metavar="INPUT",
+        help="frame files (single or multi-frame) or folders of them (their frame files, sorted by name)",
+    )
     p.add_argument("--calibration", type=Path, required=True, help="calibration.json written by `fluorocal run`")
     p.add_argument(
         "--system",
@@ -59,43 +75,107 @@ def add_parser(subparsers) -> None:
 
 def run(args) -> int:
     import logging
+    import time
 
     from fluorocal.calibration import Calibration
     from fluorocal.stages.errors import InputError
-    from fluorocal.stages.io import read_frames, write_frames_like
-    from fluorocal.stages.undistort import UndistortParams, undistort_frame
+    from fluorocal.streaming import stream
     from tqdm import tqdm
 
     log = logging.getLogger("fluorocal")
-    out_dir = _check_paths(args.inputs, args.out)  # every input and the output before any work
+    inputs = _expand(args.inputs)
+    out_dir = _check_paths(inputs, args.out)  # every input and the output before any work
     cal = Calibration.load(args.calibration)
-    system = cal.systems.get(args.system)
-    if system is None:
+    if args.system not in cal.systems:
         raise InputError(f"--system {args.system!r} is not in {args.calibration}; it has {', '.join(cal.system_names)}")
     chosen = None if args.orientation is None else parse_orientation(args.orientation)
-    orientation_of = {path: _orientation_for(cal, args.system, path, chosen) for path in args.inputs}
-    maps = {}  # orientation (hashable) -> remap maps, all checked before anything is written
-    for orientation in orientation_of.values():
-        key = _key(orientation)
-        if key not in maps:
-            maps[key] = _maps(cal, args, orientation)
-    params = UndistortParams(interpolation=args.interpolation)
-    for path in tqdm(args.inputs, desc="undistort", unit="file", disable=args.quiet or None):
-        frames = read_frames(path)
-        size = (frames[0].shape[1], frames[0].shape[0])
-        if size != tuple(system.image_size_px):
-            raise InputError(
-                f"{path}: frame is {size[0]}x{size[1]} px; "
-                f"system {args.system} was calibrated at {system.image_size_px[0]}x{system.image_size_px[1]}"
-            )
-        map_x, map_y = maps[_key(orientation_of[path])]
-        corrected = [undistort_frame(f, map_x, map_y, params) for f in frames]
-        out_dir.mkdir(parents=True, exist_ok=True)
-        write_frames_like(path, corrected, out_dir / path.name)
-        if orientation_of[path] is not None:
-            log.debug("%s: orientation %s", path, orientation_of[path])
-    log.info("wrote %d undistorted file(s) to %s", len(args.inputs), out_dir)
+    # every orientation's maps and every file's size checked before anything is written
+    jobs = [
+        _job(cal, args, path, out_dir / path.name, _orientation_for(cal, args.system, path, chosen)) for path in inputs
+    ]
+    n_frames = sum(job.n_frames for job in jobs)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    with tqdm(total=n_frames, desc="undistort", unit="frame", disable=args.quiet or None) as bar:
+
+        def transform(item):
+            job, frame = item
+            bar.update()
+            return job, job.remap(frame)
+
+        stream(_frames(jobs), transform, _write_all)
+    seconds = time.perf_counter() - start
+    log.info(
+        "undistorted %d frame(s) of %d file(s) in %.2f s (%.1f frames/s) into %s",
+        n_frames,
+        len(jobs),
+        seconds,
+        n_frames / max(seconds, 1e-9),
+        out_dir,
+    )
     return 0
+
+
+@dataclass(frozen=True, eq=False)
+class _Job:
+    """One input file: where it goes, its maps, and its frames as stored (None: read and written as radiographs)."""
+
+    path: Path
+    out: Path
+    maps: tuple  # (map_x, map_y)
+    params: UndistortParams
+    n_frames: int
+    stored: StoredFrames | None = None
+
+    def remap(self, frame):
+        from fluorocal.stages.undistort import remap_image, undistort_frame
+
+        if self.stored is None:
+            return undistort_frame(frame, *self.maps, self.params)
+        return remap_image(frame, *self.maps, self.params)
+
+
+def _job(cal, args, path: Path, out: Path, orientation) -> _Job:
+    """The checked job of one input: its frames' size against the calibration's, and its maps."""
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import open_stored, probe_frames
+    from fluorocal.stages.undistort import UndistortParams
+
+    system = cal.systems[args.system]
+    stored = open_stored(path)
+    n_frames, size = (stored.n_frames, stored.size_px) if stored is not None else probe_frames(path)
+    if tuple(size) != tuple(system.image_size_px):
+        raise InputError(
+            f"{path}: frame is {size[0]}x{size[1]} px; "
+            f"system {args.system} was calibrated at {system.image_size_px[0]}x{system.image_size_px[1]}"
+        )
+    maps = cal.remap_maps(args.system, orientation=orientation)
+    border = 0.0 if stored is None else stored.black  # the dark outside of the field, in stored units
+    return _Job(path, out, maps, UndistortParams(args.interpolation, border), n_frames, stored)
+
+
+def _frames(jobs):
+    """``(job, frame)`` for every frame of every job, read as they are asked for."""
+    from fluorocal.stages.io import read_frames
+
+    for job in jobs:
+        for frame in read_frames(job.path) if job.stored is None else job.stored.frames:
+            yield job, frame
+
+
+def _write_all(items) -> None:
+    """Write the ``(job, frame)`` items, file by file as they come: streamed where stored, else per file."""
+    from itertools import groupby
+    from operator import itemgetter
+
+    from fluorocal.stages.io import write_frames_like, write_stored_like
+
+    for job, group in groupby(items, key=itemgetter(0)):  # jobs compare by identity
+        frames = (frame for _, frame in group)
+        if job.stored is None:
+            write_frames_like(job.path, list(frames), job.out)
+        else:
+            write_stored_like(job.path, frames, job.out, job.n_frames)
 
 
 def parse_orientation(text: str):
@@ -146,27 +226,34 @@ def _orientation_for(cal, system: str, path: Path, chosen):
     )
 
 
-def _key(orientation):
-    return tuple(sorted(orientation.items())) if isinstance(orientation, dict) else orientation
+def _expand(inputs: list[Path]) -> list[Path]:
+    """The input files: each file given, and each folder's frame files (sorted by name; not its sub-folders).
 
-
-def _maps(cal, args, orientation):
-    """The checked remap maps of the system's field at ``orientation``."""
+    Raises
+    ------
+    InputError
+        A missing input, or a folder holding no file that a frame format claims.
+    """
     from fluorocal.stages.errors import InputError
-    from fluorocal.stages.undistort import check_maps, check_shift
+    from fluorocal.stages.io import frame_format
 
-    system = cal.systems[args.system]
-    where = f"{args.calibration}: system {args.system}" + (
-        "" if orientation is None else f", orientation {orientation}"
-    )
-    try:
-        field = cal.field(args.system, orientation)
-        check_shift(field.delta_px, *system.image_size_px)  # the nodes first: a huge field overflows the maps
-        map_x, map_y = field.remap_maps(*system.image_size_px)  # every input must have the calibrated size
-        check_maps(map_x, map_y)
-    except InputError as exc:
-        raise InputError(f"{where}: {exc}") from exc
-    return map_x, map_y
+    files = []
+    for path in inputs:
+        if not path.is_dir():
+            files.append(path)
+            continue
+        found = []
+        for entry in sorted(path.iterdir()):
+            if entry.is_file() and not entry.name.startswith("."):
+                try:
+                    frame_format(entry)
+                except InputError:
+                    continue  # a folder of frames may hold notes, DICOMDIR indexes, ...
+                found.append(entry)
+        if not found:
+            raise InputError(f"{path}: folder holds no frame file fluorocal reads")
+        files.extend(found)
+    return files
 
 
 def _check_paths(inputs: list[Path], out: Path) -> Path:
@@ -183,7 +270,7 @@ def _check_paths(inputs: list[Path], out: Path) -> Path:
     seen: dict[str, Path] = {}
     for path in inputs:
         if not path.is_file():
-            raise InputError(f"{path}: no such file" + (" (a folder)" if path.is_dir() else ""))
+            raise InputError(f"{path}: no such file")
         if path.resolve().parent == out_dir:
             raise InputError(f"{path}: input lies in the output directory {out_dir}; choose another --out")
         other = seen.setdefault(path.name.casefold(), path)

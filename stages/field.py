@@ -27,6 +27,8 @@ from fluorocal.stages.artifacts import check_shape, freeze
 from fluorocal.stages.errors import InputError, ShapeError
 
 logger = logging.getLogger(__name__)
+#: points inverted at once by ``remap_maps`` (its Newton iteration holds ~20 float64 values per point)
+_MAP_BLOCK_POINTS = 65536
 
 
 def bilinear(x_nodes, y_nodes, values, xy, *, gradient=False):
@@ -291,12 +293,15 @@ class CorrectionField(_FieldOps):
         """
         width_px = self.width_px if width_px is None else int(width_px)
         height_px = self.height_px if height_px is None else int(height_px)
-        yy, xx = np.mgrid[0:height_px, 0:width_px].astype(np.float64)
-        src = self.distort_points(np.column_stack([xx.ravel(), yy.ravel()]))
-        return (
-            src[:, 0].reshape(height_px, width_px).astype(np.float32),
-            src[:, 1].reshape(height_px, width_px).astype(np.float32),
-        )
+        map_x = np.empty((height_px, width_px), np.float32)
+        map_y = np.empty((height_px, width_px), np.float32)
+        rows = max(1, _MAP_BLOCK_POINTS // max(width_px, 1))  # a block of rows at a time: bounded memory
+        for top in range(0, height_px, rows):
+            yy, xx = np.mgrid[top : min(top + rows, height_px), 0:width_px].astype(np.float64)
+            src = self.distort_points(np.column_stack([xx.ravel(), yy.ravel()]))
+            map_x[top : top + rows] = src[:, 0].reshape(xx.shape)
+            map_y[top : top + rows] = src[:, 1].reshape(xx.shape)
+        return map_x, map_y
 
 
 @dataclass(frozen=True)

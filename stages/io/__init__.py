@@ -16,10 +16,13 @@ from fluorocal.stages.io.frames import (
     VIDEO_SUFFIXES,
     FrameFormat,
     frame_format,
+    open_stored,
     probe_frames,
     read_frames,
     write_frames_like,
+    write_stored_like,
 )
+from fluorocal.stages.io.pixels import StoredFrames
 from fluorocal.stages.io.still import write_still
 from fluorocal.stages.io.tables import (
     DETECTIONS,
@@ -48,6 +51,7 @@ __all__ = [
     "OBSERVATIONS",
     "PHANTOM",
     "SEEDS",
+    "StoredFrames",
     "TABLES",
     "VIDEO_SUFFIXES",
     "Column",
@@ -56,6 +60,7 @@ __all__ = [
     "atomic_write",
     "columns_of",
     "frame_format",
+    "open_stored",
     "probe_frames",
     "read_frames",
     "read_phantom",
@@ -66,5 +71,6 @@ __all__ = [
     "write_frames_like",
     "write_png",
     "write_still",
+    "write_stored_like",
     "write_table",
 ]

@@ -7,13 +7,15 @@ simulator's XA frames and the undistorted copies of a source data set).
 from __future__ import annotations
 
 import os
+import struct
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
-from fluorocal.stages.io.pixels import to_source_dtype
+from fluorocal.stages.io.pixels import StoredFrames, check_stored, to_source_dtype
 
 NAME = "DICOM"
 SUFFIXES = (".dcm", ".ima", ".dicom")
@@ -138,20 +140,104 @@ def write_dicom(path: str | os.PathLike, ds, pixels: np.ndarray) -> None:
     atomic_write(path, lambda tmp: ds.save_as(tmp, enforce_file_format=True))
 
 
-def write_like(source: Path, frames: list[Radiograph], out_path: Path) -> None:
-    """The source's data set with new pixel data, a new SOP Instance UID and a derivation note."""
-    import pydicom
-    from pydicom.uid import generate_uid
+def _stored_dtype(ds) -> np.dtype:
+    return np.dtype(np.uint16 if int(ds.get("BitsAllocated", 16)) == 16 else np.uint8)
 
-    ds = pydicom.dcmread(source)
-    pixels = np.stack([to_source_dtype(f) for f in frames])
-    if str(getattr(ds, "PhotometricInterpretation", "")) == "MONOCHROME1":
-        pixels = (2 ** frames[0].bit_depth - 1 - pixels.astype(np.int64)).astype(pixels.dtype)
-    slope, intercept = float(getattr(ds, "RescaleSlope", 1) or 1), float(getattr(ds, "RescaleIntercept", 0) or 0)
-    if (slope, intercept) != (1.0, 0.0):  # store raw values so the modality LUT gives the output back
-        pixels = np.clip(np.rint((pixels - intercept) / slope), 0, 2 ** int(ds.BitsStored) - 1).astype(np.uint16)
+
+def open_stored(path: Path) -> StoredFrames | None:
+    """The frames as stored, read one at a time; None unless they are displayed as themselves or inverted.
+
+    Streaming works on stored values when the display is the identity or the MONOCHROME1
+    inversion of them: monochrome, unsigned, 8 or 16 bits allocated, no rescale (slope 1,
+    intercept 0). Other files take the general path (:func:`read`, :func:`write_like`).
+    """
+    import pydicom
+    from pydicom.pixels import iter_pixels
+
+    ds = pydicom.dcmread(path, stop_before_pixels=True)
+    photometric = str(ds.get("PhotometricInterpretation", "MONOCHROME2"))
+    slope, intercept = float(ds.get("RescaleSlope", 1) or 1), float(ds.get("RescaleIntercept", 0) or 0)
+    if (
+        photometric not in ("MONOCHROME1", "MONOCHROME2")
+        or int(ds.get("SamplesPerPixel", 1)) != 1
+        or int(ds.get("PixelRepresentation", 0)) != 0
+        or int(ds.get("BitsAllocated", 16)) not in (8, 16)
+        or (slope, intercept) != (1.0, 0.0)
+    ):
+        return None
+    bits = int(ds.get("BitsStored", ds.get("BitsAllocated", 16)))
+    black = float(2**bits - 1) if photometric == "MONOCHROME1" else 0.0
+    size, dtype = (int(ds.Columns), int(ds.Rows)), _stored_dtype(ds)
+    frames = (check_stored(path, f, dtype, size, i) for i, f in enumerate(iter_pixels(path, raw=True)))
+    return StoredFrames(int(ds.get("NumberOfFrames", 1) or 1), size, dtype, black, frames)
+
+
+def write_stored(source: Path, frames: Iterable[np.ndarray], out_path: Path, n_frames: int) -> None:
+    """Write ``n_frames`` stored frames, streamed, as a derived copy of ``source``'s data set, atomically.
+
+    The source's header (its pixels are not read) with a new SOP Instance UID and a derivation
+    note, explicit VR little endian; the frames are appended to the file one at a time as the
+    pixel data, so memory holds one frame, not the file.
+
+    Raises
+    ------
+    InputError
+        A frame of another size or dtype than the source's, or a count other than ``n_frames``.
+    """
+    import pydicom
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    ds = pydicom.dcmread(source, stop_before_pixels=True)
     ds.SOPInstanceUID = generate_uid()
     ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
+    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
     ds.DerivationDescription = "geometric distortion corrected by fluorocal"
     ds.ImageType = ["DERIVED", "SECONDARY"] + list(getattr(ds, "ImageType", [])[2:])
-    write_dicom(out_path, ds, pixels.astype(np.uint16 if ds.BitsAllocated == 16 else np.uint8))
+    if n_frames > 1 or "NumberOfFrames" in ds:
+        ds.NumberOfFrames = n_frames
+    size, dtype = (int(ds.Columns), int(ds.Rows)), _stored_dtype(ds)
+    n_bytes = n_frames * size[0] * size[1] * dtype.itemsize
+    # (7FE0,0010) in explicit VR little endian: tag, VR, 2 reserved bytes, 4-byte length (even)
+    element = struct.pack("<HH2s2xI", 0x7FE0, 0x0010, b"OW" if dtype.itemsize == 2 else b"OB", n_bytes + n_bytes % 2)
+
+    def _write(tmp):
+        ds.save_as(tmp, enforce_file_format=True)
+        with open(tmp, "ab") as fh:
+            fh.write(element)
+            count = 0
+            for frame in frames:
+                fh.write(
+                    np.ascontiguousarray(
+                        check_stored(out_path, frame, dtype, size, count), dtype="<" + dtype.str[1:]
+                    ).data
+                )
+                count += 1
+            if count != n_frames:
+                raise InputError(f"{out_path}: expected {n_frames} frame(s) like {source}; got {count}")
+            fh.write(b"\0" * (n_bytes % 2))
+
+    atomic_write(out_path, _write)
+
+
+def write_like(source: Path, frames: list[Radiograph], out_path: Path) -> None:
+    """The source's data set with new pixel data, a new SOP Instance UID and a derivation note (:func:`write_stored`).
+
+    The frames' displayed values are stored back through the source's MONOCHROME1 inversion and
+    rescale.
+    """
+    import pydicom
+
+    ds = pydicom.dcmread(source, stop_before_pixels=True)
+    bits_stored = int(ds.get("BitsStored", 16))
+    monochrome1 = str(getattr(ds, "PhotometricInterpretation", "")) == "MONOCHROME1"
+    slope, intercept = float(getattr(ds, "RescaleSlope", 1) or 1), float(getattr(ds, "RescaleIntercept", 0) or 0)
+
+    def stored(frame: Radiograph) -> np.ndarray:
+        pixels = to_source_dtype(frame)
+        if monochrome1:
+            pixels = (2**frame.bit_depth - 1 - pixels.astype(np.int64)).astype(pixels.dtype)
+        if (slope, intercept) != (1.0, 0.0):  # store raw values so the modality LUT gives the output back
+            pixels = np.clip(np.rint((pixels - intercept) / slope), 0, 2**bits_stored - 1)
+        return pixels.astype(_stored_dtype(ds))
+
+    write_stored(source, map(stored, frames), out_path, len(frames))

@@ -17,13 +17,15 @@ The registry is a tuple in this module: nothing read from disk chooses the code 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io import dicom, still, video
+from fluorocal.stages.io.pixels import StoredFrames
 
 #: bytes read from the start of a file for the content sniffers (DICOM's signature ends at byte 132)
 _HEAD_BYTES = 160
@@ -49,6 +51,10 @@ class FrameFormat:
         Every frame of the file.
     write_like : callable (Path, list of Radiograph, Path) -> None
         Write frames to the output path in the source's format, bit depth and metadata, atomically.
+    open_stored : callable (Path) -> StoredFrames or None, optional
+        The frames as stored, read one at a time, where streaming them is exact (None: not this file).
+    write_stored : callable (Path, iterable of ndarray, Path, int) -> None, optional
+        Write that many stored frames like the source as they come, atomically.
     """
 
     name: str
@@ -58,6 +64,8 @@ class FrameFormat:
     probe: Callable[[Path], tuple[int, tuple[int, int]]]
     read: Callable[[Path], list[Radiograph]]
     write_like: Callable[[Path, list[Radiograph], Path], None]
+    open_stored: Callable[[Path], StoredFrames | None] | None = None
+    write_stored: Callable[[Path, Iterable[np.ndarray], Path, int], None] | None = None
 
     def describe(self) -> str:
         """The name with its usual suffixes, for messages."""
@@ -72,6 +80,8 @@ DICOM = FrameFormat(
     dicom.probe,
     dicom.read,
     dicom.write_like,
+    dicom.open_stored,
+    dicom.write_stored,
 )
 VIDEO = FrameFormat(
     video.NAME,
@@ -90,6 +100,8 @@ STILL = FrameFormat(
     still.probe,
     still.read,
     still.write_like,
+    still.open_stored,
+    still.write_stored,
 )
 
 #: every supported frame format, in the order files are offered to them
@@ -191,3 +203,50 @@ def write_frames_like(source: str | os.PathLike, frames: list[Radiograph], out_p
     """
     source = Path(source)
     frame_format(source).write_like(source, frames, Path(out_path))
+
+
+def open_stored(path: str | os.PathLike) -> StoredFrames | None:
+    """The frames of a file as stored, read one at a time as they are iterated, for streaming.
+
+    None where the format cannot stream this file exactly (video; DICOM with a rescale; colour
+    or rescaled-depth stills): read it with :func:`read_frames` and write it with :func:`write_frames_like`.
+
+    Raises
+    ------
+    InputError
+        The file is missing, unreadable or of no supported format (frames that fail to decode raise
+        while iterated, naming the file).
+    """
+    path = Path(path)
+    fmt = frame_format(path)
+    if fmt.open_stored is None:
+        return None
+    stored = _call(path, fmt.open_stored)
+    return None if stored is None else replace(stored, frames=_named(path, stored.frames))
+
+
+def _named(path: Path, frames):
+    """The frames, with whatever a library raises while decoding one naming the file."""
+    iterator = iter(frames)
+    while True:
+        frame = _call(path, lambda _: next(iterator, None))
+        if frame is None:
+            return
+        yield frame
+
+
+def write_stored_like(
+    source: str | os.PathLike, frames: Iterable[np.ndarray], out_path: str | os.PathLike, n_frames: int
+) -> None:
+    """Write ``n_frames`` stored frames (as :func:`open_stored` gives them) like ``source``, as they come, atomically.
+
+    Raises
+    ------
+    InputError
+        ``source``'s format cannot stream, a frame does not fit the source, or the count is not ``n_frames``.
+    """
+    source = Path(source)
+    fmt = frame_format(source)
+    if fmt.write_stored is None:
+        raise InputError(f"{source}: {fmt.name} frames cannot be streamed; use write_frames_like")
+    fmt.write_stored(source, frames, Path(out_path), n_frames)

@@ -1,9 +1,13 @@
-"""Frames back to the integer type of their source: shared by every format's write-like."""
+"""Frames back to the integer type of their source, and frames as stored: shared by every format's writers."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from dataclasses import dataclass
+
 import numpy as np
 from fluorocal.stages.artifacts import Radiograph
+from fluorocal.stages.errors import InputError
 
 
 def to_source_dtype(radiograph: Radiograph) -> np.ndarray:
@@ -19,3 +23,41 @@ def to_source_dtype(radiograph: Radiograph) -> np.ndarray:
         return radiograph.image.astype(np.float32)
     dtype = np.uint8 if radiograph.bit_depth <= 8 else np.uint16
     return np.clip(np.rint(radiograph.image), 0, 2**radiograph.bit_depth - 1).astype(dtype)
+
+
+@dataclass(frozen=True)
+class StoredFrames:
+    """A file's frames as stored (no modality LUT, no inversion), read one at a time.
+
+    For streaming: a linear resampling of stored values equals that of the displayed values when the
+    display is an affine function of them (MONOCHROME1 inversion; a rescale slope of 1), apart from
+    the border, which is given here in stored units.
+
+    Attributes
+    ----------
+    n_frames : int
+    size_px : (int, int)
+        ``(width, height)`` px of every frame.
+    dtype : numpy.dtype
+        uint8 or uint16, every frame's.
+    black : float
+        The stored value displayed as 0 (the dark outside of the field): the border value to resample with.
+    frames : iterator of (H, W) ndarray
+        The frames, read from the file as they are asked for.
+    """
+
+    n_frames: int
+    size_px: tuple[int, int]
+    dtype: np.dtype
+    black: float
+    frames: Iterator[np.ndarray]
+
+
+def check_stored(path, frame: np.ndarray, dtype, size_px: tuple[int, int], i_frame: int) -> np.ndarray:
+    """``frame`` if it is a 2-D array of ``dtype`` and ``size_px``, else InputError naming ``path`` and the frame."""
+    if frame.ndim != 2 or frame.dtype != dtype or frame.shape != (size_px[1], size_px[0]):
+        raise InputError(
+            f"{path}: frame {i_frame} must be {size_px[0]}x{size_px[1]} px of {np.dtype(dtype)}; "
+            f"got shape {frame.shape} of {frame.dtype}"
+        )
+    return frame
