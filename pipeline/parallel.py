@@ -181,7 +181,7 @@ def _on_cluster(tasks: list[FrameTask], scheduler: str):
     with client:
         futures = client.map(run_task, tasks, pure=False)
         try:
-            for future in completed(futures):
+            for future in completed(futures, loop=client.loop):
                 yield future.result()
         finally:
             client.cancel(futures)
