@@ -46,6 +46,8 @@ WORKER_PRELOAD = (
     "scipy.ndimage",
     "scipy.spatial",
 )
+#: glibc's mallopt parameters (malloc.h)
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
 #: seconds to wait for a Dask scheduler to answer
 CONNECT_TIMEOUT_S = 10
 
@@ -72,12 +74,16 @@ class FrameJob:
 
 @dataclass(frozen=True)
 class FrameTask:
-    """Frames of one file for one worker; ``check_sha256``: verify the file is the one the keys were made from."""
+    """Frames of one file for one worker.
+
+    ``on_cluster``: the worker is a Dask worker, maybe on another machine: it checks that the file
+    is the one the keys were made from, and keeps freed memory (:func:`_keep_freed_memory`).
+    """
 
     path: str
     file_sha256: str
     frames: tuple[FrameJob, ...]
-    check_sha256: bool = False
+    on_cluster: bool = False
 
 
 @dataclass(frozen=True)
@@ -102,8 +108,10 @@ def run_task(task: FrameTask) -> list[FrameResult]:
     from fluorocal.stages.io import read_frames
 
     where = f"{task.path} on {socket.gethostname()}"
+    if task.on_cluster:
+        _keep_freed_memory()
     try:
-        if task.check_sha256 and file_sha256(task.path) != task.file_sha256:
+        if task.on_cluster and file_sha256(task.path) != task.file_sha256:
             raise InputError(f"{where}: content differs from the project's file; workers must see the same frames")
         frames = read_frames(Path(task.path))
     except OSError as exc:
@@ -129,6 +137,25 @@ def _run_frame(job: FrameJob, frame) -> FrameResult:
             tree = encode(artifact, arrays, "artifact", artifact_types([stage]))
             outputs.append((stage.name, tree, arrays, took))
     return FrameResult(job.unit, tuple(outputs), tuple((str(w.message), w.category) for w in caught))
+
+
+def _keep_freed_memory() -> None:
+    """Have glibc reuse freed memory for large arrays in this process, as it does by default.
+
+    Dask's nannies start workers with ``MALLOC_TRIM_THRESHOLD_=65536``, which also fixes glibc's
+    mmap threshold at 128 KiB: every frame-sized array is then mapped afresh and faulted in page by
+    page. Measured on detect + centroid of 1024² frames: 0.7-0.9 s of system time per 10 frames in
+    such a worker against 0.1 s in a plain process, and back to 0.04-0.1 s with these thresholds
+    (glibc's own upper bounds on 64-bit). Nothing is done outside glibc.
+    """
+    import ctypes
+
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return
+    mallopt(M_MMAP_THRESHOLD, 32 << 20)
+    mallopt(M_TRIM_THRESHOLD, 64 << 20)
 
 
 def run_tasks(tasks: list[FrameTask], compute: ComputeConfig, *, preload: tuple[str, ...] = ()):

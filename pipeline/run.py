@@ -390,9 +390,9 @@ class Runner:
                 FrameJob(u, self.units[u].index, self.units[u].label, steps, given)
             )
         chunk = max(1, -(-len(units) // (4 * max(1, self.compute.workers))))
-        check = bool(self.compute.scheduler)
+        on_cluster = bool(self.compute.scheduler)
         return [
-            FrameTask(str(path), self.units[jobs[0].unit].file_sha256, tuple(jobs[i : i + chunk]), check)
+            FrameTask(str(path), self.units[jobs[0].unit].file_sha256, tuple(jobs[i : i + chunk]), on_cluster)
             for path, jobs in by_file.items()
             for i in range(0, len(jobs), chunk)
         ]
