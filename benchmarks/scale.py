@@ -14,9 +14,10 @@ N times and each keeps its run of least CPU time (this machine is shared: the le
 disturbed). Every mode's cache entries are compared with the serial run's: the same keys, and per
 entry the same files byte for byte and the same artifact structure.
 
-Start-up is measured apart. The cluster is started, and its workers have imported the stages'
-libraries, before any clock starts (as a running cluster has); so has this process for the serial
-run. The pool's start-up (its fork server importing numpy, OpenCV, scipy and the stages) is timed
+Start-up is measured apart. The cluster is started for its runs only (its scheduler and nannies
+live in this process and would otherwise tick beside the other modes), and its workers have
+imported the stages' libraries before the clock starts (as a running cluster has); so has this
+process for the serial run. The pool's start-up (its fork server importing numpy, OpenCV, scipy and the stages) is timed
 once on its own and printed, with the pool's overhead including it: every `fluorocal run` pays it
 once, and the fork server then stays up in this process, so the pool rows show the per-frame cost.
 
@@ -26,10 +27,12 @@ is about the serial one. The overhead of running elsewhere is therefore measured
 ``cpu s`` is the CPU time of this process and of every process it started (the pool's fork server
 and workers, the cluster's workers; live ones read from ``/proc``, reaped ones from ``getrusage``),
 over the run; ``main`` is this process's share (the serial run's work; for the others decoding and
-storing the results, and for the LocalCluster also its scheduler, which lives in this process).
-``frames/cpu-s`` is the throughput per worker each worker would have on a core of its own;
-``overhead`` is the mode's CPU time over the serial run's, minus one: what shipping tasks and
-results, decoding them and Dask's own bookkeeping cost beyond the work (target: within 15 %).
+storing the results, and for the LocalCluster also its scheduler and nannies, which live in this
+process); ``workers`` the rest (for the serial run: all of it). ``frames/worker-cpu-s`` is the
+throughput each worker would have on a core of its own. ``overhead`` is the mode's CPU time over
+the serial run's, minus one: what shipping tasks and results, decoding and storing them and Dask's
+bookkeeping cost beyond the work; ``per worker`` is the workers' throughput against the serial
+run's, minus one (target: within 15 %: above -15 %).
 ``frames/s`` (wall) and its share per worker are printed as measured. CPU time of two busy
 hyperthreads of one core runs higher than of one: the parallel modes pay some of that too, so the
 overhead is an upper bound. Linux only.
@@ -149,6 +152,18 @@ def _own_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
+def run_on_cluster(cfg: Path, cache_name: str, workers: int):
+    """:func:`run_once` on a LocalCluster started (and warmed up) for it: no cluster idles beside the other modes."""
+    from distributed import LocalCluster
+    from fluorocal.compute import ComputeConfig
+
+    with LocalCluster(
+        n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as cluster:
+        warm_up(cluster)
+        return run_once(cfg, cache_name, ComputeConfig(scheduler=cluster.scheduler_address))
+
+
 def warm_up(cluster) -> None:
     """Have the cluster's workers import what the pool's fork server imports: a running cluster has done so once."""
     from distributed import Client
@@ -194,26 +209,30 @@ def pool_start_up(workers: int) -> tuple[float, float]:
 
 
 def report(best: dict, modes: dict, n_frames: int, start_cpu: float, start_wall: float) -> bool:
-    """Print the table; whether every mode's entries equal the serial run's."""
+    """Print the table; whether every mode's entries equal the serial run's.
+
+    ``workers`` is the CPU time of the processes doing the frames' work (the serial run's own
+    process; otherwise every process but this one); ``per worker`` compares the frames per
+    CPU-second of those with the serial run's.
+    """
     serial_cpu = best["serial"][1]
     reference = entries(best["serial"][3])
     print(
-        f"{'mode':<26} {'wall s':>7} {'frames/s':>9} {'per worker':>10} {'cpu s':>7} {'main':>6} "
-        f"{'frames/cpu-s':>12}  overhead"
+        f"{'mode':<24} {'wall s':>6} {'frames/s':>8} {'/worker':>7} {'cpu s':>6} {'main':>5} {'workers':>7} "
+        f"{'frames/worker-cpu-s':>19} {'overhead':>8} {'per worker':>10}"
     )
     identical = True
     for mode, (wall, cpu, main_cpu, cache) in best.items():
-        workers = modes[mode][0]
+        n_workers = modes[mode][0]
+        worker_cpu = cpu if mode == "serial" else cpu - main_cpu
         same = mode == "serial" or entries(cache) == reference
         identical &= same
+        versus = "-" if mode == "serial" else f"{cpu / serial_cpu - 1:+.1%}"
+        per_worker = "-" if mode == "serial" else f"{serial_cpu / worker_cpu - 1:+.1%}"
         print(
-            f"{mode:<26} {wall:>7.1f} {n_frames / wall:>9.1f} {n_frames / wall / workers:>10.1f} {cpu:>7.1f} "
-            f"{main_cpu:>6.1f} {n_frames / cpu:>12.1f}  "
-            + (
-                "-"
-                if mode == "serial"
-                else f"{cpu / serial_cpu - 1:+.1%}  identical to serial: {'yes' if same else 'NO'}"
-            )
+            f"{mode:<24} {wall:>6.1f} {n_frames / wall:>8.1f} {n_frames / wall / n_workers:>7.1f} {cpu:>6.1f} "
+            f"{main_cpu:>5.1f} {worker_cpu:>7.1f} {n_frames / worker_cpu:>19.1f} {versus:>8} {per_worker:>10}"
+            + ("" if mode == "serial" else f"  identical to serial: {'yes' if same else 'NO'}")
         )
     pool = next(m for m in best if m.startswith("pool"))
     print(
@@ -246,27 +265,23 @@ def main() -> int:
     cfg = make_frames(root / "project", args.frames, args.image_size)
     print(f"{args.frames} frames of {args.image_size} px ready in {time.perf_counter() - t0:.1f} s ({root})")
     try:
-        from distributed import LocalCluster
-
-        with LocalCluster(
-            n_workers=args.workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
-        ) as cluster:
-            warm_up(cluster)
-            start_cpu, start_wall = pool_start_up(args.workers)
-            modes = {
-                "serial": (1, ComputeConfig(jobs=1)),
-                f"pool, {args.workers} processes": (args.workers, ComputeConfig(jobs=args.workers)),
-                f"LocalCluster, {args.workers} workers": (
-                    args.workers,
-                    ComputeConfig(scheduler=cluster.scheduler_address),
-                ),
-            }
-            best = {}
-            for _ in range(args.repeat):  # the modes in turn; per mode the run of least CPU time
-                for i, (mode, (_, compute)) in enumerate(modes.items()):
-                    run = run_once(cfg, f".cache_{i}", compute)
-                    if mode not in best or run[1] < best[mode][1]:
-                        best[mode] = run
+        cluster_mode = f"LocalCluster, {args.workers} workers"
+        modes = {
+            "serial": (1, ComputeConfig(jobs=1)),
+            f"pool, {args.workers} processes": (args.workers, ComputeConfig(jobs=args.workers)),
+            cluster_mode: (args.workers, None),
+        }
+        start_cpu, start_wall = pool_start_up(args.workers)
+        best = {}
+        for _ in range(args.repeat):  # the modes in turn; per mode the run of least CPU time
+            for i, (mode, (_, compute)) in enumerate(modes.items()):
+                run = (
+                    run_on_cluster(cfg, f".cache_{i}", args.workers)
+                    if compute is None
+                    else run_once(cfg, f".cache_{i}", compute)
+                )
+                if mode not in best or run[1] < best[mode][1]:
+                    best[mode] = run
         if not report(best, modes, args.frames, start_cpu, start_wall):
             return 1
         for line in undistort_section(args):
