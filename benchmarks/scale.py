@@ -34,8 +34,8 @@ the serial run's, minus one: what shipping tasks and results, decoding and stori
 bookkeeping cost beyond the work; ``per worker`` is the workers' throughput against the serial
 run's, minus one (target: within 15 %: above -15 %).
 ``frames/s`` (wall) and its share per worker are printed as measured. The machine's other jobs
-move every CPU figure by 10-20 % from run to run (two busy hyperthreads of one core each use more
-CPU time per frame than one), and Dask's bookkeeping runs on a clock, so it grows with the wall
+move every CPU figure by 10-20 % from run to run (what else runs on the two vCPUs changes the CPU
+time a frame takes), and Dask's bookkeeping runs on a clock, so it grows with the wall
 time a loaded machine stretches. Linux only.
 
 Undistortion at scale (10 000 frames, peak memory) is measured beside this by the undistortion
