@@ -17,6 +17,10 @@ A project is a TOML file (see README.md, "Config"); paths in it are relative
 to it. Artifacts are cached in .fluorocal/ beside the config: a second run
 with nothing changed recomputes nothing.
 
+Threads: one BLAS/OpenMP/OpenCV thread per process unless [compute] threads
+or FLUOROCAL_THREADS says otherwise; the per-frame stages run on every core
+(--jobs, [compute] jobs) or on a Dask cluster (--scheduler).
+
 Exit codes: 0 success, 1 unexpected failure, 2 bad input (file, config key,
 argument), 130 interrupted. Add --debug for a traceback.
 """
@@ -66,6 +70,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="recompute STAGE and everything downstream (repeatable)",
     )
     p.add_argument("--until", metavar="STAGE", help="stop after STAGE (default: run all stages)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument(
+        "--jobs",
+        type=_positive_int,
+        metavar="N",
+        help="worker processes for the per-frame stages; 1: serial (default: [compute] jobs, else every core)",
+    )
+    where.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:PORT",
+        help="run the per-frame stages on this Dask scheduler's cluster (default: [compute] scheduler, else none)",
+    )
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser(
@@ -112,6 +128,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _positive_int(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer; got {text!r}")
+    return int(text)
+
+
+def _compute(args, config):
+    """The config's ``[compute]`` with ``--jobs`` or ``--scheduler`` over it (either chooses where to run)."""
+    import dataclasses
+
+    from fluorocal.compute import check_scheduler
+
+    if getattr(args, "jobs", None) is not None:
+        return dataclasses.replace(config.compute, jobs=args.jobs, scheduler="")
+    if getattr(args, "scheduler", None) is not None:
+        return dataclasses.replace(config.compute, jobs=None, scheduler=check_scheduler(args.scheduler, "--scheduler"))
+    return config.compute
+
+
 def _load(config_path: Path):
     from fluorocal.config import load_config
     from fluorocal.graph import stage_params_classes
@@ -125,7 +160,8 @@ def _runner(args, config=None, **kw):
     from fluorocal.run import Runner
 
     config = _load(args.config) if config is None else config
-    return Runner(config, default_stages(), ArtifactCache(config.cache_dir), progress=not args.quiet, **kw)
+    cache = ArtifactCache(config.cache_dir)
+    return Runner(config, default_stages(), cache, progress=not args.quiet, compute=_compute(args, config), **kw)
 
 
 def cmd_run(args) -> int:
@@ -257,9 +293,11 @@ def main(argv=None) -> int:
         logging.getLogger(noisy).setLevel(logging.WARNING)
     if not args.debug:
         warnings.showwarning = _show_warning
+    from fluorocal.compute import config_threads, limit_threads
     from fluorocal.stages.errors import CalibError
 
     try:
+        limit_threads(config_threads(getattr(args, "config", None)))  # before numpy, OpenCV and BLAS load
         return int(args.func(args) or 0)
     except CalibError as exc:
         if args.debug:

@@ -17,6 +17,7 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from fluorocal.compute import ComputeConfig, compute_from_table
 from fluorocal.outputs import safe_name
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.orientation import ANGLE_TOL_DEG, check_angle
@@ -95,6 +96,7 @@ class Config:
     output_dir: Path = Path("out")
     cache_dir: Path = Path(".fluorocal")
     stage_params: dict = field(default_factory=dict)
+    compute: ComputeConfig = ComputeConfig()
 
     @property
     def root(self) -> Path:
@@ -357,7 +359,7 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
         raise ConfigError(f"{path.name}: not valid TOML ({exc})") from exc
     stage_params_allowed = stage_params_allowed or {}
     _reject_unknown(
-        data, {"phantom", "systems", "calibration", "output", "cache"} | set(stage_params_allowed), path, ""
+        data, {"phantom", "systems", "calibration", "output", "cache", "compute"} | set(stage_params_allowed), path, ""
     )
     root = path.parent
     if "phantom" not in data:
@@ -392,6 +394,11 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     for section, folder in (("[output] ", out_dir), ("[cache] ", cache_dir)):
         check_writable_dir(folder, where=_where(path, section, "dir"))
 
+    try:
+        compute = compute_from_table(data.get("compute", {}), path.name)
+    except InputError as exc:
+        raise ConfigError(str(exc)) from None
+
     stage_params = {}
     for stage, cls in stage_params_allowed.items():
         if stage in data:
@@ -399,7 +406,7 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
             _reject_owned(stage, table, path)
             params_from_dict(cls, table, where=f"{path.name}: [{stage}] ")
             stage_params[stage] = table
-    return Config(path, phantom, systems, scheme, out_dir, cache_dir, stage_params)
+    return Config(path, phantom, systems, scheme, out_dir, cache_dir, stage_params, compute)
 
 
 def params_from_dict(cls, table: dict, *, where: str = ""):

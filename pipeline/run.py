@@ -6,6 +6,11 @@ an upstream artifact is read only when something downstream must be
 recomputed. A corrupt entry found on reading is recomputed with a warning.
 A per-system stage (label) is computed for a whole system at once, on its
 frames in exposure order, and stores one artifact per frame.
+
+The per-frame stages that need only the frame and each other (detect,
+centroid) run first, on a local process pool or a Dask cluster when
+``[compute]`` asks for one (:mod:`fluorocal.parallel`); the main process
+alone writes their entries.
 """
 
 from __future__ import annotations
@@ -15,13 +20,15 @@ import hashlib
 import logging
 import sys
 import time
+import warnings
 from collections import Counter
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
-from fluorocal.artifact_codec import artifact_types
+from fluorocal.artifact_codec import artifact_types, decode
 from fluorocal.cache import ArtifactCache, artifact_key, file_sha256
+from fluorocal.compute import ComputeConfig
 from fluorocal.config import Config, params_from_dict
 from fluorocal.graph import SOURCES, Stage, check_graph, downstream
 from fluorocal.stages.errors import CalibError, InputError
@@ -198,10 +205,20 @@ class Runner:
         Last stage to run.
     progress : bool
         Show progress bars (on a terminal).
+    compute : ComputeConfig, optional
+        Where the per-frame stages run (default: the config's ``[compute]``).
     """
 
     def __init__(
-        self, config: Config, stages: list[Stage], cache: ArtifactCache, *, force=(), until=None, progress=True
+        self,
+        config: Config,
+        stages: list[Stage],
+        cache: ArtifactCache,
+        *,
+        force=(),
+        until=None,
+        progress=True,
+        compute: ComputeConfig | None = None,
     ):
         check_graph(stages)
         names = [s.name for s in stages]
@@ -215,6 +232,7 @@ class Runner:
         self.by_name = {s.name: s for s in stages}
         self.force = downstream(stages, set(force)) if force else set()
         self.progress = progress
+        self.compute = compute if compute is not None else config.compute
         self.units = frame_units(config)
         self.phantom_key = self._phantom_key()
         self.keys: dict[tuple[str, int | None], str] = {}
@@ -294,29 +312,100 @@ class Runner:
 
         self.cache.prepare_root()
         self.cache.sweep()
+        todo = {}
         for stage in self.stages:
             units = self._stage_units(stage)
-            todo = [
+            pending = [
                 u
                 for u in units
                 if stage.name in self.force or not self.cache.verify(stage.name, self.keys[(stage.name, u)])
             ]
-            self.report.record(stage.name, [u for u in units if u not in todo], "cached")
+            todo[stage.name] = pending
+            missing = set(pending)
+            self.report.record(stage.name, [u for u in units if u not in missing], "cached")
             self.report.outcomes.setdefault(stage.name, {})
+        self._run_frame_stages(todo)
+        for stage in self.stages:
+            units = todo[stage.name]
             if stage.per_system:  # one computation per system with a frame to do
-                todo = [g[0] for g in self._systems() if set(g) & set(todo)]
+                units = [g[0] for g in self._systems() if set(g) & set(units)]
             bar = tqdm(
-                todo,
+                units,
                 desc=f"{stage.name:>9}",
                 unit="system" if stage.per_system else "frame" if stage.per_frame else "run",
                 leave=False,
-                disable=not (self.progress and sys.stderr.isatty()) or not todo,
+                disable=not (self.progress and sys.stderr.isatty()) or not units,
             )
             for unit in bar:
                 self._compute(stage, unit)
         for line in self.report.lines():
             log.info(line)
         return self.report
+
+    # --- the per-frame stages on workers ------------------------------------------------------
+
+    def frame_chain(self) -> list[Stage]:
+        """The per-frame stages whose inputs are the frame and each other: what workers can compute alone."""
+        chain: list[Stage] = []
+        for stage in self.stages:
+            if stage.per_frame and not stage.per_system and all(i == "frame" or i in chain for i in stage.inputs):
+                chain.append(stage.name)
+        return [self.by_name[name] for name in chain]
+
+    def _run_frame_stages(self, todo: dict[str, list]) -> None:
+        """Compute the frame chain's missing entries on the pool or cluster, if ``compute`` asks for one.
+
+        Serial (in the loop of :meth:`run`) with ``jobs = 1``, and on a local pool of fewer
+        than :data:`~fluorocal.parallel.MIN_POOL_FRAMES` frames to do.
+        """
+        from fluorocal.parallel import MIN_POOL_FRAMES, run_tasks
+
+        chain = self.frame_chain()
+        units = sorted({u for stage in chain for u in todo[stage.name]})
+        local = not self.compute.scheduler
+        if not units or (local and (self.compute.workers < 2 or len(units) < MIN_POOL_FRAMES)):
+            return
+        tasks = self._frame_tasks(chain, todo, units)
+        where = self.compute.scheduler or f"{min(self.compute.workers, len(tasks))} local processes"
+        log.info("%s: %d frames on %s", ", ".join(s.name for s in chain), len(units), where)
+        preload = tuple(dict.fromkeys(s.func.__module__ for s in chain))
+        for results in run_tasks(tasks, self.compute, preload=preload):
+            for result in results:
+                self._accept(result)
+        for stage in chain:
+            todo[stage.name] = []
+
+    def _frame_tasks(self, chain: list[Stage], todo: dict[str, list], units: list[int]) -> list:
+        """One task per file (split so a multi-frame file gives every worker some), in unit order."""
+        from fluorocal.parallel import FrameJob, FrameTask, Step
+
+        pending = {s.name: set(todo[s.name]) for s in chain}
+        by_file: dict[Path, list] = {}
+        for u in units:
+            steps = tuple(Step(s, *self.params[(s.name, u)]) for s in chain if u in pending[s.name])
+            computed = {step.stage.name for step in steps}
+            needed = {i for step in steps for i in step.stage.inputs if i != "frame" and i not in computed}
+            given = {name: self.get(name, u) for name in sorted(needed)}
+            by_file.setdefault(self.units[u].path, []).append(
+                FrameJob(u, self.units[u].index, self.units[u].label, steps, given)
+            )
+        chunk = max(1, -(-len(units) // (4 * max(1, self.compute.workers))))
+        on_cluster = bool(self.compute.scheduler)
+        return [
+            FrameTask(str(path), self.units[jobs[0].unit].file_sha256, tuple(jobs[i : i + chunk]), on_cluster)
+            for path, jobs in by_file.items()
+            for i in range(0, len(jobs), chunk)
+        ]
+
+    def _accept(self, result) -> None:
+        """Decode, store and keep a worker's artifacts of one frame; re-raise its warnings here."""
+        for message, category in result.warnings:
+            warnings.warn(message, category, stacklevel=2)
+        for name, tree, arrays, took in result.outputs:
+            artifact = decode(tree, arrays, self.cache.types)
+            params, _ = self.params[(name, result.unit)]
+            self._keep(self.by_name[name], result.unit, artifact, params, took)
+            self.report.seconds[name] = self.report.seconds.get(name, 0.0) + took  # the workers' time, summed
 
     def get(self, name: str, unit: int | None):
         """The artifact of ``name`` for ``unit`` (a frame index, or None for per-project stages)."""
@@ -386,6 +475,12 @@ class Runner:
             where = f"{self.units[unit].label}: " if unit is not None else ""
             raise type(exc)(f"{where}{stage.name}: {exc}") from exc
         took = time.perf_counter() - t0
+        self._keep(stage, unit, artifact, params, took)
+        self.report.seconds[stage.name] = self.report.seconds.get(stage.name, 0.0) + took
+        return artifact
+
+    def _keep(self, stage: Stage, unit: int | None, artifact, params, took: float) -> None:
+        """Store ``artifact`` (computed in ``took`` s) with its provenance, keep it in memory and count it."""
         provenance = {
             "code_digest": self.codes[stage.name],
             "params": dataclasses.asdict(params),
@@ -394,11 +489,9 @@ class Runner:
         }
         if unit is not None:
             provenance["frame"] = {"file": str(self.units[unit].path), "index": self.units[unit].index}
-        self.cache.store(stage.name, self.keys[slot], artifact, provenance=provenance)
-        self.memory[slot] = artifact
+        self.cache.store(stage.name, self.keys[(stage.name, unit)], artifact, provenance=provenance)
+        self.memory[(stage.name, unit)] = artifact
         self.report.record(stage.name, [unit], "computed")
-        self.report.seconds[stage.name] = self.report.seconds.get(stage.name, 0.0) + took
-        return artifact
 
     def _compute_system(self, stage: Stage, group: list[int]) -> None:
         """Compute a per-system stage on the system of units ``group`` and store each frame's artifact.

@@ -1,0 +1,179 @@
+"""Where the per-frame work runs, and with how many threads: ``[compute]``, ``--jobs``, ``--scheduler``.
+
+``[compute]`` in the project file owns three settings::
+
+    [compute]
+    jobs = 8                          # worker processes for the per-frame stages (default: every local core)
+    threads = 1                       # BLAS/OpenMP/OpenCV threads per process (default: 1)
+    scheduler = "tcp://host:8786"     # run the per-frame stages on this Dask cluster instead (default: none)
+
+The thread count is set through the libraries' environment variables
+(:data:`THREAD_VARS`), which they read once when they load: :func:`limit_threads`
+must run before numpy or OpenCV is imported, as ``fluorocal``'s entry point does.
+A variable the user has set wins over the config for its library, and
+``FLUOROCAL_THREADS`` wins over ``[compute] threads`` for all of them.
+
+This module imports nothing heavy (no numpy), so the entry point can read the
+thread count from the project file before the numerical libraries load.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import urlsplit
+
+from fluorocal.stages.errors import InputError
+
+#: environment variables the numerical libraries read at load for their thread counts
+THREAD_VARS = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "OPENCV_FOR_THREADS_NUM",
+)
+#: the user's override of ``[compute] threads``
+THREADS_ENV = "FLUOROCAL_THREADS"
+#: the address schemes of a Dask scheduler fluorocal connects to
+SCHEDULER_SCHEMES = ("tcp", "tls")
+
+
+@dataclass(frozen=True)
+class ComputeConfig:
+    """The ``[compute]`` section: worker processes, threads per process, and an optional Dask scheduler.
+
+    Attributes
+    ----------
+    jobs : int or None
+        Worker processes of the local pool; None: every core this process may use. 1: serial, in-process.
+    threads : int
+        BLAS/OpenMP/OpenCV threads of each process (the main one and each worker).
+    scheduler : str
+        ``tcp://HOST:PORT`` of a Dask scheduler to run the per-frame stages on; empty: run locally.
+    """
+
+    jobs: int | None = None
+    threads: int = 1
+    scheduler: str = ""
+
+    @property
+    def workers(self) -> int:
+        """The local pool's worker count: ``jobs``, or every usable core."""
+        return self.jobs if self.jobs is not None else local_cores()
+
+
+def local_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS tells it)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return os.cpu_count() or 1
+
+
+def _key(file_name: str, key: str) -> str:
+    return f"{file_name}: [compute] key '{key}'"
+
+
+def _positive_int(value, file_name: str, key: str, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise InputError(f"{_key(file_name, key)}: expected {what}; got {value!r}")
+    return value
+
+
+def check_scheduler(value, where: str) -> str:
+    """``value`` if it is a Dask scheduler address ``tcp://HOST:PORT`` (or ``tls://``), else an InputError.
+
+    Examples
+    --------
+    >>> check_scheduler("tcp://10.0.0.5:8786", "--scheduler")
+    'tcp://10.0.0.5:8786'
+    >>> check_scheduler("host:8786", "--scheduler")
+    Traceback (most recent call last):
+    ...
+    fluorocal.stages.errors.InputError: --scheduler: expected a Dask scheduler address tcp://HOST:PORT; got 'host:8786'
+    """
+    expected = f"{where}: expected a Dask scheduler address tcp://HOST:PORT; got {value!r}"
+    if not isinstance(value, str):
+        raise InputError(expected)
+    parts = urlsplit(value)
+    try:
+        port = parts.port
+    except ValueError:  # not a number, or out of range
+        port = None
+    if parts.scheme not in SCHEDULER_SCHEMES or not parts.hostname or port is None or parts.path not in ("", "/"):
+        raise InputError(expected)
+    return value
+
+
+def compute_from_table(table, file_name: str) -> ComputeConfig:
+    """Validate the ``[compute]`` table of the project file ``file_name``.
+
+    Raises
+    ------
+    InputError
+        A key other than jobs, threads and scheduler; jobs or threads not a positive
+        integer; a scheduler that is not ``tcp://HOST:PORT``; jobs and scheduler both
+        given (they choose between the local pool and a cluster). The message names the key.
+    """
+    if not isinstance(table, dict):
+        raise InputError(f"{file_name}: key 'compute': expected a table [compute]; got {table!r}")
+    unknown = sorted(set(table) - {"jobs", "threads", "scheduler"})
+    if unknown:
+        raise InputError(f"{_key(file_name, unknown[0])}: unknown key; allowed keys are jobs, scheduler, threads")
+    jobs = table.get("jobs")
+    if jobs is not None:
+        jobs = _positive_int(jobs, file_name, "jobs", "a positive number of worker processes (1: serial)")
+    threads = _positive_int(table.get("threads", 1), file_name, "threads", "a positive number of threads per process")
+    scheduler = table.get("scheduler", "")
+    if scheduler != "":
+        scheduler = check_scheduler(scheduler, _key(file_name, "scheduler"))
+        if jobs is not None:
+            raise InputError(
+                f"{_key(file_name, 'jobs')}: jobs (local worker processes) and scheduler (a Dask cluster) "
+                "exclude each other; remove one"
+            )
+    return ComputeConfig(jobs, threads, scheduler)
+
+
+def config_threads(config_path: Path | None) -> int | None:
+    """``[compute] threads`` of a project file, read without numpy; None when absent or not readable.
+
+    A file that does not parse is left to the full load (:func:`fluorocal.config.load_config`) to refuse.
+    """
+    if config_path is None:
+        return None
+    try:
+        table = tomllib.loads(Path(config_path).read_bytes().decode("utf-8-sig")).get("compute", {})
+        return compute_from_table(table, Path(config_path).name).threads
+    except (OSError, ValueError, AttributeError):  # InputError and TOML errors are ValueErrors
+        return None
+
+
+def limit_threads(threads: int | None = None) -> int:
+    """Set the libraries' thread counts for this process and the processes it starts; return the count.
+
+    ``FLUOROCAL_THREADS`` wins over ``threads``, which defaults to 1; a library's own
+    variable (``OPENBLAS_NUM_THREADS`` ...) set by the user wins for that library.
+    Effective for BLAS and OpenMP only if they have not loaded yet; OpenCV is set
+    directly when it has.
+
+    Raises
+    ------
+    InputError
+        ``FLUOROCAL_THREADS`` is not a positive integer.
+    """
+    override = os.environ.get(THREADS_ENV)
+    if override is not None:
+        if not override.strip().isdigit() or int(override) < 1:
+            raise InputError(f"environment variable {THREADS_ENV}: expected a positive integer; got {override!r}")
+        threads = int(override)
+    threads = threads or 1
+    for var in THREAD_VARS:
+        os.environ.setdefault(var, str(threads))
+    if "cv2" in sys.modules:
+        sys.modules["cv2"].setNumThreads(int(os.environ["OPENCV_FOR_THREADS_NUM"]))
+    return threads

@@ -1,0 +1,111 @@
+"""[compute]: jobs, threads and scheduler validated at load; the thread environment set before the libraries load."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+from fluorocal.cli import main
+from fluorocal.compute import THREAD_VARS, THREADS_ENV, ComputeConfig, limit_threads
+from fluorocal.config import ConfigError, load_config
+
+from tests.pipeline.toy import make_project
+
+
+@pytest.mark.parametrize(
+    "section, match",
+    [
+        ("jobs = 0", r"\[compute\] key 'jobs': expected a positive number of worker processes \(1: serial\); got 0"),
+        ("jobs = -2", r"\[compute\] key 'jobs': expected a positive number"),
+        ('jobs = "4"', r"\[compute\] key 'jobs': expected a positive number .*; got '4'"),
+        ("jobs = 2.5", r"\[compute\] key 'jobs': expected a positive number"),
+        ("jobs = true", r"\[compute\] key 'jobs': expected a positive number"),
+        ("threads = 0", r"\[compute\] key 'threads': expected a positive number of threads per process; got 0"),
+        ('scheduler = "localhost:8786"', r"\[compute\] key 'scheduler': expected a Dask scheduler address tcp://"),
+        ('scheduler = "http://localhost:8786"', r"\[compute\] key 'scheduler': expected a Dask scheduler address"),
+        ('scheduler = "tcp://localhost"', r"\[compute\] key 'scheduler': expected a Dask scheduler address"),
+        ('scheduler = "tcp://localhost:99999"', r"\[compute\] key 'scheduler': expected a Dask scheduler address"),
+        ('scheduler = "tcp://:8786"', r"\[compute\] key 'scheduler': expected a Dask scheduler address"),
+        ("scheduler = 8786", r"\[compute\] key 'scheduler': expected a Dask scheduler address"),
+        (
+            'jobs = 2\nscheduler = "tcp://h:8786"',
+            r"\[compute\] key 'jobs': jobs .* and scheduler .* exclude each other",
+        ),
+        ("workers = 4", r"\[compute\] key 'workers': unknown key; allowed keys are jobs, scheduler, threads"),
+    ],
+)
+def test_bad_compute_section_names_the_key(tmp_path, section, match):
+    path = make_project(tmp_path)
+    path.write_text(path.read_text() + f"\n[compute]\n{section}\n")
+    with pytest.raises(ConfigError, match=match) as info:
+        load_config(path)
+    assert "\n" not in str(info.value) and str(info.value).startswith(f"{path.name}: ")
+
+
+def test_compute_section_is_read(tmp_path):
+    path = make_project(tmp_path)
+    assert load_config(path).compute == ComputeConfig(jobs=None, threads=1, scheduler="")
+    path.write_text(path.read_text() + '\n[compute]\nthreads = 2\nscheduler = "tcp://10.0.0.5:8786"\n')
+    assert load_config(path).compute == ComputeConfig(jobs=None, threads=2, scheduler="tcp://10.0.0.5:8786")
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--jobs", "0"], "argument --jobs: expected a positive integer; got '0'"),
+        (["--jobs", "2", "--scheduler", "tcp://h:1"], "argument --scheduler: not allowed with argument --jobs"),
+    ],
+)
+def test_bad_jobs_on_the_command_line(tmp_path, capsys, argv, message):
+    with pytest.raises(SystemExit) as info:
+        main(["run", str(make_project(tmp_path)), *argv])
+    assert info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_bad_scheduler_on_the_command_line(tmp_path, capsys):
+    assert main(["--quiet", "run", str(make_project(tmp_path)), "--scheduler", "h:8786"]) == 2
+    err = capsys.readouterr().err
+    assert err == "fluorocal: error: --scheduler: expected a Dask scheduler address tcp://HOST:PORT; got 'h:8786'\n"
+
+
+@pytest.fixture
+def clean_thread_env(monkeypatch):
+    for var in (*THREAD_VARS, THREADS_ENV):
+        monkeypatch.delenv(var, raising=False)
+    return monkeypatch
+
+
+def test_threads_default_to_one_and_the_users_variables_win(clean_thread_env):
+    clean_thread_env.setenv("OPENBLAS_NUM_THREADS", "3")
+    assert limit_threads(None) == 1
+    assert os.environ["OMP_NUM_THREADS"] == "1" and os.environ["OPENCV_FOR_THREADS_NUM"] == "1"
+    assert os.environ["OPENBLAS_NUM_THREADS"] == "3"  # set by the user: left alone
+
+
+def test_fluorocal_threads_wins_over_the_config(clean_thread_env):
+    clean_thread_env.setenv(THREADS_ENV, "4")
+    assert limit_threads(2) == 4 and os.environ["MKL_NUM_THREADS"] == "4"
+    clean_thread_env.setenv(THREADS_ENV, "many")
+    with pytest.raises(ValueError, match="environment variable FLUOROCAL_THREADS: expected a positive integer"):
+        limit_threads(2)
+
+
+@pytest.mark.parametrize(
+    "section, env, expected", [("", {}, "1 1"), ("threads = 2", {}, "2 2"), ("threads = 2", {THREADS_ENV: "3"}, "3 3")]
+)
+def test_the_entry_point_sets_threads_before_the_libraries_load(tmp_path, section, env, expected):
+    """In a fresh process: OpenCV's thread count and BLAS's variable follow [compute] threads and FLUOROCAL_THREADS."""
+    path = make_project(tmp_path)
+    path.write_text(path.read_text() + f"\n[compute]\n{section}\n")
+    code = (
+        "import sys; from fluorocal.cli import main; "
+        "assert 'numpy' not in sys.modules; "
+        f"assert main(['--quiet', 'cache', 'clean', {str(path)!r}]) == 0; "
+        "import cv2, os; print(cv2.getNumThreads(), os.environ['OPENBLAS_NUM_THREADS'])"
+    )
+    base = {k: v for k, v in os.environ.items() if k not in (*THREAD_VARS, THREADS_ENV)}
+    done = subprocess.run([sys.executable, "-c", code], env={**base, **env}, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split("\n")[-2] == expected

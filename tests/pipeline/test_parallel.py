@@ -1,0 +1,106 @@
+"""The per-frame stages on a process pool and on a Dask cluster write what a serial run writes, byte for byte.
+
+One small simulated biplanar project (4 + 4 frames of 512 px, as the end-to-end tests use) with three
+configs that differ only in their cache and output folders: a serial run (``--jobs 1``) is the
+reference; runs through the pool and a loopback ``LocalCluster`` must give the same cache keys and,
+per entry, the same files (arrays, tables) and the same artifact structure, for detect and centroid
+(computed by the workers) and for label (computed in the main process from what the workers returned).
+The runs stop after label: everything downstream reads only labels.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import pytest
+from fluorocal import parallel
+from fluorocal.cli import main
+from fluorocal.cmd_simulate import write_dataset
+from fluorocal.stages.simulate import SimulateParams, simulate
+
+from tests.conftest import E2E_SIM
+
+STAGES = ("detect", "centroid", "label")
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory):
+    """The project folder and the serial run's cache."""
+    root = tmp_path_factory.mktemp("parallel") / "project"
+    write_dataset(simulate(SimulateParams(**E2E_SIM)), root)
+    text = (root / "fluorocal.toml").read_text()
+    for name in ("serial", "pool", "cluster"):
+        (root / f"{name}.toml").write_text(
+            text.replace('dir = "out"', f'dir = "out_{name}"') + f'\n[cache]\ndir = ".cache_{name}"\n'
+        )
+    assert main(["--quiet", "run", str(root / "serial.toml"), "--jobs", "1", "--until", "label"]) == 0
+    return root
+
+
+def _entries(cache) -> dict:
+    """(stage, key) -> (the files' bytes, the artifact's structure) of every entry of STAGES."""
+    out = {}
+    for stage in STAGES:
+        for entry in sorted((cache / stage).iterdir()):
+            manifest = json.loads((entry / "manifest.json").read_text())
+            files = {name: (entry / name).read_bytes() for name in manifest["files"]}
+            out[(stage, entry.name)] = (files, manifest["artifact"])
+    return out
+
+
+def _same_as_serial(project, name) -> None:
+    serial, other = _entries(project / ".cache_serial"), _entries(project / f".cache_{name}")
+    assert sorted(other) == sorted(serial)  # the same keys: the same stages, parameters, code and inputs
+    # 8 frames: detect + centroid + label
+    assert len(serial) == 3 * 2 * E2E_SIM["n_frames"]
+    for slot, (files, tree) in serial.items():
+        assert other[slot][0] == files, slot  # arrays.npz, table.csv: byte for byte
+        assert other[slot][1] == tree, slot
+
+
+def test_pool_run_equals_serial_run(project, monkeypatch, caplog):
+    monkeypatch.setattr(parallel, "MIN_POOL_FRAMES", 1)  # 8 frames: below the threshold that would keep it serial
+    with caplog.at_level(logging.INFO, logger="fluorocal"):
+        assert main(["run", str(project / "pool.toml"), "--jobs", "2", "--until", "label"]) == 0
+    assert "detect, centroid: 8 frames on 2 local processes" in caplog.text  # the pool did run them
+    _same_as_serial(project, "pool")
+
+
+def test_cluster_run_equals_serial_run(project, caplog):
+    distributed = pytest.importorskip("distributed", reason="Dask is the test extra's: pip install -e '.[test]'")
+    with distributed.LocalCluster(
+        processes=True, n_workers=2, threads_per_worker=1, host="127.0.0.1", dashboard_address=None
+    ) as cluster:
+        address = cluster.scheduler_address
+        with caplog.at_level(logging.INFO, logger="fluorocal"):
+            assert main(["run", str(project / "cluster.toml"), "--scheduler", address, "--until", "label"]) == 0
+    assert f"detect, centroid: 8 frames on {address}" in caplog.text
+    _same_as_serial(project, "cluster")
+
+
+def test_small_projects_stay_serial(project, caplog):
+    """Fewer frames than MIN_POOL_FRAMES: no pool is started (its start-up would cost more than it gains)."""
+    assert 2 * E2E_SIM["n_frames"] < parallel.MIN_POOL_FRAMES
+    with caplog.at_level(logging.INFO, logger="fluorocal"):
+        argv = ["run", str(project / "pool.toml"), "--jobs", "2", "--until", "centroid", "--force", "detect"]
+        assert main(argv) == 0
+    assert "local processes" not in caplog.text and "detect: 8 computed" in caplog.text
+
+
+def test_unreachable_scheduler_is_one_line(project, monkeypatch, capsys):
+    monkeypatch.setattr(parallel, "CONNECT_TIMEOUT_S", 1)
+    args = ["--quiet", "run", str(project / "cluster.toml"), "--scheduler", "tcp://127.0.0.1:9", "--force", "detect"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert (
+        err.startswith("fluorocal: error: cannot reach the Dask scheduler at tcp://127.0.0.1:9")
+        and err.count("\n") == 1
+    )
+
+
+def test_missing_dask_is_one_line(project, monkeypatch, capsys):
+    monkeypatch.setitem(__import__("sys").modules, "distributed", None)  # as if Dask were not installed
+    args = ["--quiet", "run", str(project / "cluster.toml"), "--scheduler", "tcp://127.0.0.1:9", "--force", "detect"]
+    assert main(args) == 2
+    assert "Dask is not installed; pip install 'fluorocal[cluster]'" in capsys.readouterr().err
