@@ -7,8 +7,8 @@ FORMAT is one of:
   dlt      the 11 DLT coefficients per training exposure, one column per system (XMALab, DLTdv),
            on undistorted coordinates, with their reprojection RMS (dlt_rms.csv)
   mayacam  XMALab / Autoscoper MayaCam 2.0 camera files per system and training exposure
-  mrcal    mrcal .cameramodel per system (and orientation): LENSMODEL_OPENCV8 fitted to the field,
-           the fit error stated in the file
+  mrcal    mrcal .cameramodel per system (and orientation): a splined stereographic model fitted
+           to the field, the fit error stated in the file
   paper    the paper's text files: .iop, .eop, .xyz and .pho (image frame x = column, y = -row)
 
 README.md, "Exports", gives each format's frame and units. A grid plate's calibration has no

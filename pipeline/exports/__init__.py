@@ -11,7 +11,7 @@ each format, its frame and units.
 - ``mayacam``: XMALab / Autoscoper MayaCam 2.0 camera files per system and exposure
   (:mod:`fluorocal.exports.mayacam`);
 - ``mrcal``: a ``.cameramodel`` per system (and orientation), the field fitted by mrcal's
-  LENSMODEL_OPENCV8, with the fit error (:mod:`fluorocal.exports.mrcal`);
+  splined stereographic model, with the fit error (:mod:`fluorocal.exports.mrcal`);
 - ``paper``: the paper's ``.iop``, ``.eop``, ``.xyz`` and ``.pho`` text files
   (:mod:`fluorocal.exports.paper`).
 """
