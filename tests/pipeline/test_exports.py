@@ -357,3 +357,17 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:  # argparse: an unknown format is a usage error
         _export(tmp_path / "missing.json", "colmap", tmp_path / "x")
     assert exc.value.code == 2
+
+
+def test_without_the_tables_paper_and_dlt_write_what_the_calibration_holds(run_out, tmp_path, capsys):
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for f in [run_out / "calibration.json", *run_out.glob("field_*.npz")]:
+        shutil.copy(f, bare / f.name)
+    assert _export(bare / "calibration.json", "paper", tmp_path / "p") == 0
+    assert sorted(p.name for p in (tmp_path / "p").iterdir()) == ["calibration.eop", "calibration.iop"]
+    assert "no .xyz or .pho" in capsys.readouterr().out
+    assert _export(bare / "calibration.json", "dlt", tmp_path / "d") == 0
+    assert "no RMS" in capsys.readouterr().out
+    rows = (tmp_path / "d" / "dlt_rms.csv").read_text().splitlines()[1:]
+    assert rows and all(r.endswith(",0,nan") for r in rows)
