@@ -85,9 +85,10 @@ def write(cal, out_dir: Path) -> list[str]:
     if not cal.exposures:
         raise InputError(f"--format dlt: {cal.path} holds no training exposure, so no pose to export")
     tables = tables_beside(cal)
+    # every exposure's coefficients first: a pose the DLT cannot represent is refused before anything is written
+    per_exposure = {e: [coefficients(cal, system, e) for system in cal.system_names] for e in sorted(cal.exposures)}
     lines, rms_rows = [], ["exposure,system,column,n_points,rms_px"]
-    for exposure in sorted(cal.exposures):
-        columns = [coefficients(cal, system, exposure) for system in cal.system_names]
+    for exposure, columns in per_exposure.items():
         text = "\n".join(",".join(repr(float(c[k])) for c in columns) for k in range(11)) + "\n"
         path = write_text(out_dir, f"dlt_exposure{exposure}.csv", text)
         lines.append(f"{path}: 11 DLT coefficients x {len(columns)} camera(s) ({', '.join(cal.system_names)})")

@@ -30,21 +30,24 @@ def write(cal, out_dir: Path) -> list[str]:
     (``camera_matrix_nominal: 1``) and are still complete for ``cv2.remap``.
     """
     nominal = not has_geometry(cal)
+    # every map first: a field that moves pixels beyond the image is refused before anything is written
+    maps = {
+        (system, suffix, orientation): cal.remap_maps(system, orientation=orientation)
+        for system in cal.system_names
+        for suffix, orientation in orientations(cal, system)
+    }
     lines = []
-    for system in cal.system_names:
+    for (system, suffix, orientation), (map_x, map_y) in maps.items():
         s = cal.systems[system]
-        K = camera_matrix(s.iop_px)
-        for suffix, orientation in orientations(cal, system):
-            map_x, map_y = cal.remap_maps(system, orientation=orientation)
-            path = inside(out_dir, f"opencv_{safe_name(system, what='system name')}{suffix}.yml")
-            write_maps = partial(_write_yaml, system=system, orientation=orientation, size=s.image_size_px, K=K)
-            atomic_write(path, partial(write_maps, nominal=nominal, map_x=map_x, map_y=map_y))
-            lines.append(
-                f"{path}: system {system}"
-                + ("" if orientation is None else f", orientation {orientation}")
-                + f", {s.image_size_px[0]}x{s.image_size_px[1]} px maps"
-                + (", camera matrix nominal (a grid plate fixes none)" if nominal else "")
-            )
+        path = inside(out_dir, f"opencv_{safe_name(system, what='system name')}{suffix}.yml")
+        write_maps = partial(_write_yaml, system=system, orientation=orientation, size=s.image_size_px)
+        atomic_write(path, partial(write_maps, K=camera_matrix(s.iop_px), nominal=nominal, map_x=map_x, map_y=map_y))
+        lines.append(
+            f"{path}: system {system}"
+            + ("" if orientation is None else f", orientation {orientation}")
+            + f", {s.image_size_px[0]}x{s.image_size_px[1]} px maps"
+            + (", camera matrix nominal (a grid plate fixes none)" if nominal else "")
+        )
     return lines
 
 
