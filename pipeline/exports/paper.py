@@ -33,7 +33,16 @@ FLIP_YZ = np.diag([1.0, -1.0, -1.0])
 
 
 def opk_deg(M: np.ndarray) -> np.ndarray:
-    """``(ω, φ, κ)`` in degrees of a rotation ``M = R3(κ) R2(φ) R1(ω)`` (photogrammetry's sequence)."""
+    """``(ω, φ, κ)`` in degrees of a rotation ``M = R3(κ) R2(φ) R1(ω)`` (photogrammetry's sequence).
+
+    Examples
+    --------
+    >>> M = opk_matrix([10.0, -20.0, 30.0])
+    >>> bool(np.isclose(M[2, 0], np.sin(np.radians(-20.0))))  # m31 = sin φ
+    True
+    >>> np.round(opk_deg(M), 9).tolist()
+    [10.0, -20.0, 30.0]
+    """
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(M.T).as_euler("XYZ", degrees=True)
