@@ -61,4 +61,11 @@ def tables_beside(cal) -> tuple[dict, dict] | None:
     points, observations = folder / "object_points.csv", folder / "observations.csv"
     if not (points.is_file() and observations.is_file()):
         return None
-    return read_table(points, OBJECT_POINTS), read_table(observations, OBSERVATIONS)
+    obs = read_table(observations, OBSERVATIONS)
+    missing = [c for c in ("exposure", "inlier") if c not in obs]
+    if missing:
+        raise InputError(
+            f"{observations}: lacks column(s) {', '.join(missing)}; the exports read the observations.csv "
+            "that `fluorocal run` writes beside calibration.json (move this file away to export without it)"
+        )
+    return read_table(points, OBJECT_POINTS), obs

@@ -395,3 +395,15 @@ def test_without_the_tables_paper_and_dlt_write_what_the_calibration_holds(run_o
     assert "no RMS" in capsys.readouterr().out
     rows = (tmp_path / "d" / "dlt_rms.csv").read_text().splitlines()[1:]
     assert rows and all(r.endswith(",0,nan") for r in rows)
+
+
+def test_observations_without_exposure_or_inlier_are_refused_in_one_line(run_out, tmp_path, capsys):
+    out = tmp_path / "out"
+    shutil.copytree(run_out, out)
+    lines = (out / "observations.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    keep = [i for i, name in enumerate(header) if name != "inlier"]
+    (out / "observations.csv").write_text("\n".join(",".join(r.split(",")[i] for i in keep) for r in lines) + "\n")
+    assert _export(out / "calibration.json", "paper", tmp_path / "x") == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "observations.csv: lacks column(s) inlier" in err
