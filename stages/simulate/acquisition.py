@@ -9,7 +9,7 @@ from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.geometry import matrix_to_quat, quat_to_matrix
 from fluorocal.stages.simulate.distortion import ImageDistortion, make_distortion
-from fluorocal.stages.simulate.params import RNG_ACQ, SYSTEM_NAMES, SimulateParams
+from fluorocal.stages.simulate.params import RNG_ACQ, RNG_WOBBLE, SYSTEM_NAMES, SimulateParams
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,7 +80,10 @@ def _small_rotation(rng: np.random.Generator, max_deg: float) -> np.ndarray:
 
 
 def _turntable_angles(params: SimulateParams) -> np.ndarray:
-    """``n_frames`` angles spread evenly over those that keep every system off edge-on walls."""
+    """``n_frames`` angles spread evenly over those that keep every system off edge-on walls.
+
+    With ``turntable_step_deg``, the angles step by it from the first of those instead.
+    """
     candidates = np.radians(np.arange(0.0, 360.0, 0.25))
     ok = np.ones(candidates.shape, dtype=bool)
     for s in range(params.n_systems):
@@ -92,8 +95,26 @@ def _turntable_angles(params: SimulateParams) -> np.ndarray:
             f"min_face_angle_deg={params.min_face_angle_deg} leaves no turntable angle"
             f" for system_angle_deg={params.system_angle_deg}"
         )
+    if params.turntable_step_deg > 0:
+        return allowed[0] + np.radians(params.turntable_step_deg) * np.arange(params.n_frames)
     idx = ((np.arange(params.n_frames) + 0.5) * allowed.size / params.n_frames).astype(int)
     return allowed[idx]
+
+
+def _wobble(params: SimulateParams) -> np.ndarray:
+    """``(n_frames, 3, 3)`` tilts of the turntable's axis: up to ``turntable_wobble_deg`` in a random direction."""
+    k = params.n_frames
+    if not params.turntable_wobble_deg > 0:
+        return np.broadcast_to(np.eye(3), (k, 3, 3))
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng([params.seed, RNG_WOBBLE])
+    tilt = np.radians(rng.uniform(0.0, params.turntable_wobble_deg, k))
+    direction = rng.uniform(0.0, 2 * np.pi, k)
+    # a rotation about a horizontal lab axis tilts the vertical axis
+    return Rotation.from_rotvec(
+        tilt[:, None] * np.column_stack([np.cos(direction), np.sin(direction), np.zeros(k)])
+    ).as_matrix()
 
 
 def make_acquisition(params: SimulateParams) -> Acquisition:
@@ -132,7 +153,7 @@ def make_acquisition(params: SimulateParams) -> Acquisition:
         heights = rng.permutation(heights) * params.turntable_height_mm
         shifts = rng.uniform(-1, 1, (k, 2)) * params.turntable_translation_mm
         translation = np.column_stack([shifts, heights])
-        lab_from_phantom = np.stack([_rot_z(a) for a in angles])
+        lab_from_phantom = np.stack([tilt @ _rot_z(a) for tilt, a in zip(_wobble(params), angles)])
     else:
         # plate on system A's detector face, normal along the beam, small tilts and shifts
         angles = rng.uniform(0, 2 * np.pi, k)

@@ -17,6 +17,10 @@ FIBONACCI = (5, 8, 13, 21, 34, 55, 89, 144)
 # seed-sequence tags, so each random quantity has its own stream and the
 # geometry does not depend on whether frames were rendered
 RNG_PHANTOM, RNG_ACQ, RNG_DIST, RNG_NOISE = 1, 2, 3, 4
+# streams of the optional motion and marker variations (their own, so the defaults draw what they always drew)
+RNG_WOBBLE, RNG_MARKERS, RNG_HIDDEN = 5, 6, 7
+#: marker layouts of the cube: the design's fixed slots, or beads drawn at random
+MARKER_LAYOUTS = ("fixed", "random")
 
 
 @dataclass(frozen=True)
@@ -68,6 +72,21 @@ class SimulateParams:
         Half-ranges of the horizontal shifts and height changes of the turntable.
     min_face_angle_deg : float, default 30.0
         Turntable angles keep every system at least this far from viewing a wall edge-on.
+    turntable_step_deg : float, default 0.0
+        Turn of the turntable between consecutive exposures. 0: the exposures are spread evenly over the
+        angles that respect ``min_face_angle_deg``; otherwise exposure k is at ``k * turntable_step_deg``
+        from the first such angle, and later exposures may view walls edge-on.
+    turntable_wobble_deg : float, default 0.0
+        At each exposure the turntable's axis is tilted from the vertical by up to this angle (uniform), in
+        a uniformly random direction, independently of the other exposures.
+    marker_layout : str, default "fixed"
+        Cube markers: ``"fixed"`` (the first ``n_markers`` of eight fixed slots, two per wall near its
+        centre, placed asymmetrically) or ``"random"`` (``n_markers`` beads drawn at random, seeded).
+    n_markers : int, default 8
+        Number of marker beads (at most 8 with ``"fixed"``; 0 gives a phantom without markers).
+    hidden_marker_fraction : float, default 0.0
+        Fraction of frames (drawn per frame) in which 1 to all of the visible markers are hidden: left out
+        of the rendered frame and of its truth, as if occluded or missed by detection.
     system_misalignment_deg : float, default 1.0
         Random tilt of each system from its nominal orientation.
     principal_point_offset_px : float, default 6.0
@@ -146,9 +165,15 @@ class SimulateParams:
     electronic_noise_dn: float = 4.0
     supersample: int = 21
     bit_depth: int = 12
+    turntable_step_deg: float = 0.0
+    turntable_wobble_deg: float = 0.0
+    marker_layout: str = "fixed"
+    n_markers: int = 8
+    hidden_marker_fraction: float = 0.0
 
     def __post_init__(self):
-        for name, allowed in (("phantom", ("cube", "grid")), ("distortion", ("none", "mild", "strong"))):
+        choices = (("phantom", ("cube", "grid")), ("distortion", ("none", "mild", "strong")))
+        for name, allowed in (*choices, ("marker_layout", MARKER_LAYOUTS)):
             if getattr(self, name) not in allowed:
                 raise InputError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
         if self.n_systems not in (1, 2):
@@ -168,6 +193,14 @@ class SimulateParams:
             raise InputError(f"fov_radius_frac must lie in (0, 0.75]; got {self.fov_radius_frac}")
         if not 0 < self.bit_depth <= 16:
             raise InputError(f"bit_depth must lie in 1..16; got {self.bit_depth}")
+        if self.n_markers < 0 or (self.marker_layout == "fixed" and self.n_markers > 8):
+            raise InputError(
+                f"n_markers must lie in 0..8 for the fixed marker layout, >= 0 otherwise; got {self.n_markers}"
+            )
+        if not 0 <= self.hidden_marker_fraction <= 1:
+            raise InputError(f"hidden_marker_fraction must lie in [0, 1]; got {self.hidden_marker_fraction}")
+        if not self.turntable_wobble_deg < 45:
+            raise InputError(f"turntable_wobble_deg must be < 45; got {self.turntable_wobble_deg}")
         for f in fields(self):
             value = getattr(self, f.name)
             if isinstance(value, float) and not (np.isfinite(value) and value >= 0):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.errors import InputError
-from fluorocal.stages.simulate.params import RNG_PHANTOM, SimulateParams
+from fluorocal.stages.simulate.params import RNG_MARKERS, RNG_PHANTOM, SimulateParams
 
 
 def make_phantom(params: SimulateParams) -> tuple[Phantom, np.ndarray, np.ndarray]:
@@ -65,7 +65,7 @@ def _cube_phantom(params: SimulateParams) -> Phantom:
         )
     levels = (np.arange(n_levels) - (n_levels - 1) / 2) * step
     cols = (np.arange(n_cols) - (n_cols - 1) / 2) * params.bead_column_pitch_mm
-    xyz, diam, role = [], [], []
+    xyz, slots = [], []
     for wall in range(4):
         phi = wall * np.pi / 2
         normal = np.array([np.cos(phi), np.sin(phi), 0.0])
@@ -73,11 +73,25 @@ def _cube_phantom(params: SimulateParams) -> Phantom:
         for row, z in enumerate(levels[wall % 2 :: 2]):
             for col, u in enumerate(cols):
                 xyz.append(normal * (half - params.wall_thickness_mm / 2) + tangent * u + np.array([0, 0, z]))
-                is_marker = (wall, col, row) in _MARKER_SLOTS
-                diam.append(params.marker_diameter_mm if is_marker else params.bead_diameter_mm)
-                role.append("marker" if is_marker else "")
+                slots.append((wall, col, row))
     n = len(xyz)
-    return Phantom(np.arange(n), np.array(xyz), np.array(diam), np.array(role))
+    marker = _markers(params, slots)
+    diam = np.where(marker, params.marker_diameter_mm, params.bead_diameter_mm)
+    return Phantom(np.arange(n), np.array(xyz), diam, np.where(marker, "marker", ""))
+
+
+def _markers(params: SimulateParams, slots: list) -> np.ndarray:
+    """``(N,) bool``: the beads (at ``(wall, column, row)`` ``slots``) that are markers (``params.marker_layout``)."""
+    marker = np.zeros(len(slots), dtype=bool)
+    if params.marker_layout == "fixed":
+        chosen = set(_MARKER_SLOTS[: params.n_markers])
+        marker[[i for i, slot in enumerate(slots) if slot in chosen]] = True
+        return marker
+    if params.n_markers > len(slots):
+        raise InputError(f"n_markers={params.n_markers} exceeds the cube's {len(slots)} beads")
+    rng = np.random.default_rng([params.seed, RNG_MARKERS])
+    marker[rng.choice(len(slots), size=params.n_markers, replace=False)] = True
+    return marker
 
 
 def _grid_phantom(params: SimulateParams) -> Phantom:

@@ -7,7 +7,7 @@ import logging
 import numpy as np
 from fluorocal.stages.artifacts import Phantom, Radiograph
 from fluorocal.stages.simulate.acquisition import Acquisition, make_acquisition
-from fluorocal.stages.simulate.params import RNG_NOISE, SimulateParams
+from fluorocal.stages.simulate.params import RNG_HIDDEN, RNG_NOISE, SimulateParams
 from fluorocal.stages.simulate.phantom import make_phantom
 from fluorocal.stages.simulate.projection import project_beads
 from fluorocal.stages.simulate.raster import system_raster
@@ -53,9 +53,10 @@ def simulate(
     default_mm = params.grid_hole_diameter_mm if params.phantom == "grid" else params.bead_diameter_mm
     diameter = np.where(np.isfinite(nominal.diameter_mm), nominal.diameter_mm, default_mm)
     acq = make_acquisition(params)
+    shown = _shown_beads(params, nominal.role == "marker")
     truth_frames, frames = [], []
     for s, system in enumerate(acq.systems):
-        per_system = _project_system(params, acq, s, nominal.ids, true_xyz, diameter)
+        per_system = _project_system(params, acq, s, nominal.ids, true_xyz, diameter, shown[s])
         truth_frames.append(per_system)
         log.debug(
             "system %s: %d exposures, %.0f visible beads per frame",
@@ -63,23 +64,42 @@ def simulate(
             params.n_frames,
             np.mean([len(f) for f in per_system]),
         )
-        frames.append(_render_system(params, acq, s, true_xyz, diameter, on_frame) if render else ())
+        frames.append(_render_system(params, acq, s, true_xyz, diameter, shown[s], on_frame) if render else ())
     truth = Truth(
         np.asarray(true_xyz, dtype=np.float64), np.asarray(reference_xyz, dtype=np.float64), acq, tuple(truth_frames)
     )
     return SimulatedData(params, nominal, truth, tuple(frames))
 
 
-def _project_system(params: SimulateParams, acq: Acquisition, s: int, ids, true_xyz, diameter) -> tuple:
-    """Truth of every exposure of system ``s``: a tuple of :class:`FrameTruth`."""
+def _shown_beads(params: SimulateParams, marker: np.ndarray) -> np.ndarray:
+    """``(S, K, N) bool``: the beads present in each frame; all but the markers hidden per ``hidden_marker_fraction``.
+
+    In a frame drawn (with that probability) to hide markers, 1 to all of them are hidden, each count equally
+    likely; which ones is drawn at random.
+    """
+    shown = np.ones((params.n_systems, params.n_frames, len(marker)), dtype=bool)
+    markers = np.flatnonzero(marker)
+    if not (params.hidden_marker_fraction > 0 and len(markers)):
+        return shown
+    rng = np.random.default_rng([params.seed, RNG_HIDDEN])
+    for s in range(params.n_systems):
+        for k in range(params.n_frames):
+            if rng.random() < params.hidden_marker_fraction:
+                n_hidden = rng.integers(1, len(markers) + 1)
+                shown[s, k, rng.choice(markers, size=n_hidden, replace=False)] = False
+    return shown
+
+
+def _project_system(params: SimulateParams, acq: Acquisition, s: int, ids, true_xyz, diameter, shown) -> tuple:
+    """Truth of every exposure k of system ``s`` (beads ``shown[k]``): a tuple of :class:`FrameTruth`."""
     system = acq.systems[s]
     per_system = []
     for k in range(params.n_frames):
         per_system.append(
             project_beads(
-                ids,
-                true_xyz,
-                diameter,
+                ids[shown[k]],
+                true_xyz[shown[k]],
+                diameter[shown[k]],
                 acq.q[s, k],
                 acq.source_mm[s, k],
                 system.iop_px,
@@ -95,7 +115,7 @@ def _project_system(params: SimulateParams, acq: Acquisition, s: int, ids, true_
     return tuple(per_system)
 
 
-def _render_system(params: SimulateParams, acq: Acquisition, s: int, true_xyz, diameter, on_frame) -> tuple:
+def _render_system(params: SimulateParams, acq: Acquisition, s: int, true_xyz, diameter, shown, on_frame) -> tuple:
     """Radiographs of every exposure of system ``s``, each with its own noise stream: a tuple of :class:`Radiograph`."""
     system = acq.systems[s]
     raster = system_raster(params, system)
@@ -103,7 +123,14 @@ def _render_system(params: SimulateParams, acq: Acquisition, s: int, true_xyz, d
     for k in range(params.n_frames):
         rng = np.random.default_rng([params.seed, RNG_NOISE, s, k])
         image = render_frame(
-            params, system, acq.q[s, k], acq.source_mm[s, k], true_xyz, diameter, rng=rng, raster=raster
+            params,
+            system,
+            acq.q[s, k],
+            acq.source_mm[s, k],
+            true_xyz[shown[k]],
+            diameter[shown[k]],
+            rng=rng,
+            raster=raster,
         )
         meta = {
             "format": "simulated",
