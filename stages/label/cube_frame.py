@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from fluorocal.stages.artifacts import Phantom
@@ -28,6 +28,9 @@ class CubeFrame:
     bead_diam_mm: np.ndarray  # (B,) NaN filled with the median
     width: float
     height: float
+    hull: np.ndarray = field(
+        default_factory=lambda: np.empty((0, 3))
+    )  # (F, 3) the detections' convex hull: unit outward normals and offsets (n.x + o <= 0 inside)
 
 
 def make_cube_frame(
@@ -56,9 +59,38 @@ def make_cube_frame(
     width = max(2 * iop[0] + 1, 2 * float(pts[:, 0].max()) - 2 * iop[0] + diam_ref)
     height = max(2 * iop[1] + 1, 2 * float(pts[:, 1].max()) - 2 * iop[1] + diam_ref)
     frame = CubeFrame(
-        det, phantom, params, iop, camera_matrix(iop), det_idx, pts, cKDTree(pts), diam_ref, bead_diam, width, height
+        det,
+        phantom,
+        params,
+        iop,
+        camera_matrix(iop),
+        det_idx,
+        pts,
+        cKDTree(pts),
+        diam_ref,
+        bead_diam,
+        width,
+        height,
+        _hull(pts),
     )
     return frame, det
+
+
+def _hull(xy: np.ndarray) -> np.ndarray:
+    """``(F, 3)``: the convex hull of points ``xy`` as unit outward normals and offsets; empty if degenerate."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        return ConvexHull(xy).equations
+    except QhullError:
+        return np.empty((0, 3))
+
+
+def inside_hull(frame: CubeFrame, xy: np.ndarray, margin: np.ndarray) -> np.ndarray:
+    """``(N,) bool``: points at least ``margin`` inside the convex hull of the frame's usable detections."""
+    if not len(frame.hull):
+        return np.zeros(len(xy), dtype=bool)
+    return np.all(xy @ frame.hull[:, :2].T + frame.hull[:, 2] <= -margin[:, None], axis=1)
 
 
 def typical_spacing(xy: np.ndarray) -> float:

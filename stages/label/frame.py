@@ -46,8 +46,8 @@ def label_beads(centroids, phantom: Phantom, params: LabelParams, prior_pose: tu
     return label_frame(centroids, phantom, params, prior_pose)
 
 
-def label_frame(centroids, phantom: Phantom, params: LabelParams, prior_pose=None, turntable_axis=None) -> Labels:
-    """:func:`label_beads`, with the turntable axis (camera frame) of a sequence when it is known."""
+def label_frame(centroids, phantom: Phantom, params: LabelParams, prior_pose=None, **search) -> Labels:
+    """:func:`label_beads`, with the prior pose's search (``turntable_axis``, ``radii_deg``) of a sequence."""
     det = Detections.from_centroids(centroids)
     iop = assumed_iop(det, centroids, params, need_c=not phantom.lattice)
     if phantom.lattice:
@@ -58,4 +58,4 @@ def label_frame(centroids, phantom: Phantom, params: LabelParams, prior_pose=Non
         return label_grid(det, phantom, params, iop)
     if phantom.n_beads < 4:
         raise InputError(f"phantom must have at least 4 beads; got {phantom.n_beads}")
-    return label_cube(det, phantom, params, iop, prior_pose, turntable_axis)
+    return label_cube(det, phantom, params, iop, prior_pose, **search)

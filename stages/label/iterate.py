@@ -79,7 +79,7 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
     # overlap is judged on the measured outlines where a bead was detected, on the prediction elsewhere
     where = pred.copy()
     where[i_pred] = frame.det_xy[i_det]
-    amb = ambiguous(where, _apparent_diameters(corr, ideal[vis], pred, diam[vis]), p.ambiguity_bead_diameters)
+    amb = ambiguous(where, apparent_diameters(corr, ideal[vis], pred, diam[vis]), p.ambiguity_bead_diameters)
     close = resid <= p.final_gate_bead_diameters * diam[vis][i_pred]
     lab = close & ~amb[i_pred]
     ambig = amb[i_pred]
@@ -104,7 +104,7 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
     }
 
 
-def _apparent_diameters(corr: Correction, ideal: np.ndarray, pred: np.ndarray, diam: np.ndarray) -> np.ndarray:
+def apparent_diameters(corr: Correction, ideal: np.ndarray, pred: np.ndarray, diam: np.ndarray) -> np.ndarray:
     """The pinhole's diameters ``diam`` scaled by the local magnification of ``corr`` (``pred = corr(ideal)``)."""
     h = 1.0
     jac = (
