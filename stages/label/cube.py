@@ -36,13 +36,16 @@ def label_cube(
     orientation_prior: OrientationPrior | None = None,
     turn_search: bool = False,
     from_markers: bool = True,
+    pool: bool = False,
 ) -> Labels:
     """Label one frame of a 3D phantom from seeds, else from the markers and then from ``prior_pose``.
 
     See :func:`fluorocal.stages.label.label_beads`. ``orientation_prior`` (optional) says how far the
     orientation of ``prior_pose`` may be off (by default ``_PRIOR_SIGMA_DEG`` about any axis);
     ``turn_search`` lets a frame that still fails be searched over turns about its axis.
-    ``from_markers=False`` skips the markers (they failed before).
+    ``from_markers=False`` skips the markers (they failed before); ``pool=True`` weighs the markers'
+    labellings together with those found from the prior (a frame whose markers gave a pose far from its
+    neighbours').
     """
     frame, det = make_cube_frame(det, phantom, params, iop)
     if frame is None:
@@ -53,12 +56,12 @@ def label_cube(
             return failed_labels(det.valid, iop, why, "seeds")
         found, why = _label_from_poses(frame, [pose], None)
         return _finish(frame, found[0] if found else None, why, "seeds")
-    reasons, best = [], None
+    reasons, best, found = [], None, []
     if from_markers or prior_pose is None:
         poses, scores, why = marker_poses(frame)
         if poses:
             found, why = _label_from_poses(frame, poses, scores)
-            if found:
+            if found and not (pool and prior_pose is not None):
                 best, why = settle(frame, found)
         if best is not None or prior_pose is None:
             return _finish(frame, best, why, "markers")
@@ -68,9 +71,12 @@ def label_cube(
         orientation_prior = OrientationPrior.isotropic(
             quat_to_matrix(np.asarray(q, float)), np.radians(_PRIOR_SIGMA_DEG)
         )
-    best, why = label_from_prior(frame, orientation_prior, np.asarray(T, float), turn_search=turn_search)
+    best, why = label_from_prior(
+        frame, orientation_prior, np.asarray(T, float), turn_search=turn_search, also=found if pool else ()
+    )
     reasons.append(why)
-    return _finish(frame, best, "; ".join(reasons), "prior")
+    source = "markers" if best is not None and any(best is f for f in found) else "prior"
+    return _finish(frame, best, "; ".join(reasons), source)
 
 
 def _finish(frame: CubeFrame, best: dict | None, why: str, source: str) -> Labels:

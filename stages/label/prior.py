@@ -39,7 +39,7 @@ _N_TURN_CANDIDATES = 12
 
 
 def label_from_prior(
-    frame: CubeFrame, prior: OrientationPrior, T0: np.ndarray, *, turn_search: bool = False
+    frame: CubeFrame, prior: OrientationPrior, T0: np.ndarray, *, turn_search: bool = False, also: list = ()
 ) -> tuple[dict | None, str]:
     """Label a frame from a predicted orientation ``prior`` and a neighbour's source ``T0``.
 
@@ -48,20 +48,31 @@ def label_from_prior(
     labelling) are searched with the phantom's position free (:func:`_ball_starts`), then, with
     ``turn_search``, turns about the prior's axis over the full circle (:func:`_turn_starts`). The
     labellings found are settled against each other and their rivals, the prior deciding between those
-    that the frame itself cannot tell apart.
+    that the frame itself cannot tell apart; a winner must lie in the region searched. Labellings found
+    otherwise (``also``: the frame's markers') compete with them on their evidence alone, wherever they lie.
     """
     rays = rays_of(frame, frame.det_xy)
-    searches = [lambda k=k: _ball_starts(frame, prior, T0, rays, k) for k in _SEARCH_SIGMAS]
+    # (region searched in the prior's standard deviations, its starts); None: the full circle
+    sizes = [_semi_axes(prior, k) for k in _SEARCH_SIGMAS]
+    # a wider region that the cap leaves as the narrower one is not searched again
+    searches = [
+        (k, lambda k=k: _ball_starts(frame, prior, T0, rays, k))
+        for i, k in enumerate(_SEARCH_SIGMAS)
+        if i == 0 or sizes[i] != sizes[i - 1]
+    ]
     if turn_search:
-        searches.append(lambda: _turn_starts(frame, prior.R, T0, prior.axis, rays))
+        searches.append((None, lambda: _turn_starts(frame, prior.R, T0, prior.axis, rays)))
     reason = "no pose near the neighbouring frame's brings beads onto the detections"
     tried: list = []
-    for search in searches:
+    for within, search in searches:
         starts = [s for s in search() if not any(_near(s, t) for t in tried)]
         tried += starts
         found, why = _label_starts(frame, starts)
+        found = [*also, *found]
         if found:
-            return settle(frame, found, prior)
+            best, why = settle(frame, found, prior, None if also else within)
+            if best is not None:
+                return best, why
         reason = why or reason
     return None, reason
 
@@ -116,9 +127,7 @@ def _ball_starts(frame: CubeFrame, prior: OrientationPrior, T0: np.ndarray, rays
     extent = float(np.max(np.linalg.norm(xyz - centre, axis=1)))
     gate_mm = frame.params.gate_bead_diameters * frame.diam_ref_px * p_centre[2] / frame.iop[2]
     step = _GRID_GATES * gate_mm / extent
-    cap = np.radians(_MAX_SEARCH_DEG)
-    a_turn = min(k_sigma * prior.sigma_turn_rad, cap)
-    a_tilt = min(k_sigma * prior.sigma_tilt_rad, cap)
+    a_turn, a_tilt = _semi_axes(prior, k_sigma)
     n = int(np.floor(max(a_turn, a_tilt) / step))
     g = np.arange(-n, n + 1) * step
     # shape (G, 3): the grid's rotation vectors within the ellipsoid
@@ -150,6 +159,12 @@ def _ball_starts(frame: CubeFrame, prior: OrientationPrior, T0: np.ndarray, rays
         dz = depths[int(np.argmax(strength[k]))]
         starts += shift_starts(frame, *pose(k, dz), rays, _PEAKS_PER_ROTATION)
     return starts
+
+
+def _semi_axes(prior: OrientationPrior, k_sigma: float) -> tuple[float, float]:
+    """Semi-axes (rad) about and across the turntable axis of the region within ``k_sigma`` of the prior."""
+    cap = np.radians(_MAX_SEARCH_DEG)
+    return min(k_sigma * prior.sigma_turn_rad, cap), min(k_sigma * prior.sigma_tilt_rad, cap)
 
 
 def _turn_starts(frame: CubeFrame, R0: np.ndarray, T0: np.ndarray, axis: np.ndarray, rays: np.ndarray) -> list:

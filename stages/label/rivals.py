@@ -46,10 +46,12 @@ _POLISH_MARGINS = 2.0
 _SLIP_VOTES = 0.3
 # pose refinements of a polish
 _POLISH_ROUNDS = 3
-# rivals found whose own rivals are sought too (besides every labelling found), when their evidence is
-# within this many margins of the best's
+# labellings whose rivals are sought: every one found and this many rivals, one per orientation (within
+# _BASIN_DEG), when their evidence is within this many margins of the best's (a slip of the truth that
+# misplaces markers scores several margins below it)
 _MAX_EXPANSIONS = 4
-_EXPAND_MARGINS = 3.0
+_EXPAND_MARGINS = 8.0
+_BASIN_DEG = 1.0
 # polished poses whose sources lie closer than this (mm; the source is ~1 m away, so 0.5 deg moves it
 # ~9 mm) lead to the labelling already found
 _SAME_SOURCE_MM = 5.0
@@ -97,36 +99,63 @@ def evidence(frame: CubeFrame, model: dict, R: np.ndarray | None = None, T: np.n
     return float(2 * explained.sum() - len(explained) - missing - _SIZE_WEIGHT * off)
 
 
-def settle(frame: CubeFrame, found: list, prior: OrientationPrior | None = None) -> tuple[dict | None, str]:
+def settle(
+    frame: CubeFrame, found: list, prior: OrientationPrior | None = None, within: float | None = None
+) -> tuple[dict | None, str]:
     """The labelling that the frame singles out among ``found`` and their rivals; ``(None, reason)`` if none.
 
     Each labelling found (from a marker pose or a search's start) brings its rivals: its slips and its
     symmetric poses (:func:`_close_rivals`, screened with that labelling's own model); a rival that comes
-    close is labelled in full and brings its own. The labelling of the highest :func:`evidence` wins when
-    every other scores at least ``_EVIDENCE_MARGIN`` less. Otherwise, with a prior orientation (a
-    neighbouring frame's, predicted), the one nearest it wins among the close ones if each other is at
-    least ``_PRIOR_MARGIN`` times as far from it in the prior's standard deviations, a distance of one
-    counting as one (a symmetric rival is turned by a quarter or half turn, a hinge by a few degrees
-    about the turntable axis, which a regular step predicts well; a slip has the same orientation, and
-    the prior cannot tell it); else the frame fails.
+    close is labelled in full and brings its own. The acceptable labelling of the highest
+    :func:`evidence` wins when every other scores at least ``_EVIDENCE_MARGIN`` less. Otherwise, with a
+    prior orientation (a neighbouring frame's, predicted), the one nearest it wins among the close ones
+    if each other is at least ``_PRIOR_MARGIN`` times as far from it in the prior's standard deviations,
+    a distance of one counting as one (a symmetric rival is turned by a quarter or half turn, a hinge by a
+    few degrees about the turntable axis, which a regular step predicts well; a slip has the same
+    orientation, and the prior cannot tell it); else the frame fails. With ``within``, the winner must
+    lie within that many of the prior's standard deviations (the region searched): a pose far from the
+    neighbours' that explains the frame better is not taken on the frame's word.
     """
-    candidates = list(found)
-    scores = [evidence(frame, f) for f in found]
+
+    def in_region(c):
+        return within is None or prior.distance(c["R"]) <= within
+
+    # best first: the first of an orientation is expanded, the others there are its slips
+    scored = sorted(((evidence(frame, f), i) for i, f in enumerate(found)), key=lambda e: -e[0])
+    candidates = [found[i] for _, i in scored]
+    scores = [sc for sc, _ in scored]
+    expanded: list = []
     k = 0
-    while k < len(candidates) and k < len(found) + _MAX_EXPANSIONS:
-        if scores[k] > max(scores) - _EXPAND_MARGINS * _EVIDENCE_MARGIN:
-            for result in _close_rivals(frame, candidates[k], max(scores), candidates):
+    while k < len(candidates) and len(expanded) < len(found) + _MAX_EXPANSIONS:
+        level = max((sc for c, sc in zip(candidates, scores) if in_region(c)), default=max(scores))
+        # one labelling per orientation (the best there: its slips are the others'), a fair way below the best
+        if scores[k] > level - _EXPAND_MARGINS * _EVIDENCE_MARGIN and not any(
+            turn_angle(candidates[k]["R"], e["R"]) < np.radians(_BASIN_DEG) for e in expanded
+        ):
+            expanded.append(candidates[k])
+            for result in _close_rivals(frame, candidates[k], level, candidates):
                 if all(agreement(result, c) < 0.9 for c in candidates):
                     candidates.append(result)
                     scores.append(evidence(frame, result))
         k += 1
     # only fully acceptable labellings compete; the others only brought rivals
-    scores = np.array([sc if c.get("eligible", True) else -np.inf for c, sc in zip(candidates, scores)])
-    if not np.isfinite(scores).any():
+    eligible = [k for k, c in enumerate(candidates) if c.get("eligible", True)]
+    if not eligible:
         return None, "no labelling of the frame is acceptable (markers misplaced in every one)"
+    winner, why = _choose(frame, [candidates[k] for k in eligible], np.array([scores[k] for k in eligible]), prior)
+    if winner is not None and not in_region(winner):
+        return None, (
+            f"the labelling that explains the frame best lies {prior.distance(winner['R']):.0f} standard deviations "
+            f"from the orientation predicted by its neighbours (searched within {within:.0f})"
+        )
+    return winner, why
+
+
+def _choose(frame: CubeFrame, candidates: list, scores: np.ndarray, prior) -> tuple[dict | None, str]:
+    """The candidate of clearly the highest evidence, else the one much the nearest the prior; else none."""
     order = np.argsort(-scores, kind="stable")
     top = order[0]
-    close = [k for k in order[1:] if np.isfinite(scores[k]) and scores[k] > scores[top] - _EVIDENCE_MARGIN]
+    close = [k for k in order[1:] if scores[k] > scores[top] - _EVIDENCE_MARGIN]
     if not close:
         return candidates[top], ""
     contenders = [top, *close]

@@ -12,6 +12,9 @@ from fluorocal.stages.label.labels import Labels
 from fluorocal.stages.label.motion import neighbours, predict
 from fluorocal.stages.label.params import LabelParams
 
+# a frame whose orientation lies this many standard deviations from its neighbours' prediction is checked
+_SUSPECT_SIGMAS = 6.0
+
 
 def label_sequence(
     centroids_seq, phantom: Phantom, params: LabelParams, seeds_by_frame: dict | None = None
@@ -55,24 +58,64 @@ def label_sequence(
         return tuple(out)
     own_reason = [lab.reason for lab in out]
     tried: dict[int, tuple] = {}  # frame -> the labelled neighbours it was last tried from
+    checked = set(seeds_by_frame)  # frames whose pose was checked against their neighbours' (seeds: trusted)
     while True:
         labelled = {i: lab for i, lab in enumerate(out) if lab.ok}
         rotations = {i: quat_to_matrix(lab.q) for i, lab in labelled.items()}
+        # a frame is tried again when the labellings of its nearest labelled neighbours change
         pending = [(i, neighbours(i, rotations)) for i in range(n) if i not in labelled]
-        pending = [(i, nb) for i, nb in pending if nb != (None, None) and tried.get(i) != nb]
-        if not pending:
+        pending = [(i, nb) for i, nb in pending if nb != (None, None) and tried.get(i) != _key(nb, labelled)]
+        if pending:
+            # nearest a labelled frame first, those between two labelled frames before those beside one
+            i, nb = min(pending, key=lambda e: (min(abs(e[0] - j) for j in e[1] if j is not None), None in e[1]))
+            tried[i] = _key(nb, labelled)
+            lab = _from_neighbours(centroids_seq[i], phantom, base, i, labelled, pool=False)
+            out[i] = (
+                lab if lab.ok else replace(lab, reason=f"{own_reason[i]}; from the neighbouring frames: {lab.reason}")
+            )
+            continue
+        i = _suspect(rotations, checked)
+        if i is None:
             return tuple(out)
-        # nearest a labelled frame first, those between two labelled frames before those beside one
-        i, nb = min(pending, key=lambda e: (min(abs(e[0] - j) for j in e[1] if j is not None), None in e[1]))
-        tried[i] = nb
-        prior, near, known = predict(i, rotations)
-        lab = label_frame(
-            centroids_seq[i],
-            phantom,
-            base,
-            (labelled[near].q, labelled[near].source_mm),
-            orientation_prior=prior,
-            turn_search=True,
-            from_markers=False,
-        )
-        out[i] = lab if lab.ok else replace(lab, reason=f"{own_reason[i]}; from the neighbouring frames: {lab.reason}")
+        # its markers gave a pose far from its neighbours': weighed against the labellings found near theirs
+        checked.add(i)
+        others = {j: lab for j, lab in labelled.items() if j != i}
+        lab = _from_neighbours(centroids_seq[i], phantom, base, i, others, pool=True)
+        if not lab.ok:
+            lab = replace(lab, reason=f"its markers' pose is far from its neighbours': {lab.reason}")
+        out[i] = lab
+
+
+def _key(nb: tuple, labelled: dict) -> tuple:
+    """The neighbours ``nb`` with their poses: what a frame was last tried from."""
+    return tuple(None if j is None else (j, labelled[j].q.tobytes()) for j in nb)
+
+
+def _from_neighbours(centroids, phantom: Phantom, params: LabelParams, i: int, labelled: dict, *, pool: bool) -> Labels:
+    """Frame ``i`` labelled from the orientation its ``labelled`` neighbours predict (with its markers: ``pool``)."""
+    prior, near, _ = predict(i, {j: quat_to_matrix(lab.q) for j, lab in labelled.items()})
+    return label_frame(
+        centroids,
+        phantom,
+        params,
+        (labelled[near].q, labelled[near].source_mm),
+        orientation_prior=prior,
+        turn_search=True,
+        from_markers=pool,
+        pool=pool,
+    )
+
+
+def _suspect(rotations: dict, checked: set) -> int | None:
+    """The labelled frame, not ``checked`` yet, farthest from its neighbours' prediction; None if none is suspect.
+
+    A frame is suspect when its orientation lies beyond ``_SUSPECT_SIGMAS`` of the prediction's uncertainty.
+    """
+    worst, worst_d = None, _SUSPECT_SIGMAS
+    for i, R in rotations.items():
+        if i in checked:
+            continue
+        predicted = predict(i, {j: Rj for j, Rj in rotations.items() if j != i})
+        if predicted is not None and predicted[0].distance(R) > worst_d:
+            worst, worst_d = i, predicted[0].distance(R)
+    return worst
