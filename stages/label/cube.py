@@ -67,12 +67,13 @@ def label_cube(
             return _finish(frame, best, why, "markers")
         reasons.append(f"from the markers: {why}")
     q, T = prior_pose
+    R = quat_to_matrix(np.asarray(q, float))
     if orientation_prior is None:
-        orientation_prior = OrientationPrior.isotropic(
-            quat_to_matrix(np.asarray(q, float)), np.radians(_PRIOR_SIGMA_DEG)
-        )
+        orientation_prior = OrientationPrior.isotropic(R, np.radians(_PRIOR_SIGMA_DEG))
+    # where the prior pose puts the phantom's centre, in the camera frame
+    p_centre = R @ (phantom.xyz_mm.mean(0) - np.asarray(T, float))
     best, why = label_from_prior(
-        frame, orientation_prior, np.asarray(T, float), turn_search=turn_search, also=found if pool else ()
+        frame, orientation_prior, p_centre, turn_search=turn_search, also=found if pool else ()
     )
     reasons.append(why)
     source = "markers" if best is not None and any(best is f for f in found) else "prior"

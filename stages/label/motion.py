@@ -114,9 +114,10 @@ def _prediction_sigmas(rotations: dict, axis: np.ndarray, both_sides: bool) -> t
     """1-sigma errors (rad) of the prediction about ``axis`` and across it, measured on the labelled frames.
 
     Each labelled frame with labelled frames near it (on both sides, or before it, as the prediction
-    will be made) is predicted from them; the robust RMS (1.4826 x median absolute value) of the turn and
-    tilt components of the misses, floored at ``_MIN_SIGMA_DEG``. ``_DEFAULT_SIGMA_DEG`` until
-    ``_MIN_RESIDUALS`` frames show it.
+    will be made) is predicted from them; the robust standard deviations of the misses about the axis
+    (1.4826 x the median absolute turn) and across it (per component: the median tilt / 1.1774, the
+    median of a 2D normal's length in its sigmas), floored at ``_MIN_SIGMA_DEG``. ``_DEFAULT_SIGMA_DEG``
+    until ``_MIN_RESIDUALS`` frames show them.
     """
     from scipy.spatial.transform import Rotation
 
@@ -135,7 +136,7 @@ def _prediction_sigmas(rotations: dict, axis: np.ndarray, both_sides: bool) -> t
     turn = misses @ axis
     tilt = np.linalg.norm(misses - np.outer(turn, axis), axis=1)
     floor = np.radians(_MIN_SIGMA_DEG)
-    return max(floor, 1.4826 * float(np.median(np.abs(turn)))), max(floor, 1.4826 * float(np.median(tilt)))
+    return max(floor, 1.4826 * float(np.median(np.abs(turn)))), max(floor, float(np.median(tilt)) / 1.1774)
 
 
 def turntable_axis(rotations: list) -> np.ndarray:

@@ -13,7 +13,7 @@ labelling near the prediction, turns about the sequence's turntable axis over th
 from __future__ import annotations
 
 import numpy as np
-from fluorocal.stages.label.cube_frame import CubeFrame, coarse_score
+from fluorocal.stages.label.cube_frame import CubeFrame, coarse_evidence
 from fluorocal.stages.label.iterate import acceptable, agreement, iterate
 from fluorocal.stages.label.motion import OrientationPrior
 from fluorocal.stages.label.rivals import settle
@@ -25,6 +25,7 @@ _GRID_GATES = 1.6
 # finds nothing), and at most this far (deg) about any axis
 _SEARCH_SIGMAS = (3.0, 6.0)
 _MAX_SEARCH_DEG = 16.0
+_MAX_GRID_STEPS = 12
 # ... the depths scored at each rotation: the prediction's and this fraction nearer and farther
 _DEPTH_STEP = 0.025
 # distinct rotations (at least two grid steps apart) whose vote peaks are kept as starts, peaks per rotation
@@ -39,9 +40,12 @@ _N_TURN_CANDIDATES = 12
 
 
 def label_from_prior(
-    frame: CubeFrame, prior: OrientationPrior, T0: np.ndarray, *, turn_search: bool = False, also: list = ()
+    frame: CubeFrame, prior: OrientationPrior, p_centre: np.ndarray, *, turn_search: bool = False, also: list = ()
 ) -> tuple[dict | None, str]:
-    """Label a frame from a predicted orientation ``prior`` and a neighbour's source ``T0``.
+    """Label a frame from a predicted orientation ``prior`` and the phantom centre's place ``p_centre``.
+
+    ``p_centre`` (camera frame, mm) is where a neighbouring frame saw the phantom's centre: its depth
+    starts the search, its position across the beam does not matter (the shift is searched).
 
     Returns ``(result, "")`` or ``(None, reason)``. Rotations of the prediction within each of
     ``_SEARCH_SIGMAS`` of its uncertainty in turn (a wider one only when the narrower gives no acceptable
@@ -56,12 +60,12 @@ def label_from_prior(
     sizes = [_semi_axes(prior, k) for k in _SEARCH_SIGMAS]
     # a wider region that the cap leaves as the narrower one is not searched again
     searches = [
-        (k, lambda k=k: _ball_starts(frame, prior, T0, rays, k))
+        (k, lambda k=k: _ball_starts(frame, prior, p_centre, rays, k))
         for i, k in enumerate(_SEARCH_SIGMAS)
         if i == 0 or sizes[i] != sizes[i - 1]
     ]
     if turn_search:
-        searches.append((None, lambda: _turn_starts(frame, prior.R, T0, prior.axis, rays)))
+        searches.append((None, lambda: _turn_starts(frame, prior.R, p_centre, prior.axis, rays)))
     reason = "no pose near the neighbouring frame's brings beads onto the detections"
     tried: list = []
     for within, search in searches:
@@ -83,14 +87,14 @@ def _near(a: tuple, b: tuple) -> bool:
 
 
 def _label_starts(frame: CubeFrame, starts: list) -> tuple[list, str]:
-    """Distinct labellings from the best of ``starts`` (by coarse score), and the last failure's reason.
+    """Distinct labellings from the best of ``starts`` (by coarse evidence), and the last failure's reason.
 
     Those acceptable but for the beads' sizes are kept too (``eligible`` False): a start one slip off
     the truth puts markers on ordinary beads, and the truth is among its slips.
     """
     if not starts:
         return [], ""
-    scores = np.array([coarse_score(frame, R, T) for R, T, _ in starts])
+    scores = np.array([coarse_evidence(frame, R, T) for R, T, _ in starts])
     found: list = []
     reason = ""
     for k in np.argsort(-scores, kind="stable")[:_MAX_STARTS]:
@@ -106,7 +110,9 @@ def _label_starts(frame: CubeFrame, starts: list) -> tuple[list, str]:
     return found, reason
 
 
-def _ball_starts(frame: CubeFrame, prior: OrientationPrior, T0: np.ndarray, rays: np.ndarray, k_sigma: float) -> list:
+def _ball_starts(
+    frame: CubeFrame, prior: OrientationPrior, p_centre: np.ndarray, rays: np.ndarray, k_sigma: float
+) -> list:
     """Start poses ``[(R, T, votes)]`` from rotations of the prediction within ``k_sigma`` of its uncertainty.
 
     The rotations (about the phantom's centre) lie on a cubic grid of rotation vectors whose spacing
@@ -123,10 +129,12 @@ def _ball_starts(frame: CubeFrame, prior: OrientationPrior, T0: np.ndarray, rays
     xyz = frame.phantom.xyz_mm
     centre = xyz.mean(0)
     R0 = prior.R
-    p_centre = R0 @ (centre - T0)
     extent = float(np.max(np.linalg.norm(xyz - centre, axis=1)))
+    if not p_centre[2] > 0:
+        return []
     gate_mm = frame.params.gate_bead_diameters * frame.diam_ref_px * p_centre[2] / frame.iop[2]
-    step = _GRID_GATES * gate_mm / extent
+    # a phantom large for its beads would need a fine grid: at most _MAX_GRID_STEPS steps out to the cap
+    step = max(_GRID_GATES * gate_mm / extent, np.radians(_MAX_SEARCH_DEG) / _MAX_GRID_STEPS)
     a_turn, a_tilt = _semi_axes(prior, k_sigma)
     n = int(np.floor(max(a_turn, a_tilt) / step))
     g = np.arange(-n, n + 1) * step
@@ -157,7 +165,10 @@ def _ball_starts(frame: CubeFrame, prior: OrientationPrior, T0: np.ndarray, rays
     starts = []
     for k in kept:
         dz = depths[int(np.argmax(strength[k]))]
-        starts += shift_starts(frame, *pose(k, dz), rays, _PEAKS_PER_ROTATION)
+        # the vote's peaks at one orientation are slips of each other: the one that explains the frame best
+        peaks = shift_starts(frame, *pose(k, dz), rays)
+        peaks.sort(key=lambda s: -coarse_evidence(frame, s[0], s[1]))
+        starts += peaks[:_PEAKS_PER_ROTATION]
     return starts
 
 
@@ -167,7 +178,7 @@ def _semi_axes(prior: OrientationPrior, k_sigma: float) -> tuple[float, float]:
     return min(k_sigma * prior.sigma_turn_rad, cap), min(k_sigma * prior.sigma_tilt_rad, cap)
 
 
-def _turn_starts(frame: CubeFrame, R0: np.ndarray, T0: np.ndarray, axis: np.ndarray, rays: np.ndarray) -> list:
+def _turn_starts(frame: CubeFrame, R0: np.ndarray, p_centre: np.ndarray, axis: np.ndarray, rays: np.ndarray) -> list:
     """Start poses ``[(R, T, votes)]`` turned about ``axis`` (camera frame) over the full circle.
 
     The phantom is turned about the axis through its centre, in steps that move the beads farthest
@@ -179,9 +190,10 @@ def _turn_starts(frame: CubeFrame, R0: np.ndarray, T0: np.ndarray, axis: np.ndar
     """
     import cv2
 
+    if not p_centre[2] > 0:
+        return []
     xyz = frame.phantom.xyz_mm
     centre = xyz.mean(0)
-    p_centre = R0 @ (centre - T0)
     axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
     rel = (xyz - centre) @ R0.T
     radius = float(np.max(np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)))

@@ -62,28 +62,26 @@ def label_sequence(
     while True:
         labelled = {i: lab for i, lab in enumerate(out) if lab.ok}
         rotations = {i: quat_to_matrix(lab.q) for i, lab in labelled.items()}
+        i = _suspect(rotations, checked)
+        if i is not None:
+            # its pose lies far from its neighbours': weighed against the labellings found near theirs
+            # (before it serves as a neighbour itself)
+            checked.add(i)
+            others = {j: lab for j, lab in labelled.items() if j != i}
+            lab = _from_neighbours(centroids_seq[i], phantom, base, i, others, pool=True)
+            out[i] = lab if lab.ok else replace(lab, reason=f"its pose is far from its neighbours': {lab.reason}")
+            continue
         # a frame is tried again when the labellings of its nearest labelled neighbours change
         pending = [(i, neighbours(i, rotations)) for i in range(n) if i not in labelled]
         pending = [(i, nb) for i, nb in pending if nb != (None, None) and tried.get(i) != _key(nb, labelled)]
-        if pending:
-            # nearest a labelled frame first, those between two labelled frames before those beside one
-            i, nb = min(pending, key=lambda e: (min(abs(e[0] - j) for j in e[1] if j is not None), None in e[1]))
-            tried[i] = _key(nb, labelled)
-            lab = _from_neighbours(centroids_seq[i], phantom, base, i, labelled, pool=False)
-            out[i] = (
-                lab if lab.ok else replace(lab, reason=f"{own_reason[i]}; from the neighbouring frames: {lab.reason}")
-            )
-            continue
-        i = _suspect(rotations, checked)
-        if i is None:
+        if not pending:
             return tuple(out)
-        # its markers gave a pose far from its neighbours': weighed against the labellings found near theirs
+        # nearest a labelled frame first, those between two labelled frames before those beside one
+        i, nb = min(pending, key=lambda e: (min(abs(e[0] - j) for j in e[1] if j is not None), None in e[1]))
+        tried[i] = _key(nb, labelled)
+        lab = _from_neighbours(centroids_seq[i], phantom, base, i, labelled, pool=False)
+        out[i] = lab if lab.ok else replace(lab, reason=f"{own_reason[i]}; from the neighbouring frames: {lab.reason}")
         checked.add(i)
-        others = {j: lab for j, lab in labelled.items() if j != i}
-        lab = _from_neighbours(centroids_seq[i], phantom, base, i, others, pool=True)
-        if not lab.ok:
-            lab = replace(lab, reason=f"its markers' pose is far from its neighbours': {lab.reason}")
-        out[i] = lab
 
 
 def _key(nb: tuple, labelled: dict) -> tuple:
