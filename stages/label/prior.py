@@ -67,6 +67,7 @@ def label_from_prior(
     if turn_search:
         searches.append((None, lambda: _turn_starts(frame, prior.R, p_centre, prior.axis, rays)))
     reason = "no pose near the neighbouring frame's brings beads onto the detections"
+    settled = False
     tried: list = []
     for within, search in searches:
         starts = [s for s in search() if not any(_near(s, t) for t in tried)]
@@ -77,7 +78,10 @@ def label_from_prior(
             best, why = settle(frame, found, prior, None if also else within)
             if best is not None:
                 return best, why
-        reason = why or reason
+            # a labelling found but not singled out says more than the failures of the other starts
+            reason, settled = why, True
+        elif not settled:
+            reason = why or reason
     return None, reason
 
 
