@@ -70,8 +70,10 @@ def label_cube(
     R = quat_to_matrix(np.asarray(q, float))
     if orientation_prior is None:
         orientation_prior = OrientationPrior.isotropic(R, np.radians(_PRIOR_SIGMA_DEG))
-    # where the prior pose puts the phantom's centre, in the camera frame
+    # where the prior pose puts the phantom's centre, in the camera frame, at the predicted depth if any
     p_centre = R @ (phantom.xyz_mm.mean(0) - np.asarray(T, float))
+    if orientation_prior.depth_mm is not None:
+        p_centre[2] = orientation_prior.depth_mm
     best, why = label_from_prior(
         frame, orientation_prior, p_centre, turn_search=turn_search, also=found if pool else ()
     )

@@ -23,6 +23,9 @@ _DEFAULT_SIGMA_DEG = 4.0
 _MIN_SIGMA_DEG = 0.5
 # prediction errors measured on at least this many labelled frames replace the default
 _MIN_RESIDUALS = 3
+# the depth's prediction error (1 sigma, fraction of the depth) assumed before the sequence shows it, and its floor
+_DEFAULT_SIGMA_DEPTH = 0.025
+_MIN_SIGMA_DEPTH = 0.003
 
 
 @dataclass(frozen=True)
@@ -37,12 +40,17 @@ class OrientationPrior:
         Unit turntable axis in the camera frame.
     sigma_turn_rad, sigma_tilt_rad : float
         1-sigma error of the prediction about the axis and across it (rad).
+    depth_mm, sigma_depth_mm : float or None
+        The phantom centre's predicted distance from the source along the beam (mm, in the frame's
+        assumed camera) and its 1-sigma error; None: unknown (a neighbour's, with a default error).
     """
 
     R: np.ndarray
     axis: np.ndarray
     sigma_turn_rad: float
     sigma_tilt_rad: float
+    depth_mm: float | None = None
+    sigma_depth_mm: float | None = None
 
     @classmethod
     def isotropic(cls, R: np.ndarray, sigma_rad: float) -> "OrientationPrior":
@@ -59,21 +67,105 @@ class OrientationPrior:
         return float(np.hypot(turn / self.sigma_turn_rad, tilt / self.sigma_tilt_rad))
 
 
-def predict(i: int, rotations: dict) -> tuple[OrientationPrior, int, bool] | None:
+@dataclass(frozen=True)
+class Motion:
+    """What the labelled frames of a sequence say about its motion, computed once for a set of them.
+
+    Attributes
+    ----------
+    axis : (3,) float64 ndarray
+        The turntable axis, camera frame (:func:`turntable_axis`).
+    step : (3,) float64 ndarray or None
+        The median rotation per frame (rotation vector), None without labelled frames close enough.
+    sigmas_both, sigmas_one : tuple of float
+        ``(turn, tilt)`` 1-sigma errors (rad) of a prediction between labelled frames, and beside them.
+    depths : dict
+        Frame -> the phantom centre's distance from the source (mm) of the labelled frames.
+    depth_from_neighbours : bool
+        The depth is predicted from the nearest labelled frames (smooth motion), else as the median of all
+        (a turntable moved at random between exposures), whichever misses less on the labelled frames.
+    sigma_depth_mm : float
+        1-sigma error of that prediction.
+    """
+
+    axis: np.ndarray
+    step: np.ndarray | None
+    sigmas_both: tuple
+    sigmas_one: tuple
+    depths: dict
+    depth_from_neighbours: bool
+    sigma_depth_mm: float
+
+    @classmethod
+    def of(cls, rotations: dict, depths: dict | None = None) -> "Motion":
+        """The motion of the labelled frames' ``rotations`` (frame -> R, object to camera) and ``depths`` (mm)."""
+        axis = turntable_axis(list(rotations.values()))
+        depths = dict(depths or {})
+        from_neighbours, sigma = _depth_model(depths)
+        return cls(
+            axis,
+            _mean_step(rotations),
+            _prediction_sigmas(rotations, axis, True),
+            _prediction_sigmas(rotations, axis, False),
+            depths,
+            from_neighbours,
+            sigma,
+        )
+
+
+def predict(i: int, rotations: dict, motion: Motion | None = None) -> tuple[OrientationPrior, int, bool] | None:
     """The orientation prior of frame ``i`` from the labelled frames' ``rotations`` (frame -> R), or None.
 
     Returns the prior, the nearest labelled frame, and whether the motion is known (labelled frames on
     both sides, or the sequence's mean rotation per frame); without it the prediction is that frame's
-    orientation with the default uncertainty.
+    orientation with the default uncertainty. ``motion`` (default: that of ``rotations``) may come from a
+    larger set of frames, e.g. with frame ``i`` itself; with its ``depths``, the prior predicts the depth.
     """
-    nb = neighbours(i, rotations)
+    others = {j: R for j, R in rotations.items() if j != i}
+    nb = neighbours(i, others)
     if nb == (None, None):
         return None
-    axis = turntable_axis(list(rotations.values()))
-    R, near, known = _predicted_rotation(i, nb, rotations, _mean_step(rotations))
-    both = None not in nb
-    sigmas = _prediction_sigmas(rotations, axis, both)
-    return OrientationPrior(R, axis, *sigmas), near, known
+    motion = motion or Motion.of(others)
+    R, near, known = _predicted_rotation(i, nb, others, motion.step)
+    sigmas = motion.sigmas_both if None not in nb else motion.sigmas_one
+    depths = {j: z for j, z in motion.depths.items() if j != i}
+    depth = _predicted_depth(i, depths, motion.depth_from_neighbours) if depths else None
+    return (
+        OrientationPrior(R, motion.axis, *sigmas, depth, motion.sigma_depth_mm if depth is not None else None),
+        near,
+        known,
+    )
+
+
+def _predicted_depth(i: int, depths: dict, from_neighbours: bool) -> float:
+    """Frame ``i``'s depth: interpolated between (or from) the nearest labelled frames, or the median of all."""
+    if not from_neighbours:
+        return float(np.median(list(depths.values())))
+    a, b = neighbours(i, depths)
+    if a is None or b is None:
+        return float(depths[a if b is None else b])
+    return float(depths[a] + (depths[b] - depths[a]) * (i - a) / (b - a))
+
+
+def _depth_model(depths: dict) -> tuple[bool, float]:
+    """Whether the depth is better predicted from the neighbours than as the median, and that prediction's sigma.
+
+    Each labelled frame's depth is predicted from the others both ways (leave one out); the robust
+    standard deviation (1.4826 x median absolute miss) of each, floored at ``_MIN_SIGMA_DEPTH`` of the
+    depth; the default (``_DEFAULT_SIGMA_DEPTH`` of it, from the neighbours) until ``_MIN_RESIDUALS``
+    frames show it.
+    """
+    if len(depths) <= _MIN_RESIDUALS:
+        scale = float(np.median(list(depths.values()))) if depths else 0.0
+        return True, _DEFAULT_SIGMA_DEPTH * scale
+    misses = {True: [], False: []}
+    for j, z in depths.items():
+        others = {k: v for k, v in depths.items() if k != j}
+        for way in misses:
+            misses[way].append(_predicted_depth(j, others, way) - z)
+    sigma = {way: 1.4826 * float(np.median(np.abs(m))) for way, m in misses.items()}
+    way = sigma[True] <= sigma[False]
+    return way, max(sigma[way], _MIN_SIGMA_DEPTH * float(np.median(list(depths.values()))))
 
 
 def neighbours(i: int, rotations: dict) -> tuple:

@@ -17,7 +17,15 @@ from fluorocal.stages.label.cube_frame import CubeFrame, coarse_evidence
 from fluorocal.stages.label.iterate import acceptable, agreement, iterate
 from fluorocal.stages.label.motion import OrientationPrior
 from fluorocal.stages.label.rivals import settle
-from fluorocal.stages.label.votes import N_DEPTH_DETECTIONS, rays_of, shift_starts, shift_strength, shift_votes
+from fluorocal.stages.label.votes import (
+    N_DEPTH_DETECTIONS,
+    N_PEAKS,
+    rays_of,
+    shift_peaks,
+    shift_starts,
+    shift_strength,
+    shift_votes,
+)
 
 # the rotation grid: spacing that moves the beads farthest from the phantom's centre by this many gates ...
 _GRID_GATES = 1.6
@@ -26,8 +34,11 @@ _GRID_GATES = 1.6
 _SEARCH_SIGMAS = (3.0, 6.0)
 _MAX_SEARCH_DEG = 16.0
 _MAX_GRID_STEPS = 12
-# ... the depths scored at each rotation: the prediction's and this fraction nearer and farther
-_DEPTH_STEP = 0.025
+# the phantom's distance from the source: levels this fraction of it apart, covering this many sigmas of
+# its prediction (by default this fraction of it)
+_DEPTH_SPACING = 0.02
+_DEPTH_SIGMAS = 2.5
+_DEFAULT_SIGMA_DEPTH = 0.025
 # distinct rotations (at least two grid steps apart) whose vote peaks are kept as starts, peaks per rotation
 _N_ROTATIONS = 16
 _PEAKS_PER_ROTATION = 1
@@ -123,10 +134,11 @@ def _ball_starts(
     moves the beads farthest from the centre by ``_GRID_GATES`` assignment gates, within the ellipsoid of
     ``k_sigma`` times the prior's turn and tilt uncertainties (each at most ``_MAX_SEARCH_DEG``; the
     prediction itself always). Each is scored by the strongest peak of its shift vote
-    (:func:`~fluorocal.stages.label.votes.shift_strength`, a thinned set of detections) at the neighbour's
-    depth and ``_DEPTH_STEP`` nearer and farther; the ``_N_ROTATIONS`` best rotations at least two grid
-    steps apart get the full shift search (:func:`~fluorocal.stages.label.votes.shift_starts`),
-    ``_PEAKS_PER_ROTATION`` peaks each.
+    (:func:`~fluorocal.stages.label.votes.shift_strength`, a thinned set of detections) at the depths the
+    prior allows (:func:`_depth_levels`); the
+    ``_N_ROTATIONS`` best rotations at least two grid steps apart get their full vote's peaks
+    (:func:`~fluorocal.stages.label.votes.shift_peaks`), slips of one another, of which the
+    ``_PEAKS_PER_ROTATION`` that explain the frame best (:func:`coarse_evidence`) are the starts.
     """
     from scipy.spatial.transform import Rotation
 
@@ -151,7 +163,7 @@ def _ball_starts(
     thin = (
         rays[np.linspace(0, len(rays) - 1, N_DEPTH_DETECTIONS).astype(int)] if len(rays) > N_DEPTH_DETECTIONS else rays
     )
-    depths = p_centre[2] * _DEPTH_STEP * np.array([-1.0, 0.0, 1.0])
+    depths = _depth_levels(prior, p_centre[2])
 
     def pose(k, dz):
         R = turns[k] @ R0
@@ -170,10 +182,22 @@ def _ball_starts(
     for k in kept:
         dz = depths[int(np.argmax(strength[k]))]
         # the vote's peaks at one orientation are slips of each other: the one that explains the frame best
-        peaks = shift_starts(frame, *pose(k, dz), rays)
+        peaks = shift_peaks(frame, *pose(k, dz), rays, N_PEAKS)
         peaks.sort(key=lambda s: -coarse_evidence(frame, s[0], s[1]))
         starts += peaks[:_PEAKS_PER_ROTATION]
     return starts
+
+
+def _depth_levels(prior: OrientationPrior, depth_mm: float) -> np.ndarray:
+    """Moves (mm) of the phantom's centre along the beam scored at each rotation: its predicted depth's spread.
+
+    Levels ``_DEPTH_SPACING`` of the depth apart (the vote holds about half of that either way) cover
+    ``_DEPTH_SIGMAS`` of the prediction's error (``_DEFAULT_SIGMA_DEPTH`` of the depth when not given).
+    """
+    sigma = prior.sigma_depth_mm if prior.sigma_depth_mm is not None else _DEFAULT_SIGMA_DEPTH * depth_mm
+    spacing = _DEPTH_SPACING * depth_mm
+    n = int(np.ceil(max(_DEPTH_SIGMAS * sigma - 0.5 * spacing, 0.0) / spacing))
+    return np.arange(-n, n + 1) * spacing
 
 
 def _semi_axes(prior: OrientationPrior, k_sigma: float) -> tuple[float, float]:

@@ -6,10 +6,10 @@ from dataclasses import replace
 
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.errors import InputError
-from fluorocal.stages.geometry import quat_to_matrix
+from fluorocal.stages.geometry import iop_guess, quat_to_matrix
 from fluorocal.stages.label.frame import label_frame
 from fluorocal.stages.label.labels import Labels
-from fluorocal.stages.label.motion import neighbours, predict
+from fluorocal.stages.label.motion import Motion, neighbours, predict
 from fluorocal.stages.label.params import LabelParams
 
 # a frame whose orientation lies this many standard deviations from its neighbours' prediction is checked
@@ -57,18 +57,20 @@ def label_sequence(
     if phantom.lattice:
         return tuple(out)
     own_reason = [lab.reason for lab in out]
+    c_assumed = float(iop_guess((1, 1), params.source_image_distance_mm, params.pixel_pitch_mm)[2])
     tried: dict[int, tuple] = {}  # frame -> the labelled neighbours it was last tried from
     checked = set(seeds_by_frame)  # frames whose pose was checked against their neighbours' (seeds: trusted)
     while True:
         labelled = {i: lab for i, lab in enumerate(out) if lab.ok}
         rotations = {i: quat_to_matrix(lab.q) for i, lab in labelled.items()}
-        i = _suspect(rotations, checked)
+        motion = Motion.of(rotations, {i: _depth(lab, phantom, c_assumed) for i, lab in labelled.items()})
+        i = _suspect(rotations, checked, motion)
         if i is not None:
             # its pose lies far from its neighbours': weighed against the labellings found near theirs
             # (before it serves as a neighbour itself)
             checked.add(i)
             others = {j: lab for j, lab in labelled.items() if j != i}
-            lab = _from_neighbours(centroids_seq[i], phantom, base, i, others, pool=True)
+            lab = _from_neighbours(centroids_seq[i], phantom, base, i, others, motion, pool=True)
             out[i] = lab if lab.ok else replace(lab, reason=f"its pose is far from its neighbours': {lab.reason}")
             continue
         # a frame is tried again when the labellings of its nearest labelled neighbours change
@@ -79,9 +81,19 @@ def label_sequence(
         # nearest a labelled frame first, those between two labelled frames before those beside one
         i, nb = min(pending, key=lambda e: (min(abs(e[0] - j) for j in e[1] if j is not None), None in e[1]))
         tried[i] = _key(nb, labelled)
-        lab = _from_neighbours(centroids_seq[i], phantom, base, i, labelled, pool=False)
+        lab = _from_neighbours(centroids_seq[i], phantom, base, i, labelled, motion, pool=False)
         out[i] = lab if lab.ok else replace(lab, reason=f"{own_reason[i]}; from the neighbouring frames: {lab.reason}")
         checked.add(i)
+
+
+def _depth(lab: Labels, phantom: Phantom, c_assumed: float) -> float:
+    """The phantom centre's distance from the source (mm) in a labelled frame, as the assumed camera sees it.
+
+    The labelling refines the principal distance ``c``, and the depth it finds scales with it: the depth
+    seen with the assumed ``c`` (as the next frame's search starts) is the found one times ``c_assumed / c``.
+    """
+    z = float((quat_to_matrix(lab.q) @ (phantom.xyz_mm.mean(0) - lab.source_mm))[2])
+    return z * c_assumed / float(lab.iop[2])
 
 
 def _key(nb: tuple, labelled: dict) -> tuple:
@@ -89,9 +101,11 @@ def _key(nb: tuple, labelled: dict) -> tuple:
     return tuple(None if j is None else (j, labelled[j].q.tobytes()) for j in nb)
 
 
-def _from_neighbours(centroids, phantom: Phantom, params: LabelParams, i: int, labelled: dict, *, pool: bool) -> Labels:
+def _from_neighbours(
+    centroids, phantom: Phantom, params: LabelParams, i: int, labelled: dict, motion: Motion, *, pool: bool
+) -> Labels:
     """Frame ``i`` labelled from the orientation its ``labelled`` neighbours predict (with its markers: ``pool``)."""
-    prior, near, _ = predict(i, {j: quat_to_matrix(lab.q) for j, lab in labelled.items()})
+    prior, near, _ = predict(i, {j: quat_to_matrix(lab.q) for j, lab in labelled.items()}, motion)
     return label_frame(
         centroids,
         phantom,
@@ -104,7 +118,7 @@ def _from_neighbours(centroids, phantom: Phantom, params: LabelParams, i: int, l
     )
 
 
-def _suspect(rotations: dict, checked: set) -> int | None:
+def _suspect(rotations: dict, checked: set, motion) -> int | None:
     """The labelled frame, not ``checked`` yet, farthest from its neighbours' prediction; None if none is suspect.
 
     A frame is suspect when its orientation lies beyond ``_SUSPECT_SIGMAS`` of the prediction's uncertainty.
@@ -113,7 +127,7 @@ def _suspect(rotations: dict, checked: set) -> int | None:
     for i, R in rotations.items():
         if i in checked:
             continue
-        predicted = predict(i, {j: Rj for j, Rj in rotations.items() if j != i})
+        predicted = predict(i, rotations, motion)
         if predicted is not None and predicted[0].distance(R) > worst_d:
             worst, worst_d = i, predicted[0].distance(R)
     return worst
