@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.geometry import matrix_to_quat, quat_to_matrix
+from fluorocal.stages.label.camera import project_cam
+from fluorocal.stages.label.correction import fit_correction, max_degree
 from fluorocal.stages.label.cube_frame import CubeFrame, make_cube_frame
 from fluorocal.stages.label.detections import Detections
 from fluorocal.stages.label.iterate import acceptable, agreement, iterate
@@ -37,6 +39,7 @@ def label_cube(
     turn_search: bool = False,
     from_markers: bool = True,
     pool: bool = False,
+    reference: Labels | None = None,
 ) -> Labels:
     """Label one frame of a 3D phantom from seeds, else from the markers and then from ``prior_pose``.
 
@@ -45,7 +48,8 @@ def label_cube(
     ``turn_search`` lets a frame that still fails be searched over turns about its axis.
     ``from_markers=False`` skips the markers (they failed before); ``pool=True`` weighs the markers'
     labellings together with those found from the prior (a frame whose markers gave a pose far from its
-    neighbours').
+    neighbours'). ``reference`` (a labelled frame of the same system) lends its camera to the search:
+    its principal distance and the distortion seen on its beads (:func:`_camera_of`).
     """
     frame, det = make_cube_frame(det, phantom, params, iop)
     if frame is None:
@@ -74,12 +78,32 @@ def label_cube(
     p_centre = R @ (phantom.xyz_mm.mean(0) - np.asarray(T, float))
     if orientation_prior.depth_mm is not None:
         p_centre[2] = orientation_prior.depth_mm
+    camera = None if reference is None else _camera_of(frame, reference)
+    if camera is not None:
+        # the depth goes with the principal distance the search sees it with
+        p_centre[2] *= camera["iop"][2] / frame.iop[2]
     best, why = label_from_prior(
-        frame, orientation_prior, p_centre, turn_search=turn_search, also=found if pool else ()
+        frame, orientation_prior, p_centre, turn_search=turn_search, also=found if pool else (), camera=camera
     )
     reasons.append(why)
     source = "markers" if best is not None and any(best is f for f in found) else "prior"
     return _finish(frame, best, "; ".join(reasons), source)
+
+
+def _camera_of(frame: CubeFrame, labels: Labels) -> dict | None:
+    """The camera of a labelled frame: its ``iop`` and the polynomial correction its beads show (None if too few).
+
+    The correction is refitted (degree up to the labelling's own, 3 by default) on the labelled beads'
+    pinhole projections through the frame's pose and their measured centres: the system's distortion,
+    which a neighbouring frame of the same system shares.
+    """
+    if len(labels) < 6 or not labels.ok:
+        return None
+    iop = np.asarray(labels.iop, dtype=np.float64)
+    ideal = project_cam((labels.object_xyz_mm - labels.source_mm) @ quat_to_matrix(labels.q).T, iop)
+    degree = min(frame.params.correction_degree, max_degree(len(labels)))
+    scale = 0.5 * float(np.hypot(frame.width, frame.height))
+    return {"iop": iop, "corr": fit_correction(ideal, labels.xy_px, degree, iop[:2], scale)}
 
 
 def _finish(frame: CubeFrame, best: dict | None, why: str, source: str) -> Labels:

@@ -76,6 +76,11 @@ def make_cube_frame(
     return frame, det
 
 
+def with_camera(frame: CubeFrame, iop: np.ndarray) -> CubeFrame:
+    """``frame`` seen with interior orientation ``iop`` (a labelling's refined principal distance)."""
+    return replace(frame, iop=np.asarray(iop, dtype=np.float64), K=camera_matrix(iop))
+
+
 def _hull(xy: np.ndarray) -> np.ndarray:
     """``(F, 3)``: the convex hull of points ``xy`` as unit outward normals and offsets; empty if degenerate."""
     from scipy.spatial import ConvexHull, QhullError

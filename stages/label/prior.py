@@ -13,10 +13,11 @@ labelling near the prediction, turns about the sequence's turntable axis over th
 from __future__ import annotations
 
 import numpy as np
-from fluorocal.stages.label.cube_frame import CubeFrame, coarse_evidence
+from fluorocal.stages.label.cube_frame import CubeFrame, coarse_evidence, with_camera
 from fluorocal.stages.label.iterate import acceptable, agreement, iterate
 from fluorocal.stages.label.motion import OrientationPrior
-from fluorocal.stages.label.rivals import settle
+from fluorocal.stages.label.rivals import evidence, polish, settle
+from fluorocal.stages.label.symmetry import turn_angle
 from fluorocal.stages.label.votes import (
     N_DEPTH_DETECTIONS,
     N_PEAKS,
@@ -41,7 +42,8 @@ _DEPTH_SIGMAS = 2.5
 _DEFAULT_SIGMA_DEPTH = 0.025
 # distinct rotations (at least two grid steps apart) whose vote peaks are kept as starts, peaks per rotation
 _N_ROTATIONS = 16
-_PEAKS_PER_ROTATION = 1
+# rotations that polish to within this angle (deg) of one another share their slips
+_SAME_ORIENTATION_DEG = 0.5
 # starts labelled in full (best coarse score first)
 _MAX_STARTS = 16
 # turns about the turntable axis: detections voting, turns searched in full, candidates re-scored
@@ -51,7 +53,13 @@ _N_TURN_CANDIDATES = 12
 
 
 def label_from_prior(
-    frame: CubeFrame, prior: OrientationPrior, p_centre: np.ndarray, *, turn_search: bool = False, also: list = ()
+    frame: CubeFrame,
+    prior: OrientationPrior,
+    p_centre: np.ndarray,
+    *,
+    turn_search: bool = False,
+    also: list = (),
+    camera: dict | None = None,
 ) -> tuple[dict | None, str]:
     """Label a frame from a predicted orientation ``prior`` and the phantom centre's place ``p_centre``.
 
@@ -65,25 +73,30 @@ def label_from_prior(
     labellings found are settled against each other and their rivals, the prior deciding between those
     that the frame itself cannot tell apart; a winner must lie in the region searched. Labellings found
     otherwise (``also``: the frame's markers') compete with them on their evidence alone, wherever they lie.
+
+    ``camera`` (a neighbouring frame's: its ``iop`` and polynomial ``corr``, the system's distortion)
+    sharpens the search: the detections vote corrected, and the starts are ranked by their
+    :func:`~fluorocal.stages.label.rivals.evidence` under it; without it, by the pinhole's
+    :func:`~fluorocal.stages.label.cube_frame.coarse_evidence`.
     """
-    rays = rays_of(frame, frame.det_xy)
+    view = _Search(frame, camera)
     # (region searched in the prior's standard deviations, its starts); None: the full circle
     sizes = [_semi_axes(prior, k) for k in _SEARCH_SIGMAS]
     # a wider region that the cap leaves as the narrower one is not searched again
     searches = [
-        (k, lambda k=k: _ball_starts(frame, prior, p_centre, rays, k))
+        (k, lambda k=k: _ball_starts(view, prior, p_centre, k))
         for i, k in enumerate(_SEARCH_SIGMAS)
         if i == 0 or sizes[i] != sizes[i - 1]
     ]
     if turn_search:
-        searches.append((None, lambda: _turn_starts(frame, prior.R, p_centre, prior.axis, rays)))
+        searches.append((None, lambda: _turn_starts(view, prior.R, p_centre, prior.axis)))
     reason = "no pose near the neighbouring frame's brings beads onto the detections"
     settled = False
     tried: list = []
     for within, search in searches:
         starts = [s for s in search() if not any(_near(s, t) for t in tried)]
         tried += starts
-        found, why = _label_starts(frame, starts)
+        found, why = _label_starts(view, starts)
         found = [*also, *found]
         if found:
             best, why = settle(frame, found, prior, None if also else within)
@@ -101,7 +114,7 @@ def _near(a: tuple, b: tuple) -> bool:
     return 0.5 * (np.trace(a[0].T @ b[0]) - 1.0) > np.cos(np.radians(1.0)) and np.linalg.norm(a[1] - b[1]) < 1.0
 
 
-def _label_starts(frame: CubeFrame, starts: list) -> tuple[list, str]:
+def _label_starts(search: "_Search", starts: list) -> tuple[list, str]:
     """Distinct labellings from the best of ``starts`` (by coarse evidence), and the last failure's reason.
 
     Those acceptable but for the beads' sizes are kept too (``eligible`` False): a start one slip off
@@ -109,7 +122,9 @@ def _label_starts(frame: CubeFrame, starts: list) -> tuple[list, str]:
     """
     if not starts:
         return [], ""
-    scores = np.array([coarse_evidence(frame, R, T) for R, T, _ in starts])
+    # the starts were found with the search's camera: the labellings start from it too
+    frame = search.vote_frame
+    scores = np.array([search.score(R, T) for R, T, _ in starts])
     found: list = []
     reason = ""
     for k in np.argsort(-scores, kind="stable")[:_MAX_STARTS]:
@@ -125,9 +140,7 @@ def _label_starts(frame: CubeFrame, starts: list) -> tuple[list, str]:
     return found, reason
 
 
-def _ball_starts(
-    frame: CubeFrame, prior: OrientationPrior, p_centre: np.ndarray, rays: np.ndarray, k_sigma: float
-) -> list:
+def _ball_starts(search: "_Search", prior: OrientationPrior, p_centre: np.ndarray, k_sigma: float) -> list:
     """Start poses ``[(R, T, votes)]`` from rotations of the prediction within ``k_sigma`` of its uncertainty.
 
     The rotations (about the phantom's centre) lie on a cubic grid of rotation vectors whose spacing
@@ -135,13 +148,15 @@ def _ball_starts(
     ``k_sigma`` times the prior's turn and tilt uncertainties (each at most ``_MAX_SEARCH_DEG``; the
     prediction itself always). Each is scored by the strongest peak of its shift vote
     (:func:`~fluorocal.stages.label.votes.shift_strength`, a thinned set of detections) at the depths the
-    prior allows (:func:`_depth_levels`); the
-    ``_N_ROTATIONS`` best rotations at least two grid steps apart get their full vote's peaks
-    (:func:`~fluorocal.stages.label.votes.shift_peaks`), slips of one another, of which the
-    ``_PEAKS_PER_ROTATION`` that explain the frame best (:func:`coarse_evidence`) are the starts.
+    prior allows (:func:`_depth_levels`). For each of the ``_N_ROTATIONS`` best rotations at least two grid
+    steps apart, the strongest peak of its full vote (:func:`~fluorocal.stages.label.votes.shift_peaks`) is
+    polished: whichever slip it is, its orientation is then its basin's, where the vote is sharp and its
+    peaks are the slips; the one that explains the frame best (:meth:`_Search.score`) is the basin's start.
+    Rotations that polish to one orientation share a start.
     """
     from scipy.spatial.transform import Rotation
 
+    frame, rays = search.vote_frame, search.rays
     xyz = frame.phantom.xyz_mm
     centre = xyz.mean(0)
     R0 = prior.R
@@ -178,13 +193,19 @@ def _ball_starts(
             break
         if all(np.max(np.abs(vecs[k] - vecs[j])) > 1.5 * step for j in kept):
             kept.append(int(k))
-    starts = []
+    starts: list = []
     for k in kept:
         dz = depths[int(np.argmax(strength[k]))]
-        # the vote's peaks at one orientation are slips of each other: the one that explains the frame best
         peaks = shift_peaks(frame, *pose(k, dz), rays, N_PEAKS)
-        peaks.sort(key=lambda s: -coarse_evidence(frame, s[0], s[1]))
-        starts += peaks[:_PEAKS_PER_ROTATION]
+        if not peaks:
+            continue
+        # the strongest peak polished: its orientation is the basin's, whichever slip it is
+        R, T = search.polish(*peaks[0][:2])
+        if any(turn_angle(R, s[0]) < np.radians(_SAME_ORIENTATION_DEG) for s in starts):
+            continue
+        # at that orientation the vote is sharp and its peaks are the slips: the one that explains the frame best
+        slips = [(R, T, peaks[0][2]), *shift_peaks(frame, R, T, rays, N_PEAKS)]
+        starts.append(max(slips, key=lambda s: search.score(s[0], s[1])))
     return starts
 
 
@@ -206,7 +227,7 @@ def _semi_axes(prior: OrientationPrior, k_sigma: float) -> tuple[float, float]:
     return min(k_sigma * prior.sigma_turn_rad, cap), min(k_sigma * prior.sigma_tilt_rad, cap)
 
 
-def _turn_starts(frame: CubeFrame, R0: np.ndarray, p_centre: np.ndarray, axis: np.ndarray, rays: np.ndarray) -> list:
+def _turn_starts(search: "_Search", R0: np.ndarray, p_centre: np.ndarray, axis: np.ndarray) -> list:
     """Start poses ``[(R, T, votes)]`` turned about ``axis`` (camera frame) over the full circle.
 
     The phantom is turned about the axis through its centre, in steps that move the beads farthest
@@ -220,6 +241,7 @@ def _turn_starts(frame: CubeFrame, R0: np.ndarray, p_centre: np.ndarray, axis: n
 
     if not p_centre[2] > 0:
         return []
+    frame, rays = search.vote_frame, search.rays
     xyz = frame.phantom.xyz_mm
     centre = xyz.mean(0)
     axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
@@ -251,3 +273,38 @@ def _turn_starts(frame: CubeFrame, R0: np.ndarray, p_centre: np.ndarray, axis: n
     refined.sort(key=lambda s: -s[0])
     starts = [s for _, a in refined[:_N_TURNS] for s in shift_starts(frame, *turned(a), rays)]
     return sorted(starts, key=lambda s: -s[2])
+
+
+class _Search:
+    """The frame as the search sees it: the camera its votes use, the detections' rays, how starts are ranked.
+
+    With a neighbour's ``camera`` (``iop`` and polynomial ``corr``), the detections are corrected by it
+    before they vote and the starts are ranked by their evidence under it (the final gate, the phantom's
+    ends); without, the assumed pinhole and its coarse evidence (the assignment gate).
+    """
+
+    def __init__(self, frame: CubeFrame, camera: dict | None):
+        from fluorocal.stages.label.correction import Correction
+
+        self.frame, self.camera = frame, camera
+        scale = 0.5 * float(np.hypot(frame.width, frame.height))
+        self.model = camera or {"iop": frame.iop, "corr": Correction(frame.iop[:2].copy(), scale)}
+        if camera is None:
+            self.vote_frame, ideal = frame, frame.det_xy
+        else:
+            iop = camera["iop"]
+            self.vote_frame = with_camera(frame, iop)
+            ideal = frame.det_xy
+            for _ in range(2):
+                ideal = camera["corr"].undistort_points(frame.det_xy, ideal)
+        self.rays = rays_of(self.vote_frame, ideal)
+
+    def polish(self, R: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pose ``(R, T)`` refined on the detections nearest its beads (under the camera, or the pinhole)."""
+        return polish(self.frame, self.model, R, T)
+
+    def score(self, R: np.ndarray, T: np.ndarray) -> float:
+        """How well pose ``(R, T)`` explains the frame (higher is better)."""
+        if self.camera is None:
+            return float(coarse_evidence(self.frame, R, T))
+        return evidence(self.frame, self.camera, R, T)

@@ -18,9 +18,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from fluorocal.stages.geometry import camera_matrix
 from fluorocal.stages.label.assign import ambiguous
-from fluorocal.stages.label.cube_frame import CubeFrame, inside_hull, visible
+from fluorocal.stages.label.cube_frame import CubeFrame, inside_hull, visible, with_camera
 from fluorocal.stages.label.iterate import (
     acceptable,
     agreement,
@@ -195,7 +194,8 @@ def _close_rivals(frame: CubeFrame, model: dict, level: float, known: list) -> l
             continue
         if any(_same_pose(R, T, c["R"], c["T"]) for c in [*known, *out]):
             continue
-        result = iterate(frame, R, T)
+        # the pose was found with the model's principal distance: the labelling starts from it too
+        result = iterate(with_camera(frame, model["iop"]), R, T)
         if result is not None and acceptable(frame, result)[0]:
             out.append(result)
     return out
@@ -209,8 +209,8 @@ def _same_pose(R1: np.ndarray, T1: np.ndarray, R2: np.ndarray, T2: np.ndarray) -
 def polish(frame: CubeFrame, model: dict, R: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pose ``(R, T)`` refined on the detections nearest its beads under ``model``'s camera (a few rounds)."""
     p = frame.params
-    iop, corr = model["iop"], model["corr"]
-    sub = replace(frame, iop=iop, K=camera_matrix(iop))
+    corr = model["corr"]
+    sub = with_camera(frame, model["iop"])
     xyz = frame.phantom.xyz_mm
     for _ in range(_POLISH_ROUNDS):
         vis, ideal, diam = visible(sub, R, T)

@@ -115,6 +115,7 @@ def _from_neighbours(
         turn_search=True,
         from_markers=pool,
         pool=pool,
+        reference=labelled[near],
     )
 
 
