@@ -1,15 +1,19 @@
 """The calibration file and the public Python API.
 
-``calibration.json`` (schema ``fluorocal-calibration``, version 1) holds, per
-imaging system, the image size, the interior orientation and the name of the
-``.npz`` file beside it with the learned correction field on its grid; the
-relative orientation of a biplanar pair; each training exposure's pose; the
-scheme and the statistics of the solve. README.md, "Calibration file",
-documents every key. Usage::
+``calibration.json`` (schema ``fluorocal-calibration``, version 2; version 1
+files are read too) holds, per imaging system, the image size, the interior
+orientation and the ``.npz`` file(s) beside it with the correction field on
+its grid: one field, or one per C-arm orientation (an image intensifier's
+distortion changes with the orientation), each with its name and its angles
+when known; the relative orientation of a biplanar pair; each training
+exposure's pose; the scheme and the statistics of the solve. README.md,
+"The calibration file and the Python API", documents every key. Usage::
 
     from fluorocal import Calibration
     cal = Calibration.load("out/calibration.json")
     ideal_xy = cal.undistort_points("A", [[512.3, 100.7]])
+    ideal_xy = cal.undistort_points("A", [[512.3, 100.7]], orientation="orbit30")
+    ideal_xy = cal.undistort_points("A", [[512.3, 100.7]], orientation={"orbit": 15, "tilt": 0})
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from __future__ import annotations
 import json
 import zipfile
 import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,9 +40,12 @@ from fluorocal.stages.geometry import (
     quat_to_matrix,
 )
 from fluorocal.stages.io import atomic_write
+from fluorocal.stages.orientation import OrientationField, interpolate_field
 
 SCHEMA = "fluorocal-calibration"
-SCHEMA_VERSION = 1
+#: the version written; version 1 (one field per system, no orientations) is read as well
+SCHEMA_VERSION = 2
+READ_VERSIONS = (1, 2)
 FIELD_ARRAYS = ("x_nodes_px", "y_nodes_px", "delta_px", "sigma_px", "support")
 #: largest image side a calibration may give, px (DICOM's Rows and Columns are 16-bit)
 MAX_IMAGE_SIDE_PX = 65535
@@ -45,7 +53,13 @@ MAX_IMAGE_SIDE_PX = 65535
 
 @dataclass(frozen=True)
 class SystemCalibration:
-    """One imaging system: image size, IOP ``(xp, yp, c)`` px, ROP relative to the reference system, field."""
+    """One imaging system: image size, IOP ``(xp, yp, c)`` px, ROP relative to the reference system, field(s).
+
+    Give either ``field`` (one field, no named orientation: a bead phantom's calibration) or
+    ``orientations`` (one :class:`~fluorocal.stages.orientation.OrientationField` per C-arm
+    orientation, all on one grid of nodes). With exactly one orientation, ``field`` is set to its
+    field; with several, ``field`` is None: ask :meth:`Calibration.field` for one.
+    """
 
     name: str
     image_size_px: tuple[int, int]
@@ -53,7 +67,29 @@ class SystemCalibration:
     iop_std_px: np.ndarray
     rop_q: np.ndarray
     rop_source_mm: np.ndarray
-    field: CorrectionField
+    field: CorrectionField | None = None
+    orientations: tuple[OrientationField, ...] = ()
+
+    def __post_init__(self):
+        orientations = tuple(self.orientations)
+        object.__setattr__(self, "orientations", orientations)
+        names = [o.name for o in orientations]
+        if len(set(names)) != len(names):
+            raise InputError(f"system {self.name!r}: orientation names must differ; got {names}")
+        if not orientations:
+            if not isinstance(self.field, CorrectionField):
+                raise InputError(f"system {self.name!r}: give its field or its orientations; got neither")
+        elif len(orientations) == 1 and self.field is None:
+            object.__setattr__(self, "field", orientations[0].field)
+        elif self.field is not (orientations[0].field if len(orientations) == 1 else None):
+            raise InputError(
+                f"system {self.name!r}: give its field or its orientations, not both "
+                f"({len(orientations)} orientation(s): {', '.join(names)})"
+            )
+
+    @property
+    def orientation_names(self) -> list[str]:
+        return [o.name for o in self.orientations]
 
 
 def _image_size(value, path: Path) -> tuple[int, int]:
@@ -99,17 +135,60 @@ def _read_field(file: Path, w: int, h: int) -> CorrectionField:
 
 def _system_from_doc(s: dict, path: Path) -> "SystemCalibration":
     w, h = _image_size(s["image_size_px"], path)
-    field = _read_field(field_file(path, s["field"]["file"]), w, h)
+    read: dict[str, CorrectionField] = {}  # by file name: a single orientation shares the system's field file
+
+    def field_of(entry) -> CorrectionField:
+        name = entry["file"]
+        if name not in read:
+            read[name] = _read_field(field_file(path, name), w, h)
+        return read[name]
+
+    orientations = tuple(_orientation_from_doc(o, path, field_of) for o in s.get("orientations", []))
+    field = field_of(s["field"]) if "field" in s or not orientations else None
     iop = s["iop_px"]
     return SystemCalibration(
         s["name"],
         (w, h),
         np.array([iop["xp"], iop["yp"], iop["c"]], dtype=float),
-        np.array(s.get("iop_std_px", [0.0, 0.0, 0.0]), dtype=float),
+        np.array([np.nan if v is None else v for v in s.get("iop_std_px", [0.0, 0.0, 0.0])], dtype=float),
         np.array(s["rop"]["q_cam_from_ref"], dtype=float),
         np.array(s["rop"]["source_in_ref_camera_mm"], dtype=float),
         field,
+        orientations,
     )
+
+
+def _orientation_from_doc(o: dict, path: Path, field_of) -> OrientationField:
+    name = o["name"]
+    try:
+        safe_name(name, what="orientation name")
+    except InputError as exc:
+        raise ArtifactError(f"{path}: {exc}") from None
+    return OrientationField(name, o.get("orbit_deg"), o.get("tilt_deg"), field_of(o["field"]))
+
+
+def _field_entry(field: CorrectionField, file_name: str) -> dict:
+    """A field's entry in ``calibration.json``: its file and a summary over the supported nodes."""
+    magnitude = np.linalg.norm(field.delta_px, axis=-1)[field.support] if field.support.any() else np.zeros(1)
+    return {
+        "file": file_name,
+        "grid_nodes": [len(field.x_nodes_px), len(field.y_nodes_px)],
+        "max_correction_px": float(magnitude.max()),
+        "rms_correction_px": float(np.sqrt(np.mean(magnitude**2))),
+        "supported_fraction": float(field.support.mean()),
+    }
+
+
+def _field_files(s: SystemCalibration) -> list[tuple[CorrectionField, str]]:
+    """``(field, file name)`` of each field a system stores.
+
+    ``field_<system>.npz`` for its one field, else ``field_<system>_<orientation>.npz`` per
+    orientation; both names are checked by :func:`safe_name`.
+    """
+    system = safe_name(s.name, what="system name")
+    if len(s.orientations) <= 1:
+        return [(s.field, f"field_{system}.npz")]
+    return [(o.field, f"field_{system}_{safe_name(o.name, what='orientation name')}.npz") for o in s.orientations]
 
 
 class Calibration:
@@ -129,10 +208,10 @@ class Calibration:
 
     @classmethod
     def load(cls, path: str | Path) -> "Calibration":
-        """Read ``calibration.json`` and the field files beside it.
+        """Read ``calibration.json`` (version 1 or 2) and the field files beside it.
 
-        Each system's ``field.file`` is a bare file name, read from the
-        calibration's own folder: an absolute path, a folder or ``..`` is refused.
+        Each field's ``file`` is a bare file name, read from the calibration's own
+        folder: an absolute path, a folder or ``..`` is refused.
 
         Raises
         ------
@@ -147,9 +226,9 @@ class Calibration:
             raise ArtifactError(f"{path}: cannot read calibration ({exc})") from exc
         if not isinstance(doc, dict):
             raise ArtifactError(f"{path}: not a {SCHEMA} file (a JSON {type(doc).__name__}, not an object)")
-        if doc.get("schema") != SCHEMA or doc.get("schema_version") != SCHEMA_VERSION:
+        if doc.get("schema") != SCHEMA or doc.get("schema_version") not in READ_VERSIONS:
             raise ArtifactError(
-                f"{path}: not a {SCHEMA} v{SCHEMA_VERSION} file "
+                f"{path}: not a {SCHEMA} file of version {' or '.join(map(str, READ_VERSIONS))} "
                 f"(schema {doc.get('schema')!r} v{doc.get('schema_version')!r})"
             )
         try:
@@ -166,36 +245,45 @@ class Calibration:
         return cls(systems, exposures, meta)
 
     def save(self, path: str | Path) -> list[Path]:
-        """Write ``calibration.json`` and one ``field_<system>.npz`` per system atomically; return the paths."""
+        """Write ``calibration.json`` and its field files (:func:`_field_files`) atomically; return the paths.
+
+        Raises
+        ------
+        InputError
+            A system or orientation name cannot be part of a file name, or two fields would share a file.
+        """
         path = Path(path)
+        files = {s: _field_files(self.systems[s]) for s in self._order}
+        names = [name for pairs in files.values() for _, name in pairs]
+        clash = next((n for n in names if names.count(n) > 1), None)
+        if clash is not None:
+            raise InputError(f"two fields would both be written as {clash}; rename a system or an orientation")
         written, systems = [], []
         for name in self._order:
             s = self.systems[name]
-            field_file = inside(path.parent, f"field_{safe_name(name, what='system name')}.npz")
-            atomic_write(field_file, lambda tmp, f=s.field: np.savez(tmp, **{k: getattr(f, k) for k in FIELD_ARRAYS}))
-            written.append(field_file)
-            magnitude = (
-                np.linalg.norm(s.field.delta_px, axis=-1)[s.field.support] if s.field.support.any() else np.zeros(1)
-            )
-            systems.append(
-                {
-                    "name": name,
-                    "image_size_px": list(s.image_size_px),
-                    "iop_px": dict(zip(("xp", "yp", "c"), map(float, s.iop_px))),
-                    "iop_std_px": [float(v) for v in s.iop_std_px],
-                    "rop": {
-                        "q_cam_from_ref": [float(v) for v in s.rop_q],
-                        "source_in_ref_camera_mm": [float(v) for v in s.rop_source_mm],
-                    },
-                    "field": {
-                        "file": field_file.name,
-                        "grid_nodes": [len(s.field.x_nodes_px), len(s.field.y_nodes_px)],
-                        "max_correction_px": float(magnitude.max()),
-                        "rms_correction_px": float(np.sqrt(np.mean(magnitude**2))),
-                        "supported_fraction": float(s.field.support.mean()),
-                    },
-                }
-            )
+            entries = []
+            for field, file_name in files[name]:
+                file = inside(path.parent, file_name)
+                atomic_write(file, lambda tmp, f=field: np.savez(tmp, **{k: getattr(f, k) for k in FIELD_ARRAYS}))
+                written.append(file)
+                entries.append(_field_entry(field, file_name))
+            doc_s = {
+                "name": name,
+                "image_size_px": list(s.image_size_px),
+                "iop_px": dict(zip(("xp", "yp", "c"), map(float, s.iop_px))),
+                "iop_std_px": [float(v) if np.isfinite(v) else None for v in s.iop_std_px],
+                "rop": {
+                    "q_cam_from_ref": [float(v) for v in s.rop_q],
+                    "source_in_ref_camera_mm": [float(v) for v in s.rop_source_mm],
+                },
+            }
+            if len(s.orientations) <= 1:
+                doc_s["field"] = entries[0]
+            doc_s["orientations"] = [  # a single orientation's entry names the system's one field file
+                {"name": o.name, "orbit_deg": o.orbit_deg, "tilt_deg": o.tilt_deg, "field": entry}
+                for o, entry in zip(s.orientations, entries)
+            ]
+            systems.append(doc_s)
         doc = {
             "schema": SCHEMA,
             "schema_version": SCHEMA_VERSION,
@@ -211,6 +299,14 @@ class Calibration:
 
     # --- the API -----------------------------------------------------------------------------
 
+    def _check_geometry(self) -> None:
+        """Refuse geometry (IOP, poses, rays) from a calibration that estimated none: a grid plate's."""
+        if self.meta.get("geometry_estimated", True) is False:
+            raise InputError(
+                "this calibration comes from a grid plate: it holds the distortion only, no interior "
+                "orientation, pose or relative orientation; calibrate with a 3D bead phantom for those"
+            )
+
     def _system(self, system: str) -> SystemCalibration:
         if system not in self.systems:
             raise InputError(f"system {system!r} is not in this calibration; it has {', '.join(self._order)}")
@@ -220,16 +316,69 @@ class Calibration:
     def system_names(self) -> list[str]:
         return list(self._order)
 
-    def undistort_points(self, system: str, xy) -> np.ndarray:
-        """Measured (distorted) ``(N, 2)`` px -> ideal pinhole ``(N, 2)`` px: ``xy - Δ(xy)``."""
-        return self._system(system).field.undistort_points(check_points("xy", xy, 2))
+    def orientation_names(self, system: str) -> list[str]:
+        """The names of ``system``'s calibrated orientations (empty for one field without a name)."""
+        return self._system(system).orientation_names
 
-    def distort_points(self, system: str, xy) -> np.ndarray:
+    def field(self, system: str, orientation=None) -> CorrectionField:
+        """The correction field of ``system`` at an orientation.
+
+        Parameters
+        ----------
+        system : str
+            A system name.
+        orientation : None, str or dict
+            None: the system's one field (refused when it has several orientations). A name: that
+            calibrated orientation. ``{"orbit": deg, "tilt": deg}``: interpolated between the
+            calibrated orientations with angles (:func:`fluorocal.stages.orientation.interpolate_field`),
+            refused beyond them.
+
+        Raises
+        ------
+        InputError
+            An unknown system or orientation name, a missing orientation where several are
+            calibrated, a malformed dict, or angles beyond the calibrated ones; the message lists
+            what the calibration has.
+        """
+        s = self._system(system)
+        names = ", ".join(s.orientation_names)
+        if orientation is None:
+            if len(s.orientations) <= 1:
+                return s.field
+            raise InputError(
+                f"system {system!r} is calibrated at {len(s.orientations)} orientations ({names}); "
+                'choose one with orientation="NAME", or interpolate with orientation={"orbit": deg, "tilt": deg}'
+            )
+        if isinstance(orientation, str):
+            found = next((o for o in s.orientations if o.name == orientation), None)
+            if found is None:
+                has = f"its orientations are {names}" if names else "it has one field and no named orientations"
+                raise InputError(f"orientation {orientation!r} is not calibrated for system {system!r}; {has}")
+            return found.field
+        if isinstance(orientation, Mapping) and set(orientation) == {"orbit", "tilt"}:
+            if not s.orientations:
+                raise InputError(
+                    f"system {system!r} has one field without C-arm angles; leave orientation out to use it"
+                )
+            return interpolate_field(
+                s.orientations, orientation["orbit"], orientation["tilt"], what=f"system {system!r}"
+            )
+        raise InputError(f'orientation must be None, a name or {{"orbit": deg, "tilt": deg}}; got {orientation!r}')
+
+    def undistort_points(self, system: str, xy, orientation=None) -> np.ndarray:
+        """Measured (distorted) ``(N, 2)`` px -> ideal pinhole ``(N, 2)`` px: ``xy - Δ(xy)``.
+
+        ``orientation`` as in :meth:`field`: None (the one field), a name, or ``{"orbit": deg, "tilt": deg}``.
+        """
+        return self.field(system, orientation).undistort_points(check_points("xy", xy, 2))
+
+    def distort_points(self, system: str, xy, orientation=None) -> np.ndarray:
         """Ideal pinhole ``(N, 2)`` px -> measured ``(N, 2)`` px (the inverse of :meth:`undistort_points`)."""
-        return self._system(system).field.distort_points(check_points("xy", xy, 2))
+        return self.field(system, orientation).distort_points(check_points("xy", xy, 2))
 
     def intrinsics(self, system: str) -> dict:
         """``{"xp", "yp", "c", "K", "image_size_px"}``: principal point and distance (px) and the 3×3 camera matrix."""
+        self._check_geometry()
         s = self._system(system)
         xp, yp, c = s.iop_px
         return {
@@ -242,6 +391,7 @@ class Calibration:
 
     def pose(self, system: str, exposure: int) -> tuple[np.ndarray, np.ndarray]:
         """``(q, T)`` of ``system`` at a training ``exposure``: the reference pose composed with the ROP."""
+        self._check_geometry()
         s = self._system(system)
         if exposure not in self.exposures:
             raise InputError(f"exposure {exposure} is not a training exposure of this calibration")
@@ -249,26 +399,34 @@ class Calibration:
         q = quat_normalize(quat_multiply(s.rop_q, q0))
         return q, T0 + quat_to_matrix(q0).T @ s.rop_source_mm
 
-    def project(self, system: str, exposure: int, xyz_mm) -> np.ndarray:
-        """Where object points ``(N, 3)`` mm appear in ``system``'s measured (distorted) image at ``exposure``, px."""
+    def project(self, system: str, exposure: int, xyz_mm, *, orientation=None) -> np.ndarray:
+        """Where object points ``(N, 3)`` mm appear in ``system``'s measured (distorted) image at ``exposure``, px.
+
+        ``orientation`` chooses the field as in :meth:`field`.
+        """
+        self._check_geometry()
         q, T = self.pose(system, exposure)
         return self.distort_points(
-            system, project(check_points("xyz_mm", xyz_mm, 3), q, T, self._system(system).iop_px)
+            system, project(check_points("xyz_mm", xyz_mm, 3), q, T, self._system(system).iop_px), orientation
         )
 
-    def rays(self, system: str, xy, *, exposure: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def rays(self, system: str, xy, *, exposure: int | None = None, orientation=None) -> tuple[np.ndarray, np.ndarray]:
         """Origins ``(3,)`` and unit directions ``(N, 3)`` of the rays through measured points.
 
         In object space at a training ``exposure``; without one, in the
         reference system's camera frame (the rig frame of a biplanar pair).
+        ``orientation`` chooses the field as in :meth:`field`.
         """
+        self._check_geometry()
         s = self._system(system)
-        ideal = self.undistort_points(system, xy)
+        ideal = self.undistort_points(system, xy, orientation)
         # the ROP is the system's pose in the reference camera frame
         q, origin = (s.rop_q, s.rop_source_mm) if exposure is None else self.pose(system, exposure)
         return image_rays(ideal, s.iop_px, q, origin)
 
-    def intersect(self, observations: dict, *, exposure: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def intersect(
+        self, observations: dict, *, exposure: int | None = None, orientations: dict | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Multi-ray spatial intersection of corresponding points seen by several systems.
 
         Parameters
@@ -278,6 +436,8 @@ class Calibration:
         exposure : int, optional
             A training exposure: the result is in the phantom's object space.
             Without it, the result is in the reference system's camera frame.
+        orientations : dict of str to orientation, optional
+            Per system, the orientation as in :meth:`field` (default: each system's one field).
 
         Returns
         -------
@@ -286,9 +446,14 @@ class Calibration:
         miss_mm : (N,) float64 ndarray, mm
             RMS distance of the point from its rays (a consistency check).
         """
+        self._check_geometry()
         if len(observations) < 2:
             raise InputError(f"intersect needs the same points seen by >= 2 systems; got {list(observations)}")
-        rays = [self.rays(name, xy, exposure=exposure) for name, xy in observations.items()]
+        orientations = orientations or {}
+        rays = [
+            self.rays(name, xy, exposure=exposure, orientation=orientations.get(name))
+            for name, xy in observations.items()
+        ]
         n = {len(d) for _, d in rays}
         if len(n) != 1:
             raise InputError(f"every system must give the same number of points; got {sorted(n)}")

@@ -2,7 +2,8 @@
 
 Commands:
   run CONFIG              detect, centroid, label, then adjust and learn; write the calibration
-  inspect CONFIG [STAGE]  what each stage produced (cached / stale / missing), overlays
+  inspect CONFIG [STAGE]  what each stage produced (cached / stale / missing), overlays;
+                          inspect calibration.json: its systems and how the field changes with orientation
   cache clean CONFIG      delete the project's artifact cache
   undistort INPUT...      undistort frames with a calibration, keeping format and bit depth
   simulate OUTDIR         write a synthetic data set with ground truth and a config
@@ -69,19 +70,26 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "inspect",
-        help="show what each stage produced",
+        help="show what each stage produced, or what a calibration holds",
         description=(
             "Table of stages: key, status (cached / stale / missing), size and summary; "
-            "with STAGE, that stage's artifacts."
+            "with STAGE, that stage's artifacts. Given a calibration.json instead of a project: its systems, "
+            "their orientations and how the field changes with orientation (table and plots)."
         ),
     )
-    p.add_argument("config", type=Path, help="project TOML file")
+    p.add_argument("config", type=Path, help="project TOML file, or a calibration.json")
     p.add_argument("stage", nargs="?", help="a stage name (default: all stages)")
     p.add_argument(
         "--frame",
         type=int,
         metavar="N",
         help="with STAGE: write the debug overlay of frame N (0-based, over all systems)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        metavar="DIR",
+        help="with a calibration.json: folder for the orientation plots (default: overlays/ beside the calibration)",
     )
     p.set_defaults(func=cmd_inspect)
 
@@ -138,6 +146,17 @@ def cmd_run(args) -> int:
 
 
 def cmd_inspect(args) -> int:
+    from fluorocal.stages.errors import InputError
+
+    if args.config.suffix.lower() == ".json":
+        from fluorocal.orientations import inspect_calibration
+
+        if args.stage or args.frame is not None:
+            raise InputError(f"{args.config} is a calibration: STAGE and --frame apply to a project TOML file")
+        print("\n".join(inspect_calibration(args.config, args.out)))
+        return 0
+    if args.out is not None:
+        raise InputError("--out applies to a calibration.json; a project's overlays go to its output folder")
     runner = _runner(args)
     rows = runner.status()
     if args.stage:

@@ -3,7 +3,10 @@
 Layout of OUTDIR::
 
     frames/A/frame_000.tif ...   16-bit TIFF holding 12-bit values (0-4095), or frame_000.dcm (DICOM XA,
-                                 BitsStored 12) with --format dicom
+                                 BitsStored 12) with --format dicom; with --orientations (grid plate)
+                                 frame_000_centred.dcm, frame_001_tilt15.dcm, ...: exposure, then the
+                                 C-arm orientation's name (DICOM PositionerPrimaryAngle = orbit,
+                                 PositionerSecondaryAngle = tilt, degrees)
     frames/B/...                 second system (--systems 2); frames pair with A's in sorted order
     phantom.csv                  id,x,y,z,diameter,role: the nominal (design) phantom, mm
     reference.csv                id,x,y,z: reference check points (true + survey noise), mm
@@ -28,12 +31,22 @@ rotate phantom vectors into the camera frame, ``p = R(q) (P - T)``)::
                          distortion: forward model ideal -> distorted, the parameters of
                              stages.simulate.ImageDistortion {model, centre_xy_px, scale_px,
                              k1, k2, s_rad, p1, p2, field_spacing_px, field_origin_xy_px,
-                             field_coeffs_px[2][ny][nx]},
+                             field_coeffs_px[2][ny][nx], poly_coeffs_px[2][10] (only when not
+                             zero: a cubic displacement, see ImageDistortion)},
                          correction_grid: {x_px[nx], y_px[ny], delta_px[ny][nx][2]}:
                              DESIGN's correction Δ on measured (distorted) coordinates,
-                             ideal = measured - Δ(measured)}
+                             ideal = measured - Δ(measured),
+                         orientations[O] (grid with --orientations only; the distortion above is
+                             the centred one): {name, orbit_deg, tilt_deg, exposures[] (its
+                             exposure indices), field_change[3] (change of the unit earth field in
+                             the intensifier's frame), distortion, correction_grid (as above, at
+                             this orientation)}}
     exposures[K]        {turntable_angle_rad, turntable_translation_mm[3], lab_from_phantom_q[4]}
+                        (grid with --orientations: the plate's turn about its normal and its
+                        place as if the C-arm stayed centred; its pose to the camera is q, source_mm)
     frames[S*K]         {system: name, exposure: k, q[4], source_mm[3] (pose (q, T) in phantom coordinates),
+                         orientation, orbit_deg, tilt_deg (grid with --orientations only: the
+                             exposure's orientation's name and C-arm angles, degrees),
                          beads: per bead whose outline meets the field of view (id order):
                            ids[n], ideal_xy_px[n][2] (pinhole projection of the centre),
                            distorted_xy_px[n][2] (that, distorted),
@@ -44,8 +57,10 @@ rotate phantom vectors into the camera frame, ``p = R(q) (P - T)``)::
                            overlap[n] (outline within overlap_margin_px of another bead's),
                            field_edge[n] (outline within overlap_margin_px of the field rim or image border)}
 
-Frame files are named frame_<exposure>.tif; ``frames`` lists system A's
-exposures first, then B's.
+Frame files are named frame_<exposure>.tif (frame_<exposure>_<orientation>.tif with
+--orientations), so sorted names follow the exposures; ``frames`` lists system A's
+exposures first, then B's. With --orientations, fluorocal.toml names each
+orientation's frames and angles in the system's ``orientations`` list.
 """
 
 from __future__ import annotations
@@ -67,7 +82,9 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "outdir", type=Path, metavar="OUTDIR", help="output directory (must be empty or absent unless --force)"
     )
-    p.add_argument("--frames", type=int, default=12, metavar="N", help="exposures per system (default: 12)")
+    p.add_argument(
+        "--frames", type=int, default=12, metavar="N", help="exposures per system, or per orientation (default: 12)"
+    )
     p.add_argument("--systems", type=int, choices=(1, 2), default=1, help="1 = monoplanar, 2 = biplanar (default: 1)")
     p.add_argument("--seed", type=int, default=0, help="random seed; same seed, same bytes (default: 0)")
     p.add_argument(
@@ -88,6 +105,20 @@ def add_parser(subparsers) -> None:
         choices=("cube", "grid"),
         default="cube",
         help="cube: 494 steel beads on an acrylic box; grid: perforated hex plate, 1 system only (default: cube)",
+    )
+    p.add_argument(
+        "--orientations",
+        default="",
+        metavar="ORBIT:TILT,...",
+        help="grid plate only: C-arm orientations in degrees, e.g. 0:0,0:15,0:30,30:0; --frames is then per"
+        " orientation (default: none, every frame centred with the plate moved by hand between frames)",
+    )
+    p.add_argument(
+        "--plate-error",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="grid plate only: RMS of the holes' manufacturing errors in mm (default: 0.02)",
     )
     p.add_argument(
         "--format", choices=tuple(FORMATS), default="tiff", help="frame files: 16-bit TIFF or DICOM XA (default: tiff)"
@@ -114,6 +145,11 @@ def run(args) -> int:
         raise InputError(f"OUTDIR {outdir} exists and is not a directory")
     if outdir.is_dir() and any(outdir.iterdir()) and not args.force:
         raise InputError(f"OUTDIR {outdir} is not empty; pass --force to write into it")
+    grid_only = {"--orientations": args.orientations, "--plate-error": args.plate_error}
+    for option, value in grid_only.items():
+        if value not in ("", None) and args.phantom != "grid":
+            raise InputError(f"{option} is for the grid plate; add --phantom grid")
+    plate = {} if args.plate_error is None else {"plate_error_mm": args.plate_error}
     params = SimulateParams(
         n_frames=args.frames,
         n_systems=args.systems,
@@ -122,17 +158,54 @@ def run(args) -> int:
         distortion=args.distortion,
         phantom=args.phantom,
         noise_scale=args.noise,
+        orientations_deg=parse_orientations(args.orientations),
+        **plate,
     )
     from tqdm import tqdm
 
     quiet = bool(getattr(args, "quiet", False))
     with tqdm(
-        total=params.n_frames * params.n_systems, desc="simulate", unit="frame", disable=True if quiet else None
+        total=params.n_exposures * params.n_systems, desc="simulate", unit="frame", disable=True if quiet else None
     ) as bar:
         data = simulate(params, on_frame=lambda s, k: bar.update())
     written = write_dataset(data, outdir, fmt=args.format, replace=args.force)
     log.info("wrote %d files to %s (run: fluorocal run %s)", len(written), outdir, outdir / "fluorocal.toml")
     return 0
+
+
+def parse_orientations(text: str) -> tuple:
+    """``"0:0,0:15,30:0"`` -> ``((0.0, 0.0), (0.0, 15.0), (30.0, 0.0))`` (orbit, tilt) degrees; ``""`` -> ``()``.
+
+    Raises
+    ------
+    InputError
+        Not comma-separated ``ORBIT:TILT`` pairs of numbers.
+
+    Examples
+    --------
+    >>> parse_orientations("0:0, 0:15,-30:7.5")
+    ((0.0, 0.0), (0.0, 15.0), (-30.0, 7.5))
+    """
+    from fluorocal.stages.errors import InputError
+
+    pairs = []
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        try:
+            orbit, tilt = (float(v) for v in item.split(":"))
+        except ValueError:
+            raise InputError(
+                f"--orientations: expected ORBIT:TILT pairs in degrees separated by commas (e.g. 0:0,0:15,30:0);"
+                f" got {item!r}"
+            ) from None
+        pairs.append((orbit, tilt))
+    return tuple(pairs)
+
+
+def frame_name(data, exposure: int) -> str:
+    """File stem of an exposure: ``frame_003``, or ``frame_003_tilt15`` in a sequence of orientations."""
+    o = int(data.truth.acquisition.exposure_orientation[exposure])
+    suffix = f"_{data.truth.acquisition.orientations[o].name}" if o >= 0 else ""
+    return f"frame_{exposure:03d}{suffix}"
 
 
 def write_dataset(data, outdir: Path, *, fmt: str = "tiff", replace: bool = False) -> list[Path]:
@@ -165,7 +238,7 @@ def write_dataset(data, outdir: Path, *, fmt: str = "tiff", replace: bool = Fals
     suffix = FORMATS[fmt]
     for s, frames in enumerate(data.frames):
         for k, frame in enumerate(frames):
-            path = outdir / "frames" / data.system_names[s] / f"frame_{k:03d}{suffix}"
+            path = outdir / "frames" / data.system_names[s] / f"{frame_name(data, k)}{suffix}"
             pixels = frame.image.astype(np.uint16)
             if fmt == "tiff":
                 write_still(path, pixels, attributes={"DateTime": _TIFF_DATETIME, "compression": "zip"})
@@ -203,11 +276,13 @@ def _write_text(path: Path, text: str) -> Path:
 def _config_text(data, suffix: str) -> str:
     """The project TOML (DESIGN.md format) for the written data set."""
     p = data.params
+    orientations = ",".join(f"{o:g}:{t:g}" for o, t in p.orientations_deg)
     lines = [
         "# fluorocal project for a simulated data set: fluorocal simulate "
         f"--seed {p.seed} --frames {p.n_frames} --systems {p.n_systems}",
-        f"#   --image-size {p.image_size_px} --distortion {p.distortion} --phantom {p.phantom}. "
-        "Ground truth: truth.json.",
+        f"#   --image-size {p.image_size_px} --distortion {p.distortion} --phantom {p.phantom}"
+        + (f" --orientations {orientations}" if orientations else "")
+        + ". Ground truth: truth.json.",
         "",
         "[phantom]",
         'file = "phantom.csv"',
@@ -224,6 +299,7 @@ def _config_text(data, suffix: str) -> str:
             "# mm, approximate (nominal; the truth differs by up to 1 %)",
             f"pixel_pitch = {p.pixel_pitch_mm:g}              # mm at the detector",
         ]
+        lines += _orientation_lines(data, name, suffix)
     lines += [
         "",
         "[calibration]",
@@ -234,6 +310,27 @@ def _config_text(data, suffix: str) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def _orientation_lines(data, system: str, suffix: str) -> list[str]:
+    """The system's ``orientations`` list (TOML): each orientation's name, frames and C-arm angles (degrees)."""
+    import numpy as np
+
+    acq = data.truth.acquisition
+    if not acq.orientations:
+        if data.params.phantom != "grid":
+            return []
+        # a plate moved by hand between frames at one C-arm position: the frames share one field
+        return [
+            'orientations = [{name = "centred", frames = "frames/' + system + "/*" + suffix + '", orbit = 0, tilt = 0}]'
+        ]
+    lines = ["orientations = ["]
+    for i, o in enumerate(acq.orientations):
+        files = ", ".join(
+            f'"frames/{system}/{frame_name(data, k)}{suffix}"' for k in np.flatnonzero(acq.exposure_orientation == i)
+        )
+        lines.append(f'  {{name = "{o.name}", frames = [{files}], orbit = {o.orbit_deg:g}, tilt = {o.tilt_deg:g}}},')
+    return lines + ["]"]
 
 
 def montage(data, *, n_max: int = 4, tile_px: int = 256):
@@ -305,8 +402,14 @@ def _dicom_dataset(data, system: int, exposure: int, pixels):
     ds.InstanceNumber = exposure + 1
     ds.AcquisitionNumber = exposure + 1
     ds.PositionerMotion = "STATIC"
-    ds.PositionerPrimaryAngle = round(system * p.system_angle_deg, 3)
-    ds.PositionerSecondaryAngle = 0
+    acq = data.truth.acquisition
+    o = int(acq.exposure_orientation[exposure])
+    if o >= 0:  # a grid sequence: the C-arm's orbit and tilt
+        ds.PositionerPrimaryAngle = round(acq.orientations[o].orbit_deg, 3)
+        ds.PositionerSecondaryAngle = round(acq.orientations[o].tilt_deg, 3)
+    else:
+        ds.PositionerPrimaryAngle = round(system * p.system_angle_deg, 3)
+        ds.PositionerSecondaryAngle = 0
     ds.KVP = 70
     ds.XRayTubeCurrent = 5
     ds.ExposureTime = 10

@@ -3,8 +3,13 @@
 Each INPUT (DICOM, TIFF, PNG or video) is resampled onto the ideal pinhole
 image of the calibrated system and written to OUTDIR under the same name, in
 the input's own format, bit depth and metadata (DICOM: a new SOP Instance
-UID and a derivation note). The calibration must come from the same C-arm
-orientation: an image intensifier's distortion changes with it.
+UID and a derivation note).
+
+An image intensifier's distortion changes with the C-arm's orientation, so a
+calibration may hold a field per orientation. --orientation chooses one by
+name, or interpolates between calibrated ones at given angles
+(--orientation orbit=15,tilt=0; never beyond them). Without it: the system's
+one field, or the orientation named like each input's file stem.
 """
 
 from __future__ import annotations
@@ -30,6 +35,13 @@ def add_parser(subparsers) -> None:
         help="the imaging system the frames come from (a name in the calibration)",
     )
     p.add_argument(
+        "--orientation",
+        metavar="NAME",
+        help="the C-arm orientation of the inputs: a calibrated orientation's name, or orbit=DEG,tilt=DEG to "
+        "interpolate between calibrated ones (default: the system's one field, or with several the orientation "
+        "named like each input's file stem)",
+    )
+    p.add_argument(
         "--out",
         type=Path,
         default=Path("undistorted"),
@@ -51,34 +63,110 @@ def run(args) -> int:
     from fluorocal.calibration import Calibration
     from fluorocal.stages.errors import InputError
     from fluorocal.stages.io import read_frames, write_frames_like
-    from fluorocal.stages.undistort import UndistortParams, check_maps, check_shift, undistort_frame
+    from fluorocal.stages.undistort import UndistortParams, undistort_frame
     from tqdm import tqdm
 
+    log = logging.getLogger("fluorocal")
     out_dir = _check_paths(args.inputs, args.out)  # every input and the output before any work
     cal = Calibration.load(args.calibration)
-    field = cal.systems.get(args.system)
-    if field is None:
+    system = cal.systems.get(args.system)
+    if system is None:
         raise InputError(f"--system {args.system!r} is not in {args.calibration}; it has {', '.join(cal.system_names)}")
+    chosen = None if args.orientation is None else parse_orientation(args.orientation)
+    orientation_of = {path: _orientation_for(cal, args.system, path, chosen) for path in args.inputs}
+    maps = {}  # orientation (hashable) -> remap maps, all checked before anything is written
+    for orientation in orientation_of.values():
+        key = _key(orientation)
+        if key not in maps:
+            maps[key] = _maps(cal, args, orientation)
     params = UndistortParams(interpolation=args.interpolation)
-    try:
-        check_shift(field.field.delta_px, *field.image_size_px)  # the nodes first: a huge field overflows the maps
-        map_x, map_y = field.field.remap_maps(*field.image_size_px)  # every input must have the calibrated size
-        check_maps(map_x, map_y)
-    except InputError as exc:
-        raise InputError(f"{args.calibration}: system {args.system}: {exc}") from exc
     for path in tqdm(args.inputs, desc="undistort", unit="file", disable=args.quiet or None):
         frames = read_frames(path)
         size = (frames[0].shape[1], frames[0].shape[0])
-        if size != tuple(field.image_size_px):
+        if size != tuple(system.image_size_px):
             raise InputError(
                 f"{path}: frame is {size[0]}x{size[1]} px; "
-                f"system {args.system} was calibrated at {field.image_size_px[0]}x{field.image_size_px[1]}"
+                f"system {args.system} was calibrated at {system.image_size_px[0]}x{system.image_size_px[1]}"
             )
+        map_x, map_y = maps[_key(orientation_of[path])]
         corrected = [undistort_frame(f, map_x, map_y, params) for f in frames]
         out_dir.mkdir(parents=True, exist_ok=True)
         write_frames_like(path, corrected, out_dir / path.name)
-    logging.getLogger("fluorocal").info("wrote %d undistorted file(s) to %s", len(args.inputs), out_dir)
+        if orientation_of[path] is not None:
+            log.debug("%s: orientation %s", path, orientation_of[path])
+    log.info("wrote %d undistorted file(s) to %s", len(args.inputs), out_dir)
     return 0
+
+
+def parse_orientation(text: str):
+    """``--orientation``'s value: a name, or ``orbit=DEG,tilt=DEG`` as ``{"orbit": float, "tilt": float}``.
+
+    Raises
+    ------
+    InputError
+        ``key=value`` pairs that are not exactly orbit and tilt, each a number.
+
+    Examples
+    --------
+    >>> parse_orientation("orbit30")
+    'orbit30'
+    >>> parse_orientation("orbit=15, tilt=-7.5")
+    {'orbit': 15.0, 'tilt': -7.5}
+    """
+    from fluorocal.stages.errors import InputError
+
+    if "=" not in text:
+        return text
+    values = {}
+    for part in text.split(","):
+        key, _, value = part.partition("=")
+        try:
+            values[key.strip()] = float(value)
+        except ValueError:
+            raise InputError(f"--orientation {text!r}: {key.strip()} must be a number of degrees") from None
+    if set(values) != {"orbit", "tilt"} or text.count("=") != 2:
+        raise InputError(f"--orientation {text!r}: expected a name, or orbit=DEG,tilt=DEG (both, nothing else)")
+    return values
+
+
+def _orientation_for(cal, system: str, path: Path, chosen):
+    """The orientation to undistort ``path`` with: ``chosen``; else the one field; else the one named like the file."""
+    from fluorocal.orientations import default_orientation_name
+    from fluorocal.stages.errors import InputError
+
+    names = cal.orientation_names(system)
+    if chosen is not None or len(names) <= 1:
+        return chosen
+    stem = default_orientation_name(path)
+    if stem in names:
+        return stem
+    raise InputError(
+        f"{path}: system {system} is calibrated at {len(names)} orientations ({', '.join(names)}) and none is "
+        f"named {stem!r} like this file; choose one with --orientation NAME, or --orientation orbit=DEG,tilt=DEG"
+    )
+
+
+def _key(orientation):
+    return tuple(sorted(orientation.items())) if isinstance(orientation, dict) else orientation
+
+
+def _maps(cal, args, orientation):
+    """The checked remap maps of the system's field at ``orientation``."""
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.undistort import check_maps, check_shift
+
+    system = cal.systems[args.system]
+    where = f"{args.calibration}: system {args.system}" + (
+        "" if orientation is None else f", orientation {orientation}"
+    )
+    try:
+        field = cal.field(args.system, orientation)
+        check_shift(field.delta_px, *system.image_size_px)  # the nodes first: a huge field overflows the maps
+        map_x, map_y = field.remap_maps(*system.image_size_px)  # every input must have the calibrated size
+        check_maps(map_x, map_y)
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from exc
+    return map_x, map_y
 
 
 def _check_paths(inputs: list[Path], out: Path) -> Path:

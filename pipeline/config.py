@@ -19,6 +19,7 @@ from pathlib import Path
 
 from fluorocal.outputs import safe_name
 from fluorocal.stages.errors import InputError
+from fluorocal.stages.orientation import ANGLE_TOL_DEG, check_angle
 
 
 class ConfigError(InputError):
@@ -54,12 +55,28 @@ class PhantomConfig:
 
 
 @dataclass(frozen=True)
+class OrientationConfig:
+    """A group of a system's frames taken at one C-arm orientation (``orientations`` in ``[[systems]]``).
+
+    ``frames`` are the system's own paths (as in :attr:`SystemConfig.frames`); ``orbit_deg`` and
+    ``tilt_deg`` are the C-arm's angles in degrees, both or neither given.
+    """
+
+    name: str
+    frames: tuple[Path, ...]
+    orbit_deg: float | None = None
+    tilt_deg: float | None = None
+
+
+@dataclass(frozen=True)
 class SystemConfig:
     name: str
     frames: tuple[Path, ...]
     source_image_distance_mm: float
     pixel_pitch_mm: float
     seeds: Path | None = None
+    #: the frames grouped by C-arm orientation; empty: each frame is its own (fluorocal.orientations)
+    orientations: tuple[OrientationConfig, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -172,7 +189,9 @@ def _check_phantom_file(file: Path, path: Path) -> None:
 def _system(table: dict, i: int, root: Path, path: Path) -> SystemConfig:
     section = f"[[systems]] #{i + 1} "
     _expect(table, dict, "a [[systems]] table", path, "", "systems")
-    _reject_unknown(table, {"name", "frames", "source_image_distance", "pixel_pitch", "seeds"}, path, section)
+    _reject_unknown(
+        table, {"name", "frames", "source_image_distance", "pixel_pitch", "seeds", "orientations"}, path, section
+    )
     name = _expect(table.get("name"), str, 'a name such as "A"', path, section, "name")
     if not name.strip():
         raise ConfigError(f'{_where(path, section, "name")}: expected a non-empty name such as "A"; got {name!r}')
@@ -189,7 +208,83 @@ def _system(table: dict, i: int, root: Path, path: Path) -> SystemConfig:
         seeds = root / _expect(table["seeds"], str, "a CSV file of id,x,y[,file,frame] seeds", path, section, "seeds")
         if not seeds.is_file():
             raise ConfigError(f"{_where(path, section, 'seeds')}: seeds file not found: {seeds}")
-    return SystemConfig(name, frames, numbers["source_image_distance"], numbers["pixel_pitch"], seeds)
+    orientations = _orientations(table.get("orientations"), frames, root, path, section)
+    return SystemConfig(name, frames, numbers["source_image_distance"], numbers["pixel_pitch"], seeds, orientations)
+
+
+def _orientations(value, frames: tuple[Path, ...], root: Path, path: Path, section: str):
+    """The ``orientations`` of a ``[[systems]]`` table: every frame of the system in exactly one group."""
+    if value is None:
+        return ()
+    if not isinstance(value, list) or not value:
+        raise ConfigError(
+            f"{_where(path, section, 'orientations')}: expected a list of tables "
+            f'[{{name = "orbit30", frames = ["a.dcm"], orbit = 30, tilt = 0}}, ...]; got {value!r}'
+        )
+    own = {f.resolve(): f for f in frames}  # the system's frames, by where they are
+    group_of: dict[Path, str] = {}
+    groups = []
+    for i, table in enumerate(value):
+        where = f"{section}orientations #{i + 1} "
+        group = _orientation(table, own, root, path, where)
+        if any(g.name == group.name for g in groups):
+            raise ConfigError(
+                f"{_where(path, where, 'name')}: {group.name!r} names two orientations; names must differ"
+            )
+        for f in group.frames:
+            if f in group_of:
+                raise ConfigError(
+                    f"{_where(path, where, 'frames')}: {f.name} is already in orientation {group_of[f]!r}; "
+                    "a frame belongs to one orientation"
+                )
+            group_of[f] = group.name
+        twin = next((g for g in groups if _same_angles(g, group)), None)
+        if twin is not None:
+            raise ConfigError(
+                f"{_where(path, where, 'orbit')}: orientations {twin.name!r} and {group.name!r} have the same "
+                "angles; make them one orientation"
+            )
+        groups.append(group)
+    missing = [f for f in frames if f not in group_of]
+    if missing:
+        raise ConfigError(
+            f"{_where(path, section, 'orientations')}: frame {missing[0].name} is in no orientation "
+            f"({len(missing)} frame(s) are not); when orientations are given, each frame must be in one"
+        )
+    return tuple(groups)
+
+
+def _same_angles(a: OrientationConfig, b: OrientationConfig) -> bool:
+    if a.orbit_deg is None or b.orbit_deg is None:
+        return False
+    return math.hypot(a.orbit_deg - b.orbit_deg, a.tilt_deg - b.tilt_deg) <= ANGLE_TOL_DEG
+
+
+def _orientation(table, own: dict, root: Path, path: Path, where: str) -> OrientationConfig:
+    """One group of ``orientations``: its name, its frames (each one of the system's) and its angles."""
+    _expect(table, dict, 'a table {name = "...", frames = [...], orbit = ..., tilt = ...}', path, where, "orientations")
+    _reject_unknown(table, {"name", "frames", "orbit", "tilt"}, path, where)
+    name = _expect(table.get("name"), str, 'a name such as "orbit30"', path, where, "name")
+    try:
+        safe_name(name, what="orientation name")  # names become file names (field_<system>_<name>.npz)
+    except InputError as exc:
+        raise ConfigError(f"{_where(path, where, 'name')}: {exc}") from None
+    frames = []
+    for f in _resolve_frames(table.get("frames"), root, path, where):
+        if f.resolve() not in own:
+            raise ConfigError(f"{_where(path, where, 'frames')}: {f} is not one of the system's frames")
+        frames.append(own[f.resolve()])
+    if ("orbit" in table) != ("tilt" in table):
+        given = "orbit" if "orbit" in table else "tilt"
+        raise ConfigError(f"{_where(path, where, given)}: give both orbit and tilt (degrees), or neither")
+    angles = []
+    for key in ("orbit", "tilt"):
+        if key in table:
+            try:
+                angles.append(check_angle(table[key], key))
+            except InputError as exc:
+                raise ConfigError(f"{_where(path, where, key)}: {exc}") from None
+    return OrientationConfig(name, tuple(dict.fromkeys(frames)), *angles)
 
 
 def read_text(path: Path) -> str:

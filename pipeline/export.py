@@ -98,7 +98,7 @@ def _stage_tables(runner, out_dir: Path | None = None) -> list[Path]:
     return written
 
 
-def _fluorocal_version() -> str:
+def fluorocal_version() -> str:
     try:
         return version("fluorocal")
     except PackageNotFoundError:
@@ -120,13 +120,13 @@ def calibration_from_result(runner, result):
             adj.iop_std_px[s],
             adj.rop_q[s],
             adj.rop_source_mm[s],
-            result.fields[s],
+            **_field_or_orientation(runner.config.systems[s], result.fields[s]),
         )
         for s, name in enumerate(names)
     ]
     exposures = {int(e): (q, t) for e, q, t in zip(adj.exposure, adj.q_cam_from_obj, adj.source_mm)}
     meta = {
-        "fluorocal_version": _fluorocal_version(),
+        "fluorocal_version": fluorocal_version(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "config": str(runner.config.path),
         "scheme": result.scheme,
@@ -149,6 +149,16 @@ def calibration_from_result(runner, result):
     return Calibration(systems, exposures, meta)
 
 
+def _field_or_orientation(system, field) -> dict:
+    """A bead phantom's system is one orientation: named (with its angles) when the config's group names it."""
+    from fluorocal.stages.orientation import OrientationField
+
+    if len(system.orientations) != 1:
+        return {"field": field}
+    group = system.orientations[0]
+    return {"orientations": (OrientationField(group.name, group.orbit_deg, group.tilt_deg, field),)}
+
+
 def export_calibration(runner, out_dir: Path | None = None) -> list[Path]:
     """Write the calibration, its tables and its report into ``out_dir`` (default: the run's output folder)."""
     from fluorocal.gather import failed_frames, observations_from_labels
@@ -160,6 +170,10 @@ def export_calibration(runner, out_dir: Path | None = None) -> list[Path]:
     excluded = failed_frames(runner.units, labels)
     if excluded:
         log.warning("%d frame(s) excluded, labelling failed: %s", len(excluded), "; ".join(excluded))
+    if runner.config.phantom.lattice:
+        from fluorocal.export_plate import export_plate
+
+        return export_plate(runner, result, obs, excluded, out_dir)
     adj = result.adjustment
     cal = calibration_from_result(runner, result)
     written = cal.save(inside(out_dir, "calibration.json"))

@@ -132,14 +132,57 @@ def _learn_extras(config, units) -> dict:
         w, h = next(u.size_px for u in units if u.system == s)
         sizes.append((w, h))
         guesses.append(tuple(iop_guess((w, h), system.source_image_distance_mm, system.pixel_pitch_mm)))
+    _check_phantom_sections(config)
     solver, selection = params_from_dict(
         _section_classes("adjust"), config.stage_params.get("adjust", {}), where=f"{config.path.name}: [adjust] "
     )
-    return {
-        "setup": CalibrationSetup(scheme=config.scheme, image_size_px=tuple(sizes), iop_guess_px=tuple(guesses)),
-        "solver": solver,
-        "selection": selection,
-    }
+    (plate,) = params_from_dict(
+        _section_classes("plate"), config.stage_params.get("plate", {}), where=f"{config.path.name}: [plate] "
+    )
+    setup = CalibrationSetup(
+        scheme=config.scheme,
+        image_size_px=tuple(sizes),
+        iop_guess_px=tuple(guesses),
+        orientations=plate_orientations(config, units),
+    )
+    return {"setup": setup, "solver": solver, "selection": selection, "plate": plate}
+
+
+def _check_phantom_sections(config) -> None:
+    """Refuse the section of the other kind of phantom: ``[learn]`` for a grid plate, ``[plate]`` for a bead phantom."""
+    from fluorocal.stages.errors import InputError
+
+    unused = "learn" if config.phantom.lattice else "plate"
+    if unused in config.stage_params:
+        kind, owner = ("a grid plate", "[plate]") if config.phantom.lattice else ("a 3D bead phantom", "[learn]")
+        raise InputError(
+            f"{config.path.name}: [{unused}] does not apply to {kind} (its calibration's settings are in {owner}); "
+            f"remove the [{unused}] section"
+        )
+
+
+def plate_orientations(config, units) -> tuple:
+    """A grid plate's ``(system, exposure, orientation, orbit_deg, tilt_deg)`` per frame; () for a 3D phantom.
+
+    Raises
+    ------
+    InputError
+        A 3D phantom's system given several orientations (its frames are one orientation: the phantom
+        moves, the C-arm does not).
+    """
+    from fluorocal.orientations import frame_orientations
+    from fluorocal.stages.errors import InputError
+
+    if not config.phantom.lattice:
+        several = [s.name for s in config.systems if len(s.orientations) > 1]
+        if several:
+            raise InputError(
+                f"{config.path.name}: [[systems]] {several[0]}: orientations: a 3D bead phantom calibrates a "
+                "system at one C-arm orientation; give one project per orientation (or use a grid plate)"
+            )
+        return ()
+    found = frame_orientations(config, units)
+    return tuple((u.system, u.exposure, o.name, o.orbit_deg, o.tilt_deg) for u, o in zip(units, found))
 
 
 def _gather_observations(units, labels, config):
@@ -171,7 +214,10 @@ REGISTRY = (
 )
 
 #: config sections that are not a stage of their own, and their Params classes (keys split by field name)
-EXTRA_SECTIONS = {"adjust": ("fluorocal.stages.adjust", ("SolverOptions", "DataSelection"))}
+EXTRA_SECTIONS = {
+    "adjust": ("fluorocal.stages.adjust", ("SolverOptions", "DataSelection")),
+    "plate": ("fluorocal.stages.plate", ("PlateParams",)),
+}
 
 
 def default_stages() -> list[Stage]:

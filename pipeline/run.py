@@ -143,8 +143,11 @@ def _check_frame_size(path: Path, n_frames: int, size: tuple[int, int], first) -
 
 
 def _check_pairing(config: Config, units: list[FrameUnit]) -> None:
-    """Refuse biplanar systems whose frame counts differ, naming the counts and the frames left unpaired."""
-    if len(config.systems) < 2:
+    """Refuse biplanar systems whose frame counts differ, naming the counts and the frames left unpaired.
+
+    A grid plate's systems are calibrated each on its own (their frames are never paired): any counts.
+    """
+    if len(config.systems) < 2 or config.phantom.lattice:
         return
     per_system = [[u for u in units if u.system == s] for s in range(len(config.systems))]
     counts = [len(p) for p in per_system]

@@ -201,6 +201,32 @@ def similarity_fit(
     return scale, R, mu_d - scale * R @ mu_s
 
 
+def homography_fit(src_xy: np.ndarray, dst_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Least-squares homography from ``src_xy`` to ``dst_xy`` (each ``(N, 2)``) and ``dst - H(src)``.
+
+    OpenCV's normalised DLT refined by Levenberg–Marquardt on the transfer error (``cv2.findHomography``,
+    no RANSAC). Returns ``(H (3, 3), residual (N, 2))``, or None when the points admit no homography
+    (fewer than four, or degenerate).
+
+    Examples
+    --------
+    >>> src = np.array([[0.0, 0], [1, 0], [0, 1], [1, 1], [0.5, 0.3]])
+    >>> H, res = homography_fit(src, 2 * src + 3)
+    >>> bool(np.abs(res).max() < 1e-6)
+    True
+    """
+    import cv2
+
+    src = np.asarray(src_xy, dtype=np.float64)
+    dst = np.asarray(dst_xy, dtype=np.float64)
+    if len(src) < 4:
+        return None
+    H, _ = cv2.findHomography(src, dst, 0)
+    if H is None or not np.all(np.isfinite(H)):
+        return None
+    return H, dst - cv2.perspectiveTransform(src[None], H)[0]
+
+
 def image_rays(
     ideal_xy_px: np.ndarray, iop_px: np.ndarray, q: np.ndarray, source_mm: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -36,7 +36,9 @@ the number of exposures).
 
 What cannot be estimated is dropped with a debug message (beads seen in
 fewer than two epochs or along nearly one direction, epochs with too few
-beads; duplicate labels with a warning); too few frames raise :class:`InputError`, all frames
+beads; duplicate labels with a warning), and so is a bead whose inliers after the solve
+are seen in fewer than two epochs (two rays, one a gross error: the point slides along the
+good ray), after which the solve runs again (logged); too few frames raise :class:`InputError`, all frames
 from one pose or a singular network :class:`EstimationError`. A pure
 turntable (every rotation about one axis) is a critical motion for the
 principal point: tilt the phantom between exposures or fix the IOP.

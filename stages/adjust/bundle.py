@@ -2,7 +2,9 @@
 
 Model and method: :mod:`stages.adjust`. :func:`prepare` is the first half
 (inputs checked, what cannot be estimated dropped, the problem and its start
-state built); tests use it to probe the cost and the Jacobians.
+state built); tests use it to probe the cost and the Jacobians. A bead the
+solution's inliers leave seen in fewer than ``min_exposures_per_bead`` epochs
+is dropped and the problem solved again (:func:`_beads_without_inliers`).
 """
 
 from __future__ import annotations
@@ -17,13 +19,22 @@ from fluorocal.stages.adjust.options import DataSelection, FreeParameters, Solve
 from fluorocal.stages.adjust.orientation import Orientation
 from fluorocal.stages.adjust.problem import Problem, build_problem
 from fluorocal.stages.adjust.problem import start_points as projected_start
-from fluorocal.stages.adjust.result import Adjustment, summarise
-from fluorocal.stages.adjust.selection import checked_corrections, index_of, nominal_coordinates, select_observations
+from fluorocal.stages.adjust.result import Adjustment, solution_weights, summarise
+from fluorocal.stages.adjust.selection import (
+    checked_corrections,
+    epochs_per_bead,
+    index_of,
+    nominal_coordinates,
+    select_observations,
+)
 from fluorocal.stages.adjust.solver import solve
 from fluorocal.stages.artifacts import Observations
 from fluorocal.stages.errors import InputError
 
 log = logging.getLogger(__name__)
+
+#: how often :func:`adjust_bundle` solves again without the beads its inliers no longer determine
+MAX_RESELECTIONS = 2
 
 
 def adjust_bundle(
@@ -92,7 +103,8 @@ def adjust_bundle(
     """
     free = FreeParameters() if free is None else free
     solver = SolverOptions() if solver is None else solver
-    prepared = prepare(
+    selection = DataSelection() if selection is None else selection
+    prepared, solved = _solve_determined(
         observations,
         nominal,
         initial,
@@ -102,8 +114,40 @@ def adjust_bundle(
         selection=selection,
         start_points=start_points,
     )
-    solved = solve(prepared.state, prepared.problem, solver)
     return summarise(observations, prepared, solved, solver, free.additional_parameters, compute_covariance)
+
+
+def _solve_determined(observations, nominal, initial, corrections_px, **settings) -> tuple[Prepared, object]:
+    """Prepare and solve; again without the beads the solution's inliers leave undetermined (up to twice more)."""
+    solver, selection = settings["solver"], settings["selection"]
+    left_out = np.zeros(len(observations), bool)
+    for attempt in range(MAX_RESELECTIONS + 1):
+        prepared = prepare(observations, nominal, initial, corrections_px, left_out=left_out, **settings)
+        solved = solve(prepared.state, prepared.problem, solver)
+        weak = _beads_without_inliers(prepared, solved, solver.outlier_weight, selection.min_exposures_per_bead)
+        if not weak.any() or attempt == MAX_RESELECTIONS:
+            return prepared, solved
+        log.info(
+            "%d bead(s) left with inliers in fewer than %d epochs (a gross error among too few observations): "
+            "solving again without them",
+            int(weak.sum()),
+            selection.min_exposures_per_bead,
+        )
+        left_out[np.flatnonzero(prepared.used)[prepared.perm[weak[prepared.problem.point_idx]]]] = True
+
+
+def _beads_without_inliers(prepared: Prepared, solved, outlier_weight: float, min_epochs: int) -> np.ndarray:
+    """Mask ``(n_points,)`` of the problem's beads whose inliers are seen in fewer than ``min_epochs`` epochs.
+
+    With two rays and one of them a gross error, the t-likelihood is highest
+    with the point on the good ray, wherever along it the bad one pulls: the
+    point is undetermined (its depth, and the covariance, singular), as if
+    seen once. Such a bead cannot be estimated from these observations.
+    """
+    problem = prepared.problem
+    inlier = solution_weights(solved, problem)[2] >= outlier_weight
+    counts = epochs_per_bead(problem.point_idx[inlier], problem.pose_idx[inlier], problem.n_points, problem.n_poses)
+    return counts < min_epochs
 
 
 @dataclass(frozen=True)
@@ -146,10 +190,11 @@ def prepare(
     solver: SolverOptions | None = None,
     selection: DataSelection | None = None,
     start_points=None,
+    left_out=None,
 ) -> Prepared:
     """Check the inputs, drop what cannot be estimated, build the problem and its start state.
 
-    Arguments as :func:`adjust_bundle`.
+    Arguments as :func:`adjust_bundle`; ``left_out`` ``(N,)`` bool, optional, marks observations dropped beforehand.
     """
     free = FreeParameters() if free is None else free
     solver = SolverOptions() if solver is None else solver
@@ -159,7 +204,9 @@ def prepare(
     point_all = index_of(observations.bead_id, ids, "observations.bead_id not in the nominal coordinates")
     epoch_all = index_of(observations.exposure, initial.exposure, "observations.exposure not in initial.exposure")
     n_epochs = len(initial.exposure)
-    used = select_observations(observations, point_all, epoch_all, len(ids), n_epochs, initial, nominal_xyz, selection)
+    used = select_observations(
+        observations, point_all, epoch_all, len(ids), n_epochs, initial, nominal_xyz, selection, left_out
+    )
     n_frames = len(np.unique(observations.system[used] * (n_epochs + 1) + epoch_all[used]))
     if n_frames < selection.min_exposures:
         raise InputError(

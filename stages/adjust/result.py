@@ -265,11 +265,16 @@ def summarise(
     )
 
 
-def _fit_statistics(solved: SolverResult, problem, compute_covariance: bool) -> tuple:
-    """Residuals ``r_px`` (N, 2), ``s`` (N,), t-weights (N,), ``dof``, the cofactors and their factor ``c``."""
+def solution_weights(solved: SolverResult, problem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Residuals ``r_px`` (N, 2) px, squared whitened norms ``s`` (N,) and t-weights (N,) at the solution."""
     r_px, e = residuals(solved.state, problem)
     s = (e * e).sum(1)
-    w = t_weights(s, solved.nu, solved.scale2)
+    return r_px, s, t_weights(s, solved.nu, solved.scale2)
+
+
+def _fit_statistics(solved: SolverResult, problem, compute_covariance: bool) -> tuple:
+    """Residuals ``r_px`` (N, 2), ``s`` (N,), t-weights (N,), ``dof``, the cofactors and their factor ``c``."""
+    r_px, s, w = solution_weights(solved, problem)
     u = problem.n_free - 7
     dof = 2 * problem.n_obs - u
     if dof <= 0:

@@ -132,15 +132,36 @@ def _ray_spread_deg(points_mm, sources_mm, point_idx, n_points) -> np.ndarray:
     return 2.0 * np.degrees(np.arccos(worst))
 
 
+def epochs_per_bead(point_idx, epoch_idx, n_points: int, n_epochs: int) -> np.ndarray:
+    """Number of distinct epochs ``(n_points,)`` in which each bead is observed.
+
+    Examples
+    --------
+    >>> epochs_per_bead(np.array([0, 0, 0, 1]), np.array([0, 0, 1, 1]), 3, 2).tolist()
+    [2, 1, 0]
+    """
+    pe = np.unique(np.asarray(point_idx) * (n_epochs + 1) + np.asarray(epoch_idx))
+    return np.bincount(pe // (n_epochs + 1), minlength=n_points)
+
+
 def select_observations(
-    obs, point_idx, epoch_idx, n_points: int, n_epochs: int, initial: Orientation, nominal_xyz, selection: DataSelection
+    obs,
+    point_idx,
+    epoch_idx,
+    n_points: int,
+    n_epochs: int,
+    initial: Orientation,
+    nominal_xyz,
+    selection: DataSelection,
+    left_out=None,
 ) -> np.ndarray:
     """Mask ``(N,)`` of the observations that can be estimated; logs (debug) what is dropped and why.
 
     ``point_idx`` and ``epoch_idx`` ``(N,)`` index each observation's bead in
-    ``nominal_xyz`` ``(n_points, 3)`` mm and its epoch in ``initial.exposure``.
+    ``nominal_xyz`` ``(n_points, 3)`` mm and its epoch in ``initial.exposure``;
+    ``left_out`` ``(N,)`` bool, optional, marks observations dropped beforehand.
     """
-    used = np.ones(len(obs), bool)
+    used = np.ones(len(obs), bool) if left_out is None else ~np.asarray(left_out, bool)
     key = (obs.system * (n_epochs + 1) + epoch_idx) * (n_points + 1) + point_idx
     _, first = np.unique(key, return_index=True)
     dup = np.ones(len(obs), bool)
@@ -156,9 +177,7 @@ def select_observations(
     spread = _ray_spread_deg(nominal_xyz, sources, point_idx, n_points)
     for _ in range(100):
         before = used.sum()
-        pts_epochs = np.zeros(n_points, np.int64)
-        pe = np.unique(point_idx[used] * (n_epochs + 1) + epoch_idx[used])
-        np.add.at(pts_epochs, pe // (n_epochs + 1), 1)
+        pts_epochs = epochs_per_bead(point_idx[used], epoch_idx[used], n_points, n_epochs)
         weak_bead = pts_epochs < selection.min_exposures_per_bead
         if used.any():
             spread = _ray_spread_deg(nominal_xyz, sources[used], point_idx[used], n_points)

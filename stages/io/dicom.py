@@ -34,6 +34,42 @@ def probe(path: Path) -> tuple[int, tuple[int, int]]:
     return int(getattr(ds, "NumberOfFrames", 1) or 1), (int(ds.Columns), int(ds.Rows))
 
 
+def positioner_angles_deg(path: Path) -> tuple[float | None, float | None]:
+    """The C-arm's orbit and tilt in degrees from a DICOM header (pixels not read); None where not recorded.
+
+    The orbit is ``PositionerPrimaryAngle`` (0018,1510), the tilt ``PositionerSecondaryAngle``
+    (0018,1511). Both are None when either is absent or empty (many C-arms write the tags without a
+    value), and when the positioner moved during a multi-frame acquisition (``PositionerMotion``
+    ``DYNAMIC``): the file's angles are then not every frame's.
+
+    Raises
+    ------
+    InputError
+        The file is not readable DICOM, or an angle is not a number within ±180°.
+    """
+    import pydicom
+
+    try:
+        ds = pydicom.dcmread(path, stop_before_pixels=True)
+    except (OSError, pydicom.errors.InvalidDicomError) as exc:
+        raise InputError(f"{path}: cannot read the DICOM header ({exc})") from exc
+    if str(ds.get("PositionerMotion", "")).upper() == "DYNAMIC" and int(ds.get("NumberOfFrames", 1) or 1) > 1:
+        return None, None
+    angles = []
+    for tag in ("PositionerPrimaryAngle", "PositionerSecondaryAngle"):
+        value = ds.get(tag)
+        if value is None or value == "":
+            return None, None
+        try:
+            angle = float(value)
+        except (TypeError, ValueError):
+            raise InputError(f"{path}: {tag} must be one number (degrees); got {value!r}") from None
+        if not np.isfinite(angle) or abs(angle) > 180:
+            raise InputError(f"{path}: {tag} must be an angle in -180..180 degrees; got {angle:g}")
+        angles.append(angle)
+    return angles[0], angles[1]
+
+
 def read(path: Path) -> list[Radiograph]:
     """Every frame, float32 after the modality LUT, MONOCHROME2 (larger = brighter)."""
     import pydicom

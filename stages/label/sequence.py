@@ -9,6 +9,7 @@ from fluorocal.stages.errors import InputError
 from fluorocal.stages.geometry import iop_guess, quat_to_matrix
 from fluorocal.stages.label.frame import label_frame
 from fluorocal.stages.label.labels import Labels
+from fluorocal.stages.label.lattice_sequence import number_lattice_sequence
 from fluorocal.stages.label.motion import Motion, neighbours, predict
 from fluorocal.stages.label.params import LabelParams
 
@@ -54,8 +55,8 @@ def label_sequence(
     for i in range(n):
         seeds = tuple(tuple(s) for s in seeds_by_frame.get(i, ()))
         out.append(label_frame(centroids_seq[i], phantom, replace(base, seeds=seeds) if seeds else base))
-    if phantom.lattice:
-        return tuple(out)
+    if phantom.lattice:  # one numbering of the plate's holes across the frames
+        return number_lattice_sequence(out, phantom.lattice, phantom.pitch_mm)
     own_reason = [lab.reason for lab in out]
     c_assumed = float(iop_guess((1, 1), params.source_image_distance_mm, params.pixel_pitch_mm)[2])
     tried: dict[int, tuple] = {}  # frame -> the labelled neighbours it was last tried from

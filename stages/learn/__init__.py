@@ -39,8 +39,8 @@ Modules, one job each
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from fluorocal.stages.errors import InputError
 from fluorocal.stages.field import CorrectionField, PointwiseField, grid_nodes
 from fluorocal.stages.learn.adjuster import start_orientation
 from fluorocal.stages.learn.grid import GridCvReport, cross_validate_smoothness, fit_grid_field
@@ -50,6 +50,9 @@ from fluorocal.stages.learn.loop import calibrate
 from fluorocal.stages.learn.nodes import GridSpec
 from fluorocal.stages.learn.params import PRESETS, SCHEMES, LearnParams
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
+
+if TYPE_CHECKING:  # the plate's modules import the learning's: imported where used (see learn_calibration)
+    from fluorocal.stages.plate import PlateCalibration
 
 VERSION = 1
 
@@ -90,17 +93,25 @@ class CalibrationSetup:
         ``(width, height)`` of each system's frames.
     iop_guess_px : tuple of (float, float, float)
         Start values ``(xp, yp, c)`` per system: the image centre and source-image distance / pixel pitch.
+    orientations : tuple of (int, int, str, float or None, float or None)
+        A grid plate's frames: ``(system, exposure, orientation name, orbit_deg, tilt_deg)`` each (a
+        3D phantom's system is one orientation: empty).
     """
 
     scheme: str = "knn+iop+smooth"
     image_size_px: tuple = ()
     iop_guess_px: tuple = ()
+    orientations: tuple = ()
 
 
 def learn_calibration(
-    observations, phantom, params: LearnParams, *, setup: CalibrationSetup, solver=None, selection=None
-) -> LearnResult:
+    observations, phantom, params: LearnParams, *, setup: CalibrationSetup, solver=None, selection=None, plate=None
+) -> LearnResult | PlateCalibration:
     """Calibrate from labelled observations: start values by resection, then :func:`calibrate`.
+
+    A grid plate is calibrated by :func:`fluorocal.stages.plate.calibrate_plate` instead (a field per
+    orientation, the plate's errors estimated), with ``plate`` its parameters, and the result is a
+    :class:`fluorocal.stages.plate.PlateCalibration`; scheme ``none`` then fits homographies only (no field).
 
     Parameters
     ----------
@@ -112,18 +123,26 @@ def learn_calibration(
         The scheme (which decides, among others, whether the field is smoothed), image sizes and IOP guesses.
     solver, selection : SolverOptions, DataSelection, optional
         The adjustment's settings from ``[adjust]`` (the free parameters are the scheme's).
+    plate : PlateParams, optional
+        A grid plate's settings from ``[plate]`` (default ``PlateParams()``).
 
     Raises
     ------
-    InputError
-        A grid-plate phantom (its lattice ids are per frame; calibrate it with a bead phantom).
     EstimationError
         No frame could be resected, or the adjustment failed as a whole.
     """
     if phantom.lattice:
-        raise InputError(
-            "calibrating from a grid plate is not supported by `fluorocal run` yet: use a 3D bead phantom "
-            "(the grid's holes are detected and indexed by `fluorocal detect` / `fluorocal label`)"
+        # imported here: the plate's modules use the learning's grid fits (a cycle at import time otherwise)
+        from fluorocal.stages.plate import PlateParams, calibrate_plate
+
+        return calibrate_plate(
+            observations,
+            phantom,
+            PlateParams() if plate is None else plate,
+            image_size_px=setup.image_size_px,
+            orientations=setup.orientations,
+            learn_fields=setup.scheme != "none",
+            solver=solver,
         )
     initial = start_orientation(observations, phantom, setup.iop_guess_px)
     return calibrate(

@@ -149,6 +149,7 @@ def cross_validate_smoothness(
     seed: int = 0,
     base_px=None,
     cost_cap: float | None = None,
+    groups=None,
 ) -> GridCvReport:
     """Choose the smoothness prior of :func:`fit_grid_field` by shuffled K-fold CV of equation 3.
 
@@ -167,6 +168,10 @@ def cross_validate_smoothness(
     cost_cap : float, optional
         Bound on each observation's out-of-fold cost (default None: unbounded),
         as in :func:`fluorocal.stages.learn.knn.cross_validate_k`.
+    groups : (N,) int ndarray, optional
+        Observations of one group (a grid plate's hole, seen in several frames) fall in one fold, so
+        that a field is not rewarded for reproducing at a point what other observations of the same
+        object put there (default: every observation its own group).
 
     Returns
     -------
@@ -186,7 +191,7 @@ def cross_validate_smoothness(
     A = bilinear_design(xn, yn, xy)
     w = 1.0 / var
     n = len(xy)
-    folds = np.array_split(np.random.default_rng(seed).permutation(n), min(n_folds, n))
+    folds = _folds(n, n_folds, seed, groups)
     # the data part of each fold's normal equations, shared by every candidate
     normals = [
         grid_normal(A[train], w[train], r[train])
@@ -206,6 +211,17 @@ def cross_validate_smoothness(
     orders, taus, costs, rms = (np.array(c) for c in zip(*evaluated))
     best = int(np.argmin(costs))
     return GridCvReport(taus, costs, float(taus[best]), float(rms[best]), int(orders[best]), orders)
+
+
+def _folds(n: int, n_folds: int, seed: int, groups) -> list[np.ndarray]:
+    """Shuffled K-fold split of ``n`` observations; observations of one group stay together."""
+    rng = np.random.default_rng(seed)
+    if groups is None:
+        return np.array_split(rng.permutation(n), min(n_folds, n))
+    unique, member = np.unique(np.asarray(groups), return_inverse=True)
+    fold_of_group = np.empty(len(unique), np.int64)
+    fold_of_group[rng.permutation(len(unique))] = np.arange(len(unique)) % min(n_folds, len(unique))
+    return [np.flatnonzero(fold_of_group[member] == k) for k in range(min(n_folds, len(unique)))]
 
 
 def _out_of_fold(normals, tests, DtD, tau_px, base, cost_cap):

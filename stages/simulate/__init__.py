@@ -13,16 +13,22 @@ Model, in the order light travels (conventions: ``stages/geometry.py``):
    row pitch (in an oblique view the walls that overlap in projection are
    neighbours), plus larger ``marker`` beads. ``"grid"``: a steel plate with
    holes on a hexagonal lattice. Three coordinate sets: nominal (design),
-   true (nominal + fabrication error) and reference (true + survey noise).
+   true (nominal + fabrication error; for the plate structured like a
+   drilled plate's: rows, alternate rows, holes) and reference (true +
+   survey noise).
 2. **Acquisition** (:func:`make_acquisition`). The phantom stands on a
    turntable (rotation about the vertical lab axis, with translations and
    height changes); each system is a source and a detector fixed in the lab,
    looking horizontally at the isocentre; system B sits ``system_angle_deg``
    from A and exposes at the same instants. Camera poses ``(q, T)`` are
-   expressed in the phantom (object) frame.
+   expressed in the phantom (object) frame. A grid plate lies on system A's
+   intensifier: moved by hand between exposures, or, with
+   ``orientations_deg``, riding on it through a sequence of C-arm
+   orientations (:class:`Orientation`), moving a little between them.
 3. **Distortion** (:class:`ImageDistortion`, forward ideal -> distorted):
    pincushion radial, S-distortion (rotation growing with r²), decentring and
-   a smooth random field (cubic B-spline of random coefficients).
+   a smooth random field (cubic B-spline of random coefficients); at a C-arm
+   orientation, plus the earth field's change (:mod:`.orientation`).
 4. **Image formation** (:func:`render_frame`). Each output pixel centre is
    mapped through the *inverse* distortion to its ideal ray (Newton, to
    1e-7 px; :func:`ideal_pixel_map`); an ideal image is never warped.
@@ -45,9 +51,10 @@ it bounds (the centroid an opaque flat silhouette would have), computed from
 that with no distortion it equals the conic centre exactly.
 
 Modules, one job each: :mod:`.params` (parameters, version, seed streams),
-:mod:`.phantom` (bead layouts), :mod:`.distortion` (the intensifier's
-distortion and its inverse pixel map), :mod:`.acquisition` (systems and
-turntable poses), :mod:`.projection` (per-frame bead truth), :mod:`.raster`
+:mod:`.phantom` (bead layouts, plate errors), :mod:`.distortion` (the
+intensifier's distortion and its inverse pixel map), :mod:`.orientation`
+(C-arm orientations and the earth field's distortion), :mod:`.acquisition`
+(systems, turntable and plate poses), :mod:`.projection` (per-frame bead truth), :mod:`.raster`
 (per-system pixel geometry), :mod:`.absorption` (line integrals),
 :mod:`.render` (detector chain), :mod:`.truth` (truth records and
 ``truth.json``) and :mod:`.simulation` (the entry :func:`simulate`).
@@ -55,8 +62,9 @@ turntable poses), :mod:`.projection` (per-frame bead truth), :mod:`.raster`
 
 from fluorocal.stages.simulate.acquisition import Acquisition, SystemTruth, make_acquisition
 from fluorocal.stages.simulate.distortion import ImageDistortion, ideal_pixel_map, make_distortion
+from fluorocal.stages.simulate.orientation import Orientation, make_orientations, orientation_name
 from fluorocal.stages.simulate.params import N_OUTLINE, SYSTEM_NAMES, VERSION, SimulateParams
-from fluorocal.stages.simulate.phantom import make_phantom
+from fluorocal.stages.simulate.phantom import make_phantom, plate_errors
 from fluorocal.stages.simulate.projection import FrameTruth, project_beads
 from fluorocal.stages.simulate.raster import SystemRaster, local_jacobian, system_raster
 from fluorocal.stages.simulate.render import render_frame
@@ -70,6 +78,7 @@ __all__ = [
     "Acquisition",
     "FrameTruth",
     "ImageDistortion",
+    "Orientation",
     "SimulateParams",
     "SimulatedData",
     "SystemRaster",
@@ -79,7 +88,10 @@ __all__ = [
     "local_jacobian",
     "make_acquisition",
     "make_distortion",
+    "make_orientations",
     "make_phantom",
+    "orientation_name",
+    "plate_errors",
     "project_beads",
     "render_frame",
     "simulate",

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.geometry import matrix_to_quat, quat_to_matrix
 from fluorocal.stages.simulate.distortion import ImageDistortion, make_distortion
+from fluorocal.stages.simulate.orientation import angle_codes, make_orientations
 from fluorocal.stages.simulate.params import RNG_ACQ, RNG_WOBBLE, SYSTEM_NAMES, SimulateParams
 
 
@@ -57,6 +58,17 @@ class Acquisition:
         Camera pose rotation (object -> camera) of system s at exposure k.
     source_mm : (S, K, 3) float64 ndarray, mm
         X-ray source in object (phantom) coordinates.
+    orientations : tuple of Orientation
+        The C-arm orientations of a grid sequence (empty: every exposure at the centred orientation).
+    exposure_orientation : (K,) int64 ndarray
+        Index into ``orientations`` of each exposure; -1 without orientations.
+
+    Notes
+    -----
+    With orientations, the plate rides on system A's intensifier:
+    ``lab_from_phantom_q`` and ``turntable_translation_mm`` place it as if the
+    C-arm stayed centred (what matters, its pose relative to the camera, is
+    exact); the C-arm's turn is in the orientation's angles.
     """
 
     systems: tuple
@@ -65,9 +77,20 @@ class Acquisition:
     lab_from_phantom_q: np.ndarray
     q: np.ndarray
     source_mm: np.ndarray
+    orientations: tuple = ()
+    exposure_orientation: np.ndarray | None = None
 
     def __post_init__(self):
+        if self.exposure_orientation is None:
+            object.__setattr__(self, "exposure_orientation", np.full(len(self.turntable_angle_rad), -1, np.int64))
         freeze(self)
+
+    def system_at(self, s: int, k: int) -> SystemTruth:
+        """System ``s`` as it images exposure ``k``: with the distortion of that exposure's orientation."""
+        o = int(self.exposure_orientation[k])
+        if o < 0:
+            return self.systems[s]
+        return replace(self.systems[s], distortion=self.orientations[o].distortion)
 
 
 def _rot_z(angle: float) -> np.ndarray:
@@ -146,8 +169,13 @@ def make_acquisition(params: SimulateParams) -> Acquisition:
                 float(sid),
             )
         )
-    k = params.n_frames
-    if params.phantom == "cube":
+    k = params.n_exposures
+    orientations, exposure_orientation = (), None
+    if params.orientations_deg:
+        orientations = make_orientations(params, systems[0].distortion)
+        exposure_orientation = np.repeat(np.arange(len(orientations)), params.n_frames)
+        angles, lab_from_phantom, translation = _plate_on_intensifier(params, rng, systems[0], orientations)
+    elif params.phantom == "cube":
         angles = _turntable_angles(params)
         heights = np.linspace(-1, 1, k) if k > 1 else np.zeros(1)
         heights = rng.permutation(heights) * params.turntable_height_mm
@@ -172,5 +200,45 @@ def make_acquisition(params: SimulateParams) -> Acquisition:
             q[s, i] = matrix_to_quat(camera_from_lab @ lab_from_phantom[i])
             source[s, i] = lab_from_phantom[i].T @ (system.source_lab_mm - translation[i])
     return Acquisition(
-        tuple(systems), np.asarray(angles, dtype=np.float64), translation, matrix_to_quat(lab_from_phantom), q, source
+        tuple(systems),
+        np.asarray(angles, dtype=np.float64),
+        translation,
+        matrix_to_quat(lab_from_phantom),
+        q,
+        source,
+        orientations,
+        exposure_orientation,
     )
+
+
+def _plate_on_intensifier(params: SimulateParams, rng: np.random.Generator, system: SystemTruth, orientations: tuple):
+    """Plate poses of a grid sequence: mounted on the intensifier, moving a little between orientations.
+
+    The mount (drawn from ``rng``): rows within 2 degrees of the image rows,
+    the plate within 0.5 degree of square to the beam, its centre within 2 mm
+    of the axis. Each orientation adds its own play (up to ``plate_play_mm``
+    per axis across the beam and ``plate_play_deg`` about it), seeded by the
+    orientation's angles, so an orientation looks the same whichever others
+    are simulated with it. Every exposure of an orientation has its pose.
+
+    Returns
+    -------
+    angles : (K,) float64 ndarray, rad
+        The plate's turn about its normal.
+    lab_from_phantom : (K, 3, 3) float64 ndarray
+    translation : (K, 3) float64 ndarray, mm
+    """
+    view = quat_to_matrix(system.lab_from_camera_q)
+    mount_angle = np.radians(rng.uniform(-2.0, 2.0))
+    mount = _small_rotation(rng, 0.5) @ _rot_z(mount_angle)
+    mount_shift = np.append(rng.uniform(-2.0, 2.0, 2), 0.0)
+    depth = params.source_image_distance_mm / params.grid_magnification
+    angles, poses, shifts = [], [], []
+    for o in orientations:
+        play = np.random.default_rng([params.seed, RNG_ACQ, *angle_codes(o.orbit_deg, o.tilt_deg)])
+        turn = np.radians(play.uniform(-1.0, 1.0) * params.plate_play_deg)
+        shift = mount_shift + np.append(play.uniform(-1.0, 1.0, 2) * params.plate_play_mm, 0.0)
+        angles += [mount_angle + turn] * params.n_frames
+        poses += [view @ _rot_z(turn) @ mount] * params.n_frames
+        shifts += [system.source_lab_mm + depth * view[:, 2] + view @ shift] * params.n_frames
+    return np.array(angles), np.stack(poses), np.array(shifts)

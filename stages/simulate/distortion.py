@@ -9,6 +9,9 @@ from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.simulate.params import RNG_DIST, SimulateParams
 
+#: exponents (i, j) of the monomials ρx^i ρy^j of ``ImageDistortion.poly_coeffs_px``
+MONOMIALS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (3, 0), (2, 1), (1, 2), (0, 3))
+
 
 @dataclass(frozen=True, eq=False)
 class ImageDistortion:
@@ -17,12 +20,13 @@ class ImageDistortion:
     With ``ρ = (x - centre) / scale`` (normalised, ``r² = |ρ|²``)::
 
         ρ_d = Rot(s · r²) · (1 + k1 r² + k2 r⁴) ρ  +  decentring(p1, p2)(ρ)
-        x_d = centre + scale · ρ_d + field(x)
+        x_d = centre + scale · ρ_d + poly(ρ) + field(x)
 
-    where ``decentring`` is Brown's tangential term and ``field`` a smooth random
-    displacement: a bicubic B-spline with coefficients ``field_coeffs_px`` on a
-    lattice of spacing ``field_spacing_px`` whose node ``[0, 0]`` sits at
-    ``field_origin_xy_px``.
+    where ``decentring`` is Brown's tangential term, ``poly`` a cubic
+    displacement in px (the C-arm orientation's part, :mod:`.orientation`) and
+    ``field`` a smooth random displacement: a bicubic B-spline with coefficients
+    ``field_coeffs_px`` on a lattice of spacing ``field_spacing_px`` whose node
+    ``[0, 0]`` sits at ``field_origin_xy_px``.
 
     Attributes
     ----------
@@ -40,6 +44,9 @@ class ImageDistortion:
     field_origin_xy_px : (2,) float64 ndarray, px
     field_coeffs_px : (2, ny, nx) float64 ndarray, px
         B-spline coefficients of the x and y displacement.
+    poly_coeffs_px : (2, 10) float64 ndarray, px
+        Coefficients of the x and y displacement on the monomials ``ρx^i ρy^j`` with
+        ``(i, j)`` in ``(0,0), (1,0), (0,1), (2,0), (1,1), (0,2), (3,0), (2,1), (1,2), (0,3)``.
     """
 
     centre_xy_px: np.ndarray
@@ -52,9 +59,14 @@ class ImageDistortion:
     field_spacing_px: float = 64.0
     field_origin_xy_px: np.ndarray = field(default_factory=lambda: np.zeros(2))
     field_coeffs_px: np.ndarray = field(default_factory=lambda: np.zeros((2, 1, 1)))
+    poly_coeffs_px: np.ndarray = field(default_factory=lambda: np.zeros((2, len(MONOMIALS))))
 
     def __post_init__(self):
         object.__setattr__(self, "centre_xy_px", np.asarray(self.centre_xy_px, dtype=np.float64).reshape(2))
+        poly = np.asarray(self.poly_coeffs_px, dtype=np.float64)
+        if poly.shape != (2, len(MONOMIALS)):
+            raise InputError(f"poly_coeffs_px must have shape (2, {len(MONOMIALS)}); got {poly.shape}")
+        object.__setattr__(self, "poly_coeffs_px", poly)
         object.__setattr__(self, "field_origin_xy_px", np.asarray(self.field_origin_xy_px, dtype=np.float64).reshape(2))
         coeffs = np.asarray(self.field_coeffs_px, dtype=np.float64)
         if coeffs.ndim != 3 or coeffs.shape[0] != 2:
@@ -71,7 +83,11 @@ class ImageDistortion:
 
     @property
     def is_identity(self) -> bool:
-        return not (any((self.k1, self.k2, self.s_rad, self.p1, self.p2)) or np.any(self.field_coeffs_px))
+        return not (
+            any((self.k1, self.k2, self.s_rad, self.p1, self.p2))
+            or np.any(self.field_coeffs_px)
+            or np.any(self.poly_coeffs_px)
+        )
 
     def _parametric(self, xy: np.ndarray, *, jacobian: bool = False):
         """Radial + S + decentring part of the forward map (no random field).
@@ -90,6 +106,9 @@ class ImageDistortion:
         out = np.empty(xy.shape)
         out[..., 0] = self.centre_xy_px[0] + self.scale_px * (rot_x + self.p1 * (r2 + 2 * x * x) + 2 * self.p2 * x * y)
         out[..., 1] = self.centre_xy_px[1] + self.scale_px * (rot_y + self.p2 * (r2 + 2 * y * y) + 2 * self.p1 * x * y)
+        has_poly = bool(np.any(self.poly_coeffs_px))
+        if has_poly:
+            out += self._poly(x, y)
         if not jacobian:
             return out
         # d(radial)/d(r²), then ∂(radial ρ)/∂ρ = radial I + 2 radial' ρ ρᵀ
@@ -102,7 +121,17 @@ class ImageDistortion:
         jac[..., 0, 1] = cos_t * a_xy - sin_t * a_yy - rot_y * ds * y + 2 * self.p1 * y + 2 * self.p2 * x
         jac[..., 1, 0] = sin_t * a_xx + cos_t * a_xy + rot_x * ds * x + 2 * self.p2 * x + 2 * self.p1 * y
         jac[..., 1, 1] = sin_t * a_xy + cos_t * a_yy + rot_x * ds * y + 6 * self.p2 * y + 2 * self.p1 * x
+        if has_poly:
+            jac += self._poly(x, y, derivative=True) / self.scale_px
         return out, jac
+
+    def _poly(self, x: np.ndarray, y: np.ndarray, *, derivative: bool = False) -> np.ndarray:
+        """The cubic displacement ``(..., 2)`` px at normalised ``(x, y)``, or its derivative ``(..., 2, 2)``."""
+        if not derivative:
+            return np.stack([x**i * y**j for i, j in MONOMIALS], axis=-1) @ self.poly_coeffs_px.T
+        d_x = np.stack([i * x ** max(i - 1, 0) * y**j for i, j in MONOMIALS], axis=-1)
+        d_y = np.stack([j * x**i * y ** max(j - 1, 0) for i, j in MONOMIALS], axis=-1)
+        return np.stack([d_x @ self.poly_coeffs_px.T, d_y @ self.poly_coeffs_px.T], axis=-1)
 
     def _field(self, xy: np.ndarray) -> np.ndarray:
         if not np.any(self.field_coeffs_px):
@@ -179,9 +208,10 @@ class ImageDistortion:
         return axis, axis.copy(), self.correction_at(np.stack([gx, gy], axis=-1))
 
     def to_dict(self) -> dict:
-        """JSON-serialisable parameters (floats kept exact)."""
-        return {
-            "model": "radial+S+decentring+bspline_field",
+        """JSON-serialisable parameters (floats kept exact); ``poly_coeffs_px`` only when not zero."""
+        has_poly = bool(np.any(self.poly_coeffs_px))
+        out = {
+            "model": "radial+S+decentring+bspline_field" + ("+cubic" if has_poly else ""),
             "centre_xy_px": self.centre_xy_px.tolist(),
             "scale_px": float(self.scale_px),
             "k1": float(self.k1),
@@ -193,6 +223,9 @@ class ImageDistortion:
             "field_origin_xy_px": self.field_origin_xy_px.tolist(),
             "field_coeffs_px": self.field_coeffs_px.tolist(),
         }
+        if has_poly:
+            out["poly_coeffs_px"] = self.poly_coeffs_px.tolist()
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> ImageDistortion:
@@ -212,7 +245,10 @@ class ImageDistortion:
         missing = [k for k in keys if k not in d]
         if missing:
             raise InputError(f"distortion dict misses keys: {', '.join(missing)}")
-        return cls(**{k: (np.asarray(d[k], dtype=np.float64) if isinstance(d[k], list) else d[k]) for k in keys})
+        optional = tuple(k for k in ("poly_coeffs_px",) if k in d)
+        return cls(
+            **{k: (np.asarray(d[k], dtype=np.float64) if isinstance(d[k], list) else d[k]) for k in keys + optional}
+        )
 
 
 def _solve2(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -7,12 +7,15 @@ from dataclasses import dataclass, fields
 import numpy as np
 from fluorocal.stages.errors import InputError
 
-VERSION = 1
+VERSION = 2
 SYSTEM_NAMES = ("A", "B")
 #: points on each outline used for the distorted outline centre and apparent diameter
 N_OUTLINE = 256
 #: Fibonacci numbers allowed as sub-sample counts of edge pixels
 FIBONACCI = (5, 8, 13, 21, 34, 55, 89, 144)
+
+#: noise correlation (px) of the real frames (default for the grid; the cube keeps white noise)
+_GRID_NOISE_CORRELATION_PX = 0.72
 
 # seed-sequence tags, so each random quantity has its own stream and the
 # geometry does not depend on whether frames were rendered
@@ -34,7 +37,7 @@ class SimulateParams:
     Attributes
     ----------
     n_frames : int, default 12
-        Exposures per system.
+        Exposures per system; with ``orientations_deg``, exposures per orientation.
     n_systems : int, default 1
         1 (monoplanar) or 2 (biplanar, synchronised exposures).
     image_size_px : int, default 1024
@@ -59,13 +62,40 @@ class SimulateParams:
     bead_row_pitch_mm, bead_column_pitch_mm : float, default 12.0, 9.0
         Bead grid on each wall (9 or 10 rows × 13 columns on the default cube,
         494 beads); neighbouring walls' rows are offset by half a row pitch.
-    grid_pitch_mm, grid_hole_diameter_mm, grid_thickness_mm : float, default 3.6, 1.8, 1.0
+    grid_pitch_mm, grid_hole_diameter_mm, grid_thickness_mm : float, default 3.6, 2.0, 0.9
+        With ``grid_magnification`` they give the real ARCADIS frames' look: holes ~15.4 px apart and
+        ~8 px wide (FWHM), the plate ~0.48 of a hole's level.
     grid_size_mm : float, default 250.0
         Diameter of the perforated region of the plate.
-    grid_magnification : float, default 1.05
+    grid_magnification : float, default 1.07
         The plate sits near the detector face.
+    grid_exposure_gain : float, default 1.6
+        Dose factor of the automatic brightness control with the plate in the beam (it absorbs
+        about half the field): real grid frames' holes reach ~2900 DN where a bead frame's open
+        field is ~1600 DN.
     fabrication_error_mm : float, default 0.1
-        3D RMS of true - nominal bead positions.
+        3D RMS of true - nominal bead positions (cube).
+    plate_error_mm : float, default 0.02
+        2D RMS of true - nominal hole positions (grid), structured like a drilled plate's errors:
+        a displacement per lattice row, alternate rows offset along the rows, and per-hole jitter
+        (see :func:`make_phantom`).
+    orientations_deg : tuple of (float, float), default ()
+        C-arm orientations ``(orbit, tilt)`` in degrees (grid only), each exposed ``n_frames``
+        times with the plate riding on the intensifier (it moves by ``plate_play_mm`` /
+        ``plate_play_deg`` between orientations) and the distortion changed by the earth's field
+        (:mod:`.orientation`). Empty: every exposure at the centred orientation, the plate
+        repositioned by hand between exposures (random turn, tilt up to 5 degrees, shift up to 5 mm).
+    plate_play_mm, plate_play_deg : float, default 0.6, 0.2
+        Half-ranges of the plate's shift (per axis) and turn on the intensifier between orientations.
+    earth_field_inclination_deg, earth_field_heading_deg : float, default 65.0, 315.0
+        Direction of the earth's magnetic field: its dip below the horizontal and the direction
+        of its horizontal part in image coordinates at the centred orientation (from +x toward +y).
+    orientation_distortion_px : float, default 0.96
+        Sensitivity of the distortion to the earth's field (px at 1024): RMS over the field of
+        view, modulo a homography, of the change per unit change of the field across the
+        intensifier's axis (:mod:`.orientation`). The defaults give the real C-arm's figures:
+        the centred correction leaves 0.20 px at 15 degrees, 0.37-0.39 px at 30, 0.52-0.54 at 45,
+        0.62-0.66 at 60 (orbit or tilt). 0 turns it off.
     reference_error_mm : float, default 0.025
         3D RMS of reference - true (survey noise of the check points).
     turntable_translation_mm, turntable_height_mm : float, default 10.0, 15.0
@@ -115,6 +145,11 @@ class SimulateParams:
     gain_dn_per_quantum : float, default 0.14
         Quantum noise variance = gain * signal (DN²).
     electronic_noise_dn : float, default 4.0
+    noise_correlation_px : float, optional
+        Sigma (px) of the Gaussian that correlates neighbouring pixels' noise (the per-pixel
+        spread is kept). The real frames' noise, after removing a sigma = 3 px Gaussian
+        background, correlates 0.54 at one pixel; 0.72 px gives 0.53. Default (None): 0.72 for
+        the grid, 0 (white) for the cube, whose frames are kept as earlier versions rendered them.
     supersample : int, default 21
         Sub-samples per pixel on bead edges, on a Fibonacci lattice (a Fibonacci number: 5, 8, 13, 21, 34, 55, ...).
     bit_depth : int, default 12
@@ -138,11 +173,19 @@ class SimulateParams:
     bead_row_pitch_mm: float = 12.0
     bead_column_pitch_mm: float = 9.0
     grid_pitch_mm: float = 3.6
-    grid_hole_diameter_mm: float = 1.8
-    grid_thickness_mm: float = 1.0
+    grid_hole_diameter_mm: float = 2.0
+    grid_thickness_mm: float = 0.9
     grid_size_mm: float = 250.0
-    grid_magnification: float = 1.05
+    grid_magnification: float = 1.07
+    grid_exposure_gain: float = 1.6
     fabrication_error_mm: float = 0.1
+    plate_error_mm: float = 0.02
+    orientations_deg: tuple = ()
+    plate_play_mm: float = 0.6
+    plate_play_deg: float = 0.2
+    earth_field_inclination_deg: float = 65.0
+    earth_field_heading_deg: float = 315.0
+    orientation_distortion_px: float = 0.96
     reference_error_mm: float = 0.025
     turntable_translation_mm: float = 10.0
     turntable_height_mm: float = 15.0
@@ -163,6 +206,7 @@ class SimulateParams:
     heel: float = 0.04
     gain_dn_per_quantum: float = 0.14
     electronic_noise_dn: float = 4.0
+    noise_correlation_px: float | None = None
     supersample: int = 21
     bit_depth: int = 12
     turntable_step_deg: float = 0.0
@@ -205,6 +249,19 @@ class SimulateParams:
             value = getattr(self, f.name)
             if isinstance(value, float) and not (np.isfinite(value) and value >= 0):
                 raise InputError(f"{f.name} must be a finite number >= 0; got {value}")
+        object.__setattr__(self, "orientations_deg", _check_orientations(self.orientations_deg, self.phantom))
+
+    @property
+    def noise_sigma_px(self) -> float:
+        """``noise_correlation_px``, or its default for the phantom when None."""
+        if self.noise_correlation_px is not None:
+            return float(self.noise_correlation_px)
+        return _GRID_NOISE_CORRELATION_PX if self.phantom == "grid" else 0.0
+
+    @property
+    def n_exposures(self) -> int:
+        """Exposures per system: ``n_frames`` per orientation (one orientation if none are given)."""
+        return self.n_frames * max(1, len(self.orientations_deg))
 
     @property
     def pixel_pitch_mm(self) -> float:
@@ -223,3 +280,19 @@ class SimulateParams:
     @property
     def image_centre_xy_px(self) -> np.ndarray:
         return np.full(2, (self.image_size_px - 1) / 2.0)
+
+
+def _check_orientations(value, phantom: str) -> tuple:
+    """``orientations_deg`` as a tuple of distinct ``(orbit, tilt)`` float pairs within ±90 degrees."""
+    try:
+        pairs = tuple((float(o), float(t)) for o, t in value)
+    except (TypeError, ValueError):
+        raise InputError(f"orientations_deg must be (orbit, tilt) pairs in degrees; got {value!r}") from None
+    if pairs and phantom != "grid":
+        raise InputError("orientations_deg needs phantom='grid' (the cube turns on a turntable, the C-arm stays)")
+    for pair in pairs:
+        if not all(np.isfinite(a) and abs(a) <= 90 for a in pair):
+            raise InputError(f"orientations_deg angles must be finite and within ±90 degrees; got {pair}")
+    if len(set(pairs)) != len(pairs):
+        raise InputError(f"orientations_deg must not repeat an orientation; got {pairs}")
+    return pairs

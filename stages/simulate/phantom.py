@@ -16,7 +16,8 @@ def make_phantom(params: SimulateParams) -> tuple[Phantom, np.ndarray, np.ndarra
     nominal : Phantom
         Design coordinates (what ``phantom.csv`` holds).
     true_xyz_mm : (N, 3) float64 ndarray, mm
-        Nominal + fabrication error (``fabrication_error_mm`` 3D RMS; in-plane only for a plate).
+        Nominal + fabrication error: for a cube, independent per bead (``fabrication_error_mm``
+        3D RMS); for a plate, in-plane and structured (:func:`plate_errors`, ``plate_error_mm`` 2D RMS).
     reference_xyz_mm : (N, 3) float64 ndarray, mm
         True + survey noise (``reference_error_mm`` 3D RMS), the check points.
 
@@ -26,12 +27,15 @@ def make_phantom(params: SimulateParams) -> tuple[Phantom, np.ndarray, np.ndarra
     >>> nominal.n_beads, int((nominal.role == "marker").sum())
     (494, 8)
     """
-    nominal = _cube_phantom(params) if params.phantom == "cube" else _grid_phantom(params)
     rng = np.random.default_rng([params.seed, RNG_PHANTOM])
+    if params.phantom == "cube":
+        nominal = _cube_phantom(params)
+        fab = rng.normal(scale=params.fabrication_error_mm / np.sqrt(3), size=(nominal.n_beads, 3))
+    else:
+        nominal = _grid_phantom(params)
+        fab = np.zeros((nominal.n_beads, 3))
+        fab[:, :2] = plate_errors(nominal.xyz_mm[:, :2], params.grid_pitch_mm, params.plate_error_mm, rng)
     n = nominal.n_beads
-    dims = 3 if params.phantom == "cube" else 2
-    fab = np.zeros((n, 3))
-    fab[:, :dims] = rng.normal(scale=params.fabrication_error_mm / np.sqrt(dims), size=(n, dims))
     true_xyz = nominal.xyz_mm + fab
     reference_xyz = true_xyz + rng.normal(scale=params.reference_error_mm / np.sqrt(3), size=(n, 3))
     return nominal, true_xyz, reference_xyz
@@ -108,3 +112,47 @@ def _grid_phantom(params: SimulateParams) -> Phantom:
     xyz = np.column_stack([x[keep], y[keep], np.zeros(keep.sum())])
     n = len(xyz)
     return Phantom(np.arange(n), xyz, np.full(n, params.grid_hole_diameter_mm), np.full(n, ""), "hex", pitch)
+
+
+#: shares of the plate error's variance, as measured on the real ARCADIS plate (0.19 px RMS in all):
+#: a displacement per lattice row (~0.1 px), alternate rows offset along the rows (±0.07 px), per-hole jitter
+PLATE_ERROR_SHARES = {"row": 0.28, "alternate": 0.14, "hole": 0.58}
+
+
+def plate_errors(xy_mm: np.ndarray, pitch_mm: float, rms_mm: float, rng: np.random.Generator) -> np.ndarray:
+    """In-plane manufacturing errors ``(N, 2)`` mm of a drilled hex plate's holes at nominal ``xy_mm``.
+
+    Three parts, each scaled to its share of the variance
+    (:data:`PLATE_ERROR_SHARES`) over the plate's holes: every lattice row
+    (constant nominal y) displaced as a whole by a random 2D vector, odd rows
+    offset along the rows against even ones (``±a``, the half-pitch shift of
+    the hex lattice a little off), and independent 2D jitter per hole. The
+    sum's best-fit similarity (shift, turn, scale) is removed, so the plate
+    keeps its nominal place and size, and it is rescaled to exactly
+    ``rms_mm`` 2D RMS.
+
+    Examples
+    --------
+    >>> xy = np.array([[x + 0.5 * (r % 2), r * 0.866] for r in range(20) for x in range(20)])
+    >>> err = plate_errors(xy, 1.0, 0.02, np.random.default_rng(0))
+    >>> round(float(np.sqrt(np.mean(np.sum(err**2, axis=1)))), 6)
+    0.02
+    """
+    n = len(xy_mm)
+    if n == 0 or rms_mm == 0:
+        return np.zeros((n, 2))
+    row = np.rint(xy_mm[:, 1] / (pitch_mm * np.sqrt(3) / 2)).astype(np.int64)
+    _, row_index = np.unique(row, return_inverse=True)
+    parts = {
+        "row": rng.standard_normal((row_index.max() + 1, 2))[row_index],
+        "alternate": np.column_stack([np.where(row % 2 == 1, 1.0, -1.0) * rng.choice([-1.0, 1.0]), np.zeros(n)]),
+        "hole": rng.standard_normal((n, 2)),
+    }
+    err = sum(np.sqrt(PLATE_ERROR_SHARES[k]) * v / np.sqrt(np.mean(np.sum(v**2, axis=1))) for k, v in parts.items())
+    # remove the best-fit similarity: err ≈ t + [[a, -b], [b, a]] xy
+    x, y = xy_mm[:, 0], xy_mm[:, 1]
+    one, zero = np.ones(n), np.zeros(n)
+    design = np.concatenate([np.column_stack([one, zero, x, -y]), np.column_stack([zero, one, y, x])])
+    coef, *_ = np.linalg.lstsq(design, err.T.ravel(), rcond=None)
+    err = err - (design @ coef).reshape(2, n).T
+    return err * (rms_mm / np.sqrt(np.mean(np.sum(err**2, axis=1))))

@@ -11,9 +11,24 @@ from fluorocal.stages.simulate.raster import SystemRaster, system_raster
 
 
 def _blur_sigma_px(params: SimulateParams) -> float:
-    """Gaussian sigma (px) of focal-spot penumbra (at the isocentre's magnification) and intensifier blur."""
-    focal = params.focal_spot_mm * (params.magnification - 1.0) / 2.3548
+    """Gaussian sigma (px) of focal-spot penumbra and intensifier blur.
+
+    The penumbra is the cube's at the isocentre's magnification, the plate's at its own (near 1: none).
+    """
+    magnification = params.grid_magnification if params.phantom == "grid" else params.magnification
+    focal = params.focal_spot_mm * (magnification - 1.0) / 2.3548
     return float(np.hypot(focal, params.intensifier_blur_mm) / params.pixel_pitch_mm)
+
+
+def _correlated(noise: np.ndarray, sigma_px: float) -> np.ndarray:
+    """White unit-variance noise ``(H, W)`` float32 smoothed by a Gaussian of ``sigma_px``, still of unit variance."""
+    import cv2
+
+    half = int(np.ceil(4 * sigma_px))
+    kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma_px) ** 2)
+    kernel = (kernel / kernel.sum()).astype(np.float32)
+    smoothed = cv2.sepFilter2D(noise, -1, kernel, kernel, borderType=cv2.BORDER_REFLECT)
+    return smoothed / np.float32(np.sum(kernel.astype(np.float64) ** 2))
 
 
 def _form_image(
@@ -38,14 +53,18 @@ def _form_image(
         )
         glare = cv2.resize(low, (size, size), interpolation=cv2.INTER_LINEAR) if f > 1 else low
         primary = (1.0 - params.glare_fraction) * primary + params.glare_fraction * glare
-    signal = params.open_field_dn * primary * (1.0 - params.vignetting * raster.radial2)
+    exposure = params.open_field_dn * (params.grid_exposure_gain if params.phantom == "grid" else 1.0)
+    signal = exposure * primary * (1.0 - params.vignetting * raster.radial2)
     image = signal + params.dark_dn
     if params.noise_scale > 0:
         # quantum noise by its normal approximation (>= ~500 quanta per pixel inside the field)
         std = params.noise_scale * np.sqrt(
             params.gain_dn_per_quantum * np.maximum(signal, 0) + params.electronic_noise_dn**2
         )
-        image = image + std * rng.standard_normal(image.shape, dtype=np.float32)
+        noise = rng.standard_normal(image.shape, dtype=np.float32)
+        if params.noise_sigma_px > 0:
+            noise = _correlated(noise, params.noise_sigma_px)
+        image = image + std * noise
     return np.clip(np.rint(image), 0, 2**params.bit_depth - 1).astype(np.uint16)
 
 

@@ -7,6 +7,7 @@ import logging
 import numpy as np
 from fluorocal.stages.artifacts import Phantom, Radiograph
 from fluorocal.stages.simulate.acquisition import Acquisition, make_acquisition
+from fluorocal.stages.simulate.orientation import angle_codes
 from fluorocal.stages.simulate.params import RNG_HIDDEN, RNG_NOISE, SimulateParams
 from fluorocal.stages.simulate.phantom import make_phantom
 from fluorocal.stages.simulate.projection import project_beads
@@ -61,7 +62,7 @@ def simulate(
         log.debug(
             "system %s: %d exposures, %.0f visible beads per frame",
             system.name,
-            params.n_frames,
+            params.n_exposures,
             np.mean([len(f) for f in per_system]),
         )
         frames.append(_render_system(params, acq, s, true_xyz, diameter, shown[s], on_frame) if render else ())
@@ -77,13 +78,13 @@ def _shown_beads(params: SimulateParams, marker: np.ndarray) -> np.ndarray:
     In a frame drawn (with that probability) to hide markers, 1 to all of them are hidden, each count equally
     likely; which ones is drawn at random.
     """
-    shown = np.ones((params.n_systems, params.n_frames, len(marker)), dtype=bool)
+    shown = np.ones((params.n_systems, params.n_exposures, len(marker)), dtype=bool)
     markers = np.flatnonzero(marker)
     if not (params.hidden_marker_fraction > 0 and len(markers)):
         return shown
     rng = np.random.default_rng([params.seed, RNG_HIDDEN])
     for s in range(params.n_systems):
-        for k in range(params.n_frames):
+        for k in range(params.n_exposures):
             if rng.random() < params.hidden_marker_fraction:
                 n_hidden = rng.integers(1, len(markers) + 1)
                 shown[s, k, rng.choice(markers, size=n_hidden, replace=False)] = False
@@ -92,9 +93,9 @@ def _shown_beads(params: SimulateParams, marker: np.ndarray) -> np.ndarray:
 
 def _project_system(params: SimulateParams, acq: Acquisition, s: int, ids, true_xyz, diameter, shown) -> tuple:
     """Truth of every exposure k of system ``s`` (beads ``shown[k]``): a tuple of :class:`FrameTruth`."""
-    system = acq.systems[s]
     per_system = []
-    for k in range(params.n_frames):
+    for k in range(params.n_exposures):
+        system = acq.system_at(s, k)
         per_system.append(
             project_beads(
                 ids[shown[k]],
@@ -115,13 +116,27 @@ def _project_system(params: SimulateParams, acq: Acquisition, s: int, ids, true_
     return tuple(per_system)
 
 
+def _noise_rng(params: SimulateParams, acq: Acquisition, s: int, k: int) -> np.random.Generator:
+    """Exposure ``k``'s noise stream; in a grid sequence keyed by its orientation and its index there.
+
+    So an orientation's frames are the same whichever other orientations are simulated with it.
+    """
+    o = int(acq.exposure_orientation[k])
+    if o < 0:
+        return np.random.default_rng([params.seed, RNG_NOISE, s, k])
+    orbit, tilt = params.orientations_deg[o]
+    return np.random.default_rng([params.seed, RNG_NOISE, s, *angle_codes(orbit, tilt), k % params.n_frames])
+
+
 def _render_system(params: SimulateParams, acq: Acquisition, s: int, true_xyz, diameter, shown, on_frame) -> tuple:
     """Radiographs of every exposure of system ``s``, each with its own noise stream: a tuple of :class:`Radiograph`."""
-    system = acq.systems[s]
-    raster = system_raster(params, system)
+    rasters = {}  # per orientation: the pixel geometry through its distortion
     rendered = []
-    for k in range(params.n_frames):
-        rng = np.random.default_rng([params.seed, RNG_NOISE, s, k])
+    for k in range(params.n_exposures):
+        system = acq.system_at(s, k)
+        o = int(acq.exposure_orientation[k])
+        if o not in rasters:
+            rasters = {o: system_raster(params, system)}  # exposures come grouped by orientation
         image = render_frame(
             params,
             system,
@@ -129,8 +144,8 @@ def _render_system(params: SimulateParams, acq: Acquisition, s: int, true_xyz, d
             acq.source_mm[s, k],
             true_xyz[shown[k]],
             diameter[shown[k]],
-            rng=rng,
-            raster=raster,
+            rng=_noise_rng(params, acq, s, k),
+            raster=rasters[o],
         )
         meta = {
             "format": "simulated",
@@ -139,6 +154,9 @@ def _render_system(params: SimulateParams, acq: Acquisition, s: int, true_xyz, d
             "ImagerPixelSpacing": [params.pixel_pitch_mm, params.pixel_pitch_mm],
             "DistanceSourceToDetector": system.source_image_distance_mm,
         }
+        if o >= 0:
+            orientation = acq.orientations[o]
+            meta.update(orientation=orientation.name, orbit_deg=orientation.orbit_deg, tilt_deg=orientation.tilt_deg)
         rendered.append(
             Radiograph(image.astype(np.float32), params.bit_depth, f"simulated/{system.name}/frame_{k:03d}", 0, meta)
         )

@@ -81,28 +81,14 @@ def truth_to_dict(data: SimulatedData, *, grid_step_px: float | None = None) -> 
     params = data.params
     step = grid_step_px or max(8.0, 16.0 * params.px_scale)
     acq = data.truth.acquisition
-    systems = []
-    for system in acq.systems:
-        gx, gy, delta = system.distortion.correction_grid(params.image_size_px, step)
-        systems.append(
-            {
-                "name": system.name,
-                "iop_px": system.iop_px.tolist(),
-                "source_image_distance_mm": system.source_image_distance_mm,
-                "pixel_pitch_mm": params.pixel_pitch_mm,
-                "lab_from_camera_q": system.lab_from_camera_q.tolist(),
-                "source_lab_mm": system.source_lab_mm.tolist(),
-                "distortion": system.distortion.to_dict(),
-                "correction_grid": {"x_px": gx.tolist(), "y_px": gy.tolist(), "delta_px": delta.tolist()},
-            }
-        )
+    systems = _systems_to_dicts(params, acq, step)
     exposures = [
         {
             "turntable_angle_rad": float(acq.turntable_angle_rad[k]),
             "turntable_translation_mm": acq.turntable_translation_mm[k].tolist(),
             "lab_from_phantom_q": acq.lab_from_phantom_q[k].tolist(),
         }
-        for k in range(params.n_frames)
+        for k in range(params.n_exposures)
     ]
     frames = []
     for s, per_system in enumerate(data.truth.frames):
@@ -113,6 +99,12 @@ def truth_to_dict(data: SimulatedData, *, grid_step_px: float | None = None) -> 
                 "q": ft.q.tolist(),
                 "source_mm": ft.source_mm.tolist(),
             }
+            o = int(acq.exposure_orientation[ft.exposure])
+            if o >= 0:
+                orientation = acq.orientations[o]
+                entry.update(
+                    orientation=orientation.name, orbit_deg=orientation.orbit_deg, tilt_deg=orientation.tilt_deg
+                )
             entry["beads"] = {name: getattr(ft, name).tolist() for name in FrameTruth.BEAD_FIELDS}
             frames.append(entry)
     return {
@@ -135,3 +127,42 @@ def truth_to_dict(data: SimulatedData, *, grid_step_px: float | None = None) -> 
         "exposures": exposures,
         "frames": frames,
     }
+
+
+def _systems_to_dicts(params: SimulateParams, acq: Acquisition, step_px: float) -> list:
+    """``truth.json``'s ``systems``: geometry, distortion and correction grid, per orientation in a grid sequence."""
+    systems = []
+    for system in acq.systems:
+        systems.append(
+            {
+                "name": system.name,
+                "iop_px": system.iop_px.tolist(),
+                "source_image_distance_mm": system.source_image_distance_mm,
+                "pixel_pitch_mm": params.pixel_pitch_mm,
+                "lab_from_camera_q": system.lab_from_camera_q.tolist(),
+                "source_lab_mm": system.source_lab_mm.tolist(),
+                "distortion": system.distortion.to_dict(),
+                "correction_grid": _correction_grid(system.distortion, params.image_size_px, step_px),
+            }
+        )
+    if acq.orientations:
+        # the grid sequence's system A: its distortion at each orientation
+        systems[0]["orientations"] = [
+            {
+                "name": o.name,
+                "orbit_deg": o.orbit_deg,
+                "tilt_deg": o.tilt_deg,
+                "exposures": np.flatnonzero(acq.exposure_orientation == i).tolist(),
+                "field_change": o.field_change.tolist(),
+                "distortion": o.distortion.to_dict(),
+                "correction_grid": _correction_grid(o.distortion, params.image_size_px, step_px),
+            }
+            for i, o in enumerate(acq.orientations)
+        ]
+    return systems
+
+
+def _correction_grid(distortion, image_size_px: int, step_px: float) -> dict:
+    """``{x_px, y_px, delta_px}``: the correction Δ on a regular grid of measured coordinates (JSON lists)."""
+    gx, gy, delta = distortion.correction_grid(image_size_px, step_px)
+    return {"x_px": gx.tolist(), "y_px": gy.tolist(), "delta_px": delta.tolist()}
