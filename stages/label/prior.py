@@ -93,20 +93,25 @@ def label_from_prior(
     reason = "no pose near the neighbouring frame's brings beads onto the detections"
     settled = False
     tried: list = []
+    found: list = [*also]
+    winner = None
     for within, search in searches:
+        if within is None and winner is not None:
+            break  # the full circle only when nothing near the prediction stands
         starts = [s for s in search() if not any(_near(s, t) for t in tried)]
         tried += starts
-        found, why = _label_starts(view, starts)
-        found = [*also, *found]
+        new, why = _label_starts(view, starts)
+        found += new
         if found:
-            best, why = settle(frame, found, prior, None if also else within)
-            if best is not None:
-                return best, why
-            # a labelling found but not singled out says more than the failures of the other starts
-            reason, settled = why, True
+            # every region is searched: a labelling found in a narrower one may be a hinge or slip of the
+            # truth, which lies a few sigmas out when the axis wobbles
+            winner, why = settle(frame, found, prior, None if also else within)
+            if winner is None:
+                # a labelling found but not singled out says more than the failures of the other starts
+                reason, settled = why, True
         elif not settled:
             reason = why or reason
-    return None, reason
+    return (winner, "") if winner is not None else (None, reason)
 
 
 def _near(a: tuple, b: tuple) -> bool:
