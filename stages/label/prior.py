@@ -67,12 +67,14 @@ def label_from_prior(
     starts the search, its position across the beam does not matter (the shift is searched).
 
     Returns ``(result, "")`` or ``(None, reason)``. Rotations of the prediction within each of
-    ``_SEARCH_SIGMAS`` of its uncertainty in turn (a wider one only when the narrower gives no acceptable
-    labelling) are searched with the phantom's position free (:func:`_ball_starts`), then, with
-    ``turn_search``, turns about the prior's axis over the full circle (:func:`_turn_starts`). The
-    labellings found are settled against each other and their rivals, the prior deciding between those
-    that the frame itself cannot tell apart; a winner must lie in the region searched. Labellings found
-    otherwise (``also``: the frame's markers') compete with them on their evidence alone, wherever they lie.
+    ``_SEARCH_SIGMAS`` of its uncertainty in turn are searched with the phantom's position free
+    (:func:`_ball_starts`); every region is searched, and the labellings found so far are settled against
+    each other and their rivals after each, the prior deciding between those that the frame itself cannot
+    tell apart; a winner must lie in the region searched, and a wider region's winner replaces the
+    narrower's (a hinge of the truth near the prediction gives way to the truth a few sigmas out). With
+    ``turn_search`` and no winner, turns about the prior's axis over the full circle follow
+    (:func:`_turn_starts`). Labellings found otherwise (``also``: the frame's markers') compete with them
+    on their evidence alone, wherever they lie.
 
     ``camera`` (a neighbouring frame's: its ``iop`` and polynomial ``corr``, the system's distortion)
     sharpens the search: the detections vote corrected, and the starts are ranked by their
@@ -104,9 +106,12 @@ def label_from_prior(
         found += new
         if found:
             # every region is searched: a labelling found in a narrower one may be a hinge or slip of the
-            # truth, which lies a few sigmas out when the axis wobbles
-            winner, why = settle(frame, found, prior, None if also else within)
-            if winner is None:
+            # truth, which lies a few sigmas out when the axis wobbles; the wider search replaces the narrower's
+            # winner only with a labelling that stands against everything found
+            best, why = settle(frame, found, prior, None if also else within)
+            if best is not None:
+                winner = best
+            elif winner is None:
                 # a labelling found but not singled out says more than the failures of the other starts
                 reason, settled = why, True
         elif not settled:
