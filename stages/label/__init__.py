@@ -5,7 +5,7 @@ and the interior orientation):
 
 - **3D bead phantoms** (a cube, :mod:`.cube`): an approximate pose is found from the marker
   beads (role ``marker``, recognised by their larger apparent size), from a
-  few seeds ``(id, x, y)`` or from the previous frame's pose (:mod:`.markers`; with fewer
+  few seeds ``(id, x, y)`` or from a neighbouring frame's pose (:mod:`.markers`; with fewer
   than three marker detections, neighbouring beads complete the P3P: beads
   near a marker in the image are often its neighbours on the phantom). From there the
   labelling iterates (:mod:`.iterate`): project every bead through the pose and the assumed
@@ -23,20 +23,25 @@ and the interior orientation):
   (front and back faces of the cube overlap in the X-ray) and are left out,
   together with the detections they absorb. A labelling is accepted only if
   it explains most detections with small residuals and puts marker-sized
-  detections on markers. From another frame's pose (a sequence, :mod:`.prior`), the
-  orientation is taken as roughly right but the position is searched: every
-  detection-bead pair votes for the shift of the phantom across the beam that
-  would put the bead on the detection, over the whole image and a few depths;
-  the peaks of the vote are labelled, and the best labelling is kept only if
-  no distinct one (a periodic layout one row off) explains the frame about as
-  well. In a sequence (:func:`label_sequence`), a frame that still fails is
-  searched over turns about the turntable axis estimated from the frames
-  already labelled. A phantom that looks alike after a turn (its
-  near-symmetries, measured from its coordinates, :mod:`.symmetry`) lets a
-  frame without markers be explained by a turned pose as well: the labelling
-  from a prior is kept only if the beads' sizes, or a prior orientation much
-  nearer it than to every such rival, single it out; otherwise the frame fails
-  ("pose from the neighbouring frame is ambiguous").
+  detections on markers. A bead phantom is periodic, so a labelling may have rivals
+  that explain the frame almost as well: the phantom slipped by a bead row, turned a
+  few degrees about a wall seen face-on (a hinge), or turned by one of its
+  near-symmetries (:mod:`.symmetry`). Every labelling is weighed against them by its
+  evidence (:mod:`.rivals`: detections explained, minus those left unexplained and the
+  beads predicted where nothing was detected, the markers' sizes), and it stands only
+  if it is clearly the best.
+- **Sequences** (:func:`label_sequence`): each frame is first labelled from its own
+  seeds or markers; a frame that fails, or whose pose lies far from its neighbours',
+  is then labelled from its labelled neighbours on either side (:mod:`.motion`,
+  :mod:`.prior`): the orientation is predicted between them (or from one side and the
+  sequence's mean step), with uncertainties about and across the turntable axis
+  measured on the sequence itself (a regular step predicts the turn well, a wobbling
+  axis the tilt less so), and so is the phantom's depth; small rotations of the
+  prediction in any direction (the wobble) are searched with the position free (the
+  shift vote, :mod:`.votes`), using the neighbour's camera (principal distance,
+  distortion), then turns about the axis over the full circle. When the frame's
+  evidence cannot tell two labellings apart, the one much nearer the prediction wins;
+  otherwise the frame fails ("ambiguous").
 - **Grid plates** (``phantom.lattice`` ``"hex"`` or ``"square"``, :mod:`.lattice`): the holes
   are indexed on their lattice by topology, growing outward from a hole near
   the centre with local lattice vectors re-estimated at every hole, so that

@@ -5,11 +5,14 @@ from __future__ import annotations
 import numpy as np
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.geometry import matrix_to_quat, quat_to_matrix
+from fluorocal.stages.label.camera import project_cam
+from fluorocal.stages.label.correction import fit_correction, max_degree
 from fluorocal.stages.label.cube_frame import CubeFrame, make_cube_frame
 from fluorocal.stages.label.detections import Detections
-from fluorocal.stages.label.iterate import acceptable, iterate, rivals
+from fluorocal.stages.label.iterate import acceptable, agreement, iterate
 from fluorocal.stages.label.labels import Labels, failed_labels
 from fluorocal.stages.label.markers import marker_poses, pose_from_seeds
+from fluorocal.stages.label.motion import OrientationPrior
 from fluorocal.stages.label.params import (
     STATUS_AMBIGUOUS,
     STATUS_LABELLED,
@@ -18,59 +21,105 @@ from fluorocal.stages.label.params import (
     LabelParams,
 )
 from fluorocal.stages.label.prior import label_from_prior
+from fluorocal.stages.label.rivals import settle
 
 # a second pose hypothesis whose coarse score reaches this fraction of the best's is labelled too
 _RIVAL_SCORE = 0.8
+#: uncertainty (deg, 1 sigma) of a prior pose's orientation given without one
+_PRIOR_SIGMA_DEG = 2.0
 
 
 def label_cube(
-    det: Detections, phantom: Phantom, params: LabelParams, iop: np.ndarray, prior_pose, turntable_axis=None
+    det: Detections,
+    phantom: Phantom,
+    params: LabelParams,
+    iop: np.ndarray,
+    prior_pose,
+    orientation_prior: OrientationPrior | None = None,
+    turn_search: bool = False,
+    from_markers: bool = True,
+    pool: bool = False,
+    reference: Labels | None = None,
 ) -> Labels:
     """Label one frame of a 3D phantom from seeds, else from the markers and then from ``prior_pose``.
 
-    See :func:`fluorocal.stages.label.label_beads`; ``turntable_axis`` (camera frame, optional) lets a
-    frame that fails from the prior pose be searched over turns about it.
+    See :func:`fluorocal.stages.label.label_beads`. ``orientation_prior`` (optional) says how far the
+    orientation of ``prior_pose`` may be off (by default ``_PRIOR_SIGMA_DEG`` about any axis);
+    ``turn_search`` lets a frame that still fails be searched over turns about its axis.
+    ``from_markers=False`` skips the markers (they failed before); ``pool=True`` weighs the markers'
+    labellings together with those found from the prior (a frame whose markers gave a pose far from its
+    neighbours'). ``reference`` (a labelled frame of the same system) lends its camera to the search:
+    its principal distance and the distortion seen on its beads (:func:`_camera_of`).
     """
     frame, det = make_cube_frame(det, phantom, params, iop)
     if frame is None:
         return failed_labels(det.valid, iop, f"only {int(det.valid.sum())} usable detections")
-    groups = []  # (pose source, [(R, T), ...] best first, their coarse scores or None)
     if params.seeds:
         pose, why = pose_from_seeds(frame)
         if pose is None:
             return failed_labels(det.valid, iop, why, "seeds")
-        groups.append(("seeds", [pose], None))
-    else:
+        found, why = _label_from_poses(frame, [pose], None)
+        return _finish(frame, found[0] if found else None, why, "seeds")
+    reasons, best, found = [], None, []
+    if from_markers or prior_pose is None:
         poses, scores, why = marker_poses(frame)
         if poses:
-            groups.append(("markers", poses, scores))
-        if prior_pose is not None:
-            q, T = prior_pose
-            groups.append(("prior", [(quat_to_matrix(np.asarray(q, float)), np.asarray(T, float))], None))
-        if not groups:
-            return failed_labels(det.valid, iop, why, "markers")
-    reason = "no pose hypothesis converged"
-    for source, poses, scores in groups:
-        if source == "prior":
-            (best, why), refused = label_from_prior(frame, *poses[0], turntable_axis), False
-        else:
-            best, why, refused = _label_from_poses(frame, poses, scores)
-        if refused:
-            return failed_labels(det.valid, iop, why, source)
-        if best is None:
-            reason = why
-            continue
-        best["source"] = source
-        return _labels_from_result(frame, best)
-    return failed_labels(det.valid, iop, reason, groups[-1][0] if groups else "")
+            found, why = _label_from_poses(frame, poses, scores)
+            if found and not (pool and prior_pose is not None):
+                best, why = settle(frame, found)
+        if best is not None or prior_pose is None:
+            return _finish(frame, best, why, "markers")
+        reasons.append(f"from the markers: {why}")
+    q, T = prior_pose
+    R = quat_to_matrix(np.asarray(q, float))
+    if orientation_prior is None:
+        orientation_prior = OrientationPrior.isotropic(R, np.radians(_PRIOR_SIGMA_DEG))
+    # where the prior pose puts the phantom's centre, in the camera frame, at the predicted depth if any
+    p_centre = R @ (phantom.xyz_mm.mean(0) - np.asarray(T, float))
+    if orientation_prior.depth_mm is not None:
+        p_centre[2] = orientation_prior.depth_mm
+    camera = None if reference is None else _camera_of(frame, reference)
+    if camera is not None:
+        # the depth goes with the principal distance the search sees it with
+        p_centre[2] *= camera["iop"][2] / frame.iop[2]
+    best, why = label_from_prior(
+        frame, orientation_prior, p_centre, turn_search=turn_search, also=found if pool else (), camera=camera
+    )
+    reasons.append(why)
+    source = "markers" if best is not None and any(best is f for f in found) else "prior"
+    return _finish(frame, best, "; ".join(reasons), source)
 
 
-def _label_from_poses(frame: CubeFrame, poses: list, scores: list | None) -> tuple[dict | None, str, bool]:
-    """The first acceptable labelling from ``poses`` (best first): ``(result, "", False)``, else ``(None, why, False)``.
+def _camera_of(frame: CubeFrame, labels: Labels) -> dict | None:
+    """The camera of a labelled frame: its ``iop`` and the polynomial correction its beads show (None if too few).
 
-    When the next pose's coarse score comes within ``_RIVAL_SCORE`` of the accepted one's and its
-    labelling rivals it (:func:`fluorocal.stages.label.iterate.rivals`), the markers do not fix the
-    pose: ``(None, reason, True)``, and the frame fails.
+    The correction is refitted (degree up to the labelling's own, 3 by default) on the labelled beads'
+    pinhole projections through the frame's pose and their measured centres: the system's distortion,
+    which a neighbouring frame of the same system shares.
+    """
+    if len(labels) < 6 or not labels.ok:
+        return None
+    iop = np.asarray(labels.iop, dtype=np.float64)
+    ideal = project_cam((labels.object_xyz_mm - labels.source_mm) @ quat_to_matrix(labels.q).T, iop)
+    degree = min(frame.params.correction_degree, max_degree(len(labels)))
+    scale = 0.5 * float(np.hypot(frame.width, frame.height))
+    return {"iop": iop, "corr": fit_correction(ideal, labels.xy_px, degree, iop[:2], scale)}
+
+
+def _finish(frame: CubeFrame, best: dict | None, why: str, source: str) -> Labels:
+    """The Labels of labelling ``best`` found from ``source``, or of the failure ``why``."""
+    if best is None:
+        return failed_labels(frame.det.valid, frame.iop, why, source)
+    best["source"] = source
+    return _labels_from_result(frame, best)
+
+
+def _label_from_poses(frame: CubeFrame, poses: list, scores: list | None) -> tuple[list, str]:
+    """Acceptable labellings from ``poses`` (best first): the first, and the next if it scores about as well.
+
+    Returns the labellings (none: ``[]`` and the last failure's reason). The next pose is labelled too
+    when its coarse score comes within ``_RIVAL_SCORE`` of the accepted one's: two poses that explain the
+    detections about as well must both be weighed (:func:`~fluorocal.stages.label.rivals.settle`).
     """
     reason = "no pose hypothesis converged"
     for i in range(len(poses)):
@@ -80,16 +129,13 @@ def _label_from_poses(frame: CubeFrame, poses: list, scores: list | None) -> tup
             break
         reason = why
     else:
-        return None, reason, False
-    # a distinct pose that explains the detections about as well means the markers do not fix the pose
-    rival_start = scores is not None and i + 1 < len(poses) and scores[i + 1] >= _RIVAL_SCORE * scores[i]
-    rival = iterate(frame, *poses[i + 1]) if rival_start else None
-    if rival is not None and acceptable(frame, rival)[0] and rivals(best, rival):
-        if rival["n_labelled"] > best["n_labelled"]:
-            best, rival = rival, best
-        why = f"two poses explain the frame about equally well ({best['n_labelled']} vs {rival['n_labelled']} labels)"
-        return None, why, True
-    return best, "", False
+        return [], reason
+    found = [best]
+    if scores is not None and i + 1 < len(poses) and scores[i + 1] >= _RIVAL_SCORE * scores[i]:
+        rival = iterate(frame, *poses[i + 1])
+        if rival is not None and acceptable(frame, rival)[0] and agreement(rival, best) < 0.9:
+            found.append(rival)
+    return found, ""
 
 
 def _labels_from_result(frame: CubeFrame, res: dict) -> Labels:

@@ -24,13 +24,14 @@ def label_beads(centroids, phantom: Phantom, params: LabelParams, prior_pose: tu
     params : LabelParams
         ``source_image_distance_mm`` and ``pixel_pitch_mm`` must be set for a 3D phantom.
     prior_pose : (q, source_mm), optional
-        An approximate pose, e.g. the previous frame's of a sequence; tried when the markers give no acceptable
-        labelling (ignored when seeds are given). Its orientation is taken as roughly right, its position not:
-        the phantom's shift across the beam is searched over the whole image and its distance over a few %,
-        every clear peak is labelled, and the best labelling is kept only if no distinct one explains the
-        frame about as well (a periodic bead layout could otherwise slip by a row), nor a pose that a symmetry
-        of the phantom allows, unless the beads' sizes or a much nearer prior orientation rule it out (a cube
-        of identical walls looks alike half turned).
+        An approximate pose, e.g. a neighbouring frame's; tried when the markers give no acceptable
+        labelling (ignored when seeds are given). Its orientation is taken as right within a few degrees
+        (small rotations of it about any axis are searched, :mod:`.prior`), its position not: the phantom's
+        shift across the beam is searched over the whole image and its distance over a few %. The
+        labelling found is kept only if no rival explains the frame about as well (a periodic bead layout
+        one row off, a pose that a symmetry of the phantom allows), unless the beads' sizes or a much
+        nearer prior orientation rule it out; :func:`label_sequence` gives the search the sequence's
+        motion as well.
 
     Returns
     -------
@@ -46,8 +47,8 @@ def label_beads(centroids, phantom: Phantom, params: LabelParams, prior_pose: tu
     return label_frame(centroids, phantom, params, prior_pose)
 
 
-def label_frame(centroids, phantom: Phantom, params: LabelParams, prior_pose=None, turntable_axis=None) -> Labels:
-    """:func:`label_beads`, with the turntable axis (camera frame) of a sequence when it is known."""
+def label_frame(centroids, phantom: Phantom, params: LabelParams, prior_pose=None, **search) -> Labels:
+    """:func:`label_beads`, with the search options a sequence gives (:func:`~.cube.label_cube`)."""
     det = Detections.from_centroids(centroids)
     iop = assumed_iop(det, centroids, params, need_c=not phantom.lattice)
     if phantom.lattice:
@@ -58,4 +59,4 @@ def label_frame(centroids, phantom: Phantom, params: LabelParams, prior_pose=Non
         return label_grid(det, phantom, params, iop)
     if phantom.n_beads < 4:
         raise InputError(f"phantom must have at least 4 beads; got {phantom.n_beads}")
-    return label_cube(det, phantom, params, iop, prior_pose, turntable_axis)
+    return label_cube(det, phantom, params, iop, prior_pose, **search)

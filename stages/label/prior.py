@@ -1,210 +1,265 @@
-"""A 3D phantom labelled from another frame's pose: a global search over the phantom's shift (and turn).
+"""A 3D phantom labelled from a predicted pose (a neighbouring frame's): a search over small turns and shifts.
 
-The neighbouring frame's pose fixes the orientation roughly but not the position: every detection-bead
-pair votes for the shift of the phantom across the beam that would put the bead on the detection, over
-the whole image and a few depths; the peaks of the vote are labelled, and the best labelling is kept only
-if no distinct one (a periodic layout one row off) explains the frame about as well. A frame that still
-fails is searched over turns about the sequence's turntable axis. A labelling found so is kept only if
-no pose the phantom's near-symmetries allow (a cube half turned) explains the frame as well, unless the
-beads' sizes or a much nearer prior orientation rule it out: a frame is never labelled by a guess.
+Between the frames of a sequence the phantom turns (a turntable step, its axis wobbling) and moves by
+several bead rows. The predicted orientation is taken as roughly right, within a search radius, and the
+position not at all: every small rotation of it on a grid (any axis, :func:`_ball_starts`) is scored by the
+shift vote (:mod:`.votes`) at a few depths, the best distinct rotations get their vote's peaks as starts,
+and several starts are labelled; of the acceptable labellings the one with the most :func:`evidence` is
+checked against its rivals (:func:`~fluorocal.stages.label.rivals.settle`). Without an acceptable
+labelling near the prediction, turns about the sequence's turntable axis over the full circle are tried
+(a large step). A frame is never labelled by a guess: it fails when a rival explains it as well.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
-from fluorocal.stages.label.cube_frame import CubeFrame, coarse_score, visible
-from fluorocal.stages.label.iterate import acceptable, agreement, iterate, rivals, sizes_consistent
-from fluorocal.stages.label.symmetry import phantom_symmetries, turn_angle
+from fluorocal.stages.label.cube_frame import CubeFrame, coarse_evidence, with_camera
+from fluorocal.stages.label.iterate import acceptable, agreement, iterate
+from fluorocal.stages.label.motion import OrientationPrior
+from fluorocal.stages.label.rivals import evidence, polish, settle
+from fluorocal.stages.label.symmetry import turn_angle
+from fluorocal.stages.label.votes import (
+    N_DEPTH_DETECTIONS,
+    N_PEAKS,
+    rays_of,
+    shift_peaks,
+    shift_starts,
+    shift_strength,
+    shift_votes,
+)
 
-# from another frame's pose: peaks of the shift vote kept as starts, sought among this many of the strongest bins
-_N_PEAKS = 8
-_N_PEAK_BINS = 300
-# ... starts labelled (best coarse score first) until one is acceptable
-_MAX_STARTS = 6
-# ... and another start is labelled in full when its screen count reaches this fraction of the labelling's
-_SCREEN_RIVAL = 0.85
-# the phantom's distance from the source may change by this fraction between neighbouring frames
-_MAX_DEPTH_CHANGE = 0.05
-# detections voting (evenly thinned) when depths or turns are compared, and turns searched in full
-_N_DEPTH_DETECTIONS = 80
+# the rotation grid: spacing that moves the beads farthest from the phantom's centre by this many gates ...
+_GRID_GATES = 1.6
+# ... within these many standard deviations of the prediction in turn (a wider search when the narrower
+# finds nothing), and at most this far (deg) about any axis
+_SEARCH_SIGMAS = (3.0, 6.0)
+_MAX_SEARCH_DEG = 16.0
+_MAX_GRID_STEPS = 12
+# the phantom's distance from the source: levels this fraction of it apart, covering this many sigmas of
+# its prediction (by default this fraction of it)
+_DEPTH_SPACING = 0.02
+_DEPTH_SIGMAS = 2.5
+_DEFAULT_SIGMA_DEPTH = 0.025
+# distinct rotations (at least two grid steps apart) whose vote peaks are kept as starts, peaks per rotation
+_N_ROTATIONS = 16
+# rotations that polish to within this angle (deg) of one another share their slips
+_SAME_ORIENTATION_DEG = 0.5
+# starts labelled in full (best coarse score first)
+_MAX_STARTS = 16
+# turns about the turntable axis: detections voting, turns searched in full, candidates re-scored
 _N_TURN_DETECTIONS = 120
 _N_TURNS = 4
 _N_TURN_CANDIDATES = 12
-# symmetric rivals: sizes that fit markers by this many more rule a rival out; else the prior decides, when
-# every other is this many times as far from it as the nearest
-_SIZE_MARGIN = 2
-_PRIOR_MARGIN = 3.0
 
 
 def label_from_prior(
-    frame: CubeFrame, R0: np.ndarray, T0: np.ndarray, axis: np.ndarray | None
+    frame: CubeFrame,
+    prior: OrientationPrior,
+    p_centre: np.ndarray,
+    *,
+    turn_search: bool = False,
+    also: list = (),
+    camera: dict | None = None,
 ) -> tuple[dict | None, str]:
-    """Label a frame from a neighbouring frame's pose ``(R0, T0)``; ``(result, "")`` or ``(None, reason)``.
+    """Label a frame from a predicted orientation ``prior`` and the phantom centre's place ``p_centre``.
 
-    The neighbouring pose fixes the orientation roughly (a turntable step) but not the position: the
-    phantom may have moved by several bead rows across the beam and by a few % of its distance along
-    it, and a start one row off converges to a labelling one row off that fits about as well. So the
-    position is searched over the whole image (:func:`_shift_starts`), the best peaks are labelled, and
-    the best labelling is kept only if no distinct one explains the frame about as well
-    (:func:`_best_start`). When that fails and the sequence's turntable ``axis`` (camera frame) is
-    known, the search is repeated over turns of the phantom about that axis (:func:`_turn_starts`).
-    Last, a phantom that looks alike after a turn (a cube of identical walls) allows the found pose's
-    symmetric rivals, which a frame without markers cannot tell from it: the labelling is kept only if
-    the beads' sizes or, failing them, the prior's orientation single it out (:func:`resolve_symmetry`).
+    ``p_centre`` (camera frame, mm) is where a neighbouring frame saw the phantom's centre: its depth
+    starts the search, its position across the beam does not matter (the shift is searched).
+
+    Returns ``(result, "")`` or ``(None, reason)``. Rotations of the prediction within each of
+    ``_SEARCH_SIGMAS`` of its uncertainty in turn are searched with the phantom's position free
+    (:func:`_ball_starts`); every region is searched, and the labellings found so far are settled against
+    each other and their rivals after each, the prior deciding between those that the frame itself cannot
+    tell apart; a winner must lie in the region searched, and a wider region's winner replaces the
+    narrower's (a hinge of the truth near the prediction gives way to the truth a few sigmas out). With
+    ``turn_search`` and no winner, turns about the prior's axis over the full circle follow
+    (:func:`_turn_starts`). Labellings found otherwise (``also``: the frame's markers') compete with them
+    on their evidence alone, wherever they lie.
+
+    ``camera`` (a neighbouring frame's: its ``iop`` and polynomial ``corr``, the system's distortion)
+    sharpens the search: the detections vote corrected, and the starts are ranked by their
+    :func:`~fluorocal.stages.label.rivals.evidence` under it; without it, by the pinhole's
+    :func:`~fluorocal.stages.label.cube_frame.coarse_evidence`.
     """
-    rays = _rays(frame, frame.det_xy)
-    best, why = _best_start(frame, _shift_starts(frame, R0, T0, rays))
-    if best is None and axis is not None:
-        best, why = _best_start(frame, _turn_starts(frame, R0, T0, axis))
-    if best is None:
-        return best, why
-    return resolve_symmetry(frame, best, R0)
+    view = _Search(frame, camera)
+    # (region searched in the prior's standard deviations, its starts); None: the full circle
+    sizes = [_semi_axes(prior, k) for k in _SEARCH_SIGMAS]
+    # a wider region that the cap leaves as the narrower one is not searched again
+    searches = [
+        (k, lambda k=k: _ball_starts(view, prior, p_centre, k))
+        for i, k in enumerate(_SEARCH_SIGMAS)
+        if i == 0 or sizes[i] != sizes[i - 1]
+    ]
+    if turn_search:
+        searches.append((None, lambda: _turn_starts(view, prior.R, p_centre, prior.axis)))
+    reason = "no pose near the neighbouring frame's brings beads onto the detections"
+    settled = False
+    tried: list = []
+    found: list = [*also]
+    winner = None
+    for within, search in searches:
+        if within is None and winner is not None:
+            break  # the full circle only when nothing near the prediction stands
+        starts = [s for s in search() if not any(_near(s, t) for t in tried)]
+        tried += starts
+        new, why = _label_starts(view, starts)
+        found += new
+        if found:
+            # every region is searched: a labelling found in a narrower one may be a hinge or slip of the
+            # truth, which lies a few sigmas out when the axis wobbles; the wider search replaces the narrower's
+            # winner only with a labelling that stands against everything found
+            best, why = settle(frame, found, prior, None if also else within)
+            if best is not None:
+                winner = best
+            elif winner is None:
+                # a labelling found but not singled out says more than the failures of the other starts
+                reason, settled = why, True
+        elif not settled:
+            reason = why or reason
+    return (winner, "") if winner is not None else (None, reason)
 
 
-def _rays(frame: CubeFrame, xy: np.ndarray) -> np.ndarray:
-    """``(x, y) / z`` in camera coordinates of the rays through image points ``xy`` (pinhole)."""
-    return (xy - frame.iop[:2]) / frame.iop[2]
+def _near(a: tuple, b: tuple) -> bool:
+    """Starts ``(R, T, votes)`` within a degree and a millimetre of each other (tried already)."""
+    return 0.5 * (np.trace(a[0].T @ b[0]) - 1.0) > np.cos(np.radians(1.0)) and np.linalg.norm(a[1] - b[1]) < 1.0
 
 
-def _depth_steps(frame: CubeFrame, depth_mm: float) -> np.ndarray:
-    """Changes of the phantom's distance from the source (mm) to try: up to ``_MAX_DEPTH_CHANGE`` of it.
+def _label_starts(search: "_Search", starts: list) -> tuple[list, str]:
+    """Distinct labellings from the best of ``starts`` (by coarse evidence), and the last failure's reason.
 
-    The steps move the detection farthest from the principal point by one assignment gate.
+    Those acceptable but for the beads' sizes are kept too (``eligible`` False): a start one slip off
+    the truth puts markers on ordinary beads, and the truth is among its slips.
     """
-    r_max = float(np.max(np.linalg.norm(frame.det_xy - frame.iop[:2], axis=1), initial=1.0))
-    step = frame.params.gate_bead_diameters * frame.diam_ref_px * depth_mm / max(r_max, 1.0)
-    n = int(np.ceil(_MAX_DEPTH_CHANGE * depth_mm / step))
-    return np.arange(-n, n + 1) * step
+    if not starts:
+        return [], ""
+    # the starts were found with the search's camera: the labellings start from it too
+    frame = search.vote_frame
+    scores = np.array([search.score(R, T) for R, T, _ in starts])
+    found: list = []
+    reason = ""
+    for k in np.argsort(-scores, kind="stable")[:_MAX_STARTS]:
+        result = iterate(frame, *starts[k][:2])
+        ok, why = (False, "the labelling diverged") if result is None else acceptable(frame, result)
+        if not ok:
+            reason = f"from the neighbouring frame's pose, moved: {why}"
+            if result is None or not acceptable(frame, {**result, "sizes_consistent": True})[0]:
+                continue
+        result["eligible"] = ok
+        if all(agreement(result, f) < 0.9 for f in found):
+            found.append(result)
+    return found, reason
 
 
-def _shift_starts(frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, n_keep: int = 0) -> list:
-    """Start poses ``[(R, T, votes)]``: the pose moved to where many beads meet detections, best first.
+def _ball_starts(search: "_Search", prior: OrientationPrior, p_centre: np.ndarray, k_sigma: float) -> list:
+    """Start poses ``[(R, T, votes)]`` from rotations of the prediction within ``k_sigma`` of its uncertainty.
 
-    Each of :func:`_depth_steps` is tried; at each, every pair of a detection and a bead votes for the
-    shift across the beam that puts the bead on the detection's ray (:func:`_shift_votes`). The depth
-    whose strongest peak gathers the most votes of a thinned set of detections (``_N_DEPTH_DETECTIONS``)
-    is kept, and the vote of all detections there gives its peaks (``n_keep``, default
-    ``_N_PEAKS``): the peaks of a periodic layout, one period apart, must all be labelled to be told
-    apart.
+    The rotations (about the phantom's centre) lie on a cubic grid of rotation vectors whose spacing
+    moves the beads farthest from the centre by ``_GRID_GATES`` assignment gates, within the ellipsoid of
+    ``k_sigma`` times the prior's turn and tilt uncertainties (each at most ``_MAX_SEARCH_DEG``; the
+    prediction itself always). Each is scored by the strongest peak of its shift vote
+    (:func:`~fluorocal.stages.label.votes.shift_strength`, a thinned set of detections) at the depths the
+    prior allows (:func:`_depth_levels`). For each of the ``_N_ROTATIONS`` best rotations at least two grid
+    steps apart, the strongest peak of its full vote (:func:`~fluorocal.stages.label.votes.shift_peaks`) is
+    polished: whichever slip it is, its orientation is then its basin's, where the vote is sharp and its
+    peaks are the slips; the one that explains the frame best (:meth:`_Search.score`) is the basin's start.
+    Rotations that polish to one orientation share a start.
     """
-    depth = float(np.median((frame.phantom.xyz_mm - T) @ R[2]))
-    thin = (
-        rays[np.linspace(0, len(rays) - 1, _N_DEPTH_DETECTIONS).astype(int)]
-        if len(rays) > _N_DEPTH_DETECTIONS
-        else rays
-    )
-    steps = _depth_steps(frame, depth)
-    best_dz = steps[int(np.argmax([_shift_strength(frame, R, T - dz * R[2], thin) for dz in steps]))]
-    return _shift_peaks(frame, R, T - best_dz * R[2], rays, n_keep or _N_PEAKS)
+    from scipy.spatial.transform import Rotation
 
-
-def _shift_votes(
-    frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, *, bin_gates: float = 0.5, box: int = 3
-):
-    """The vote for shifts of pose ``(R, T)`` across the beam; None without beads in front of the source.
-
-    Every pair of a detection (``rays``) and a bead votes for the shift (camera x, y at the bead's depth,
-    mm) that puts the bead on the detection's ray. Votes are binned at ``bin_gates`` assignment gates.
-
-    Returns
-    -------
-    hist : (H, W) int64 ndarray
-        Votes per bin.
-    votes : (H, W) int64 ndarray
-        Votes summed over ``box`` x ``box`` bins (starting at the bin, or for an odd box, centred on it).
-    lo : (2,) float64 ndarray
-        Index of bin ``[0, 0]`` (shift / bin size, floored).
-    bin_mm : float
-    """
-    p_cam = (frame.phantom.xyz_mm - T) @ R.T
-    p_cam = p_cam[p_cam[:, 2] > 0]
-    if len(p_cam) < 4 or not len(rays):
-        return None
-    bin_mm = (
-        bin_gates * frame.params.gate_bead_diameters * frame.diam_ref_px * float(np.median(p_cam[:, 2])) / frame.iop[2]
-    )
-    # shape (D, B) each: the shift (in bins) that moves bead b onto detection d's ray, at b's depth
-    z = p_cam[:, 2] / bin_mm
-    fx = rays[:, 0:1] * z - p_cam[:, 0] / bin_mm
-    fy = rays[:, 1:2] * z - p_cam[:, 1] / bin_mm
-    lo = np.floor([fx.min(), fy.min()])
-    ix, iy = (fx - lo[0]).astype(np.int64), (fy - lo[1]).astype(np.int64)
-    shape = (int(ix.max()) + 1, int(iy.max()) + 1)
-    ix *= shape[1]
-    ix += iy
-    hist = np.bincount(ix.ravel(), minlength=shape[0] * shape[1]).reshape(shape)
-    padded = np.pad(hist, ((box // 2, box - 1 - box // 2),) * 2)
-    # separable box sum
-    rows = sum(padded[a : a + shape[0]] for a in range(box))
-    votes = sum(rows[:, b : b + shape[1]] for b in range(box))
-    return hist, votes, lo, bin_mm
-
-
-def _shift_strength(frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarray) -> float:
-    """Votes of the strongest peak of :func:`_shift_votes` on a coarser grid; 0 without one.
-
-    The grid has bins of a gate and 2 x 2 sums: for comparing depths and turns, 4x faster.
-    """
-    vote = _shift_votes(frame, R, T, rays, bin_gates=1.0, box=2)
-    return 0.0 if vote is None else float(vote[1].max())
-
-
-def _shift_peaks(frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, n_keep: int) -> list:
-    """The ``n_keep`` strongest peaks ``[(R, T, votes)]`` of :func:`_shift_votes`, at least 3 bins apart.
-
-    Each is located at the vote-weighted mean of its 3 x 3 bins.
-    """
-    vote = _shift_votes(frame, R, T, rays)
-    if vote is None:
+    frame, rays = search.vote_frame, search.rays
+    xyz = frame.phantom.xyz_mm
+    centre = xyz.mean(0)
+    R0 = prior.R
+    extent = float(np.max(np.linalg.norm(xyz - centre, axis=1)))
+    if not p_centre[2] > 0:
         return []
-    hist, votes, lo, bin_mm = vote
-    shape = votes.shape
-    votes = votes.ravel()
-    # greedy non-maximum suppression among the strongest bins
-    top = np.argpartition(-votes, min(_N_PEAK_BINS, len(votes) - 1))[:_N_PEAK_BINS]
-    top = top[np.argsort(-votes[top], kind="stable")]
-    kept: list[tuple[int, int]] = []
-    out = []
-    for k in top:
-        if votes[k] <= 0 or len(kept) == n_keep:
+    gate_mm = frame.params.gate_bead_diameters * frame.diam_ref_px * p_centre[2] / frame.iop[2]
+    # a phantom large for its beads would need a fine grid: at most _MAX_GRID_STEPS steps out to the cap
+    step = max(_GRID_GATES * gate_mm / extent, np.radians(_MAX_SEARCH_DEG) / _MAX_GRID_STEPS)
+    a_turn, a_tilt = _semi_axes(prior, k_sigma)
+    n = int(np.floor(max(a_turn, a_tilt) / step))
+    g = np.arange(-n, n + 1) * step
+    # shape (G, 3): the grid's rotation vectors within the ellipsoid
+    vecs = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    turn = vecs @ prior.axis
+    tilt = np.linalg.norm(vecs - np.outer(turn, prior.axis), axis=1)
+    vecs = vecs[(turn / a_turn) ** 2 + (tilt / a_tilt) ** 2 <= 1 + 1e-9]
+    turns = Rotation.from_rotvec(vecs).as_matrix()
+    thin = (
+        rays[np.linspace(0, len(rays) - 1, N_DEPTH_DETECTIONS).astype(int)] if len(rays) > N_DEPTH_DETECTIONS else rays
+    )
+    depths = _depth_levels(prior, p_centre[2])
+
+    def pose(k, dz):
+        R = turns[k] @ R0
+        return R, centre - R.T @ (p_centre + [0.0, 0.0, dz])
+
+    # shape (G, 3): strength of each rotation at each depth
+    strength = np.array([[shift_strength(frame, *pose(k, dz), thin) for dz in depths] for k in range(len(vecs))])
+    best = strength.max(1)
+    kept: list[int] = []
+    for k in np.argsort(-best, kind="stable"):
+        if len(kept) == _N_ROTATIONS:
             break
-        i, j = divmod(int(k), shape[1])
-        if any(abs(i - a) <= 2 and abs(j - b) <= 2 for a, b in kept):
+        if all(np.max(np.abs(vecs[k] - vecs[j])) > 1.5 * step for j in kept):
+            kept.append(int(k))
+    starts: list = []
+    for k in kept:
+        dz = depths[int(np.argmax(strength[k]))]
+        peaks = shift_peaks(frame, *pose(k, dz), rays, N_PEAKS)
+        if not peaks:
             continue
-        kept.append((i, j))
-        i0, j0 = max(i - 1, 0), max(j - 1, 0)
-        win = hist[i0 : i + 2, j0 : j + 2].astype(np.float64)
-        ii, jj = np.meshgrid(np.arange(i0, i0 + win.shape[0]), np.arange(j0, j0 + win.shape[1]), indexing="ij")
-        centre = (np.array([(ii * win).sum(), (jj * win).sum()]) / win.sum() + lo + 0.5) * bin_mm
-        out.append((R, T - R.T @ np.array([centre[0], centre[1], 0.0]), float(votes[k])))
-    return out
+        # the strongest peak polished: its orientation is the basin's, whichever slip it is
+        R, T = search.polish(*peaks[0][:2])
+        if any(turn_angle(R, s[0]) < np.radians(_SAME_ORIENTATION_DEG) for s in starts):
+            continue
+        # at that orientation the vote is sharp and its peaks are the slips: the one that explains the frame best
+        slips = [(R, T, peaks[0][2]), *shift_peaks(frame, R, T, rays, N_PEAKS)]
+        starts.append(max(slips, key=lambda s: search.score(s[0], s[1])))
+    return starts
 
 
-def _turn_starts(frame: CubeFrame, R0: np.ndarray, T0: np.ndarray, axis: np.ndarray) -> list:
+def _depth_levels(prior: OrientationPrior, depth_mm: float) -> np.ndarray:
+    """Moves (mm) of the phantom's centre along the beam scored at each rotation: its predicted depth's spread.
+
+    Levels ``_DEPTH_SPACING`` of the depth apart (the vote holds about half of that either way) cover
+    ``_DEPTH_SIGMAS`` of the prediction's error (``_DEFAULT_SIGMA_DEPTH`` of the depth when not given).
+    """
+    sigma = prior.sigma_depth_mm if prior.sigma_depth_mm is not None else _DEFAULT_SIGMA_DEPTH * depth_mm
+    spacing = _DEPTH_SPACING * depth_mm
+    n = int(np.ceil(max(_DEPTH_SIGMAS * sigma - 0.5 * spacing, 0.0) / spacing))
+    return np.arange(-n, n + 1) * spacing
+
+
+def _semi_axes(prior: OrientationPrior, k_sigma: float) -> tuple[float, float]:
+    """Semi-axes (rad) about and across the turntable axis of the region within ``k_sigma`` of the prior."""
+    cap = np.radians(_MAX_SEARCH_DEG)
+    return min(k_sigma * prior.sigma_turn_rad, cap), min(k_sigma * prior.sigma_tilt_rad, cap)
+
+
+def _turn_starts(search: "_Search", R0: np.ndarray, p_centre: np.ndarray, axis: np.ndarray) -> list:
     """Start poses ``[(R, T, votes)]`` turned about ``axis`` (camera frame) over the full circle.
 
     The phantom is turned about the axis through its centre, in steps that move the beads farthest
     from the axis by two assignment gates. Each turn is scored by the strongest peak of its shift vote
-    on a coarse grid and a thinned set of detections (:func:`_shift_strength`, the prior's depth); the
-    ``_N_TURN_CANDIDATES`` best local maxima over the angle are re-scored on the fine grid with all
-    detections (:func:`_shift_votes`) at half-step offsets, and the ``_N_TURNS`` best get the full search of
-    :func:`_shift_starts`. All their peaks are returned, best first: a phantom that looks alike after
-    a turn (a cube after a quarter turn) must show both.
+    on a coarse grid and a thinned set of detections (the prior's depth); the ``_N_TURN_CANDIDATES`` best
+    local maxima over the angle are re-scored on the fine grid with all detections at half-step
+    offsets, and the ``_N_TURNS`` best get the full shift search. All their peaks are returned, best first:
+    a phantom that looks alike after a turn (a cube after a quarter turn) must show both.
     """
     import cv2
 
+    if not p_centre[2] > 0:
+        return []
+    frame, rays = search.vote_frame, search.rays
     xyz = frame.phantom.xyz_mm
     centre = xyz.mean(0)
-    p_centre = R0 @ (centre - T0)
     axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
     rel = (xyz - centre) @ R0.T
     radius = float(np.max(np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)))
     gate_mm = frame.params.gate_bead_diameters * frame.diam_ref_px * p_centre[2] / frame.iop[2]
     n_steps = int(np.clip(np.ceil(np.pi * radius / gate_mm), 8, 360))
     step = 2 * np.pi / n_steps
-    rays = _rays(frame, frame.det_xy)
 
     def turned(angle):
         turn, _ = cv2.Rodrigues(axis * angle)
@@ -212,13 +267,13 @@ def _turn_starts(frame: CubeFrame, R0: np.ndarray, T0: np.ndarray, axis: np.ndar
         return R, centre - R.T @ p_centre
 
     def strength(angle):
-        vote = _shift_votes(frame, *turned(angle), rays)
+        vote = shift_votes(frame, *turned(angle), rays)
         return 0.0 if vote is None else float(vote[1].max())
 
     thin = (
         rays[np.linspace(0, len(rays) - 1, _N_TURN_DETECTIONS).astype(int)] if len(rays) > _N_TURN_DETECTIONS else rays
     )
-    scan = np.array([_shift_strength(frame, *turned(a), thin) for a in np.arange(n_steps) * step])
+    scan = np.array([shift_strength(frame, *turned(a), thin) for a in np.arange(n_steps) * step])
     local = np.flatnonzero((scan >= np.roll(scan, 1)) & (scan >= np.roll(scan, -1)))
     refined = []
     for k in local[np.argsort(-scan[local], kind="stable")][:_N_TURN_CANDIDATES]:
@@ -226,150 +281,40 @@ def _turn_starts(frame: CubeFrame, R0: np.ndarray, T0: np.ndarray, axis: np.ndar
         scores = [strength(a) for a in angles]
         refined.append((max(scores), angles[int(np.argmax(scores))]))
     refined.sort(key=lambda s: -s[0])
-    starts = [s for _, a in refined[:_N_TURNS] for s in _shift_starts(frame, *turned(a), rays)]
+    starts = [s for _, a in refined[:_N_TURNS] for s in shift_starts(frame, *turned(a), rays)]
     return sorted(starts, key=lambda s: -s[2])
 
 
-def _best_start(frame: CubeFrame, starts: list) -> tuple[dict | None, str]:
-    """Label from the starts, best coarse score first; the best labelling, unless a rival matches it.
+class _Search:
+    """The frame as the search sees it: the camera its votes use, the detections' rays, how starts are ranked.
 
-    Starts are labelled until one is acceptable. A periodic layout gives a start one period off almost
-    the same coarse score, so every other start is then checked: moved as that labelling moved from its
-    start, and re-aligned by the median offset of its matches, it is counted with the labelling's model
-    (pose, ``c``, correction) and the final gate (:func:`screen`); those that reach
-    ``_SCREEN_RIVAL`` of the labelling's own count, with detection sizes that fit the beads (a slip
-    that puts markers on ordinary beads is no rival), are labelled in full, and the best labelling is kept
-    only if no distinct acceptable one comes within ``_RIVAL_LABELS`` of it.
+    With a neighbour's ``camera`` (``iop`` and polynomial ``corr``), the detections are corrected by it
+    before they vote and the starts are ranked by their evidence under it (the final gate, the phantom's
+    ends); without, the assumed pinhole and its coarse evidence (the assignment gate).
     """
-    if not starts:
-        return None, "no shift of the previous frame's pose brings beads onto the detections"
-    scores = np.array([coarse_score(frame, R, T) for R, T, _ in starts])
-    order = np.argsort(-scores, kind="stable")
-    reason = "no shift of the previous frame's pose gives an acceptable labelling"
-    best, k_best = None, -1
-    for k in order[:_MAX_STARTS]:
-        result = iterate(frame, starts[k][0], starts[k][1])
-        ok, why = (False, "the labelling diverged") if result is None else acceptable(frame, result)
-        if ok:
-            best, k_best = result, k
-            break
-        reason = f"from the previous frame's pose, shifted: {why}"
-    if best is None:
-        return None, reason
-    # the rigid motion that took the start to the labelling's pose, in camera coordinates: p -> A p + b
-    R0, T0, _ = starts[k_best]
-    A = best["R"] @ R0.T
-    b = best["R"] @ (T0 - best["T"])
-    own, _ = screen(frame, best, best["R"], best["T"])
-    accepted = [best]
-    for k in order:
-        if k == k_best:
-            continue
-        R = A @ starts[k][0]
-        T = starts[k][1] - R.T @ b
-        n, sizes_ok = screen(frame, best, R, T, _SCREEN_RIVAL * own)
-        if n < _SCREEN_RIVAL * own or not sizes_ok:
-            continue
-        result = iterate(frame, *starts[k][:2])
-        if result is None or not acceptable(frame, result)[0]:
-            continue
-        if all(agreement(result, other) < 0.9 for other in accepted):
-            accepted.append(result)
-    accepted.sort(key=lambda r: -r["n_labelled"])
-    best = accepted[0]
-    for other in accepted[1:]:
-        if rivals(best, other):
-            return None, (
-                f"pose from the neighbouring frame is ambiguous: two shifts of it explain the frame about equally well "
-                f"({best['n_labelled']} vs {other['n_labelled']} labels)"
-            )
-    return best, ""
 
+    def __init__(self, frame: CubeFrame, camera: dict | None):
+        from fluorocal.stages.label.correction import Correction
 
-def screen(frame: CubeFrame, result: dict, R: np.ndarray, T: np.ndarray, min_count: float = 0.0) -> tuple[int, bool]:
-    """Beads that pose ``(R, T)`` puts within the final gate of a detection, under ``result``'s model.
+        self.frame, self.camera = frame, camera
+        scale = 0.5 * float(np.hypot(frame.width, frame.height))
+        self.model = camera or {"iop": frame.iop, "corr": Correction(frame.iop[:2].copy(), scale)}
+        if camera is None:
+            self.vote_frame, ideal = frame, frame.det_xy
+        else:
+            iop = camera["iop"]
+            self.vote_frame = with_camera(frame, iop)
+            ideal = frame.det_xy
+            for _ in range(2):
+                ideal = camera["corr"].undistort_points(frame.det_xy, ideal)
+        self.rays = rays_of(self.vote_frame, ideal)
 
-    Returns the count and whether their detections' sizes fit them (:func:`sizes_consistent`; checked
-    only for ``min_count`` beads or more, True below).
+    def polish(self, R: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pose ``(R, T)`` refined on the detections nearest its beads (under the camera, or the pinhole)."""
+        return polish(self.frame, self.model, R, T)
 
-    The pose is first moved across the image by the median offset of the detections within the
-    assignment gate of its predictions (twice), so that a start a little off its peak counts in full.
-    """
-    p = frame.params
-    sub = replace(frame, iop=result["iop"])
-    vis, ideal, diam = visible(sub, R, T)
-    if not len(vis):
-        return 0, True
-    pred = result["corr"].distort_points(ideal[vis])
-    for _ in range(2):
-        d, j = frame.det_tree.query(pred, distance_upper_bound=p.gate_bead_diameters * frame.diam_ref_px)
-        hit = np.isfinite(d)
-        if hit.sum() < 3:
-            return int(hit.sum()), True
-        pred = pred + np.median(frame.det_xy[j[hit]] - pred[hit], axis=0)
-    d, j = frame.det_tree.query(pred)
-    close = d <= p.final_gate_bead_diameters * diam[vis]
-    n = int(close.sum())
-    return n, n < min_count or sizes_consistent(sub, R, T, vis[close], j[close])
-
-
-def resolve_symmetry(frame: CubeFrame, best: dict, R_prior: np.ndarray) -> tuple[dict | None, str]:
-    """The labelling from a prior pose among those the phantom's near-symmetries allow; ``(None, reason)`` if unsure.
-
-    A frame without markers shows a phantom that looks alike after a symmetry ``g`` (a cube turned by a
-    quarter or half turn, :func:`~fluorocal.stages.label.symmetry.phantom_symmetries`) as it shows the
-    phantom itself, so the labelling ``best`` found near the prior pose has rivals: ``best``'s pose moved
-    by each ``g``. Each rival that screens about as well (:func:`screen`) is labelled in full; those that
-    are acceptable and label about as many detections with other ids (:func:`rivals`) are candidates
-    with ``best``. Then, in turn:
-
-    1. the sizes: a candidate whose labelled markers fit their detections' sizes by ``_SIZE_MARGIN`` more
-       (fits minus misfits, :func:`~fluorocal.stages.label.iterate.size_evidence`) than another's rules
-       that other out;
-    2. the prior: of the candidates left, the one nearest the prior pose is kept if every other is at
-       least ``_PRIOR_MARGIN`` times as far from it (rotation angles). The neighbour's pose is close to
-       the frame's when the sequence steps by small turns, and then the found pose is much nearer the
-       prior than any symmetric rival; a step comparable with the symmetry's angle leaves both at
-       similar distances, and the prior does not say which;
-    3. otherwise the frame fails: "pose from the neighbouring frame is ambiguous: ...".
-
-    A rival that the prior rules out is not labelled when no labelled bead of ``best``'s is off its size
-    (it could not win on sizes either).
-    """
-    xyz = frame.phantom.xyz_mm
-    centre = xyz.mean(0)
-    own, _ = screen(frame, best, best["R"], best["T"])
-    found = [(best, None)]
-    a_best = turn_angle(best["R"], R_prior)
-    clean = best["size_evidence"] is None or best["size_evidence"][1] == 0
-    for Rg, t, _ in phantom_symmetries(xyz):
-        # the pose that shows the phantom moved by g: x -> Rg (x - centre) + centre + t
-        R = best["R"] @ Rg
-        T = centre - Rg.T @ (centre + t - best["T"])
-        if clean and a_best * _PRIOR_MARGIN <= turn_angle(R, R_prior):
-            # the prior rules this rival out, and its sizes could not: no bead of best's is off its size, so
-            # the rival, the same detections relabelled, cannot fit more markers by _SIZE_MARGIN
-            continue
-        n, sizes_ok = screen(frame, best, R, T, _SCREEN_RIVAL * own)
-        if n < _SCREEN_RIVAL * own or not sizes_ok:
-            continue
-        other = iterate(frame, R, T)
-        if other is not None and acceptable(frame, other)[0] and rivals(best, other):
-            if all(agreement(other, f) < 0.9 for f, _ in found):
-                found.append((other, Rg))
-    if len(found) == 1:
-        return best, ""
-    fit = [0 if f["size_evidence"] is None else f["size_evidence"][0] - f["size_evidence"][1] for f, _ in found]
-    found = [f for f, s in zip(found, fit) if s > max(fit) - _SIZE_MARGIN]
-    angles = np.degrees([turn_angle(f["R"], R_prior) for f, _ in found])
-    order = np.argsort(angles)
-    if len(found) == 1 or angles[order[0]] * _PRIOR_MARGIN <= angles[order[1]]:
-        return found[order[0]][0], ""
-    near, far = order[:2]
-    g = found[far][1] if found[far][1] is not None else found[near][1]
-    return None, (
-        f"pose from the neighbouring frame is ambiguous: the phantom looks alike turned by "
-        f"{np.degrees(turn_angle(g, np.eye(3))):.0f} deg, and two such poses label the frame about as well "
-        f"({found[near][0]['n_labelled']} and {found[far][0]['n_labelled']} labels), "
-        f"{angles[near]:.0f} and {angles[far]:.0f} deg from the neighbour's"
-    )
+    def score(self, R: np.ndarray, T: np.ndarray) -> float:
+        """How well pose ``(R, T)`` explains the frame (higher is better)."""
+        if self.camera is None:
+            return float(coarse_evidence(self.frame, R, T))
+        return evidence(self.frame, self.camera, R, T)

@@ -1,34 +1,35 @@
-"""The frames of one system's sequence labelled in order, each frame's pose passed on to its neighbours."""
+"""The frames of one system's sequence: each labelled from its own markers or seeds, else from its neighbours."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
-import numpy as np
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.errors import InputError
-from fluorocal.stages.geometry import quat_to_matrix
-from fluorocal.stages.label.frame import label_beads, label_frame
+from fluorocal.stages.geometry import iop_guess, quat_to_matrix
+from fluorocal.stages.label.frame import label_frame
 from fluorocal.stages.label.labels import Labels
 from fluorocal.stages.label.lattice_sequence import number_lattice_sequence
+from fluorocal.stages.label.motion import Motion, neighbours, predict
 from fluorocal.stages.label.params import LabelParams
 
-# the turntable axis is estimated from the sequence once its labelled frames span this turn
-_MIN_AXIS_TURN_DEG = 3.0
+# a frame whose orientation lies this many standard deviations from its neighbours' prediction is checked
+_SUSPECT_SIGMAS = 6.0
 
 
 def label_sequence(
     centroids_seq, phantom: Phantom, params: LabelParams, seeds_by_frame: dict | None = None
 ) -> tuple[Labels, ...]:
-    """Label the frames of one system's sequence, passing each frame's pose on to its neighbours.
+    """Label the frames of one system's sequence, each from its own evidence, else from its neighbours.
 
-    Frames with seeds (``seeds_by_frame[i]``, ``(id, x_px, y_px)`` triples) are labelled from them; the
-    others from the markers and from the pose of the nearest labelled frame before them (a forward
-    pass), then, for frames still unlabelled, of the nearest one after them (a backward pass). The
-    neighbour's position is searched over the whole image (see :func:`label_beads`); a frame that
-    still fails is searched over turns about the turntable axis, estimated from the labelled frames'
-    orientations (before they span a few degrees: the image's vertical axis). Each frame is still
-    accepted or rejected on its own evidence.
+    First every frame is labelled alone: from its seeds (``seeds_by_frame[i]``, ``(id, x_px, y_px)``
+    triples) or its markers. Then each frame that failed is labelled from its labelled neighbours,
+    those nearest a labelled frame first, and each frame so labelled serves its own neighbours in turn:
+    the orientation is predicted between the nearest labelled frames on either side (or from one side
+    and the sequence's mean motion per frame), and rotations about it are searched with the position
+    free (:func:`fluorocal.stages.label.prior.label_from_prior`), then turns about the turntable axis
+    over the full circle. Each frame is accepted or rejected on its own evidence, and a frame that
+    still fails keeps the reasons of both attempts.
 
     Parameters
     ----------
@@ -50,51 +51,85 @@ def label_sequence(
     if bad:
         raise InputError(f"seeds_by_frame names frames {bad} outside 0..{n - 1}")
     base = replace(params, seeds=())
-    out: list[Labels | None] = [None] * n
-    rotations: dict[int, np.ndarray] = {}  # frame -> R (object to camera) of the labelled frames
-
-    def run(i, prior):
-        seeds = tuple(tuple(s) for s in seeds_by_frame.get(i, ()))
-        if seeds:
-            return label_beads(centroids_seq[i], phantom, replace(base, seeds=seeds))
-        axis = _turntable_axis(list(rotations.values())) if prior is not None else None
-        return label_frame(centroids_seq[i], phantom, base, prior, axis)
-
-    def keep(i):
-        if out[i].ok and not phantom.lattice:
-            rotations[i] = quat_to_matrix(out[i].q)
-            return (out[i].q, out[i].source_mm)
-        return None
-
-    prior = None
+    out = []
     for i in range(n):
-        out[i] = run(i, prior)
-        prior = keep(i) or prior
-    prior = None
-    for i in reversed(range(n)):
-        if not out[i].ok and prior is not None:
-            out[i] = run(i, prior)
-        prior = keep(i) or prior
+        seeds = tuple(tuple(s) for s in seeds_by_frame.get(i, ()))
+        out.append(label_frame(centroids_seq[i], phantom, replace(base, seeds=seeds) if seeds else base))
     if phantom.lattice:  # one numbering of the plate's holes across the frames
         return number_lattice_sequence(out, phantom.lattice, phantom.pitch_mm)
-    return tuple(out)
+    own_reason = [lab.reason for lab in out]
+    c_assumed = float(iop_guess((1, 1), params.source_image_distance_mm, params.pixel_pitch_mm)[2])
+    tried: dict[int, tuple] = {}  # frame -> the labelled neighbours it was last tried from
+    checked = set(seeds_by_frame)  # frames whose pose was checked against their neighbours' (seeds: trusted)
+    while True:
+        labelled = {i: lab for i, lab in enumerate(out) if lab.ok}
+        rotations = {i: quat_to_matrix(lab.q) for i, lab in labelled.items()}
+        motion = Motion.of(rotations, {i: _depth(lab, phantom, c_assumed) for i, lab in labelled.items()})
+        i = _suspect(rotations, checked, motion)
+        if i is not None:
+            # its pose lies far from its neighbours': weighed against the labellings found near theirs
+            # (before it serves as a neighbour itself)
+            checked.add(i)
+            others = {j: lab for j, lab in labelled.items() if j != i}
+            lab = _from_neighbours(centroids_seq[i], phantom, base, i, others, motion, pool=True)
+            out[i] = lab if lab.ok else replace(lab, reason=f"its pose is far from its neighbours': {lab.reason}")
+            continue
+        # a frame is tried again when the labellings of its nearest labelled neighbours change
+        pending = [(i, neighbours(i, rotations)) for i in range(n) if i not in labelled]
+        pending = [(i, nb) for i, nb in pending if nb != (None, None) and tried.get(i) != _key(nb, labelled)]
+        if not pending:
+            return tuple(out)
+        # nearest a labelled frame first, those between two labelled frames before those beside one
+        i, nb = min(pending, key=lambda e: (min(abs(e[0] - j) for j in e[1] if j is not None), None in e[1]))
+        tried[i] = _key(nb, labelled)
+        lab = _from_neighbours(centroids_seq[i], phantom, base, i, labelled, motion, pool=False)
+        out[i] = lab if lab.ok else replace(lab, reason=f"{own_reason[i]}; from the neighbouring frames: {lab.reason}")
+        checked.add(i)
 
 
-def _turntable_axis(rotations: list) -> np.ndarray | None:
-    """The axis (camera frame) about which the phantom turns between the labelled frames of a sequence.
+def _depth(lab: Labels, phantom: Phantom, c_assumed: float) -> float:
+    """The phantom centre's distance from the source (mm) in a labelled frame, as the assumed camera sees it.
 
-    A turntable turns the phantom about an axis fixed in the lab, hence in the camera frame of a
-    system: ``R_j R_i^T`` is a turn about it. The axis is the principal direction of the rotation
-    vectors of every labelled frame relative to the first, once they span at least
-    ``_MIN_AXIS_TURN_DEG``; before that, the image's vertical axis (a turntable seen by a horizontal
-    beam, the usual setup). None without a labelled frame.
+    The labelling refines the principal distance ``c``, and the depth it finds scales with it: the depth
+    seen with the assumed ``c`` (as the next frame's search starts) is the found one times ``c_assumed / c``.
     """
-    from scipy.spatial.transform import Rotation
+    z = float((quat_to_matrix(lab.q) @ (phantom.xyz_mm.mean(0) - lab.source_mm))[2])
+    return z * c_assumed / float(lab.iop[2])
 
-    if not rotations:
-        return None
-    Rs = np.asarray(rotations)
-    rotvecs = Rotation.from_matrix(Rs @ Rs[0].T).as_rotvec()
-    if np.degrees(np.linalg.norm(rotvecs, axis=1).max()) < _MIN_AXIS_TURN_DEG:
-        return np.array([0.0, 1.0, 0.0])
-    return np.linalg.eigh(rotvecs.T @ rotvecs)[1][:, -1]
+
+def _key(nb: tuple, labelled: dict) -> tuple:
+    """The neighbours ``nb`` with their poses: what a frame was last tried from."""
+    return tuple(None if j is None else (j, labelled[j].q.tobytes()) for j in nb)
+
+
+def _from_neighbours(
+    centroids, phantom: Phantom, params: LabelParams, i: int, labelled: dict, motion: Motion, *, pool: bool
+) -> Labels:
+    """Frame ``i`` labelled from the orientation its ``labelled`` neighbours predict (with its markers: ``pool``)."""
+    prior, near, _ = predict(i, {j: quat_to_matrix(lab.q) for j, lab in labelled.items()}, motion)
+    return label_frame(
+        centroids,
+        phantom,
+        params,
+        (labelled[near].q, labelled[near].source_mm),
+        orientation_prior=prior,
+        turn_search=True,
+        from_markers=pool,
+        pool=pool,
+        reference=labelled[near],
+    )
+
+
+def _suspect(rotations: dict, checked: set, motion) -> int | None:
+    """The labelled frame, not ``checked`` yet, farthest from its neighbours' prediction; None if none is suspect.
+
+    A frame is suspect when its orientation lies beyond ``_SUSPECT_SIGMAS`` of the prediction's uncertainty.
+    """
+    worst, worst_d = None, _SUSPECT_SIGMAS
+    for i, R in rotations.items():
+        if i in checked:
+            continue
+        predicted = predict(i, rotations, motion)
+        if predicted is not None and predicted[0].distance(R) > worst_d:
+            worst, worst_d = i, predicted[0].distance(R)
+    return worst

@@ -389,10 +389,11 @@ def test_prior_pose_on_a_periodic_patch_is_refused(sim, params):
     assert lab.n_labelled == 0
 
 
-def test_screening_a_pose_that_sees_no_bead_counts_zero(sim, params):
-    """A candidate pose with every bead behind the source scores (0 beads, sizes not contradicted), no crash."""
+def test_evidence_of_a_pose_that_sees_no_bead(sim, params):
+    """A rival pose with every bead behind the source explains nothing: each detection counts against it, no crash."""
+    from fluorocal.stages.label.correction import Correction
     from fluorocal.stages.label.cube_frame import CubeFrame
-    from fluorocal.stages.label.prior import screen
+    from fluorocal.stages.label.rivals import evidence
     from scipy.spatial import cKDTree
 
     xy = np.array([[10.0, 10.0], [50.0, 40.0], [90.0, 80.0]])
@@ -401,7 +402,8 @@ def test_screening_a_pose_that_sees_no_bead_counts_zero(sim, params):
         None, sim.phantom, params, iop, None, np.arange(3), xy, cKDTree(xy), 10.0, sim.phantom.diameter_mm, 100.0, 100.0
     )
     behind = np.array([0.0, 0.0, float(sim.phantom.xyz_mm[:, 2].max()) + 1e3])
-    assert screen(frame, {"iop": iop}, np.eye(3), behind) == (0, True)
+    model = {"iop": iop, "corr": Correction(iop[:2], 100.0), "R": np.eye(3), "T": behind}
+    assert evidence(frame, model) == -3.0
 
 
 def test_random_points_fail(sim, params):

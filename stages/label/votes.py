@@ -1,0 +1,137 @@
+"""The shift vote: where across the beam a pose must move to put many beads on the frame's detections.
+
+Every pair of a detection and a bead votes for the shift of the phantom across the beam (at the bead's
+depth) that puts the bead on the detection's ray. With the orientation about right, the true shift
+gathers a vote from nearly every detection, while a wrong one gathers only chance coincidences; a
+periodic bead layout adds peaks one period apart, which must all be labelled to be told apart.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from fluorocal.stages.label.cube_frame import CubeFrame
+
+# peaks of the shift vote kept as starts, sought among this many of the strongest bins
+N_PEAKS = 8
+_N_PEAK_BINS = 300
+# the phantom's distance from the source may change by this fraction between neighbouring frames
+_MAX_DEPTH_CHANGE = 0.05
+# detections voting (evenly thinned) when depths are compared
+N_DEPTH_DETECTIONS = 80
+
+
+def rays_of(frame: CubeFrame, xy: np.ndarray) -> np.ndarray:
+    """``(x, y) / z`` in camera coordinates of the rays through image points ``xy`` (pinhole)."""
+    return (xy - frame.iop[:2]) / frame.iop[2]
+
+
+def depth_steps(frame: CubeFrame, depth_mm: float) -> np.ndarray:
+    """Changes of the phantom's distance from the source (mm) to try: up to ``_MAX_DEPTH_CHANGE`` of it.
+
+    The steps move the detection farthest from the principal point by one assignment gate.
+    """
+    r_max = float(np.max(np.linalg.norm(frame.det_xy - frame.iop[:2], axis=1), initial=1.0))
+    step = frame.params.gate_bead_diameters * frame.diam_ref_px * depth_mm / max(r_max, 1.0)
+    n = int(np.ceil(_MAX_DEPTH_CHANGE * depth_mm / step))
+    return np.arange(-n, n + 1) * step
+
+
+def shift_starts(frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, n_keep: int = 0) -> list:
+    """Start poses ``[(R, T, votes)]``: the pose moved to where many beads meet detections, best first.
+
+    Each of :func:`depth_steps` is tried; at each, every pair of a detection and a bead votes for the
+    shift across the beam that puts the bead on the detection's ray (:func:`shift_votes`). The depth
+    whose strongest peak gathers the most votes of a thinned set of detections (``N_DEPTH_DETECTIONS``)
+    is kept, and the vote of all detections there gives its peaks (``n_keep``, default
+    ``N_PEAKS``): the peaks of a periodic layout, one period apart, must all be labelled to be told
+    apart.
+    """
+    depth = float(np.median((frame.phantom.xyz_mm - T) @ R[2]))
+    thin = (
+        rays[np.linspace(0, len(rays) - 1, N_DEPTH_DETECTIONS).astype(int)] if len(rays) > N_DEPTH_DETECTIONS else rays
+    )
+    steps = depth_steps(frame, depth)
+    best_dz = steps[int(np.argmax([shift_strength(frame, R, T - dz * R[2], thin) for dz in steps]))]
+    return shift_peaks(frame, R, T - best_dz * R[2], rays, n_keep or N_PEAKS)
+
+
+def shift_votes(
+    frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, *, bin_gates: float = 0.5, box: int = 3
+):
+    """The vote for shifts of pose ``(R, T)`` across the beam; None without beads in front of the source.
+
+    Every pair of a detection (``rays``) and a bead votes for the shift (camera x, y at the bead's depth,
+    mm) that puts the bead on the detection's ray. Votes are binned at ``bin_gates`` assignment gates.
+
+    Returns
+    -------
+    hist : (H, W) int64 ndarray
+        Votes per bin.
+    votes : (H, W) int64 ndarray
+        Votes summed over ``box`` x ``box`` bins (starting at the bin, or for an odd box, centred on it).
+    lo : (2,) float64 ndarray
+        Index of bin ``[0, 0]`` (shift / bin size, floored).
+    bin_mm : float
+    """
+    p_cam = (frame.phantom.xyz_mm - T) @ R.T
+    p_cam = p_cam[p_cam[:, 2] > 0]
+    if len(p_cam) < 4 or not len(rays):
+        return None
+    bin_mm = (
+        bin_gates * frame.params.gate_bead_diameters * frame.diam_ref_px * float(np.median(p_cam[:, 2])) / frame.iop[2]
+    )
+    # shape (D, B) each: the shift (in bins) that moves bead b onto detection d's ray, at b's depth
+    z = p_cam[:, 2] / bin_mm
+    fx = rays[:, 0:1] * z - p_cam[:, 0] / bin_mm
+    fy = rays[:, 1:2] * z - p_cam[:, 1] / bin_mm
+    lo = np.floor([fx.min(), fy.min()])
+    ix, iy = (fx - lo[0]).astype(np.int64), (fy - lo[1]).astype(np.int64)
+    shape = (int(ix.max()) + 1, int(iy.max()) + 1)
+    ix *= shape[1]
+    ix += iy
+    hist = np.bincount(ix.ravel(), minlength=shape[0] * shape[1]).reshape(shape)
+    padded = np.pad(hist, ((box // 2, box - 1 - box // 2),) * 2)
+    # separable box sum
+    rows = sum(padded[a : a + shape[0]] for a in range(box))
+    votes = sum(rows[:, b : b + shape[1]] for b in range(box))
+    return hist, votes, lo, bin_mm
+
+
+def shift_strength(frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarray) -> float:
+    """Votes of the strongest peak of :func:`shift_votes` on a coarser grid; 0 without one.
+
+    The grid has bins of a gate and 2 x 2 sums: for comparing depths and turns, 4x faster.
+    """
+    vote = shift_votes(frame, R, T, rays, bin_gates=1.0, box=2)
+    return 0.0 if vote is None else float(vote[1].max())
+
+
+def shift_peaks(frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, n_keep: int) -> list:
+    """The ``n_keep`` strongest peaks ``[(R, T, votes)]`` of :func:`shift_votes`, at least 3 bins apart.
+
+    Each is located at the vote-weighted mean of its 3 x 3 bins.
+    """
+    vote = shift_votes(frame, R, T, rays)
+    if vote is None:
+        return []
+    hist, votes, lo, bin_mm = vote
+    shape = votes.shape
+    votes = votes.ravel()
+    # greedy non-maximum suppression among the strongest bins
+    top = np.argpartition(-votes, min(_N_PEAK_BINS, len(votes) - 1))[:_N_PEAK_BINS]
+    top = top[np.argsort(-votes[top], kind="stable")]
+    kept: list[tuple[int, int]] = []
+    out = []
+    for k in top:
+        if votes[k] <= 0 or len(kept) == n_keep:
+            break
+        i, j = divmod(int(k), shape[1])
+        if any(abs(i - a) <= 2 and abs(j - b) <= 2 for a, b in kept):
+            continue
+        kept.append((i, j))
+        i0, j0 = max(i - 1, 0), max(j - 1, 0)
+        win = hist[i0 : i + 2, j0 : j + 2].astype(np.float64)
+        ii, jj = np.meshgrid(np.arange(i0, i0 + win.shape[0]), np.arange(j0, j0 + win.shape[1]), indexing="ij")
+        centre = (np.array([(ii * win).sum(), (jj * win).sum()]) / win.sum() + lo + 0.5) * bin_mm
+        out.append((R, T - R.T @ np.array([centre[0], centre[1], 0.0]), float(votes[k])))
+    return out
