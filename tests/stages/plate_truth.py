@@ -64,9 +64,9 @@ def truth_problem(data, noise_px: float, rng: np.random.Generator):
     """The plate problem of a simulated grid acquisition (system 0) from its truth centroids, no rendering.
 
     Observations: every hole whose outline neither overlaps another nor meets the field of view's rim, at its
-    true distorted outline centre plus Gaussian noise of ``noise_px`` per component; one orientation per
-    simulated orientation (or one for all frames). Returns ``(problem, true_mm)``: the problem and the true
-    plate position ``(K, 2)`` mm of each of its holes.
+    true distorted outline centre plus Gaussian noise of ``noise_px`` per component, stated as a ``sigma_px``
+    of ``max(noise_px, 0.03)``; one orientation per simulated orientation (or one for all frames). Returns
+    ``(problem, true_mm)``: the problem and the true plate position ``(K, 2)`` mm of each of its holes.
     """
     from fluorocal.stages.plate.solve import PlateProblem
 
@@ -82,7 +82,8 @@ def truth_problem(data, noise_px: float, rng: np.random.Generator):
     used, hole = np.unique(np.concatenate(holes), return_inverse=True)
     n = len(hole)
     measured = np.vstack(xy) + rng.normal(scale=noise_px, size=(n, 2))
-    sigma = np.column_stack([np.full(n, max(noise_px, 0.01)), np.full(n, max(noise_px, 0.01)), np.zeros(n)])
+    stated = max(noise_px, 0.03)  # at least the real frames' centroid floor: the priors weigh as on real data
+    sigma = np.column_stack([np.full(n, stated), np.full(n, stated), np.zeros(n)])
     size = int(data.params.image_size_px)
     problem = PlateProblem(
         np.concatenate(frames).astype(np.int64),
