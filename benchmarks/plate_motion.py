@@ -120,7 +120,7 @@ def main(argv=None) -> int:
         print(
             f"| {play_mm:g}, {play_deg:g} | {motion:.1f} | {layout:.4f} | {perfect:.4f} "
             f"| {rms(smooth_error):.4f} / {rms(smoothed(xy, true_error, SMOOTH_MM)):.4f} "
-            f"| {rms(error - smooth_error):.4f} | {fit[0]:.4f} / {fit[1]:.4f} |",
+            f"| {rms(error - smooth_error):.4f} | {fit[0]:.5f} / {fit[1]:.5f} |",
             flush=True,
         )
     print("\ntarget: layout <= 0.005 mm from 6 frames")
