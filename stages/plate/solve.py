@@ -26,6 +26,11 @@ squares after each update), since every frame's homography absorbs one; the undi
 as close to the measured one as a homography allows, the same convention at every orientation, so
 fields of different orientations can be compared and interpolated. A hole seen in one frame only
 keeps its nominal position: its error cannot be told from the noise.
+
+What the plate's motion does not separate stays in the fields: with the plate riding on the intensifier
+(a few px between orientations) its errors smoother than about a node spacing are explained as well by
+the fields as by the plate, and the truth fits the data no better than the estimate
+(``benchmarks/plate_motion.py``); turned between the frames, the plate's errors are recovered.
 """
 
 from __future__ import annotations

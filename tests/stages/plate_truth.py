@@ -58,3 +58,40 @@ def field_error_px(field: CorrectionField, true_field: CorrectionField, fov: dic
     ideal_est = pts - field.correction_at(pts)
     ideal_true = pts - bilinear(true_field.x_nodes_px, true_field.y_nodes_px, true_field.delta_px, pts)
     return float(np.sqrt(np.mean(homography_fit(ideal_true, ideal_est)[1] ** 2)))
+
+
+def truth_problem(data, noise_px: float, rng: np.random.Generator):
+    """The plate problem of a simulated grid acquisition (system 0) from its truth centroids, no rendering.
+
+    Observations: every hole whose outline neither overlaps another nor meets the field of view's rim, at its
+    true distorted outline centre plus Gaussian noise of ``noise_px`` per component, stated as a ``sigma_px``
+    of ``max(noise_px, 0.03)``; one orientation per simulated orientation (or one for all frames). Returns
+    ``(problem, true_mm)``: the problem and the true plate position ``(K, 2)`` mm of each of its holes.
+    """
+    from fluorocal.stages.plate.solve import PlateProblem
+
+    row = {int(i): r for r, i in enumerate(data.phantom.ids)}
+    frames, holes, xy = [], [], []
+    for f, truth in enumerate(data.truth.frames[0]):
+        ok = ~truth.overlap & ~truth.field_edge
+        frames.append(np.full(int(ok.sum()), f))
+        holes.append(np.array([row[int(i)] for i in truth.ids[ok]], np.int64))
+        xy.append(truth.outline_xy_px[ok])
+    exposure_orientation = np.asarray(data.truth.acquisition.exposure_orientation)
+    orient = np.maximum(exposure_orientation, 0)
+    used, hole = np.unique(np.concatenate(holes), return_inverse=True)
+    n = len(hole)
+    measured = np.vstack(xy) + rng.normal(scale=noise_px, size=(n, 2))
+    stated = max(noise_px, 0.03)  # at least the real frames' centroid floor: the priors weigh as on real data
+    sigma = np.column_stack([np.full(n, stated), np.full(n, stated), np.zeros(n)])
+    size = int(data.params.image_size_px)
+    problem = PlateProblem(
+        np.concatenate(frames).astype(np.int64),
+        np.unique(orient, return_inverse=True)[1].astype(np.int64),
+        hole.astype(np.int64),
+        data.phantom.xyz_mm[used, :2],
+        measured,
+        sigma,
+        (size, size),
+    )
+    return problem, np.asarray(data.truth.true_xyz_mm)[used, :2]

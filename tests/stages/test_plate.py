@@ -130,3 +130,31 @@ def test_params_refuse_bad_values():
         PlateParams(spacing_px=float("inf"))
     with pytest.raises(InputError, match="tau_grid_px"):
         PlateParams(tau_grid_px=(float("inf"),))
+
+
+def test_simulated_plate_turned_between_orientations_is_recovered():
+    """The simulator's six-orientation acquisition (benchmarks/plate.py), its truth centroids, the plate turned freely.
+
+    With the plate riding on the intensifier (1-4 px of motion) the plate's smooth errors stay in the fields
+    (benchmarks/plate_motion.py); turned between the orientations, its errors land elsewhere in the image at
+    each one and the issue's target is met.
+    """
+    from fluorocal.stages.simulate import SimulateParams, simulate
+
+    from tests.stages.plate_truth import truth_problem
+
+    params = SimulateParams(
+        phantom="grid",
+        n_frames=1,
+        seed=3,
+        orientations_deg=((0, 0), (0, 15), (0, 30), (0, 45), (0, 60), (30, 0)),
+        plate_play_deg=180.0,
+    )
+    problem, true = truth_problem(simulate(params, render=False), 0.03, np.random.default_rng(0))
+    sol = solve_plate(problem, PlateParams().settings(params.grid_pitch_mm, True))
+    est = sol.plate_estimated
+    nominal = problem.nominal_mm
+    # the issue's target, 0.005 mm; the noise alone (0.03 px at ~4.3 px/mm, six frames) leaves ~0.003 mm a hole
+    assert layout_error_mm((nominal + sol.plate_error_mm)[est], true[est]) < 0.005
+    assert layout_error_mm(nominal[est], true[est]) > 0.012  # the simulator's plate errors: 0.014 mm
+    assert est.mean() > 0.95
