@@ -281,6 +281,17 @@ def _field_step_sigma(before: tuple, after: tuple) -> float:
     return worst
 
 
+def _cost_stalled(history: tuple, tolerance: float) -> bool:
+    """Whether the last adjustment cost is not below the best of its phase's earlier iterations by ``tolerance``.
+
+    The adjustment's cost (equation 2), not the combined one: the refinement's in-sample regression cost
+    (equation 3 of a joint field-and-points fit solved inexactly) wanders by tens of percent near the fixed
+    point, where the adjustment's settles to about a percent.
+    """
+    phase = [h.cost_adjust for h in history if h.phase == history[-1].phase]
+    return len(phase) > 1 and phase[-1] > min(phase[:-1]) - tolerance
+
+
 def _previous_total(history: tuple) -> float | None:
     """The combined cost of the iteration before the last, if it is of the same phase."""
     return history[-2].cost_total if len(history) > 2 and history[-2].phase == history[-1].phase else None
@@ -295,7 +306,12 @@ def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
     # the kNN phase of the recommended loop is a few steps towards the refinement: the field rule ends a phase
     # only once the field has been refined, or when there is no refinement to come
     field_phase = state.phase == "grid" or plan.refine == "none"
-    still_field = prev is not None and field_phase and last.step_sigma < params.field_tolerance
+    still_field = (
+        prev is not None
+        and field_phase
+        and last.step_sigma < params.field_tolerance
+        and _cost_stalled(state.history, params.tolerance * max(n_obs, 1))
+    )
     done = small_change or small_step or still_field
     cap = params.max_iterations if state.phase == "knn" else params.refine_iterations
     if not done and state.iteration - state.phase_start + 1 < cap:
@@ -314,7 +330,7 @@ def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
     elif still_field:
         reason = (
             f"the field moved by at most {last.step_sigma:.3g} < {params.field_tolerance} x its own uncertainty "
-            "at every supported node"
+            "at every supported node and the adjustment's cost stopped falling"
         )
     elif state.phase == "grid":
         reason = f"maximum number of refinement iterations ({params.refine_iterations}) reached"
