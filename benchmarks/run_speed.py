@@ -22,7 +22,8 @@ cumulative and by own time.
 
 Usage: ``python benchmarks/run_speed.py [--frames N] [--detect-frames N] [--sections a,b,...]
 [--profile] [--keep DIR]`` (defaults: 75 exposures per system, 20 frames for the detection, every
-section: detect,learn,threads,biplanar).
+section: detect,learn,threads,biplanar; ``--keep``: the data set is written there, and reused when
+it is the same).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 ONE_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -90,13 +92,14 @@ def write_config(root: Path, truth: dict, tag: str, systems: tuple[str, ...], n_
     return cfg
 
 
-def detect_speed(data, n_frames: int) -> None:
+def detect_speed(root: Path, n_frames: int) -> None:
     import cv2
     from fluorocal.stages.centroid import CentroidParams, centroid_beads
     from fluorocal.stages.detect import DetectParams, detect_beads, estimate_appearance
+    from fluorocal.stages.io import read_frames
 
     cv2.setNumThreads(1)
-    frames = data.frames[0][:n_frames]
+    frames = [read_frames(f)[0] for f in sorted((root / "frames" / "A").glob("*.tif"))[:n_frames]]
     once = estimate_appearance(frames[:3], DetectParams())
     variants = {
         "estimated on every frame": (DetectParams(), False),
@@ -203,8 +206,10 @@ def main(argv=None) -> int:
     # the learn section takes system A's first 40 frames
     n = max(args.frames, 40)
     params = SimulateParams(n_frames=n, n_systems=2, image_size_px=1024, seed=args.seed, distortion="strong")
-    data = simulate(params)
-    write_dataset(data, root, replace=True)
+    if not (root / "truth.json").is_file() or json.loads((root / "truth.json").read_text())["params"] != json.loads(
+        json.dumps(asdict(params))
+    ):
+        write_dataset(simulate(params), root, replace=True)
     truth = json.loads((root / "truth.json").read_text())
     print(
         f"run speed: biplanar cube, strong distortion, {params.n_frames} + {params.n_frames} frames of 1024 px "
@@ -212,7 +217,7 @@ def main(argv=None) -> int:
         f"load {os.getloadavg()[0]:.1f}"
     )
     if "detect" in sections:
-        detect_speed(data, args.detect_frames)
+        detect_speed(root, args.detect_frames)
     if "learn" in sections:
         learn_speed(root, truth)
     if "threads" in sections:

@@ -79,10 +79,13 @@ class DetectParams:
     polarity : {"auto", "dark", "bright"}
         ``"dark"``: beads darker than their surroundings (steel beads);
         ``"bright"``: brighter (holes of a grid plate); ``"auto"`` (default):
-        decided per frame from the heavier tail of the flattened log image.
+        decided from the heavier tail of the flattened log image (by
+        ``fluorocal run`` once per system, see :func:`estimate_appearance`;
+        here, on the frame itself).
     min_diameter_px, max_diameter_px : float
-        Expected bead diameter range, px. Both 0 (default): estimated from the
-        frame. Otherwise ``0 < min_diameter_px <= max_diameter_px``.
+        Expected bead diameter range, px. Both 0 (default): estimated
+        (``fluorocal run``: once per system; here: from the frame).
+        Otherwise ``0 < min_diameter_px <= max_diameter_px``.
     min_contrast : float
         Absolute floor on a blob's log contrast ``ln(I_background / I_bead)``
         (about the fractional attenuation for small values). Default 0.05.
