@@ -116,13 +116,14 @@ class LearnParams:
         Smoothed schemes: also stop when the gridded field changes, at every supported node, by
         less than this fraction of the node's own uncertainty (its ``sigma_px``, the
         cross-validated residual RMS over the square root of the node's bilinear weight) while
-        the adjustment's cost has stopped falling (it is not below the phase's best so far by
-        ``tolerance`` per observation) (recommended 0.5; paper 0: off). On rendered frames the
+        the adjustment's cost has stopped falling (it is not 1 % below the phase's best so far),
+        at two refinement iterations running (recommended 0.5; paper 0: off). On rendered frames the
         inexact inner solves and the centroids' correlated errors leave the refinement's steps
         wandering at a few hundredths of a pixel, which the ``step_tolerance`` rule, tied to the
         residual RMS, never reaches; a step well inside the field's uncertainty changes nothing
-        the data can tell. The cost condition keeps the loop going through a small step that
-        an accelerated iteration follows with a large one (the cost still falls then).
+        the data can tell. The cost condition keeps the loop going while the field is still
+        being learned slowly (small steps, the cost falling by percents) and through a small
+        step that an accelerated iteration follows with a large one.
     acceleration : str *(preset)*
         ``"none"`` (the paper's plain fixed-point loop), ``"overrelax"``
         (``Δ += relaxation δ``) or ``"anderson"`` (recommended: Anderson
