@@ -281,10 +281,9 @@ def detect_beads(radiograph: Radiograph, params: DetectParams) -> BeadCandidates
 
 
 def _prepared(image: np.ndarray):
-    """``(hull_xy, fov_mask, noise, half_log, half_mask)`` of a frame, or None without a field of view.
+    """``(hull_xy, fov_mask, noise, half_log, half_mask)`` of a frame (None without a field of view).
 
-    ``half_log``, ``half_mask``: the log image and the field-of-view mask of a 2x-reduced copy (for the size
-    estimate, and for finding beads of 10 px and more).
+    ``half_*``: of a 2x-reduced copy, for the size estimate and for finding beads of 10 px and more.
     """
     import cv2
 
@@ -301,10 +300,9 @@ def _prepared(image: np.ndarray):
 def estimate_appearance(radiographs, params: DetectParams) -> DetectParams:
     """``params`` with its automatic polarity and bead diameter range decided once, for a whole system.
 
-    One imaging system images one phantom at one magnification, so the beads' polarity and size are
-    the system's, not a frame's: estimated once, on the first of ``radiographs`` that shows beads, they
-    let :func:`detect_beads` skip the estimate on every frame (which costs as much as the detection).
-    Values already given in ``params`` are kept.
+    One system images one phantom at one magnification: the beads' polarity and size are the system's.
+    Estimated once, on the first of ``radiographs`` that shows beads, they spare :func:`detect_beads`
+    the estimate on every frame. Values already given in ``params`` are kept.
 
     Parameters
     ----------
@@ -315,9 +313,8 @@ def estimate_appearance(radiographs, params: DetectParams) -> DetectParams:
     Returns
     -------
     DetectParams
-        ``params`` with ``polarity`` resolved and the diameter range filled (rounded to 0.01 px, so
-        that the value, which keys the per-frame entries of the artifact cache, reads back as
-        stored); ``params`` unchanged when no frame shows a bead-like blob.
+        ``params`` with ``polarity`` resolved and the diameter range filled (rounded outwards to
+        0.01 px); ``params`` unchanged when no frame shows a bead-like blob.
 
     Examples
     --------
