@@ -52,9 +52,6 @@ from fluorocal.stages.learn.robust import local_screen, misfit_inliers
 
 logger = logging.getLogger(__name__)
 
-#: the field rule's "the adjustment's cost stopped falling": not below its phase's best so far by this fraction
-COST_STALL_FRACTION = 0.01
-
 #: conjugate-gradient cap of the joint field-and-points step inside the loop: an inexact inner
 #: solve is enough, since the next iteration starts from the new residuals
 LOOP_CG_ITERATIONS = 100
@@ -284,21 +281,17 @@ def _field_step_sigma(before: tuple, after: tuple) -> float:
     return worst
 
 
-def _field_settled(history: tuple, field_tolerance: float) -> bool:
+def _field_settled(history: tuple, field_tolerance: float, cost_tolerance: float) -> bool:
     """Whether the last iteration moved the field by less than ``field_tolerance`` sigma with the cost stalled.
 
     The cost has stalled when the adjustment's cost (equation 2) is not below the best of its phase's
-    earlier iterations by :data:`COST_STALL_FRACTION` of it. The adjustment's cost, not the combined one:
+    earlier iterations by ``cost_tolerance``. The adjustment's cost, not the combined one:
     the refinement's in-sample regression cost (equation 3 of a joint field-and-points fit solved
-    inexactly) wanders by tens of percent near the fixed point, where the adjustment's settles within a
-    percent; while it still falls by more, the field is still being learned, however small one step.
+    inexactly) wanders by tens of percent near the fixed point, where the adjustment's settles; while it
+    still falls, the field is still being learned, however small one step.
     """
     phase = [h.cost_adjust for h in history if h.phase == history[-1].phase]
-    return (
-        len(phase) > 2
-        and history[-1].step_sigma < field_tolerance
-        and phase[-1] > (1 - COST_STALL_FRACTION) * min(phase[:-1])
-    )
+    return len(phase) > 2 and history[-1].step_sigma < field_tolerance and phase[-1] > min(phase[:-1]) - cost_tolerance
 
 
 def _previous_total(history: tuple) -> float | None:
@@ -315,8 +308,10 @@ def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
     # the kNN phase of the recommended loop is a few steps towards the refinement: the field rule ends a phase
     # only once the field has been refined, or when there is no refinement to come
     field_phase = state.phase == "grid" or plan.refine == "none"
+    cost_tolerance = params.tolerance * max(n_obs, 1)
     still_field = field_phase and all(
-        _field_settled(state.history[:end], params.field_tolerance) for end in (len(state.history) - 1, None)
+        _field_settled(state.history[:end], params.field_tolerance, cost_tolerance)
+        for end in (len(state.history) - 1, None)
     )
     done = small_change or small_step or still_field
     cap = params.max_iterations if state.phase == "knn" else params.refine_iterations

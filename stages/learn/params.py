@@ -116,7 +116,8 @@ class LearnParams:
         Smoothed schemes: also stop when the gridded field changes, at every supported node, by
         less than this fraction of the node's own uncertainty (its ``sigma_px``, the
         cross-validated residual RMS over the square root of the node's bilinear weight) while
-        the adjustment's cost has stopped falling (it is not 1 % below the phase's best so far),
+        the adjustment's cost has stopped falling (not below the phase's best so far by ``tolerance``
+        per observation),
         at two refinement iterations running (recommended 0.5; paper 0: off). On rendered frames the
         inexact inner solves and the centroids' correlated errors leave the refinement's steps
         wandering at a few hundredths of a pixel, which the ``step_tolerance`` rule, tied to the
