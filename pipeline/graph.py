@@ -122,6 +122,37 @@ def _seeds(path):
     return read_seeds(path)
 
 
+#: frames of a system, from its first in exposure order, that the bead appearance estimate may try
+APPEARANCE_FRAMES = 3
+
+
+def _detect_context(config, unit, units) -> dict:
+    """The automatic polarity and bead diameter range of the frame's system, estimated once per system.
+
+    Estimated on the system's first frame (in exposure order) that shows beads, among its first
+    :data:`APPEARANCE_FRAMES`; the values go into every frame's parameters, and so into its key:
+    each frame's entry stays its own, and a serial run, a pool or a cluster compute the same ones.
+    """
+    from fluorocal.config import params_from_dict
+    from fluorocal.stages.detect import DetectParams
+
+    params = params_from_dict(
+        DetectParams, config.stage_params.get("detect", {}), where=f"{config.path.name}: [detect] "
+    )
+    system = sorted((u for u in units if u.system == unit.system), key=lambda u: u.exposure)
+    found = _system_appearance(tuple((u.path, u.file_sha256, u.index) for u in system[:APPEARANCE_FRAMES]), params)
+    return {name: getattr(found, name) for name in ("polarity", "min_diameter_px", "max_diameter_px")}
+
+
+@lru_cache(maxsize=8)
+def _system_appearance(frames: tuple, params):
+    """The estimate on ``(path, content sha256, index)`` frames (the sha keys the memo to the content)."""
+    from fluorocal.stages.detect import estimate_appearance
+    from fluorocal.stages.io import read_frames
+
+    return estimate_appearance((read_frames(path)[index] for path, _, index in frames), params)
+
+
 def _learn_extras(config, units) -> dict:
     from fluorocal.config import params_from_dict
     from fluorocal.stages.geometry import iop_guess
@@ -193,7 +224,7 @@ def _gather_observations(units, labels, config):
 
 #: the project's stages in execution order: (stage name, module, entry function, Params class, inputs, options)
 REGISTRY = (
-    ("detect", "fluorocal.stages.detect", "detect_beads", "DetectParams", ("frame",), {}),
+    ("detect", "fluorocal.stages.detect", "detect_beads", "DetectParams", ("frame",), {"context": _detect_context}),
     ("centroid", "fluorocal.stages.centroid", "centroid_beads", "CentroidParams", ("frame", "detect"), {}),
     (
         "label",

@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import logging
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from fluorocal.stages._fov import bead_polarity, field_of_view, fov_clearance, pixel_noise
@@ -79,10 +79,13 @@ class DetectParams:
     polarity : {"auto", "dark", "bright"}
         ``"dark"``: beads darker than their surroundings (steel beads);
         ``"bright"``: brighter (holes of a grid plate); ``"auto"`` (default):
-        decided per frame from the heavier tail of the flattened log image.
+        decided from the heavier tail of the flattened log image (by
+        ``fluorocal run`` once per system, see :func:`estimate_appearance`;
+        here, on the frame itself).
     min_diameter_px, max_diameter_px : float
-        Expected bead diameter range, px. Both 0 (default): estimated from the
-        frame. Otherwise ``0 < min_diameter_px <= max_diameter_px``.
+        Expected bead diameter range, px. Both 0 (default): estimated
+        (``fluorocal run``: once per system; here: from the frame).
+        Otherwise ``0 < min_diameter_px <= max_diameter_px``.
     min_contrast : float
         Absolute floor on a blob's log contrast ``ln(I_background / I_bead)``
         (about the fractional attenuation for small values). Default 0.05.
@@ -233,17 +236,12 @@ def detect_beads(radiograph: Radiograph, params: DetectParams) -> BeadCandidates
 
     image = radiograph.image
     name = frame_name(radiograph)
-    fov = field_of_view(image)
-    if fov is None:
+    prepared = _prepared(image)
+    if prepared is None:
         return _empty(radiograph, params, name, "no field of view (blank frame)")
-    hull_xy, fov_mask = fov
+    hull_xy, fov_mask, noise, half_log, half_mask = prepared
     (cx, cy), fov_radius = cv2.minEnclosingCircle(hull_xy.astype(np.float32))
-    noise = pixel_noise(image, fov_mask)
     polarity = params.polarity if params.polarity != "auto" else bead_polarity(image, fov_mask)
-    height, width = image.shape
-    # the log of a 2x-reduced copy: for the size estimate, and for finding beads of 10 px and more
-    half_log = log_image(cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA))
-    half_mask = cv2.resize(fov_mask, (width // 2, height // 2), interpolation=cv2.INTER_NEAREST)
     if params.max_diameter_px > 0:
         d_min, d_max = params.min_diameter_px, params.max_diameter_px
     else:
@@ -280,6 +278,67 @@ def detect_beads(radiograph: Radiograph, params: DetectParams) -> BeadCandidates
         source=radiograph.source,
         frame_index=radiograph.frame_index,
     )
+
+
+def _prepared(image: np.ndarray):
+    """``(hull_xy, fov_mask, noise, half_log, half_mask)`` of a frame (None without a field of view).
+
+    ``half_*``: of a 2x-reduced copy, for the size estimate and for finding beads of 10 px and more.
+    """
+    import cv2
+
+    fov = field_of_view(image)
+    if fov is None:
+        return None
+    hull_xy, fov_mask = fov
+    height, width = image.shape
+    half_log = log_image(cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA))
+    half_mask = cv2.resize(fov_mask, (width // 2, height // 2), interpolation=cv2.INTER_NEAREST)
+    return hull_xy, fov_mask, pixel_noise(image, fov_mask), half_log, half_mask
+
+
+def estimate_appearance(radiographs, params: DetectParams) -> DetectParams:
+    """``params`` with its automatic polarity and bead diameter range decided once, for a whole system.
+
+    One system images one phantom at one magnification: the beads' polarity and size are the system's.
+    Estimated once, on the first of ``radiographs`` that shows beads, they spare :func:`detect_beads`
+    the estimate on every frame. Values already given in ``params`` are kept.
+
+    Parameters
+    ----------
+    radiographs : iterable of Radiograph
+        Frames of one system, tried in order (give a few: a blank first frame is passed over).
+    params : DetectParams
+
+    Returns
+    -------
+    DetectParams
+        ``params`` with ``polarity`` resolved and the diameter range filled (rounded outwards to
+        0.01 px); ``params`` unchanged when no frame shows a bead-like blob.
+
+    Examples
+    --------
+    >>> yy, xx = np.mgrid[0:128, 0:128]
+    >>> image = np.where((xx - 60.3) ** 2 + (yy - 70.6) ** 2 < 8.0**2, 150.0, 1400.0)
+    >>> given = estimate_appearance([Radiograph(image, 12)], DetectParams())
+    >>> given.polarity, 0 < given.min_diameter_px < 16 < given.max_diameter_px
+    ('dark', True)
+    """
+    if params.polarity != "auto" and params.max_diameter_px > 0:
+        return params
+    for radiograph in radiographs:
+        prepared = _prepared(radiograph.image)
+        if prepared is None:
+            continue
+        _, fov_mask, noise, half_log, half_mask = prepared
+        polarity = params.polarity if params.polarity != "auto" else bead_polarity(radiograph.image, fov_mask)
+        if params.max_diameter_px > 0:
+            return replace(params, polarity=polarity)
+        estimate = _estimate_diameter_range(half_log, half_mask, polarity, noise, params)
+        if estimate is not None:
+            d_min, d_max = np.floor(100 * estimate[0]) / 100, np.ceil(100 * estimate[1]) / 100
+            return replace(params, polarity=polarity, min_diameter_px=float(d_min), max_diameter_px=float(d_max))
+    return params
 
 
 def _frame_blobs(image, fov_mask, half_log, half_mask, polarity, d_min, d_max, noise, params: DetectParams):

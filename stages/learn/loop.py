@@ -16,7 +16,9 @@ with ``Δ`` held constant, warm-started from the previous solution.
 A phase ends when the combined cost (equation 2 + equation 3) changes by
 less than ``params.tolerance`` per observation, when the correction moves by
 less than ``params.step_tolerance`` times the inlier RMS at every observation,
-or at its iteration cap (``params.max_iterations`` for the kNN phase,
+when (smoothed schemes, in the refinement or when there is none) the gridded
+field moves by less than ``params.field_tolerance`` times its own node
+uncertainty at every supported node, or at its iteration cap (``params.max_iterations`` for the kNN phase,
 ``params.refine_iterations`` for the refinement). With ``params.refine`` the
 end of the kNN phase starts the gridded refinement; the end of the last phase
 ends the loop.
@@ -233,10 +235,12 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     out = adjustment_outcome(adj, plan.observations.sigma_px)
     total = out.cost + fit_cost
     step = float(np.max(np.abs(corrections - state.corrections))) if len(corrections) else 0.0
+    step_sigma = _field_step_sigma(state.grids, grids) if plan.smooth else float("nan")
     ks = tuple(int(m.k_prev or 0) if phase == "knn" else 0 for m in memory)
-    history = state.history + (IterationRecord(iteration, phase, out.cost, fit_cost, total, ks, out.rms_px, step),)
+    record = IterationRecord(iteration, phase, out.cost, fit_cost, total, ks, out.rms_px, step, step_sigma)
+    history = state.history + (record,)
     logger.info(
-        "iteration %d (%s): cost %.6g + %.6g = %.6g, RMS %.4f px, step %.4f px, k %s",
+        "iteration %d (%s): cost %.6g + %.6g = %.6g, RMS %.4f px, step %.4f px (%.2f sigma), k %s",
         iteration,
         phase,
         out.cost,
@@ -244,6 +248,7 @@ def _iterate(plan: _Plan, state: _State) -> _State:
         total,
         out.rms_px,
         step,
+        step_sigma,
         ks,
     )
     prev = _previous_total(history)
@@ -266,6 +271,29 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     )
 
 
+def _field_step_sigma(before: tuple, after: tuple) -> float:
+    """Largest change of a gridded field at a node supported after the step, in units of that node's sigma."""
+    worst = 0.0
+    for old, new in zip(before, after):
+        change = np.linalg.norm(new.delta_px - old.delta_px, axis=-1)[new.support]
+        if change.size:
+            worst = max(worst, float(np.max(change / np.maximum(new.sigma_px[new.support], 1e-12))))
+    return worst
+
+
+def _field_settled(history: tuple, field_tolerance: float, cost_tolerance: float) -> bool:
+    """Whether the last iteration moved the field by less than ``field_tolerance`` sigma with the cost stalled.
+
+    The cost has stalled when the adjustment's cost (equation 2) is not below the best of its phase's
+    earlier iterations by ``cost_tolerance``. The adjustment's cost, not the combined one:
+    the refinement's in-sample regression cost (equation 3 of a joint field-and-points fit solved
+    inexactly) wanders by tens of percent near the fixed point, where the adjustment's settles; while it
+    still falls, the field is still being learned, however small one step.
+    """
+    phase = [h.cost_adjust for h in history if h.phase == history[-1].phase]
+    return len(phase) > 2 and history[-1].step_sigma < field_tolerance and phase[-1] > min(phase[:-1]) - cost_tolerance
+
+
 def _previous_total(history: tuple) -> float | None:
     """The combined cost of the iteration before the last, if it is of the same phase."""
     return history[-2].cost_total if len(history) > 2 and history[-2].phase == history[-1].phase else None
@@ -277,7 +305,15 @@ def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
     prev = _previous_total(state.history)
     small_change = prev is not None and abs(last.cost_total - prev) < params.tolerance * max(n_obs, 1)
     small_step = prev is not None and last.step_px < params.step_tolerance * last.rms_px
-    done = small_change or small_step
+    # the kNN phase of the recommended loop is a few steps towards the refinement: the field rule ends a phase
+    # only once the field has been refined, or when there is no refinement to come
+    field_phase = state.phase == "grid" or plan.refine == "none"
+    cost_tolerance = params.tolerance * max(n_obs, 1)
+    still_field = field_phase and all(
+        _field_settled(state.history[:end], params.field_tolerance, cost_tolerance)
+        for end in (len(state.history) - 1, None)
+    )
+    done = small_change or small_step or still_field
     cap = params.max_iterations if state.phase == "knn" else params.refine_iterations
     if not done and state.iteration - state.phase_start + 1 < cap:
         return "continue", False, ""
@@ -291,6 +327,11 @@ def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
         reason = (
             f"the correction moved by at most {last.step_px:.3g} px < {params.step_tolerance} x the residual RMS "
             f"{last.rms_px:.3g} px"
+        )
+    elif still_field:
+        reason = (
+            f"the field moved by at most {last.step_sigma:.3g} < {params.field_tolerance} x its own uncertainty "
+            "at every supported node and the adjustment's cost stopped falling, two iterations running"
         )
     elif state.phase == "grid":
         reason = f"maximum number of refinement iterations ({params.refine_iterations}) reached"

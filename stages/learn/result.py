@@ -29,6 +29,9 @@ class IterationRecord:
         RMS of the inlier residuals per component after the update, px.
     step_px : float
         Largest change of the correction at an observation, px.
+    step_sigma : float
+        Largest change of a gridded field at a supported node, in units of that node's uncertainty
+        (the field's own ``sigma_px``); NaN for the unsmoothed schemes and iteration 0.
     """
 
     iteration: int
@@ -39,6 +42,7 @@ class IterationRecord:
     k: tuple
     rms_px: float
     step_px: float
+    step_sigma: float = float("nan")
 
 
 @dataclass(frozen=True)

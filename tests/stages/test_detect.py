@@ -274,3 +274,70 @@ def test_real_spine_without_beads(arcadis_dir, params):
         beads = centroid_beads(frame, found, CentroidParams())
     assert beads.ok.sum() <= 2
     assert beads.ok.sum() == 0
+
+
+# --- the bead appearance, estimated once per system ----------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def simulated_system():
+    from fluorocal.stages.simulate import SimulateParams, simulate
+
+    data = simulate(SimulateParams(n_frames=4, n_systems=1, image_size_px=512, seed=5))
+    return data.frames[0], data.truth.frames[0]
+
+
+def test_system_estimate_matches_each_frames_and_the_truth(simulated_system):
+    from fluorocal.stages.detect import estimate_appearance
+
+    frames, truths = simulated_system
+    system = estimate_appearance(frames, DetectParams())
+    assert system.polarity == "dark"  # steel beads in the simulator
+    for frame, truth in zip(frames, truths):
+        own = estimate_appearance([frame], DetectParams())
+        assert own.polarity == system.polarity
+        # one magnification per system: every frame's own estimate agrees with the first frame's within 25 %
+        # (the range's ends follow the smallest and largest round bead a frame shows, 0.6x and 1.5x of them,
+        # and which beads are seen, at which depth, changes with the pose: measured up to 18 % here)
+        assert abs(own.min_diameter_px / system.min_diameter_px - 1) < 0.25
+        assert abs(own.max_diameter_px / system.max_diameter_px - 1) < 0.25
+        # and the range holds every fully visible bead of every frame (the simulator's projected diameters)
+        clear = ~(truth.overlap | truth.field_edge)
+        d = truth.diameter_px[clear]
+        assert system.min_diameter_px <= d.min() and d.max() <= system.max_diameter_px
+
+
+def test_system_estimate_detects_as_per_frame_estimate_and_as_given_values(simulated_system):
+    from fluorocal.stages.detect import estimate_appearance
+
+    frames, truths = simulated_system
+    system = estimate_appearance(frames, DetectParams())
+    given = DetectParams(
+        polarity=system.polarity, min_diameter_px=system.min_diameter_px, max_diameter_px=system.max_diameter_px
+    )
+    for frame, truth in zip(frames, truths):
+        once, explicit = detect_beads(frame, system), detect_beads(frame, given)
+        # the estimate is only the values: detection with them is detection with the same values given
+        for name in ("xy_px", "radius_px", "contrast", "accepted", "reason"):
+            np.testing.assert_array_equal(getattr(once, name), getattr(explicit, name))
+        per_frame = detect_beads(frame, DetectParams())
+        # the same beads accepted as with the frame's own estimate; candidate centres agree within 0.05 px (they
+        # depend on the smoothing, a sixth of the smallest expected diameter; the centroid stage refines them)
+        a, b = once.xy_px[once.accepted], per_frame.xy_px[per_frame.accepted]
+        assert len(a) == len(b)
+        d, _ = cKDTree(b).query(a)
+        assert np.max(d) < 0.05
+        clear = ~(truth.overlap | truth.field_edge)
+        found, _ = _match(a, truth.outline_xy_px[clear], 1.0)
+        assert found.mean() > 0.97  # as the per-frame estimate: nearly every clear bead found
+
+
+def test_system_estimate_keeps_given_values_and_skips_blank_frames(simulated_system):
+    from fluorocal.stages.detect import estimate_appearance
+
+    frames, _ = simulated_system
+    given = DetectParams(polarity="bright", min_diameter_px=3.0, max_diameter_px=9.0)
+    assert estimate_appearance(frames, given) == given
+    blank = _frame(np.zeros(frames[0].image.shape))
+    assert estimate_appearance([blank, frames[0]], DetectParams()) == estimate_appearance(frames[:1], DetectParams())
+    assert estimate_appearance([blank], DetectParams()) == DetectParams()  # nothing to go by: per-frame estimate

@@ -550,6 +550,40 @@ def test_step_tolerance_stops_the_refinement_once_the_field_stops_moving(simulat
         LearnParams(step_tolerance=-1)
 
 
+@pytest.mark.slow
+def test_field_tolerance_stops_before_the_cap_as_accurate_as_running_to_it(simulated):
+    from fluorocal.stages.learn import calibrate
+
+    obs, phantom, initial, distortion, fov_radius_px = simulated
+    # the recommended loop with the residual-RMS step rule off: only the field rule can end the refinement early
+    base = dict(refine_iterations=15, step_tolerance=0.0)
+    run = dict(image_size=(E2E_SIZE, E2E_SIZE), scheme="knn+iop+smooth")
+    stopped = calibrate(obs, phantom, initial, params=LearnParams(**base), **run)
+    capped = calibrate(obs, phantom, initial, params=LearnParams(**base, field_tolerance=0.0), **run)
+    grid = [h for h in stopped.history if h.phase == "grid"]
+    assert stopped.converged and "its own uncertainty" in stopped.stop_reason, stopped.stop_reason
+    assert len(grid) < 15 and not capped.converged
+    # the rule as stated: at each of the last two refinement steps no supported node moved by half its sigma and
+    # the adjustment's cost was not below the refinement's best before it by 1e-4 per observation (the default
+    # tolerance); no earlier pair of steps did so
+    tol = 1e-4 * len(obs)
+    settled = [
+        i >= 2 and grid[i].step_sigma < 0.5 and grid[i].cost_adjust > min(h.cost_adjust for h in grid[:i]) - tol
+        for i in range(len(grid))
+    ]
+    assert settled[-1] and settled[-2], [(h.step_sigma, h.cost_adjust) for h in grid]
+    assert not any(a and b for a, b in zip(settled[:-2], settled[1:-1]))
+    before, after = _field_errors_without_and_with(stopped.fields[0], distortion, fov_radius_px)
+    _, after_cap = _field_errors_without_and_with(capped.fields[0], distortion, fov_radius_px)
+    # the truth: the refinement's field is recovered to well below the uncorrected error (as the joint refinement
+    # test, 0.55 -> 0.16 px), and stopping early costs at most 0.01 px against the 15 iterations (the field's
+    # own node uncertainty here is ~0.05 px / sqrt(n_eff ~ 2), so a half-sigma step is ~0.02 px at a node)
+    assert after < 0.4 * before, (before, after)
+    assert after < after_cap + 0.01, (after, after_cap)
+    with pytest.raises(InputError, match="field_tolerance"):
+        LearnParams(field_tolerance=-0.1)
+
+
 def test_intermediate_solves_at_their_cap_do_not_warn_the_final_one_does(simulated, caplog):
     import logging
 

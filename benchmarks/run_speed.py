@@ -1,0 +1,233 @@
+"""End-to-end run speed (issue 15), side by side in one run, on one simulated biplanar data set.
+
+Simulates a biplanar cube set (strong distortion, 1024 px, ``--frames`` exposures per system), writes it
+with README-style minimal configs, and measures:
+
+1. **detect + centroid in memory**, CPU per frame on one core (``process_time``, one OpenCV thread), on
+   ``--detect-frames`` frames of system A: the polarity and bead size estimated on every frame (before
+   issue 15), estimated once for the system (:func:`fluorocal.stages.detect.estimate_appearance` on its
+   first frames, the estimate's cost included) with nothing given (what ``fluorocal run`` does now), and
+   given explicitly;
+2. **the learn stage** of a 40-exposure one-system project (system A's first 40 frames): CPU and wall
+   time of the stage alone (detection, centroiding and labelling run first, cached), its iterations and
+   why it stopped (target: converged, no cap reached, <= 5 s CPU);
+3. **a full ``fluorocal run``** of system A's frames, in subprocesses with fresh caches: with the
+   environment's default BLAS/OpenMP threads and forced to one (``OPENBLAS_NUM_THREADS=1
+   OMP_NUM_THREADS=1 MKL_NUM_THREADS=1``): CPU time (children's user + system) and wall, and the ratio;
+4. **biplanar end to end**: ``fluorocal run`` of both systems, fresh cache, one BLAS thread: wall and CPU
+   (target: <= 30 s wall on a quiet machine), with each stage's wall time from the run's log.
+
+``--profile`` adds a cProfile of the biplanar run (in process, fresh cache): the top functions by
+cumulative and by own time.
+
+Usage: ``python benchmarks/run_speed.py [--frames N] [--detect-frames N] [--sections a,b,...]
+[--profile] [--keep DIR]`` (defaults: 75 exposures per system, 20 frames for the detection, every
+section: detect,learn,threads,biplanar; ``--keep``: the data set is written there, and reused when
+it is the same).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import json
+import os
+import pstats
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+ONE_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+#: the environment as a user's shell gives it, without the thread limits set below for this process
+USER_ENV = {k: v for k, v in os.environ.items() if k not in ONE_THREAD}
+os.environ.update(ONE_THREAD)  # this process's own timings: one BLAS thread (set before numpy loads)
+
+from fluorocal.cache import ArtifactCache  # noqa: E402
+from fluorocal.cli import main as fluorocal_main  # noqa: E402
+from fluorocal.cmd_simulate import write_dataset  # noqa: E402
+from fluorocal.config import load_config  # noqa: E402
+from fluorocal.graph import default_stages, stage_params_classes  # noqa: E402
+from fluorocal.run import Runner  # noqa: E402
+from fluorocal.stages.simulate import SimulateParams, simulate  # noqa: E402
+
+CONFIG = """[phantom]
+file = "phantom.csv"
+{systems}
+[output]
+dir = "out-{tag}"
+
+[cache]
+dir = "cache-{tag}"
+"""
+
+SYSTEM = """
+[[systems]]
+name = "{name}"
+frames = {frames}
+source_image_distance = {sid}
+pixel_pitch = {pitch}
+"""
+
+
+def write_config(root: Path, truth: dict, tag: str, systems: tuple[str, ...], n_frames: int | None = None) -> Path:
+    """A minimal config of ``systems`` (their first ``n_frames`` frames), with its own output and cache folders."""
+    blocks = []
+    for s in truth["systems"]:
+        if s["name"] not in systems:
+            continue
+        frames = sorted((root / "frames" / s["name"]).glob("*.tif"))[:n_frames]
+        listed = "[" + ", ".join(f'"{f.relative_to(root).as_posix()}"' for f in frames) + "]"
+        blocks.append(
+            SYSTEM.format(name=s["name"], frames=listed, sid=s["source_image_distance_mm"], pitch=s["pixel_pitch_mm"])
+        )
+    cfg = root / f"fluorocal-{tag}.toml"
+    cfg.write_text(CONFIG.format(systems="".join(blocks), tag=tag))
+    shutil.rmtree(root / f"cache-{tag}", ignore_errors=True)
+    return cfg
+
+
+def detect_speed(root: Path, n_frames: int) -> None:
+    import cv2
+    from fluorocal.stages.centroid import CentroidParams, centroid_beads
+    from fluorocal.stages.detect import DetectParams, detect_beads, estimate_appearance
+    from fluorocal.stages.io import read_frames
+
+    cv2.setNumThreads(1)
+    frames = [read_frames(f)[0] for f in sorted((root / "frames" / "A").glob("*.tif"))[:n_frames]]
+    once = estimate_appearance(frames[:3], DetectParams())
+    variants = {
+        "estimated on every frame": (DetectParams(), False),
+        "estimated once per system": (DetectParams(), True),
+        "given": (once, False),
+    }
+    print(f"\n1. detect + centroid in memory, {len(frames)} frames of 1024x1024, one core (CPU time)")
+    for name, (params, per_system) in variants.items():
+        c0 = time.process_time()
+        p = estimate_appearance(frames[:3], params) if per_system else params
+        c_est = time.process_time() - c0
+        n_beads, c_det, c_cen = 0, 0.0, 0.0
+        for frame in frames:
+            t = time.process_time()
+            found = detect_beads(frame, p)
+            t2 = time.process_time()
+            n_beads += len(centroid_beads(frame, found, CentroidParams()).xy_px)
+            c_det, c_cen = c_det + t2 - t, c_cen + time.process_time() - t2
+        total = c_est + c_det + c_cen
+        print(
+            f"  {name:<27}: {len(frames) / total:5.1f} frames/s per core (detect {1e3 * c_det / len(frames):5.1f} ms"
+            f" + centroid {1e3 * c_cen / len(frames):5.1f} ms per frame, estimate {1e3 * c_est:5.1f} ms once); "
+            f"{n_beads / len(frames):.0f} beads/frame"
+        )
+
+
+def learn_speed(root: Path, truth: dict) -> None:
+    cfg = write_config(root, truth, "learn40", ("A",), 40)
+    if fluorocal_main(["--quiet", "run", str(cfg), "--until", "label"]) != 0:
+        raise SystemExit(f"fluorocal run {cfg} --until label failed")
+    config = load_config(cfg, stage_params_allowed=stage_params_classes())
+    runner = Runner(config, default_stages(), ArtifactCache(config.cache_dir), progress=False)
+    inputs = runner._inputs(runner.by_name["learn"], None)
+    params, extras = runner.params[("learn", None)]
+    t0, c0 = time.perf_counter(), time.process_time()
+    result = runner.by_name["learn"].func(*inputs, params, **extras)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    print("\n2. learn stage of a 40-exposure one-system project (observations from the cached labelling)")
+    print(
+        f"  {cpu:.1f} s CPU, {wall:.1f} s wall; {len(result.history) - 1} iterations; converged {result.converged}: "
+        f"{result.stop_reason}"
+    )
+
+
+def run_subprocess(cfg: Path, env: dict) -> tuple[float, float, str]:
+    """``fluorocal run`` of ``cfg`` in a fresh process and cache: (wall s, CPU s of the child, its log)."""
+    shutil.rmtree(cfg.parent / cfg.stem.replace("fluorocal-", "cache-"), ignore_errors=True)
+    before = os.times()
+    t0 = time.perf_counter()
+    proc = subprocess.run(
+        [sys.executable, "-m", "fluorocal.cli", "run", str(cfg)], env=env, capture_output=True, text=True
+    )
+    wall = time.perf_counter() - t0
+    after = os.times()
+    if proc.returncode != 0:
+        raise SystemExit(f"fluorocal run {cfg} exited {proc.returncode}: {proc.stderr[-2000:]}")
+    cpu = (after.children_user - before.children_user) + (after.children_system - before.children_system)
+    return wall, cpu, proc.stdout + proc.stderr
+
+
+def thread_ratio(root: Path, truth: dict, n_frames: int) -> None:
+    cfg = write_config(root, truth, "threads", ("A",))
+    default_wall, default_cpu, _ = run_subprocess(cfg, USER_ENV)
+    one_wall, one_cpu, _ = run_subprocess(cfg, {**USER_ENV, **ONE_THREAD})
+    print(f"\n3. fluorocal run of {n_frames} frames (one system), fresh cache, in a subprocess")
+    print(f"  default threads : {default_cpu:6.1f} s CPU, {default_wall:6.1f} s wall")
+    print(f"  one BLAS thread : {one_cpu:6.1f} s CPU, {one_wall:6.1f} s wall")
+    print(f"  CPU ratio default / one thread: {default_cpu / one_cpu:.2f}x (target <= 1.05x)")
+
+
+def biplanar(root: Path, truth: dict, n_frames: int, profile: bool) -> None:
+    cfg = write_config(root, truth, "biplanar", ("A", "B"))
+    wall, cpu, log = run_subprocess(cfg, {**USER_ENV, **ONE_THREAD})
+    print(f"\n4. biplanar {n_frames} + {n_frames} end to end (fluorocal run, fresh cache, one BLAS thread)")
+    print(
+        f"  {wall:.1f} s wall, {cpu:.1f} s CPU (target <= 30 s wall on a quiet machine); load {os.getloadavg()[0]:.1f}"
+    )
+    for line in log.splitlines():
+        if re.search(r"computed|stopped|converged|reached|after \d+ iterations", line):
+            print(f"    | {line.strip()}")
+    if profile:
+        write_config(root, truth, "biplanar", ("A", "B"))
+        profiler = cProfile.Profile()
+        profiler.runcall(fluorocal_main, ["--quiet", "run", str(cfg)])
+        for key in ("cumulative", "tottime"):
+            out = io.StringIO()
+            pstats.Stats(profiler, stream=out).sort_stats(key).print_stats(30)
+            print(f"\n  cProfile of the biplanar run, by {key}:")
+            print("\n".join("    " + line for line in out.getvalue().splitlines()[6:40]))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=75, help="exposures per system (default 75)")
+    ap.add_argument("--detect-frames", type=int, default=20, help="frames timed in section 1 (default 20)")
+    ap.add_argument("--sections", default="detect,learn,threads,biplanar", help="comma-separated (default: all)")
+    ap.add_argument("--seed", type=int, default=11, help="simulation seed (default 11)")
+    ap.add_argument("--profile", action="store_true", help="also profile the biplanar run with cProfile")
+    ap.add_argument("--keep", type=Path, help="write the data set here instead of a temporary folder")
+    args = ap.parse_args(argv)
+    sections = set(args.sections.split(","))
+    root = Path(tempfile.mkdtemp(prefix="run-speed-")) if args.keep is None else args.keep
+    t0 = time.perf_counter()
+    # the learn section takes system A's first 40 frames
+    n = max(args.frames, 40)
+    params = SimulateParams(n_frames=n, n_systems=2, image_size_px=1024, seed=args.seed, distortion="strong")
+    if not (root / "truth.json").is_file() or json.loads((root / "truth.json").read_text())["params"] != json.loads(
+        json.dumps(asdict(params))
+    ):
+        write_dataset(simulate(params), root, replace=True)
+    truth = json.loads((root / "truth.json").read_text())
+    print(
+        f"run speed: biplanar cube, strong distortion, {params.n_frames} + {params.n_frames} frames of 1024 px "
+        f"(simulated and written in {time.perf_counter() - t0:.0f} s); {os.cpu_count()} CPUs, "
+        f"load {os.getloadavg()[0]:.1f}"
+    )
+    if "detect" in sections:
+        detect_speed(root, args.detect_frames)
+    if "learn" in sections:
+        learn_speed(root, truth)
+    if "threads" in sections:
+        thread_ratio(root, truth, params.n_frames)
+    if "biplanar" in sections:
+        biplanar(root, truth, params.n_frames, args.profile)
+    if args.keep is None:
+        shutil.rmtree(root, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
