@@ -19,11 +19,6 @@ from fluorocal.stages.label.cube_frame import CubeFrame, visible
 
 # ... and if its labelling explains this fraction of the best's, with other labels, the frame is ambiguous
 _RIVAL_LABELS = 0.95
-# a bead detected this close to its final prediction is told apart from its neighbours unless one lies within this
-# fraction of the ambiguity distance: a blob merging it with a neighbour that far would lie >= 0.25 diameters from
-# it (and be elongated by >= 1.5), beads that close may merge into a round blob on either
-_APART_BEAD_DIAMETERS = 0.15
-_APART_AMBIGUITY = 0.5
 # correction degree at each labelling iteration (then the configured degree)
 _DEGREE_SCHEDULE = (0, 1, 3, 5)
 # c is refined only when the labelled beads' depths spread by this fraction of their mean depth (std)
@@ -84,11 +79,7 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
     # overlap is judged on the measured outlines where a bead was detected, on the prediction elsewhere
     where = pred.copy()
     where[i_pred] = frame.det_xy[i_det]
-    apparent = apparent_diameters(corr, ideal[vis], pred, diam[vis])
-    amb = ambiguous(where, apparent, p.ambiguity_bead_diameters)
-    apart = np.zeros(len(pred), dtype=bool)
-    apart[i_pred] = resid <= _APART_BEAD_DIAMETERS * diam[vis][i_pred]
-    amb[apart] = ambiguous(where, apparent, _APART_AMBIGUITY * p.ambiguity_bead_diameters)[apart]
+    amb = ambiguous(where, apparent_diameters(corr, ideal[vis], pred, diam[vis]), p.ambiguity_bead_diameters)
     close = resid <= p.final_gate_bead_diameters * diam[vis][i_pred]
     lab = close & ~amb[i_pred]
     ambig = amb[i_pred]
