@@ -168,12 +168,20 @@ def limit_threads(threads: int | None = None) -> int:
     """
     override = os.environ.get(THREADS_ENV)
     if override is not None:
-        if not override.strip().isdigit() or int(override) < 1:
+        threads = _count(override)
+        if threads is None:
             raise InputError(f"environment variable {THREADS_ENV}: expected a positive integer; got {override!r}")
-        threads = int(override)
     threads = threads or 1
     for var in THREAD_VARS:
         os.environ.setdefault(var, str(threads))
     if "cv2" in sys.modules:
-        sys.modules["cv2"].setNumThreads(int(os.environ["OPENCV_FOR_THREADS_NUM"]))
+        sys.modules["cv2"].setNumThreads(_count(os.environ["OPENCV_FOR_THREADS_NUM"]) or threads)
     return threads
+
+
+def _count(text: str) -> int | None:
+    """``text`` as a positive integer (ASCII digits only), else None."""
+    text = text.strip()
+    if not (text.isascii() and text.isdigit()) or int(text) < 1:
+        return None
+    return int(text)

@@ -87,9 +87,10 @@ def test_threads_default_to_one_and_the_users_variables_win(clean_thread_env):
 def test_fluorocal_threads_wins_over_the_config(clean_thread_env):
     clean_thread_env.setenv(THREADS_ENV, "4")
     assert limit_threads(2) == 4 and os.environ["MKL_NUM_THREADS"] == "4"
-    clean_thread_env.setenv(THREADS_ENV, "many")
-    with pytest.raises(ValueError, match="environment variable FLUOROCAL_THREADS: expected a positive integer"):
-        limit_threads(2)
+    for bad in ("many", "\u00b2", "0"):  # a superscript two passes str.isdigit but is no count
+        clean_thread_env.setenv(THREADS_ENV, bad)
+        with pytest.raises(ValueError, match="environment variable FLUOROCAL_THREADS: expected a positive integer"):
+            limit_threads(2)
 
 
 @pytest.mark.parametrize(
