@@ -105,7 +105,10 @@ def load_maps(folder: Path, key: str, size_px: tuple[int, int]) -> np.ndarray | 
             warnings.warn(
                 f"{file}: corrupt cached undistortion maps ({exc}); recomputing", MapCacheWarning, stacklevel=4
             )
-            file.unlink(missing_ok=True)
+            try:
+                file.unlink(missing_ok=True)
+            except OSError:  # a folder that cannot be written only loses the cache
+                pass
     return None
 
 

@@ -87,16 +87,22 @@ def write(cal, out_dir: Path) -> list[str]:
     tables = tables_beside(cal)
     # every exposure's coefficients first: a pose the DLT cannot represent is refused before anything is written
     per_exposure = {e: [coefficients(cal, system, e) for system in cal.system_names] for e in sorted(cal.exposures)}
+    # ... and their reprojection RMS: nothing is written until every figure is in hand
+    rms = {
+        (e, system): (0, float("nan")) if tables is None else reprojection_rms(cal, system, e, L, tables)
+        for e, columns in per_exposure.items()
+        for system, L in zip(cal.system_names, columns)
+    }
     lines, rms_rows = [], ["exposure,system,column,n_points,rms_px"]
     for exposure, columns in per_exposure.items():
         text = "\n".join(",".join(repr(float(c[k])) for c in columns) for k in range(11)) + "\n"
         path = write_text(out_dir, f"dlt_exposure{exposure}.csv", text)
         lines.append(f"{path}: 11 DLT coefficients x {len(columns)} camera(s) ({', '.join(cal.system_names)})")
-        for column, (system, L) in enumerate(zip(cal.system_names, columns), start=1):
-            n, rms = (0, float("nan")) if tables is None else reprojection_rms(cal, system, exposure, L, tables)
-            rms_rows.append(f"{exposure},{system},{column},{n},{rms:.6f}")
+        for column, system in enumerate(cal.system_names, start=1):
+            n, value = rms[(exposure, system)]
+            rms_rows.append(f"{exposure},{system},{column},{n},{value:.6f}")
             if n:
-                lines.append(f"  exposure {exposure}, system {system}: reprojection RMS {rms:.4f} px over {n} beads")
+                lines.append(f"  exposure {exposure}, system {system}: reprojection RMS {value:.4f} px over {n} beads")
     path = write_text(out_dir, "dlt_rms.csv", "\n".join(rms_rows) + "\n")
     if tables is None:
         lines.append(f"{path}: no RMS (object_points.csv and observations.csv are not beside the calibration)")
