@@ -81,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument(
         "--scheduler",
         metavar="tcp://HOST:PORT",
-        help="run the per-frame stages on this Dask scheduler's cluster (default: [compute] scheduler, else none)",
+        help="run the per-frame stages on this Dask scheduler's cluster (default: $FLUOROCAL_SCHEDULER, else none)",
     )
     p.set_defaults(func=cmd_run)
 
@@ -136,16 +136,10 @@ def _positive_int(text: str) -> int:
 
 
 def _compute(args, config):
-    """The config's ``[compute]`` with ``--jobs`` or ``--scheduler`` over it (either chooses where to run)."""
-    import dataclasses
+    """The config's ``[compute]`` with ``--jobs``, ``--scheduler`` or ``FLUOROCAL_SCHEDULER`` over it."""
+    from fluorocal.compute import where_to_run
 
-    from fluorocal.compute import check_scheduler
-
-    if getattr(args, "jobs", None) is not None:
-        return dataclasses.replace(config.compute, jobs=args.jobs, scheduler="")
-    if getattr(args, "scheduler", None) is not None:
-        return dataclasses.replace(config.compute, jobs=None, scheduler=check_scheduler(args.scheduler, "--scheduler"))
-    return config.compute
+    return where_to_run(config.compute, getattr(args, "jobs", None), getattr(args, "scheduler", None))
 
 
 def _load(config_path: Path):

@@ -1,11 +1,15 @@
 """Where the per-frame work runs, and with how many threads: ``[compute]``, ``--jobs``, ``--scheduler``.
 
-``[compute]`` in the project file owns three settings::
+``[compute]`` in the project file owns two settings::
 
     [compute]
     jobs = 8                          # worker processes for the per-frame stages (default: every local core)
     threads = 1                       # BLAS/OpenMP/OpenCV threads per process (default: 1)
-    scheduler = "tcp://host:8786"     # run the per-frame stages on this Dask cluster instead (default: none)
+
+A Dask cluster is the user's own choice, never the project file's: ``--scheduler`` or
+``FLUOROCAL_SCHEDULER`` (:data:`SCHEDULER_ENV`). Dask exchanges pickled objects with its
+scheduler and workers, so a project file from someone else naming their scheduler could
+run code on this machine; ``[compute] scheduler`` is refused with that reason.
 
 The thread count is set through the libraries' environment variables
 (:data:`THREAD_VARS`), which they read once when they load: :func:`limit_threads`
@@ -41,11 +45,13 @@ THREAD_VARS = (
 THREADS_ENV = "FLUOROCAL_THREADS"
 #: the address schemes of a Dask scheduler fluorocal connects to
 SCHEDULER_SCHEMES = ("tcp", "tls")
+#: the user's own Dask scheduler, used when ``--scheduler`` and ``--jobs`` are not given
+SCHEDULER_ENV = "FLUOROCAL_SCHEDULER"
 
 
 @dataclass(frozen=True)
 class ComputeConfig:
-    """The ``[compute]`` section: worker processes, threads per process, and an optional Dask scheduler.
+    """Where the per-frame stages run: worker processes, threads per process, or a Dask scheduler.
 
     Attributes
     ----------
@@ -55,6 +61,7 @@ class ComputeConfig:
         BLAS/OpenMP/OpenCV threads of each process (the main one and each worker).
     scheduler : str
         ``tcp://HOST:PORT`` of a Dask scheduler to run the per-frame stages on; empty: run locally.
+        Never from the project file (:func:`compute_from_table`); see :func:`where_to_run`.
     """
 
     jobs: int | None = None
@@ -115,28 +122,43 @@ def compute_from_table(table, file_name: str) -> ComputeConfig:
     Raises
     ------
     InputError
-        A key other than jobs, threads and scheduler; jobs or threads not a positive
-        integer; a scheduler that is not ``tcp://HOST:PORT``; jobs and scheduler both
-        given (they choose between the local pool and a cluster). The message names the key.
+        A key other than jobs and threads (``scheduler`` with the reason it is not read from a
+        project file); jobs or threads not a positive integer. The message names the key.
     """
     if not isinstance(table, dict):
         raise InputError(f"{file_name}: key 'compute': expected a table [compute]; got {table!r}")
-    unknown = sorted(set(table) - {"jobs", "threads", "scheduler"})
+    if "scheduler" in table:
+        raise InputError(
+            f"{_key(file_name, 'scheduler')}: a project file cannot choose a Dask cluster (Dask exchanges "
+            "pickled code with it, so a project from someone else could run code here); remove the key and "
+            f"pass --scheduler ADDRESS or set {SCHEDULER_ENV} in your own environment"
+        )
+    unknown = sorted(set(table) - {"jobs", "threads"})
     if unknown:
-        raise InputError(f"{_key(file_name, unknown[0])}: unknown key; allowed keys are jobs, scheduler, threads")
+        raise InputError(f"{_key(file_name, unknown[0])}: unknown key; allowed keys are jobs, threads")
     jobs = table.get("jobs")
     if jobs is not None:
         jobs = _positive_int(jobs, file_name, "jobs", "a positive number of worker processes (1: serial)")
     threads = _positive_int(table.get("threads", 1), file_name, "threads", "a positive number of threads per process")
-    scheduler = table.get("scheduler", "")
-    if scheduler != "":
-        scheduler = check_scheduler(scheduler, _key(file_name, "scheduler"))
-        if jobs is not None:
-            raise InputError(
-                f"{_key(file_name, 'jobs')}: jobs (local worker processes) and scheduler (a Dask cluster) "
-                "exclude each other; remove one"
-            )
-    return ComputeConfig(jobs, threads, scheduler)
+    return ComputeConfig(jobs, threads)
+
+
+def where_to_run(config: ComputeConfig, jobs: int | None, scheduler: str | None) -> ComputeConfig:
+    """``config`` with the user's choice over it: ``--jobs``, else ``--scheduler``, else ``FLUOROCAL_SCHEDULER``.
+
+    Raises
+    ------
+    InputError
+        The scheduler given is not a Dask scheduler address (naming the flag or variable).
+    """
+    if jobs is not None:
+        return ComputeConfig(jobs, config.threads)
+    if scheduler is not None:
+        return ComputeConfig(None, config.threads, check_scheduler(scheduler, "--scheduler"))
+    from_env = os.environ.get(SCHEDULER_ENV, "")
+    if from_env:
+        return ComputeConfig(None, config.threads, check_scheduler(from_env, f"environment variable {SCHEDULER_ENV}"))
+    return config
 
 
 def config_threads(config_path: Path | None) -> int | None:

@@ -12,7 +12,9 @@ one writer and holds what a serial run would have written.
 The local pool starts its workers from a fork server (a clean, single-threaded
 process that has imported the stages once), so forking never copies a parent's
 threads or locks; each worker is set to :attr:`ComputeConfig.threads` threads.
-Dask is imported only when a scheduler is given.
+Dask is imported only when a scheduler is given. On a cluster, a worker whose libraries
+(:data:`WORKER_PACKAGES`) or fluorocal stage code differ from the main process's is refused
+before it computes anything: its artifacts would be cached under keys made from other code.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import socket
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -52,6 +55,12 @@ WORKER_PRELOAD = (
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
 #: seconds to wait for a Dask scheduler to answer
 CONNECT_TIMEOUT_S = 10
+#: distributions whose versions must be the same on every Dask worker as here (Dask checks its own)
+WORKER_PACKAGES = ("fluorocal", "numpy", "scipy", "opencv-contrib-python-headless", "scikit-image", "pydicom")
+
+
+class WorkerLost(CalibError, RuntimeError):
+    """A worker process died (killed, out of memory) or a cluster worker cannot run this code."""
 
 
 @dataclass(frozen=True)
@@ -61,6 +70,7 @@ class Step:
     stage: object  # fluorocal.graph.Stage: its function and inputs travel by reference, as code
     params: object
     extras: dict = field(default_factory=dict)
+    code: str = ""  # the stage's code digest in the main process (checked by cluster workers)
 
 
 @dataclass(frozen=True)
@@ -79,13 +89,16 @@ class FrameTask:
     """Frames of one file for one worker.
 
     ``on_cluster``: the worker is a Dask worker, maybe on another machine: it checks that the file
-    is the one the keys were made from, and keeps freed memory (:func:`_keep_freed_memory`).
+    is the one the keys were made from and that it runs the same stage code, sets ``threads``
+    for OpenCV (BLAS and OpenMP keep what the worker started with: Dask's nanny sets one thread),
+    and keeps freed memory (:func:`_keep_freed_memory`).
     """
 
     path: str
     file_sha256: str
     frames: tuple[FrameJob, ...]
     on_cluster: bool = False
+    threads: int = 1
 
 
 @dataclass(frozen=True)
@@ -111,6 +124,8 @@ def run_task(task: FrameTask) -> list[FrameResult]:
 
     where = f"{task.path} on {socket.gethostname()}"
     if task.on_cluster:
+        _check_code(task)
+        limit_threads(task.threads)
         _keep_freed_memory()
     try:
         if task.on_cluster and file_sha256(task.path) != task.file_sha256:
@@ -119,6 +134,25 @@ def run_task(task: FrameTask) -> list[FrameResult]:
     except OSError as exc:
         raise InputError(f"{where}: cannot read ({exc.strerror or exc}); workers must see the frames' paths") from None
     return [_run_frame(job, frames[job.index]) for job in task.frames]
+
+
+def _check_code(task: FrameTask) -> None:
+    """Refuse to compute with stage code other than the main process's (another fluorocal on this worker)."""
+    for step in {step.stage.name: step for job in task.frames for step in job.steps}.values():
+        if _stage_digest(step.stage) != step.code:
+            raise WorkerLost(
+                f"Dask worker on {socket.gethostname()} runs other fluorocal code for stage {step.stage.name} "
+                "than this machine; install the same fluorocal on every worker"
+            )
+
+
+_DIGESTS: dict[str, str] = {}
+
+
+def _stage_digest(stage) -> str:
+    if stage.name not in _DIGESTS:
+        _DIGESTS[stage.name] = stage.code_digest()
+    return _DIGESTS[stage.name]
 
 
 def _run_frame(job: FrameJob, frame) -> FrameResult:
@@ -180,6 +214,11 @@ def run_tasks(tasks: list[FrameTask], compute: ComputeConfig, *, preload: tuple[
         try:
             for future in as_completed(futures):
                 yield future.result()
+        except BrokenProcessPool:
+            raise WorkerLost(
+                "a worker process died (killed, or out of memory?); the frames computed so far are cached: "
+                "run again, with fewer --jobs if memory is short"
+            ) from None
         finally:
             for future in futures:
                 future.cancel()
@@ -196,21 +235,51 @@ def _on_cluster(tasks: list[FrameTask], scheduler: str):
     try:
         from distributed import Client
         from distributed import as_completed as completed
+        from distributed.client import FutureCancelledError
+        from distributed.scheduler import KilledWorker
     except ImportError:
         raise InputError(
             f"a Dask scheduler is set ({scheduler}) but Dask is not installed; "
-            "pip install 'fluorocal[cluster]' (or remove [compute] scheduler / --scheduler)"
+            "pip install 'fluorocal[cluster]' (or drop --scheduler / FLUOROCAL_SCHEDULER)"
         ) from None
-    try:
-        client = Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
-    except (OSError, TimeoutError) as exc:
-        raise InputError(
-            f"cannot reach the Dask scheduler at {scheduler} ({exc}); start it or fix [compute] scheduler / --scheduler"
-        ) from None
+    client = _connect(Client, scheduler)
     with client:
+        _check_versions(client.get_versions(packages=list(WORKER_PACKAGES)), scheduler)
         futures = client.map(run_task, tasks, pure=False)
         try:
             for future in completed(futures, loop=client.loop):
                 yield future.result()
+        except (KilledWorker, FutureCancelledError) as exc:
+            raise WorkerLost(
+                f"the Dask cluster at {scheduler} lost the task ({type(exc).__name__}: a worker died or was "
+                "restarted); the frames computed so far are cached: run again"
+            ) from None
         finally:
             client.cancel(futures)
+
+
+def _connect(client_cls, scheduler: str):
+    try:
+        return client_cls(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
+    except (OSError, TimeoutError) as exc:
+        raise InputError(
+            f"cannot reach the Dask scheduler at {scheduler} ({exc}); start it or fix --scheduler / FLUOROCAL_SCHEDULER"
+        ) from None
+    except TypeError as exc:  # tls:// without Dask's TLS settings
+        raise InputError(
+            f"cannot connect to {scheduler}: {exc}; set distributed.comm.tls.ca-file, client.cert and client.key "
+            "in your Dask configuration"
+        ) from None
+
+
+def _check_versions(versions: dict, scheduler: str) -> None:
+    """Refuse workers whose :data:`WORKER_PACKAGES` versions differ from this process's."""
+    here = versions["client"]["packages"]
+    for address, info in sorted(versions["workers"].items()):
+        theirs = (info or {}).get("packages", {})
+        for package in WORKER_PACKAGES:
+            if theirs.get(package) != here.get(package):
+                raise WorkerLost(
+                    f"Dask worker {address} of {scheduler} has {package} {theirs.get(package) or 'missing'} "
+                    f"where this machine has {here.get(package) or 'none'}; install the same versions on every worker"
+                )

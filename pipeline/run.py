@@ -382,7 +382,9 @@ class Runner:
         pending = {s.name: set(todo[s.name]) for s in chain}
         by_file: dict[Path, list] = {}
         for u in units:
-            steps = tuple(Step(s, *self.params[(s.name, u)]) for s in chain if u in pending[s.name])
+            steps = tuple(
+                Step(s, *self.params[(s.name, u)], code=self.codes[s.name]) for s in chain if u in pending[s.name]
+            )
             computed = {step.stage.name for step in steps}
             needed = {i for step in steps for i in step.stage.inputs if i != "frame" and i not in computed}
             given = {name: self.get(name, u) for name in sorted(needed)}
@@ -392,7 +394,13 @@ class Runner:
         chunk = max(1, -(-len(units) // (4 * max(1, self.compute.workers))))
         on_cluster = bool(self.compute.scheduler)
         return [
-            FrameTask(str(path), self.units[jobs[0].unit].file_sha256, tuple(jobs[i : i + chunk]), on_cluster)
+            FrameTask(
+                str(path),
+                self.units[jobs[0].unit].file_sha256,
+                tuple(jobs[i : i + chunk]),
+                on_cluster,
+                self.compute.threads,
+            )
             for path, jobs in by_file.items()
             for i in range(0, len(jobs), chunk)
         ]

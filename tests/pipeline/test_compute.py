@@ -8,8 +8,9 @@ import sys
 
 import pytest
 from fluorocal.cli import main
-from fluorocal.compute import THREAD_VARS, THREADS_ENV, ComputeConfig, limit_threads
+from fluorocal.compute import SCHEDULER_ENV, THREAD_VARS, THREADS_ENV, ComputeConfig, limit_threads, where_to_run
 from fluorocal.config import ConfigError, load_config
+from fluorocal.stages.errors import InputError
 
 from tests.pipeline.toy import make_project
 
@@ -23,17 +24,11 @@ from tests.pipeline.toy import make_project
         ("jobs = 2.5", r"\[compute\] key 'jobs': expected a positive number"),
         ("jobs = true", r"\[compute\] key 'jobs': expected a positive number"),
         ("threads = 0", r"\[compute\] key 'threads': expected a positive number of threads per process; got 0"),
-        ('scheduler = "localhost:8786"', r"\[compute\] key 'scheduler': expected a Dask scheduler address tcp://"),
-        ('scheduler = "http://localhost:8786"', r"\[compute\] key 'scheduler': expected a Dask scheduler address"),
-        ('scheduler = "tcp://localhost"', r"\[compute\] key 'scheduler': expected a Dask scheduler address"),
-        ('scheduler = "tcp://localhost:99999"', r"\[compute\] key 'scheduler': expected a Dask scheduler address"),
-        ('scheduler = "tcp://:8786"', r"\[compute\] key 'scheduler': expected a Dask scheduler address"),
-        ("scheduler = 8786", r"\[compute\] key 'scheduler': expected a Dask scheduler address"),
         (
-            'jobs = 2\nscheduler = "tcp://h:8786"',
-            r"\[compute\] key 'jobs': jobs .* and scheduler .* exclude each other",
+            'scheduler = "tcp://10.0.0.5:8786"',
+            r"\[compute\] key 'scheduler': a project file cannot choose a Dask cluster .* FLUOROCAL_SCHEDULER",
         ),
-        ("workers = 4", r"\[compute\] key 'workers': unknown key; allowed keys are jobs, scheduler, threads"),
+        ("workers = 4", r"\[compute\] key 'workers': unknown key; allowed keys are jobs, threads"),
     ],
 )
 def test_bad_compute_section_names_the_key(tmp_path, section, match):
@@ -47,8 +42,23 @@ def test_bad_compute_section_names_the_key(tmp_path, section, match):
 def test_compute_section_is_read(tmp_path):
     path = make_project(tmp_path)
     assert load_config(path).compute == ComputeConfig(jobs=None, threads=1, scheduler="")
-    path.write_text(path.read_text() + '\n[compute]\nthreads = 2\nscheduler = "tcp://10.0.0.5:8786"\n')
-    assert load_config(path).compute == ComputeConfig(jobs=None, threads=2, scheduler="tcp://10.0.0.5:8786")
+    path.write_text(path.read_text() + "\n[compute]\nthreads = 2\njobs = 3\n")
+    assert load_config(path).compute == ComputeConfig(jobs=3, threads=2, scheduler="")
+
+
+def test_the_users_scheduler_comes_from_the_flag_or_the_environment(monkeypatch):
+    """A cluster is chosen by the user (flag, then FLUOROCAL_SCHEDULER), never by the project file; --jobs wins."""
+    config = ComputeConfig(jobs=3, threads=2)
+    monkeypatch.delenv(SCHEDULER_ENV, raising=False)
+    assert where_to_run(config, None, None) == config
+    assert where_to_run(config, None, "tcp://h:1") == ComputeConfig(None, 2, "tcp://h:1")
+    monkeypatch.setenv(SCHEDULER_ENV, "tcp://env-host:8786")
+    assert where_to_run(config, None, None) == ComputeConfig(None, 2, "tcp://env-host:8786")
+    assert where_to_run(config, None, "tcp://h:1").scheduler == "tcp://h:1"
+    assert where_to_run(config, 1, None) == ComputeConfig(1, 2, "")
+    monkeypatch.setenv(SCHEDULER_ENV, "env-host:8786")
+    with pytest.raises(InputError, match=f"^environment variable {SCHEDULER_ENV}: expected a Dask scheduler address"):
+        where_to_run(config, None, None)
 
 
 @pytest.mark.parametrize(

@@ -15,8 +15,11 @@ import logging
 
 import pytest
 from fluorocal import parallel
+from fluorocal.cache import file_sha256
 from fluorocal.cli import main
 from fluorocal.cmd_simulate import write_dataset
+from fluorocal.compute import ComputeConfig
+from fluorocal.graph import Stage, default_stages
 from fluorocal.stages.simulate import SimulateParams, simulate
 
 from tests.conftest import E2E_SIM
@@ -104,3 +107,46 @@ def test_missing_dask_is_one_line(project, monkeypatch, capsys):
     args = ["--quiet", "run", str(project / "cluster.toml"), "--scheduler", "tcp://127.0.0.1:9", "--force", "detect"]
     assert main(args) == 2
     assert "Dask is not installed; pip install 'fluorocal[cluster]'" in capsys.readouterr().err
+
+
+def test_tls_without_settings_is_one_line(project, monkeypatch, capsys):
+    pytest.importorskip("distributed", reason="Dask is the test extra's: pip install -e '.[test]'")
+    monkeypatch.setattr(parallel, "CONNECT_TIMEOUT_S", 1)
+    args = ["--quiet", "run", str(project / "cluster.toml"), "--scheduler", "tls://127.0.0.1:9", "--force", "detect"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fluorocal: error: cannot connect to tls://127.0.0.1:9: ") and "client.cert" in err
+
+
+def _frame_file(project):
+    return next(p for p in sorted((project / "frames").rglob("*")) if p.is_file())
+
+
+def test_a_killed_pool_worker_is_one_clear_error(project):
+    """A worker that dies (here: os._exit, as the OOM killer ends one) ends the run with WorkerLost, no traceback."""
+    import os
+
+    die = Stage("die", os._exit, int, inputs=())  # called as os._exit(params): the worker process ends at once
+    task = parallel.FrameTask(str(_frame_file(project)), "", (parallel.FrameJob(0, 0, "f", (parallel.Step(die, 3),)),))
+    with pytest.raises(parallel.WorkerLost, match="a worker process died .* run again"):
+        list(parallel.run_tasks([task], ComputeConfig(jobs=1)))
+
+
+def test_a_cluster_worker_with_other_stage_code_refuses(project):
+    """The main process's code digest travels with each step; a worker running other code computes nothing."""
+    stage = next(s for s in default_stages() if s.name == "detect")
+    step = parallel.Step(stage, None, code="0" * 64)  # not the digest of this checkout's detect code
+    frame = _frame_file(project)
+    task = parallel.FrameTask(str(frame), file_sha256(frame), (parallel.FrameJob(0, 0, "f", (step,)),), on_cluster=True)
+    with pytest.raises(parallel.WorkerLost, match="runs other fluorocal code for stage detect"):
+        parallel.run_task(task)
+
+
+def test_cluster_workers_with_other_library_versions_are_refused():
+    same = {"packages": {p: "1.0" for p in parallel.WORKER_PACKAGES}}
+    other = {"packages": {**same["packages"], "numpy": "0.9"}}
+    parallel._check_versions({"client": same, "workers": {"tcp://a:1": same}}, "tcp://s:1")  # all alike: accepted
+    with pytest.raises(
+        parallel.WorkerLost, match=r"worker tcp://b:1 of tcp://s:1 has numpy 0\.9 where this machine has 1\.0"
+    ):
+        parallel._check_versions({"client": same, "workers": {"tcp://a:1": same, "tcp://b:1": other}}, "tcp://s:1")
