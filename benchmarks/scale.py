@@ -153,14 +153,24 @@ def _own_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def run_on_cluster(cfg: Path, cache_name: str, workers: int):
-    """:func:`run_once` on a LocalCluster started (and warmed up) for it: no cluster idles beside the other modes."""
-    from distributed import LocalCluster
+def run_on_cluster(cfg: Path, cache_name: str, workers: int, profiler: bool):
+    """:func:`run_once` on a LocalCluster started (and warmed up) for it: no cluster idles beside the other modes.
+
+    ``profiler``: Dask's own statistical profiler runs in each worker (Dask's default), sampling the
+    task thread's stack every 10 ms; off, as README recommends for fluorocal's workers, it costs nothing.
+    """
+    import dask
+    from distributed import Client, LocalCluster
     from fluorocal.compute import ComputeConfig
 
-    with LocalCluster(
-        n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
-    ) as cluster:
+    with dask.config.set({"distributed.worker.profile.enabled": profiler}):  # the nannies pass it to the workers
+        cluster = LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+        )
+    with cluster:
+        with Client(cluster) as client:
+            seen = set(client.run(dask.config.get, "distributed.worker.profile.enabled").values())
+        assert seen == {profiler}, f"workers' profiler setting {seen}, wanted {profiler}"
         warm_up(cluster)
         return run_once(cfg, cache_name, ComputeConfig(scheduler=cluster.scheduler_address))
 
@@ -266,19 +276,19 @@ def main() -> int:
     cfg = make_frames(root / "project", args.frames, args.image_size)
     print(f"{args.frames} frames of {args.image_size} px ready in {time.perf_counter() - t0:.1f} s ({root})")
     try:
-        cluster_mode = f"LocalCluster, {args.workers} workers"
         modes = {
             "serial": (1, ComputeConfig(jobs=1)),
             f"pool, {args.workers} processes": (args.workers, ComputeConfig(jobs=args.workers)),
-            cluster_mode: (args.workers, None),
+            f"LocalCluster, {args.workers} workers": (args.workers, "profiler"),
+            "  Dask profiler off": (args.workers, "no profiler"),
         }
         start_cpu, start_wall = pool_start_up(args.workers)
         best = {}
         for _ in range(args.repeat):  # the modes in turn; per mode the run of least CPU time
             for i, (mode, (_, compute)) in enumerate(modes.items()):
                 run = (
-                    run_on_cluster(cfg, f".cache_{i}", args.workers)
-                    if compute is None
+                    run_on_cluster(cfg, f".cache_{i}", args.workers, compute == "profiler")
+                    if isinstance(compute, str)
                     else run_once(cfg, f".cache_{i}", compute)
                 )
                 if mode not in best or run[1] < best[mode][1]:
