@@ -307,9 +307,9 @@ def _derived_series(inputs: list[Path]) -> dict[Path, str | None]:
     from fluorocal.stages.io import series_of
     from pydicom.uid import generate_uid
 
-    new: dict[str, str] = {}
     found = {path: series_of(path) for path in inputs}
-    return {path: None if key is None else new.setdefault(key, generate_uid()) for path, key in found.items()}
+    new = {key: generate_uid() for key in dict.fromkeys(found.values()) if key is not None}
+    return {path: new.get(key) for path, key in found.items()}
 
 
 def _derivation(cal, args, orientation, series_uid: str | None) -> Derivation:
