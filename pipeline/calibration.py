@@ -335,6 +335,11 @@ class Calibration:
         atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=1)))
         return written + [path]
 
+    @property
+    def content_sha256(self) -> str | None:
+        """SHA-256 (hex) of the loaded file and its field files: this calibration's content; None in memory."""
+        return self._content_sha256
+
     # --- the API -----------------------------------------------------------------------------
 
     def _check_geometry(self) -> None:

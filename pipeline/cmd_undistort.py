@@ -1,9 +1,14 @@
-"""`fluorocal undistort`: remove a system's learned distortion from clinical or experimental frames.
+r"""`fluorocal undistort`: remove a system's learned distortion from clinical or experimental frames.
 
 Each INPUT (DICOM, TIFF, PNG or video; a file of one or many frames, or a
 folder of them) is resampled onto the ideal pinhole image of the calibrated
 system and written to OUTDIR under the same name, in the input's own format,
-bit depth and metadata (DICOM: a new SOP Instance UID and a derivation note).
+bit depth and metadata. DICOM outputs form a derived series: a new Series
+Instance UID per source series and run, a new SOP Instance UID per file,
+ImageType DERIVED\SECONDARY, a Source Image Sequence naming the original and
+a Derivation Description naming the calibration (file and content SHA-256),
+the system and the orientation. An existing output file is refused, before
+anything is read or written, unless --overwrite.
 Frames stream: one is read while another is remapped and a third written, so
 memory holds a few frames however many there are. The undistortion maps are
 computed once per orientation and cached beside the calibration
@@ -24,7 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # imported when run: `fluorocal undistort --help` loads neither OpenCV nor OpenImageIO
-    from fluorocal.stages.io import StoredFrames
+    from fluorocal.stages.io import Derivation, StoredFrames
     from fluorocal.stages.undistort import UndistortParams
 
 
@@ -70,6 +75,11 @@ def add_parser(subparsers) -> None:
         default="linear",
         help="resampling kernel (default: linear)",
     )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace output files that already exist (default: refuse them before any work)",
+    )
     p.set_defaults(func=run)
 
 
@@ -84,15 +94,18 @@ def run(args) -> int:
 
     log = logging.getLogger("fluorocal")
     inputs = _expand(args.inputs)
-    out_dir = _check_paths(inputs, args.out)  # every input and the output before any work
+    out_dir = _check_paths(inputs, args.out, overwrite=args.overwrite)  # every input and output before any work
     cal = Calibration.load(args.calibration)
     if args.system not in cal.systems:
         raise InputError(f"--system {args.system!r} is not in {args.calibration}; it has {', '.join(cal.system_names)}")
     chosen = None if args.orientation is None else parse_orientation(args.orientation)
+    series = _derived_series(inputs)  # every DICOM input's references checked, a new series per source series
     # every orientation's maps and every file's size checked before anything is written
-    jobs = [
-        _job(cal, args, path, out_dir / path.name, _orientation_for(cal, args.system, path, chosen)) for path in inputs
-    ]
+    jobs = []
+    for path in inputs:
+        orientation = _orientation_for(cal, args.system, path, chosen)
+        derivation = _derivation(cal, args, orientation, series[path])
+        jobs.append(_job(cal, args, path, out_dir / path.name, orientation, derivation))
     n_frames = sum(job.n_frames for job in jobs)
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
@@ -125,6 +138,7 @@ class _Job:
     maps: tuple  # (map_x, map_y)
     params: UndistortParams
     n_frames: int
+    derivation: Derivation
     stored: StoredFrames | None = None
 
     def remap(self, frame):
@@ -135,7 +149,7 @@ class _Job:
         return remap_image(frame, *self.maps, self.params)
 
 
-def _job(cal, args, path: Path, out: Path, orientation) -> _Job:
+def _job(cal, args, path: Path, out: Path, orientation, derivation: Derivation) -> _Job:
     """The checked job of one input: its frames' size against the calibration's, and its maps."""
     from fluorocal.stages.errors import InputError
     from fluorocal.stages.io import open_stored, probe_frames
@@ -151,7 +165,7 @@ def _job(cal, args, path: Path, out: Path, orientation) -> _Job:
         )
     maps = cal.remap_maps(args.system, orientation=orientation)
     border = 0.0 if stored is None else stored.black  # the dark outside of the field, in stored units
-    return _Job(path, out, maps, UndistortParams(args.interpolation, border), n_frames, stored)
+    return _Job(path, out, maps, UndistortParams(args.interpolation, border), n_frames, derivation, stored)
 
 
 def _frames(jobs):
@@ -173,9 +187,9 @@ def _write_all(items) -> None:
     for job, group in groupby(items, key=itemgetter(0)):  # jobs compare by identity
         frames = (frame for _, frame in group)
         if job.stored is None:
-            write_frames_like(job.path, list(frames), job.out)
+            write_frames_like(job.path, list(frames), job.out, derivation=job.derivation)
         else:
-            write_stored_like(job.path, frames, job.out, job.n_frames)
+            write_stored_like(job.path, frames, job.out, job.n_frames, derivation=job.derivation)
 
 
 def parse_orientation(text: str):
@@ -256,11 +270,12 @@ def _expand(inputs: list[Path]) -> list[Path]:
     return files
 
 
-def _check_paths(inputs: list[Path], out: Path) -> Path:
-    """The resolved output folder, after refusing a file as ``--out``, missing inputs and colliding output names.
+def _check_paths(inputs: list[Path], out: Path, *, overwrite: bool = False) -> Path:
+    """The resolved output folder, after refusing a file as ``--out``, missing inputs and outputs that would clash.
 
     Output names are the inputs' file names; two inputs whose names differ only in case are refused
-    too, as they would overwrite each other on a case-insensitive file system.
+    too, as they would overwrite each other on a case-insensitive file system. An output that already
+    exists is refused unless ``overwrite`` (a folder in its place always), whatever the format.
     """
     from fluorocal.stages.errors import InputError
 
@@ -279,4 +294,43 @@ def _check_paths(inputs: list[Path], out: Path) -> Path:
                 f"inputs {other} and {path} would both be written as {out_dir / path.name}; "
                 "undistort them in separate runs with separate --out folders"
             )
+        target = out_dir / path.name
+        if target.is_dir():
+            raise InputError(f"{target}: is a folder, where the undistorted {path.name} would go; choose another --out")
+        if (target.exists() or target.is_symlink()) and not overwrite:
+            raise InputError(f"{target}: already exists; add --overwrite to replace it, or choose another --out")
     return out_dir
+
+
+def _derived_series(inputs: list[Path]) -> dict[Path, str | None]:
+    """A new Series Instance UID for each input of a format with series (DICOM), one per source series; else None."""
+    from fluorocal.stages.io import series_of
+    from pydicom.uid import generate_uid
+
+    found = {path: series_of(path) for path in inputs}
+    new = {key: generate_uid() for key in dict.fromkeys(found.values()) if key is not None}
+    return {path: new.get(key) for path, key in found.items()}
+
+
+def _derivation(cal, args, orientation, series_uid: str | None) -> Derivation:
+    """What one input's output records of its making: the calibration by name and content, system, orientation."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from fluorocal.stages.io import Derivation
+
+    try:
+        by = f"fluorocal {version('fluorocal')}"
+    except PackageNotFoundError:
+        by = "fluorocal"
+    if isinstance(orientation, dict):
+        where = f"orientation interpolated at orbit {orientation['orbit']:g} deg, tilt {orientation['tilt']:g} deg"
+    else:
+        names = cal.orientation_names(args.system)
+        name = orientation if orientation is not None else (names[0] if len(names) == 1 else None)
+        where = "the system's one field" if name is None else f"orientation {name}"
+    digest = "" if cal.content_sha256 is None else f" (content sha256 {cal.content_sha256[:16]})"
+    text = (
+        f"geometric distortion corrected by {by} with calibration {Path(args.calibration).name}{digest}, "
+        f"system {args.system}, {where}, {args.interpolation} interpolation"
+    )
+    return Derivation(text[:1024], series_uid)

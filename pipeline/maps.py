@@ -5,10 +5,12 @@ inverted at every pixel), so each map pair is stored on disk, in a folder beside
 calibration named like it (``calibration.json`` -> ``calibration.maps/``):
 
 - one file per (calibration content, system, orientation, output size), named
-  ``<key>.<digest>.npy``: ``key`` is the SHA-256 of the canonical JSON of those four and
-  :data:`MAPS_VERSION` (the calibration's content is the hash of its JSON and field files, so an
-  edited or re-run calibration never meets its old maps); ``digest`` is a BLAKE2b of the array's
-  bytes, so a changed bit is noticed;
+  ``<key>.<digest>.npy``: ``key`` is the SHA-256 of the canonical JSON of those four and of the
+  digest of the code that computes the maps (:func:`maps_code_digest`: the syntax trees of
+  :data:`MAP_MODULES` and of every fluorocal module they import, as the stage cache keys its
+  artifacts). The calibration's content is the hash of its JSON and field files, so an edited or
+  re-run calibration never meets its old maps, and a change of the code never meets the maps of
+  the code before it; ``digest`` is a BLAKE2b of the array's bytes, so a changed bit is noticed;
 - the file is a ``(2, H, W)`` float32 ``.npy`` (``map_x``, ``map_y``): data only, read with
   ``np.load(allow_pickle=False)``, written atomically;
 - an unreadable or corrupt entry is a miss: warned about (:class:`MapCacheWarning`), deleted and
@@ -24,13 +26,14 @@ import hashlib
 import json
 import warnings
 from collections.abc import Mapping
+from functools import cache
 from pathlib import Path
 
 import numpy as np
 from fluorocal.stages.io import atomic_write
 
-#: bump when the maps computed for the same calibration change
-MAPS_VERSION = 1
+#: the modules whose code computes the maps: the calibration's field choice and remap, the field, its interpolation
+MAP_MODULES = ("fluorocal.calibration", "fluorocal.stages.field", "fluorocal.stages.orientation")
 
 
 class MapCacheWarning(UserWarning):
@@ -64,9 +67,17 @@ def map_key(content_sha256: str, system: str, orientation, size_px: tuple[int, i
         "system": system,
         "orientation": orientation_key(orientation),
         "size_px": [int(size_px[0]), int(size_px[1])],
-        "version": MAPS_VERSION,
+        "code": maps_code_digest(),
     }
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
+
+@cache
+def maps_code_digest() -> str:
+    """The digest of the code that computes the maps (:data:`MAP_MODULES` and their imports), once per process."""
+    from fluorocal.codehash import code_digest
+
+    return code_digest(MAP_MODULES)
 
 
 def cached_maps(calibration_path, content_sha256, system: str, orientation, size_px, compute) -> np.ndarray:

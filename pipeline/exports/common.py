@@ -33,12 +33,37 @@ def write_text(out_dir: Path, name: str, text: str) -> Path:
     return path
 
 
-def orientations(cal, system: str) -> list[tuple[str, str | None]]:
-    """``(file-name suffix, orientation argument)`` of each field of ``system``: ``("", None)`` for its one field."""
-    names = cal.orientation_names(system)
-    if len(names) <= 1:
-        return [("", None)]
-    return [(f"_{safe_name(n, what='orientation name')}", n) for n in names]
+def field_files(cal, fmt: str, prefix: str, extension: str) -> list[tuple[str, str, str | None]]:
+    """``(file name, system, orientation)`` of each field of each system, refused where two names would coincide.
+
+    The name is ``<prefix><system><extension>`` for a system's one field (orientation None), else
+    ``<prefix><system>_<orientation><extension>`` per orientation. ``_`` may occur in the names
+    themselves, so system ``A`` at orientation ``x`` and a system ``A_x`` would share a file; and
+    names differing only in case would on a case-insensitive file system. Both are refused before
+    anything is written.
+
+    Raises
+    ------
+    InputError
+        Two fields would be written to one file (naming both, the file and the format).
+    """
+    found: list[tuple[str, str, str | None]] = []
+    seen: dict[str, str] = {}
+    for system in cal.system_names:
+        names = cal.orientation_names(system)
+        stem = prefix + safe_name(system, what="system name")
+        for orientation in names if len(names) > 1 else [None]:
+            name = stem + ("" if orientation is None else "_" + safe_name(orientation, what="orientation name"))
+            name += extension
+            what = f"system {system}" + ("" if orientation is None else f" at orientation {orientation}")
+            other = seen.setdefault(name.casefold(), what)
+            if other != what:
+                raise InputError(
+                    f"--format {fmt}: {other} and {what} would both be written as {name} (names joined by '_', "
+                    f"letter case ignored); rename a system or an orientation of {cal.path}"
+                )
+            found.append((name, system, orientation))
+    return found
 
 
 def projection_matrix(cal, system: str, exposure: int) -> np.ndarray:

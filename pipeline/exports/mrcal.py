@@ -24,8 +24,7 @@ import math
 from pathlib import Path
 
 import numpy as np
-from fluorocal.exports.common import orientations, require_geometry, write_text
-from fluorocal.outputs import safe_name
+from fluorocal.exports.common import field_files, require_geometry, write_text
 from fluorocal.stages.geometry import quat_to_matrix
 
 #: spacing of the fitted pixel grid, px
@@ -142,24 +141,23 @@ def write(cal, out_dir: Path) -> list[str]:
 
     require_geometry(cal, "mrcal")
     lines = []
-    for system in cal.system_names:
+    for name, system, orientation in field_files(cal, "mrcal", "", ".cameramodel"):  # names checked before writing
         s = cal.systems[system]
         R = quat_to_matrix(s.rop_q)
         rt_cam_ref = np.concatenate([Rotation.from_matrix(R).as_rotvec(), -(R @ s.rop_source_mm)])
-        for suffix, orientation in orientations(cal, system):
-            lensmodel, intrinsics, e = fit_splined(cal.field(system, orientation), s.iop_px, s.image_size_px)
-            where = f"system {system}" + ("" if orientation is None else f", orientation {orientation}")
-            fit = (
-                f"fit to fluorocal's field: RMS {e['rms_px']:.4f} px per coordinate, max {e['max_px']:.4f} px "
-                f"where the field is supported; RMS {e['rms_all_px']:.4f} px, max {e['max_all_px']:.4f} px "
-                "over the whole image"
-            )
-            comments = [
-                f"fluorocal export of {cal.path}: {where}",
-                f"{fit} ({e['n_pixels']} pixels, every {FIT_SPACING_PX:g} px)",
-                "extrinsics: rt_cam_ref from the reference system's camera frame, mm",
-            ]
-            text = cameramodel_text(lensmodel, intrinsics, rt_cam_ref, s.image_size_px, comments)
-            path = write_text(out_dir, f"{safe_name(system, what='system name')}{suffix}.cameramodel", text)
-            lines.append(f"{path}: {where}, {lensmodel}, {fit}")
+        lensmodel, intrinsics, e = fit_splined(cal.field(system, orientation), s.iop_px, s.image_size_px)
+        where = f"system {system}" + ("" if orientation is None else f", orientation {orientation}")
+        fit = (
+            f"fit to fluorocal's field: RMS {e['rms_px']:.4f} px per coordinate, max {e['max_px']:.4f} px "
+            f"where the field is supported; RMS {e['rms_all_px']:.4f} px, max {e['max_all_px']:.4f} px "
+            "over the whole image"
+        )
+        comments = [
+            f"fluorocal export of {cal.path}: {where}",
+            f"{fit} ({e['n_pixels']} pixels, every {FIT_SPACING_PX:g} px)",
+            "extrinsics: rt_cam_ref from the reference system's camera frame, mm",
+        ]
+        text = cameramodel_text(lensmodel, intrinsics, rt_cam_ref, s.image_size_px, comments)
+        path = write_text(out_dir, name, text)
+        lines.append(f"{path}: {where}, {lensmodel}, {fit}")
     return lines

@@ -17,8 +17,8 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from fluorocal.exports.common import has_geometry, orientations
-from fluorocal.outputs import inside, safe_name
+from fluorocal.exports.common import field_files, has_geometry
+from fluorocal.outputs import inside
 from fluorocal.stages.geometry import camera_matrix
 from fluorocal.stages.io import atomic_write
 
@@ -30,16 +30,16 @@ def write(cal, out_dir: Path) -> list[str]:
     (``camera_matrix_nominal: 1``) and are still complete for ``cv2.remap``.
     """
     nominal = not has_geometry(cal)
-    # every map first: a field that moves pixels beyond the image is refused before anything is written
+    # every name and map first: clashing names, or a field that moves pixels beyond the image, are refused
+    # before anything is written
     maps = {
-        (system, suffix, orientation): cal.remap_maps(system, orientation=orientation)
-        for system in cal.system_names
-        for suffix, orientation in orientations(cal, system)
+        (name, system, orientation): cal.remap_maps(system, orientation=orientation)
+        for name, system, orientation in field_files(cal, "opencv", "opencv_", ".yml")
     }
     lines = []
-    for (system, suffix, orientation), (map_x, map_y) in maps.items():
+    for (name, system, orientation), (map_x, map_y) in maps.items():
         s = cal.systems[system]
-        path = inside(out_dir, f"opencv_{safe_name(system, what='system name')}{suffix}.yml")
+        path = inside(out_dir, name)
         write_maps = partial(_write_yaml, system=system, orientation=orientation, size=s.image_size_px)
         atomic_write(path, partial(write_maps, K=camera_matrix(s.iop_px), nominal=nominal, map_x=map_x, map_y=map_y))
         lines.append(

@@ -19,10 +19,11 @@ from fluorocal.stages.io.frames import (
     open_stored,
     probe_frames,
     read_frames,
+    series_of,
     write_frames_like,
     write_stored_like,
 )
-from fluorocal.stages.io.pixels import StoredFrames
+from fluorocal.stages.io.pixels import Derivation, StoredFrames
 from fluorocal.stages.io.still import write_still
 from fluorocal.stages.io.tables import (
     DETECTIONS,
@@ -55,6 +56,7 @@ __all__ = [
     "TABLES",
     "VIDEO_SUFFIXES",
     "Column",
+    "Derivation",
     "FrameFormat",
     "Table",
     "atomic_write",
@@ -66,6 +68,7 @@ __all__ = [
     "read_phantom",
     "read_seeds",
     "read_table",
+    "series_of",
     "write_csv",
     "write_dicom",
     "write_frames_like",

@@ -15,12 +15,19 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
-from fluorocal.stages.io.pixels import StoredFrames, check_stored, to_source_dtype
+from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored
 
 NAME = "DICOM"
 SUFFIXES = (".dcm", ".ima", ".dicom")
 #: the tags copied into a frame's metadata when present
 _META_TAGS = ("PixelSpacing", "ImagerPixelSpacing", "DistanceSourceToDetector", "FieldOfViewDimensions")
+#: a derived instance's Derivation Code Sequence item: CID 7203 "Image Derivation" has no code for a
+#: geometric or distortion correction; undistortion resamples the image onto the ideal pinhole grid
+DERIVATION_CODE = ("113085", "DCM", "Spatial resampling")
+#: the Purpose of Reference of its Source Image Sequence item (CID 7202 "Source Image Purposes of Reference")
+SOURCE_PURPOSE_CODE = ("121322", "DCM", "Source image for image processing operation")
+#: appended to a derived instance's Series Description (VR LO: 64 characters at most in all)
+SERIES_MARK = "(undistorted)"
 
 
 def sniff_content(head: bytes) -> bool:
@@ -172,27 +179,91 @@ def open_stored(path: Path) -> StoredFrames | None:
     return StoredFrames(int(ds.get("NumberOfFrames", 1) or 1), size, dtype, black, frames)
 
 
-def write_stored(source: Path, frames: Iterable[np.ndarray], out_path: Path, n_frames: int) -> None:
+def source_series(path: Path) -> str:
+    """The series a DICOM file belongs to, from its header (pixels not read), after checking it can be referenced.
+
+    Its SeriesInstanceUID; for a file without one, ``file:`` and its resolved path, so that it
+    shares no other file's series. A derived copy names its source by SOP Class and Instance UID
+    (:func:`derived_header`), so a file without them is refused here, before anything is written.
+
+    Raises
+    ------
+    InputError
+        The file is not readable DICOM, or lacks its SOP Class or Instance UID.
+    """
+    import pydicom
+
+    try:
+        ds = pydicom.dcmread(path, stop_before_pixels=True)
+    except (OSError, pydicom.errors.InvalidDicomError) as exc:
+        raise InputError(f"{path}: cannot read the DICOM header ({exc})") from exc
+    for tag in ("SOPClassUID", "SOPInstanceUID"):
+        if not _uid(ds, tag):
+            raise InputError(f"{path}: DICOM file has no {tag}, so a derived copy cannot reference it")
+    return str(ds.get("SeriesInstanceUID", "") or "").strip() or f"file:{Path(path).resolve()}"
+
+
+def _uid(ds, tag: str) -> str:
+    """``tag`` of the data set, else of its file meta (MediaStorage...), else the empty string."""
+    value = ds.get(tag) or getattr(getattr(ds, "file_meta", None), "MediaStorage" + tag, None)
+    return str(value or "").strip()
+
+
+def _code(value: str, scheme: str, meaning: str):
+    from pydicom.dataset import Dataset
+
+    item = Dataset()
+    item.CodeValue, item.CodingSchemeDesignator, item.CodeMeaning = value, scheme, meaning
+    return item
+
+
+def derived_header(source: Path, derivation: Derivation | None = None):
+    r"""``source``'s header (pixels not read) as that of a derived instance in a new series.
+
+    A new SOP Instance UID and the ``derivation``'s Series Instance UID (a new one when it has
+    none); ImageType ``DERIVED\SECONDARY`` followed by the source's further values; the Series
+    Description marked ``(undistorted)``; a Source Image Sequence referencing the source instance
+    (:data:`SOURCE_PURPOSE_CODE`); the Derivation Code Sequence (:data:`DERIVATION_CODE`) and the
+    derivation's description. Every other attribute is the source's; the transfer syntax becomes
+    explicit VR little endian.
+    """
+    import pydicom
+    from pydicom.dataset import Dataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    derivation = derivation or Derivation()
+    ds = pydicom.dcmread(source, stop_before_pixels=True)
+    reference = Dataset()
+    reference.ReferencedSOPClassUID = _uid(ds, "SOPClassUID")
+    reference.ReferencedSOPInstanceUID = _uid(ds, "SOPInstanceUID")
+    reference.PurposeOfReferenceCodeSequence = [_code(*SOURCE_PURPOSE_CODE)]
+    ds.SourceImageSequence = [reference]
+    ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = generate_uid()
+    ds.SeriesInstanceUID = derivation.series_uid or generate_uid()
+    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    image_type = ds.get("ImageType") or []
+    ds.ImageType = ["DERIVED", "SECONDARY"] + ([image_type] if isinstance(image_type, str) else list(image_type))[2:]
+    series = str(ds.get("SeriesDescription", "") or "").strip()
+    ds.SeriesDescription = f"{series[: 64 - len(SERIES_MARK) - 1]} {SERIES_MARK}" if series else SERIES_MARK
+    ds.DerivationCodeSequence = [_code(*DERIVATION_CODE)]
+    ds.DerivationDescription = derivation.description
+    return ds
+
+
+def write_stored(
+    source: Path, frames: Iterable[np.ndarray], out_path: Path, n_frames: int, derivation: Derivation | None = None
+) -> None:
     """Write ``n_frames`` stored frames, streamed, as a derived copy of ``source``'s data set, atomically.
 
-    The source's header (its pixels are not read) with a new SOP Instance UID and a derivation
-    note, explicit VR little endian; the frames are appended to the file one at a time as the
-    pixel data, so memory holds one frame, not the file.
+    The header is :func:`derived_header`'s; the frames are appended to the file one at a time as
+    the pixel data, so memory holds one frame, not the file.
 
     Raises
     ------
     InputError
         A frame of another size or dtype than the source's, or a count other than ``n_frames``.
     """
-    import pydicom
-    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
-
-    ds = pydicom.dcmread(source, stop_before_pixels=True)
-    ds.SOPInstanceUID = generate_uid()
-    ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
-    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds.DerivationDescription = "geometric distortion corrected by fluorocal"
-    ds.ImageType = ["DERIVED", "SECONDARY"] + list(getattr(ds, "ImageType", [])[2:])
+    ds = derived_header(source, derivation)
     if n_frames > 1 or "NumberOfFrames" in ds:
         ds.NumberOfFrames = n_frames
     size, dtype = (int(ds.Columns), int(ds.Rows)), _stored_dtype(ds)
@@ -219,11 +290,12 @@ def write_stored(source: Path, frames: Iterable[np.ndarray], out_path: Path, n_f
     atomic_write(out_path, _write)
 
 
-def write_like(source: Path, frames: list[Radiograph], out_path: Path) -> None:
-    """The source's data set with new pixel data, a new SOP Instance UID and a derivation note (:func:`write_stored`).
+def write_like(source: Path, frames: list[Radiograph], out_path: Path, derivation: Derivation | None = None) -> None:
+    """The source's data set with new pixel data, as a derived instance (:func:`derived_header`, :func:`write_stored`).
 
     The frames' displayed values are stored back through the source's MONOCHROME1 inversion and
-    rescale.
+    rescale, rounded once and clipped to the stored bits (the displayed range of a rescaled source
+    may exceed them).
     """
     import pydicom
 
@@ -233,11 +305,11 @@ def write_like(source: Path, frames: list[Radiograph], out_path: Path) -> None:
     slope, intercept = float(getattr(ds, "RescaleSlope", 1) or 1), float(getattr(ds, "RescaleIntercept", 0) or 0)
 
     def stored(frame: Radiograph) -> np.ndarray:
-        pixels = to_source_dtype(frame)
-        if monochrome1:
-            pixels = (2**frame.bit_depth - 1 - pixels.astype(np.int64)).astype(pixels.dtype)
+        values = frame.image.astype(np.float64)
+        if monochrome1:  # as read: inverted after the modality LUT
+            values = 2**frame.bit_depth - 1 - values
         if (slope, intercept) != (1.0, 0.0):  # store raw values so the modality LUT gives the output back
-            pixels = np.clip(np.rint((pixels - intercept) / slope), 0, 2**bits_stored - 1)
-        return pixels.astype(_stored_dtype(ds))
+            values = (values - intercept) / slope
+        return np.clip(np.rint(values), 0, 2**bits_stored - 1).astype(_stored_dtype(ds))
 
-    write_stored(source, map(stored, frames), out_path, len(frames))
+    write_stored(source, map(stored, frames), out_path, len(frames), derivation)

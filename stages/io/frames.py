@@ -25,7 +25,7 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io import dicom, still, video
-from fluorocal.stages.io.pixels import StoredFrames
+from fluorocal.stages.io.pixels import Derivation, StoredFrames
 
 #: bytes read from the start of a file for the content sniffers (DICOM's signature ends at byte 132)
 _HEAD_BYTES = 160
@@ -49,12 +49,16 @@ class FrameFormat:
         Frame count and ``(width, height)`` px, without decoding pixels where the format allows.
     read : callable (Path) -> list of Radiograph
         Every frame of the file.
-    write_like : callable (Path, list of Radiograph, Path) -> None
-        Write frames to the output path in the source's format, bit depth and metadata, atomically.
+    write_like : callable (Path, list of Radiograph, Path, Derivation or None) -> None
+        Write frames to the output path in the source's format, bit depth and metadata, atomically,
+        recording the :class:`~fluorocal.stages.io.pixels.Derivation` where the format's header can.
     open_stored : callable (Path) -> StoredFrames or None, optional
         The frames as stored, read one at a time, where streaming them is exact (None: not this file).
-    write_stored : callable (Path, iterable of ndarray, Path, int) -> None, optional
-        Write that many stored frames like the source as they come, atomically.
+    write_stored : callable (Path, iterable of ndarray, Path, int, Derivation or None) -> None, optional
+        Write that many stored frames like the source as they come, atomically (the derivation as above).
+    series : callable (Path) -> str, optional
+        The series a file belongs to, from its header, for formats that group files in series
+        (DICOM); a derived copy gets a new series per source series.
     """
 
     name: str
@@ -63,9 +67,10 @@ class FrameFormat:
     sniff_content: Callable[[bytes], bool]
     probe: Callable[[Path], tuple[int, tuple[int, int]]]
     read: Callable[[Path], list[Radiograph]]
-    write_like: Callable[[Path, list[Radiograph], Path], None]
+    write_like: Callable[[Path, list[Radiograph], Path, Derivation | None], None]
     open_stored: Callable[[Path], StoredFrames | None] | None = None
-    write_stored: Callable[[Path, Iterable[np.ndarray], Path, int], None] | None = None
+    write_stored: Callable[[Path, Iterable[np.ndarray], Path, int, Derivation | None], None] | None = None
+    series: Callable[[Path], str] | None = None
 
     def describe(self) -> str:
         """The name with its usual suffixes, for messages."""
@@ -82,6 +87,7 @@ DICOM = FrameFormat(
     dicom.write_like,
     dicom.open_stored,
     dicom.write_stored,
+    dicom.source_series,
 )
 VIDEO = FrameFormat(
     video.NAME,
@@ -189,12 +195,20 @@ def probe_frames(path: str | os.PathLike) -> tuple[int, tuple[int, int]]:
     return _call(path, frame_format(path).probe)
 
 
-def write_frames_like(source: str | os.PathLike, frames: list[Radiograph], out_path: str | os.PathLike) -> None:
+def write_frames_like(
+    source: str | os.PathLike,
+    frames: list[Radiograph],
+    out_path: str | os.PathLike,
+    *,
+    derivation: Derivation | None = None,
+) -> None:
     """Write ``frames`` to ``out_path`` in the format, bit depth and metadata of ``source``, atomically.
 
-    DICOM: the source's data set is copied with new pixel data (uncompressed),
-    a new SOP Instance UID and a derivation note. Stills: the same type via
-    OpenImageIO. Video: the same container and codec via OpenCV.
+    DICOM: the source's data set with new pixel data (uncompressed), as a derived instance of a new
+    series that references the source and records ``derivation``
+    (:func:`fluorocal.stages.io.dicom.derived_header`; None: a generic note and a series of its
+    own). Stills: the same type via OpenImageIO. Video: the same container and codec via OpenCV.
+    Neither has a header that records the derivation.
 
     Raises
     ------
@@ -202,7 +216,7 @@ def write_frames_like(source: str | os.PathLike, frames: list[Radiograph], out_p
         ``source`` is of no supported format, or its format cannot hold the frames given.
     """
     source = Path(source)
-    frame_format(source).write_like(source, frames, Path(out_path))
+    frame_format(source).write_like(source, frames, Path(out_path), derivation)
 
 
 def open_stored(path: str | os.PathLike) -> StoredFrames | None:
@@ -236,9 +250,16 @@ def _named(path: Path, frames):
 
 
 def write_stored_like(
-    source: str | os.PathLike, frames: Iterable[np.ndarray], out_path: str | os.PathLike, n_frames: int
+    source: str | os.PathLike,
+    frames: Iterable[np.ndarray],
+    out_path: str | os.PathLike,
+    n_frames: int,
+    *,
+    derivation: Derivation | None = None,
 ) -> None:
     """Write ``n_frames`` stored frames (as :func:`open_stored` gives them) like ``source``, as they come, atomically.
+
+    ``derivation`` as in :func:`write_frames_like`.
 
     Raises
     ------
@@ -249,4 +270,18 @@ def write_stored_like(
     fmt = frame_format(source)
     if fmt.write_stored is None:
         raise InputError(f"{source}: {fmt.name} frames cannot be streamed; use write_frames_like")
-    fmt.write_stored(source, frames, Path(out_path), n_frames)
+    fmt.write_stored(source, frames, Path(out_path), n_frames, derivation)
+
+
+def series_of(path: str | os.PathLike) -> str | None:
+    """The series ``path`` belongs to (DICOM: its SeriesInstanceUID); None for formats without series.
+
+    Raises
+    ------
+    InputError
+        The file is missing, unreadable or of no supported format, or a DICOM file a derived copy
+        cannot reference (no SOP Class or Instance UID).
+    """
+    path = Path(path)
+    fmt = frame_format(path)
+    return None if fmt.series is None else _call(path, fmt.series)

@@ -61,3 +61,25 @@ def check_stored(path, frame: np.ndarray, dtype, size_px: tuple[int, int], i_fra
             f"got shape {frame.shape} of {frame.dtype}"
         )
     return frame
+
+
+@dataclass(frozen=True)
+class Derivation:
+    """How written frames were derived from their source, for the formats whose header records it (DICOM).
+
+    Attributes
+    ----------
+    description : str
+        What was done, naming what it was done with (the calibration, system, orientation):
+        DICOM's DerivationDescription (at most 1024 characters).
+    series_uid : str or None
+        DICOM's new SeriesInstanceUID, shared by the outputs of one run that came from one source
+        series; None: a new one for this file alone.
+    """
+
+    description: str = "geometric distortion corrected by fluorocal"
+    series_uid: str | None = None
+
+    def __post_init__(self):
+        if not self.description or len(self.description) > 1024:
+            raise InputError(f"derivation description must be 1 to 1024 characters; got {len(self.description)}")

@@ -11,7 +11,7 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
-from fluorocal.stages.io.pixels import StoredFrames, check_stored, to_source_dtype
+from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored, to_source_dtype
 
 NAME = "still image (OpenImageIO)"
 #: the suffixes named in messages; any extension OpenImageIO has a reader for is accepted
@@ -186,7 +186,9 @@ def _iter_stored(path: Path, n_frames: int, dtype: np.dtype, by_opencv: bool):
         inp.close()
 
 
-def write_stored(source: Path, frames: Iterable[np.ndarray], out_path: Path, n_frames: int) -> None:
+def write_stored(
+    source: Path, frames: Iterable[np.ndarray], out_path: Path, n_frames: int, derivation: Derivation | None = None
+) -> None:
     """Write ``n_frames`` frames in ``source``'s image type, atomically, as fast as OpenCV writes them.
 
     One frame of TIFF or PNG: encoded by OpenCV (TIFF with LZW, PNG with zlib at OpenCV's level),
@@ -198,6 +200,10 @@ def write_stored(source: Path, frames: Iterable[np.ndarray], out_path: Path, n_f
     ------
     InputError
         A frame count other than the source's, or a format that cannot hold the frames.
+
+    Notes
+    -----
+    ``derivation`` is not recorded: a still's header has no place fluorocal writes it.
     """
     import cv2
 
@@ -249,6 +255,6 @@ def _write_subimages(tmp: str, file_format: str, frames, n_frames: int, out_path
         raise InputError(f"{out_path}: expected {n_frames} frame(s); got {count}")
 
 
-def write_like(source: Path, frames: list[Radiograph], out_path: Path) -> None:
+def write_like(source: Path, frames: list[Radiograph], out_path: Path, derivation: Derivation | None = None) -> None:
     """The frames in the source's bit depth and image type (TIFF, PNG, ...: what OpenImageIO read it as)."""
-    write_stored(source, map(to_source_dtype, frames), out_path, len(frames))
+    write_stored(source, map(to_source_dtype, frames), out_path, len(frames), derivation)

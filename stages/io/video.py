@@ -8,6 +8,7 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
+from fluorocal.stages.io.pixels import Derivation
 
 NAME = "video (OpenCV)"
 SUFFIXES = (".avi", ".mp4", ".mov", ".mkv", ".m4v", ".wmv")
@@ -60,8 +61,8 @@ def read(path: Path) -> list[Radiograph]:
     return frames
 
 
-def write_like(source: Path, frames: list[Radiograph], out_path: Path) -> None:
-    """The source's container, codec (FourCC) and frame rate, 8-bit grey frames."""
+def write_like(source: Path, frames: list[Radiograph], out_path: Path, derivation: Derivation | None = None) -> None:
+    """The source's container, codec (FourCC) and frame rate, 8-bit grey frames (``derivation`` is not recorded)."""
     import cv2
 
     cap = cv2.VideoCapture(str(source))
