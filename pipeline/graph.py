@@ -150,7 +150,7 @@ def _system_appearance(frames: tuple, params):
     from fluorocal.stages.detect import estimate_appearance
     from fluorocal.stages.io import read_frames
 
-    return estimate_appearance((read_frames(path)[index] for path, _, index in frames), params)
+    return estimate_appearance((read_frames(path, [index])[0] for path, _, index in frames), params)
 
 
 def _learn_extras(config, units) -> dict:

@@ -130,10 +130,10 @@ def run_task(task: FrameTask) -> list[FrameResult]:
     try:
         if task.on_cluster and file_sha256(task.path) != task.file_sha256:
             raise InputError(f"{where}: content differs from the project's file; workers must see the same frames")
-        frames = read_frames(Path(task.path))
+        frames = read_frames(Path(task.path), [job.index for job in task.frames])  # a multi-frame file: these only
     except OSError as exc:
         raise InputError(f"{where}: cannot read ({exc.strerror or exc}); workers must see the frames' paths") from None
-    return [_run_frame(job, frames[job.index]) for job in task.frames]
+    return [_run_frame(job, frame) for job, frame in zip(task.frames, frames)]
 
 
 def _check_code(task: FrameTask) -> None:

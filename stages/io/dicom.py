@@ -15,7 +15,7 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
-from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored
+from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored, checked_indices
 
 NAME = "DICOM"
 SUFFIXES = (".dcm", ".ima", ".dicom")
@@ -79,22 +79,37 @@ def positioner_angles_deg(path: Path) -> tuple[float | None, float | None]:
     return angles[0], angles[1]
 
 
-def read(path: Path) -> list[Radiograph]:
-    """Every frame, float32 after the modality LUT, MONOCHROME2 (larger = brighter)."""
-    import pydicom
-    from pydicom.pixels import apply_modality_lut
+def read(path: Path, indices: list[int] | None = None) -> list[Radiograph]:
+    """Frames ``indices`` (every frame when None), float32 after the modality LUT, MONOCHROME2 (larger = brighter).
 
-    ds = pydicom.dcmread(path)
-    if "PixelData" not in ds:
-        raise InputError(f"{path}: DICOM file has no pixel data")
-    pixels = apply_modality_lut(ds.pixel_array, ds).astype(np.float32)
-    n_frames = int(getattr(ds, "NumberOfFrames", 1) or 1)
-    frames = pixels.reshape((n_frames,) + pixels.shape[-2:]) if pixels.ndim >= 2 else pixels
+    With ``indices`` only those frames are decoded (:func:`pydicom.pixels.iter_pixels`), in the order given.
+    """
+    import pydicom
+    from pydicom.pixels import apply_modality_lut, iter_pixels
+
+    ds = pydicom.dcmread(path, stop_before_pixels=indices is not None)
+    if indices is None:
+        if "PixelData" not in ds:
+            raise InputError(f"{path}: DICOM file has no pixel data")
+        pixels = ds.pixel_array
+        wanted = range(int(getattr(ds, "NumberOfFrames", 1) or 1))
+    else:
+        wanted = checked_indices(path, indices, int(getattr(ds, "NumberOfFrames", 1) or 1))
+        pixels = np.stack(list(iter_pixels(path, indices=wanted))) if wanted else np.empty((0, 1, 1))
+    pixels = apply_modality_lut(pixels, ds).astype(np.float32)
+    frames = pixels.reshape((len(wanted),) + pixels.shape[-2:]) if pixels.ndim >= 2 else pixels
     if frames.ndim != 3:
         raise InputError(f"{path}: expected monochrome frames; got pixel array of shape {pixels.shape}")
     bit_depth = int(getattr(ds, "BitsStored", 16))
     if str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2")) == "MONOCHROME1":
         frames = float(2**bit_depth - 1) - frames
+    meta = _meta(ds)
+    return [Radiograph(np.ascontiguousarray(f), bit_depth, str(path), i, meta) for i, f in zip(wanted, frames)]
+
+
+def _meta(ds) -> dict:
+    import pydicom
+
     meta = {
         "format": "dicom",
         "modality": str(getattr(ds, "Modality", "")),
@@ -108,7 +123,7 @@ def read(path: Path) -> list[Radiograph]:
                 if isinstance(value, (list, tuple, pydicom.multival.MultiValue))
                 else float(value)
             )
-    return [Radiograph(np.ascontiguousarray(f), bit_depth, str(path), i, meta) for i, f in enumerate(frames)]
+    return meta
 
 
 def write_dicom(path: str | os.PathLike, ds, pixels: np.ndarray) -> None:

@@ -47,8 +47,8 @@ class FrameFormat:
         Whether the first bytes of a file are this format's signature.
     probe : callable (Path) -> (int, (int, int))
         Frame count and ``(width, height)`` px, without decoding pixels where the format allows.
-    read : callable (Path) -> list of Radiograph
-        Every frame of the file.
+    read : callable (Path, list of int or None) -> list of Radiograph
+        Every frame of the file, or only the frames of the given indices, in their order.
     write_like : callable (Path, list of Radiograph, Path, Derivation or None) -> None
         Write frames to the output path in the source's format, bit depth and metadata, atomically,
         recording the :class:`~fluorocal.stages.io.pixels.Derivation` where the format's header can.
@@ -66,7 +66,7 @@ class FrameFormat:
     accepts_suffix: Callable[[str], bool]
     sniff_content: Callable[[bytes], bool]
     probe: Callable[[Path], tuple[int, tuple[int, int]]]
-    read: Callable[[Path], list[Radiograph]]
+    read: Callable[[Path, list[int] | None], list[Radiograph]]
     write_like: Callable[[Path, list[Radiograph], Path, Derivation | None], None]
     open_stored: Callable[[Path], StoredFrames | None] | None = None
     write_stored: Callable[[Path, Iterable[np.ndarray], Path, int, Derivation | None], None] | None = None
@@ -171,16 +171,21 @@ def _one_line(text: str) -> str:
     return " ".join(text.split())
 
 
-def read_frames(path: str | os.PathLike) -> list[Radiograph]:
-    """Read every frame of an image, DICOM or video file.
+def read_frames(path: str | os.PathLike, indices: Iterable[int] | None = None) -> list[Radiograph]:
+    """Read every frame of an image, DICOM or video file, or only the frames ``indices`` (in that order).
+
+    With ``indices``, the other frames of a multi-frame file are not kept in memory (DICOM and
+    multi-page stills do not decode them at all; a video decodes the frames before the last one wanted).
 
     Raises
     ------
     InputError
-        The file is missing, unreadable, of no supported format or holds no monochrome frame.
+        The file is missing, unreadable, of no supported format or holds no monochrome frame; an
+        index beyond the file's frames.
     """
     path = Path(path)
-    return _call(path, frame_format(path).read)
+    wanted = None if indices is None else list(indices)
+    return _call(path, lambda p: frame_format(p).read(p, wanted))
 
 
 def probe_frames(path: str | os.PathLike) -> tuple[int, tuple[int, int]]:

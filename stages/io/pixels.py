@@ -83,3 +83,20 @@ class Derivation:
     def __post_init__(self):
         if not self.description or len(self.description) > 1024:
             raise InputError(f"derivation description must be 1 to 1024 characters; got {len(self.description)}")
+
+
+def checked_indices(path, indices, n_frames: int | None) -> list[int]:
+    """``indices`` as a list of ints, each a frame of a file of ``n_frames`` (None: not known yet, only >= 0).
+
+    Raises
+    ------
+    InputError
+        An index outside the file's frames, naming the file.
+    """
+    wanted = [int(i) for i in indices]
+    for i in wanted:
+        if i < 0:
+            raise InputError(f"{path}: frames are numbered from 0; frame {i} asked for")
+        if n_frames is not None and i >= n_frames:
+            raise InputError(f"{path}: holds {n_frames} frame(s); frame {i} asked for")
+    return wanted

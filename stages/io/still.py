@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 from collections.abc import Iterable
 from functools import lru_cache
@@ -11,7 +12,7 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
-from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored, to_source_dtype
+from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored, checked_indices, to_source_dtype
 
 NAME = "still image (OpenImageIO)"
 #: the suffixes named in messages; any extension OpenImageIO has a reader for is accepted
@@ -67,19 +68,22 @@ def probe(path: Path) -> tuple[int, tuple[int, int]]:
     return n, size
 
 
-def read(path: Path) -> list[Radiograph]:
-    """Every subimage as a monochrome frame (RGB through Rec. 601 luma), in its stored bit depth."""
+def read(path: Path, indices: list[int] | None = None) -> list[Radiograph]:
+    """Subimages ``indices`` (every one when None) as monochrome frames (RGB via Rec. 601 luma), in stored bit depth."""
     inp = _open(path)
     try:
         frames = []
-        subimage = 0
-        while inp.seek_subimage(subimage, 0):
+        wanted = itertools.count() if indices is None else iter(checked_indices(path, indices, None))
+        for subimage in wanted:
+            if not inp.seek_subimage(subimage, 0):
+                if indices is None:
+                    break
+                raise InputError(f"{path}: holds fewer than {subimage + 1} frames; frame {subimage} asked for")
             spec = inp.spec()
             pixels = inp.read_image(spec.format)
             if pixels is None:
                 raise InputError(f"{path}: cannot decode subimage {subimage} ({inp.geterror()})")
             frames.append(_to_radiograph(path, subimage, spec, pixels, inp.format_name()))
-            subimage += 1
     finally:
         inp.close()
     return frames

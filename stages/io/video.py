@@ -8,7 +8,7 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
-from fluorocal.stages.io.pixels import Derivation
+from fluorocal.stages.io.pixels import Derivation, checked_indices
 
 NAME = "video (OpenCV)"
 SUFFIXES = (".avi", ".mp4", ".mov", ".mkv", ".m4v", ".wmv")
@@ -40,25 +40,40 @@ def probe(path: Path) -> tuple[int, tuple[int, int]]:
     return len(frames), (frames[0].shape[1], frames[0].shape[0])
 
 
-def read(path: Path) -> list[Radiograph]:
-    """Every decodable frame, converted to grey."""
+def read(path: Path, indices: list[int] | None = None) -> list[Radiograph]:
+    """Frames ``indices`` (every decodable frame when None), converted to grey, in the order given.
+
+    Containers cannot seek to an exact frame reliably, so the file is read from its start up to
+    the last frame wanted; only the frames wanted are kept.
+    """
     import cv2
 
+    wanted = None if indices is None else checked_indices(path, indices, None)
+    keep = None if wanted is None else set(wanted)
+    last = None if wanted is None else max(wanted, default=-1)
     cap = _open(path)
-    frames = []
+    kept = {}
     try:
-        while True:
+        index = 0
+        while last is None or index <= last:
             ok, frame = cap.read()
             if not ok:
                 break
-            grey = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-            bits = 16 if grey.dtype == np.uint16 else 8
-            frames.append(Radiograph(grey.astype(np.float32), bits, str(path), len(frames), {"format": "video"}))
+            if keep is None or index in keep:
+                grey = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+                bits = 16 if grey.dtype == np.uint16 else 8
+                kept[index] = Radiograph(grey.astype(np.float32), bits, str(path), index, {"format": "video"})
+            index += 1
     finally:
         cap.release()
-    if not frames:
+    if not kept and wanted is None:
         raise InputError(f"{path}: video holds no decodable frame")
-    return frames
+    if wanted is None:
+        return [kept[i] for i in sorted(kept)]
+    missing = [i for i in wanted if i not in kept]
+    if missing:
+        raise InputError(f"{path}: holds {index} decodable frame(s); frame {missing[0]} asked for")
+    return [kept[i] for i in wanted]
 
 
 def write_like(source: Path, frames: list[Radiograph], out_path: Path, derivation: Derivation | None = None) -> None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 
+import numpy as np
 import pytest
 from fluorocal import parallel
 from fluorocal.cache import file_sha256
@@ -150,3 +151,26 @@ def test_cluster_workers_with_other_library_versions_are_refused():
         parallel.WorkerLost, match=r"worker tcp://b:1 of tcp://s:1 has numpy 0\.9 where this machine has 1\.0"
     ):
         parallel._check_versions({"client": same, "workers": {"tcp://a:1": same, "tcp://b:1": other}}, "tcp://s:1")
+
+
+def test_a_task_on_a_multi_frame_file_computes_its_own_frames(project, tmp_path):
+    """A task decodes only its frames of a multi-frame file, and each job gets its own frame (not the file's first)."""
+    from fluorocal.artifact_codec import artifact_types, decode
+    from fluorocal.stages.detect import DetectParams, detect_beads
+    from fluorocal.stages.io import read_frames, write_dicom
+
+    from tests.stages.test_io_formats import _dataset
+
+    singles = sorted((project / "frames").rglob("*.tif"))[:3]
+    stored = np.stack([read_frames(p)[0].image.astype(np.uint16) for p in singles])
+    multi = tmp_path / "three.dcm"
+    write_dicom(multi, _dataset(*stored.shape[1:], bits_stored=16), stored)
+    stage = next(s for s in default_stages() if s.name == "detect")
+    params = DetectParams(polarity="dark", min_diameter_px=4.0, max_diameter_px=30.0)
+    jobs = tuple(parallel.FrameJob(u, i, f"frame {i}", (parallel.Step(stage, params),)) for u, i in ((0, 2), (1, 0)))
+    results = parallel.run_task(parallel.FrameTask(str(multi), file_sha256(multi), jobs))
+    for result, index in zip(results, (2, 0)):
+        ((name, tree, arrays, _),) = result.outputs
+        got = decode(tree, arrays, artifact_types([stage]))
+        want = detect_beads(read_frames(multi)[index], params)
+        assert got.n_accepted > 10 and np.array_equal(got.xy_px, want.xy_px)  # frame `index`, found as a serial run

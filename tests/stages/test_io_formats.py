@@ -156,3 +156,46 @@ def test_atomic_write_leaves_nothing_when_the_writer_fails(tmp_path):
     with pytest.raises(RuntimeError):
         atomic_write(tmp_path / "x.csv", _fail)
     assert list(tmp_path.iterdir()) == []
+
+
+def _multi_frame_files(tmp_path) -> dict:
+    """The same 4 distinct frames as a multi-frame DICOM, a 4-page TIFF and an AVI (lossless: raw grey)."""
+    import cv2
+    import OpenImageIO as oiio
+
+    pixels = np.stack([(np.arange(24 * 32).reshape(24, 32) * (k + 1)) % 250 for k in range(4)]).astype(np.uint16)
+    write_dicom(tmp_path / "m.dcm", _dataset(24, 32), pixels)
+    spec = oiio.ImageSpec(32, 24, 1, "uint16")
+    out = oiio.ImageOutput.create(str(tmp_path / "m.tif"))
+    assert out.open(str(tmp_path / "m.tif"), [spec] * 4)
+    for k in range(4):
+        if k:
+            assert out.open(str(tmp_path / "m.tif"), spec, "appendsubimage")
+        assert out.write_image(pixels[k][..., None])
+    out.close()
+    writer = cv2.VideoWriter(str(tmp_path / "m.avi"), cv2.VideoWriter_fourcc(*"FFV1"), 10, (32, 24), isColor=False)
+    for k in range(4):
+        writer.write(pixels[k].astype(np.uint8))
+    writer.release()
+    return {"m.dcm": DICOM, "m.tif": STILL, "m.avi": VIDEO}
+
+
+@pytest.mark.parametrize("name", ["m.dcm", "m.tif", "m.avi"])
+def test_reading_some_frames_gives_exactly_those_of_a_full_read(tmp_path, name):
+    """A pool worker reads only its frames of a multi-frame file: they must equal the full read's, bit for bit."""
+    formats = _multi_frame_files(tmp_path)
+    path = tmp_path / name
+    assert frame_format(path) is formats[name]
+    every = read_frames(path)
+    assert len(every) == 4 and len({f.image.tobytes() for f in every}) == 4  # four distinct frames
+    some = read_frames(path, [2, 0, 3])
+    assert [f.frame_index for f in some] == [2, 0, 3]
+    for got, want in zip(some, (every[2], every[0], every[3])):
+        np.testing.assert_array_equal(got.image, want.image)
+        assert got.image.dtype == want.image.dtype and got.bit_depth == want.bit_depth
+        assert got.metadata == want.metadata and got.source == want.source
+    assert read_frames(path, []) == []
+    with pytest.raises(InputError, match=rf"^{path}: holds .*frame.*; frame 4 asked for$"):
+        read_frames(path, [1, 4])
+    with pytest.raises(InputError, match=rf"^{path}: frames are numbered from 0; frame -1 asked for$"):
+        read_frames(path, [-1])
