@@ -19,3 +19,7 @@ class EstimationError(CalibError, RuntimeError):
 
 class ArtifactError(CalibError, OSError):
     """An artifact is unreadable, corrupt or of an incompatible schema."""
+
+
+class NotConvergedWarning(UserWarning):
+    """An iteration stopped at its cap before its convergence test held: the result may be short of its accuracy."""

@@ -33,11 +33,12 @@ from __future__ import annotations
 
 import logging
 import time
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from fluorocal.stages.adjust import FreeParameters
-from fluorocal.stages.errors import EstimationError, InputError
+from fluorocal.stages.errors import EstimationError, InputError, NotConvergedWarning
 from fluorocal.stages.field import CorrectionField, PointwiseField
 from fluorocal.stages.learn.adjuster import Adjuster, Outcome, adjustment_outcome, point_jacobians
 from fluorocal.stages.learn.anderson import Anderson, anderson_step
@@ -183,6 +184,13 @@ def calibrate(
             state = replace(state, phase="grid", phase_start=state.iteration + 1, anderson=state.anderson.restarted())
         elif action == "stop":
             break
+    if not converged:
+        warnings.warn(
+            f"the learning stopped short of convergence ({reason}); the field may be less accurate than the data "
+            "allow: raise [learn] refine_iterations (or max_iterations)",
+            NotConvergedWarning,
+            stacklevel=2,
+        )
     if params.fast_intermediate:
         # the final solve, warm-started, with the covariance and redundancy numbers
         state = replace(state, adj=adjuster(state.corrections, state.adj, final=True))
