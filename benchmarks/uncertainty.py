@@ -123,7 +123,8 @@ def run_seed(args, seed: int) -> dict:
         f"(adjustment's, field held: {np.array2string(adj.iop_std_px[0], precision=3)}); raw error against the "
         f"simulator's IOP {np.array2string(adj.iop_px[0] - system.iop_px, precision=1)} px; field RMS error "
         f"{np.sqrt(np.mean(node_err**2)):.3f} px (best grid {np.sqrt(np.mean(grid_err**2)):.3f} px), "
-        f"median stated σ {np.median(node_sd):.3f} px; |IOP error| / σ {np.array2string(iop_err / unc.iop_std_px, precision=2)}",
+        f"median stated σ {np.median(node_sd):.3f} px; IOP error / σ "
+        f"{np.array2string(iop_err / unc.iop_std_px, precision=2)}",
         flush=True,
     )
     return {
