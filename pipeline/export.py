@@ -298,6 +298,11 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
                 inside(out_dir, f"field_{file_name}.png"), result.fields[s], f"learned correction Δ, system {name}"
             )
         )
+        plots.append(
+            report.field_sigma_map(
+                inside(out_dir, f"field_sigma_{file_name}.png"), result.fields[s], f"σ of the correction, system {name}"
+            )
+        )
         labels, rms_b, rms_a = [], [], []
         for u in (u for u in runner.units if u.system == s):
             f = inl & (obs.exposure == u.exposure)

@@ -18,10 +18,11 @@ gridded field, linearised at the solution:
   rotation is zero. This is the convention that makes the IOP identifiable:
   the reported IOP is the pinhole under it, and its error is measured against
   the true IOP expressed in the same convention (the true distortion with its
-  gauge component moved into the IOP, :func:`convention_iop`);
-- with the affine datum (``LearnParams.affine_datum``), the phantom's five
-  affine shape modes beyond a similarity are held at the design's, as in the
-  refinement.
+  gauge component moved into the IOP, :func:`convention_truth`);
+- the IOP's σ leaves the phantom's shape free, as the final adjustment that
+  estimates the IOP does; the field's σ holds the phantom's five affine shape
+  modes beyond a similarity at the design's when the refinement that learned
+  the field held them (``LearnParams.affine_datum``).
 
 The observations' weights are the adjustment's (t-weight over ``σ²``, times its variance factor).
 Each system is treated on its own with free poses per exposure: a biplanar
@@ -195,7 +196,6 @@ def joint_uncertainty(
     *,
     tau_px: float,
     order: int,
-    with_iop: bool,
     shape_nominal_mm: np.ndarray | None = None,
 ) -> JointUncertainty:
     """The IOP's and the field's covariance over the joint problem (module docstring).
@@ -212,10 +212,13 @@ def joint_uncertainty(
         The learned gridded field of ``system`` (its nodes).
     tau_px, order : float, int
         The smoothness prior of the gridded fit (``GridCvReport.tau_px``, ``.order``).
-    with_iop : bool
-        Whether the IOP was estimated (its gauge columns then constrain the field too).
     shape_nominal_mm : (n_beads, 3) float64 ndarray, mm, optional
-        The design coordinates of ``adj.bead_id``: hold the phantom's affine shape at the design's.
+        The design coordinates of ``adj.bead_id``: the field's σ then holds the phantom's affine shape
+        at the design's (as the refinement with ``affine_datum`` does); the IOP's never does.
+
+    Notes
+    -----
+    The IOP must have been estimated (it is a parameter here, and the gauge includes its fields).
 
     Returns
     -------
@@ -245,7 +248,7 @@ def joint_uncertainty(
     JW = net.J.multiply(net.w[:, None]).tocsr()
     M = np.concatenate([(A.T @ JW[c * n : (c + 1) * n]).toarray() for c in range(2)])  # (2 n_nodes, n_theta)
     # the gauge C v = 0: the field's components at the observations along the gauge fields, (K, 2 n_nodes)
-    B = gauge_basis(xy, adj.iop_px[system], with_iop)
+    B = gauge_basis(xy, adj.iop_px[system], True)
     C = np.concatenate([(A.T @ B[:, c, :]).T for c in range(2)], axis=1)
     C /= np.linalg.norm(C, axis=1, keepdims=True)
     Y = s_inv(C.T)
@@ -259,7 +262,11 @@ def joint_uncertainty(
     # the IOP as the final adjustment estimates it: the phantom's shape free
     cov = _sym_inv(H_joint + border)
     # the field as the refinement learned it: with the phantom's affine shape held, if it was
-    cov_field = cov if net.affine is None else _sym_inv(H_joint + border + 1e6 * scale * net.affine @ net.affine.T)
+    # (the Gaussian conditioned on F^T θ = 0: cov - cov F (F^T cov F)^-1 F^T cov)
+    cov_field = cov
+    if net.affine is not None:
+        cF = cov @ net.affine
+        cov_field = cov - cF @ np.linalg.solve(net.affine.T @ cF, cF.T)
     node_var = _diag_s_inv(lus, n_nodes) - np.sum((Y @ CY_inv) * Y, axis=1)
     node_var += np.sum((G @ cov_field) * G, axis=1)
     cov_cond = _sym_inv(H_cond + border)
@@ -314,7 +321,6 @@ def learned_uncertainty(
             grid,
             tau_px=m.tau_px,
             order=m.cv.order,
-            with_iop=True,
             shape_nominal_mm=shape,
         )
         for s, (r, grid, m) in enumerate(zip(rows, grids, memory))

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fluorocal.stages.adjust import FreeParameters, Orientation, adjust_bundle
+from fluorocal.stages.adjust import FreeParameters, Orientation, adjust_bundle, index_of, nominal_coordinates
 from fluorocal.stages.artifacts import Observations
 from fluorocal.stages.field import CorrectionField, bilinear_design
 from fluorocal.stages.geometry import quat_to_matrix
@@ -61,7 +61,8 @@ def small_adjustment():
     corr = train[1].xy_px - system.distortion.undistort_points(train[1].xy_px)
     adj = adjust_bundle(train[0], phantom, initial, corr, free=FreeParameters(estimate_iop=True))
     field = CorrectionField.constant(256, 256, spacing_px=64.0)
-    return adj, train[0], field
+    ids, xyz = nominal_coordinates(phantom)
+    return adj, train[0], field, xyz[index_of(adj.bead_id, ids, "bead ids")]
 
 
 def test_camera_jacobians_match_finite_differences():
@@ -92,46 +93,61 @@ def test_camera_jacobians_match_finite_differences():
 
 
 def test_similarity_modes_leave_the_projections_unchanged(small_adjustment):
-    adj, obs, _ = small_adjustment
+    adj, obs, _, _ = small_adjustment
     net = _network(adj, obs, np.flatnonzero(adj.used), 0)
     # J E = 0 to first order: a similarity of object space moves nothing in the image; relative to |J| |E|
     ratio = np.linalg.norm(net.J @ net.datum, axis=0) / (np.sqrt((net.J.multiply(net.J)).sum()) * 1.0)
     assert ratio.max() < 1e-9
 
 
-def test_joint_covariance_equals_the_dense_constrained_inverse(small_adjustment):
-    """Closed form: the IOP block of the inverse of the whole joint normal matrix, the gauge a hard constraint."""
-    adj, obs, field = small_adjustment
-    rows = np.flatnonzero(adj.used)
-    tau, order = 0.3, 2
-    got = joint_uncertainty(adj, obs, rows, 0, field, tau_px=tau, order=order, with_iop=True)
+def dense_joint(net, xy, field, tau, order, iop, hold_affine: bool):
+    """Covariances of the orientation and of the node values from the whole joint normal matrix, inverted densely.
 
-    net = _network(adj, obs, rows, 0)
-    xy = obs.xy_px[rows]
+    The gauge on the field (and, with ``hold_affine``, the phantom's affine modes) as hard constraints (KKT);
+    the 7 inner constraints as a border (the IOP and the field do not depend on the datum).
+    """
     A = bilinear_design(field.x_nodes_px, field.y_nodes_px, xy).toarray()
-    n, n_nodes = A.shape
+    n_nodes = A.shape[1]
     Z = np.zeros_like(A)
     A2 = np.block([[A, Z], [Z, A]])  # x rows then y rows, as the network's
     D = difference_operator(len(field.y_nodes_px), len(field.x_nodes_px), order).toarray()
     P = np.kron(np.eye(2), D.T @ D) / tau**2 + 1e-10 * max(net.w.max(), 1.0) * np.eye(2 * n_nodes)
     J, W = net.J.toarray(), np.diag(net.w)
-    H_tt = J.T @ W @ J
-    border = float(np.mean(np.diag(H_tt))) * net.datum @ net.datum.T
-    H = np.block([[H_tt + border, J.T @ W @ A2], [A2.T @ W @ J, A2.T @ W @ A2 + P]])
-    B = gauge_basis(xy, adj.iop_px[0], True)
-    C = np.concatenate([B[:, 0, :].T @ A, B[:, 1, :].T @ A], axis=1)
-    Cfull = np.concatenate([np.zeros((C.shape[0], J.shape[1])), C], axis=1)
-    K = np.block([[H, Cfull.T], [Cfull, np.zeros((C.shape[0], C.shape[0]))]])
-    cov = np.linalg.inv(K)[: J.shape[1], : J.shape[1]]
-    # the same linear algebra done two ways in float64: agreement to 1e-6 relative
-    np.testing.assert_allclose(got.iop_cov_px2, cov[:3, :3], rtol=1e-6)
-    cov_v = np.linalg.inv(K)[J.shape[1] : J.shape[1] + 2 * n_nodes, J.shape[1] : J.shape[1] + 2 * n_nodes]
-    np.testing.assert_allclose(got.node_std_px.transpose(2, 0, 1).ravel(), np.sqrt(np.diag(cov_v)), rtol=1e-5)
+    n_t = J.shape[1]
+    H_tt = J.T @ W @ J + float(np.mean(np.diag(J.T @ W @ J))) * net.datum @ net.datum.T
+    H = np.block([[H_tt, J.T @ W @ A2], [A2.T @ W @ J, A2.T @ W @ A2 + P]])
+    B = gauge_basis(xy, iop, True)
+    rows = [np.concatenate([np.zeros((B.shape[2], n_t)), B[:, 0, :].T @ A, B[:, 1, :].T @ A], axis=1)]
+    if hold_affine:
+        rows.append(np.concatenate([net.affine.T, np.zeros((net.affine.shape[1], 2 * n_nodes))], axis=1))
+    Cf = np.concatenate(rows)
+    K = np.block([[H, Cf.T], [Cf, np.zeros((len(Cf), len(Cf)))]])
+    inv = np.linalg.inv(K)
+    return inv[:n_t, :n_t], inv[n_t : n_t + 2 * n_nodes, n_t : n_t + 2 * n_nodes]
+
+
+@pytest.mark.parametrize("hold_affine", [False, True])
+def test_joint_covariance_equals_the_dense_constrained_inverse(small_adjustment, hold_affine):
+    """Closed form: blocks of the inverse of the whole joint normal matrix with the constraints as hard ones."""
+    adj, obs, field, nominal_shape = small_adjustment
+    rows = np.flatnonzero(adj.used)
+    tau, order = 0.3, 2
+    shape = nominal_shape if hold_affine else None
+    got = joint_uncertainty(adj, obs, rows, 0, field, tau_px=tau, order=order, shape_nominal_mm=shape)
+    net = _network(adj, obs, rows, 0, nominal_shape)
+    xy, iop = obs.xy_px[rows], adj.iop_px[0]
+    # the IOP's σ leaves the phantom's shape free; the field's holds its affine modes when asked
+    cov_t, _ = dense_joint(net, xy, field, tau, order, iop, hold_affine=False)
+    _, cov_v = dense_joint(net, xy, field, tau, order, iop, hold_affine=hold_affine)
+    # the same linear algebra done two ways in float64 (a Schur complement and a conditioned Gaussian against
+    # one dense inverse): agreement to 1e-6 relative
+    np.testing.assert_allclose(got.iop_cov_px2, cov_t[:3, :3], rtol=1e-6)
+    np.testing.assert_allclose(got.node_std_px.transpose(2, 0, 1).ravel(), np.sqrt(np.diag(cov_v)), rtol=1e-6)
 
 
 def test_conditional_sigma_is_the_adjustments_and_the_joint_is_larger(small_adjustment):
-    adj, obs, field = small_adjustment
-    got = joint_uncertainty(adj, obs, np.flatnonzero(adj.used), 0, field, tau_px=0.3, order=2, with_iop=True)
+    adj, obs, field, _ = small_adjustment
+    got = joint_uncertainty(adj, obs, np.flatnonzero(adj.used), 0, field, tau_px=0.3, order=2)
     # an independent Jacobian with σ0² in place of Huber's sandwich factor (equal for Gaussian errors up to
     # his small-sample correction, a few percent here)
     np.testing.assert_allclose(got.conditional_iop_std_px, adj.iop_std_px[0], rtol=0.1)
