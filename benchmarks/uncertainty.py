@@ -113,6 +113,7 @@ def run_seed(args, seed: int) -> dict:
     node_err = estimate - truth(nodes)
     grid_err = estimate - best_grid_values(field, truth, args.size)[supported]
     node_sd = field.sigma_px.ravel()[supported]
+    node_z = float(np.sqrt(np.mean((node_err / node_sd[:, None]) ** 2)))
     # held-out observations, undistorted with the learned field, against the true ideal projection in the convention
     inside = field.support_at(test.xy_px)
     pt_err = (field.undistort_points(test.xy_px) - (test_ideal + component(test_true.xy_px)))[inside]
@@ -123,7 +124,8 @@ def run_seed(args, seed: int) -> dict:
         f"(adjustment's, field held: {np.array2string(adj.iop_std_px[0], precision=3)}); raw error against the "
         f"simulator's IOP {np.array2string(adj.iop_px[0] - system.iop_px, precision=1)} px; field RMS error "
         f"{np.sqrt(np.mean(node_err**2)):.3f} px (best grid {np.sqrt(np.mean(grid_err**2)):.3f} px), "
-        f"median stated σ {np.median(node_sd):.3f} px; IOP error / σ "
+        f"median stated σ {np.median(node_sd):.3f} px, RMS of error / σ {node_z:.2f}; "
+        f"IOP error / σ "
         f"{np.array2string(iop_err / unc.iop_std_px, precision=2)}",
         flush=True,
     )
