@@ -231,14 +231,7 @@ def joint_uncertainty(
     n, n_nodes = len(rows), A.shape[1]
     DtD = difference_operator(len(yn), len(xn), int(order))
     DtD = (DtD.T @ DtD).tocsr() / float(tau_px) ** 2
-    w = net.w.reshape(2, n)
-    ridge = 1e-10 * max(float(w.max()), 1.0)
-    from scipy.sparse import identity
-
-    # one factorisation serves both components when their weights are equal (the usual case)
-    same = np.array_equal(w[0], w[1])
-    lus = [factor_spd((A.T.multiply(w[c]) @ A + DtD + ridge * identity(n_nodes)).tocsc()) for c in range(2 - same)]
-    lus = lus * (1 + same)
+    lus = _field_factors(A, net.w.reshape(2, n), DtD)
 
     def s_inv(X):  # S^-1 X for X (2 n_nodes, k), the two components' blocks apart
         return np.concatenate(
@@ -273,6 +266,17 @@ def joint_uncertainty(
     shape = (len(yn), len(xn))
     node_std = np.sqrt(np.clip(node_var, 0.0, None)).reshape(2, *shape).transpose(1, 2, 0)
     return JointUncertainty(cov[:3, :3], np.sqrt(np.diag(cov)[:3]), node_std, np.sqrt(np.diag(cov_cond)[:3]))
+
+
+def _field_factors(A, w: np.ndarray, DtD) -> list:
+    """Sparse LU of ``S = A^T W A + D^T D / τ²`` per component (``w`` ``(2, n)``; one shared when equal)."""
+    from scipy.sparse import identity
+
+    n_nodes = A.shape[1]
+    ridge = 1e-10 * max(float(w.max()), 1.0)  # as the gridded fit's: nodes far from all data stay determined
+    same = np.array_equal(w[0], w[1])
+    lus = [factor_spd((A.T.multiply(w[c]) @ A + DtD + ridge * identity(n_nodes)).tocsc()) for c in range(2 - same)]
+    return lus * (1 + same)
 
 
 def _sym_inv(H: np.ndarray) -> np.ndarray:
