@@ -49,7 +49,7 @@ from fluorocal.stages.geometry import quat_to_matrix
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import difference_operator, factor_spd
 from fluorocal.stages.learn.joint import affine_shape_modes
-from scipy.sparse import csr_matrix
+from scipy.sparse import csr_matrix, identity, vstack
 
 #: columns of the identity solved at once for the diagonal of the field's inverse (bounds memory)
 _CHUNK = 512
@@ -65,7 +65,8 @@ class JointUncertainty:
         Covariance of ``(xp, yp, c)`` over the joint problem (IOP, poses, points, field).
     iop_std_px : (3,) float64 ndarray, px
     node_std_px : (H_g, W_g, 2) float64 ndarray, px
-        Standard deviation of each node's ``(Δx, Δy)`` over the joint problem.
+        Standard deviation of each node's ``(Δx, Δy)`` over the joint problem (the phantom's affine shape
+        held when the refinement that learned the field held it).
     conditional_iop_std_px : (3,) float64 ndarray, px
         The same problem with the field held fixed (what the adjustment reports), for comparison.
     """
@@ -160,8 +161,6 @@ def _network(adj, observations, rows, system: int, shape_nominal_mm=None) -> _Ne
     for comp in range(2):
         vals = np.concatenate([J_iop[:, comp], J_rot[:, comp], J_src[:, comp], J_pt[:, comp]], axis=1)
         blocks.append(csr_matrix((vals.ravel(), (np.repeat(np.arange(n), 12), cols.ravel())), shape=(n, n_theta)))
-    from scipy.sparse import vstack
-
     sig = observations.sigma_px[rows, :2]
     w = (adj.weight[rows, None] / sig**2 / variance_factor(adj, observations)).T.ravel()
     datum = _similarity_modes(R_e, T_e, P_b, n_theta, pose_col, point_col)
@@ -270,8 +269,6 @@ def joint_uncertainty(
 
 def _field_factors(A, w: np.ndarray, DtD) -> list:
     """Sparse LU of ``S = A^T W A + D^T D / τ²`` per component (``w`` ``(2, n)``; one shared when equal)."""
-    from scipy.sparse import identity
-
     n_nodes = A.shape[1]
     ridge = 1e-10 * max(float(w.max()), 1.0)  # as the gridded fit's: nodes far from all data stay determined
     same = np.array_equal(w[0], w[1])
