@@ -33,6 +33,7 @@ ARTIFACT_CLASSES = {
     "fluorocal.stages.learn.knn": ("KnnModel", "CvReport"),
     "fluorocal.stages.learn.grid": ("GridCvReport",),
     "fluorocal.stages.learn.result": ("IterationRecord", "LearnResult"),
+    "fluorocal.stages.learn.uncertainty": ("JointUncertainty",),
     "fluorocal.stages.plate.result": ("PlateCalibration",),
 }
 

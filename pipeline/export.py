@@ -117,7 +117,7 @@ def calibration_from_result(runner, result):
             name,
             tuple(sizes[s]),
             adj.iop_px[s],
-            adj.iop_std_px[s],
+            result.iop_std_px[s],
             adj.rop_q[s],
             adj.rop_source_mm[s],
             **_field_or_orientation(runner.config.systems[s], result.fields[s]),
@@ -132,6 +132,7 @@ def calibration_from_result(runner, result):
         "scheme": result.scheme,
         "conventions": "README.md#conventions: px with the top-left pixel centre at (0, 0), x right, y down; "
         "ideal = measured - Δ(measured); q (w, x, y, z) rotates object vectors into the camera frame",
+        "uncertainty": uncertainty_note(result),
         "statistics": {
             "sigma0": float(adj.sigma0),
             "nu": float(adj.nu),
@@ -147,6 +148,20 @@ def calibration_from_result(runner, result):
         },
     }
     return Calibration(systems, exposures, meta)
+
+
+def uncertainty_note(result) -> str:
+    """What ``iop_std_px`` and the fields' ``sigma_px`` of a calibration mean (README.md, "Uncertainties")."""
+    if result.uncertainty is not None:
+        return (
+            "README.md#uncertainties: iop_px under the field gauge (the field has no least-squares principal-point "
+            "shift, scaling or camera rotation at the training observations); iop_std_px and the fields' sigma_px "
+            "over the joint problem (IOP, poses, points and field estimated together)"
+        )
+    return (
+        "README.md#uncertainties: iop_std_px is the adjustment's, conditional on the field (too small: a free "
+        "field trades against the principal point and c); the fields' sigma_px the regression's own"
+    )
 
 
 def _field_or_orientation(system, field) -> dict:
@@ -283,6 +298,11 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
                 inside(out_dir, f"field_{file_name}.png"), result.fields[s], f"learned correction Δ, system {name}"
             )
         )
+        plots.append(
+            report.field_sigma_map(
+                inside(out_dir, f"field_sigma_{file_name}.png"), result.fields[s], f"σ of the correction, system {name}"
+            )
+        )
         labels, rms_b, rms_a = [], [], []
         for u in (u for u in runner.units if u.system == s):
             f = inl & (obs.exposure == u.exposure)
@@ -300,6 +320,8 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
         f"Adjustment: σ0 = {st['sigma0']:.3f}, ν = {st['nu']:.1f}, {st['n_outliers']} outlier(s) flagged, "
         f"{st['n_unused']} observation(s) not estimable; {st['iterations']} iteration(s) of the alternation, "
         f"{'converged' if st['converged'] else 'not converged'} ({st['stop_reason']}), {st['wall_time_s']:.1f} s.",
+        "",
+        f"IOP ± σ and the field's σ: {cal.meta.get('uncertainty', 'see README.md#uncertainties')}.",
         "",
     ]
     lines += [f"![{p.stem}]({p.name})" for p in plots]

@@ -87,6 +87,16 @@ def field_map(path: Path, field, title: str) -> Path:
     return _save(plt, fig, path)
 
 
+def field_sigma_map(path: Path, field, title: str) -> Path:
+    """The learned field's per-node σ (``sigma_px``), unsupported nodes left blank (README "Uncertainties")."""
+    plt, fig, (ax,) = _figure(1, width=6.0, height=5.2)
+    extent = (field.x_nodes_px[0], field.x_nodes_px[-1], field.y_nodes_px[-1], field.y_nodes_px[0])
+    im = ax.imshow(np.where(field.support, field.sigma_px, np.nan), extent=extent, cmap="viridis")
+    _image_axes(ax, (field.width_px, field.height_px), title)
+    fig.colorbar(im, ax=ax, label="σ of Δ per component (px)", shrink=0.8)
+    return _save(plt, fig, path)
+
+
 def convergence(path: Path, history) -> Path:
     """Combined cost (equations 2 + 3) and inlier RMS per iteration of the alternation (the paper's Fig. 5)."""
     plt, fig, (ax1, ax2) = _figure(2, width=4.6, height=3.6)

@@ -50,6 +50,7 @@ from fluorocal.stages.learn.params import LearnParams, scheme_flags
 from fluorocal.stages.learn.polynomial import calibrate_polynomial
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
 from fluorocal.stages.learn.robust import local_screen, misfit_inliers
+from fluorocal.stages.learn.uncertainty import learned_uncertainty, with_field_std
 
 logger = logging.getLogger(__name__)
 
@@ -560,6 +561,12 @@ def _result(plan: _Plan, scheme: str, state: _State, converged: bool, reason: st
             plan.adjuster.seconds,
         )
     cv = tuple(m.cv for m in state.memory) if learned else ()
+    uncertainty = None
+    if learned and plan.smooth and plan.refine != "none":  # the gridded refinement's fields: σ over the joint problem
+        shape = plan.adjuster.nominal_shape(state.adj)[1]
+        args = (state.adj, plan.observations, plan.rows, state.trained, state.grids, state.memory, plan.params)
+        uncertainty = learned_uncertainty(*args, estimate_iop=plan.estimate_iop, nominal_shape_mm=shape)
+        fields = fields if uncertainty is None else tuple(map(with_field_std, fields, uncertainty))
     return LearnResult(
         scheme=scheme,
         fields=fields,
@@ -574,6 +581,7 @@ def _result(plan: _Plan, scheme: str, state: _State, converged: bool, reason: st
         adjust_time_s=plan.adjuster.seconds,
         initial_residual_px=initial_residual,
         trained=state.trained,
+        uncertainty=uncertainty,
     )
 
 

@@ -73,6 +73,11 @@ class LearnResult:
         Residuals of the first adjustment, with no correction (the "before" of the report).
     trained : (N,) bool ndarray or None
         The observations the last regression learned from (None when nothing was learned).
+    uncertainty : tuple of JointUncertainty or None
+        Per system, the IOP's and the field's uncertainty with the field estimated jointly
+        (:mod:`fluorocal.stages.learn.uncertainty`); None where it is not defined (schemes
+        without the gauge-fixed gridded refinement or without the IOP). Where given, the
+        ``fields``' ``sigma_px`` are its node σ and :attr:`iop_std_px` its IOP σ.
 
     For scheme ``polynomial`` the ``adjustment`` is the one that estimated
     the model (its ``ap_px``, ``ap_std_px``; held at no correction), and
@@ -92,6 +97,32 @@ class LearnResult:
     adjust_time_s: float = 0.0
     initial_residual_px: np.ndarray | None = None
     trained: np.ndarray | None = None
+    uncertainty: tuple | None = None
+
+    @property
+    def iop_std_px(self) -> np.ndarray:
+        """``(S, 3)`` px: the IOP's σ, with the field estimated jointly where known, else the adjustment's."""
+        std = np.array(self.adjustment.iop_std_px, dtype=np.float64)
+        for s, u in enumerate(self.uncertainty or ()):
+            std[s] = u.iop_std_px
+        return std
+
+    def point_std_px(self, system: int, xy_px: np.ndarray, sigma_xy_px: np.ndarray) -> np.ndarray:
+        """``(n, 2)`` px: predicted σ of undistorted points ``xy - Δ(xy)`` measured with σ ``sigma_xy_px`` ``(n, 2)``.
+
+        The field's per-component node σ interpolated bilinearly (adjacent nodes taken as fully
+        correlated, as a smooth field's are nearly) combined with the measurement's. Without a joint
+        uncertainty, the stored field's ``sigma_px`` stands for both components.
+        """
+        from fluorocal.stages.field import bilinear
+
+        field = self.fields[system]
+        if self.uncertainty is not None:
+            node = self.uncertainty[system].node_std_px
+        else:
+            node = np.repeat(field.sigma_px[..., None], 2, axis=-1)
+        at = bilinear(field.x_nodes_px, field.y_nodes_px, node, np.asarray(xy_px, dtype=np.float64))
+        return np.sqrt(at**2 + np.asarray(sigma_xy_px, dtype=np.float64) ** 2)
 
     def summary(self) -> str:
         """One line: scheme, in-sample RMS before and after, iterations and how the loop stopped."""

@@ -39,9 +39,13 @@ def test_outputs_are_written(project):
         "report.md",
         "convergence.png",
         "residuals_A.png",
+        "field_sigma_A.png",
     ):
         assert (out / name).is_file(), name
     assert "RMS before" in (out / "report.md").read_text()
+    # the recommended loop states the IOP's σ over the joint problem, and says so (README "Uncertainties")
+    doc = json.loads((out / "calibration.json").read_text())
+    assert "joint problem" in doc["uncertainty"] and "joint problem" in (out / "report.md").read_text()
     header = list(_rows(out / "observations.csv")[0])
     assert (
         header[:9] == ["system", "file", "exposure", "id", "x", "y", "sigma_x", "sigma_y", "rho"]

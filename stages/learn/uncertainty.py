@@ -1,0 +1,377 @@
+"""Uncertainty of the interior orientation and of the field, with the field estimated jointly (issue 14).
+
+The adjustment's covariance holds the correction field fixed: conditional on
+the field, its σ of the principal point and of ``c`` is far too small, since a
+free field can trade a principal-point shift (and a change of ``c``) against
+the poses. :func:`joint_uncertainty` gives the marginal covariance over the
+joint problem instead, the IOP, the poses, the object points *and* the
+gridded field, linearised at the solution:
+
+- the field's node values ``v`` carry the gridded fit's smoothness prior
+  ``|D v|² / τ²`` (:func:`fluorocal.stages.learn.grid.difference_operator`;
+  the ``τ`` and order the cross-validation chose), so the covariance is the
+  posterior one and includes the prior's smoothing, not only the noise;
+- the field is held to the gauge the learning imposes
+  (:mod:`fluorocal.stages.learn.gauge`): its least-squares component at the
+  training observations along a principal-point shift, a scaling about the
+  principal point and the three displacement fields of a common camera
+  rotation is zero. This is the convention that makes the IOP identifiable:
+  the reported IOP is the pinhole under it, and its error is measured against
+  the true IOP expressed in the same convention (the true distortion with its
+  gauge component moved into the IOP, :func:`convention_truth`);
+- the IOP's σ leaves the phantom's shape free, as the final adjustment that
+  estimates the IOP does; the field's σ holds the phantom's five affine shape
+  modes beyond a similarity at the design's when the refinement that learned
+  the field held them (``LearnParams.affine_datum``).
+
+The observations' weights are the adjustment's (t-weight over ``σ²``, times its variance factor).
+Each system is treated on its own with free poses per exposure: a biplanar
+pair's ROP (which ties them) is not used, so its σ is slightly conservative.
+
+Linear algebra: with ``S = A^T W A + D^T D / τ²`` (sparse, per component) and
+the gauge ``C v = 0``, the field given the orientation has the constrained
+inverse ``S_c^-1 = S^-1 - S^-1 C^T (C S^-1 C^T)^-1 C S^-1``; the orientation's
+marginal normal matrix is ``J^T W J - M^T S_c^-1 M`` with ``M = A^T W J``
+(the field eliminated), bordered by the 7 inner constraints of the free
+network, and the field's marginal covariance is
+``S_c^-1 + G Cov_θ G^T``, ``G = S_c^-1 M``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from fluorocal.stages.adjust.covariance import covariance_factor
+from fluorocal.stages.artifacts import freeze
+from fluorocal.stages.field import bilinear_design
+from fluorocal.stages.geometry import quat_to_matrix
+from fluorocal.stages.learn.gauge import gauge_basis
+from fluorocal.stages.learn.grid import difference_operator, factor_spd
+from fluorocal.stages.learn.joint import affine_shape_modes
+from scipy.sparse import csr_matrix, identity, vstack
+
+#: columns of the identity solved at once for the diagonal of the field's inverse (bounds memory)
+_CHUNK = 512
+
+
+@dataclass(frozen=True)
+class JointUncertainty:
+    """One system's uncertainty with the field estimated jointly.
+
+    Attributes
+    ----------
+    iop_cov_px2 : (3, 3) float64 ndarray, px²
+        Covariance of ``(xp, yp, c)`` over the joint problem (IOP, poses, points, field).
+    iop_std_px : (3,) float64 ndarray, px
+    node_std_px : (H_g, W_g, 2) float64 ndarray, px
+        Standard deviation of each node's ``(Δx, Δy)`` over the joint problem (the phantom's affine shape
+        held when the refinement that learned the field held it).
+    conditional_iop_std_px : (3,) float64 ndarray, px
+        The same problem with the field held fixed (what the adjustment reports), for comparison.
+    """
+
+    iop_cov_px2: np.ndarray
+    iop_std_px: np.ndarray
+    node_std_px: np.ndarray
+    conditional_iop_std_px: np.ndarray
+
+    def __post_init__(self):
+        freeze(self)
+
+    @property
+    def field_std_px(self) -> np.ndarray:
+        """``(H_g, W_g)`` px: per node, the RMS of the two components' σ (the field file's ``sigma_px``)."""
+        return np.sqrt(np.mean(self.node_std_px**2, axis=-1))
+
+
+def camera_jacobians(iop_px, R, T_mm, xyz_mm):
+    """Derivatives of ``x = xp + c p_x/p_z``, ``p = R (P - T)`` per observation, px per unit.
+
+    Returns ``(J_iop (n, 2, 3), J_rot (n, 2, 3), J_src (n, 2, 3), J_point (n, 2, 3))``: by
+    ``(xp, yp, c)``, by a small rotation ``φ`` of the camera (``R <- exp([φ]x) R``), by the
+    source ``T`` (mm) and by the bead ``P`` (mm).
+    """
+    p = np.einsum("nij,nj->ni", R, xyz_mm - T_mm)
+    u, v = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
+    c = float(iop_px[2])
+    D = np.zeros((len(p), 2, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 0, 2], D[:, 1, 2] = -u, -v
+    D *= (c / p[:, 2])[:, None, None]
+    J_iop = np.zeros((len(p), 2, 3))
+    J_iop[:, 0, 0] = J_iop[:, 1, 1] = 1.0
+    J_iop[:, 0, 2], J_iop[:, 1, 2] = u, v
+    # dp = φ x p = -[p]x φ
+    px = np.zeros((len(p), 3, 3))
+    px[:, 0, 1], px[:, 0, 2], px[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
+    px = px - px.transpose(0, 2, 1)
+    J_point = D @ R
+    return J_iop, -D @ px, -J_point, J_point
+
+
+def _similarity_modes(R, T_mm, P_mm, n_theta: int, pose_col: int, point_col: int) -> np.ndarray:
+    """The 7 directions ``(n_theta, 7)`` of a similarity of object space, under which nothing projects differently."""
+    E = np.zeros((n_theta, 7))
+    m, n = len(T_mm), len(P_mm)
+    rot = np.arange(m)[:, None] * 6 + pose_col + np.arange(3)
+    src = rot + 3
+    pts = np.arange(n)[:, None] * 3 + point_col + np.arange(3)
+    for a in range(3):
+        e = np.eye(3)[a]
+        E[src, a], E[pts, a] = e, e
+        E[src, 3 + a] = np.cross(e, T_mm)
+        E[pts, 3 + a] = np.cross(e, P_mm)
+        E[rot, 3 + a] = -R @ e
+    E[src, 6], E[pts, 6] = T_mm, P_mm
+    return E / np.linalg.norm(E, axis=0)
+
+
+@dataclass(frozen=True)
+class _Network:
+    """One system's linearised orientation: ``J`` ``(2n, n_theta)`` (x rows then y rows), weights, datum modes."""
+
+    J: csr_matrix
+    w: np.ndarray  # shape (2n,)
+    datum: np.ndarray  # shape (n_theta, 7)
+    affine: np.ndarray | None  # shape (n_theta, 5): the phantom's affine shape modes, or None
+
+
+def _network(adj, observations, rows, system: int, shape_nominal_mm=None) -> _Network:
+    """The Jacobian of system ``system``'s observations ``rows`` by ``(IOP, poses, points)`` at ``adj``."""
+    epochs, e_of = np.unique(np.searchsorted(adj.exposure, observations.exposure[rows]), return_inverse=True)
+    order = np.argsort(adj.bead_id)
+    bead_all = order[np.searchsorted(adj.bead_id, observations.bead_id[rows], sorter=order)]
+    beads, b_of = np.unique(bead_all, return_inverse=True)
+    q_s, T_s = adj.orientation.poses(system)
+    R_e, T_e, P_b = quat_to_matrix(q_s[epochs]), T_s[epochs], adj.xyz_mm[beads]
+    J_iop, J_rot, J_src, J_pt = camera_jacobians(adj.iop_px[system], R_e[e_of], T_e[e_of], P_b[b_of])
+    n, m, nb = len(rows), len(epochs), len(beads)
+    pose_col, point_col = 3, 3 + 6 * m
+    n_theta = point_col + 3 * nb
+    cols = np.concatenate(
+        [
+            np.tile(np.arange(3), (n, 1)),
+            pose_col + 6 * e_of[:, None] + np.arange(6),
+            point_col + 3 * b_of[:, None] + np.arange(3),
+        ],
+        axis=1,
+    )
+    blocks = []
+    for comp in range(2):
+        vals = np.concatenate([J_iop[:, comp], J_rot[:, comp], J_src[:, comp], J_pt[:, comp]], axis=1)
+        blocks.append(csr_matrix((vals.ravel(), (np.repeat(np.arange(n), 12), cols.ravel())), shape=(n, n_theta)))
+    sig = observations.sigma_px[rows, :2]
+    w = (adj.weight[rows, None] / sig**2 / variance_factor(adj, observations)).T.ravel()
+    datum = _similarity_modes(R_e, T_e, P_b, n_theta, pose_col, point_col)
+    affine = None
+    if shape_nominal_mm is not None:
+        B, _ = affine_shape_modes(P_b, shape_nominal_mm[beads])
+        affine = np.zeros((n_theta, B.shape[1]))
+        affine[point_col:] = B
+    return _Network(vstack(blocks).tocsr(), w, datum, affine)
+
+
+def variance_factor(adj, observations) -> float:
+    """The adjustment's factor of its cofactors (Huber's sandwich for the t, :func:`covariance_factor`).
+
+    Recomputed from its residuals, t-weights and scale, so that the field held fixed gives the
+    adjustment's own σ.
+    """
+    used = adj.used
+    r = adj.residual_px[used]
+    sx, sy, rho = observations.sigma_px[used].T
+    # squared Mahalanobis norm of each residual under (σx, σy, ρ)
+    s = ((r[:, 0] / sx) ** 2 - 2 * rho * r[:, 0] * r[:, 1] / (sx * sy) + (r[:, 1] / sy) ** 2) / (1 - rho**2)
+    return covariance_factor(s, adj.weight[used], adj.nu, adj.t_scale**2, adj.n_parameters - 7, adj.dof)
+
+
+def joint_uncertainty(
+    adj,
+    observations,
+    rows: np.ndarray,
+    system: int,
+    field,
+    *,
+    tau_px: float,
+    order: int,
+    shape_nominal_mm: np.ndarray | None = None,
+) -> JointUncertainty:
+    """The IOP's and the field's covariance over the joint problem (module docstring).
+
+    Parameters
+    ----------
+    adj : Adjustment
+        The final adjustment (the field held at ``field``).
+    observations : Observations
+    rows : (n,) int ndarray
+        The observations of ``system`` the field was learned from (used by the adjustment).
+    system : int
+    field : CorrectionField
+        The learned gridded field of ``system`` (its nodes).
+    tau_px, order : float, int
+        The smoothness prior of the gridded fit (``GridCvReport.tau_px``, ``.order``).
+    shape_nominal_mm : (n_beads, 3) float64 ndarray, mm, optional
+        The design coordinates of ``adj.bead_id``: the field's σ then holds the phantom's affine shape
+        at the design's (as the refinement with ``affine_datum`` does); the IOP's never does.
+
+    Notes
+    -----
+    The IOP must have been estimated (it is a parameter here, and the gauge includes its fields).
+
+    Returns
+    -------
+    JointUncertainty
+    """
+    net = _network(adj, observations, rows, system, shape_nominal_mm)
+    xy = observations.xy_px[rows]
+    xn, yn = field.x_nodes_px, field.y_nodes_px
+    A = bilinear_design(xn, yn, xy)
+    n, n_nodes = len(rows), A.shape[1]
+    DtD = difference_operator(len(yn), len(xn), int(order))
+    DtD = (DtD.T @ DtD).tocsr() / float(tau_px) ** 2
+    lus = _field_factors(A, net.w.reshape(2, n), DtD)
+
+    def s_inv(X):  # S^-1 X for X (2 n_nodes, k), the two components' blocks apart
+        return np.concatenate(
+            [lus[c].solve(np.ascontiguousarray(X[c * n_nodes : (c + 1) * n_nodes])) for c in range(2)]
+        )
+
+    JW = net.J.multiply(net.w[:, None]).tocsr()
+    M = np.concatenate([(A.T @ JW[c * n : (c + 1) * n]).toarray() for c in range(2)])  # (2 n_nodes, n_theta)
+    # the gauge C v = 0: the field's components at the observations along the gauge fields, (K, 2 n_nodes)
+    B = gauge_basis(xy, adj.iop_px[system], True)
+    C = np.concatenate([(A.T @ B[:, c, :]).T for c in range(2)], axis=1)
+    C /= np.linalg.norm(C, axis=1, keepdims=True)
+    Y = s_inv(C.T)
+    CY_inv = np.linalg.inv(C @ Y)
+    G = s_inv(M)
+    G -= Y @ (CY_inv @ (C @ G))
+    H_cond = (net.J.T @ JW).toarray()
+    scale = float(np.mean(np.diag(H_cond)))
+    border = scale * net.datum @ net.datum.T
+    H_joint = H_cond - M.T @ G
+    # the IOP as the final adjustment estimates it: the phantom's shape free
+    cov = _sym_inv(H_joint + border)
+    # the field as the refinement learned it: with the phantom's affine shape held, if it was
+    # (the Gaussian conditioned on F^T θ = 0: cov - cov F (F^T cov F)^-1 F^T cov)
+    cov_field = cov
+    if net.affine is not None:
+        cF = cov @ net.affine
+        cov_field = cov - cF @ np.linalg.solve(net.affine.T @ cF, cF.T)
+    node_var = _diag_s_inv(lus, n_nodes) - np.sum((Y @ CY_inv) * Y, axis=1)
+    node_var += np.sum((G @ cov_field) * G, axis=1)
+    cov_cond = _sym_inv(H_cond + border)
+    shape = (len(yn), len(xn))
+    node_std = np.sqrt(np.clip(node_var, 0.0, None)).reshape(2, *shape).transpose(1, 2, 0)
+    return JointUncertainty(cov[:3, :3], np.sqrt(np.diag(cov)[:3]), node_std, np.sqrt(np.diag(cov_cond)[:3]))
+
+
+def _field_factors(A, w: np.ndarray, DtD) -> list:
+    """Sparse LU of ``S = A^T W A + D^T D / τ²`` per component (``w`` ``(2, n)``; one shared when equal)."""
+    n_nodes = A.shape[1]
+    ridge = 1e-10 * max(float(w.max()), 1.0)  # as the gridded fit's: nodes far from all data stay determined
+    same = np.array_equal(w[0], w[1])
+    lus = [factor_spd((A.T.multiply(w[c]) @ A + DtD + ridge * identity(n_nodes)).tocsc()) for c in range(2 - same)]
+    return lus * (1 + same)
+
+
+def _sym_inv(H: np.ndarray) -> np.ndarray:
+    inv = np.linalg.inv(H)
+    return 0.5 * (inv + inv.T)
+
+
+def _diag_s_inv(lus, n_nodes: int) -> np.ndarray:
+    """The diagonal ``(2 n_nodes,)`` of ``S^-1``, solved a chunk of identity columns at a time (once if shared)."""
+    diags = []
+    for c, lu in enumerate(lus):
+        if c and lu is lus[0]:
+            diags.append(diags[0])
+            continue
+        d = np.empty(n_nodes)
+        for lo in range(0, n_nodes, _CHUNK):
+            hi = min(lo + _CHUNK, n_nodes)
+            E = np.zeros((n_nodes, hi - lo))
+            E[np.arange(lo, hi), np.arange(hi - lo)] = 1.0
+            d[lo:hi] = lu.solve(E)[np.arange(lo, hi), np.arange(hi - lo)]
+        diags.append(d)
+    return np.concatenate(diags)
+
+
+def learned_uncertainty(
+    adj, observations, rows, trained, grids, memory, params, *, estimate_iop: bool, nominal_shape_mm
+) -> tuple | None:
+    """Each system's :class:`JointUncertainty` after the learning's gridded refinement, or None where undefined.
+
+    Defined when the fields are gauge-fixed (``params.field_gauge == "orientation"``) and the IOP
+    estimated: the recommended loop. ``rows`` per system, ``trained`` ``(N,)`` the observations the
+    fields learned from, ``memory`` per system the loop's regression memory (the smoothness prior's
+    ``tau_px`` and ``cv.order``); ``nominal_shape_mm`` the design coordinates of ``adj.bead_id``
+    (used when ``params.affine_datum`` held the phantom's affine shape).
+    """
+    if params.field_gauge != "orientation" or not estimate_iop or any(m.tau_px is None for m in memory):
+        return None
+    used = trained & adj.used
+    shape = nominal_shape_mm if params.affine_datum else None
+    return tuple(
+        joint_uncertainty(
+            adj,
+            observations,
+            r[used[r]],
+            s,
+            grid,
+            tau_px=m.tau_px,
+            order=m.cv.order,
+            shape_nominal_mm=shape,
+        )
+        for s, (r, grid, m) in enumerate(zip(rows, grids, memory))
+    )
+
+
+def with_field_std(field, uncertainty: JointUncertainty):
+    """``field`` with its node σ (``sigma_px``) replaced by the joint one (RMS of the components)."""
+    return field.with_delta(field.delta_px, sigma_px=uncertainty.field_std_px)
+
+
+def gauge_component(xy_px, correction_px, iop_px, with_iop: bool = True):
+    """The least-squares gauge component of a correction at ``xy_px``, as a field: ``xy (m, 2) -> (m, 2)`` px."""
+    B = gauge_basis(xy_px, iop_px, with_iop)
+    coef, *_ = np.linalg.lstsq(B.reshape(-1, B.shape[2]), np.asarray(correction_px).reshape(-1), rcond=None)
+    return lambda xy: (gauge_basis(xy, iop_px, with_iop).reshape(-1, B.shape[2]) @ coef).reshape(-1, 2)
+
+
+def convention_truth(observations, rows, phantom, initial, true_iop_px, true_correction_px, *, n_rounds: int = 3):
+    """A known IOP and correction expressed in the gauge convention: ``(iop (3,) px, gauge component)``.
+
+    The IOP an adjustment of ``observations`` (one system; its exact, noise-free projections)
+    estimates with the true correction less its gauge component at ``rows`` held, the gauge
+    recomputed at that IOP ``n_rounds`` times. What the convention moves out of the correction,
+    ``gauge component(xy)``, is what the field under the convention lacks: its true value at
+    ``xy`` is ``true correction - component`` and the true ideal point ``ideal + component``.
+    Exact, unlike a first-order reading of the gauge coefficients, since a principal-point
+    shift and a camera rotation differ only in the quadratic terms of the keystone fields.
+    """
+    from fluorocal.stages.adjust import FreeParameters, Orientation, adjust_bundle
+
+    xy, corr = observations.xy_px, np.asarray(true_correction_px, dtype=np.float64)
+    iop = np.asarray(true_iop_px, dtype=np.float64)
+    for _ in range(n_rounds):
+        component = gauge_component(xy[rows], corr[rows], iop)
+        start = Orientation(
+            iop[None], initial.exposure, initial.q_cam_from_obj, initial.source_mm, system_names=initial.system_names
+        )
+        free = FreeParameters(estimate_iop=True)
+        oracle = adjust_bundle(observations, phantom, start, corr - component(xy), free=free, compute_covariance=False)
+        iop = oracle.iop_px[0]
+    return iop, gauge_component(xy[rows], corr[rows], iop)
+
+
+__all__ = [
+    "JointUncertainty",
+    "camera_jacobians",
+    "convention_truth",
+    "gauge_component",
+    "joint_uncertainty",
+    "learned_uncertainty",
+    "with_field_std",
+]
