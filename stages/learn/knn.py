@@ -348,4 +348,20 @@ def fit_knn_field(
     ), cv
 
 
-__all__ = ["DEFAULT_K_GRID", "KnnModel", "CvReport", "cross_validate_k", "fit_knn_field", "node_statistics"]
+def restricted_k_grid(k_grid: tuple, k_prev: int | None, span: int = 3) -> tuple:
+    """The candidates within ``span`` grid steps of the previous choice (all of them at first)."""
+    if k_prev is None or k_prev not in k_grid:
+        return k_grid
+    i = k_grid.index(k_prev)
+    return k_grid[max(i - span, 0) : i + span + 1]
+
+
+__all__ = [
+    "DEFAULT_K_GRID",
+    "KnnModel",
+    "CvReport",
+    "cross_validate_k",
+    "fit_knn_field",
+    "node_statistics",
+    "restricted_k_grid",
+]

@@ -38,14 +38,15 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from fluorocal.stages.adjust import FreeParameters
-from fluorocal.stages.errors import EstimationError, InputError, NotConvergedWarning
+from fluorocal.stages.errors import EstimationError, NotConvergedWarning
 from fluorocal.stages.field import CorrectionField, PointwiseField
 from fluorocal.stages.learn.adjuster import Adjuster, Outcome, adjustment_outcome, point_jacobians
 from fluorocal.stages.learn.anderson import Anderson, anderson_step
 from fluorocal.stages.learn.gauge import gauge_fixed
 from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
 from fluorocal.stages.learn.joint import fit_grid_with_points
-from fluorocal.stages.learn.knn import fit_knn_field, node_statistics
+from fluorocal.stages.learn.knn import fit_knn_field, node_statistics, restricted_k_grid
+from fluorocal.stages.learn.nodes import image_sizes
 from fluorocal.stages.learn.params import LearnParams, scheme_flags
 from fluorocal.stages.learn.polynomial import calibrate_polynomial
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
@@ -164,7 +165,7 @@ def calibrate(
     t0 = time.perf_counter()
     params = LearnParams() if params is None else params
     learn, estimate_iop, smooth = scheme_flags(scheme)
-    sizes = _image_sizes(image_size, len(observations.system_names))
+    sizes = image_sizes(image_size, len(observations.system_names))
     settings = {"solver": solver, "selection": selection}
     if scheme == "polynomial":
         fixed = params.polynomial_fixed
@@ -186,27 +187,20 @@ def calibrate(
         elif action == "stop":
             break
     if not converged:
-        warnings.warn(
-            f"the learning stopped short of convergence ({reason}); the field may be less accurate than the data "
-            "allow: raise [learn] refine_iterations (or max_iterations)",
-            NotConvergedWarning,
-            stacklevel=2,
-        )
+        _warn_capped(reason)
     if params.fast_intermediate:
         # the final solve, warm-started, with the covariance and redundancy numbers
         state = replace(state, adj=adjuster(state.corrections, state.adj, final=True))
     return _result(plan, scheme, state, converged, reason, t0, adj.residual_px)
 
 
-def _image_sizes(image_size, n_systems: int) -> tuple[tuple[int, int], ...]:
-    arr = np.asarray(image_size, dtype=np.int64)
-    if arr.shape == (2,):
-        arr = np.tile(arr, (n_systems, 1))
-    if arr.shape != (n_systems, 2) or np.any(arr < 1):
-        raise InputError(
-            f"image_size must be (width, height) or one per system, shape ({n_systems}, 2); got {arr.shape}"
-        )
-    return tuple((int(w), int(h)) for w, h in arr)
+def _warn_capped(reason: str) -> None:
+    warnings.warn(
+        f"the learning stopped short of convergence ({reason}); the field may be less accurate than the data "
+        "allow: raise [learn] refine_iterations (or max_iterations)",
+        NotConvergedWarning,
+        stacklevel=3,
+    )
 
 
 def _plan(params: LearnParams, observations, sizes, adjuster: Adjuster, estimate_iop: bool, smooth: bool) -> _Plan:
@@ -429,19 +423,11 @@ def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refi
     if refit:
         model, _ = fit_knn_field(plan.xy[sel], r, var, cv=mem.cv, **knn)
         return model, mem
-    k_grid = _restricted_k_grid(params.k_grid, mem.k_prev)
+    k_grid = restricted_k_grid(params.k_grid, mem.k_prev)
     model, cv = fit_knn_field(
         plan.xy[sel], r, var, k_grid=k_grid, neighbour_cache=mem.neighbour_cache, cost_cap=cost_cap, **knn
     )
     return model, replace(mem, cv=cv, k_prev=cv.k)
-
-
-def _restricted_k_grid(k_grid: tuple, k_prev: int | None, span: int = 3) -> tuple:
-    """The candidates within ``span`` grid steps of the previous choice (all of them at first)."""
-    if k_prev is None or k_prev not in k_grid:
-        return k_grid
-    i = k_grid.index(k_prev)
-    return k_grid[max(i - span, 0) : i + span + 1]
 
 
 def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, cost_cap=None):

@@ -70,3 +70,21 @@ def check_training(xy_px, residuals_px, residual_var_px2):
     if not np.all(var > 0) or not np.all(np.isfinite(var)):
         raise InputError("residual_var_px2 must be finite and > 0")
     return xy, r, var
+
+
+def image_sizes(image_size, n_systems: int) -> tuple[tuple[int, int], ...]:
+    """``image_size`` as one ``(width, height)`` per system: a single pair is every system's.
+
+    Raises
+    ------
+    InputError
+        Not a pair or one per system, or not positive.
+    """
+    arr = np.asarray(image_size, dtype=np.int64)
+    if arr.shape == (2,):
+        arr = np.tile(arr, (n_systems, 1))
+    if arr.shape != (n_systems, 2) or np.any(arr < 1):
+        raise InputError(
+            f"image_size must be (width, height) or one per system, shape ({n_systems}, 2); got {arr.shape}"
+        )
+    return tuple((int(w), int(h)) for w, h in arr)
