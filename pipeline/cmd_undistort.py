@@ -100,13 +100,16 @@ def run(args) -> int:
         raise InputError(f"--system {args.system!r} is not in {args.calibration}; it has {', '.join(cal.system_names)}")
     chosen = None if args.orientation is None else parse_orientation(args.orientation)
     series = _derived_series(inputs)  # every DICOM input's references checked, a new series per source series
-    # every orientation's maps and every file's size checked before anything is written
-    jobs = []
-    for path in inputs:
-        orientation = _orientation_for(cal, args.system, path, chosen)
-        derivation = _derivation(cal, args, orientation, series[path])
-        jobs.append(_job(cal, args, path, out_dir / path.name, orientation, derivation))
-    n_frames = sum(job.n_frames for job in jobs)
+
+    def jobs():
+        for path in inputs:
+            orientation = _orientation_for(cal, args.system, path, chosen)
+            derivation = _derivation(cal, args, orientation, series[path])
+            yield _job(cal, args, path, out_dir / path.name, orientation, derivation)
+
+    # every orientation's maps and every file's size checked before anything is written; the jobs themselves
+    # (open readers, headers) are made again as the frames stream, so memory does not grow with the file count
+    n_frames = sum(job.n_frames for job in jobs())
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     with tqdm(total=n_frames, desc="undistort", unit="frame", disable=args.quiet or None) as bar:
@@ -116,12 +119,12 @@ def run(args) -> int:
             bar.update()
             return job, job.remap(frame)
 
-        stream(_frames(jobs), transform, _write_all)
+        stream(_frames(jobs()), transform, _write_all)
     seconds = time.perf_counter() - start
     log.info(
         "undistorted %d frame(s) of %d file(s) in %.2f s (%.1f frames/s) into %s",
         n_frames,
-        len(jobs),
+        len(inputs),
         seconds,
         n_frames / max(seconds, 1e-9),
         out_dir,
