@@ -216,8 +216,8 @@ def run_tasks(tasks: list[FrameTask], compute: ComputeConfig, *, preload: tuple[
                 yield future.result()
         except BrokenProcessPool:
             raise WorkerLost(
-                "a worker process died (killed, or out of memory?); the frames computed so far are cached: "
-                "run again, with fewer --jobs if memory is short"
+                "a worker process died (killed, out of memory, or it failed to start: see above); the frames "
+                "computed so far are cached: run again, with fewer --jobs if memory is short"
             ) from None
         finally:
             for future in futures:
