@@ -84,7 +84,8 @@ def markdown(scores, ours: str, notes: list[str]) -> str:
         better = 100 * (1 - getattr(s, key) / b) if s.scheme != "none" and math.isfinite(b) and b > 0 else math.nan
         size = str(s.n_train) if s.n_train != previous else ""
         previous = s.n_train
-        row = [size, s.scheme, *(_cell(getattr(s, c)) for c in cols), _cell(better) or "N/A", f"{s.wall_s:.1f}"]
+        shown = f"{better:.1f}" if math.isfinite(better) else "N/A"
+        row = [size, s.scheme, *(_cell(getattr(s, c)) for c in cols), shown, f"{s.wall_s:.1f}"]
         lines.append("| " + " | ".join(row) + " |")
     wins = peer_wins(scores, ours)
     lines += ["", *(wins or [f"No peer beats {ours} on any figure at any training size."])]
@@ -110,11 +111,12 @@ def write_plots(folder: Path, scores, ours: str) -> list[Path]:
         ax.set_yscale("log")
         ax.set_xlabel("training epochs")
         ax.set_title(FIGURES[name], fontsize=9)
-    axes[0].legend(fontsize=8)
+    if len(schemes) > 1:
+        axes[0].legend(fontsize=8)
     written = [_save(plt, fig, inside(folder, "evaluation_errors.png"))]
     key = headline(scores)
     base = {s.n_train: getattr(s, key) for s in scores if s.scheme == "none"}
-    if base:
+    if base and set(schemes) - {"none"}:
         plt, fig, (ax,) = _figure(1, width=5.0, height=3.8)
         for scheme in schemes:
             rows = [s for s in scores if s.scheme == scheme and s.scheme != "none" and s.n_train in base]

@@ -91,11 +91,11 @@ def ideal_points(obs, corrections) -> np.ndarray:
 def biplanar_errors(obs, ideal_px, iop_px, rop_q, rop_source_mm, ref_ids, ref_xyz_mm) -> np.ndarray:
     """Two-ray error vectors ``(P, 3)`` mm of every bead with a reference that both systems saw at an epoch of ``obs``.
 
-    ``ideal_px (N, 2)`` are the observations undistorted by their system's correction; epochs with fewer
-    than :data:`MIN_FIT_POINTS` such beads are left out.
+    ``ideal_px (N, 2)`` are the observations undistorted by their system's correction (pairs with a
+    non-finite one are left out); epochs with fewer than :data:`MIN_FIT_POINTS` such beads are left out.
     """
     exposure, bead_id, row_a, row_b = biplanar_pairs(obs)
-    known = np.isin(bead_id, ref_ids)
+    known = np.isin(bead_id, ref_ids) & np.isfinite(ideal_px[row_a]).all(1) & np.isfinite(ideal_px[row_b]).all(1)
     exposure, bead_id, row_a, row_b = exposure[known], bead_id[known], row_a[known], row_b[known]
     xyz = two_ray_points(ideal_px[row_a], ideal_px[row_b], iop_px, rop_q, rop_source_mm)
     order = np.argsort(ref_ids)

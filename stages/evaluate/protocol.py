@@ -194,8 +194,15 @@ def _opencv_correction(K, dist, P, xy_px: np.ndarray) -> np.ndarray:
 
 
 def _adjust_fixed(obs, setup: EvaluationSetup, iop_px: np.ndarray, corrections: tuple):
-    """The robust adjustment of ``obs`` with the IOP and the corrections held: poses, points and ROP free."""
+    """The robust adjustment of ``obs`` with the IOP and the corrections held: poses, points and ROP free.
+
+    Observations where a correction is not finite (a peer's model that does not invert there) are left out.
+    """
     ideal = ideal_points(obs, corrections)
+    finite = np.isfinite(ideal).all(axis=1)
+    if not finite.all():
+        log.warning("%d observation(s) left out: their correction is not finite", int((~finite).sum()))
+        obs, ideal = select(obs, finite), ideal[finite]
     initial = start_orientation(with_xy(obs, ideal), setup.phantom, iop_px)
     return adjust_bundle(
         obs,
