@@ -22,7 +22,9 @@ adjustment), knn, knn+iop, knn+smooth, knn+iop+smooth (the learned field), and o
 The labelling is taken from the project's cache (`fluorocal run` fills it; what is missing is
 computed once), never repeated per training size. Outputs, published as one set into --out:
 evaluation.csv (a row per scheme and size), evaluation.md (the table; a line for every figure
-where a peer beats fluorocal's scheme) and evaluation_errors.png, evaluation_improvement.png.
+where a peer beats fluorocal's scheme), evaluation_errors.png (each figure against the training
+size), evaluation_improvement.png (over none) and evaluation_residuals_<system>.png (held-out
+residuals of each scheme at the largest size).
 Grid plates are not evaluated here yet: `python benchmarks/plate.py` scores them.
 """
 
@@ -103,9 +105,11 @@ def run(args) -> int:
             score.wall_s,
         )
 
-    scores = evaluate(obs, heldout, sizes, schemes, setup, progress=progress)
+    result = evaluate(obs, heldout, sizes, schemes, setup, progress=progress)
+    scores = result.scores
     notes = _notes(args, config, heldout, scores, ours, time.perf_counter() - t0)
-    written = publish_evaluation(out_dir, scores, ours, notes)
+    names = tuple(s.name for s in config.systems)
+    written = publish_evaluation(out_dir, result, ours, notes, systems=names, image_size_px=setup.image_size_px)
     md = next(p for p in written if p.name == "evaluation.md")
     print("\n".join(line for line in md.read_text().splitlines() if line.startswith(("|", "- ", "No peer"))))
     key = headline(scores)

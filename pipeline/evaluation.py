@@ -3,7 +3,8 @@
 Written as one set into the evaluation folder (:func:`fluorocal.outputs.publish`):
 ``evaluation.csv`` (one row per scheme and training size), ``evaluation.md`` (the
 table, the peers' wins, how it was made) and ``evaluation_*.png`` (each figure
-against the training size, one line per scheme; the improvement over no calibration).
+against the training size, one line per scheme; the improvement over no calibration;
+per system the held-out residuals of every scheme at the largest training size).
 """
 
 from __future__ import annotations
@@ -12,8 +13,8 @@ import dataclasses
 import math
 from pathlib import Path
 
-from fluorocal.outputs import inside, publish
-from fluorocal.report import _figure, _save
+from fluorocal.outputs import inside, publish, safe_name
+from fluorocal.report import _figure, _save, residual_maps
 from fluorocal.stages.io import write_csv
 
 #: the figures compared between fluorocal and its peers (all: lower is better), with their table headings
@@ -131,12 +132,32 @@ def write_plots(folder: Path, scores, ours: str) -> list[Path]:
     return written
 
 
-def publish_evaluation(out_dir: Path, scores, ours: str, notes: list[str]) -> list[Path]:
+def write_residual_maps(folder: Path, residuals, system_names, image_size_px) -> list[Path]:
+    """Per system, the held-out inlier residuals of each scheme at the largest training size, a panel each."""
+    written = []
+    for s, name in enumerate(system_names):
+        panels = [
+            (f"{r.scheme}, {r.n_train} epochs, held out", r.xy_px[r.system == s], r.residual_px[r.system == s])
+            for r in residuals
+        ]
+        path = inside(folder, f"evaluation_residuals_{safe_name(name, what='system name')}.png")
+        written.append(residual_maps(path, panels, image_size_px[s]))
+    return written
+
+
+def publish_evaluation(out_dir: Path, evaluation, ours: str, notes: list[str], *, systems, image_size_px) -> list[Path]:
     """Write the CSV, the Markdown table and the plots into ``out_dir`` as one set; return the paths."""
+    scores = evaluation.scores
 
     def write(staging: Path) -> list[Path]:
         md = inside(staging, "evaluation.md")
         md.write_text(markdown(scores, ours, notes))
-        return [write_csv_table(inside(staging, "evaluation.csv"), scores), md, *write_plots(staging, scores, ours)]
+        maps = write_residual_maps(staging, evaluation.residuals, systems, image_size_px)
+        return [
+            write_csv_table(inside(staging, "evaluation.csv"), scores),
+            md,
+            *write_plots(staging, scores, ours),
+            *maps,
+        ]
 
     return publish(out_dir, write)

@@ -27,7 +27,9 @@ from fluorocal.stages.evaluate.metrics import (
 )
 from fluorocal.stages.evaluate.protocol import (
     OPENCV,
+    Evaluation,
     EvaluationSetup,
+    HeldOutResiduals,
     Interior,
     Score,
     evaluate,
@@ -48,7 +50,9 @@ __all__ = [
     "OPENCV",
     "HOLDOUT_RULES",
     "MIN_TRAIN",
+    "Evaluation",
     "EvaluationSetup",
+    "HeldOutResiduals",
     "Interior",
     "Score",
     "evaluate",

@@ -177,7 +177,7 @@ def opencv_interior(train_obs, setup: EvaluationSetup) -> Interior:
         P = np.array([[f, 0, K[0, 2]], [0, f, K[1, 2]], [0, 0, 1]])
         corrections.append(partial(_opencv_correction, K, dist.ravel(), P))
     iop = np.array(iop)
-    adj = _adjust_fixed(train_obs, setup, iop, tuple(corrections))
+    adj, _ = _adjust_fixed(train_obs, setup, iop, tuple(corrections))
     return Interior(iop, tuple(corrections), adj.rop_q, adj.rop_source_mm, adj, time.perf_counter() - t0)
 
 
@@ -212,12 +212,38 @@ def _adjust_fixed(obs, setup: EvaluationSetup, iop_px: np.ndarray, corrections: 
         free=FreeParameters(estimate_iop=False),
         solver=setup.solver,
         selection=setup.selection,
-    )
+    ), obs
+
+
+@dataclass(frozen=True)
+class HeldOutResiduals:
+    """The held-out adjustment's inlier residuals of one scheme: ``system (N,)``, ``xy_px``, ``residual_px (N, 2)``."""
+
+    scheme: str
+    n_train: int
+    system: np.ndarray
+    xy_px: np.ndarray
+    residual_px: np.ndarray
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """:func:`evaluate`'s result: a :class:`Score` per scheme and size, residuals at the largest size per scheme."""
+
+    scores: tuple
+    residuals: tuple
 
 
 def score_interior(interior: Interior, scheme: str, n_train: int, test_obs, setup: EvaluationSetup) -> Score:
     """Score a calibrated rig in sample (its training adjustment) and on the held-out observations ``test_obs``."""
-    held = _adjust_fixed(test_obs, setup, interior.iop_px, interior.corrections)
+    return _score(interior, scheme, n_train, test_obs, setup)[0]
+
+
+def _score(interior: Interior, scheme: str, n_train: int, test_obs, setup: EvaluationSetup):
+    """:func:`score_interior`, with the held-out adjustment's inlier residuals."""
+    held, used = _adjust_fixed(test_obs, setup, interior.iop_px, interior.corrections)
+    keep = held.inlier & held.used
+    residuals = HeldOutResiduals(scheme, n_train, used.system[keep], used.xy_px[keep], held.residual_px[keep])
     figures = {}
     if setup.reference is not None:
         ids, xyz = setup.reference
@@ -240,7 +266,7 @@ def score_interior(interior: Interior, scheme: str, n_train: int, test_obs, setu
             tworay_mean_mm=st["mean"],
             tworay_reference="check points" if setup.reference is not None else "nominal phantom",
         )
-    return Score(
+    score = Score(
         scheme,
         n_train,
         len(np.unique(test_obs.exposure)),
@@ -249,9 +275,10 @@ def score_interior(interior: Interior, scheme: str, n_train: int, test_obs, setu
         wall_s=interior.wall_s,
         **figures,
     )
+    return score, residuals
 
 
-def evaluate(obs, heldout, sizes, schemes, setup: EvaluationSetup, *, progress=None) -> list[Score]:
+def evaluate(obs, heldout, sizes, schemes, setup: EvaluationSetup, *, progress=None) -> Evaluation:
     """The protocol: per training size and scheme, calibrate on a training subset and score it.
 
     Parameters
@@ -269,6 +296,12 @@ def evaluate(obs, heldout, sizes, schemes, setup: EvaluationSetup, *, progress=N
     progress : callable, optional
         Called with each :class:`Score` as it is computed.
 
+    Returns
+    -------
+    Evaluation
+        The scores in the order computed (size, then scheme), and the held-out residuals of each
+        scheme at the largest size.
+
     Raises
     ------
     InputError
@@ -281,7 +314,7 @@ def evaluate(obs, heldout, sizes, schemes, setup: EvaluationSetup, *, progress=N
         raise InputError("the holdout must leave at least one held-out and one training epoch with observations")
     test_obs = select(obs, held_mask)
     train_epochs = np.unique(obs.exposure[~held_mask])
-    scores = []
+    scores, residuals = [], []
     for size in sizes:
         train_obs = select(obs, np.isin(obs.exposure, training_subset(train_epochs, size)))
         for scheme in schemes:
@@ -290,13 +323,15 @@ def evaluate(obs, heldout, sizes, schemes, setup: EvaluationSetup, *, progress=N
                     interior = opencv_interior(train_obs, setup)
                 else:
                     interior = learned_interior(train_obs, scheme, setup)
-                score = score_interior(interior, scheme, size, test_obs, setup)
+                score, held = _score(interior, scheme, size, test_obs, setup)
             except EstimationError as exc:
                 raise EstimationError(f"scheme {scheme}, {size} training epochs: {exc}") from exc
             scores.append(score)
+            if size == max(sizes):
+                residuals.append(held)
             if progress is not None:
                 progress(score)
-    return scores
+    return Evaluation(tuple(scores), tuple(residuals))
 
 
 __all__ = [
@@ -304,6 +339,8 @@ __all__ = [
     "EvaluationSetup",
     "Interior",
     "Score",
+    "HeldOutResiduals",
+    "Evaluation",
     "learned_interior",
     "opencv_interior",
     "score_interior",

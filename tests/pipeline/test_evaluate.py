@@ -105,7 +105,7 @@ def biplanar_scores():
         data.phantom, ((512, 512),) * 2, guess, reference=(data.phantom.ids, data.truth.true_xyz_mm)
     )
     held = heldout_epochs(np.unique(obs.exposure), "odd")
-    scores = evaluate(obs, held, (8,), ("none", "knn+iop+smooth", "opencv"), setup)
+    scores = evaluate(obs, held, (8,), ("none", "knn+iop+smooth", "opencv"), setup).scores
     # the pairs both systems saw at a held-out epoch, counted from the observations themselves
     test = obs.exposure % 2 == 1
     pairs = len(
@@ -175,6 +175,7 @@ def test_command_writes_every_scheme_and_size_without_labelling_again(project, c
     assert "beats" in md or "No peer beats" in md  # the table always says whether a peer won anywhere
     assert (out / "evaluation_errors.png").stat().st_size > 1000
     assert (out / "evaluation_improvement.png").stat().st_size > 1000
+    assert all((out / f"evaluation_residuals_{name}.png").stat().st_size > 1000 for name in "AB")
     assert "headline figure: tworay_mean_mm" in capsys.readouterr().out
 
 
