@@ -29,6 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from fluorocal.compute import limit_threads  # noqa: E402
 from fluorocal.evaluation import markdown  # noqa: E402
 from fluorocal.stages import simulate as sim  # noqa: E402
 from fluorocal.stages.evaluate import EvaluationSetup, default_train_sizes, evaluate, heldout_epochs  # noqa: E402
@@ -49,6 +50,7 @@ def main(argv=None) -> None:
     ap.add_argument("--sizes", help="training sizes (default: 5 evenly spaced up to all training epochs)")
     ap.add_argument("--schemes", default=",".join((*PEERS[:2], OURS, PEERS[2])), help="comma-separated schemes")
     args = ap.parse_args(argv)
+    limit_threads()  # one thread per library, as `fluorocal evaluate` runs
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     logging.getLogger("fluorocal.stages.adjust").setLevel(logging.ERROR)
     t0, cpu0 = time.perf_counter(), time.process_time()
