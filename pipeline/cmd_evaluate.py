@@ -85,8 +85,8 @@ def run(args) -> int:
     runner.run()
     obs = _observations(runner)
     heldout = _heldout(args.holdout, runner, obs)
-    sizes = _sizes(args.train_sizes, obs, heldout)
     setup = _setup(runner, reference)
+    sizes = _sizes(args.train_sizes, obs, heldout, setup.selection)
     log.info(
         "evaluate: %d training + %d held-out epochs; sizes %s; schemes %s",
         len(set(obs.exposure.tolist()) - set(heldout.tolist())),
@@ -202,19 +202,23 @@ def _heldout(values: list[str], runner, obs):
     return np.unique(np.asarray(held, dtype=np.int64))
 
 
-def _sizes(text, obs, heldout):
+def _sizes(text, obs, heldout, selection):
+    """The training sizes of ``--train-sizes`` (default: 5 evenly spaced), refused outside what the project allows."""
     import numpy as np
+    from fluorocal.stages.adjust import DataSelection
     from fluorocal.stages.errors import InputError
-    from fluorocal.stages.evaluate import check_train_sizes, default_train_sizes
+    from fluorocal.stages.evaluate import check_train_sizes, default_train_sizes, min_train_epochs
 
     n_train = len(np.setdiff1d(np.unique(obs.exposure), heldout))
+    selection = DataSelection() if selection is None else selection
+    minimum = min_train_epochs(len(obs.system_names), selection.min_exposures)
     if text is None:
-        return default_train_sizes(n_train)
+        text = ",".join(map(str, default_train_sizes(n_train, minimum=minimum)))
     try:
         sizes = [int(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise InputError(f"--train-sizes must be comma-separated integers; got {text!r}") from None
-    return check_train_sizes(sizes, n_train)
+    return check_train_sizes(sizes, n_train, minimum)
 
 
 def _setup(runner, reference):

@@ -43,6 +43,7 @@ from fluorocal.stages.evaluate.split import (
     check_train_sizes,
     default_train_sizes,
     heldout_epochs,
+    min_train_epochs,
     training_subset,
 )
 
@@ -60,6 +61,7 @@ __all__ = [
     "opencv_interior",
     "score_interior",
     "heldout_epochs",
+    "min_train_epochs",
     "default_train_sizes",
     "check_train_sizes",
     "training_subset",

@@ -24,7 +24,7 @@ from functools import partial
 
 import numpy as np
 from fluorocal.stages.adjust import FreeParameters, adjust_bundle
-from fluorocal.stages.errors import EstimationError, InputError
+from fluorocal.stages.errors import CalibError, InputError
 from fluorocal.stages.evaluate.metrics import (
     biplanar_errors,
     check_point_errors,
@@ -313,8 +313,8 @@ def evaluate(obs, heldout, sizes, schemes, setup: EvaluationSetup, *, progress=N
     ------
     InputError
         No held-out or no training observation.
-    EstimationError
-        A calibration failed as a whole (its scheme and size named).
+    CalibError
+        A calibration failed as a whole (its scheme and size named; the class of the failure kept).
     """
     held_mask = np.isin(obs.exposure, np.asarray(heldout, dtype=np.int64))
     if not held_mask.any() or held_mask.all():
@@ -331,8 +331,8 @@ def evaluate(obs, heldout, sizes, schemes, setup: EvaluationSetup, *, progress=N
                 else:
                     interior = learned_interior(train_obs, scheme, setup)
                 score, held = _score(interior, scheme, size, test_obs, setup)
-            except EstimationError as exc:
-                raise EstimationError(f"scheme {scheme}, {size} training epochs: {exc}") from exc
+            except CalibError as exc:
+                raise type(exc)(f"scheme {scheme}, {size} training epochs: {exc}") from exc
             scores.append(score)
             if size == max(sizes):
                 residuals.append(held)

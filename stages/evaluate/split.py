@@ -18,6 +18,17 @@ HOLDOUT_RULES = ("odd", "even", "random:SEED")
 MIN_TRAIN = 2
 
 
+def min_train_epochs(n_systems: int, min_exposures: int = 3) -> int:
+    """Fewest training epochs: :data:`MIN_TRAIN`, and enough frames for the adjustment's ``min_exposures``.
+
+    Examples
+    --------
+    >>> min_train_epochs(1), min_train_epochs(2)
+    (3, 2)
+    """
+    return max(MIN_TRAIN, -(-min_exposures // n_systems))
+
+
 def heldout_epochs(epochs, rule: str) -> np.ndarray:
     """The epochs a keyword ``rule`` withholds from ``epochs`` (sorted unique ints).
 
@@ -54,8 +65,10 @@ def heldout_epochs(epochs, rule: str) -> np.ndarray:
     )
 
 
-def default_train_sizes(n_train: int, n_sizes: int = 5) -> tuple[int, ...]:
-    """``n_sizes`` training sizes evenly spaced up to ``n_train`` (the paper's 15, ..., 75 of 75), >= ``MIN_TRAIN``.
+def default_train_sizes(n_train: int, n_sizes: int = 5, minimum: int = MIN_TRAIN) -> tuple[int, ...]:
+    """``n_sizes`` training sizes evenly spaced up to ``n_train`` (the paper's 15, ..., 75 of 75), each >= ``minimum``.
+
+    Empty when ``n_train < minimum``.
 
     Examples
     --------
@@ -64,20 +77,20 @@ def default_train_sizes(n_train: int, n_sizes: int = 5) -> tuple[int, ...]:
     >>> default_train_sizes(3)
     (2, 3)
     """
-    sizes = {max(MIN_TRAIN, round(n_train * k / n_sizes)) for k in range(1, n_sizes + 1)}
+    sizes = {max(minimum, round(n_train * k / n_sizes)) for k in range(1, n_sizes + 1)}
     return tuple(sorted(s for s in sizes if s <= n_train))
 
 
-def check_train_sizes(sizes, n_train: int) -> tuple[int, ...]:
-    """``sizes`` sorted and unique, refused (:class:`InputError`) outside ``MIN_TRAIN..n_train``."""
+def check_train_sizes(sizes, n_train: int, minimum: int = MIN_TRAIN) -> tuple[int, ...]:
+    """``sizes`` sorted and unique, refused (:class:`InputError`) when empty or outside ``minimum..n_train``."""
     sizes = tuple(sorted(set(int(s) for s in sizes)))
     if not sizes:
         raise InputError("--train-sizes is empty; give comma-separated counts of training epochs")
-    if sizes[0] < MIN_TRAIN or sizes[-1] > n_train:
-        bad = sizes[0] if sizes[0] < MIN_TRAIN else sizes[-1]
+    if sizes[0] < minimum or sizes[-1] > n_train:
+        bad = sizes[0] if sizes[0] < minimum else sizes[-1]
         raise InputError(
-            f"--train-sizes: {bad} is outside {MIN_TRAIN}..{n_train} (the project has {n_train} training "
-            "epoch(s) after the holdout)"
+            f"--train-sizes: {bad} is outside {minimum}..{n_train} (the project has {n_train} training "
+            f"epoch(s) after the holdout; a calibration needs at least {minimum})"
         )
     return sizes
 
