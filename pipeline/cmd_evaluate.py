@@ -188,7 +188,8 @@ def _heldout(values: list[str], runner, obs):
     from fluorocal.stages.evaluate import heldout_epochs
 
     epochs = np.unique(obs.exposure)
-    if len(values) == 1 and (values[0] in ("odd", "even") or values[0].startswith("random")):
+    rule = values[0] in ("odd", "even") or values[0].startswith("random:") or not Path(values[0]).exists()
+    if len(values) == 1 and rule:  # a keyword, or no file: the rule's error lists the keywords
         return heldout_epochs(epochs, values[0])
     by_path = {}
     for unit in runner.units:
@@ -225,7 +226,7 @@ def _setup(runner, reference):
     from fluorocal.run import stage_params
     from fluorocal.stages.evaluate import EvaluationSetup
 
-    learn = runner_stage(runner, "learn")
+    learn = _stage("learn")
     params = stage_params(learn, runner.config, None, runner.units)
     extras = learn.extras(runner.config, runner.units)
     setup = extras["setup"]
@@ -240,7 +241,7 @@ def _setup(runner, reference):
     )
 
 
-def runner_stage(runner, name: str):
+def _stage(name: str):
     """The registered stage ``name`` (the runner may stop before it)."""
     from fluorocal.graph import default_stages
 

@@ -192,6 +192,7 @@ def test_bad_input_is_refused_in_one_line(project, tmp_path, capsys):
     assert "unknown scheme 'knn+magic'" in _error(["evaluate", config, "--schemes", "none,knn+magic", *out], capsys)
     assert "opencv needs --reference" in _error(["evaluate", config, "--schemes", "opencv", *out], capsys)
     assert "outside 2..2" in _error(["evaluate", config, "--train-sizes", "3", *out], capsys)
+    assert "--holdout must be one of" in _error(["evaluate", config, "--holdout", "random", *out], capsys)
     stranger = tmp_path / "stranger.tif"
     shutil.copy(next((project / "frames" / "A").glob("*.tif")), stranger)
     assert "not a frame file of this project" in _error(["evaluate", config, "--holdout", str(stranger), *out], capsys)
