@@ -144,7 +144,7 @@ def opencv_interior(train_obs, setup: EvaluationSetup) -> Interior:
     """OpenCV's ``calibrateCamera`` (rational + thin prism + tilted) per system on the check points.
 
     Each system's interior becomes ``(cx, cy, f)`` with ``f`` the mean of ``fx, fy`` and the correction
-    ``xy - undistort(xy)`` (``cv2.undistortPointsIter`` re-projected with that ``f``: exact for
+    ``xy - undistort(xy)`` (``cv2.undistortPoints`` iterated to 1e-10, re-projected with that ``f``: exact for
     OpenCV's model); the training adjustment at them (IOP fixed) gives the ROP.
 
     Raises
