@@ -104,7 +104,17 @@ def write_plots(folder: Path, scores, ours: str) -> list[Path]:
     """Each applicable figure against the training size (a line per scheme), and the improvement over ``none``."""
     names = [n for n in FIGURES if any(math.isfinite(getattr(s, n)) for s in scores)]
     schemes = list(dict.fromkeys(s.scheme for s in scores))
-    plt, fig, axes = _figure(len(names), width=4.2, height=3.8)
+    import matplotlib
+
+    matplotlib.use("Agg")  # as fluorocal.report's figures: no display
+    import matplotlib.pyplot as plt
+
+    n_cols = min(3, len(names))
+    n_rows = -(-len(names) // n_cols)
+    fig, grid = plt.subplots(n_rows, n_cols, figsize=(4.2 * n_cols, 3.6 * n_rows), squeeze=False, layout="constrained")
+    axes = grid.ravel()
+    for ax in axes[len(names) :]:
+        ax.set_visible(False)
     for ax, name in zip(axes, names):
         for scheme in schemes:
             rows = [s for s in scores if s.scheme == scheme]
