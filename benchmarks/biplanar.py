@@ -42,14 +42,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluorocal.stages.geometry import (
-    image_rays,
-    intersect_rays,
-    matrix_to_quat,
-    quat_multiply,
-    quat_to_matrix,
-    similarity_fit,
-)  # noqa: E402
+from fluorocal.stages.evaluate import biplanar_errors, biplanar_pairs, ideal_points, summarise  # noqa: E402
+from fluorocal.stages.geometry import matrix_to_quat, quat_multiply, quat_to_matrix  # noqa: E402
 from fluorocal.stages.learn import LearnParams, calibrate  # noqa: E402
 
 from benchmarks.learn import METHODS, NOISE_PX, RECOMMENDED, simulated_sets  # noqa: E402
@@ -65,24 +59,6 @@ PAPER = (
 TARGET_PERCENT = 47.0
 
 
-def biplanar_pairs(obs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Rows of the same bead at the same epoch in systems 0 and 1.
-
-    Returns
-    -------
-    exposure, bead_id : (P,) int64 ndarray
-    row_a, row_b : (P,) int64 ndarray
-        Indices into ``obs`` of system 0's and system 1's observation.
-    """
-    rows = [np.flatnonzero(obs.system == s) for s in (0, 1)]
-    # one key per (epoch, bead): ids are small non-negative integers
-    span = int(obs.bead_id.max()) + 1 if len(obs) else 1
-    keys = [obs.exposure[r] * span + obs.bead_id[r] for r in rows]
-    _, ia, ib = np.intersect1d(keys[0], keys[1], assume_unique=True, return_indices=True)
-    row_a, row_b = rows[0][ia], rows[1][ib]
-    return obs.exposure[row_a], obs.bead_id[row_a], row_a, row_b
-
-
 def true_rig(acq) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The simulator's IOP ``(S, 3)`` px, ROP rotations ``(S, 4)`` and sources in A's camera frame ``(S, 3)`` mm.
 
@@ -94,41 +70,9 @@ def true_rig(acq) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.array([s.iop_px for s in acq.systems]), rop_q, rop_source
 
 
-def two_ray_points(ideal_a_px, ideal_b_px, iop_px, rop_q, rop_source_mm) -> np.ndarray:
-    """Intersections ``(P, 3)`` mm, in system A's camera frame, of corresponding ideal points of A and B."""
-    rays = [image_rays(xy, iop_px[s], rop_q[s], rop_source_mm[s]) for s, xy in enumerate((ideal_a_px, ideal_b_px))]
-    return intersect_rays(rays)[0]
-
-
-def mapping_errors(xyz_mm, exposure, truth_mm) -> np.ndarray:
-    """Error vectors ``(P, 3)`` mm after a rigid fit of each epoch's points onto the truth, in the truth's frame."""
-    err = np.empty_like(truth_mm)
-    for e in np.unique(exposure):
-        sel = exposure == e
-        _, R, t = similarity_fit(xyz_mm[sel], truth_mm[sel], with_scale=False)
-        err[sel] = xyz_mm[sel] @ R.T + t - truth_mm[sel]
-    return err
-
-
-def biplanar_errors(obs, ideal_px, iop_px, rop_q, rop_source_mm, nominal_ids, true_xyz_mm) -> np.ndarray:
-    """Out-of-sample error vectors ``(P, 3)`` mm of every bead both systems saw at an epoch of ``obs``.
-
-    ``ideal_px (N, 2)`` are the observations undistorted by their system's correction.
-    """
-    exposure, bead_id, row_a, row_b = biplanar_pairs(obs)
-    xyz = two_ray_points(ideal_px[row_a], ideal_px[row_b], iop_px, rop_q, rop_source_mm)
-    order = np.argsort(nominal_ids)
-    truth = true_xyz_mm[order[np.searchsorted(nominal_ids, bead_id, sorter=order)]]
-    return mapping_errors(xyz, exposure, truth)
-
-
 def learned_ideal(res, obs) -> np.ndarray:
     """Observations undistorted by each system's learned correction: ``xy - Δ_s(xy)`` (``Δ = 0`` for "none")."""
-    ideal = obs.xy_px.copy()
-    for s in range(len(obs.system_names)):
-        sel = obs.system == s
-        ideal[sel] -= res.field(s).correction_at(obs.xy_px[sel])
-    return ideal
+    return ideal_points(obs, [res.field(s).correction_at for s in range(len(obs.system_names))])
 
 
 def true_ideal(acq, obs) -> np.ndarray:
@@ -138,19 +82,6 @@ def true_ideal(acq, obs) -> np.ndarray:
         sel = obs.system == s
         ideal[sel] = system.distortion.undistort_points(obs.xy_px[sel])
     return ideal
-
-
-def summarise(err_mm) -> dict:
-    """Mean and RMS 3D distance, per-axis RMSE and their average (the paper's "Average RMSE"), mm."""
-    dist = np.linalg.norm(err_mm, axis=1)
-    axes = np.sqrt(np.mean(err_mm**2, axis=0))
-    return {
-        "mean": float(dist.mean()),
-        "rms": float(np.sqrt(np.mean(dist**2))),
-        "axes": axes,
-        "avg_rmse": float(axes.mean()),
-        "n": len(dist),
-    }
 
 
 def rig_error(iop_px, rop_q, rop_source_mm, acq) -> tuple[float, float, float, float]:

@@ -112,18 +112,26 @@ def simulated_sets(n_train: int, n_systems: int, size: int, seed: int):
     sets = []
     for part in (0, 1):
         # the paper's uniform split: even exposures train, odd ones are held out
-        frames = [f for per_system in data.truth.frames for f in per_system if f.exposure % 2 == part]
-        keep = [~(f.overlap | f.field_edge) for f in frames]
-        system = np.concatenate([np.full(k.sum(), f.system) for f, k in zip(frames, keep)])
-        exposure = np.concatenate([np.full(k.sum(), f.exposure // 2) for f, k in zip(frames, keep)])
-        ids = np.concatenate([f.ids[k] for f, k in zip(frames, keep)])
-        xy = np.concatenate([f.outline_xy_px[k] for f, k in zip(frames, keep)])
-        xy = xy + rng.normal(0, NOISE_PX, xy.shape)
-        obs = Observations(
-            system, exposure, ids, xy, np.tile([NOISE_PX, NOISE_PX, 0.0], (len(xy), 1)), system_names=data.system_names
-        )
+        obs = truth_observations(data, rng, lambda f, part=part: f.exposure % 2 == part, lambda e: e // 2)
         sets.append((obs, _initial(acq, np.arange(part, p.n_frames, 2), size, rng)))
     return sets, data.phantom, data.truth.true_xyz_mm, acq, p
+
+
+def truth_observations(data, rng, use=lambda frame: True, epoch=lambda exposure: exposure) -> Observations:
+    """Observations of the simulator's frames where ``use(frame)``: true outline centres + ``NOISE_PX`` noise.
+
+    Beads near another's outline or the field's rim are left out (labelling would not keep them
+    reliably); ``epoch(exposure)`` numbers the epochs.
+    """
+    frames = [f for per_system in data.truth.frames for f in per_system if use(f)]
+    keep = [~(f.overlap | f.field_edge) for f in frames]
+    system = np.concatenate([np.full(k.sum(), f.system) for f, k in zip(frames, keep)])
+    exposure = np.concatenate([np.full(k.sum(), epoch(f.exposure)) for f, k in zip(frames, keep)])
+    ids = np.concatenate([f.ids[k] for f, k in zip(frames, keep)])
+    xy = np.concatenate([f.outline_xy_px[k] for f, k in zip(frames, keep)])
+    xy = xy + rng.normal(0, NOISE_PX, xy.shape)
+    sigma = np.tile([NOISE_PX, NOISE_PX, 0.0], (len(xy), 1))
+    return Observations(system, exposure, ids, xy, sigma, system_names=data.system_names)
 
 
 def _initial(acq, epochs, size, rng) -> Orientation:

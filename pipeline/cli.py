@@ -7,6 +7,7 @@ Commands:
   cache clean CONFIG      delete the project's artifact cache
   undistort INPUT...      undistort frames with a calibration, keeping format and bit depth
   export CALIBRATION      the calibration for OpenCV, DLTdv/XMALab, MayaCam, mrcal or the paper's formats
+  evaluate CONFIG         the paper's held-out protocol on a project: schemes x training sizes, table, plots
   simulate OUTDIR         write a synthetic data set with ground truth and a config
   detect FILE...          detect and centroid beads in single frames (debugging)
   label DETECTIONS.csv    label detections against a phantom (debugging)
@@ -37,7 +38,7 @@ import warnings
 from pathlib import Path
 
 #: optional command modules: pipeline/cmd_<name>.py exposing add_parser(subparsers) and run(args)
-COMMAND_MODULES = ("simulate", "detect", "label", "adjust", "undistort", "export")
+COMMAND_MODULES = ("simulate", "detect", "label", "adjust", "undistort", "export", "evaluate")
 
 log = logging.getLogger("fluorocal")
 

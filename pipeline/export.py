@@ -35,8 +35,10 @@ from fluorocal.stages.io import OBJECT_POINTS, OBSERVATIONS, atomic_write, colum
 log = logging.getLogger(__name__)
 
 
-def check_outputs(config) -> Path:
+def check_outputs(config, out_dir=None) -> Path:
     """Check, before any work, that the run's outputs can be written; return the output folder, resolved.
+
+    ``out_dir`` is the folder (default: the config's ``[output] dir``; ``fluorocal evaluate`` gives its own).
 
     The system names must be safe file names (:func:`~fluorocal.outputs.safe_name`), the output
     folder a folder (or absent) that holds none of the project's inputs or cache, with a writable
@@ -56,7 +58,7 @@ def check_outputs(config) -> Path:
         keep_out += [(f"frame {f} of system {system.name}", f) for f in system.frames]
         if system.seeds is not None:
             keep_out.append((f"the seeds of system {system.name}", system.seeds))
-    out_dir = check_output_dir(config.output_dir, keep_out=keep_out)
+    out_dir = check_output_dir(config.output_dir if out_dir is None else out_dir, keep_out=keep_out)
     sweep(out_dir)
     return out_dir
 

@@ -264,7 +264,13 @@ def joint_uncertainty(
     cov_cond = _sym_inv(H_cond + border)
     shape = (len(yn), len(xn))
     node_std = np.sqrt(np.clip(node_var, 0.0, None)).reshape(2, *shape).transpose(1, 2, 0)
-    return JointUncertainty(cov[:3, :3], np.sqrt(np.diag(cov)[:3]), node_std, np.sqrt(np.diag(cov_cond)[:3]))
+    return JointUncertainty(cov[:3, :3], _std(cov[:3, :3]), node_std, _std(cov_cond[:3, :3]))
+
+
+def _std(cov: np.ndarray) -> np.ndarray:
+    """Standard deviations; NaN where rounding left a variance below zero (a parameter the data barely determine)."""
+    var = np.diag(cov)
+    return np.where(var >= 0, np.sqrt(np.abs(var)), np.nan)
 
 
 def _field_factors(A, w: np.ndarray, DtD) -> list:

@@ -1,0 +1,271 @@
+"""`fluorocal evaluate CONFIG`: the paper's protocol (section VI, TABLE I) on a project's own frames.
+
+Half the epochs (exposures; a biplanar pair is one epoch) are held out. For each
+training size and scheme the project is calibrated on that many of the other
+epochs (evenly spaced) and scored:
+
+  in-sample      reprojection RMS of the training adjustment (inliers, px)
+  out-of-sample  the held-out epochs adjusted with the calibrated IOP and correction held fixed
+                 (poses and object points free): reprojection RMS (inliers, px)
+  check points   with --reference: the training and held-out object points against the surveyed
+                 points after a rigid (6-parameter) and a similarity (7-parameter) fit, RMS mm
+  two-ray        biplanar projects: each held-out pair's beads intersected from their two rays
+                 (calibrated IOP, ROP, fields), fitted per epoch onto the check points (or, without
+                 --reference, the nominal phantom) by a rigid transform: X, Y, Z RMSE, their
+                 average and the mean 3D error, mm (TABLE I's columns)
+
+Schemes (default: none, polynomial, the project's [calibration] scheme and, with --reference,
+opencv): none (IOP + EOP only, no field), polynomial (global radial + decentring model in the
+adjustment), knn, knn+iop, knn+smooth, knn+iop+smooth (the learned field), and opencv
+(cv2.calibrateCamera, rational + thin-prism + tilted model, on the check points; needs --reference).
+
+The labelling is taken from the project's cache (`fluorocal run` fills it; what is missing is
+computed once), never repeated per training size. Outputs, published as one set into --out:
+evaluation.csv (a row per scheme and size), evaluation.md (the table; a line for every figure
+where a peer beats fluorocal's scheme), evaluation_errors.png (each figure against the training
+size), evaluation_improvement.png (over none) and evaluation_residuals_<system>.png (held-out
+residuals of each scheme at the largest size).
+Grid plates are not evaluated here yet: `python benchmarks/plate.py` scores them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+
+log = logging.getLogger("fluorocal")
+
+#: the schemes of stages.learn.SCHEMES and the OpenCV peer (listed here so that --help imports nothing)
+SCHEME_NAMES = ("none", "knn", "knn+iop", "knn+smooth", "knn+iop+smooth", "polynomial", "opencv")
+
+
+def add_parser(subparsers) -> None:
+    """Register the ``evaluate`` subcommand."""
+    p = subparsers.add_parser(
+        "evaluate",
+        help="the paper's held-out protocol on a project: schemes x training sizes, table and plots",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("config", type=Path, help="project TOML file")
+    p.add_argument(
+        "--holdout",
+        nargs="+",
+        default=["odd"],
+        metavar="RULE|FILE",
+        help="held-out epochs: odd (every other one from the second; the default), even, random:SEED (half, "
+        "drawn with SEED), or frame files of the project (their epochs are held out in every system)",
+    )
+    p.add_argument(
+        "--train-sizes",
+        metavar="N,N,...",
+        help="training epochs per calibration (default: 5 sizes evenly spaced up to all training epochs)",
+    )
+    p.add_argument(
+        "--schemes",
+        metavar="a,b,...",
+        help=f"comma-separated, of {', '.join(SCHEME_NAMES)} (default: none, polynomial, the project's scheme; "
+        "opencv too with --reference)",
+    )
+    p.add_argument("--reference", type=Path, metavar="CSV", help="surveyed check points id,x,y,z mm (default: none)")
+    p.add_argument("--out", type=Path, metavar="DIR", help="output folder (default: evaluation/ beside the config)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from fluorocal.evaluation import headline, publish_evaluation
+    from fluorocal.stages.evaluate import evaluate
+
+    config, runner = _project(args)
+    out_dir = _check_out(args, config)
+    reference = _reference(args.reference) if args.reference else None
+    schemes, ours = _schemes(args.schemes, config.scheme, reference is not None)
+    runner.run()
+    obs = _observations(runner)
+    heldout = _heldout(args.holdout, runner, obs)
+    setup = _setup(runner, reference)
+    sizes = _sizes(args.train_sizes, obs, heldout, setup.selection)
+    log.info(
+        "evaluate: %d training + %d held-out epochs; sizes %s; schemes %s",
+        len(set(obs.exposure.tolist()) - set(heldout.tolist())),
+        len(heldout),
+        ",".join(map(str, sizes)),
+        ",".join(schemes),
+    )
+    t0 = time.perf_counter()
+
+    def progress(score):
+        log.info(
+            "  %s, %d epochs: out-of-sample RMS %.4f px (%.1f s)",
+            score.scheme,
+            score.n_train,
+            score.out_rms_px,
+            score.wall_s,
+        )
+
+    result = evaluate(obs, heldout, sizes, schemes, setup, progress=progress)
+    scores = result.scores
+    notes = _notes(args, config, heldout, scores, ours, time.perf_counter() - t0)
+    names = tuple(s.name for s in config.systems)
+    written = publish_evaluation(out_dir, result, ours, notes, systems=names, image_size_px=setup.image_size_px)
+    md = next(p for p in written if p.name == "evaluation.md")
+    print("\n".join(line for line in md.read_text().splitlines() if line.startswith(("|", "- ", "No peer"))))
+    key = headline(scores)
+    print(f"headline figure: {key}; wall {time.perf_counter() - t0:.1f} s; wrote {len(written)} file(s) to {out_dir}")
+    return 0
+
+
+def _project(args):
+    from fluorocal.cli import _load, _runner
+    from fluorocal.stages.errors import InputError
+
+    config = _load(args.config)
+    if config.phantom.lattice:
+        raise InputError(
+            f"{args.config}: a grid plate is not evaluated by `fluorocal evaluate` yet; "
+            "`python benchmarks/plate.py` scores plates on held-out holes"
+        )
+    return config, _runner(args, config, until="label")
+
+
+def _check_out(args, config) -> Path:
+    from fluorocal.export import check_outputs
+
+    out = args.out if args.out is not None else config.path.parent / "evaluation"
+    return check_outputs(config, out_dir=out)
+
+
+def _reference(path: Path):
+    """``(ids, xyz_mm)`` of the check points CSV, refused in one line if unreadable."""
+    import numpy as np
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import PHANTOM, read_table
+
+    try:
+        table = read_table(path, PHANTOM)
+    except OSError as exc:
+        raise InputError(f"--reference {path}: cannot read ({exc.strerror or exc})") from None
+    except InputError as exc:
+        raise InputError(f"--reference: {exc}") from None
+    xyz = np.column_stack([table["x"], table["y"], table["z"]])
+    return table["id"].astype(np.int64), xyz
+
+
+def _schemes(text, project_scheme: str, have_reference: bool) -> tuple[list[str], str]:
+    """The schemes to run and fluorocal's own (the project's learned scheme, else the recommended one)."""
+    from fluorocal.stages.errors import InputError
+
+    ours = project_scheme if project_scheme.startswith("knn") else "knn+iop+smooth"
+    if text is None:
+        names = ["none", "polynomial", ours] + (["opencv"] if have_reference else [])
+    else:
+        names = list(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
+        unknown = [n for n in names if n not in SCHEME_NAMES]
+        if unknown or not names:
+            raise InputError(
+                f"--schemes: unknown scheme {unknown[0] if unknown else text!r}; known: {', '.join(SCHEME_NAMES)}"
+            )
+        if "opencv" in names and not have_reference:
+            raise InputError("--schemes: opencv needs --reference (OpenCV calibrates against known 3D points)")
+        learned = [n for n in names if n.startswith("knn")]
+        ours = ours if ours in names or not learned else learned[0]
+    return names, ours
+
+
+def _observations(runner):
+    from fluorocal.gather import observations_from_labels
+
+    labels = [runner.get("label", u) for u in range(len(runner.units))]
+    return observations_from_labels(runner.units, labels, runner.config)
+
+
+def _heldout(values: list[str], runner, obs):
+    """The held-out epochs of ``--holdout``: a keyword rule, or the epochs of the frame files named."""
+    import numpy as np
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.evaluate import heldout_epochs
+
+    epochs = np.unique(obs.exposure)
+    rule = values[0] in ("odd", "even") or values[0].startswith("random:") or not Path(values[0]).exists()
+    if len(values) == 1 and rule:  # a keyword, or no file: the rule's error lists the keywords
+        return heldout_epochs(epochs, values[0])
+    by_path = {}
+    for unit in runner.units:
+        by_path.setdefault(unit.path.resolve(), []).append(unit.exposure)
+    held = []
+    for value in values:
+        found = by_path.get(Path(value).resolve())
+        if found is None:
+            raise InputError(f"--holdout {value}: not a frame file of this project (see [[systems]] frames)")
+        held += found
+    return np.unique(np.asarray(held, dtype=np.int64))
+
+
+def _sizes(text, obs, heldout, selection):
+    """The training sizes of ``--train-sizes`` (default: 5 evenly spaced), refused outside what the project allows."""
+    import numpy as np
+    from fluorocal.stages.adjust import DataSelection
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.evaluate import check_train_sizes, default_train_sizes, min_train_epochs
+
+    n_train = len(np.setdiff1d(np.unique(obs.exposure), heldout))
+    selection = DataSelection() if selection is None else selection
+    minimum = min_train_epochs(len(obs.system_names), selection.min_exposures)
+    if text is None:
+        text = ",".join(map(str, default_train_sizes(n_train, minimum=minimum)))
+    try:
+        sizes = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise InputError(f"--train-sizes must be comma-separated integers; got {text!r}") from None
+    return check_train_sizes(sizes, n_train, minimum)
+
+
+def _setup(runner, reference):
+    from fluorocal.run import stage_params
+    from fluorocal.stages.evaluate import EvaluationSetup
+
+    learn = _stage("learn")
+    params = stage_params(learn, runner.config, None, runner.units)
+    extras = learn.extras(runner.config, runner.units)
+    setup = extras["setup"]
+    return EvaluationSetup(
+        runner.get("phantom", None),
+        setup.image_size_px,
+        setup.iop_guess_px,
+        params,
+        extras["solver"],
+        extras["selection"],
+        reference,
+    )
+
+
+def _stage(name: str):
+    """The registered stage ``name`` (the runner may stop before it)."""
+    from fluorocal.graph import default_stages
+
+    return next(s for s in default_stages() if s.name == name)
+
+
+def _notes(args, config, heldout, scores, ours: str, seconds: float) -> list[str]:
+    from fluorocal.evaluation import FIGURES, headline
+
+    key = headline(scores)
+    where = "check points" if args.reference else "the nominal phantom (no --reference)"
+    return [
+        f"Project `{config.path.name}`; held out ({' '.join(args.holdout)}): {len(heldout)} epochs; "
+        f"fluorocal's scheme: {ours}; % improvement is over `none` on {FIGURES[key]}.",
+        f"Two-ray points (biplanar) are fitted per epoch onto {where}. Wall time {seconds:.1f} s.",
+        "Made by `fluorocal evaluate " + " ".join(_argv(args)) + "`.",
+    ]
+
+
+def _argv(args) -> list[str]:
+    out = [str(args.config), "--holdout", *args.holdout]
+    for flag, value in (("--train-sizes", args.train_sizes), ("--schemes", args.schemes)):
+        if value:
+            out += [flag, value]
+    if args.reference:
+        out += ["--reference", str(args.reference)]
+    return out

@@ -1,0 +1,173 @@
+"""Outputs of ``fluorocal evaluate``: the scores as a CSV, a Markdown table like the paper's TABLE I, and plots.
+
+Written as one set into the evaluation folder (:func:`fluorocal.outputs.publish`):
+``evaluation.csv`` (one row per scheme and training size), ``evaluation.md`` (the
+table, the peers' wins, how it was made) and ``evaluation_*.png`` (each figure
+against the training size, one line per scheme; the improvement over no calibration;
+per system the held-out residuals of every scheme at the largest training size).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+from fluorocal.outputs import inside, publish, safe_name
+from fluorocal.report import _figure, _save, residual_maps
+from fluorocal.stages.io import write_csv
+
+#: the figures compared between fluorocal and its peers (all: lower is better), with their table headings
+FIGURES = {
+    "tworay_mean_mm": "two-ray mean 3D (mm)",
+    "tworay_avg_rmse_mm": "two-ray avg RMSE (mm)",
+    "out_3d_rigid_mm": "out-of-sample 3D, rigid (mm)",
+    "out_3d_similarity_mm": "out-of-sample 3D, similarity (mm)",
+    "out_rms_px": "out-of-sample reprojection RMS (px)",
+    "in_rms_px": "in-sample reprojection RMS (px)",
+}
+
+
+def headline(scores) -> str:
+    """The out-of-sample 3D figure of these scores: two-ray mean when biplanar, else check points (rigid)."""
+    if any(s.tworay_pairs for s in scores):
+        return "tworay_mean_mm"
+    if any(math.isfinite(s.out_3d_rigid_mm) for s in scores):
+        return "out_3d_rigid_mm"
+    return "out_rms_px"
+
+
+def peer_wins(scores, ours: str) -> list[str]:
+    """One line per (figure, training size) where a peer's figure is lower than scheme ``ours``'s."""
+    lines = []
+    by = {(s.scheme, s.n_train): s for s in scores}
+    for name, heading in FIGURES.items():
+        for s in scores:
+            mine = by.get((ours, s.n_train))
+            if s.scheme == ours or mine is None:
+                continue
+            theirs, own = getattr(s, name), getattr(mine, name)
+            if math.isfinite(theirs) and math.isfinite(own) and theirs < own:
+                lines.append(
+                    f"- peer **{s.scheme}** beats {ours} on {heading} with {s.n_train} training epochs: "
+                    f"{theirs:.4f} against {own:.4f}"
+                )
+    return lines
+
+
+def _cell(value) -> str:
+    if isinstance(value, float):
+        return "" if not math.isfinite(value) else f"{value:.4f}"
+    return str(value)
+
+
+def markdown(scores, ours: str, notes: list[str]) -> str:
+    """The table (TABLE I's columns where they apply), the improvement of each scheme over ``none``, the peers' wins."""
+    key = headline(scores)
+    base = {s.n_train: getattr(s, key) for s in scores if s.scheme == "none"}
+    biplanar = any(s.tworay_pairs for s in scores)
+    checks = any(math.isfinite(s.out_3d_rigid_mm) for s in scores)
+    head = ["training epochs", "scheme"]
+    cols = []
+    if biplanar:
+        cols += ["tworay_x_rmse_mm", "tworay_y_rmse_mm", "tworay_z_rmse_mm", "tworay_avg_rmse_mm", "tworay_mean_mm"]
+        head += ["X RMSE (mm)", "Y RMSE (mm)", "Z RMSE (mm)", "average RMSE (mm)", "mean 3D (mm)"]
+    if checks:
+        cols += ["in_3d_rigid_mm", "in_3d_similarity_mm", "out_3d_rigid_mm", "out_3d_similarity_mm"]
+        head += ["in-sample 3D rigid (mm)", "in-sample 3D similarity (mm)", "out-of-sample 3D rigid (mm)"]
+        head += ["out-of-sample 3D similarity (mm)"]
+    cols += ["in_rms_px", "out_rms_px"]
+    head += ["in-sample RMS (px)", "out-of-sample RMS (px)", f"% improvement ({FIGURES[key]})", "wall (s)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    previous = None
+    for s in scores:
+        b = base.get(s.n_train, math.nan)
+        better = 100 * (1 - getattr(s, key) / b) if s.scheme != "none" and math.isfinite(b) and b > 0 else math.nan
+        size = str(s.n_train) if s.n_train != previous else ""
+        previous = s.n_train
+        shown = f"{better:.1f}" if math.isfinite(better) else "N/A"
+        row = [size, s.scheme, *(_cell(getattr(s, c)) for c in cols), shown, f"{s.wall_s:.1f}"]
+        lines.append("| " + " | ".join(row) + " |")
+    wins = peer_wins(scores, ours)
+    lines += ["", *(wins or [f"No peer beats {ours} on any figure at any training size."])]
+    return "\n".join(["# Evaluation", "", *notes, "", *lines, ""])
+
+
+def write_csv_table(path: Path, scores) -> Path:
+    """``evaluation.csv``: every :class:`~fluorocal.stages.evaluate.Score` field, one row per scheme and size."""
+    names = [f.name for f in dataclasses.fields(scores[0])]
+    write_csv(path, names, ([_cell(getattr(s, n)) for n in names] for s in scores))
+    return path
+
+
+def write_plots(folder: Path, scores, ours: str) -> list[Path]:
+    """Each applicable figure against the training size (a line per scheme), and the improvement over ``none``."""
+    names = [n for n in FIGURES if any(math.isfinite(getattr(s, n)) for s in scores)]
+    schemes = list(dict.fromkeys(s.scheme for s in scores))
+    import matplotlib
+
+    matplotlib.use("Agg")  # as fluorocal.report's figures: no display
+    import matplotlib.pyplot as plt
+
+    n_cols = min(3, len(names))
+    n_rows = -(-len(names) // n_cols)
+    fig, grid = plt.subplots(n_rows, n_cols, figsize=(4.2 * n_cols, 3.6 * n_rows), squeeze=False, layout="constrained")
+    axes = grid.ravel()
+    for ax in axes[len(names) :]:
+        ax.set_visible(False)
+    for ax, name in zip(axes, names):
+        for scheme in schemes:
+            rows = [s for s in scores if s.scheme == scheme]
+            ax.plot([s.n_train for s in rows], [getattr(s, name) for s in rows], "o-", label=scheme)
+        ax.set_yscale("log")
+        ax.set_xlabel("training epochs")
+        ax.set_title(FIGURES[name], fontsize=9)
+    if len(schemes) > 1:
+        axes[0].legend(fontsize=8)
+    written = [_save(plt, fig, inside(folder, "evaluation_errors.png"))]
+    key = headline(scores)
+    base = {s.n_train: getattr(s, key) for s in scores if s.scheme == "none"}
+    if base and set(schemes) - {"none"}:
+        plt, fig, (ax,) = _figure(1, width=5.0, height=3.8)
+        for scheme in schemes:
+            rows = [s for s in scores if s.scheme == scheme and s.scheme != "none" and s.n_train in base]
+            if rows:
+                better = [100 * (1 - getattr(s, key) / base[s.n_train]) for s in rows]
+                ax.plot([s.n_train for s in rows], better, "o-", label=scheme)
+        ax.set_xlabel("training epochs")
+        ax.set_ylabel("% improvement over none")
+        ax.set_title(FIGURES[key], fontsize=9)
+        ax.legend(fontsize=8)
+        written.append(_save(plt, fig, inside(folder, "evaluation_improvement.png")))
+    return written
+
+
+def write_residual_maps(folder: Path, residuals, system_names, image_size_px) -> list[Path]:
+    """Per system, the held-out inlier residuals of each scheme at the largest training size, a panel each."""
+    written = []
+    for s, name in enumerate(system_names):
+        panels = [
+            (f"{r.scheme}, {r.n_train} epochs, held out", r.xy_px[r.system == s], r.residual_px[r.system == s])
+            for r in residuals
+        ]
+        path = inside(folder, f"evaluation_residuals_{safe_name(name, what='system name')}.png")
+        written.append(residual_maps(path, panels, image_size_px[s]))
+    return written
+
+
+def publish_evaluation(out_dir: Path, evaluation, ours: str, notes: list[str], *, systems, image_size_px) -> list[Path]:
+    """Write the CSV, the Markdown table and the plots into ``out_dir`` as one set; return the paths."""
+    scores = evaluation.scores
+
+    def write(staging: Path) -> list[Path]:
+        md = inside(staging, "evaluation.md")
+        md.write_text(markdown(scores, ours, notes))
+        maps = write_residual_maps(staging, evaluation.residuals, systems, image_size_px)
+        return [
+            write_csv_table(inside(staging, "evaluation.csv"), scores),
+            md,
+            *write_plots(staging, scores, ours),
+            *maps,
+        ]
+
+    return publish(out_dir, write)
