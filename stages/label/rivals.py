@@ -51,12 +51,21 @@ _POLISH_ROUNDS = 3
 _MAX_EXPANSIONS = 4
 _EXPAND_MARGINS = 8.0
 _BASIN_DEG = 1.0
+# a labelling within this many beads of the most evidence a frame allows stands alone (see stands_alone)
+_ALONE_DEFICIT = 6.0
 # polished poses whose sources lie closer than this (mm; the source is ~1 m away, so 0.5 deg moves it
 # ~9 mm) lead to the labelling already found
 _SAME_SOURCE_MM = 5.0
 
 
-def evidence(frame: CubeFrame, model: dict, R: np.ndarray | None = None, T: np.ndarray | None = None) -> float:
+def evidence(
+    frame: CubeFrame,
+    model: dict,
+    R: np.ndarray | None = None,
+    T: np.ndarray | None = None,
+    *,
+    bound: float | None = None,
+) -> float:
     """How well pose ``(R, T)`` (default: the model's own) explains the frame under ``model``'s camera.
 
     ``explained - unexplained - missing - _SIZE_WEIGHT x size_off``: *explained* counts the usable
@@ -72,6 +81,9 @@ def evidence(frame: CubeFrame, model: dict, R: np.ndarray | None = None, T: np.n
     model : dict
         A labelling of :func:`~fluorocal.stages.label.iterate.iterate`: its ``iop`` and ``corr`` predict the
         beads, its ``R``, ``T`` are the default pose.
+    bound : float, optional
+        Only whether the evidence exceeds ``bound`` matters: when ``explained - unexplained`` (an upper
+        bound of the evidence) does not, that is returned, without the costlier missing beads and sizes.
     """
     p = frame.params
     R = model["R"] if R is None else R
@@ -88,6 +100,8 @@ def evidence(frame: CubeFrame, model: dict, R: np.ndarray | None = None, T: np.n
 
     d_det, k = cKDTree(pred).query(frame.det_xy)
     explained = d_det <= gate[k]
+    if bound is not None and 2 * explained.sum() - len(explained) <= bound:
+        return float(2 * explained.sum() - len(explained))
     clear = ~ambiguous(pred, app, p.ambiguity_bead_diameters)
     d_pred, j = frame.det_tree.query(pred)
     found = d_pred <= gate
@@ -96,6 +110,18 @@ def evidence(frame: CubeFrame, model: dict, R: np.ndarray | None = None, T: np.n
     sizes = size_evidence(sub, R, T, vis[pairs], j[pairs])
     off = 0 if sizes is None else sizes[1]
     return float(2 * explained.sum() - len(explained) - missing - _SIZE_WEIGHT * off)
+
+
+def stands_alone(frame: CubeFrame, model: dict) -> bool:
+    """True if no labelling of the frame could explain it better than ``model`` by ``_ALONE_DEFICIT`` or more.
+
+    :func:`evidence` is at most the number of usable detections (each explained, no bead missing, no
+    size misfit), and ``model`` comes within ``_ALONE_DEFICIT`` of that: a labelling found elsewhere (a
+    hinge, another turn) could not beat it. The detector's dropouts, a spurious blob and merged blobs keep
+    the right labelling a few beads below the bound; a slip or hinge leaves a row of beads missing or
+    detections unexplained.
+    """
+    return evidence(frame, model) >= len(frame.det_xy) - _ALONE_DEFICIT
 
 
 def settle(
@@ -181,16 +207,17 @@ def _close_rivals(frame: CubeFrame, model: dict, level: float, known: list) -> l
     """
     screen = level - _SCREEN_MARGINS * _EVIDENCE_MARGIN
     symmetric = _symmetric_poses(frame, model)
-    near_sym = [(R, T) for R, T in symmetric if evidence(frame, model, R, T) > screen]
+    near_sym = [(R, T) for R, T in symmetric if evidence(frame, model, R, T, bound=screen) > screen]
     rivals = list(near_sym)
     for R, T in [(model["R"], model["T"]), *near_sym]:
         rivals += _slip_poses(frame, model, R, T)
     out: list = []
+    close = level - _POLISH_MARGINS * _EVIDENCE_MARGIN
     for R, T in rivals:
-        if evidence(frame, model, R, T) <= screen:
+        if evidence(frame, model, R, T, bound=screen) <= screen:
             continue
         R, T = polish(frame, model, R, T)
-        if evidence(frame, model, R, T) <= level - _POLISH_MARGINS * _EVIDENCE_MARGIN:
+        if evidence(frame, model, R, T, bound=close) <= close:
             continue
         if any(_same_pose(R, T, c["R"], c["T"]) for c in [*known, *out]):
             continue
