@@ -90,24 +90,22 @@ def label_from_prior(
     def ball(k_sigma):
         return _ball_starts(view, prior, p_centre, k_sigma)
 
-    # (region searched in the prior's standard deviations (None: the full circle), its starts, and whether a
-    # labelling that stands alone ends the search there): first the cheap ones, the prediction itself and
-    # (with turn_search, when that found nothing) the turns about the axis, then the rotations around the
-    # prediction; a wider region that the cap leaves as the narrower one is not searched again
-    searches = [(_SEARCH_SIGMAS[0], lambda: ball(0.0), True)]
+    # (region searched in the prior's standard deviations (None: the full circle), its starts): first the
+    # cheap ones, the prediction itself and (with turn_search, when that found nothing) the turns about the
+    # axis, then the rotations around the prediction; a wider region that the cap leaves as the narrower one
+    # is not searched again
+    searches = [(_SEARCH_SIGMAS[0], lambda: ball(0.0))]
     if turn_search:
-        searches.append((_SEARCH_SIGMAS[-1], lambda: [] if found else turns(), True))
-    searches += [
-        (k, lambda k=k: ball(k), False) for i, k in enumerate(_SEARCH_SIGMAS) if i == 0 or sizes[i] != sizes[i - 1]
-    ]
+        searches.append((_SEARCH_SIGMAS[-1], lambda: [] if found else turns()))
+    searches += [(k, lambda k=k: ball(k)) for i, k in enumerate(_SEARCH_SIGMAS) if i == 0 or sizes[i] != sizes[i - 1]]
     if turn_search:
-        searches.append((None, turns, False))
+        searches.append((None, turns))
     reason = "no pose near the neighbouring frame's brings beads onto the detections"
     settled = False
     tried: list = []
     found: list = [*also]
     winner = None
-    for within, search, quick in searches:
+    for within, search in searches:
         if within is None and winner is not None:
             break  # the full circle only when nothing near the prediction stands
         starts = [s for s in search() if not any(_near(s, t) for t in tried)]
@@ -125,8 +123,10 @@ def label_from_prior(
             best, why = settle(frame, found, prior, None if also else within)
             if best is not None:
                 winner = best
-                if quick and stands_alone(frame, best):
-                    break  # no labelling elsewhere could come close to it
+                if stands_alone(frame, best):
+                    # a labelling found later could not beat it by a margin, and one about as good would
+                    # leave the frame ambiguous, which keeps the winner found first: the search is over
+                    break
             elif winner is None:
                 # a labelling found but not singled out says more than the failures of the other starts
                 reason, settled = why, True

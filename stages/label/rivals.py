@@ -121,7 +121,7 @@ def stands_alone(frame: CubeFrame, model: dict) -> bool:
     the right labelling a few beads below the bound; a slip or hinge leaves a row of beads missing or
     detections unexplained.
     """
-    return evidence(frame, model) >= len(frame.det_xy) - _ALONE_DEFICIT
+    return model_evidence(frame, model) > len(frame.det_xy) - _ALONE_DEFICIT
 
 
 def settle(
@@ -146,7 +146,7 @@ def settle(
         return within is None or prior.distance(c["R"]) <= within
 
     # best first: the first of an orientation is expanded, the others there are its slips
-    scored = sorted(((evidence(frame, f), i) for i, f in enumerate(found)), key=lambda e: -e[0])
+    scored = sorted(((model_evidence(frame, f), i) for i, f in enumerate(found)), key=lambda e: -e[0])
     candidates = [found[i] for _, i in scored]
     scores = [sc for sc, _ in scored]
     expanded: list = []
@@ -161,7 +161,7 @@ def settle(
             for result in _close_rivals(frame, candidates[k], level, candidates):
                 if all(agreement(result, c) < 0.9 for c in candidates):
                     candidates.append(result)
-                    scores.append(evidence(frame, result))
+                    scores.append(model_evidence(frame, result))
         k += 1
     # only fully acceptable labellings compete; the others only brought rivals
     eligible = [k for k, c in enumerate(candidates) if c.get("eligible", True)]
@@ -207,25 +207,56 @@ def _close_rivals(frame: CubeFrame, model: dict, level: float, known: list) -> l
     """
     screen = level - _SCREEN_MARGINS * _EVIDENCE_MARGIN
     symmetric = _symmetric_poses(frame, model)
-    near_sym = [(R, T) for R, T in symmetric if evidence(frame, model, R, T, bound=screen) > screen]
+    near_sym = [(R, T) for R, T in symmetric if model_evidence(frame, model, R, T, bound=screen) > screen]
     rivals = list(near_sym)
     for R, T in [(model["R"], model["T"]), *near_sym]:
-        rivals += _slip_poses(frame, model, R, T)
+        rivals += _memo(model, "slips", (R, T), _slip_poses, frame, model, R, T)
     out: list = []
     close = level - _POLISH_MARGINS * _EVIDENCE_MARGIN
     for R, T in rivals:
-        if evidence(frame, model, R, T, bound=screen) <= screen:
+        if model_evidence(frame, model, R, T, bound=screen) <= screen:
             continue
-        R, T = polish(frame, model, R, T)
-        if evidence(frame, model, R, T, bound=close) <= close:
+        R, T = _memo(model, "polish", (R, T), polish, frame, model, R, T)
+        if model_evidence(frame, model, R, T, bound=close) <= close:
             continue
         if any(_same_pose(R, T, c["R"], c["T"]) for c in [*known, *out]):
             continue
         # the pose was found with the model's principal distance: the labelling starts from it too
-        result = iterate(with_camera(frame, model["iop"]), R, T)
-        if result is not None and acceptable(frame, result)[0]:
+        result = _memo(model, "labelling", (R, T), _labelling, frame, model["iop"], R, T)
+        if result is not None:
             out.append(result)
     return out
+
+
+def _labelling(frame: CubeFrame, iop: np.ndarray, R: np.ndarray, T: np.ndarray) -> dict | None:
+    """The acceptable labelling from pose ``(R, T)`` seen with ``iop``, or None."""
+    result = iterate(with_camera(frame, iop), R, T)
+    return result if result is not None and acceptable(frame, result)[0] else None
+
+
+def _memo(model: dict, kind: str, pose: tuple, compute, *args):
+    """``compute(*args)`` for pose ``(R, T)`` once per labelling ``model`` (a frame is settled several times)."""
+    cache = model.setdefault("memo", {})
+    key = (kind, pose[0].tobytes(), pose[1].tobytes())
+    if key not in cache:
+        cache[key] = compute(*args)
+    return cache[key]
+
+
+def model_evidence(
+    frame: CubeFrame, model: dict, R: np.ndarray | None = None, T: np.ndarray | None = None, *, bound=None
+) -> float:
+    """:func:`evidence`, computed once per pose for labelling ``model`` (an upper bound kept while it suffices)."""
+    cache = model.setdefault("memo", {})
+    key = ("evidence", *(model["R"] if R is None else R, model["T"] if T is None else T))
+    key = (key[0], key[1].tobytes(), key[2].tobytes())
+    value, exact = cache.get(key, (None, False))
+    if value is not None and (exact or (bound is not None and value <= bound)):
+        return value
+    value = evidence(frame, model, R, T, bound=bound)
+    # below the bound it may be the upper bound only (see evidence)
+    cache[key] = (value, bound is None or value > bound)
+    return value
 
 
 def _same_pose(R1: np.ndarray, T1: np.ndarray, R2: np.ndarray, T2: np.ndarray) -> bool:
