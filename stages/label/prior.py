@@ -91,10 +91,10 @@ def label_from_prior(
         return _ball_starts(view, prior, p_centre, k_sigma)
 
     # (region searched in the prior's standard deviations (None: the full circle), its starts): first the
-    # cheap ones, the prediction itself and (with turn_search, when that found nothing) the turns about the
-    # axis, then the rotations around the prediction; a wider region that the cap leaves as the narrower one
-    # is not searched again
-    searches = [(_SEARCH_SIGMAS[0], lambda: ball(0.0))]
+    # cheap ones, the prediction itself, and when that found nothing, its other slips and (with turn_search)
+    # the turns about the axis; then the rotations around the prediction; a wider region that the cap leaves
+    # as the narrower one is not searched again
+    searches = [(_SEARCH_SIGMAS[0], lambda: ball(0.0)), (_SEARCH_SIGMAS[0], lambda: [] if found else view.other_slips)]
     if turn_search:
         searches.append((_SEARCH_SIGMAS[-1], lambda: [] if found else turns()))
     searches += [(k, lambda k=k: ball(k)) for i, k in enumerate(_SEARCH_SIGMAS) if i == 0 or sizes[i] != sizes[i - 1]]
@@ -111,6 +111,8 @@ def label_from_prior(
         starts = [s for s in search() if not any(_near(s, t) for t in tried)]
         tried += starts
         new, why = _label_starts(view, starts)
+        # a labelling found again (from a start a little off one tried before) is not its own rival
+        new = [f for f in new if all(agreement(f, g) < 0.9 for g in found)]
         found += new
         if new and view.depth_mm is None:
             # the labellings of one frame share its depth (hinges and slips of the truth alike): the
@@ -230,27 +232,31 @@ def _ball_starts(search: "_Search", prior: OrientationPrior, p_centre: np.ndarra
             kept.append(int(k))
     starts: list = []
     for k in kept:
-        start = search.memo(("start", cells[k]), _basin_start, search, *pose(k, depths[int(np.argmax(strength[k]))]))
-        if start is None or any(turn_angle(start[0], s[0]) < np.radians(_SAME_ORIENTATION_DEG) for s in starts):
+        dz = depths[int(np.argmax(strength[k]))]
+        slips = search.memo(("slips", cells[k], dz), _basin_slips, search, *pose(k, dz))
+        if not slips or any(turn_angle(slips[0][0], s[0]) < np.radians(_SAME_ORIENTATION_DEG) for s in starts):
             continue
-        starts.append(start)
+        # the basin's start; at the prediction alone, its other slips follow when it fails (other_slips)
+        starts.append(slips[0])
+        search.other_slips = slips[1:] if k_sigma == 0 else []
     return starts
 
 
-def _basin_start(search: "_Search", R: np.ndarray, T: np.ndarray) -> tuple | None:
-    """The start ``(R, T, votes)`` of the basin that pose ``(R, T)``'s vote leads to; None without a peak.
+def _basin_slips(search: "_Search", R: np.ndarray, T: np.ndarray) -> list:
+    """Starts ``[(R, T, votes)]`` in the basin that pose ``(R, T)``'s vote leads to, best first; [] without a peak.
 
     The strongest peak of its full vote (:func:`~fluorocal.stages.label.votes.shift_peaks`) is polished:
     whichever slip it is, its orientation is then its basin's, where the vote is sharp and its peaks are the
-    slips; the one that explains the frame best (:meth:`_Search.score`) is the basin's start.
+    slips, ranked by how well they explain the frame (:meth:`_Search.score`): the first is the basin's start.
     """
     frame, rays = search.vote_frame, search.rays
     peaks = shift_peaks(frame, R, T, rays, N_PEAKS)
     if not peaks:
-        return None
+        return []
     R, T = search.polish(*peaks[0][:2])
     slips = [(R, T, peaks[0][2]), *shift_peaks(frame, R, T, rays, N_PEAKS)]
-    return max(slips, key=lambda s: search.score(s[0], s[1]))
+    scores = [search.score(s[0], s[1]) for s in slips]
+    return [slips[i] for i in np.argsort(-np.asarray(scores), kind="stable")]
 
 
 def _depth_levels(prior: OrientationPrior, depth_mm: float) -> np.ndarray:
@@ -345,6 +351,8 @@ class _Search:
         self._memo: dict = {}
         # the phantom centre's distance from the source (mm, the vote camera) once a labelling has found it
         self.depth_mm: float | None = None
+        # the prediction's other slips (after its start, best first)
+        self.other_slips: list = []
 
     def depth_of(self, result: dict) -> float:
         """The phantom centre's distance from the source in labelling ``result``, as the vote camera sees it."""

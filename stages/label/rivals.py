@@ -51,8 +51,6 @@ _POLISH_ROUNDS = 3
 _MAX_EXPANSIONS = 4
 _EXPAND_MARGINS = 8.0
 _BASIN_DEG = 1.0
-# a labelling within this many beads of the most evidence a frame allows stands alone (see stands_alone)
-_ALONE_DEFICIT = 6.0
 # polished poses whose sources lie closer than this (mm; the source is ~1 m away, so 0.5 deg moves it
 # ~9 mm) lead to the labelling already found
 _SAME_SOURCE_MM = 5.0
@@ -113,15 +111,14 @@ def evidence(
 
 
 def stands_alone(frame: CubeFrame, model: dict) -> bool:
-    """True if no labelling of the frame could explain it better than ``model`` by ``_ALONE_DEFICIT`` or more.
+    """True if no labelling of the frame could explain it better than ``model`` by ``_EVIDENCE_MARGIN``.
 
     :func:`evidence` is at most the number of usable detections (each explained, no bead missing, no
-    size misfit), and ``model`` comes within ``_ALONE_DEFICIT`` of that: a labelling found elsewhere (a
-    hinge, another turn) could not beat it. The detector's dropouts, a spurious blob and merged blobs keep
-    the right labelling a few beads below the bound; a slip or hinge leaves a row of beads missing or
-    detections unexplained.
+    size misfit), and ``model``'s comes within ``_EVIDENCE_MARGIN`` of that: a labelling found elsewhere
+    (a hinge, another turn) could at most tie with it, never beat it (:func:`settle`). The detector's
+    dropouts, a spurious blob and merged blobs keep the right labelling a few beads below the bound.
     """
-    return model_evidence(frame, model) > len(frame.det_xy) - _ALONE_DEFICIT
+    return model_evidence(frame, model) > len(frame.det_xy) - _EVIDENCE_MARGIN
 
 
 def settle(
