@@ -18,7 +18,7 @@ import numpy as np
 from fluorocal.stages.label.cube_frame import CubeFrame, coarse_evidence, with_camera
 from fluorocal.stages.label.iterate import acceptable, agreement, iterate
 from fluorocal.stages.label.motion import OrientationPrior
-from fluorocal.stages.label.rivals import evidence, polish, settle, stands_alone
+from fluorocal.stages.label.rivals import evidence, explains_most, polish, settle, stands_alone
 from fluorocal.stages.label.symmetry import turn_angle
 from fluorocal.stages.label.votes import (
     N_DEPTH_DETECTIONS,
@@ -68,13 +68,17 @@ def label_from_prior(
     ``p_centre`` (camera frame, mm) is where a neighbouring frame saw the phantom's centre: its depth
     starts the search, its position across the beam does not matter (the shift is searched).
 
-    Returns ``(result, "")`` or ``(None, reason)``. Rotations of the prediction within each of
-    ``_SEARCH_SIGMAS`` of its uncertainty in turn are searched with the phantom's position free
-    (:func:`_ball_starts`); every region is searched, and the labellings found so far are settled against
-    each other and their rivals after each, the prior deciding between those that the frame itself cannot
-    tell apart; a winner must lie in the region searched, and a wider region's winner replaces the
-    narrower's (a hinge of the truth near the prediction gives way to the truth a few sigmas out). With
-    ``turn_search`` and no winner, turns about the prior's axis over the full circle follow
+    Returns ``(result, "")`` or ``(None, reason)``. The prediction itself is tried first (its vote's
+    best slip, then its other slips), then (with ``turn_search``, if nothing was found) turns about the
+    prior's axis; then rotations of the prediction within each of ``_SEARCH_SIGMAS`` of its uncertainty in
+    turn are searched with the phantom's position free (:func:`_ball_starts`), at the depth of the first
+    labelling found if any (the labellings of a frame share its magnification). After each search the
+    labellings found so far are settled against each other and their rivals, the prior deciding between
+    those that the frame itself cannot tell apart; a winner must lie in the region searched, and a wider
+    region's winner replaces the narrower's (a hinge of the truth near the prediction gives way to the
+    truth a few sigmas out). The search ends early once a winner stands alone
+    (:func:`~fluorocal.stages.label.rivals.stands_alone`: nothing found later could displace it). With
+    ``turn_search`` and no winner, turns about the prior's axis over the full circle close the search
     (:func:`_turn_starts`). Labellings found otherwise (``also``: the frame's markers') compete with them
     on their evidence alone, wherever they lie.
 
@@ -84,28 +88,12 @@ def label_from_prior(
     :func:`~fluorocal.stages.label.cube_frame.coarse_evidence`.
     """
     view = _Search(frame, camera)
-    sizes = [_semi_axes(prior, k) for k in _SEARCH_SIGMAS]
-    turns = functools.cache(lambda: _turn_starts(view, prior.R, p_centre, prior.axis))
-
-    def ball(k_sigma):
-        return _ball_starts(view, prior, p_centre, k_sigma)
-
-    # (region searched in the prior's standard deviations (None: the full circle), its starts): first the
-    # cheap ones, the prediction itself, and when that found nothing, its other slips and (with turn_search)
-    # the turns about the axis; then the rotations around the prediction; a wider region that the cap leaves
-    # as the narrower one is not searched again
-    searches = [(_SEARCH_SIGMAS[0], lambda: ball(0.0)), (_SEARCH_SIGMAS[0], lambda: [] if found else view.other_slips)]
-    if turn_search:
-        searches.append((_SEARCH_SIGMAS[-1], lambda: [] if found else turns()))
-    searches += [(k, lambda k=k: ball(k)) for i, k in enumerate(_SEARCH_SIGMAS) if i == 0 or sizes[i] != sizes[i - 1]]
-    if turn_search:
-        searches.append((None, turns))
     reason = "no pose near the neighbouring frame's brings beads onto the detections"
     settled = False
     tried: list = []
     found: list = [*also]
     winner = None
-    for within, search in searches:
+    for within, search in _searches(view, prior, p_centre, turn_search, found):
         if within is None and winner is not None:
             break  # the full circle only when nothing near the prediction stands
         starts = [s for s in search() if not any(_near(s, t) for t in tried)]
@@ -114,10 +102,6 @@ def label_from_prior(
         # a labelling found again (from a start a little off one tried before) is not its own rival
         new = [f for f in new if all(agreement(f, g) < 0.9 for g in found)]
         found += new
-        if new and view.depth_mm is None:
-            # the labellings of one frame share its depth (hinges and slips of the truth alike): the
-            # rotations of the wider searches are scored at it alone
-            view.depth_mm = view.depth_of(max(new, key=lambda f: f["n_labelled"]))
         if found:
             # every region is searched: a labelling found in a narrower one may be a hinge or slip of the
             # truth, which lies a few sigmas out when the axis wobbles; the wider search replaces the narrower's
@@ -125,9 +109,14 @@ def label_from_prior(
             best, why = settle(frame, found, prior, None if also else within)
             if best is not None:
                 winner = best
-                if stands_alone(frame, best):
-                    # a labelling found later could not beat it by a margin, and one about as good would
-                    # leave the frame ambiguous, which keeps the winner found first: the search is over
+                if view.depth_mm is None and explains_most(frame, best):
+                    # the labellings that explain a frame share its depth (hinges and slips of the truth
+                    # alike): the rotations of the wider searches are scored at it alone
+                    view.depth_mm = view.depth_of(best)
+                if stands_alone(frame, best, prior):
+                    # a labelling found later could not beat it by a margin, nor lie much nearer the
+                    # prediction; one about as good would leave the frame ambiguous, which keeps the winner
+                    # found first: the search is over
                     break
             elif winner is None:
                 # a labelling found but not singled out says more than the failures of the other starts
@@ -135,6 +124,30 @@ def label_from_prior(
         elif not settled:
             reason = why or reason
     return (winner, "") if winner is not None else (None, reason)
+
+
+def _searches(view: "_Search", prior: OrientationPrior, p_centre: np.ndarray, turn_search: bool, found: list):
+    """The searches of :func:`label_from_prior` in order: ``[(region, starts)]``.
+
+    ``region``: the region searched in the prior's standard deviations (None: the full circle);
+    ``starts()`` its start poses. First the cheap ones: the prediction itself, and when nothing is
+    ``found`` yet (with ``turn_search``) the turns about the axis; then the rotations
+    around the prediction (a wider region that the cap leaves as the narrower one is not searched again);
+    with ``turn_search``, the full circle last.
+    """
+    sizes = [_semi_axes(prior, k) for k in _SEARCH_SIGMAS]
+    turns = functools.cache(lambda: _turn_starts(view, prior.R, p_centre, prior.axis))
+
+    def ball(k_sigma):
+        return _ball_starts(view, prior, p_centre, k_sigma)
+
+    searches = [(_SEARCH_SIGMAS[0], lambda: ball(0.0))]
+    if turn_search:
+        searches.append((_SEARCH_SIGMAS[-1], lambda: [] if found else turns()))
+    searches += [(k, lambda k=k: ball(k)) for i, k in enumerate(_SEARCH_SIGMAS) if i == 0 or sizes[i] != sizes[i - 1]]
+    if turn_search:
+        searches.append((None, turns))
+    return searches
 
 
 def _near(a: tuple, b: tuple) -> bool:
@@ -233,30 +246,27 @@ def _ball_starts(search: "_Search", prior: OrientationPrior, p_centre: np.ndarra
     starts: list = []
     for k in kept:
         dz = depths[int(np.argmax(strength[k]))]
-        slips = search.memo(("slips", cells[k], dz), _basin_slips, search, *pose(k, dz))
-        if not slips or any(turn_angle(slips[0][0], s[0]) < np.radians(_SAME_ORIENTATION_DEG) for s in starts):
+        start = search.memo(("start", cells[k], dz), _basin_start, search, *pose(k, dz))
+        if start is None or any(turn_angle(start[0], s[0]) < np.radians(_SAME_ORIENTATION_DEG) for s in starts):
             continue
-        # the basin's start; at the prediction alone, its other slips follow when it fails (other_slips)
-        starts.append(slips[0])
-        search.other_slips = slips[1:] if k_sigma == 0 else []
+        starts.append(start)
     return starts
 
 
-def _basin_slips(search: "_Search", R: np.ndarray, T: np.ndarray) -> list:
-    """Starts ``[(R, T, votes)]`` in the basin that pose ``(R, T)``'s vote leads to, best first; [] without a peak.
+def _basin_start(search: "_Search", R: np.ndarray, T: np.ndarray) -> tuple | None:
+    """The start ``(R, T, votes)`` of the basin that pose ``(R, T)``'s vote leads to; None without a peak.
 
     The strongest peak of its full vote (:func:`~fluorocal.stages.label.votes.shift_peaks`) is polished:
     whichever slip it is, its orientation is then its basin's, where the vote is sharp and its peaks are the
-    slips, ranked by how well they explain the frame (:meth:`_Search.score`): the first is the basin's start.
+    slips; the one that explains the frame best (:meth:`_Search.score`) is the basin's start.
     """
     frame, rays = search.vote_frame, search.rays
     peaks = shift_peaks(frame, R, T, rays, N_PEAKS)
     if not peaks:
-        return []
+        return None
     R, T = search.polish(*peaks[0][:2])
     slips = [(R, T, peaks[0][2]), *shift_peaks(frame, R, T, rays, N_PEAKS)]
-    scores = [search.score(s[0], s[1]) for s in slips]
-    return [slips[i] for i in np.argsort(-np.asarray(scores), kind="stable")]
+    return max(slips, key=lambda s: search.score(s[0], s[1]))
 
 
 def _depth_levels(prior: OrientationPrior, depth_mm: float) -> np.ndarray:
@@ -351,8 +361,6 @@ class _Search:
         self._memo: dict = {}
         # the phantom centre's distance from the source (mm, the vote camera) once a labelling has found it
         self.depth_mm: float | None = None
-        # the prediction's other slips (after its start, best first)
-        self.other_slips: list = []
 
     def depth_of(self, result: dict) -> float:
         """The phantom centre's distance from the source in labelling ``result``, as the vote camera sees it."""

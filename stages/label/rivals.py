@@ -51,6 +51,9 @@ _POLISH_ROUNDS = 3
 _MAX_EXPANSIONS = 4
 _EXPAND_MARGINS = 8.0
 _BASIN_DEG = 1.0
+# a labelling whose evidence falls short of the usable detections by at most this fraction explains most of
+# the frame (a right one misses dropouts, spurious and merged blobs: 1-9 % of them)
+_MOST_DEFICIT = 0.1
 # polished poses whose sources lie closer than this (mm; the source is ~1 m away, so 0.5 deg moves it
 # ~9 mm) lead to the labelling already found
 _SAME_SOURCE_MM = 5.0
@@ -110,15 +113,27 @@ def evidence(
     return float(2 * explained.sum() - len(explained) - missing - _SIZE_WEIGHT * off)
 
 
-def stands_alone(frame: CubeFrame, model: dict) -> bool:
-    """True if no labelling of the frame could explain it better than ``model`` by ``_EVIDENCE_MARGIN``.
+def stands_alone(frame: CubeFrame, model: dict, prior: OrientationPrior) -> bool:
+    """True if no labelling found after ``model`` could displace it in :func:`settle`.
 
     :func:`evidence` is at most the number of usable detections (each explained, no bead missing, no
-    size misfit), and ``model``'s comes within ``_EVIDENCE_MARGIN`` of that: a labelling found elsewhere
-    (a hinge, another turn) could at most tie with it, never beat it (:func:`settle`). The detector's
+    size misfit), and ``model``'s comes within ``_EVIDENCE_MARGIN`` of that: another labelling could at
+    most tie with it, never beat it; and it lies within ``_PRIOR_MARGIN`` standard deviations of the
+    ``prior`` orientation, so that no tie could be ``_PRIOR_MARGIN`` times nearer. The detector's
     dropouts, a spurious blob and merged blobs keep the right labelling a few beads below the bound.
     """
-    return model_evidence(frame, model) > len(frame.det_xy) - _EVIDENCE_MARGIN
+    top = model_evidence(frame, model) > len(frame.det_xy) - _EVIDENCE_MARGIN
+    return top and prior.distance(model["R"]) < _PRIOR_MARGIN
+
+
+def explains_most(frame: CubeFrame, model: dict) -> bool:
+    """True if ``model``'s evidence comes within ``_MOST_DEFICIT`` of the usable detections of the most possible.
+
+    A labelling found from a wrong start may still pass :func:`~fluorocal.stages.label.iterate.acceptable`
+    with its polynomial correction bent to fit (its depth and camera then wrong); one that explains the
+    frame this well has the phantom's magnification, hence its depth, right.
+    """
+    return model_evidence(frame, model) >= (1.0 - _MOST_DEFICIT) * len(frame.det_xy)
 
 
 def settle(
