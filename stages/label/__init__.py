@@ -41,7 +41,10 @@ and the interior orientation):
   shift vote, :mod:`.votes`), using the neighbour's camera (principal distance,
   distortion), then turns about the axis over the full circle. When the frame's
   evidence cannot tell two labellings apart, the one much nearer the prediction wins;
-  otherwise the frame fails ("ambiguous").
+  otherwise the frame fails ("ambiguous"). The prediction itself is tried first, and
+  the search ends as soon as a winner stands alone: its evidence within a margin of the
+  most any labelling could have (every detection explained), near the prediction, so
+  that nothing found later could displace it (:func:`.rivals.stands_alone`).
 - **Grid plates** (``phantom.lattice`` ``"hex"`` or ``"square"``, :mod:`.lattice`): the holes
   are indexed on their lattice by topology, growing outward from a hole near
   the centre with local lattice vectors re-estimated at every hole, so that

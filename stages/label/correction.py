@@ -22,9 +22,15 @@ class Correction:
 
     def basis(self, xy: np.ndarray) -> np.ndarray:
         uv = (xy - self.centre) / self.scale
-        u, v = uv[:, 0], uv[:, 1]
-        # shape (N, n_terms)
-        return np.column_stack([u ** (d - k) * v**k for d in range(self.degree + 1) for k in range(d + 1)])
+        # shape (degree + 1, N) each: the powers of u and of v
+        up = np.ones((self.degree + 1, len(uv)))
+        vp = np.ones((self.degree + 1, len(uv)))
+        for d in range(1, self.degree + 1):
+            up[d] = up[d - 1] * uv[:, 0]
+            vp[d] = vp[d - 1] * uv[:, 1]
+        # shape (N, n_terms): u^(d - k) v^k, degree d by degree
+        i, k = np.array([(d - k, k) for d in range(self.degree + 1) for k in range(d + 1)]).T
+        return (up[i] * vp[k]).T
 
     def distort_points(self, xy: np.ndarray) -> np.ndarray:
         """Predicted measured positions of ideal points ``xy``."""

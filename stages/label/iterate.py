@@ -267,5 +267,7 @@ def agreement(a: dict, b: dict) -> float:
     """Fraction of ``a``'s labelled detections that ``b`` gives the same bead."""
     if not len(a["det"]):
         return 0.0
-    same = dict(zip(b["det"].tolist(), b["bead"].tolist()))
-    return float(np.mean([same.get(d) == k for d, k in zip(a["det"].tolist(), a["bead"].tolist())]))
+    # b's bead per detection (-1: none); each labelling gives a detection one bead at most
+    bead_of = np.full(max(int(a["det"].max()), int(b["det"].max(initial=-1))) + 1, -1)
+    bead_of[b["det"]] = b["bead"]
+    return float(np.mean(bead_of[a["det"]] == a["bead"]))

@@ -12,11 +12,13 @@ labelling near the prediction, turns about the sequence's turntable axis over th
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from fluorocal.stages.label.cube_frame import CubeFrame, coarse_evidence, with_camera
 from fluorocal.stages.label.iterate import acceptable, agreement, iterate
 from fluorocal.stages.label.motion import OrientationPrior
-from fluorocal.stages.label.rivals import evidence, polish, settle
+from fluorocal.stages.label.rivals import evidence, explains_most, polish, settle, stands_alone
 from fluorocal.stages.label.symmetry import turn_angle
 from fluorocal.stages.label.votes import (
     N_DEPTH_DETECTIONS,
@@ -66,13 +68,17 @@ def label_from_prior(
     ``p_centre`` (camera frame, mm) is where a neighbouring frame saw the phantom's centre: its depth
     starts the search, its position across the beam does not matter (the shift is searched).
 
-    Returns ``(result, "")`` or ``(None, reason)``. Rotations of the prediction within each of
-    ``_SEARCH_SIGMAS`` of its uncertainty in turn are searched with the phantom's position free
-    (:func:`_ball_starts`); every region is searched, and the labellings found so far are settled against
-    each other and their rivals after each, the prior deciding between those that the frame itself cannot
-    tell apart; a winner must lie in the region searched, and a wider region's winner replaces the
-    narrower's (a hinge of the truth near the prediction gives way to the truth a few sigmas out). With
-    ``turn_search`` and no winner, turns about the prior's axis over the full circle follow
+    Returns ``(result, "")`` or ``(None, reason)``. The prediction itself is tried first (its vote's
+    best slip, then its other slips), then (with ``turn_search``, if nothing was found) turns about the
+    prior's axis; then rotations of the prediction within each of ``_SEARCH_SIGMAS`` of its uncertainty in
+    turn are searched with the phantom's position free (:func:`_ball_starts`), at the depth of the first
+    labelling found if any (the labellings of a frame share its magnification). After each search the
+    labellings found so far are settled against each other and their rivals, the prior deciding between
+    those that the frame itself cannot tell apart; a winner must lie in the region searched, and a wider
+    region's winner replaces the narrower's (a hinge of the truth near the prediction gives way to the
+    truth a few sigmas out). The search ends early once a winner stands alone
+    (:func:`~fluorocal.stages.label.rivals.stands_alone`: nothing found later could displace it). With
+    ``turn_search`` and no winner, turns about the prior's axis over the full circle close the search
     (:func:`_turn_starts`). Labellings found otherwise (``also``: the frame's markers') compete with them
     on their evidence alone, wherever they lie.
 
@@ -82,27 +88,19 @@ def label_from_prior(
     :func:`~fluorocal.stages.label.cube_frame.coarse_evidence`.
     """
     view = _Search(frame, camera)
-    # (region searched in the prior's standard deviations, its starts); None: the full circle
-    sizes = [_semi_axes(prior, k) for k in _SEARCH_SIGMAS]
-    # a wider region that the cap leaves as the narrower one is not searched again
-    searches = [
-        (k, lambda k=k: _ball_starts(view, prior, p_centre, k))
-        for i, k in enumerate(_SEARCH_SIGMAS)
-        if i == 0 or sizes[i] != sizes[i - 1]
-    ]
-    if turn_search:
-        searches.append((None, lambda: _turn_starts(view, prior.R, p_centre, prior.axis)))
     reason = "no pose near the neighbouring frame's brings beads onto the detections"
     settled = False
     tried: list = []
     found: list = [*also]
     winner = None
-    for within, search in searches:
+    for within, search in _searches(view, prior, p_centre, turn_search, found):
         if within is None and winner is not None:
             break  # the full circle only when nothing near the prediction stands
         starts = [s for s in search() if not any(_near(s, t) for t in tried)]
         tried += starts
         new, why = _label_starts(view, starts)
+        # a labelling found again (from a start a little off one tried before) is not its own rival
+        new = [f for f in new if all(agreement(f, g) < 0.9 for g in found)]
         found += new
         if found:
             # every region is searched: a labelling found in a narrower one may be a hinge or slip of the
@@ -111,12 +109,45 @@ def label_from_prior(
             best, why = settle(frame, found, prior, None if also else within)
             if best is not None:
                 winner = best
+                if view.depth_mm is None and explains_most(frame, best):
+                    # the labellings that explain a frame share its depth (hinges and slips of the truth
+                    # alike): the rotations of the wider searches are scored at it alone
+                    view.depth_mm = view.depth_of(best)
+                if stands_alone(frame, best, prior):
+                    # a labelling found later could not beat it by a margin, nor lie much nearer the
+                    # prediction; one about as good would leave the frame ambiguous, which keeps the winner
+                    # found first: the search is over
+                    break
             elif winner is None:
                 # a labelling found but not singled out says more than the failures of the other starts
                 reason, settled = why, True
         elif not settled:
             reason = why or reason
     return (winner, "") if winner is not None else (None, reason)
+
+
+def _searches(view: "_Search", prior: OrientationPrior, p_centre: np.ndarray, turn_search: bool, found: list):
+    """The searches of :func:`label_from_prior` in order: ``[(region, starts)]``.
+
+    ``region``: the region searched in the prior's standard deviations (None: the full circle);
+    ``starts()`` its start poses. First the cheap ones: the prediction itself, and when nothing is
+    ``found`` yet (with ``turn_search``) the turns about the axis; then the rotations
+    around the prediction (a wider region that the cap leaves as the narrower one is not searched again);
+    with ``turn_search``, the full circle last.
+    """
+    sizes = [_semi_axes(prior, k) for k in _SEARCH_SIGMAS]
+    turns = functools.cache(lambda: _turn_starts(view, prior.R, p_centre, prior.axis))
+
+    def ball(k_sigma):
+        return _ball_starts(view, prior, p_centre, k_sigma)
+
+    searches = [(_SEARCH_SIGMAS[0], lambda: ball(0.0))]
+    if turn_search:
+        searches.append((_SEARCH_SIGMAS[-1], lambda: [] if found else turns()))
+    searches += [(k, lambda k=k: ball(k)) for i, k in enumerate(_SEARCH_SIGMAS) if i == 0 or sizes[i] != sizes[i - 1]]
+    if turn_search:
+        searches.append((None, turns))
+    return searches
 
 
 def _near(a: tuple, b: tuple) -> bool:
@@ -181,21 +212,30 @@ def _ball_starts(search: "_Search", prior: OrientationPrior, p_centre: np.ndarra
     g = np.arange(-n, n + 1) * step
     # shape (G, 3): the grid's rotation vectors within the ellipsoid
     vecs = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
-    turn = vecs @ prior.axis
-    tilt = np.linalg.norm(vecs - np.outer(turn, prior.axis), axis=1)
-    vecs = vecs[(turn / a_turn) ** 2 + (tilt / a_tilt) ** 2 <= 1 + 1e-9]
+    if n:
+        turn = vecs @ prior.axis
+        tilt = np.linalg.norm(vecs - np.outer(turn, prior.axis), axis=1)
+        vecs = vecs[(turn / a_turn) ** 2 + (tilt / a_tilt) ** 2 <= 1 + 1e-9]
     turns = Rotation.from_rotvec(vecs).as_matrix()
     thin = (
         rays[np.linspace(0, len(rays) - 1, N_DEPTH_DETECTIONS).astype(int)] if len(rays) > N_DEPTH_DETECTIONS else rays
     )
-    depths = _depth_levels(prior, p_centre[2])
+    # the depths the prior allows, or the one a labelling of the frame found
+    depths = _depth_levels(prior, p_centre[2]) if search.depth_mm is None else [search.depth_mm - p_centre[2]]
 
     def pose(k, dz):
         R = turns[k] @ R0
         return R, centre - R.T @ (p_centre + [0.0, 0.0, dz])
 
-    # shape (G, 3): strength of each rotation at each depth
-    strength = np.array([[shift_strength(frame, *pose(k, dz), thin) for dz in depths] for k in range(len(vecs))])
+    # the grid's points by their steps from the prediction: the regions share them, and their scores
+    cells = [tuple(c) for c in np.rint(vecs / step).astype(int).tolist()]
+    # shape (G, L): strength of each rotation at each depth
+    strength = np.array(
+        [
+            [search.memo(("strength", cells[k], dz), shift_strength, frame, *pose(k, dz), thin) for dz in depths]
+            for k in range(len(vecs))
+        ]
+    )
     best = strength.max(1)
     kept: list[int] = []
     for k in np.argsort(-best, kind="stable"):
@@ -206,17 +246,27 @@ def _ball_starts(search: "_Search", prior: OrientationPrior, p_centre: np.ndarra
     starts: list = []
     for k in kept:
         dz = depths[int(np.argmax(strength[k]))]
-        peaks = shift_peaks(frame, *pose(k, dz), rays, N_PEAKS)
-        if not peaks:
+        start = search.memo(("start", cells[k], dz), _basin_start, search, *pose(k, dz))
+        if start is None or any(turn_angle(start[0], s[0]) < np.radians(_SAME_ORIENTATION_DEG) for s in starts):
             continue
-        # the strongest peak polished: its orientation is the basin's, whichever slip it is
-        R, T = search.polish(*peaks[0][:2])
-        if any(turn_angle(R, s[0]) < np.radians(_SAME_ORIENTATION_DEG) for s in starts):
-            continue
-        # at that orientation the vote is sharp and its peaks are the slips: the one that explains the frame best
-        slips = [(R, T, peaks[0][2]), *shift_peaks(frame, R, T, rays, N_PEAKS)]
-        starts.append(max(slips, key=lambda s: search.score(s[0], s[1])))
+        starts.append(start)
     return starts
+
+
+def _basin_start(search: "_Search", R: np.ndarray, T: np.ndarray) -> tuple | None:
+    """The start ``(R, T, votes)`` of the basin that pose ``(R, T)``'s vote leads to; None without a peak.
+
+    The strongest peak of its full vote (:func:`~fluorocal.stages.label.votes.shift_peaks`) is polished:
+    whichever slip it is, its orientation is then its basin's, where the vote is sharp and its peaks are the
+    slips; the one that explains the frame best (:meth:`_Search.score`) is the basin's start.
+    """
+    frame, rays = search.vote_frame, search.rays
+    peaks = shift_peaks(frame, R, T, rays, N_PEAKS)
+    if not peaks:
+        return None
+    R, T = search.polish(*peaks[0][:2])
+    slips = [(R, T, peaks[0][2]), *shift_peaks(frame, R, T, rays, N_PEAKS)]
+    return max(slips, key=lambda s: search.score(s[0], s[1]))
 
 
 def _depth_levels(prior: OrientationPrior, depth_mm: float) -> np.ndarray:
@@ -308,6 +358,20 @@ class _Search:
             for _ in range(2):
                 ideal = camera["corr"].undistort_points(frame.det_xy, ideal)
         self.rays = rays_of(self.vote_frame, ideal)
+        self._memo: dict = {}
+        # the phantom centre's distance from the source (mm, the vote camera) once a labelling has found it
+        self.depth_mm: float | None = None
+
+    def depth_of(self, result: dict) -> float:
+        """The phantom centre's distance from the source in labelling ``result``, as the vote camera sees it."""
+        z = float(result["R"][2] @ (self.frame.phantom.xyz_mm.mean(0) - result["T"]))
+        return z * float(self.vote_frame.iop[2]) / float(result["iop"][2])
+
+    def memo(self, key: tuple, compute, *args):
+        """``compute(*args)``, once per ``key``: the search regions share the grid points at their centre."""
+        if key not in self._memo:
+            self._memo[key] = compute(*args)
+        return self._memo[key]
 
     def polish(self, R: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pose ``(R, T)`` refined on the detections nearest its beads (under the camera, or the pinhole)."""

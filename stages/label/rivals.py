@@ -51,12 +51,22 @@ _POLISH_ROUNDS = 3
 _MAX_EXPANSIONS = 4
 _EXPAND_MARGINS = 8.0
 _BASIN_DEG = 1.0
+# a labelling whose evidence falls short of the usable detections by at most this fraction explains most of
+# the frame (a right one misses dropouts, spurious and merged blobs: 1-9 % of them)
+_MOST_DEFICIT = 0.1
 # polished poses whose sources lie closer than this (mm; the source is ~1 m away, so 0.5 deg moves it
 # ~9 mm) lead to the labelling already found
 _SAME_SOURCE_MM = 5.0
 
 
-def evidence(frame: CubeFrame, model: dict, R: np.ndarray | None = None, T: np.ndarray | None = None) -> float:
+def evidence(
+    frame: CubeFrame,
+    model: dict,
+    R: np.ndarray | None = None,
+    T: np.ndarray | None = None,
+    *,
+    bound: float | None = None,
+) -> float:
     """How well pose ``(R, T)`` (default: the model's own) explains the frame under ``model``'s camera.
 
     ``explained - unexplained - missing - _SIZE_WEIGHT x size_off``: *explained* counts the usable
@@ -72,6 +82,9 @@ def evidence(frame: CubeFrame, model: dict, R: np.ndarray | None = None, T: np.n
     model : dict
         A labelling of :func:`~fluorocal.stages.label.iterate.iterate`: its ``iop`` and ``corr`` predict the
         beads, its ``R``, ``T`` are the default pose.
+    bound : float, optional
+        Only whether the evidence exceeds ``bound`` matters: when ``explained - unexplained`` (an upper
+        bound of the evidence) does not, that is returned, without the costlier missing beads and sizes.
     """
     p = frame.params
     R = model["R"] if R is None else R
@@ -88,6 +101,8 @@ def evidence(frame: CubeFrame, model: dict, R: np.ndarray | None = None, T: np.n
 
     d_det, k = cKDTree(pred).query(frame.det_xy)
     explained = d_det <= gate[k]
+    if bound is not None and 2 * explained.sum() - len(explained) <= bound:
+        return float(2 * explained.sum() - len(explained))
     clear = ~ambiguous(pred, app, p.ambiguity_bead_diameters)
     d_pred, j = frame.det_tree.query(pred)
     found = d_pred <= gate
@@ -96,6 +111,29 @@ def evidence(frame: CubeFrame, model: dict, R: np.ndarray | None = None, T: np.n
     sizes = size_evidence(sub, R, T, vis[pairs], j[pairs])
     off = 0 if sizes is None else sizes[1]
     return float(2 * explained.sum() - len(explained) - missing - _SIZE_WEIGHT * off)
+
+
+def stands_alone(frame: CubeFrame, model: dict, prior: OrientationPrior) -> bool:
+    """True if no labelling found after ``model`` could displace it in :func:`settle`.
+
+    :func:`evidence` is at most the number of usable detections (each explained, no bead missing, no
+    size misfit), and ``model``'s comes within ``_EVIDENCE_MARGIN`` of that: another labelling could at
+    most tie with it, never beat it; and it lies within ``_PRIOR_MARGIN`` standard deviations of the
+    ``prior`` orientation, so that no tie could be ``_PRIOR_MARGIN`` times nearer. The detector's
+    dropouts, a spurious blob and merged blobs keep the right labelling a few beads below the bound.
+    """
+    top = model_evidence(frame, model) > len(frame.det_xy) - _EVIDENCE_MARGIN
+    return top and prior.distance(model["R"]) < _PRIOR_MARGIN
+
+
+def explains_most(frame: CubeFrame, model: dict) -> bool:
+    """True if ``model``'s evidence comes within ``_MOST_DEFICIT`` of the usable detections of the most possible.
+
+    A labelling found from a wrong start may still pass :func:`~fluorocal.stages.label.iterate.acceptable`
+    with its polynomial correction bent to fit (its depth and camera then wrong); one that explains the
+    frame this well has the phantom's magnification, hence its depth, right.
+    """
+    return model_evidence(frame, model) >= (1.0 - _MOST_DEFICIT) * len(frame.det_xy)
 
 
 def settle(
@@ -120,7 +158,7 @@ def settle(
         return within is None or prior.distance(c["R"]) <= within
 
     # best first: the first of an orientation is expanded, the others there are its slips
-    scored = sorted(((evidence(frame, f), i) for i, f in enumerate(found)), key=lambda e: -e[0])
+    scored = sorted(((model_evidence(frame, f), i) for i, f in enumerate(found)), key=lambda e: -e[0])
     candidates = [found[i] for _, i in scored]
     scores = [sc for sc, _ in scored]
     expanded: list = []
@@ -135,7 +173,7 @@ def settle(
             for result in _close_rivals(frame, candidates[k], level, candidates):
                 if all(agreement(result, c) < 0.9 for c in candidates):
                     candidates.append(result)
-                    scores.append(evidence(frame, result))
+                    scores.append(model_evidence(frame, result))
         k += 1
     # only fully acceptable labellings compete; the others only brought rivals
     eligible = [k for k, c in enumerate(candidates) if c.get("eligible", True)]
@@ -181,24 +219,56 @@ def _close_rivals(frame: CubeFrame, model: dict, level: float, known: list) -> l
     """
     screen = level - _SCREEN_MARGINS * _EVIDENCE_MARGIN
     symmetric = _symmetric_poses(frame, model)
-    near_sym = [(R, T) for R, T in symmetric if evidence(frame, model, R, T) > screen]
+    near_sym = [(R, T) for R, T in symmetric if model_evidence(frame, model, R, T, bound=screen) > screen]
     rivals = list(near_sym)
     for R, T in [(model["R"], model["T"]), *near_sym]:
-        rivals += _slip_poses(frame, model, R, T)
+        rivals += _memo(model, "slips", (R, T), _slip_poses, frame, model, R, T)
     out: list = []
+    close = level - _POLISH_MARGINS * _EVIDENCE_MARGIN
     for R, T in rivals:
-        if evidence(frame, model, R, T) <= screen:
+        if model_evidence(frame, model, R, T, bound=screen) <= screen:
             continue
-        R, T = polish(frame, model, R, T)
-        if evidence(frame, model, R, T) <= level - _POLISH_MARGINS * _EVIDENCE_MARGIN:
+        R, T = _memo(model, "polish", (R, T), polish, frame, model, R, T)
+        if model_evidence(frame, model, R, T, bound=close) <= close:
             continue
         if any(_same_pose(R, T, c["R"], c["T"]) for c in [*known, *out]):
             continue
         # the pose was found with the model's principal distance: the labelling starts from it too
-        result = iterate(with_camera(frame, model["iop"]), R, T)
-        if result is not None and acceptable(frame, result)[0]:
+        result = _memo(model, "labelling", (R, T), _labelling, frame, model["iop"], R, T)
+        if result is not None:
             out.append(result)
     return out
+
+
+def _labelling(frame: CubeFrame, iop: np.ndarray, R: np.ndarray, T: np.ndarray) -> dict | None:
+    """The acceptable labelling from pose ``(R, T)`` seen with ``iop``, or None."""
+    result = iterate(with_camera(frame, iop), R, T)
+    return result if result is not None and acceptable(frame, result)[0] else None
+
+
+def _memo(model: dict, kind: str, pose: tuple, compute, *args):
+    """``compute(*args)`` for pose ``(R, T)`` once per labelling ``model`` (a frame is settled several times)."""
+    cache = model.setdefault("memo", {})
+    key = (kind, pose[0].tobytes(), pose[1].tobytes())
+    if key not in cache:
+        cache[key] = compute(*args)
+    return cache[key]
+
+
+def model_evidence(
+    frame: CubeFrame, model: dict, R: np.ndarray | None = None, T: np.ndarray | None = None, *, bound=None
+) -> float:
+    """:func:`evidence`, computed once per pose for labelling ``model`` (an upper bound kept while it suffices)."""
+    cache = model.setdefault("memo", {})
+    key = ("evidence", *(model["R"] if R is None else R, model["T"] if T is None else T))
+    key = (key[0], key[1].tobytes(), key[2].tobytes())
+    value, exact = cache.get(key, (None, False))
+    if value is not None and (exact or (bound is not None and value <= bound)):
+        return value
+    value = evidence(frame, model, R, T, bound=bound)
+    # below the bound it may be the upper bound only (see evidence)
+    cache[key] = (value, bound is None or value > bound)
+    return value
 
 
 def _same_pose(R1: np.ndarray, T1: np.ndarray, R2: np.ndarray, T2: np.ndarray) -> bool:

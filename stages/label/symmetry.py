@@ -18,6 +18,10 @@ _MIN_ALIKE = 0.8
 _TOLERANCE = 0.25
 # turns tried about each principal axis (degrees)
 _STEP_DEG = 2.0
+# the offsets' bins (within +-1 / _TOLERANCE of 0) encoded as one integer: digits of this base, shifted positive
+_KEY_BASE = 16
+_KEY_OFFSET = 8
+_KEY_WEIGHTS = np.array([_KEY_BASE**2, _KEY_BASE, 1])
 
 
 def phantom_symmetries(xyz_mm: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray, float], ...]:
@@ -86,12 +90,14 @@ def _alike(xyz, tree, centre, Rg, spacing, tol) -> tuple[float, np.ndarray]:
     if not len(pairs):
         return 0.0, np.zeros(3)
     offsets = xyz[pairs["j"]] - turned[pairs["i"]]
-    keys, inverse, counts = np.unique(
-        np.floor(offsets / tol).astype(np.int64), axis=0, return_inverse=True, return_counts=True
-    )
-    best = int(np.argmax(counts))
+    # shape (P, 3): the offsets' bins, within +-spacing / tol = +-4 of 0; one integer key each, ordered as the
+    # bins are lexicographically (the first of the most common bins wins ties)
+    bins = np.floor(offsets / tol).astype(np.int64)
+    keys = (bins + _KEY_OFFSET) @ _KEY_WEIGHTS
+    best = np.array(divmod(int(np.argmax(np.bincount(keys))), _KEY_BASE**2))
+    best = np.array([best[0], *divmod(int(best[1]), _KEY_BASE)]) - _KEY_OFFSET
     # the bin and its neighbours: the mode's offsets straddle bin edges
-    near = np.all(np.abs(keys[inverse.ravel()] - keys[best]) <= 1, axis=1)
+    near = np.all(np.abs(bins - best) <= 1, axis=1)
     t = offsets[near].mean(0)
     d, _ = tree.query(turned + t, distance_upper_bound=tol)
     return float(np.isfinite(d).mean()), t

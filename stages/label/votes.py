@@ -77,9 +77,12 @@ def shift_votes(
     p_cam = p_cam[p_cam[:, 2] > 0]
     if len(p_cam) < 4 or not len(rays):
         return None
-    bin_mm = (
-        bin_gates * frame.params.gate_bead_diameters * frame.diam_ref_px * float(np.median(p_cam[:, 2])) / frame.iop[2]
-    )
+    z_mid = p_cam[:, 2].copy()
+    half = len(z_mid) // 2
+    z_mid.partition((half - 1, half) if len(z_mid) % 2 == 0 else half)
+    # the median depth (np.median's value, without its overhead: this runs for every pose searched)
+    median = 0.5 * (z_mid[half - 1] + z_mid[half]) if len(z_mid) % 2 == 0 else z_mid[half]
+    bin_mm = bin_gates * frame.params.gate_bead_diameters * frame.diam_ref_px * float(median) / frame.iop[2]
     # shape (D, B) each: the shift (in bins) that moves bead b onto detection d's ray, at b's depth
     z = p_cam[:, 2] / bin_mm
     fx = rays[:, 0:1] * z - p_cam[:, 0] / bin_mm
@@ -87,13 +90,22 @@ def shift_votes(
     lo = np.floor([fx.min(), fy.min()])
     ix, iy = (fx - lo[0]).astype(np.int64), (fy - lo[1]).astype(np.int64)
     shape = (int(ix.max()) + 1, int(iy.max()) + 1)
-    ix *= shape[1]
+    # the histogram with box // 2 empty bins before and box - 1 - box // 2 after each axis (for the box sums)
+    before = box // 2
+    full = (shape[0] + box - 1, shape[1] + box - 1)
+    ix += before
+    ix *= full[1]
     ix += iy
-    hist = np.bincount(ix.ravel(), minlength=shape[0] * shape[1]).reshape(shape)
-    padded = np.pad(hist, ((box // 2, box - 1 - box // 2),) * 2)
+    ix += before
+    padded = np.bincount(ix.ravel(), minlength=full[0] * full[1]).reshape(full)
+    hist = padded[before : before + shape[0], before : before + shape[1]]
     # separable box sum
-    rows = sum(padded[a : a + shape[0]] for a in range(box))
-    votes = sum(rows[:, b : b + shape[1]] for b in range(box))
+    rows = padded[: shape[0]].copy()
+    for a in range(1, box):
+        rows += padded[a : a + shape[0]]
+    votes = rows[:, : shape[1]].copy()
+    for b in range(1, box):
+        votes += rows[:, b : b + shape[1]]
     return hist, votes, lo, bin_mm
 
 
