@@ -80,8 +80,9 @@ def run(args) -> int:
 
     config, runner = _project(args)
     out_dir = _check_out(args, config)
-    reference = _reference(args.reference) if args.reference else None
+    reference = _reference(args.reference, runner) if args.reference else None
     schemes, ours = _schemes(args.schemes, config.scheme, reference is not None)
+    _parsed_sizes(args.train_sizes)  # the syntax before any work; the range once the epochs are known
     runner.run()
     obs = _observations(runner)
     heldout = _heldout(args.holdout, runner, obs)
@@ -137,8 +138,11 @@ def _check_out(args, config) -> Path:
     return check_outputs(config, out_dir=out)
 
 
-def _reference(path: Path):
-    """``(ids, xyz_mm)`` of the check points CSV, refused in one line if unreadable."""
+def _reference(path: Path, runner):
+    """``(ids, xyz_mm)`` of the check points CSV, refused in one line before any work.
+
+    Refused: unreadable, a cell not finite, an id given twice, or no id among the phantom's beads.
+    """
     import numpy as np
     from fluorocal.stages.errors import InputError
     from fluorocal.stages.io import PHANTOM, read_table
@@ -149,8 +153,16 @@ def _reference(path: Path):
         raise InputError(f"--reference {path}: cannot read ({exc.strerror or exc})") from None
     except InputError as exc:
         raise InputError(f"--reference: {exc}") from None
-    xyz = np.column_stack([table["x"], table["y"], table["z"]])
-    return table["id"].astype(np.int64), xyz
+    ids, xyz = table["id"].astype(np.int64), np.column_stack([table["x"], table["y"], table["z"]])
+    bad = ~np.isfinite(xyz).all(axis=1)
+    if bad.any():
+        raise InputError(f"--reference {path}:{int(np.argmax(bad)) + 2}: coordinates must be finite numbers")
+    values, counts = np.unique(ids, return_counts=True)
+    if (counts > 1).any():
+        raise InputError(f"--reference {path}: id {int(values[counts > 1][0])} is given more than once")
+    if not np.isin(ids, runner.get("phantom", None).ids).any():
+        raise InputError(f"--reference {path}: no id matches a bead of the project's phantom")
+    return ids, xyz
 
 
 def _schemes(text, project_scheme: str, have_reference: bool) -> tuple[list[str], str]:
@@ -207,7 +219,6 @@ def _sizes(text, obs, heldout, selection):
     """The training sizes of ``--train-sizes`` (default: 5 evenly spaced), refused outside what the project allows."""
     import numpy as np
     from fluorocal.stages.adjust import DataSelection
-    from fluorocal.stages.errors import InputError
     from fluorocal.stages.evaluate import check_train_sizes, default_train_sizes, min_train_epochs
 
     n_train = len(np.setdiff1d(np.unique(obs.exposure), heldout))
@@ -215,11 +226,19 @@ def _sizes(text, obs, heldout, selection):
     minimum = min_train_epochs(len(obs.system_names), selection.min_exposures)
     if text is None:
         text = ",".join(map(str, default_train_sizes(n_train, minimum=minimum)))
+    return check_train_sizes(_parsed_sizes(text), n_train, minimum)
+
+
+def _parsed_sizes(text) -> list[int] | None:
+    """``--train-sizes`` as integers (None when not given)."""
+    from fluorocal.stages.errors import InputError
+
+    if text is None:
+        return None
     try:
-        sizes = [int(v) for v in text.split(",") if v.strip()]
+        return [int(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise InputError(f"--train-sizes must be comma-separated integers; got {text!r}") from None
-    return check_train_sizes(sizes, n_train, minimum)
 
 
 def _setup(runner, reference):

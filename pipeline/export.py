@@ -52,6 +52,8 @@ def check_outputs(config, out_dir=None) -> Path:
     for system in config.systems:
         safe_name(system.name, what="system name")
     keep_out = [("the config", config.path), ("the cache", config.cache_dir)]
+    if out_dir is not None:  # another command's outputs (fluorocal evaluate) never go over the run's
+        keep_out.append(("the project's outputs ([output] dir)", config.output_dir))
     if getattr(config.phantom, "file", None) is not None:
         keep_out.append(("the phantom", config.phantom.file))
     for system in config.systems:

@@ -93,7 +93,10 @@ def checked_indices(path, indices, n_frames: int | None) -> list[int]:
     InputError
         An index outside the file's frames, naming the file.
     """
-    wanted = [int(i) for i in indices]
+    wanted = list(indices)
+    if not all(isinstance(i, (int, np.integer)) and not isinstance(i, bool) for i in wanted):
+        raise InputError(f"{path}: frame indices must be integers; got {wanted!r}")
+    wanted = [int(i) for i in wanted]
     for i in wanted:
         if i < 0:
             raise InputError(f"{path}: frames are numbered from 0; frame {i} asked for")

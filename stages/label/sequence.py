@@ -63,6 +63,8 @@ def label_sequence(
     checked = set(seeds_by_frame)  # frames whose pose was checked against their neighbours' (seeds: trusted)
     while True:
         labelled = {i: lab for i, lab in enumerate(out) if lab.ok}
+        if not labelled:  # no frame to start from: every frame keeps its own reason
+            return out
         rotations = {i: quat_to_matrix(lab.q) for i, lab in labelled.items()}
         motion = Motion.of(rotations, {i: _depth(lab, phantom, c_assumed) for i, lab in labelled.items()})
         i = _suspect(rotations, checked, motion)

@@ -263,7 +263,8 @@ def joint_uncertainty(
     node_var += np.sum((G @ cov_field) * G, axis=1)
     cov_cond = _sym_inv(H_cond + border)
     shape = (len(yn), len(xn))
-    node_std = np.sqrt(np.clip(node_var, 0.0, None)).reshape(2, *shape).transpose(1, 2, 0)
+    # NaN, not 0, where rounding left a variance below zero: never a claim of perfect certainty
+    node_std = np.where(node_var >= 0, np.sqrt(np.abs(node_var)), np.nan).reshape(2, *shape).transpose(1, 2, 0)
     return JointUncertainty(cov[:3, :3], _std(cov[:3, :3]), node_std, _std(cov_cond[:3, :3]))
 
 

@@ -310,3 +310,14 @@ def test_integer_too_large_for_64_bits_names_the_line(tmp_path):
     path.write_text(f"id,x,y,z\n1,0,0,0\n{2**63},10,0,0\n")
     with pytest.raises(InputError, match=r"p.csv:3: not an integer in column id"):
         read_phantom(path)
+
+
+def test_a_system_with_no_frame_labelled_is_one_line(tmp_path, capsys):
+    """4 frames of 256 px: the beads are too small for any frame to be labelled; the sequence labelling has no
+    frame to start from and must end with each frame's own reason, not an IndexError (found in review)."""
+    from fluorocal.cmd_simulate import write_dataset
+    from fluorocal.stages.simulate import SimulateParams, simulate
+
+    write_dataset(simulate(SimulateParams(n_frames=4, n_systems=2, image_size_px=256, seed=0)), tmp_path / "p")
+    rc, err = _cli(["--quiet", "run", tmp_path / "p" / "fluorocal.toml", "--jobs", "1"], capsys)
+    assert rc == 2 and "could be labelled" in err

@@ -15,6 +15,7 @@ import logging
 import math
 import re
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -30,6 +31,7 @@ from fluorocal.stages.evaluate import (
     heldout_epochs,
     training_subset,
 )
+from fluorocal.stages.evaluate.metrics import select, with_xy
 from fluorocal.stages.geometry import iop_guess, quat_to_matrix, rotvec_to_quat
 
 from benchmarks.learn import truth_observations
@@ -112,11 +114,35 @@ def biplanar_scores():
         set(zip(obs.exposure[test & (obs.system == 0)], obs.bead_id[test & (obs.system == 0)]))
         & set(zip(obs.exposure[test & (obs.system == 1)], obs.bead_id[test & (obs.system == 1)]))
     )
-    return {s.scheme: s for s in scores}, held, pairs
+    return {s.scheme: s for s in scores}, held, pairs, (obs, setup)
+
+
+def test_heldout_epochs_never_reach_the_training(biplanar_scores):
+    """Moving every held-out observation by 3 px changes the out-of-sample figures only: nothing trains on them."""
+    scores, held, _, (obs, setup) = biplanar_scores
+    test = np.isin(obs.exposure, held)
+    moved = with_xy(obs, obs.xy_px + np.where(test[:, None], 3.0, 0.0))
+    (before,) = evaluate(obs, held, (8,), ("none",), setup).scores
+    (after,) = evaluate(moved, held, (8,), ("none",), setup).scores
+    assert replace(before, wall_s=0) == replace(scores["none"], wall_s=0)  # computed twice: deterministic
+    for name in ("in_rms_px", "in_3d_rigid_mm", "in_3d_similarity_mm"):
+        assert getattr(after, name) == getattr(before, name), name  # bit for bit: training saw none of them
+    assert after.tworay_mean_mm != before.tworay_mean_mm  # and the held-out figures did see them
+
+
+def test_heldout_adjustment_holds_the_interior_fixed(biplanar_scores):
+    """The held-out epochs are adjusted with the calibrated IOP and correction held: poses and points alone move."""
+    from fluorocal.stages.evaluate.protocol import _adjust_fixed
+
+    _, held, _, (obs, setup) = biplanar_scores
+    test_obs = select(obs, np.isin(obs.exposure, held))
+    iop = np.array([[250.0, 260.0, 2200.0], [255.0, 250.0, 2210.0]])
+    adj, _ = _adjust_fixed(test_obs, setup, iop, (lambda xy: 0 * xy, lambda xy: 0 * xy))
+    np.testing.assert_array_equal(adj.iop_px, iop)
 
 
 def test_learned_field_beats_no_calibration_out_of_sample(biplanar_scores):
-    scores, held, pairs = biplanar_scores
+    scores, held, pairs, _ = biplanar_scores
     none, ours = scores["none"], scores["knn+iop+smooth"]
     assert ours.n_train == 8 and ours.n_heldout == len(held) == 8
     # strong distortion (~15 px at the field edge) left unmodelled costs ~0.4 mm in two-ray intersection
@@ -134,7 +160,7 @@ def test_learned_field_beats_no_calibration_out_of_sample(biplanar_scores):
 
 
 def test_opencv_peer_is_scored_on_the_same_frames(biplanar_scores):
-    scores, _, pairs = biplanar_scores
+    scores, _, pairs, _ = biplanar_scores
     cv = scores["opencv"]
     assert cv.tworay_pairs == pairs
     # OpenCV's 14-coefficient model fits the simulator's smooth radial distortion too: better than none
@@ -172,7 +198,9 @@ def test_command_writes_every_scheme_and_size_without_labelling_again(project, c
     md = (out / "evaluation.md").read_text()
     table = [line for line in md.splitlines() if line.startswith("| ")]
     assert [re.split(r"\s*\|\s*", line)[2] for line in table[1:]] == ["none", "polynomial", "knn+iop+smooth"]
-    assert "beats" in md or "No peer beats" in md  # the table always says whether a peer won anywhere
+    # the table always says whether a peer won anywhere: one line per win, or that none did
+    wins = [line for line in md.splitlines() if line.startswith("- peer ")]
+    assert bool(wins) != ("No peer beats" in md)  # the wins listed, or that there were none: never both, never neither
     assert (out / "evaluation_errors.png").stat().st_size > 1000
     assert (out / "evaluation_improvement.png").stat().st_size > 1000
     assert all((out / f"evaluation_residuals_{name}.png").stat().st_size > 1000 for name in "AB")
@@ -203,7 +231,19 @@ def test_bad_input_is_refused_in_one_line(project, tmp_path, capsys):
     assert "--reference" in _error(["evaluate", config, "--reference", str(garbage), *out], capsys)
     strangers = tmp_path / "strangers.csv"
     strangers.write_text("id,x,y,z\n" + "".join(f"{90000 + i},{i},{i * i},{i % 3}\n" for i in range(10)))
-    assert "check point" in _error(["evaluate", config, "--reference", str(strangers), *out], capsys)
+    assert "no id matches a bead" in _error(["evaluate", config, "--reference", str(strangers), *out], capsys)
+    rows = (project / "reference.csv").read_text().splitlines()
+    for name, text, message in (
+        ("nan.csv", "\n".join([rows[0], rows[1].rsplit(",", 1)[0] + ",nan", *rows[2:]]) + "\n", "must be finite"),
+        ("twice.csv", "\n".join([*rows, rows[1]]) + "\n", "is given more than once"),
+    ):
+        (tmp_path / name).write_text(text)
+        assert message in _error(["evaluate", config, "--reference", str(tmp_path / name), *out], capsys)
+    # the run's outputs are never the evaluation's folder: its calibration would be replaced
+    assert "the project's outputs" in _error(["evaluate", config, "--out", str(project / "out")], capsys)
+    assert (project / "out" / "calibration.json").exists()
+    assert "comma-separated integers" in _error(["evaluate", config, "--train-sizes", "1,x", *out], capsys)
+    assert not (tmp_path / "o").exists()  # nothing written by any refused call
 
 
 def test_holdout_files_hold_their_epoch_out_in_every_system(project, tmp_path):

@@ -199,3 +199,6 @@ def test_reading_some_frames_gives_exactly_those_of_a_full_read(tmp_path, name):
         read_frames(path, [1, 4])
     with pytest.raises(InputError, match=rf"^{path}: frames are numbered from 0; frame -1 asked for$"):
         read_frames(path, [-1])
+    for bad in (1.7, True):  # never rounded or taken as a number: an index is an integer
+        with pytest.raises(InputError, match="frame indices must be integers"):
+            read_frames(path, [bad])
