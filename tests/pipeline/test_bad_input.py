@@ -313,8 +313,10 @@ def test_integer_too_large_for_64_bits_names_the_line(tmp_path):
 
 
 def test_a_system_with_no_frame_labelled_is_one_line(tmp_path, capsys):
-    """4 frames of 256 px: the beads are too small for any frame to be labelled; the sequence labelling has no
-    frame to start from and must end with each frame's own reason, not an IndexError (found in review)."""
+    """4 frames of 256 px: no frame can be labelled, and the run ends in one line (found in review).
+
+    The sequence labelling had no frame to start from and raised an IndexError.
+    """
     from fluorocal.cmd_simulate import write_dataset
     from fluorocal.stages.simulate import SimulateParams, simulate
 
