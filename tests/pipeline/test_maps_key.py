@@ -11,17 +11,8 @@ import pytest
 from fluorocal import codehash
 from fluorocal.calibration import Calibration
 from fluorocal.maps import map_key, maps_code_digest, maps_folder
-from fluorocal.stages.field import CorrectionField
 
-from tests.pipeline.test_undistort_api import _calibration
-
-
-@pytest.fixture()
-def saved(tmp_path):
-    path = tmp_path / "cal" / "calibration.json"
-    path.parent.mkdir()
-    _calibration().save(path)
-    return path
+from tests.pipeline.conftest import count_map_computations
 
 
 @pytest.fixture()
@@ -46,20 +37,8 @@ def _edit(monkeypatch, module: str, appended: str) -> None:
     maps_code_digest.cache_clear()
 
 
-def _count_computations(monkeypatch) -> list:
-    calls = []
-    original = CorrectionField.remap_maps
-
-    def counted(self, *args):
-        calls.append(args)
-        return original(self, *args)
-
-    monkeypatch.setattr(CorrectionField, "remap_maps", counted)
-    return calls
-
-
 def test_unchanged_code_reuses_the_entry_and_changed_code_recomputes(saved, monkeypatch, fresh_digest):
-    calls = _count_computations(monkeypatch)
+    calls = count_map_computations(monkeypatch)
     first = np.stack(Calibration.load(saved).remap_maps("B"))
     again = np.stack(Calibration.load(saved).remap_maps("B"))  # a new process, in effect: only the disk is shared
     assert len(calls) == 1 and len(list(maps_folder(saved).glob("*.npy"))) == 1

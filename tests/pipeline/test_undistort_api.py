@@ -27,6 +27,8 @@ from fluorocal.stages.orientation import OrientationField
 from fluorocal.stages.undistort import UndistortParams, undistort_frame
 from fluorocal.streaming import stream
 
+from tests.pipeline.conftest import count_map_computations
+
 W, H = 96, 64
 
 
@@ -55,14 +57,6 @@ def _frame(seed=0) -> np.ndarray:
     yy, xx = np.mgrid[0:H, 0:W]
     noise = np.random.default_rng(seed).normal(0, 30, (H, W))
     return np.clip(2000 + 1500 * np.sin(xx / 6.0) * np.cos(yy / 8.0) + noise, 0, 4095).astype(np.uint16)
-
-
-@pytest.fixture()
-def saved(tmp_path):
-    path = tmp_path / "cal" / "calibration.json"
-    path.parent.mkdir()
-    _calibration().save(path)
-    return path
 
 
 # --- remap_maps and undistort_image -------------------------------------------------------------------
@@ -130,20 +124,8 @@ def test_undistort_image_refuses_bad_frames_and_sizes(saved):
 # --- the cache beside the calibration -------------------------------------------------------------------
 
 
-def _count_computations(monkeypatch):
-    calls = []
-    original = CorrectionField.remap_maps
-
-    def counted(self, *args):
-        calls.append(args)
-        return original(self, *args)
-
-    monkeypatch.setattr(CorrectionField, "remap_maps", counted)
-    return calls
-
-
 def test_maps_are_computed_once_and_read_back_from_the_cache(saved, monkeypatch):
-    calls = _count_computations(monkeypatch)
+    calls = count_map_computations(monkeypatch)
     first = Calibration.load(saved).remap_maps("A", orientation="o0")
     assert len(calls) == 1 and len(list(maps_folder(saved).glob("*.npy"))) == 1
     cal = Calibration.load(saved)  # a new process, in effect: only the disk cache is shared
@@ -159,7 +141,7 @@ def test_maps_are_computed_once_and_read_back_from_the_cache(saved, monkeypatch)
 
 
 def test_a_changed_calibration_never_meets_its_old_maps(saved, monkeypatch):
-    calls = _count_computations(monkeypatch)
+    calls = count_map_computations(monkeypatch)
     Calibration.load(saved).remap_maps("B")
     cal = _calibration()
     cal.systems["B"] = dataclasses.replace(cal.systems["B"], field=_field(0.5))
@@ -180,7 +162,7 @@ def test_a_changed_calibration_never_meets_its_old_maps(saved, monkeypatch):
     ids=["truncated", "garbage", "one-value-changed"],
 )
 def test_a_corrupt_cached_map_is_recomputed_with_a_warning(saved, monkeypatch, damage):
-    calls = _count_computations(monkeypatch)
+    calls = count_map_computations(monkeypatch)
     good = np.stack(Calibration.load(saved).remap_maps("B"))
     (entry,) = maps_folder(saved).glob("*.npy")
     damage(entry)
@@ -200,7 +182,7 @@ def test_a_cache_that_cannot_be_written_costs_only_the_cache(saved):
 
 
 def test_a_calibration_in_memory_caches_in_memory_only(tmp_path, monkeypatch):
-    calls = _count_computations(monkeypatch)
+    calls = count_map_computations(monkeypatch)
     cal = _calibration()
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -16,16 +16,8 @@ from fluorocal.calibration import Calibration
 from fluorocal.cli import main
 from pydicom import uid
 
-from tests.pipeline.test_undistort_api import _calibration, _frame
+from tests.pipeline.test_undistort_api import _frame
 from tests.stages.test_dicom_derived import _source
-
-
-@pytest.fixture()
-def saved(tmp_path):
-    path = tmp_path / "cal" / "calibration.json"
-    path.parent.mkdir()
-    _calibration().save(path)
-    return path
 
 
 def _undistort(saved, out, *inputs, system="B", options=()):
