@@ -99,9 +99,9 @@ def label_from_prior(
         starts = [s for s in search() if not any(_near(s, t) for t in tried)]
         tried += starts
         new, why = _label_starts(view, starts)
-        # a labelling found again (from a start a little off one tried before) is not its own rival
-        new = [f for f in new if all(agreement(f, g) < 0.9 for g in found)]
-        found += new
+        # a labelling found again (from a start a little off one tried before) is not its own rival: of the
+        # two, the one with more evidence stays
+        found = _merged(frame, found, new)
         if found:
             # every region is searched: a labelling found in a narrower one may be a hinge or slip of the
             # truth, which lies a few sigmas out when the axis wobbles; the wider search replaces the narrower's
@@ -124,6 +124,23 @@ def label_from_prior(
         elif not settled:
             reason = why or reason
     return (winner, "") if winner is not None else (None, reason)
+
+
+def _merged(frame: CubeFrame, found: list, new: list) -> list:
+    """``found`` with the ``new`` labellings added.
+
+    One that agrees with a found one on 90 % of its labels is that one found again, not its rival: it
+    replaces it (in its place) if it has more evidence, else it is dropped.
+    """
+    out = list(found)
+    for f in new:
+        same = [i for i, g in enumerate(out) if agreement(f, g) >= 0.9]
+        if not same:
+            out.append(f)
+        elif evidence(frame, f) > max(evidence(frame, out[i]) for i in same):
+            # in the place of the first it replaces: the order found decides ties
+            out = [f if i == same[0] else g for i, g in enumerate(out) if i == same[0] or i not in same]
+    return out
 
 
 def _searches(view: "_Search", prior: OrientationPrior, p_centre: np.ndarray, turn_search: bool, found: list):

@@ -123,3 +123,19 @@ def test_correction_basis_is_the_monomials(degree):
     u, v = ((xy - corr.centre) / corr.scale).T
     expected = np.column_stack([u ** (d - k) * v**k for d in range(degree + 1) for k in range(d + 1)])
     np.testing.assert_allclose(corr.basis(xy), expected, rtol=0, atol=1e-12)
+
+
+def test_a_labelling_found_again_keeps_the_better_of_the_two(monkeypatch):
+    """A labelling found again (agreeing on 90 % of its labels) is not kept beside the first: the better stays.
+
+    ``prior._merged`` keeps the one with more evidence, in the first one's place (the order found decides ties).
+    """
+    from fluorocal.stages.label import prior
+
+    # stand-in labellings: a family (labellings of one family agree fully) and an evidence
+    monkeypatch.setattr(prior, "agreement", lambda f, g: 1.0 if f["family"] == g["family"] else 0.0)
+    monkeypatch.setattr(prior, "evidence", lambda frame, f: f["evidence"])
+    a, b = {"family": "a", "evidence": 100.0}, {"family": "b", "evidence": 90.0}
+    better_a, worse_b, c = {"family": "a", "evidence": 101.0}, {"family": "b", "evidence": 80.0}, {"family": "c"}
+    assert prior._merged(None, [a, b], [better_a, worse_b, c]) == [better_a, b, c]
+    assert prior._merged(None, [a], [{"family": "a", "evidence": 100.0}]) == [a]  # a tie keeps the first found
