@@ -116,6 +116,12 @@ def calibration_from_result(runner, result):
     adj = result.adjustment
     names = [s.name for s in runner.config.systems]
     sizes = [next(u.size_px for u in runner.units if u.system == s) for s in range(len(names))]
+    for name, std in zip(names, result.iop_std_px):
+        if not np.isfinite(std).all():  # written as null: say why
+            bad = ", ".join(p for p, v in zip(("xp", "yp", "c"), std) if not np.isfinite(v))
+            log.warning(
+                "system %s: no finite uncertainty for %s (the data barely determine it); written as null", name, bad
+            )
     systems = [
         SystemCalibration(
             name,
