@@ -315,7 +315,8 @@ class ArtifactCache:
             return
         if self.root.exists() and not self.root.is_dir():
             raise InputError(f"cache dir {self.root} is a file, not a folder")
-        if self.root.is_dir() and not _only_cache_files(self.root):
+        # the marker looked for again after the listing: another process may have made the cache meanwhile
+        if self.root.is_dir() and not _only_cache_files(self.root) and not marker.is_file():
             raise InputError(
                 f"cache dir {self.root} holds files that are not a fluorocal cache (no {MARKER}); "
                 "choose a new or empty folder"
@@ -468,7 +469,7 @@ def _older_format(raw: bytes) -> bool:
 def _only_cache_files(root: Path) -> bool:
     """Whether ``root`` holds only what a cache (of this or the previous format) writes."""
     for child in root.iterdir():
-        if child.name == LOCKS and child.is_dir():
+        if (child.name == LOCKS and child.is_dir()) or (child.name == MARKER and child.is_file()):
             continue
         if child.is_symlink() or not child.is_dir() or not _STAGE.fullmatch(child.name):
             return False

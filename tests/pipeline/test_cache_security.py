@@ -253,3 +253,33 @@ def test_an_entry_of_the_previous_format_is_a_quiet_miss(project):
     (entry / CHECKSUM).unlink()  # as the previous format wrote it
     CALLS.clear()
     assert _runner(project).run().computed["total"] == 1 and CALLS == {"total": 1}  # no CacheWarning (an error here)
+
+
+def test_a_cache_another_process_makes_meanwhile_is_accepted(tmp_path, monkeypatch):
+    """A cache another process makes between this one's marker check and its listing is accepted (seen in CI).
+
+    This process found no marker; the other made the cache (marker, locks, a stage folder); this one then
+    listed the folder and refused it as a stranger's.
+    """
+    from fluorocal import cache as cache_module
+
+    root = tmp_path / ".fluorocal"
+    listing = cache_module._only_cache_files
+    made = ArtifactCache(tmp_path / "made")
+    made.prepare_root()  # what a cache's start-up writes: its marker
+
+    def meanwhile(path):
+        # the other process's start-up, between this one's marker check and its listing
+        (root / MARKER).write_bytes((made.root / MARKER).read_bytes())
+        (root / "detect").mkdir(exist_ok=True)
+        return listing(path)
+
+    root.mkdir()
+    monkeypatch.setattr(cache_module, "_only_cache_files", meanwhile)
+    ArtifactCache(root).prepare_root()  # no InputError
+    assert (root / MARKER).is_file()
+    monkeypatch.undo()
+    (root / MARKER).unlink()
+    (root / "notes.txt").write_text("a user's file")
+    with pytest.raises(InputError, match="holds files that are not a fluorocal cache"):
+        ArtifactCache(root).prepare_root()  # a stranger's folder is still refused
