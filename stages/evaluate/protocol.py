@@ -35,7 +35,7 @@ from fluorocal.stages.evaluate.metrics import (
     with_xy,
 )
 from fluorocal.stages.evaluate.split import training_subset
-from fluorocal.stages.learn import LearnParams, calibrate, start_orientation
+from fluorocal.stages.learn import CalibrationSetup, LearnParams, learn_calibration, start_orientation
 
 log = logging.getLogger(__name__)
 
@@ -122,18 +122,11 @@ class Score:
 
 
 def learned_interior(train_obs, scheme: str, setup: EvaluationSetup) -> Interior:
-    """Calibrate ``train_obs`` with ``scheme`` (:func:`fluorocal.stages.learn.calibrate`, resected start)."""
+    """Calibrate ``train_obs`` with ``scheme`` as ``fluorocal run`` does (:func:`.learn_calibration`)."""
     t0 = time.perf_counter()
-    initial = start_orientation(train_obs, setup.phantom, setup.iop_guess_px)
-    res = calibrate(
-        train_obs,
-        setup.phantom,
-        initial,
-        image_size=setup.image_size_px,
-        scheme=scheme,
-        params=setup.learn,
-        solver=setup.solver,
-        selection=setup.selection,
+    plan = CalibrationSetup(scheme=scheme, image_size_px=setup.image_size_px, iop_guess_px=setup.iop_guess_px)
+    res = learn_calibration(
+        train_obs, setup.phantom, setup.learn, setup=plan, solver=setup.solver, selection=setup.selection
     )
     adj = res.adjustment
     corrections = tuple(res.field(s).correction_at for s in range(len(train_obs.system_names)))

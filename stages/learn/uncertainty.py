@@ -263,14 +263,15 @@ def joint_uncertainty(
     node_var += np.sum((G @ cov_field) * G, axis=1)
     cov_cond = _sym_inv(H_cond + border)
     shape = (len(yn), len(xn))
-    # NaN, not 0, where rounding left a variance below zero: never a claim of perfect certainty
-    node_std = np.where(node_var >= 0, np.sqrt(np.abs(node_var)), np.nan).reshape(2, *shape).transpose(1, 2, 0)
-    return JointUncertainty(cov[:3, :3], _std(cov[:3, :3]), node_std, _std(cov_cond[:3, :3]))
+    node_std = _std(node_var).reshape(2, *shape).transpose(1, 2, 0)
+    return JointUncertainty(cov[:3, :3], _std(np.diag(cov)[:3]), node_std, _std(np.diag(cov_cond)[:3]))
 
 
-def _std(cov: np.ndarray) -> np.ndarray:
-    """Standard deviations; NaN where rounding left a variance below zero (a parameter the data barely determine)."""
-    var = np.diag(cov)
+def _std(var: np.ndarray) -> np.ndarray:
+    """Standard deviations of variances ``var``.
+
+    NaN (never 0, a claim of certainty) where rounding left one below zero: a parameter the data barely determine.
+    """
     return np.where(var >= 0, np.sqrt(np.abs(var)), np.nan)
 
 
