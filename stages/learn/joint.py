@@ -52,6 +52,7 @@ def fit_grid_jointly(
     max_cg_iterations: int = 400,
     cg_tolerance: float = 1e-6,
     order: int = 2,
+    start: np.ndarray | None = None,
 ) -> CorrectionField:
     """Gridded field update estimated jointly with the orientation's response (IOP, poses, points).
 
@@ -88,6 +89,8 @@ def fit_grid_jointly(
         The conjugate gradients' cap and relative tolerance.
     order : int
         Order of the difference prior (default 2), as in :func:`fluorocal.stages.learn.grid.fit_grid_field`.
+    start : (H_g, W_g, 2) float64 ndarray, px, optional
+        Node values to start the conjugate gradients from (an update of nearly the same problem).
 
     Returns
     -------
@@ -96,6 +99,7 @@ def fit_grid_jointly(
     """
     xy, r, w = (np.asarray(a, dtype=np.float64) for a in (xy_px, residuals_px, weights))
     width, height = (int(s) for s in image_size)
+    x0 = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1, 2).T.ravel()
     xn, yn = grid.nodes((width, height))
     A = bilinear_design(xn, yn, xy)
     D = difference_operator(len(yn), len(xn), int(order))
@@ -112,7 +116,7 @@ def fit_grid_jointly(
     def matvec(v):
         return Nvv @ v - Nvt @ solve_theta(Ntv @ v) + k_gauge * (G.T @ (G @ v))
 
-    v = _solve_reduced(Nvv, matvec, rhs, np.array_equal(w[:, 0], w[:, 1]), max_cg_iterations, cg_tolerance)
+    v = _solve_reduced(Nvv, matvec, rhs, np.array_equal(w[:, 0], w[:, 1]), max_cg_iterations, cg_tolerance, x0)
     n_nodes = A.shape[1]
     return grid_result(xn, yn, np.column_stack([v[:n_nodes], v[n_nodes:]]), A, xy, cv_rms_px, grid, (width, height))
 
@@ -171,7 +175,7 @@ def _gauge_penalty(A, xy, w, iop_px, with_iop: bool):
     return G, float(np.mean(w)) / max(len(xy), 1)
 
 
-def _solve_reduced(Nvv, matvec, rhs, same_weights: bool, max_cg_iterations: int, cg_tolerance: float):
+def _solve_reduced(Nvv, matvec, rhs, same_weights: bool, max_cg_iterations: int, cg_tolerance: float, x0=None):
     """The node values of the reduced system, by CG preconditioned with the field block's LU."""
     n_nodes = Nvv.shape[0] // 2
     op = LinearOperator((2 * n_nodes, 2 * n_nodes), matvec=matvec, dtype=np.float64)
@@ -183,7 +187,7 @@ def _solve_reduced(Nvv, matvec, rhs, same_weights: bool, max_cg_iterations: int,
         return np.concatenate([lus[0].solve(v[:n_nodes]), lus[-1].solve(v[n_nodes:])])
 
     pre = LinearOperator((2 * n_nodes, 2 * n_nodes), matvec=precondition, dtype=np.float64)
-    v, info = cg(op, rhs, rtol=cg_tolerance, maxiter=max_cg_iterations, M=pre)
+    v, info = cg(op, rhs, x0=x0, rtol=cg_tolerance, maxiter=max_cg_iterations, M=pre)
     if info > 0:
         logger.info("joint field step: CG stopped after %d iterations short of its tolerance", info)
     return v

@@ -344,7 +344,7 @@ def _regress_system(plan: _Plan, state: _State, s: int):
     explained, _ = misfit_inliers(r, model.correction_at(plan.xy[candidates]), var, params.outlier_chi2)
     refit = _enough(candidates, explained, params.n_folds)
     if not np.array_equal(refit, sel):
-        model, mem = _fit(plan, state, s, refit, mem, refit=True)
+        model, mem = _fit(plan, state, s, refit, mem, refit=model)
     logger.debug(
         "system %s: %d observations, %d left out by the local screen, %d by the field's misfit",
         plan.observations.system_names[s],
@@ -360,18 +360,19 @@ def _enough(candidates: np.ndarray, keep: np.ndarray, n_min: int) -> np.ndarray:
     return candidates[keep] if keep.sum() >= n_min else candidates
 
 
-def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refit: bool = False, cost_cap=None):
+def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refit=None, cost_cap=None):
     """One regression of system ``s`` on observations ``sel``: the update and the memory after it.
 
-    ``refit``: the same kNN step again (after the local outlier test), with the ``k`` just chosen.
-    ``cost_cap`` bounds each observation's out-of-fold cost in the cross-validations.
+    ``refit``: the update just fitted, when this is the same step again (after the local outlier test), with
+    the ``k`` just chosen, or the refinement's step started from it. ``cost_cap`` bounds each observation's
+    out-of-fold cost in the cross-validations.
     """
     if state.phase == "grid":
-        return _fit_grid(plan, state, s, sel, mem, cost_cap)
+        return _fit_grid(plan, state, s, sel, mem, cost_cap, start=refit)
     params = plan.params
     r, var = state.out.residuals_px[sel], state.out.residual_var_px2[sel]
     knn = dict(image_size=plan.sizes[s], grid=params.grid, smooth=plan.smooth, n_folds=params.n_folds, seed=params.seed)
-    if refit:
+    if refit is not None:
         model, _ = fit_knn_field(plan.xy[sel], r, var, cv=mem.cv, **knn)
         return model, mem
     k_grid = restricted_k_grid(params.k_grid, mem.k_prev)
@@ -381,8 +382,11 @@ def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refi
     return model, replace(mem, cv=cv, k_prev=cv.k)
 
 
-def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, cost_cap=None):
-    """The refinement's update of system ``s``: the gridded least squares, jointly with the points or not."""
+def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, cost_cap=None, start=None):
+    """The refinement's update of system ``s``: the gridded least squares, alone or the joint problem's step.
+
+    ``start``: an update of nearly the same observations to start the joint step's iterative solve from.
+    """
     params, adj, observations = plan.params, state.adj, plan.observations
     xy, r, var = plan.xy[sel], state.out.residuals_px[sel], state.out.residual_var_px2[sel]
     base = state.grids[s]
@@ -424,6 +428,7 @@ def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory,
         cv_rms_px=mem.cv.cv_rms_px,
         max_cg_iterations=LOOP_CG_ITERATIONS,
         cg_tolerance=LOOP_CG_TOLERANCE,
+        start=None if start is None else start.delta_px,
         **fit,
     )
     return model, mem
