@@ -56,6 +56,8 @@ logger = logging.getLogger(__name__)
 #: conjugate-gradient cap and relative tolerance of the joint field step inside the loop: an inexact
 #: inner solve is enough, since the next iteration starts from the new residuals
 LOOP_CG_ITERATIONS, LOOP_CG_TOLERANCE = 100, 1e-3
+#: halvings of a refinement step that raised the adjustment's cost
+MAX_HALVINGS = 3
 
 
 @dataclass(frozen=True)
@@ -234,6 +236,9 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     corrections, grids, pointwise, anderson = _update_field(plan, state, updates)
     adj = plan.adjuster(corrections, state.adj, final=False)
     out = adjustment_outcome(adj, plan.observations.sigma_px)
+    if phase == "grid" and plan.refine == "grid+points" and out.cost > state.out.cost:
+        corrections, grids, adj, out = _backtracked(plan, state, corrections, grids)
+        anderson = anderson.restarted()
     total = out.cost + fit_cost
     step = float(np.max(np.abs(corrections - state.corrections))) if len(corrections) else 0.0
     step_sigma = _field_step_sigma(state.grids, grids) if plan.smooth else float("nan")
@@ -270,6 +275,24 @@ def _iterate(plan: _Plan, state: _State) -> _State:
         updates,
         trained,
     )
+
+
+def _backtracked(plan: _Plan, state: _State, corrections: np.ndarray, grids: tuple):
+    """The joint step halved until the adjustment's cost is not above the last iteration's (at most a few times).
+
+    A Gauss-Newton step along a direction the orientation only partly mimics can be long (a pixel
+    of field against tens of pixels of principal point), where the linearisation and the fast
+    intermediate adjustment stop following it; the shorter step keeps the iteration descending.
+    """
+    for _ in range(MAX_HALVINGS):
+        corrections = 0.5 * (corrections + state.corrections)
+        grids = tuple(g.with_delta(0.5 * (g.delta_px + old.delta_px)) for g, old in zip(grids, state.grids))
+        adj = plan.adjuster(corrections, state.adj, final=False)
+        out = adjustment_outcome(adj, plan.observations.sigma_px)
+        if out.cost <= state.out.cost:
+            break
+    logger.info("refinement step halved: adjustment cost %.6g (last iteration %.6g)", out.cost, state.out.cost)
+    return corrections, grids, adj, out
 
 
 def _field_step_sigma(before: tuple, after: tuple) -> float:
