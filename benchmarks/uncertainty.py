@@ -10,12 +10,11 @@ recommended preset).
 The IOP is stated under the field gauge (README, "Uncertainties"): the field
 has no least-squares component, at the training observations, along a
 principal-point shift, a scaling about the principal point or a common camera
-rotation. Its truth in that convention is an oracle adjustment of the
-noise-free training projections with the true correction less its gauge
-component held (the gauge recomputed at the oracle's IOP, three times). The
-field's truth at a node is the true correction there less the same gauge
-component; an undistorted point's truth is the true ideal projection moved by
-that component too.
+rotation. Its truth in that convention (``convention_truth``) is the true
+configuration moved by the IOP change and common camera rotation that leave
+the true correction no such component, exactly (the change acts on the ideal
+points, a projective map). The field's truth at a node is the moved
+correction there; an undistorted point's truth is the moved ideal projection.
 
 Printed per seed: the IOP error and its stated σ (the joint one and the
 adjustment's conditional one); then coverage with counts: ``|error| <= 2σ`` for
@@ -97,8 +96,7 @@ def run_seed(args, seed: int) -> dict:
     wall = time.perf_counter() - t0
     adj, field = res.adjustment, res.fields[0]
     rows = np.flatnonzero(res.trained & adj.used)
-    true_corr = train_true.xy_px - system.distortion.undistort_points(train_true.xy_px)
-    iop_true, component = convention_truth(train_true, rows, phantom, initial, system.iop_px, true_corr)
+    iop_true, component = convention_truth(train_true.xy_px[rows], system.distortion.correction_at, system.iop_px)
     unc = res.uncertainty[0]
     iop_err = adj.iop_px[0] - iop_true
     # the field at the supported nodes against the true correction less its gauge component: its value at the

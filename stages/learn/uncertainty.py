@@ -17,8 +17,9 @@ gridded field, linearised at the solution:
   principal point and the three displacement fields of a common camera
   rotation is zero. This is the convention that makes the IOP identifiable:
   the reported IOP is the pinhole under it, and its error is measured against
-  the true IOP expressed in the same convention (the true distortion with its
-  gauge component moved into the IOP, :func:`convention_truth`);
+  the true IOP expressed in the same convention (the true configuration moved
+  by an IOP change and a common camera rotation until its correction has no
+  gauge component, :func:`convention_truth`);
 - the IOP's σ leaves the phantom's shape free, as the final adjustment that
   estimates the IOP does; the field's σ holds the phantom's five affine shape
   modes beyond a similarity at the design's when the refinement that learned
@@ -341,44 +342,79 @@ def with_field_std(field, uncertainty: JointUncertainty):
     return field.with_delta(field.delta_px, sigma_px=uncertainty.field_std_px)
 
 
-def gauge_component(xy_px, correction_px, iop_px, with_iop: bool = True):
-    """The least-squares gauge component of a correction at ``xy_px``, as a field: ``xy (m, 2) -> (m, 2)`` px."""
-    B = gauge_basis(xy_px, iop_px, with_iop)
-    coef, *_ = np.linalg.lstsq(B.reshape(-1, B.shape[2]), np.asarray(correction_px).reshape(-1), rcond=None)
-    return lambda xy: (gauge_basis(xy, iop_px, with_iop).reshape(-1, B.shape[2]) @ coef).reshape(-1, 2)
+def _moved_ideal(ideal_px, iop_px, change) -> np.ndarray:
+    """Ideal points ``(m, 2)`` px of the same rays under the IOP ``iop + change[:3]``, every camera rotated alike.
 
-
-def convention_truth(observations, rows, phantom, initial, true_iop_px, true_correction_px, *, n_rounds: int = 3):
-    """A known IOP and correction expressed in the gauge convention: ``(iop (3,) px, gauge component)``.
-
-    The IOP an adjustment of ``observations`` (one system; its exact, noise-free projections)
-    estimates with the true correction less its gauge component at ``rows`` held, the gauge
-    recomputed at that IOP ``n_rounds`` times. What the convention moves out of the correction,
-    ``gauge component(xy)``, is what the field under the convention lacks: its true value at
-    ``xy`` is ``true correction - component`` and the true ideal point ``ideal + component``.
-    Exact, unlike a first-order reading of the gauge coefficients, since a principal-point
-    shift and a camera rotation differ only in the quadratic terms of the keystone fields.
+    ``change[3:]`` is the common camera rotation as a rotation vector times ``c`` (px, so that all six
+    are of one scale): ``p <- R p`` for every camera ray ``p``, exactly, not to first order.
     """
-    from fluorocal.stages.adjust import FreeParameters, Orientation, adjust_bundle
+    from scipy.spatial.transform import Rotation
 
-    xy, corr = observations.xy_px, np.asarray(true_correction_px, dtype=np.float64)
+    xp, yp, c = (float(v) for v in iop_px)
+    rays = np.column_stack([(ideal_px[:, 0] - xp) / c, (ideal_px[:, 1] - yp) / c, np.ones(len(ideal_px))])
+    rays = rays @ Rotation.from_rotvec(np.asarray(change[3:]) / c).as_matrix().T
+    new = np.asarray(iop_px, dtype=np.float64) + change[:3]
+    return new[:2] + new[2] * rays[:, :2] / rays[:, 2:3]
+
+
+def convention_truth(xy_px, true_correction, true_iop_px):
+    """A known IOP and correction expressed in the gauge convention, exactly: ``(iop (3,) px, component)``.
+
+    The true configuration moved along the gauge: the IOP changed and every camera rotated alike by the
+    six parameters that leave the moved correction ``Δ'(x) = x - ideal'(x)`` no least-squares component,
+    at ``xy_px``, along the gauge fields at the moved IOP (:func:`fluorocal.stages.learn.gauge.gauge_basis`),
+    as the learning's gauge requires of its field. It reproduces the projections exactly: the IOP change
+    and the rotation act on the *ideal* point ``x - Δ(x)`` of each ray (a projective map), which the gauge's
+    first-order fields at the measured point only approximate; moving that approximation into the IOP by
+    an adjustment leaves a systematic misfit (a few hundredths of a pixel at a strong distortion) that
+    shifts the IOP along the weakly determined principal point by tens of pixels.
+
+    Parameters
+    ----------
+    xy_px : (n, 2) float64 ndarray, px
+        The distorted points the gauge is taken at (the training observations the field learned from).
+    true_correction : callable
+        ``xy (m, 2) -> Δ(xy) (m, 2)`` px, the true correction (distorted minus ideal).
+    true_iop_px : (3,) array_like, px
+
+    Returns
+    -------
+    iop_px : (3,) float64 ndarray, px
+        The IOP in the convention.
+    component : callable
+        ``xy (m, 2) -> (m, 2)`` px, what the convention moves out of the correction: the true field in the
+        convention at ``xy`` is ``Δ(xy) - component(xy)`` and the true ideal point ``ideal + component(xy)``.
+    """
+    from scipy.optimize import root
+
+    from fluorocal.stages.errors import EstimationError
+
+    xy = np.asarray(xy_px, dtype=np.float64)
     iop = np.asarray(true_iop_px, dtype=np.float64)
-    for _ in range(n_rounds):
-        component = gauge_component(xy[rows], corr[rows], iop)
-        start = Orientation(
-            iop[None], initial.exposure, initial.q_cam_from_obj, initial.source_mm, system_names=initial.system_names
-        )
-        free = FreeParameters(estimate_iop=True)
-        oracle = adjust_bundle(observations, phantom, start, corr - component(xy), free=free, compute_covariance=False)
-        iop = oracle.iop_px[0]
-    return iop, gauge_component(xy[rows], corr[rows], iop)
+    ideal = xy - true_correction(xy)
+
+    def gauge_coefficients(change):
+        B = gauge_basis(xy, iop + change[:3], True)
+        B = B / np.sqrt(np.mean(B**2, axis=(0, 1)))
+        moved = xy - _moved_ideal(ideal, iop, change)
+        return np.linalg.lstsq(B.reshape(-1, B.shape[2]), moved.reshape(-1), rcond=None)[0]
+
+    sol = root(gauge_coefficients, np.zeros(6), method="hybr", options={"xtol": 1e-12})
+    if not sol.success:
+        raise EstimationError(f"the gauge convention's truth was not found: {sol.message}")
+    change = sol.x
+
+    def component(q):
+        ideal_q = np.asarray(q, dtype=np.float64) - true_correction(q)
+        return _moved_ideal(ideal_q, iop, change) - ideal_q
+
+    return iop + change[:3], component
 
 
 __all__ = [
     "JointUncertainty",
     "camera_jacobians",
     "convention_truth",
-    "gauge_component",
     "joint_uncertainty",
     "learned_uncertainty",
     "with_field_std",

@@ -156,6 +156,32 @@ def test_conditional_sigma_is_the_adjustments_and_the_joint_is_larger(small_adju
     assert np.all(got.iop_std_px >= got.conditional_iop_std_px * (1 - 1e-9))
 
 
+def test_convention_truth_reproduces_the_projections_and_has_no_gauge_component():
+    """The truth in the gauge convention is the true configuration moved along the gauge, exactly.
+
+    Exact projections adjusted with the convention's correction held fit to round-off at the convention's IOP;
+    and that correction has no least-squares component along the gauge fields at that IOP.
+    """
+    (train, _), initial, phantom, system = simulated_set(4, 6, 256)
+    exact = train[1]
+    iop, component = convention_truth(exact.xy_px, system.distortion.correction_at, system.iop_px)
+    moved = system.distortion.correction_at(exact.xy_px) - component(exact.xy_px)
+    # the convention moves the IOP by tens of px on a strong distortion: a test that would notice a no-op
+    assert np.max(np.abs(iop - system.iop_px)) > 5.0
+    B = gauge_basis(exact.xy_px, iop, True).reshape(-1, 6)
+    coef = np.linalg.lstsq(B / np.linalg.norm(B, axis=0), moved.ravel(), rcond=None)[0]
+    # the root-finder's tolerance (1e-12 relative; 1e-10 px measured on this set), with a margin
+    assert np.max(np.abs(coef)) < 1e-8
+    adj = adjust_bundle(
+        exact, phantom, initial, moved, free=FreeParameters(estimate_iop=True), compute_covariance=False
+    )
+    # exact data and an exactly reproducible configuration: round-off limits the fit (3e-13 px and 2e-10 px of
+    # IOP measured here), bounded well above it; the first-order construction (the gauge fields at the
+    # measured points moved into the IOP by an adjustment) left ~0.015 px and a principal point 5-40 px off
+    assert np.sqrt(np.mean(adj.residual_px[adj.used] ** 2)) < 1e-6
+    np.testing.assert_allclose(adj.iop_px[0], iop, atol=1e-4)
+
+
 def test_stated_sigma_covers_the_actual_error_over_seeds():
     """Coverage against repeated simulations (benchmarks/uncertainty.py at a smaller setting).
 
@@ -170,8 +196,7 @@ def test_stated_sigma_covers_the_actual_error_over_seeds():
         res = calibrate(train[0], phantom, initial, image_size=(384, 384))
         adj, field = res.adjustment, res.fields[0]
         rows = np.flatnonzero(res.trained & adj.used)
-        corr = train[1].xy_px - system.distortion.undistort_points(train[1].xy_px)
-        iop_true, component = convention_truth(train[1], rows, phantom, initial, system.iop_px, corr)
+        iop_true, component = convention_truth(train[1].xy_px[rows], system.distortion.correction_at, system.iop_px)
         hits_iop += list(np.abs(adj.iop_px[0] - iop_true) <= 2 * res.iop_std_px[0])
         inside = field.support_at(test[0].xy_px)
         err = field.undistort_points(test[0].xy_px[inside]) - (test[2] + component(test[1].xy_px))[inside]
