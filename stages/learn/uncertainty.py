@@ -45,15 +45,12 @@ from dataclasses import dataclass
 import numpy as np
 from fluorocal.stages.adjust.covariance import covariance_factor
 from fluorocal.stages.artifacts import freeze
-from fluorocal.stages.errors import EstimationError
 from fluorocal.stages.field import bilinear_design
 from fluorocal.stages.geometry import quat_to_matrix
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import difference_operator, factor_spd
 from fluorocal.stages.learn.joint import affine_shape_modes
-from scipy.optimize import root
 from scipy.sparse import csr_matrix, identity, vstack
-from scipy.spatial.transform import Rotation
 
 #: columns of the identity solved at once for the diagonal of the field's inverse (bounds memory)
 _CHUNK = 512
@@ -351,6 +348,8 @@ def _moved_ideal(ideal_px, iop_px, change) -> np.ndarray:
     ``change[3:]`` is the common camera rotation as a rotation vector times ``c`` (px, so that all six
     are of one scale): ``p <- R p`` for every camera ray ``p``, exactly, not to first order.
     """
+    from scipy.spatial.transform import Rotation
+
     xp, yp, c = (float(v) for v in iop_px)
     rays = np.column_stack([(ideal_px[:, 0] - xp) / c, (ideal_px[:, 1] - yp) / c, np.ones(len(ideal_px))])
     rays = rays @ Rotation.from_rotvec(np.asarray(change[3:]) / c).as_matrix().T
@@ -386,6 +385,9 @@ def convention_truth(xy_px, true_correction, true_iop_px):
         ``xy (m, 2) -> (m, 2)`` px, what the convention moves out of the correction: the true field in the
         convention at ``xy`` is ``Δ(xy) - component(xy)`` and the true ideal point ``ideal + component(xy)``.
     """
+    from fluorocal.stages.errors import EstimationError
+    from scipy.optimize import root
+
     xy = np.asarray(xy_px, dtype=np.float64)
     iop = np.asarray(true_iop_px, dtype=np.float64)
     ideal = xy - true_correction(xy)
