@@ -50,7 +50,7 @@ from fluorocal.stages.geometry import quat_to_matrix
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import difference_operator, factor_spd
 from fluorocal.stages.learn.joint import affine_shape_modes
-from scipy.sparse import csr_matrix, identity, vstack
+from scipy.sparse import csr_matrix, identity, issparse, vstack
 
 #: columns of the identity solved at once for the diagonal of the field's inverse (bounds memory)
 _CHUNK = 512
@@ -233,13 +233,13 @@ def joint_uncertainty(
     DtD = (DtD.T @ DtD).tocsr() / float(tau_px) ** 2
     lus = _field_factors(A, net.w.reshape(2, n), DtD)
 
-    def s_inv(X):  # S^-1 X for X (2 n_nodes, k), the two components' blocks apart
-        return np.concatenate(
-            [lus[c].solve(np.ascontiguousarray(X[c * n_nodes : (c + 1) * n_nodes])) for c in range(2)]
-        )
+    def s_inv(X):  # S^-1 X for X (2 n_nodes, k), dense or sparse, the two components' blocks apart
+        blocks = (X[c * n_nodes : (c + 1) * n_nodes] for c in range(2))
+        return np.concatenate([lu.solve(_dense(b)) for lu, b in zip(lus, blocks)])
 
     JW = net.J.multiply(net.w[:, None]).tocsr()
-    M = np.concatenate([(A.T @ JW[c * n : (c + 1) * n]).toarray() for c in range(2)])  # (2 n_nodes, n_theta)
+    # (2 n_nodes, n_theta), sparse: a bead's columns touch only the nodes around its observations
+    M = vstack([A.T @ JW[c * n : (c + 1) * n] for c in range(2)]).tocsr()
     # the gauge C v = 0: the field's components at the observations along the gauge fields, (K, 2 n_nodes)
     B = gauge_basis(xy, adj.iop_px[system], True)
     C = np.concatenate([(A.T @ B[:, c, :]).T for c in range(2)], axis=1)
@@ -251,7 +251,7 @@ def joint_uncertainty(
     H_cond = (net.J.T @ JW).toarray()
     scale = float(np.mean(np.diag(H_cond)))
     border = scale * net.datum @ net.datum.T
-    H_joint = H_cond - M.T @ G
+    H_joint = H_cond - (M.T @ G)
     # the IOP as the final adjustment estimates it: the phantom's shape free
     cov = _sym_inv(H_joint + border)
     # the field as the refinement learned it: with the phantom's affine shape held, if it was
@@ -262,10 +262,11 @@ def joint_uncertainty(
         cov_field = cov - cF @ np.linalg.solve(net.affine.T @ cF, cF.T)
     node_var = _diag_s_inv(lus, n_nodes) - np.sum((Y @ CY_inv) * Y, axis=1)
     node_var += np.sum((G @ cov_field) * G, axis=1)
-    cov_cond = _sym_inv(H_cond + border)
+    # the IOP's block of the conditional covariance (the field held): three columns of the inverse
+    cov_cond = np.linalg.solve(H_cond + border, np.eye(len(H_cond), 3))[:3]
     shape = (len(yn), len(xn))
     node_std = _std(node_var).reshape(2, *shape).transpose(1, 2, 0)
-    return JointUncertainty(cov[:3, :3], _std(np.diag(cov)[:3]), node_std, _std(np.diag(cov_cond)[:3]))
+    return JointUncertainty(cov[:3, :3], _std(np.diag(cov)[:3]), node_std, _std(np.diag(cov_cond)))
 
 
 def _std(var: np.ndarray) -> np.ndarray:
@@ -283,6 +284,11 @@ def _field_factors(A, w: np.ndarray, DtD) -> list:
     same = np.array_equal(w[0], w[1])
     lus = [factor_spd((A.T.multiply(w[c]) @ A + DtD + ridge * identity(n_nodes)).tocsc()) for c in range(2 - same)]
     return lus * (1 + same)
+
+
+def _dense(X) -> np.ndarray:
+    """``X`` as a C-contiguous dense array (SuperLU's right-hand sides)."""
+    return np.ascontiguousarray(X.toarray() if issparse(X) else X)
 
 
 def _sym_inv(H: np.ndarray) -> np.ndarray:
