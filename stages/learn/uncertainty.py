@@ -35,7 +35,10 @@ inverse ``S_c^-1 = S^-1 - S^-1 C^T (C S^-1 C^T)^-1 C S^-1``; the orientation's
 marginal normal matrix is ``J^T W J - M^T S_c^-1 M`` with ``M = A^T W J``
 (the field eliminated), bordered by the 7 inner constraints of the free
 network, and the field's marginal covariance is
-``S_c^-1 + G Cov_θ G^T``, ``G = S_c^-1 M``.
+``S_c^-1 + G Cov_θ G^T``, ``G = S_c^-1 M``. ``S`` is banded, so its solves and
+the diagonal of ``S^-1`` are dense block work on a block-bidiagonal Cholesky
+factor (:mod:`fluorocal.stages.learn.blocktri`); ``M`` is sparse (a bead's
+columns touch only the nodes around its observations).
 """
 
 from __future__ import annotations
@@ -47,13 +50,11 @@ from fluorocal.stages.adjust.covariance import covariance_factor
 from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.field import bilinear_design
 from fluorocal.stages.geometry import quat_to_matrix
+from fluorocal.stages.learn.blocktri import block_cholesky
 from fluorocal.stages.learn.gauge import gauge_basis
-from fluorocal.stages.learn.grid import difference_operator, factor_spd
+from fluorocal.stages.learn.grid import difference_operator
 from fluorocal.stages.learn.joint import affine_shape_modes
 from scipy.sparse import csr_matrix, identity, issparse, vstack
-
-#: columns of the identity solved at once for the diagonal of the field's inverse (bounds memory)
-_CHUNK = 512
 
 
 @dataclass(frozen=True)
@@ -231,11 +232,11 @@ def joint_uncertainty(
     n, n_nodes = len(rows), A.shape[1]
     DtD = difference_operator(len(yn), len(xn), int(order))
     DtD = (DtD.T @ DtD).tocsr() / float(tau_px) ** 2
-    lus = _field_factors(A, net.w.reshape(2, n), DtD)
+    factors = _field_factors(A, net.w.reshape(2, n), DtD)
 
     def s_inv(X):  # S^-1 X for X (2 n_nodes, k), dense or sparse, the two components' blocks apart
         blocks = (X[c * n_nodes : (c + 1) * n_nodes] for c in range(2))
-        return np.concatenate([lu.solve(_dense(b)) for lu, b in zip(lus, blocks)])
+        return np.concatenate([f.solve(_dense(b)) for f, b in zip(factors, blocks)])
 
     JW = net.J.multiply(net.w[:, None]).tocsr()
     # (2 n_nodes, n_theta), sparse: a bead's columns touch only the nodes around its observations
@@ -260,7 +261,7 @@ def joint_uncertainty(
     if net.affine is not None:
         cF = cov @ net.affine
         cov_field = cov - cF @ np.linalg.solve(net.affine.T @ cF, cF.T)
-    node_var = _diag_s_inv(lus, n_nodes) - np.sum((Y @ CY_inv) * Y, axis=1)
+    node_var = _diag_s_inv(factors) - np.sum((Y @ CY_inv) * Y, axis=1)
     node_var += np.sum((G @ cov_field) * G, axis=1)
     # the IOP's block of the conditional covariance (the field held): three columns of the inverse
     cov_cond = np.linalg.solve(H_cond + border, np.eye(len(H_cond), 3))[:3]
@@ -278,17 +279,20 @@ def _std(var: np.ndarray) -> np.ndarray:
 
 
 def _field_factors(A, w: np.ndarray, DtD) -> list:
-    """Sparse LU of ``S = A^T W A + D^T D / τ²`` per component (``w`` ``(2, n)``; one shared when equal)."""
+    """Cholesky of ``S = A^T W A + D^T D / τ²`` per component in dense blocks (``w`` ``(2, n)``; one shared when equal).
+
+    ``S`` is banded (row-major nodes): :mod:`fluorocal.stages.learn.blocktri`.
+    """
     n_nodes = A.shape[1]
     ridge = 1e-10 * max(float(w.max()), 1.0)  # as the gridded fit's: nodes far from all data stay determined
     same = np.array_equal(w[0], w[1])
-    lus = [factor_spd((A.T.multiply(w[c]) @ A + DtD + ridge * identity(n_nodes)).tocsc()) for c in range(2 - same)]
-    return lus * (1 + same)
+    factors = [block_cholesky(A.T.multiply(w[c]) @ A + DtD + ridge * identity(n_nodes)) for c in range(2 - same)]
+    return factors * (1 + same)
 
 
 def _dense(X) -> np.ndarray:
-    """``X`` as a C-contiguous dense array (SuperLU's right-hand sides)."""
-    return np.ascontiguousarray(X.toarray() if issparse(X) else X)
+    """``X`` as a dense array."""
+    return X.toarray() if issparse(X) else np.asarray(X)
 
 
 def _sym_inv(H: np.ndarray) -> np.ndarray:
@@ -296,21 +300,10 @@ def _sym_inv(H: np.ndarray) -> np.ndarray:
     return 0.5 * (inv + inv.T)
 
 
-def _diag_s_inv(lus, n_nodes: int) -> np.ndarray:
-    """The diagonal ``(2 n_nodes,)`` of ``S^-1``, solved a chunk of identity columns at a time (once if shared)."""
-    diags = []
-    for c, lu in enumerate(lus):
-        if c and lu is lus[0]:
-            diags.append(diags[0])
-            continue
-        d = np.empty(n_nodes)
-        for lo in range(0, n_nodes, _CHUNK):
-            hi = min(lo + _CHUNK, n_nodes)
-            E = np.zeros((n_nodes, hi - lo))
-            E[np.arange(lo, hi), np.arange(hi - lo)] = 1.0
-            d[lo:hi] = lu.solve(E)[np.arange(lo, hi), np.arange(hi - lo)]
-        diags.append(d)
-    return np.concatenate(diags)
+def _diag_s_inv(factors) -> np.ndarray:
+    """The diagonal ``(2 n_nodes,)`` of ``S^-1`` (once when the components share a factor)."""
+    first = factors[0].diag_inverse()
+    return np.concatenate([first, first if factors[1] is factors[0] else factors[1].diag_inverse()])
 
 
 def learned_uncertainty(
