@@ -25,7 +25,8 @@ gridded field, linearised at the solution:
   modes beyond a similarity at the design's when the refinement that learned
   the field held them (``LearnParams.affine_datum``).
 
-The observations' weights are the adjustment's (t-weight over ``σ²``, times its variance factor).
+The observations' weights are the adjustment's: the inverse of each centroid's covariance (its σx, σy
+and x-y correlation ρ), times its t-weight over the adjustment's variance factor.
 Each system is treated on its own with free poses per exposure: a biplanar
 pair's ROP (which ties them) is not used, so its σ is slightly conservative.
 
@@ -54,7 +55,7 @@ from fluorocal.stages.learn.blocktri import block_cholesky
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import difference_operator
 from fluorocal.stages.learn.joint import affine_shape_modes
-from scipy.sparse import csr_matrix, identity, issparse, vstack
+from scipy.sparse import bmat, csr_matrix, diags, identity, issparse, vstack
 
 
 @dataclass(frozen=True)
@@ -134,7 +135,8 @@ class _Network:
     """One system's linearised orientation: ``J`` ``(2n, n_theta)`` (x rows then y rows), weights, datum modes."""
 
     J: csr_matrix
-    w: np.ndarray  # shape (2n,)
+    w: np.ndarray  # shape (2n,): the diagonal of the weight matrix
+    w_xy: np.ndarray  # shape (n,): its x-y entries (the centroids' correlation)
     datum: np.ndarray  # shape (n_theta, 7)
     affine: np.ndarray | None  # shape (n_theta, 5): the phantom's affine shape modes, or None
 
@@ -163,15 +165,18 @@ def _network(adj, observations, rows, system: int, shape_nominal_mm=None) -> _Ne
     for comp in range(2):
         vals = np.concatenate([J_iop[:, comp], J_rot[:, comp], J_src[:, comp], J_pt[:, comp]], axis=1)
         blocks.append(csr_matrix((vals.ravel(), (np.repeat(np.arange(n), 12), cols.ravel())), shape=(n, n_theta)))
-    sig = observations.sigma_px[rows, :2]
-    w = (adj.weight[rows, None] / sig**2 / variance_factor(adj, observations)).T.ravel()
+    # each observation's weight matrix: the inverse of its (σx, σy, ρ) covariance, times its t-weight over the
+    # adjustment's variance factor
+    sx, sy, rho = observations.sigma_px[rows].T
+    scale = adj.weight[rows] / variance_factor(adj, observations) / (1 - rho**2)
     datum = _similarity_modes(R_e, T_e, P_b, n_theta, pose_col, point_col)
     affine = None
     if shape_nominal_mm is not None:
         B, _ = affine_shape_modes(P_b, shape_nominal_mm[beads])
         affine = np.zeros((n_theta, B.shape[1]))
         affine[point_col:] = B
-    return _Network(vstack(blocks).tocsr(), w, datum, affine)
+    w = np.concatenate([scale / sx**2, scale / sy**2])
+    return _Network(vstack(blocks).tocsr(), w, -scale * rho / (sx * sy), datum, affine)
 
 
 def variance_factor(adj, observations) -> float:
@@ -229,25 +234,21 @@ def joint_uncertainty(
     xy = observations.xy_px[rows]
     xn, yn = field.x_nodes_px, field.y_nodes_px
     A = bilinear_design(xn, yn, xy)
-    n, n_nodes = len(rows), A.shape[1]
+    n = len(rows)
     DtD = difference_operator(len(yn), len(xn), int(order))
     DtD = (DtD.T @ DtD).tocsr() / float(tau_px) ** 2
-    factors = _field_factors(A, net.w.reshape(2, n), DtD)
-
-    def s_inv(X):  # S^-1 X for X (2 n_nodes, k), dense or sparse, the two components' blocks apart
-        blocks = (X[c * n_nodes : (c + 1) * n_nodes] for c in range(2))
-        return np.concatenate([f.solve(_dense(b)) for f, b in zip(factors, blocks)])
-
-    JW = net.J.multiply(net.w[:, None]).tocsr()
+    s_inv = _field_inverse(A, net.w.reshape(2, n), net.w_xy, DtD)
+    W = diags(net.w) + diags([net.w_xy, net.w_xy], [n, -n])  # (2n, 2n): x rows then y rows
+    JW = (W @ net.J).tocsr()
     # (2 n_nodes, n_theta), sparse: a bead's columns touch only the nodes around its observations
     M = vstack([A.T @ JW[c * n : (c + 1) * n] for c in range(2)]).tocsr()
     # the gauge C v = 0: the field's components at the observations along the gauge fields, (K, 2 n_nodes)
     B = gauge_basis(xy, adj.iop_px[system], True)
     C = np.concatenate([(A.T @ B[:, c, :]).T for c in range(2)], axis=1)
     C /= np.linalg.norm(C, axis=1, keepdims=True)
-    Y = s_inv(C.T)
+    Y = s_inv.solve(C.T)
     CY_inv = np.linalg.inv(C @ Y)
-    G = s_inv(M)
+    G = s_inv.solve(M)
     G -= Y @ (CY_inv @ (C @ G))
     H_cond = (net.J.T @ JW).toarray()
     scale = float(np.mean(np.diag(H_cond)))
@@ -261,7 +262,7 @@ def joint_uncertainty(
     if net.affine is not None:
         cF = cov @ net.affine
         cov_field = cov - cF @ np.linalg.solve(net.affine.T @ cF, cF.T)
-    node_var = _diag_s_inv(factors) - np.sum((Y @ CY_inv) * Y, axis=1)
+    node_var = s_inv.diagonal() - np.sum((Y @ CY_inv) * Y, axis=1)
     node_var += np.sum((G @ cov_field) * G, axis=1)
     # the IOP's block of the conditional covariance (the field held): three columns of the inverse
     cov_cond = np.linalg.solve(H_cond + border, np.eye(len(H_cond), 3))[:3]
@@ -278,16 +279,59 @@ def _std(var: np.ndarray) -> np.ndarray:
     return np.where(var >= 0, np.sqrt(np.abs(var)), np.nan)
 
 
-def _field_factors(A, w: np.ndarray, DtD) -> list:
-    """Cholesky of ``S = A^T W A + D^T D / τ²`` per component in dense blocks (``w`` ``(2, n)``; one shared when equal).
+@dataclass(frozen=True)
+class _FieldInverse:
+    """``S^-1`` of the node values ``[x nodes; y nodes]`` from block Cholesky factors (:func:`_field_inverse`)."""
 
-    ``S`` is banded (row-major nodes): :mod:`fluorocal.stages.learn.blocktri`.
+    factors: tuple  # of BlockCholesky: per component (one, twice, when equal), or one of both, interleaved
+    n_nodes: int
+
+    def _interleaved(self) -> np.ndarray | None:
+        """The coupled factor's order of the node values (:func:`_interleaving`), None for per-component factors."""
+        return _interleaving(self.n_nodes) if len(self.factors) == 1 else None
+
+    def solve(self, X) -> np.ndarray:
+        """``S^-1 X`` for ``X`` ``(2 n_nodes, k)``, dense or sparse."""
+        X, n, order = _dense(X), self.n_nodes, self._interleaved()
+        if order is None:
+            return np.concatenate([f.solve(X[c * n : (c + 1) * n]) for c, f in enumerate(self.factors)])
+        out = np.empty(X.shape)
+        out[order] = self.factors[0].solve(X[order])
+        return out
+
+    def diagonal(self) -> np.ndarray:
+        """The diagonal ``(2 n_nodes,)`` of ``S^-1`` (once when the components share a factor)."""
+        order = self._interleaved()
+        if order is not None:
+            out = np.empty(2 * self.n_nodes)
+            out[order] = self.factors[0].diag_inverse()
+            return out
+        first = self.factors[0].diag_inverse()
+        return np.concatenate([first, first if self.factors[1] is self.factors[0] else self.factors[1].diag_inverse()])
+
+
+def _interleaving(n_nodes: int) -> np.ndarray:
+    """Indices into ``[x nodes; y nodes]`` putting each node's two components side by side (``2 i + c``)."""
+    return np.arange(2 * n_nodes).reshape(2, -1).T.ravel()
+
+
+def _field_inverse(A, w: np.ndarray, w_xy: np.ndarray, DtD) -> _FieldInverse:
+    """``S = A^T W A + D^T D / τ²`` over both components, factored in dense blocks of its bandwidth.
+
+    ``w`` ``(2, n)`` the weight matrix's diagonal, ``w_xy`` ``(n,)`` its x-y entries. ``S`` is banded (row-major
+    nodes, :mod:`fluorocal.stages.learn.blocktri`): per component when ``w_xy`` is zero (one factor when the
+    components weigh alike), else the pair coupled, each node's two components adjacent.
     """
     n_nodes = A.shape[1]
     ridge = 1e-10 * max(float(w.max()), 1.0)  # as the gridded fit's: nodes far from all data stay determined
     same = np.array_equal(w[0], w[1])
-    factors = [block_cholesky(A.T.multiply(w[c]) @ A + DtD + ridge * identity(n_nodes)) for c in range(2 - same)]
-    return factors * (1 + same)
+    S = [A.T.multiply(w[c]) @ A + DtD + ridge * identity(n_nodes) for c in range(2 - same)] * (1 + same)
+    if np.any(w_xy):
+        cross = A.T.multiply(w_xy) @ A
+        order = _interleaving(n_nodes)
+        return _FieldInverse((block_cholesky(bmat([[S[0], cross], [cross, S[1]]]).tocsr()[order][:, order]),), n_nodes)
+    factors = [block_cholesky(S[c]) for c in range(2 - same)]
+    return _FieldInverse(tuple(factors * (1 + same)), n_nodes)
 
 
 def _dense(X) -> np.ndarray:
@@ -298,12 +342,6 @@ def _dense(X) -> np.ndarray:
 def _sym_inv(H: np.ndarray) -> np.ndarray:
     inv = np.linalg.inv(H)
     return 0.5 * (inv + inv.T)
-
-
-def _diag_s_inv(factors) -> np.ndarray:
-    """The diagonal ``(2 n_nodes,)`` of ``S^-1`` (once when the components share a factor)."""
-    first = factors[0].diag_inverse()
-    return np.concatenate([first, first if factors[1] is factors[0] else factors[1].diag_inverse()])
 
 
 def learned_uncertainty(

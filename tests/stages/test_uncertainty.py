@@ -65,6 +65,23 @@ def small_adjustment():
     return adj, train[0], field, xyz[index_of(adj.bead_id, ids, "bead ids")]
 
 
+@pytest.fixture(scope="module")
+def correlated_adjustment():
+    """As :func:`small_adjustment`, the centroids' errors correlated: σx 0.04, σy 0.07 px, ρ ±0.7 by observation."""
+    (train, _), initial, phantom, system = simulated_set(5, 6, 256)
+    exact = train[1]
+    n = len(exact.xy_px)
+    rng = np.random.default_rng(11)
+    sx, sy, rho = np.full(n, 0.04), np.full(n, 0.07), np.where(np.arange(n) % 2, 0.7, -0.7)
+    z1, z2 = rng.normal(size=(2, n))
+    noise = np.column_stack([sx * z1, sy * (rho * z1 + np.sqrt(1 - rho**2) * z2)])
+    obs = Observations(exact.system, exact.exposure, exact.bead_id, exact.xy_px + noise, np.column_stack([sx, sy, rho]))
+    corr = exact.xy_px - system.distortion.undistort_points(exact.xy_px)
+    adj = adjust_bundle(obs, phantom, initial, corr, free=FreeParameters(estimate_iop=True))
+    ids, xyz = nominal_coordinates(phantom)
+    return adj, obs, CorrectionField.constant(256, 256, spacing_px=64.0), xyz[index_of(adj.bead_id, ids, "bead ids")]
+
+
 def test_camera_jacobians_match_finite_differences():
     rng = np.random.default_rng(0)
     n = 5
@@ -112,7 +129,8 @@ def dense_joint(net, xy, field, tau, order, iop, hold_affine: bool):
     A2 = np.block([[A, Z], [Z, A]])  # x rows then y rows, as the network's
     D = difference_operator(len(field.y_nodes_px), len(field.x_nodes_px), order).toarray()
     P = np.kron(np.eye(2), D.T @ D) / tau**2 + 1e-10 * max(net.w.max(), 1.0) * np.eye(2 * n_nodes)
-    J, W = net.J.toarray(), np.diag(net.w)
+    J, n = net.J.toarray(), len(net.w_xy)
+    W = np.diag(net.w) + np.diag(net.w_xy, n) + np.diag(net.w_xy, -n)  # x rows then y rows
     n_t = J.shape[1]
     H_tt = J.T @ W @ J + float(np.mean(np.diag(J.T @ W @ J))) * net.datum @ net.datum.T
     H = np.block([[H_tt, J.T @ W @ A2], [A2.T @ W @ J, A2.T @ W @ A2 + P]])
@@ -204,3 +222,29 @@ def test_stated_sigma_covers_the_actual_error_over_seeds():
         hits_pt.append(np.abs(err) <= sd)
     assert sum(hits_iop) >= 7
     assert 0.5 <= np.mean(np.concatenate(hits_pt)) <= 0.9
+
+
+def test_correlated_centroids_conditional_sigma_is_the_adjustments(correlated_adjustment):
+    """The weights are the inverse of each centroid's 2x2 covariance, as the adjustment's whitening."""
+    adj, obs, field, _ = correlated_adjustment
+    got = joint_uncertainty(adj, obs, np.flatnonzero(adj.used), 0, field, tau_px=0.3, order=2)
+    # an independent Jacobian and weight matrix against the adjustment's own covariance: float rounding only
+    # (with ρ left out, as before, the σ differed by 7-20 % on such a set)
+    np.testing.assert_allclose(got.conditional_iop_std_px, adj.iop_std_px[0], rtol=1e-6)
+
+
+@pytest.mark.parametrize("hold_affine", [False, True])
+def test_correlated_centroids_joint_covariance_equals_the_dense_inverse(correlated_adjustment, hold_affine):
+    """The field's two components coupled by ρ (one factor of both, interleaved) against one dense inverse."""
+    adj, obs, field, nominal_shape = correlated_adjustment
+    rows = np.flatnonzero(adj.used)
+    shape = nominal_shape if hold_affine else None
+    got = joint_uncertainty(adj, obs, rows, 0, field, tau_px=0.3, order=2, shape_nominal_mm=shape)
+    net = _network(adj, obs, rows, 0, nominal_shape)
+    assert np.all(net.w_xy != 0)  # the coupled path is the one tested
+    cov_t, _ = dense_joint(net, obs.xy_px[rows], field, 0.3, 2, adj.iop_px[0], hold_affine=False)
+    _, cov_v = dense_joint(net, obs.xy_px[rows], field, 0.3, 2, adj.iop_px[0], hold_affine=hold_affine)
+    # the same linear algebra two ways in float64, as for uncorrelated centroids (1e-6 relative; the IOP's
+    # covariance relative to its largest entry: its small off-diagonal ones carry the others' rounding, 4e-7 px²)
+    np.testing.assert_allclose(got.iop_cov_px2, cov_t[:3, :3], rtol=1e-6, atol=1e-6 * np.abs(cov_t[:3, :3]).max())
+    np.testing.assert_allclose(got.node_std_px.transpose(2, 0, 1).ravel(), np.sqrt(np.diag(cov_v)), rtol=1e-6)
