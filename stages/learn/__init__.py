@@ -24,8 +24,9 @@ Modules, one job each
   K-fold cross-validation of the equation-3 cost) and :func:`fit_knn_field`.
 - :mod:`.grid`: the gridded least-squares field :func:`fit_grid_field` and its
   smoothness by :func:`cross_validate_smoothness` (beyond the paper).
-- :mod:`.joint`: :func:`fit_grid_with_points`, the gridded field jointly with
-  3D shifts of the object points (beyond the paper).
+- :mod:`.network`: one system's orientation linearised at an adjustment (Jacobian, datum, affine modes).
+- :mod:`.joint`: :func:`fit_grid_jointly`, the refinement's field step with the
+  orientation's response (IOP, poses, points) eliminated (beyond the paper).
 - :mod:`.robust`: gross errors in the regressions: the local screen, the misfit test, bounded CV costs.
 - :mod:`.gauge`: what the orientation reproduces exactly, removed from a field.
 - :mod:`.anderson`: Anderson acceleration of the fixed-point iteration.
@@ -44,7 +45,7 @@ from typing import TYPE_CHECKING
 from fluorocal.stages.field import CorrectionField, PointwiseField, grid_nodes
 from fluorocal.stages.learn.adjuster import start_orientation
 from fluorocal.stages.learn.grid import GridCvReport, cross_validate_smoothness, fit_grid_field
-from fluorocal.stages.learn.joint import fit_grid_with_points
+from fluorocal.stages.learn.joint import fit_grid_jointly
 from fluorocal.stages.learn.knn import CvReport, KnnModel, cross_validate_k, fit_knn_field
 from fluorocal.stages.learn.loop import calibrate
 from fluorocal.stages.learn.nodes import GridSpec
@@ -75,7 +76,7 @@ __all__ = [
     "cross_validate_smoothness",
     "fit_knn_field",
     "fit_grid_field",
-    "fit_grid_with_points",
+    "fit_grid_jointly",
     "calibrate",
     "learn_calibration",
 ]

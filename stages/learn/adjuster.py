@@ -2,7 +2,7 @@
 
 The learning runs the robust bundle adjustment with the correction held
 constant (:class:`Adjuster`), reads what the regression needs from its result
-(:func:`adjustment_outcome`, :func:`point_jacobians`, :meth:`Adjuster.nominal_shape`)
+(:func:`adjustment_outcome`, :meth:`Adjuster.nominal_shape`)
 and starts from a resection (:func:`start_orientation`).
 """
 
@@ -23,7 +23,6 @@ from fluorocal.stages.adjust import (
     initial_orientation,
     nominal_coordinates,
 )
-from fluorocal.stages.geometry import quat_to_matrix
 
 logger = logging.getLogger(__name__)
 
@@ -135,33 +134,4 @@ def adjustment_outcome(adj, sigma_px: np.ndarray) -> Outcome:
     return Outcome(adj.residual_px, var, inlier, float(adj.cost_history[-1]), rms)
 
 
-def point_jacobians(adj, observations, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bead index ``(n,)`` into ``adj.bead_id`` and ``d projection / d P`` ``(n, 2, 3)`` px/mm of observations ``rows``.
-
-    From the collinearity equation ``x = xp + c p_x / p_z`` with
-    ``p = R (P - T)`` at the adjustment's estimate (``R``, ``T`` the pose of
-    the observation's system and epoch).
-    """
-    order = np.argsort(adj.bead_id)
-    bead = order[np.searchsorted(adj.bead_id, observations.bead_id[rows], sorter=order)]
-    epoch = np.searchsorted(adj.exposure, observations.exposure[rows])
-    system = observations.system[rows]
-    orientation = adj.orientation
-    R = np.empty((len(rows), 3, 3))
-    T = np.empty((len(rows), 3))
-    for s in np.unique(system):
-        q_s, T_s = orientation.poses(int(s))
-        at = system == s
-        R[at] = quat_to_matrix(q_s[epoch[at]])
-        T[at] = T_s[epoch[at]]
-    c = adj.iop_px[system, 2]
-    p = np.einsum("nij,nj->ni", R, adj.xyz_mm[bead] - T)
-    # shape (n, 2, 3): c / p_z [[1, 0, -p_x/p_z], [0, 1, -p_y/p_z]] R
-    D = np.zeros((len(rows), 2, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 0, 2] = -p[:, 0] / p[:, 2]
-    D[:, 1, 2] = -p[:, 1] / p[:, 2]
-    return bead, (c / p[:, 2])[:, None, None] * D @ R
-
-
-__all__ = ["Adjuster", "Outcome", "adjustment_outcome", "point_jacobians", "start_orientation"]
+__all__ = ["Adjuster", "Outcome", "adjustment_outcome", "start_orientation"]

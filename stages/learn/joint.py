@@ -1,76 +1,73 @@
-"""Joint refinement of the gridded field and the object points (beyond the paper).
+"""The refinement's field step with the orientation eliminated: a Gauss-Newton step of the joint problem.
 
-The alternation is slow along the field components that a deformation of the
-(unknown, free-network) phantom can mimic: each adjustment moves the points to
-absorb part of the remaining field, and the next regression sees only what is
-left. :func:`fit_grid_with_points` estimates the field's update together with
-a 3D shift of every bead from the linearised model, optionally holding the
-phantom's affine shape at the design's (:func:`affine_shape_modes`).
+The alternation is slow along the field components that the orientation can
+partly mimic: the IOP, the poses (a common rotation, the scale) and a
+deformation of the (unknown, free-network) phantom. Each adjustment absorbs
+part of the remaining field, and the next regression sees only what is left;
+estimated alone, the field's update ignores that response and creeps. Here
+the update is estimated with the response: :func:`fit_grid_jointly` solves
+the linearised joint problem in the field *and* the IOP, every pose and every
+bead, and keeps the field's part (the next adjustment re-solves the rest,
+non-linearly). Its fixed point is the alternation's; it is reached in a few
+steps instead of dozens (beyond the paper).
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import numpy as np
 from fluorocal.stages.field import CorrectionField, bilinear_design
-from fluorocal.stages.geometry import similarity_fit
+from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import difference_operator, factor_spd, grid_result
+from fluorocal.stages.learn.network import Network
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec
-from scipy.sparse import block_diag, csr_matrix, diags, vstack
+from scipy.linalg import cho_factor, cho_solve
+from scipy.sparse import block_diag, diags, vstack
 from scipy.sparse.linalg import LinearOperator, cg
 
 logger = logging.getLogger(__name__)
 
-
-def affine_shape_modes(points_mm: np.ndarray, nominal_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Orthonormal directions ``B`` ``(3 n, 5)`` of the affine deformations beyond a similarity; ``B^T (P - P_nom)``.
-
-    The deformations ``dP_i = E (P_i - mean P)`` with ``E`` symmetric and
-    traceless (stretches and shears); ``P_nom`` is the nominal design brought
-    onto ``P`` by a 7-parameter similarity, so only shape differs.
-    """
-    c = points_mm - points_mm.mean(0)
-    r3 = 1 / np.sqrt(3.0)
-    mats = [np.diag([1.0, -1.0, 0.0]), np.diag([r3, r3, -2 * r3])]
-    for i, j in ((0, 1), (0, 2), (1, 2)):
-        e = np.zeros((3, 3))
-        e[i, j] = e[j, i] = 1.0
-        mats.append(e)
-    B, _ = np.linalg.qr(np.column_stack([(c @ e.T).ravel() for e in mats]))
-    scale, R, t = similarity_fit(nominal_mm, points_mm)
-    aligned = scale * nominal_mm @ R.T + t
-    return B, B.T @ (points_mm - aligned).ravel()
+#: stiffness of the phantom's affine shape hold, relative to the largest diagonal term of the beads' coordinates in
+#: the orientation's normal matrix: stiff enough to hold it to a small fraction of its data-determined change, yet
+#: well conditioned
+AFFINE_STIFFNESS = 1e2
+#: ridge of the beads' coordinates in the orientation's Jacobi-scaled normal matrix (unit diagonal)
+POINT_RIDGE = 1e-8
 
 
-def fit_grid_with_points(
+def fit_grid_jointly(
     xy_px: np.ndarray,
     residuals_px: np.ndarray,
     weights: np.ndarray,
-    bead_index: np.ndarray,
-    point_jacobian: np.ndarray,
+    network: Network,
     *,
+    iop_px,
+    estimate_iop: bool,
     image_size: tuple[int, int],
     tau_px: float,
     base: CorrectionField,
     cv_rms_px: float,
     grid: GridSpec = DEFAULT_GRID,
-    shape_mm: tuple[np.ndarray, np.ndarray] | None = None,
     max_cg_iterations: int = 400,
+    cg_tolerance: float = 1e-6,
     order: int = 2,
+    start: np.ndarray | None = None,
 ) -> CorrectionField:
-    """Gridded field update estimated jointly with corrections to the object points (poses held).
+    """Gridded field update estimated jointly with the orientation's response (IOP, poses, points).
 
-    The alternation is slow along the field components that a deformation of
-    the (unknown, free-network) phantom can mimic: each adjustment moves the
-    points to absorb part of the remaining field, and the next regression sees
-    only what is left. Here the update ``δ`` of the node values and a 3D shift
-    ``dP`` of every bead are estimated together from the linearised model
-    ``r ≈ A δ + J dP``, minimising ``Σ w (r - A δ - J dP)² + |D (base + δ)|² / τ²``;
-    the shifts are eliminated bead by bead (3×3 blocks) and the reduced system
-    in ``δ`` is solved by conjugate gradients preconditioned with the
-    field-only normal matrix (a sparse LU).
+    From the linearised model ``r ≈ A δ + J dθ``, minimises
+    ``Σ w (r - A δ - J dθ)² + |D (base + δ)|² / τ²`` (+ the holds below) over
+    the node values' update ``δ`` and ``dθ``; ``dθ`` is eliminated (its normal
+    matrix is small and dense: a Cholesky factor) and the reduced system in
+    ``δ`` solved by conjugate gradients preconditioned with the field-only
+    normal matrix (a sparse LU). What no data fix is held: the free network's
+    similarity (``network.datum``), the field's gauge (the fields the IOP and a
+    common camera rotation reproduce exactly, :mod:`fluorocal.stages.learn.gauge`)
+    and, when ``network.affine`` is given, the phantom's five affine shape modes
+    beyond a similarity, at the nominal design's: the free network's datum
+    leaves them to weak perspective effects, and a field that mimics them (an
+    image aspect ratio or shear) would otherwise stretch the reconstruction.
 
     Parameters
     ----------
@@ -79,22 +76,21 @@ def fit_grid_with_points(
     residuals_px : (n, 2) float64 ndarray, px
     weights : (n, 2) float64 ndarray, 1/px²
         Observation weights (inverse variances, times the t-weights).
-    bead_index : (n,) int ndarray
-        Bead of each observation (``0 .. n_beads - 1``).
-    point_jacobian : (n, 2, 3) float64 ndarray, px/mm
-        Derivative of the projection by the bead's coordinates.
+    network : Network
+        The system's orientation linearised at the adjustment, at the same observations
+        (:func:`fluorocal.stages.learn.network.linearised_network`).
+    iop_px : (3,) array_like, px
+        The system's ``(xp, yp, c)`` (for the gauge fields).
+    estimate_iop : bool
+        Whether the adjustment estimates the IOP (else its columns are held).
     image_size, tau_px, base, cv_rms_px, grid
         As in :func:`fluorocal.stages.learn.grid.fit_grid_field`.
-    shape_mm : ((n_beads, 3), (n_beads, 3)) float64 ndarrays, mm, optional
-        Current and nominal bead coordinates. When given, the five affine
-        deformations beyond a similarity (stretches and shears) of the
-        shifted points ``P + dP`` are held at the nominal design's by a stiff
-        penalty: the free network's similarity datum leaves them to weak
-        perspective effects, and a field that mimics them (an image aspect
-        ratio or shear) would otherwise stretch the reconstruction.
-    max_cg_iterations : int
+    max_cg_iterations, cg_tolerance : int, float
+        The conjugate gradients' cap and relative tolerance.
     order : int
         Order of the difference prior (default 2), as in :func:`fluorocal.stages.learn.grid.fit_grid_field`.
+    start : (H_g, W_g, 2) float64 ndarray, px, optional
+        Node values to start the conjugate gradients from (an update of nearly the same problem).
 
     Returns
     -------
@@ -103,13 +99,24 @@ def fit_grid_with_points(
     """
     xy, r, w = (np.asarray(a, dtype=np.float64) for a in (xy_px, residuals_px, weights))
     width, height = (int(s) for s in image_size)
+    x0 = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1, 2).T.ravel()
     xn, yn = grid.nodes((width, height))
     A = bilinear_design(xn, yn, xy)
     D = difference_operator(len(yn), len(xn), int(order))
     Nvv, bv, AtW = _field_normal(A, w, r, (D.T @ D).tocsr() / tau_px**2, base.delta_px.reshape(-1, 2))
-    n_beads = len(shape_mm[0]) if shape_mm is not None else (int(bead_index.max()) + 1 if len(xy) else 0)
-    Nvp, points, bp = _point_normal(AtW, w, r, bead_index, point_jacobian, n_beads, shape_mm)
-    v = _solve_reduced(Nvv, Nvp, points, bv, bp, np.array_equal(w[:, 0], w[:, 1]), max_cg_iterations)
+    J = network.J if estimate_iop else network.J[:, 3:]
+    held = slice(0, None) if estimate_iop else slice(3, None)
+    solve_theta, b_theta = _orientation_inverse(J, w, r, network, held)
+    n = len(xy)
+    Nvt = vstack([AtW[c] @ J[c * n : (c + 1) * n] for c in range(2)]).tocsr()
+    G, k_gauge = _gauge_penalty(A, xy, w, iop_px, estimate_iop)
+    Ntv = Nvt.T.tocsr()
+    rhs = bv - Nvt @ solve_theta(b_theta)
+
+    def matvec(v):
+        return Nvv @ v - Nvt @ solve_theta(Ntv @ v) + k_gauge * (G.T @ (G @ v))
+
+    v = _solve_reduced(Nvv, matvec, rhs, np.array_equal(w[:, 0], w[:, 1]), max_cg_iterations, cg_tolerance, x0)
     n_nodes = A.shape[1]
     return grid_result(xn, yn, np.column_stack([v[:n_nodes], v[n_nodes:]]), A, xy, cv_rms_px, grid, (width, height))
 
@@ -127,60 +134,51 @@ def _field_normal(A, w, r, reg, base_v):
     return Nvv, bv, AtW
 
 
-@dataclass(frozen=True)
-class _PointInverse:
-    """The inverse of the points' normal matrix: per-bead 3x3 blocks, less a rank-5 Woodbury term (affine datum)."""
+def _orientation_inverse(J, w, r, network: Network, held: slice):
+    """``x -> N_θθ^-1 x`` for the orientation's normal matrix with its holds, and the right-hand side ``J^T W r``.
 
-    blocks_inv: np.ndarray  # shape (n_beads, 3, 3)
-    NiB: np.ndarray | None = None
-    core: np.ndarray | None = None
-
-    def block_inverse(self, x: np.ndarray) -> np.ndarray:
-        return np.einsum("bij,bj->bi", self.blocks_inv, x.reshape(-1, 3)).ravel()
-
-    def apply(self, x: np.ndarray) -> np.ndarray:
-        if self.NiB is None:
-            return self.block_inverse(x)
-        return self.block_inverse(x) - self.NiB @ (self.core @ (self.NiB.T @ x))
-
-
-def _point_normal(AtW, w, r, bead_index, point_jacobian, n_beads: int, shape_mm):
-    """The coupling ``N_vp`` (sparse), the points' inverse normal matrix and right-hand side ``(n_beads, 3)``."""
-    n = len(r)
-    cols = (3 * bead_index[:, None] + np.arange(3)).ravel()
-    # J_c as sparse (n, 3 n_beads): row o holds d proj_c / d P of its bead
-    Jc = [
-        csr_matrix((point_jacobian[:, c, :].ravel(), (np.repeat(np.arange(n), 3), cols)), shape=(n, 3 * n_beads))
-        for c in range(2)
-    ]
-    Nvp = vstack([AtW[c] @ Jc[c] for c in range(2)]).tocsr()
-    # per-bead 3x3 blocks sum_o J^T W J, inverted
-    Npp = np.zeros((n_beads, 3, 3))
-    np.add.at(Npp, bead_index, np.einsum("nci,nc,ncj->nij", point_jacobian, w, point_jacobian))
-    trace = np.trace(Npp, axis1=1, axis2=2)
-    # beads without observations here (seen only by another system) get a unit-scale block
-    Npp += np.maximum(1e-9 * trace, 1e-6 * max(float(trace.max(initial=0.0)), 1e-300))[:, None, None] * np.eye(3)
-    points = _PointInverse(np.linalg.inv(Npp))
-    bp = np.zeros((n_beads, 3))
-    np.add.at(bp, bead_index, np.einsum("nci,nc->ni", point_jacobian, w * r))
-    if shape_mm is not None:
-        B, gap = affine_shape_modes(*shape_mm)
-        kappa = 1e2 * float(np.max(trace))
-        # penalty kappa |B^T (P + dP) - B^T P_nominal|^2: rank-5 term, inverted by Woodbury
-        bp = bp - kappa * (B @ gap).reshape(-1, 3)
-        NiB = np.column_stack([points.block_inverse(b) for b in B.T])
-        points = _PointInverse(points.blocks_inv, NiB, np.linalg.inv(np.eye(B.shape[1]) / kappa + B.T @ NiB))
-    return Nvp, points, bp
+    ``N_θθ = J^T W J`` plus the datum (a unit curvature along each similarity mode, in the
+    Jacobi-scaled problem: the data's gradient along them is nil, so they stay put) and
+    the affine hold ``κ |B^T (P + dP) - B^T P_nominal|²``.
+    """
+    wf, rf = w.T.ravel(), r.T.ravel()
+    JW = J.multiply(wf[:, None]).tocsr()
+    N = (J.T @ JW).toarray()
+    b = JW.T @ rf
+    # the Jacobi scaling of the data's normal matrix (the stiff affine hold would swamp the points' diagonal)
+    d = np.sqrt(np.maximum(np.diag(N), 1e-300))
+    if network.affine is not None:
+        kappa = AFFINE_STIFFNESS * float(np.max(np.diag(N)[network.point_col - held.start :]))
+        F = network.affine[held]
+        N += kappa * F @ F.T
+        b = b - kappa * F @ network.affine_gap_mm
+    E = d[:, None] * network.datum[held]
+    E /= np.linalg.norm(E, axis=0)
+    # a ridge on the beads' coordinates, in the Jacobi-scaled problem, for what no data fix beyond the datum: the
+    # depth of a bead one exposure saw (the data's gradient along it is nil too). Not on the poses and the IOP: their
+    # weakest combinations, which the field trades against, sit far below any ridge that would make a difference
+    ridge = np.zeros(len(d))
+    ridge[network.point_col - held.start :] = POINT_RIDGE
+    factor = cho_factor(N / d[:, None] / d[None, :] + E @ E.T + np.diag(ridge))
+    return (lambda x: cho_solve(factor, x / d) / d), b
 
 
-def _solve_reduced(Nvv, Nvp, points: _PointInverse, bv, bp, same_weights: bool, max_cg_iterations: int):
-    """The node values of the system with the points eliminated, by CG preconditioned with the field block's LU."""
+def _gauge_penalty(A, xy, w, iop_px, with_iop: bool):
+    """``G`` ``(K, 2 n_nodes)``: the field's components at the observations along the gauge fields, and its weight.
+
+    The weight makes each gauge mode about as stiff as the data would make it, were it not
+    reproduced by the orientation.
+    """
+    B = gauge_basis(xy, iop_px, with_iop)
+    B = B / np.sqrt(np.mean(B**2, axis=(0, 1)))
+    G = np.concatenate([(A.T @ B[:, c, :]).T for c in range(2)], axis=1)
+    return G, float(np.mean(w)) / max(len(xy), 1)
+
+
+def _solve_reduced(Nvv, matvec, rhs, same_weights: bool, max_cg_iterations: int, cg_tolerance: float, x0=None):
+    """The node values of the reduced system, by CG preconditioned with the field block's LU."""
     n_nodes = Nvv.shape[0] // 2
-    Npv = Nvp.T.tocsr()
-    rhs = bv - Nvp @ points.apply(bp.ravel())
-    op = LinearOperator(
-        (2 * n_nodes, 2 * n_nodes), matvec=lambda v: Nvv @ v - Nvp @ points.apply(Npv @ v), dtype=np.float64
-    )
+    op = LinearOperator((2 * n_nodes, 2 * n_nodes), matvec=matvec, dtype=np.float64)
     # the preconditioner, block by block: one factorisation when both components weigh alike
     blocks = [Nvv[:n_nodes, :n_nodes]] if same_weights else [Nvv[:n_nodes, :n_nodes], Nvv[n_nodes:, n_nodes:]]
     lus = [factor_spd(blk) for blk in blocks]
@@ -189,10 +187,10 @@ def _solve_reduced(Nvv, Nvp, points: _PointInverse, bv, bp, same_weights: bool, 
         return np.concatenate([lus[0].solve(v[:n_nodes]), lus[-1].solve(v[n_nodes:])])
 
     pre = LinearOperator((2 * n_nodes, 2 * n_nodes), matvec=precondition, dtype=np.float64)
-    v, info = cg(op, rhs, rtol=1e-6, maxiter=max_cg_iterations, M=pre)
+    v, info = cg(op, rhs, x0=x0, rtol=cg_tolerance, maxiter=max_cg_iterations, M=pre)
     if info > 0:
-        logger.info("joint field-and-points step: CG stopped after %d iterations short of its tolerance", info)
+        logger.info("joint field step: CG stopped after %d iterations short of its tolerance", info)
     return v
 
 
-__all__ = ["affine_shape_modes", "fit_grid_with_points"]
+__all__ = ["fit_grid_jointly"]

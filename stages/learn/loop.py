@@ -13,12 +13,8 @@ the first iteration to the candidates near the previous ``k``), (2)
 ``Δ += δ`` at every observation (inliers and outliers, so an outlier
 that turns out to be an inlier is corrected alike), (3) the adjustment
 with ``Δ`` held constant, warm-started from the previous solution.
-A phase ends when the combined cost (equation 2 + equation 3) changes by
-less than ``params.tolerance`` per observation, when the correction moves by
-less than ``params.step_tolerance`` times the inlier RMS at every observation,
-when (smoothed schemes, in the refinement or when there is none) the gridded
-field moves by less than ``params.field_tolerance`` times its own node
-uncertainty at every supported node, or at its iteration cap (``params.max_iterations`` for the kNN phase,
+A phase ends by the rules of :mod:`fluorocal.stages.learn.stopping` or at its
+iteration cap (``params.max_iterations`` for the kNN phase,
 ``params.refine_iterations`` for the refinement). With ``params.refine`` the
 end of the kNN phase starts the gridded refinement; the end of the last phase
 ends the loop.
@@ -40,24 +36,26 @@ import numpy as np
 from fluorocal.stages.adjust import FreeParameters
 from fluorocal.stages.errors import EstimationError, NotConvergedWarning
 from fluorocal.stages.field import CorrectionField, PointwiseField
-from fluorocal.stages.learn.adjuster import Adjuster, Outcome, adjustment_outcome, point_jacobians
+from fluorocal.stages.learn.adjuster import Adjuster, Outcome, adjustment_outcome
 from fluorocal.stages.learn.anderson import Anderson, anderson_step
 from fluorocal.stages.learn.gauge import gauge_fixed
 from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
-from fluorocal.stages.learn.joint import fit_grid_with_points
+from fluorocal.stages.learn.joint import fit_grid_jointly
 from fluorocal.stages.learn.knn import fit_knn_field, node_statistics, restricted_k_grid
+from fluorocal.stages.learn.network import linearised_network
 from fluorocal.stages.learn.nodes import image_sizes
 from fluorocal.stages.learn.params import LearnParams, scheme_flags
 from fluorocal.stages.learn.polynomial import calibrate_polynomial
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
 from fluorocal.stages.learn.robust import local_screen, misfit_inliers
+from fluorocal.stages.learn.stopping import decide, previous_total
 from fluorocal.stages.learn.uncertainty import learned_uncertainty, with_field_std
 
 logger = logging.getLogger(__name__)
 
-#: conjugate-gradient cap of the joint field-and-points step inside the loop: an inexact inner
-#: solve is enough, since the next iteration starts from the new residuals
-LOOP_CG_ITERATIONS = 100
+#: conjugate-gradient cap and relative tolerance of the joint field step inside the loop: an inexact
+#: inner solve is enough, since the next iteration starts from the new residuals
+LOOP_CG_ITERATIONS, LOOP_CG_TOLERANCE = 100, 1e-3
 
 
 @dataclass(frozen=True)
@@ -254,7 +252,7 @@ def _iterate(plan: _Plan, state: _State) -> _State:
         step_sigma,
         ks,
     )
-    prev = _previous_total(history)
+    prev = previous_total(history)
     if plan.acceleration == "anderson" and prev is not None and total > prev:
         anderson = anderson.restarted()
     return _State(
@@ -284,63 +282,16 @@ def _field_step_sigma(before: tuple, after: tuple) -> float:
     return worst
 
 
-def _field_settled(history: tuple, field_tolerance: float, cost_tolerance: float) -> bool:
-    """Whether the last iteration moved the field by less than ``field_tolerance`` sigma with the cost stalled.
-
-    The cost has stalled when the adjustment's cost (equation 2) is not below the best of its phase's
-    earlier iterations by ``cost_tolerance``. The adjustment's cost, not the combined one:
-    the refinement's in-sample regression cost (equation 3 of a joint field-and-points fit solved
-    inexactly) wanders by tens of percent near the fixed point, where the adjustment's settles; while it
-    still falls, the field is still being learned, however small one step.
-    """
-    phase = [h.cost_adjust for h in history if h.phase == history[-1].phase]
-    return len(phase) > 2 and history[-1].step_sigma < field_tolerance and phase[-1] > min(phase[:-1]) - cost_tolerance
-
-
-def _previous_total(history: tuple) -> float | None:
-    """The combined cost of the iteration before the last, if it is of the same phase."""
-    return history[-2].cost_total if len(history) > 2 and history[-2].phase == history[-1].phase else None
-
-
 def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
     """``(action, converged, reason)``: ``"continue"``, ``"refine"`` (start the refinement) or ``"stop"``."""
-    params, last, n_obs = plan.params, state.history[-1], len(plan.xy)
-    prev = _previous_total(state.history)
-    small_change = prev is not None and abs(last.cost_total - prev) < params.tolerance * max(n_obs, 1)
-    small_step = prev is not None and last.step_px < params.step_tolerance * last.rms_px
-    # the kNN phase of the recommended loop is a few steps towards the refinement: the field rule ends a phase
-    # only once the field has been refined, or when there is no refinement to come
-    field_phase = state.phase == "grid" or plan.refine == "none"
-    cost_tolerance = params.tolerance * max(n_obs, 1)
-    still_field = field_phase and all(
-        _field_settled(state.history[:end], params.field_tolerance, cost_tolerance)
-        for end in (len(state.history) - 1, None)
-    )
-    done = small_change or small_step or still_field
-    cap = params.max_iterations if state.phase == "knn" else params.refine_iterations
-    if not done and state.iteration - state.phase_start + 1 < cap:
-        return "continue", False, ""
+    in_phase = state.iteration - state.phase_start + 1
+    action, converged, reason = decide(plan.params, state.history, n_obs=len(plan.xy), iterations_in_phase=in_phase,
+                                       refine=plan.refine)  # fmt: skip
+    if action == "continue":
+        return action, converged, reason
     if state.phase == "knn" and plan.refine != "none":
         return "refine", False, ""
-    if small_change:
-        reason = (
-            f"combined cost changed by {abs(last.cost_total - prev):.3g} < {params.tolerance} x {n_obs} observations"
-        )
-    elif small_step:
-        reason = (
-            f"the correction moved by at most {last.step_px:.3g} px < {params.step_tolerance} x the residual RMS "
-            f"{last.rms_px:.3g} px"
-        )
-    elif still_field:
-        reason = (
-            f"the field moved by at most {last.step_sigma:.3g} < {params.field_tolerance} x its own uncertainty "
-            "at every supported node and the adjustment's cost stopped falling, two iterations running"
-        )
-    elif state.phase == "grid":
-        reason = f"maximum number of refinement iterations ({params.refine_iterations}) reached"
-    else:
-        reason = f"maximum number of iterations ({params.max_iterations}) reached"
-    return "stop", done, reason
+    return "stop", converged, reason
 
 
 # ---------------------------------------------------------------------------------------------
@@ -393,7 +344,7 @@ def _regress_system(plan: _Plan, state: _State, s: int):
     explained, _ = misfit_inliers(r, model.correction_at(plan.xy[candidates]), var, params.outlier_chi2)
     refit = _enough(candidates, explained, params.n_folds)
     if not np.array_equal(refit, sel):
-        model, mem = _fit(plan, state, s, refit, mem, refit=True)
+        model, mem = _fit(plan, state, s, refit, mem, refit=model)
     logger.debug(
         "system %s: %d observations, %d left out by the local screen, %d by the field's misfit",
         plan.observations.system_names[s],
@@ -409,18 +360,19 @@ def _enough(candidates: np.ndarray, keep: np.ndarray, n_min: int) -> np.ndarray:
     return candidates[keep] if keep.sum() >= n_min else candidates
 
 
-def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refit: bool = False, cost_cap=None):
+def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refit=None, cost_cap=None):
     """One regression of system ``s`` on observations ``sel``: the update and the memory after it.
 
-    ``refit``: the same kNN step again (after the local outlier test), with the ``k`` just chosen.
-    ``cost_cap`` bounds each observation's out-of-fold cost in the cross-validations.
+    ``refit``: the update just fitted, when this is the same step again (after the local outlier test), with
+    the ``k`` just chosen, or the refinement's step started from it. ``cost_cap`` bounds each observation's
+    out-of-fold cost in the cross-validations.
     """
     if state.phase == "grid":
-        return _fit_grid(plan, state, s, sel, mem, cost_cap)
+        return _fit_grid(plan, state, s, sel, mem, cost_cap, start=refit)
     params = plan.params
     r, var = state.out.residuals_px[sel], state.out.residual_var_px2[sel]
     knn = dict(image_size=plan.sizes[s], grid=params.grid, smooth=plan.smooth, n_folds=params.n_folds, seed=params.seed)
-    if refit:
+    if refit is not None:
         model, _ = fit_knn_field(plan.xy[sel], r, var, cv=mem.cv, **knn)
         return model, mem
     k_grid = restricted_k_grid(params.k_grid, mem.k_prev)
@@ -430,8 +382,11 @@ def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refi
     return model, replace(mem, cv=cv, k_prev=cv.k)
 
 
-def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, cost_cap=None):
-    """The refinement's update of system ``s``: the gridded least squares, jointly with the points or not."""
+def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, cost_cap=None, start=None):
+    """The refinement's update of system ``s``: the gridded least squares, alone or the joint problem's step.
+
+    ``start``: an update of nearly the same observations to start the joint step's iterative solve from.
+    """
     params, adj, observations = plan.params, state.adj, plan.observations
     xy, r, var = plan.xy[sel], state.out.residuals_px[sel], state.out.residual_var_px2[sel]
     base = state.grids[s]
@@ -459,19 +414,21 @@ def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory,
     fit = dict(image_size=plan.sizes[s], tau_px=mem.tau_px, grid=params.grid, base=base, order=mem.cv.order)
     if plan.refine != "grid+points":
         return fit_grid_field(xy, r, var, cv_rms_px=mem.cv.cv_rms_px, **fit), mem
-    bead, J = point_jacobians(adj, observations, sel)
     t_weight = adj.weight[sel, None] if params.training == "inliers" else 1.0
     w_obs = t_weight / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
-    shape = plan.adjuster.nominal_shape(adj) if params.affine_datum else None
-    model = fit_grid_with_points(
+    nominal = plan.adjuster.nominal_shape(adj)[1] if params.affine_datum else None
+    network = linearised_network(adj, observations, sel, s, nominal)
+    model = fit_grid_jointly(
         xy,
         r,
         w_obs,
-        bead,
-        J,
+        network,
+        iop_px=adj.iop_px[s],
+        estimate_iop=plan.estimate_iop,
         cv_rms_px=mem.cv.cv_rms_px,
-        shape_mm=shape,
         max_cg_iterations=LOOP_CG_ITERATIONS,
+        cg_tolerance=LOOP_CG_TOLERANCE,
+        start=None if start is None else start.delta_px,
         **fit,
     )
     return model, mem

@@ -50,11 +50,10 @@ import numpy as np
 from fluorocal.stages.adjust.covariance import covariance_factor
 from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.field import bilinear_design
-from fluorocal.stages.geometry import quat_to_matrix
 from fluorocal.stages.learn.blocktri import block_cholesky
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import difference_operator
-from fluorocal.stages.learn.joint import affine_shape_modes
+from fluorocal.stages.learn.network import linearised_network
 from scipy.sparse import bmat, csr_matrix, diags, identity, issparse, vstack
 
 
@@ -88,51 +87,9 @@ class JointUncertainty:
         return np.sqrt(np.mean(self.node_std_px**2, axis=-1))
 
 
-def camera_jacobians(iop_px, R, T_mm, xyz_mm):
-    """Derivatives of ``x = xp + c p_x/p_z``, ``p = R (P - T)`` per observation, px per unit.
-
-    Returns ``(J_iop (n, 2, 3), J_rot (n, 2, 3), J_src (n, 2, 3), J_point (n, 2, 3))``: by
-    ``(xp, yp, c)``, by a small rotation ``φ`` of the camera (``R <- exp([φ]x) R``), by the
-    source ``T`` (mm) and by the bead ``P`` (mm).
-    """
-    p = np.einsum("nij,nj->ni", R, xyz_mm - T_mm)
-    u, v = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
-    c = float(iop_px[2])
-    D = np.zeros((len(p), 2, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 0, 2], D[:, 1, 2] = -u, -v
-    D *= (c / p[:, 2])[:, None, None]
-    J_iop = np.zeros((len(p), 2, 3))
-    J_iop[:, 0, 0] = J_iop[:, 1, 1] = 1.0
-    J_iop[:, 0, 2], J_iop[:, 1, 2] = u, v
-    # dp = φ x p = -[p]x φ
-    px = np.zeros((len(p), 3, 3))
-    px[:, 0, 1], px[:, 0, 2], px[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
-    px = px - px.transpose(0, 2, 1)
-    J_point = D @ R
-    return J_iop, -D @ px, -J_point, J_point
-
-
-def _similarity_modes(R, T_mm, P_mm, n_theta: int, pose_col: int, point_col: int) -> np.ndarray:
-    """The 7 directions ``(n_theta, 7)`` of a similarity of object space, under which nothing projects differently."""
-    E = np.zeros((n_theta, 7))
-    m, n = len(T_mm), len(P_mm)
-    rot = np.arange(m)[:, None] * 6 + pose_col + np.arange(3)
-    src = rot + 3
-    pts = np.arange(n)[:, None] * 3 + point_col + np.arange(3)
-    for a in range(3):
-        e = np.eye(3)[a]
-        E[src, a], E[pts, a] = e, e
-        E[src, 3 + a] = np.cross(e, T_mm)
-        E[pts, 3 + a] = np.cross(e, P_mm)
-        E[rot, 3 + a] = -R @ e
-    E[src, 6], E[pts, 6] = T_mm, P_mm
-    return E / np.linalg.norm(E, axis=0)
-
-
 @dataclass(frozen=True)
 class _Network:
-    """One system's linearised orientation: ``J`` ``(2n, n_theta)`` (x rows then y rows), weights, datum modes."""
+    """One system's linearised orientation (:class:`Network`) and its observations' weight matrix."""
 
     J: csr_matrix
     w: np.ndarray  # shape (2n,): the diagonal of the weight matrix
@@ -142,41 +99,14 @@ class _Network:
 
 
 def _network(adj, observations, rows, system: int, shape_nominal_mm=None) -> _Network:
-    """The Jacobian of system ``system``'s observations ``rows`` by ``(IOP, poses, points)`` at ``adj``."""
-    epochs, e_of = np.unique(np.searchsorted(adj.exposure, observations.exposure[rows]), return_inverse=True)
-    order = np.argsort(adj.bead_id)
-    bead_all = order[np.searchsorted(adj.bead_id, observations.bead_id[rows], sorter=order)]
-    beads, b_of = np.unique(bead_all, return_inverse=True)
-    q_s, T_s = adj.orientation.poses(system)
-    R_e, T_e, P_b = quat_to_matrix(q_s[epochs]), T_s[epochs], adj.xyz_mm[beads]
-    J_iop, J_rot, J_src, J_pt = camera_jacobians(adj.iop_px[system], R_e[e_of], T_e[e_of], P_b[b_of])
-    n, m, nb = len(rows), len(epochs), len(beads)
-    pose_col, point_col = 3, 3 + 6 * m
-    n_theta = point_col + 3 * nb
-    cols = np.concatenate(
-        [
-            np.tile(np.arange(3), (n, 1)),
-            pose_col + 6 * e_of[:, None] + np.arange(6),
-            point_col + 3 * b_of[:, None] + np.arange(3),
-        ],
-        axis=1,
-    )
-    blocks = []
-    for comp in range(2):
-        vals = np.concatenate([J_iop[:, comp], J_rot[:, comp], J_src[:, comp], J_pt[:, comp]], axis=1)
-        blocks.append(csr_matrix((vals.ravel(), (np.repeat(np.arange(n), 12), cols.ravel())), shape=(n, n_theta)))
+    """The Jacobian of system ``system``'s observations ``rows`` by ``(IOP, poses, points)`` at ``adj``, weighted."""
+    net = linearised_network(adj, observations, rows, system, shape_nominal_mm)
     # each observation's weight matrix: the inverse of its (σx, σy, ρ) covariance, times its t-weight over the
     # adjustment's variance factor
     sx, sy, rho = observations.sigma_px[rows].T
     scale = adj.weight[rows] / variance_factor(adj, observations) / (1 - rho**2)
-    datum = _similarity_modes(R_e, T_e, P_b, n_theta, pose_col, point_col)
-    affine = None
-    if shape_nominal_mm is not None:
-        B, _ = affine_shape_modes(P_b, shape_nominal_mm[beads])
-        affine = np.zeros((n_theta, B.shape[1]))
-        affine[point_col:] = B
     w = np.concatenate([scale / sx**2, scale / sy**2])
-    return _Network(vstack(blocks).tocsr(), w, -scale * rho / (sx * sy), datum, affine)
+    return _Network(net.J, w, -scale * rho / (sx * sy), net.datum, net.affine)
 
 
 def variance_factor(adj, observations) -> float:
@@ -449,7 +379,6 @@ def convention_truth(xy_px, true_correction, true_iop_px):
 
 __all__ = [
     "JointUncertainty",
-    "camera_jacobians",
     "convention_truth",
     "joint_uncertainty",
     "learned_uncertainty",

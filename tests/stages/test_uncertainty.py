@@ -15,12 +15,8 @@ from fluorocal.stages.geometry import quat_to_matrix
 from fluorocal.stages.learn import calibrate
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import difference_operator
-from fluorocal.stages.learn.uncertainty import (
-    _network,
-    camera_jacobians,
-    convention_truth,
-    joint_uncertainty,
-)
+from fluorocal.stages.learn.network import camera_jacobians
+from fluorocal.stages.learn.uncertainty import _network, convention_truth, joint_uncertainty
 from fluorocal.stages.simulate import SimulateParams, simulate
 
 NOISE_PX = 0.05

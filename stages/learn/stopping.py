@@ -1,0 +1,94 @@
+"""When the alternation's phase ends: the stopping rules of :func:`fluorocal.stages.learn.calibrate`, on its history.
+
+A phase (the kNN steps, then the gridded refinement) ends when the combined
+cost changes by less than ``tolerance`` per observation, when the correction
+moves by less than ``step_tolerance`` times the inlier RMS, when (smoothed
+schemes, in the refinement or when there is none) the gridded field moves by
+less than ``field_tolerance`` times its own uncertainty with the adjustment's
+cost stalled, or, in the refinement, when the adjustment's cost stops falling
+by more than ``stall_tolerance`` of itself; each of the last two for two
+iterations running. Otherwise at its iteration cap.
+"""
+
+from __future__ import annotations
+
+
+def decide(params, history: tuple, *, n_obs: int, iterations_in_phase: int, refine: str) -> tuple[str, bool, str]:
+    """``(action, converged, reason)``: ``"continue"`` or ``"end of phase"``, and why it ended.
+
+    ``history``: the :class:`~fluorocal.stages.learn.result.IterationRecord` of every iteration so far;
+    ``refine``: the loop's refinement (``"none"`` for the unsmoothed schemes, whatever ``params`` says).
+    """
+    last, phase = history[-1], history[-1].phase
+    prev = previous_total(history)
+    small_change = prev is not None and abs(last.cost_total - prev) < params.tolerance * max(n_obs, 1)
+    small_step = prev is not None and last.step_px < params.step_tolerance * last.rms_px
+    # the kNN phase of the recommended loop is a few steps towards the refinement: the field rules end a phase
+    # only once the field has been refined, or when there is no refinement to come
+    field_phase = phase == "grid" or refine == "none"
+    cost_tolerance = params.tolerance * max(n_obs, 1)
+    running = (len(history) - 1, None)
+    still_field = field_phase and all(
+        _field_settled(history[:end], params.field_tolerance, cost_tolerance) for end in running
+    )
+    stalled = phase == "grid" and all(_cost_stalled(history[:end], params.stall_tolerance) for end in running)
+    done = small_change or small_step or still_field or stalled
+    cap = params.max_iterations if phase == "knn" else params.refine_iterations
+    if not done and iterations_in_phase < cap:
+        return "continue", False, ""
+    if small_change:
+        reason = (
+            f"combined cost changed by {abs(last.cost_total - prev):.3g} < {params.tolerance} x {n_obs} observations"
+        )
+    elif small_step:
+        reason = (
+            f"the correction moved by at most {last.step_px:.3g} px < {params.step_tolerance} x the residual RMS "
+            f"{last.rms_px:.3g} px"
+        )
+    elif still_field:
+        reason = (
+            f"the field moved by at most {last.step_sigma:.3g} < {params.field_tolerance} x its own uncertainty "
+            "at every supported node and the adjustment's cost stopped falling, two iterations running"
+        )
+    elif stalled:
+        reason = (
+            f"the adjustment's cost fell by less than {params.stall_tolerance:g} of itself below its best, "
+            "two iterations running"
+        )
+    elif phase == "grid":
+        reason = f"maximum number of refinement iterations ({params.refine_iterations}) reached"
+    else:
+        reason = f"maximum number of iterations ({params.max_iterations}) reached"
+    return "end of phase", done, reason
+
+
+def _phase_costs(history: tuple) -> list:
+    """The adjustment's cost (equation 2) at each iteration of the last iteration's phase."""
+    return [h.cost_adjust for h in history if h.phase == history[-1].phase]
+
+
+def _field_settled(history: tuple, field_tolerance: float, cost_tolerance: float) -> bool:
+    """Whether the last iteration moved the field by less than ``field_tolerance`` sigma with the cost stalled.
+
+    The cost has stalled when the adjustment's cost (equation 2) is not below the best of its phase's
+    earlier iterations by ``cost_tolerance``. The adjustment's cost, not the combined one:
+    the refinement's in-sample regression cost (equation 3 of a joint field step solved
+    inexactly) wanders by tens of percent near the fixed point, where the adjustment's settles; while it
+    still falls, the field is still being learned, however small one step.
+    """
+    phase = _phase_costs(history)
+    return len(phase) > 2 and history[-1].step_sigma < field_tolerance and phase[-1] > min(phase[:-1]) - cost_tolerance
+
+
+def _cost_stalled(history: tuple, stall_tolerance: float) -> bool:
+    """Whether the adjustment's cost at the last iteration is not below its phase's best by that fraction of it."""
+    phase = _phase_costs(history)
+    return stall_tolerance > 0 and len(phase) > 2 and phase[-1] > min(phase[:-1]) * (1 - stall_tolerance)
+
+
+def previous_total(history: tuple) -> float | None:
+    """The combined cost of the iteration before the last, if it is of the same phase."""
+    return history[-2].cost_total if len(history) > 2 and history[-2].phase == history[-1].phase else None
+
+
+__all__ = ["decide", "previous_total"]
