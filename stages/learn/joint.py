@@ -53,6 +53,7 @@ def fit_grid_jointly(
     cg_tolerance: float = 1e-6,
     order: int = 2,
     start: np.ndarray | None = None,
+    point_information: np.ndarray | None = None,
 ) -> CorrectionField:
     """Gridded field update estimated jointly with the orientation's response (IOP, poses, points).
 
@@ -71,26 +72,23 @@ def fit_grid_jointly(
 
     Parameters
     ----------
-    xy_px : (n, 2) float64 ndarray, px
-        Measured coordinates (inliers of one system).
-    residuals_px : (n, 2) float64 ndarray, px
+    xy_px, residuals_px : (n, 2) float64 ndarray, px
+        Measured coordinates (inliers of one system) and their residuals.
     weights : (n, 2) float64 ndarray, 1/px²
         Observation weights (inverse variances, times the t-weights).
     network : Network
         The system's orientation linearised at the adjustment, at the same observations
         (:func:`fluorocal.stages.learn.network.linearised_network`).
-    iop_px : (3,) array_like, px
-        The system's ``(xp, yp, c)`` (for the gauge fields).
-    estimate_iop : bool
-        Whether the adjustment estimates the IOP (else its columns are held).
-    image_size, tau_px, base, cv_rms_px, grid
-        As in :func:`fluorocal.stages.learn.grid.fit_grid_field`.
-    max_cg_iterations, cg_tolerance : int, float
-        The conjugate gradients' cap and relative tolerance.
-    order : int
-        Order of the difference prior (default 2), as in :func:`fluorocal.stages.learn.grid.fit_grid_field`.
-    start : (H_g, W_g, 2) float64 ndarray, px, optional
-        Node values to start the conjugate gradients from (an update of nearly the same problem).
+    iop_px, estimate_iop : (3,) array_like px, bool
+        The system's ``(xp, yp, c)`` (for the gauge fields); whether the adjustment estimates it.
+    image_size, tau_px, base, cv_rms_px, grid, order
+        As in :func:`fluorocal.stages.learn.grid.fit_grid_field` (``order``: the difference prior's, default 2).
+    max_cg_iterations, cg_tolerance, start
+        The conjugate gradients' cap, relative tolerance and start (node values ``(H_g, W_g, 2)`` px, optional).
+    point_information : (n_beads, 3, 3) float64 ndarray, 1/mm², optional
+        What other systems' observations tell of ``network.beads`` (their orientation held,
+        :func:`fluorocal.stages.learn.network.point_information`): the beads a biplanar set
+        shares are not free for this system's field step to move.
 
     Returns
     -------
@@ -99,16 +97,14 @@ def fit_grid_jointly(
     """
     xy, r, w = (np.asarray(a, dtype=np.float64) for a in (xy_px, residuals_px, weights))
     width, height = (int(s) for s in image_size)
-    x0 = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1, 2).T.ravel()
     xn, yn = grid.nodes((width, height))
     A = bilinear_design(xn, yn, xy)
     D = difference_operator(len(yn), len(xn), int(order))
     Nvv, bv, AtW = _field_normal(A, w, r, (D.T @ D).tocsr() / tau_px**2, base.delta_px.reshape(-1, 2))
     J = network.J if estimate_iop else network.J[:, 3:]
     held = slice(0, None) if estimate_iop else slice(3, None)
-    solve_theta, b_theta = _orientation_inverse(J, w, r, network, held)
-    n = len(xy)
-    Nvt = vstack([AtW[c] @ J[c * n : (c + 1) * n] for c in range(2)]).tocsr()
+    solve_theta, b_theta = _orientation_inverse(J, w, r, network, held, point_information)
+    Nvt = vstack([AtW[c] @ J[c * len(xy) : (c + 1) * len(xy)] for c in range(2)]).tocsr()
     G, k_gauge = _gauge_penalty(A, xy, w, iop_px, estimate_iop)
     Ntv = Nvt.T.tocsr()
     rhs = bv - Nvt @ solve_theta(b_theta)
@@ -116,6 +112,7 @@ def fit_grid_jointly(
     def matvec(v):
         return Nvv @ v - Nvt @ solve_theta(Ntv @ v) + k_gauge * (G.T @ (G @ v))
 
+    x0 = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1, 2).T.ravel()
     v = _solve_reduced(Nvv, matvec, rhs, np.array_equal(w[:, 0], w[:, 1]), max_cg_iterations, cg_tolerance, x0)
     n_nodes = A.shape[1]
     return grid_result(xn, yn, np.column_stack([v[:n_nodes], v[n_nodes:]]), A, xy, cv_rms_px, grid, (width, height))
@@ -134,17 +131,21 @@ def _field_normal(A, w, r, reg, base_v):
     return Nvv, bv, AtW
 
 
-def _orientation_inverse(J, w, r, network: Network, held: slice):
+def _orientation_inverse(J, w, r, network: Network, held: slice, point_information=None):
     """``x -> N_θθ^-1 x`` for the orientation's normal matrix with its holds, and the right-hand side ``J^T W r``.
 
     ``N_θθ = J^T W J`` plus the datum (a unit curvature along each similarity mode, in the
     Jacobi-scaled problem: the data's gradient along them is nil, so they stay put) and
-    the affine hold ``κ |B^T (P + dP) - B^T P_nominal|²``.
+    the affine hold ``κ |B^T (P + dP) - B^T P_nominal|²``; ``point_information`` is added to the beads' blocks.
     """
     wf, rf = w.T.ravel(), r.T.ravel()
     JW = J.multiply(wf[:, None]).tocsr()
     N = (J.T @ JW).toarray()
     b = JW.T @ rf
+    if point_information is not None:
+        p0 = network.point_col - held.start
+        idx = p0 + 3 * np.arange(len(point_information))[:, None] + np.arange(3)
+        N[idx[:, :, None], idx[:, None, :]] += point_information
     # the Jacobi scaling of the data's normal matrix (the stiff affine hold would swamp the points' diagonal)
     d = np.sqrt(np.maximum(np.diag(N), 1e-300))
     if network.affine is not None:

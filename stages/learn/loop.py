@@ -42,7 +42,7 @@ from fluorocal.stages.learn.gauge import gauge_fixed
 from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
 from fluorocal.stages.learn.joint import fit_grid_jointly
 from fluorocal.stages.learn.knn import fit_knn_field, node_statistics, restricted_k_grid
-from fluorocal.stages.learn.network import linearised_network
+from fluorocal.stages.learn.network import linearised_network, point_information
 from fluorocal.stages.learn.nodes import image_sizes
 from fluorocal.stages.learn.params import LearnParams, scheme_flags
 from fluorocal.stages.learn.polynomial import calibrate_polynomial
@@ -418,6 +418,9 @@ def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory,
     w_obs = t_weight / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
     nominal = plan.adjuster.nominal_shape(adj)[1] if params.affine_datum else None
     network = linearised_network(adj, observations, sel, s, nominal)
+    others = np.flatnonzero(adj.used & adj.inlier & (observations.system != s))
+    w_others = adj.weight[others, None] / (adj.sigma0 * observations.sigma_px[others, :2]) ** 2
+    shared = point_information(adj, observations, others, w_others, network.beads) if len(others) else None
     model = fit_grid_jointly(
         xy,
         r,
@@ -429,6 +432,7 @@ def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory,
         max_cg_iterations=LOOP_CG_ITERATIONS,
         cg_tolerance=LOOP_CG_TOLERANCE,
         start=None if start is None else start.delta_px,
+        point_information=shared,
         **fit,
     )
     return model, mem

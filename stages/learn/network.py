@@ -93,6 +93,8 @@ class Network:
     affine_gap_mm : (5,) float64 ndarray or None
         The points' current shape along ``affine`` less the nominal design's.
     point_col : int
+    beads : (n_beads,) int ndarray
+        The beads of the point columns, in order (indices into the adjustment's ``bead_id``).
     """
 
     J: csr_matrix
@@ -100,6 +102,7 @@ class Network:
     affine: np.ndarray | None
     affine_gap_mm: np.ndarray | None
     point_col: int
+    beads: np.ndarray
 
 
 def linearised_network(adj, observations, rows, system: int, shape_nominal_mm=None) -> Network:
@@ -108,9 +111,7 @@ def linearised_network(adj, observations, rows, system: int, shape_nominal_mm=No
     ``shape_nominal_mm`` ``(n_beads, 3)``: the design coordinates of ``adj.bead_id``, for the affine modes.
     """
     epochs, e_of = np.unique(np.searchsorted(adj.exposure, observations.exposure[rows]), return_inverse=True)
-    order = np.argsort(adj.bead_id)
-    bead_all = order[np.searchsorted(adj.bead_id, observations.bead_id[rows], sorter=order)]
-    beads, b_of = np.unique(bead_all, return_inverse=True)
+    beads, b_of = np.unique(_bead_index(adj, observations, rows), return_inverse=True)
     q_s, T_s = adj.orientation.poses(system)
     R_e, T_e, P_b = quat_to_matrix(q_s[epochs]), T_s[epochs], adj.xyz_mm[beads]
     J_iop, J_rot, J_src, J_pt = camera_jacobians(adj.iop_px[system], R_e[e_of], T_e[e_of], P_b[b_of])
@@ -135,7 +136,42 @@ def linearised_network(adj, observations, rows, system: int, shape_nominal_mm=No
         B, gap = affine_shape_modes(P_b, shape_nominal_mm[beads])
         affine = np.zeros((n_theta, B.shape[1]))
         affine[point_col:] = B
-    return Network(vstack(blocks).tocsr(), datum, affine, gap, point_col)
+    return Network(vstack(blocks).tocsr(), datum, affine, gap, point_col, beads)
 
 
-__all__ = ["Network", "affine_shape_modes", "camera_jacobians", "linearised_network", "similarity_modes"]
+def point_information(adj, observations, rows, weights, beads) -> np.ndarray:
+    """``(len(beads), 3, 3)``: what observations ``rows`` (any systems) tell of the beads ``beads``, orientation held.
+
+    ``Σ J_P^T W J_P`` per bead over the rows that observe it (``weights`` ``(n, 2)``, 1/px²), with
+    ``J_P`` the projection's derivative by the bead's coordinates at ``adj``. The other systems'
+    information on the beads a system's joint field step shares with them: in a biplanar set the
+    points are pinned by both views, not free for one system's field to push.
+    """
+    info = np.zeros((len(beads), 3, 3))
+    bead = _bead_index(adj, observations, rows)
+    where = np.searchsorted(beads, bead)
+    seen = (where < len(beads)) & (beads[np.minimum(where, len(beads) - 1)] == bead)
+    epoch = np.searchsorted(adj.exposure, observations.exposure[rows])
+    for system in np.unique(observations.system[rows]):
+        at = seen & (observations.system[rows] == system)
+        q_s, T_s = adj.orientation.poses(int(system))
+        *_, J_pt = camera_jacobians(adj.iop_px[system], quat_to_matrix(q_s[epoch[at]]), T_s[epoch[at]],
+                                    adj.xyz_mm[bead[at]])  # fmt: skip
+        np.add.at(info, where[at], np.einsum("nci,nc,ncj->nij", J_pt, weights[at], J_pt))
+    return info
+
+
+def _bead_index(adj, observations, rows) -> np.ndarray:
+    """Index into ``adj.bead_id`` of each observation ``rows``."""
+    order = np.argsort(adj.bead_id)
+    return order[np.searchsorted(adj.bead_id, observations.bead_id[rows], sorter=order)]
+
+
+__all__ = [
+    "Network",
+    "affine_shape_modes",
+    "camera_jacobians",
+    "linearised_network",
+    "point_information",
+    "similarity_modes",
+]
