@@ -17,14 +17,16 @@ gridded field, linearised at the solution:
   principal point and the three displacement fields of a common camera
   rotation is zero. This is the convention that makes the IOP identifiable:
   the reported IOP is the pinhole under it, and its error is measured against
-  the true IOP expressed in the same convention (the true distortion with its
-  gauge component moved into the IOP, :func:`convention_truth`);
+  the true IOP expressed in the same convention (the true configuration moved
+  by an IOP change and a common camera rotation until its correction has no
+  gauge component, :func:`convention_truth`);
 - the IOP's σ leaves the phantom's shape free, as the final adjustment that
   estimates the IOP does; the field's σ holds the phantom's five affine shape
   modes beyond a similarity at the design's when the refinement that learned
   the field held them (``LearnParams.affine_datum``).
 
-The observations' weights are the adjustment's (t-weight over ``σ²``, times its variance factor).
+The observations' weights are the adjustment's: the inverse of each centroid's covariance (its σx, σy
+and x-y correlation ρ), times its t-weight over the adjustment's variance factor.
 Each system is treated on its own with free poses per exposure: a biplanar
 pair's ROP (which ties them) is not used, so its σ is slightly conservative.
 
@@ -34,7 +36,10 @@ inverse ``S_c^-1 = S^-1 - S^-1 C^T (C S^-1 C^T)^-1 C S^-1``; the orientation's
 marginal normal matrix is ``J^T W J - M^T S_c^-1 M`` with ``M = A^T W J``
 (the field eliminated), bordered by the 7 inner constraints of the free
 network, and the field's marginal covariance is
-``S_c^-1 + G Cov_θ G^T``, ``G = S_c^-1 M``.
+``S_c^-1 + G Cov_θ G^T``, ``G = S_c^-1 M``. ``S`` is banded, so its solves and
+the diagonal of ``S^-1`` are dense block work on a block-bidiagonal Cholesky
+factor (:mod:`fluorocal.stages.learn.blocktri`); ``M`` is sparse (a bead's
+columns touch only the nodes around its observations).
 """
 
 from __future__ import annotations
@@ -45,13 +50,11 @@ import numpy as np
 from fluorocal.stages.adjust.covariance import covariance_factor
 from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.field import bilinear_design
+from fluorocal.stages.learn.blocktri import block_cholesky
 from fluorocal.stages.learn.gauge import gauge_basis
-from fluorocal.stages.learn.grid import difference_operator, factor_spd
+from fluorocal.stages.learn.grid import difference_operator
 from fluorocal.stages.learn.network import linearised_network
-from scipy.sparse import csr_matrix, identity
-
-#: columns of the identity solved at once for the diagonal of the field's inverse (bounds memory)
-_CHUNK = 512
+from scipy.sparse import bmat, csr_matrix, diags, identity, issparse, vstack
 
 
 @dataclass(frozen=True)
@@ -86,10 +89,11 @@ class JointUncertainty:
 
 @dataclass(frozen=True)
 class _Network:
-    """One system's linearised orientation (:class:`Network`) and its observations' weights ``(2n,)``."""
+    """One system's linearised orientation (:class:`Network`) and its observations' weight matrix."""
 
     J: csr_matrix
-    w: np.ndarray  # shape (2n,)
+    w: np.ndarray  # shape (2n,): the diagonal of the weight matrix
+    w_xy: np.ndarray  # shape (n,): its x-y entries (the centroids' correlation)
     datum: np.ndarray  # shape (n_theta, 7)
     affine: np.ndarray | None  # shape (n_theta, 5): the phantom's affine shape modes, or None
 
@@ -97,9 +101,12 @@ class _Network:
 def _network(adj, observations, rows, system: int, shape_nominal_mm=None) -> _Network:
     """The Jacobian of system ``system``'s observations ``rows`` by ``(IOP, poses, points)`` at ``adj``, weighted."""
     net = linearised_network(adj, observations, rows, system, shape_nominal_mm)
-    sig = observations.sigma_px[rows, :2]
-    w = (adj.weight[rows, None] / sig**2 / variance_factor(adj, observations)).T.ravel()
-    return _Network(net.J, w, net.datum, net.affine)
+    # each observation's weight matrix: the inverse of its (σx, σy, ρ) covariance, times its t-weight over the
+    # adjustment's variance factor
+    sx, sy, rho = observations.sigma_px[rows].T
+    scale = adj.weight[rows] / variance_factor(adj, observations) / (1 - rho**2)
+    w = np.concatenate([scale / sx**2, scale / sy**2])
+    return _Network(net.J, w, -scale * rho / (sx * sy), net.datum, net.affine)
 
 
 def variance_factor(adj, observations) -> float:
@@ -157,30 +164,26 @@ def joint_uncertainty(
     xy = observations.xy_px[rows]
     xn, yn = field.x_nodes_px, field.y_nodes_px
     A = bilinear_design(xn, yn, xy)
-    n, n_nodes = len(rows), A.shape[1]
+    n = len(rows)
     DtD = difference_operator(len(yn), len(xn), int(order))
     DtD = (DtD.T @ DtD).tocsr() / float(tau_px) ** 2
-    lus = _field_factors(A, net.w.reshape(2, n), DtD)
-
-    def s_inv(X):  # S^-1 X for X (2 n_nodes, k), the two components' blocks apart
-        return np.concatenate(
-            [lus[c].solve(np.ascontiguousarray(X[c * n_nodes : (c + 1) * n_nodes])) for c in range(2)]
-        )
-
-    JW = net.J.multiply(net.w[:, None]).tocsr()
-    M = np.concatenate([(A.T @ JW[c * n : (c + 1) * n]).toarray() for c in range(2)])  # (2 n_nodes, n_theta)
+    s_inv = _field_inverse(A, net.w.reshape(2, n), net.w_xy, DtD)
+    W = diags(net.w) + diags([net.w_xy, net.w_xy], [n, -n])  # (2n, 2n): x rows then y rows
+    JW = (W @ net.J).tocsr()
+    # (2 n_nodes, n_theta), sparse: a bead's columns touch only the nodes around its observations
+    M = vstack([A.T @ JW[c * n : (c + 1) * n] for c in range(2)]).tocsr()
     # the gauge C v = 0: the field's components at the observations along the gauge fields, (K, 2 n_nodes)
     B = gauge_basis(xy, adj.iop_px[system], True)
     C = np.concatenate([(A.T @ B[:, c, :]).T for c in range(2)], axis=1)
     C /= np.linalg.norm(C, axis=1, keepdims=True)
-    Y = s_inv(C.T)
+    Y = s_inv.solve(C.T)
     CY_inv = np.linalg.inv(C @ Y)
-    G = s_inv(M)
+    G = s_inv.solve(M)
     G -= Y @ (CY_inv @ (C @ G))
     H_cond = (net.J.T @ JW).toarray()
     scale = float(np.mean(np.diag(H_cond)))
     border = scale * net.datum @ net.datum.T
-    H_joint = H_cond - M.T @ G
+    H_joint = H_cond - (M.T @ G)
     # the IOP as the final adjustment estimates it: the phantom's shape free
     cov = _sym_inv(H_joint + border)
     # the field as the refinement learned it: with the phantom's affine shape held, if it was
@@ -189,12 +192,13 @@ def joint_uncertainty(
     if net.affine is not None:
         cF = cov @ net.affine
         cov_field = cov - cF @ np.linalg.solve(net.affine.T @ cF, cF.T)
-    node_var = _diag_s_inv(lus, n_nodes) - np.sum((Y @ CY_inv) * Y, axis=1)
+    node_var = s_inv.diagonal() - np.sum((Y @ CY_inv) * Y, axis=1)
     node_var += np.sum((G @ cov_field) * G, axis=1)
-    cov_cond = _sym_inv(H_cond + border)
+    # the IOP's block of the conditional covariance (the field held): three columns of the inverse
+    cov_cond = np.linalg.solve(H_cond + border, np.eye(len(H_cond), 3))[:3]
     shape = (len(yn), len(xn))
     node_std = _std(node_var).reshape(2, *shape).transpose(1, 2, 0)
-    return JointUncertainty(cov[:3, :3], _std(np.diag(cov)[:3]), node_std, _std(np.diag(cov_cond)[:3]))
+    return JointUncertainty(cov[:3, :3], _std(np.diag(cov)[:3]), node_std, _std(np.diag(cov_cond)))
 
 
 def _std(var: np.ndarray) -> np.ndarray:
@@ -205,35 +209,69 @@ def _std(var: np.ndarray) -> np.ndarray:
     return np.where(var >= 0, np.sqrt(np.abs(var)), np.nan)
 
 
-def _field_factors(A, w: np.ndarray, DtD) -> list:
-    """Sparse LU of ``S = A^T W A + D^T D / τ²`` per component (``w`` ``(2, n)``; one shared when equal)."""
+@dataclass(frozen=True)
+class _FieldInverse:
+    """``S^-1`` of the node values ``[x nodes; y nodes]`` from block Cholesky factors (:func:`_field_inverse`)."""
+
+    factors: tuple  # of BlockCholesky: per component (one, twice, when equal), or one of both, interleaved
+    n_nodes: int
+
+    def _interleaved(self) -> np.ndarray | None:
+        """The coupled factor's order of the node values (:func:`_interleaving`), None for per-component factors."""
+        return _interleaving(self.n_nodes) if len(self.factors) == 1 else None
+
+    def solve(self, X) -> np.ndarray:
+        """``S^-1 X`` for ``X`` ``(2 n_nodes, k)``, dense or sparse."""
+        X, n, order = _dense(X), self.n_nodes, self._interleaved()
+        if order is None:
+            return np.concatenate([f.solve(X[c * n : (c + 1) * n]) for c, f in enumerate(self.factors)])
+        out = np.empty(X.shape)
+        out[order] = self.factors[0].solve(X[order])
+        return out
+
+    def diagonal(self) -> np.ndarray:
+        """The diagonal ``(2 n_nodes,)`` of ``S^-1`` (once when the components share a factor)."""
+        order = self._interleaved()
+        if order is not None:
+            out = np.empty(2 * self.n_nodes)
+            out[order] = self.factors[0].diag_inverse()
+            return out
+        first = self.factors[0].diag_inverse()
+        return np.concatenate([first, first if self.factors[1] is self.factors[0] else self.factors[1].diag_inverse()])
+
+
+def _interleaving(n_nodes: int) -> np.ndarray:
+    """Indices into ``[x nodes; y nodes]`` putting each node's two components side by side (``2 i + c``)."""
+    return np.arange(2 * n_nodes).reshape(2, -1).T.ravel()
+
+
+def _field_inverse(A, w: np.ndarray, w_xy: np.ndarray, DtD) -> _FieldInverse:
+    """``S = A^T W A + D^T D / τ²`` over both components, factored in dense blocks of its bandwidth.
+
+    ``w`` ``(2, n)`` the weight matrix's diagonal, ``w_xy`` ``(n,)`` its x-y entries. ``S`` is banded (row-major
+    nodes, :mod:`fluorocal.stages.learn.blocktri`): per component when ``w_xy`` is zero (one factor when the
+    components weigh alike), else the pair coupled, each node's two components adjacent.
+    """
     n_nodes = A.shape[1]
     ridge = 1e-10 * max(float(w.max()), 1.0)  # as the gridded fit's: nodes far from all data stay determined
     same = np.array_equal(w[0], w[1])
-    lus = [factor_spd((A.T.multiply(w[c]) @ A + DtD + ridge * identity(n_nodes)).tocsc()) for c in range(2 - same)]
-    return lus * (1 + same)
+    S = [A.T.multiply(w[c]) @ A + DtD + ridge * identity(n_nodes) for c in range(2 - same)] * (1 + same)
+    if np.any(w_xy):
+        cross = A.T.multiply(w_xy) @ A
+        order = _interleaving(n_nodes)
+        return _FieldInverse((block_cholesky(bmat([[S[0], cross], [cross, S[1]]]).tocsr()[order][:, order]),), n_nodes)
+    factors = [block_cholesky(S[c]) for c in range(2 - same)]
+    return _FieldInverse(tuple(factors * (1 + same)), n_nodes)
+
+
+def _dense(X) -> np.ndarray:
+    """``X`` as a dense array."""
+    return X.toarray() if issparse(X) else np.asarray(X)
 
 
 def _sym_inv(H: np.ndarray) -> np.ndarray:
     inv = np.linalg.inv(H)
     return 0.5 * (inv + inv.T)
-
-
-def _diag_s_inv(lus, n_nodes: int) -> np.ndarray:
-    """The diagonal ``(2 n_nodes,)`` of ``S^-1``, solved a chunk of identity columns at a time (once if shared)."""
-    diags = []
-    for c, lu in enumerate(lus):
-        if c and lu is lus[0]:
-            diags.append(diags[0])
-            continue
-        d = np.empty(n_nodes)
-        for lo in range(0, n_nodes, _CHUNK):
-            hi = min(lo + _CHUNK, n_nodes)
-            E = np.zeros((n_nodes, hi - lo))
-            E[np.arange(lo, hi), np.arange(hi - lo)] = 1.0
-            d[lo:hi] = lu.solve(E)[np.arange(lo, hi), np.arange(hi - lo)]
-        diags.append(d)
-    return np.concatenate(diags)
 
 
 def learned_uncertainty(
@@ -271,43 +309,77 @@ def with_field_std(field, uncertainty: JointUncertainty):
     return field.with_delta(field.delta_px, sigma_px=uncertainty.field_std_px)
 
 
-def gauge_component(xy_px, correction_px, iop_px, with_iop: bool = True):
-    """The least-squares gauge component of a correction at ``xy_px``, as a field: ``xy (m, 2) -> (m, 2)`` px."""
-    B = gauge_basis(xy_px, iop_px, with_iop)
-    coef, *_ = np.linalg.lstsq(B.reshape(-1, B.shape[2]), np.asarray(correction_px).reshape(-1), rcond=None)
-    return lambda xy: (gauge_basis(xy, iop_px, with_iop).reshape(-1, B.shape[2]) @ coef).reshape(-1, 2)
+def _moved_ideal(ideal_px, iop_px, change) -> np.ndarray:
+    """Ideal points ``(m, 2)`` px of the same rays under the IOP ``iop + change[:3]``, every camera rotated alike.
 
-
-def convention_truth(observations, rows, phantom, initial, true_iop_px, true_correction_px, *, n_rounds: int = 3):
-    """A known IOP and correction expressed in the gauge convention: ``(iop (3,) px, gauge component)``.
-
-    The IOP an adjustment of ``observations`` (one system; its exact, noise-free projections)
-    estimates with the true correction less its gauge component at ``rows`` held, the gauge
-    recomputed at that IOP ``n_rounds`` times. What the convention moves out of the correction,
-    ``gauge component(xy)``, is what the field under the convention lacks: its true value at
-    ``xy`` is ``true correction - component`` and the true ideal point ``ideal + component``.
-    Exact, unlike a first-order reading of the gauge coefficients, since a principal-point
-    shift and a camera rotation differ only in the quadratic terms of the keystone fields.
+    ``change[3:]`` is the common camera rotation as a rotation vector times ``c`` (px, so that all six
+    are of one scale): ``p <- R p`` for every camera ray ``p``, exactly, not to first order.
     """
-    from fluorocal.stages.adjust import FreeParameters, Orientation, adjust_bundle
+    from scipy.spatial.transform import Rotation
 
-    xy, corr = observations.xy_px, np.asarray(true_correction_px, dtype=np.float64)
+    xp, yp, c = (float(v) for v in iop_px)
+    rays = np.column_stack([(ideal_px[:, 0] - xp) / c, (ideal_px[:, 1] - yp) / c, np.ones(len(ideal_px))])
+    rays = rays @ Rotation.from_rotvec(np.asarray(change[3:]) / c).as_matrix().T
+    new = np.asarray(iop_px, dtype=np.float64) + change[:3]
+    return new[:2] + new[2] * rays[:, :2] / rays[:, 2:3]
+
+
+def convention_truth(xy_px, true_correction, true_iop_px):
+    """A known IOP and correction expressed in the gauge convention, exactly: ``(iop (3,) px, component)``.
+
+    The true configuration moved along the gauge: the IOP changed and every camera rotated alike by the
+    six parameters that leave the moved correction ``Δ'(x) = x - ideal'(x)`` no least-squares component,
+    at ``xy_px``, along the gauge fields at the moved IOP (:func:`fluorocal.stages.learn.gauge.gauge_basis`),
+    as the learning's gauge requires of its field. It reproduces the projections exactly: the IOP change
+    and the rotation act on the *ideal* point ``x - Δ(x)`` of each ray (a projective map), which the gauge's
+    first-order fields at the measured point only approximate; moving that approximation into the IOP by
+    an adjustment leaves a systematic misfit (a few hundredths of a pixel at a strong distortion) that
+    shifts the IOP along the weakly determined principal point by tens of pixels.
+
+    Parameters
+    ----------
+    xy_px : (n, 2) float64 ndarray, px
+        The distorted points the gauge is taken at (the training observations the field learned from).
+    true_correction : callable
+        ``xy (m, 2) -> Δ(xy) (m, 2)`` px, the true correction (distorted minus ideal).
+    true_iop_px : (3,) array_like, px
+
+    Returns
+    -------
+    iop_px : (3,) float64 ndarray, px
+        The IOP in the convention.
+    component : callable
+        ``xy (m, 2) -> (m, 2)`` px, what the convention moves out of the correction: the true field in the
+        convention at ``xy`` is ``Δ(xy) - component(xy)`` and the true ideal point ``ideal + component(xy)``.
+    """
+    from fluorocal.stages.errors import EstimationError
+    from scipy.optimize import root
+
+    xy = np.asarray(xy_px, dtype=np.float64)
     iop = np.asarray(true_iop_px, dtype=np.float64)
-    for _ in range(n_rounds):
-        component = gauge_component(xy[rows], corr[rows], iop)
-        start = Orientation(
-            iop[None], initial.exposure, initial.q_cam_from_obj, initial.source_mm, system_names=initial.system_names
-        )
-        free = FreeParameters(estimate_iop=True)
-        oracle = adjust_bundle(observations, phantom, start, corr - component(xy), free=free, compute_covariance=False)
-        iop = oracle.iop_px[0]
-    return iop, gauge_component(xy[rows], corr[rows], iop)
+    ideal = xy - true_correction(xy)
+
+    def gauge_coefficients(change):
+        B = gauge_basis(xy, iop + change[:3], True)
+        B = B / np.sqrt(np.mean(B**2, axis=(0, 1)))
+        moved = xy - _moved_ideal(ideal, iop, change)
+        return np.linalg.lstsq(B.reshape(-1, B.shape[2]), moved.reshape(-1), rcond=None)[0]
+
+    sol = root(gauge_coefficients, np.zeros(6), method="hybr", options={"xtol": 1e-12})
+    if not sol.success:
+        raise EstimationError(f"the gauge convention's truth was not found: {sol.message}")
+    change = sol.x
+
+    def component(q):
+        ideal_q = np.asarray(q, dtype=np.float64) - true_correction(q)
+        return _moved_ideal(ideal_q, iop, change) - ideal_q
+
+    return iop + change[:3], component
 
 
 __all__ = [
     "JointUncertainty",
     "convention_truth",
-    "gauge_component",
     "joint_uncertainty",
     "learned_uncertainty",
     "with_field_std",

@@ -61,6 +61,23 @@ def small_adjustment():
     return adj, train[0], field, xyz[index_of(adj.bead_id, ids, "bead ids")]
 
 
+@pytest.fixture(scope="module")
+def correlated_adjustment():
+    """As :func:`small_adjustment`, the centroids' errors correlated: σx 0.04, σy 0.07 px, ρ ±0.7 by observation."""
+    (train, _), initial, phantom, system = simulated_set(5, 6, 256)
+    exact = train[1]
+    n = len(exact.xy_px)
+    rng = np.random.default_rng(11)
+    sx, sy, rho = np.full(n, 0.04), np.full(n, 0.07), np.where(np.arange(n) % 2, 0.7, -0.7)
+    z1, z2 = rng.normal(size=(2, n))
+    noise = np.column_stack([sx * z1, sy * (rho * z1 + np.sqrt(1 - rho**2) * z2)])
+    obs = Observations(exact.system, exact.exposure, exact.bead_id, exact.xy_px + noise, np.column_stack([sx, sy, rho]))
+    corr = exact.xy_px - system.distortion.undistort_points(exact.xy_px)
+    adj = adjust_bundle(obs, phantom, initial, corr, free=FreeParameters(estimate_iop=True))
+    ids, xyz = nominal_coordinates(phantom)
+    return adj, obs, CorrectionField.constant(256, 256, spacing_px=64.0), xyz[index_of(adj.bead_id, ids, "bead ids")]
+
+
 def test_camera_jacobians_match_finite_differences():
     rng = np.random.default_rng(0)
     n = 5
@@ -108,7 +125,8 @@ def dense_joint(net, xy, field, tau, order, iop, hold_affine: bool):
     A2 = np.block([[A, Z], [Z, A]])  # x rows then y rows, as the network's
     D = difference_operator(len(field.y_nodes_px), len(field.x_nodes_px), order).toarray()
     P = np.kron(np.eye(2), D.T @ D) / tau**2 + 1e-10 * max(net.w.max(), 1.0) * np.eye(2 * n_nodes)
-    J, W = net.J.toarray(), np.diag(net.w)
+    J, n = net.J.toarray(), len(net.w_xy)
+    W = np.diag(net.w) + np.diag(net.w_xy, n) + np.diag(net.w_xy, -n)  # x rows then y rows
     n_t = J.shape[1]
     H_tt = J.T @ W @ J + float(np.mean(np.diag(J.T @ W @ J))) * net.datum @ net.datum.T
     H = np.block([[H_tt, J.T @ W @ A2], [A2.T @ W @ J, A2.T @ W @ A2 + P]])
@@ -152,6 +170,32 @@ def test_conditional_sigma_is_the_adjustments_and_the_joint_is_larger(small_adju
     assert np.all(got.iop_std_px >= got.conditional_iop_std_px * (1 - 1e-9))
 
 
+def test_convention_truth_reproduces_the_projections_and_has_no_gauge_component():
+    """The truth in the gauge convention is the true configuration moved along the gauge, exactly.
+
+    Exact projections adjusted with the convention's correction held fit to round-off at the convention's IOP;
+    and that correction has no least-squares component along the gauge fields at that IOP.
+    """
+    (train, _), initial, phantom, system = simulated_set(4, 6, 256)
+    exact = train[1]
+    iop, component = convention_truth(exact.xy_px, system.distortion.correction_at, system.iop_px)
+    moved = system.distortion.correction_at(exact.xy_px) - component(exact.xy_px)
+    # the convention moves the IOP by tens of px on a strong distortion: a test that would notice a no-op
+    assert np.max(np.abs(iop - system.iop_px)) > 5.0
+    B = gauge_basis(exact.xy_px, iop, True).reshape(-1, 6)
+    coef = np.linalg.lstsq(B / np.linalg.norm(B, axis=0), moved.ravel(), rcond=None)[0]
+    # the root-finder's tolerance (1e-12 relative; 1e-10 px measured on this set), with a margin
+    assert np.max(np.abs(coef)) < 1e-8
+    adj = adjust_bundle(
+        exact, phantom, initial, moved, free=FreeParameters(estimate_iop=True), compute_covariance=False
+    )
+    # exact data and an exactly reproducible configuration: round-off limits the fit (3e-13 px and 2e-10 px of
+    # IOP measured here), bounded well above it; the first-order construction (the gauge fields at the
+    # measured points moved into the IOP by an adjustment) left ~0.015 px and a principal point 5-40 px off
+    assert np.sqrt(np.mean(adj.residual_px[adj.used] ** 2)) < 1e-6
+    np.testing.assert_allclose(adj.iop_px[0], iop, atol=1e-4)
+
+
 def test_stated_sigma_covers_the_actual_error_over_seeds():
     """Coverage against repeated simulations (benchmarks/uncertainty.py at a smaller setting).
 
@@ -166,8 +210,7 @@ def test_stated_sigma_covers_the_actual_error_over_seeds():
         res = calibrate(train[0], phantom, initial, image_size=(384, 384))
         adj, field = res.adjustment, res.fields[0]
         rows = np.flatnonzero(res.trained & adj.used)
-        corr = train[1].xy_px - system.distortion.undistort_points(train[1].xy_px)
-        iop_true, component = convention_truth(train[1], rows, phantom, initial, system.iop_px, corr)
+        iop_true, component = convention_truth(train[1].xy_px[rows], system.distortion.correction_at, system.iop_px)
         hits_iop += list(np.abs(adj.iop_px[0] - iop_true) <= 2 * res.iop_std_px[0])
         inside = field.support_at(test[0].xy_px)
         err = field.undistort_points(test[0].xy_px[inside]) - (test[2] + component(test[1].xy_px))[inside]
@@ -175,3 +218,29 @@ def test_stated_sigma_covers_the_actual_error_over_seeds():
         hits_pt.append(np.abs(err) <= sd)
     assert sum(hits_iop) >= 7
     assert 0.5 <= np.mean(np.concatenate(hits_pt)) <= 0.9
+
+
+def test_correlated_centroids_conditional_sigma_is_the_adjustments(correlated_adjustment):
+    """The weights are the inverse of each centroid's 2x2 covariance, as the adjustment's whitening."""
+    adj, obs, field, _ = correlated_adjustment
+    got = joint_uncertainty(adj, obs, np.flatnonzero(adj.used), 0, field, tau_px=0.3, order=2)
+    # an independent Jacobian and weight matrix against the adjustment's own covariance: float rounding only
+    # (with ρ left out, as before, the σ differed by 7-20 % on such a set)
+    np.testing.assert_allclose(got.conditional_iop_std_px, adj.iop_std_px[0], rtol=1e-6)
+
+
+@pytest.mark.parametrize("hold_affine", [False, True])
+def test_correlated_centroids_joint_covariance_equals_the_dense_inverse(correlated_adjustment, hold_affine):
+    """The field's two components coupled by ρ (one factor of both, interleaved) against one dense inverse."""
+    adj, obs, field, nominal_shape = correlated_adjustment
+    rows = np.flatnonzero(adj.used)
+    shape = nominal_shape if hold_affine else None
+    got = joint_uncertainty(adj, obs, rows, 0, field, tau_px=0.3, order=2, shape_nominal_mm=shape)
+    net = _network(adj, obs, rows, 0, nominal_shape)
+    assert np.all(net.w_xy != 0)  # the coupled path is the one tested
+    cov_t, _ = dense_joint(net, obs.xy_px[rows], field, 0.3, 2, adj.iop_px[0], hold_affine=False)
+    _, cov_v = dense_joint(net, obs.xy_px[rows], field, 0.3, 2, adj.iop_px[0], hold_affine=hold_affine)
+    # the same linear algebra two ways in float64, as for uncorrelated centroids (1e-6 relative; the IOP's
+    # covariance relative to its largest entry: its small off-diagonal ones carry the others' rounding, 4e-7 px²)
+    np.testing.assert_allclose(got.iop_cov_px2, cov_t[:3, :3], rtol=1e-6, atol=1e-6 * np.abs(cov_t[:3, :3]).max())
+    np.testing.assert_allclose(got.node_std_px.transpose(2, 0, 1).ravel(), np.sqrt(np.diag(cov_v)), rtol=1e-6)
