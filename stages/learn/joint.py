@@ -54,6 +54,7 @@ def fit_grid_jointly(
     order: int = 2,
     start: np.ndarray | None = None,
     point_information: np.ndarray | None = None,
+    respond: str = "orientation",
 ) -> CorrectionField:
     """Gridded field update estimated jointly with the orientation's response (IOP, poses, points).
 
@@ -89,6 +90,10 @@ def fit_grid_jointly(
         What other systems' observations tell of ``network.beads`` (their orientation held,
         :func:`fluorocal.stages.learn.network.point_information`): the beads a biplanar set
         shares are not free for this system's field step to move.
+    respond : str
+        What responds to the field's update: ``"orientation"`` (the IOP, the poses and the points, as
+        above) or ``"points"`` (the points alone, the IOP and the poses held: no datum and no gauge
+        to hold then).
 
     Returns
     -------
@@ -101,21 +106,27 @@ def fit_grid_jointly(
     A = bilinear_design(xn, yn, xy)
     D = difference_operator(len(yn), len(xn), int(order))
     Nvv, bv, AtW = _field_normal(A, w, r, (D.T @ D).tocsr() / tau_px**2, base.delta_px.reshape(-1, 2))
-    J = network.J if estimate_iop else network.J[:, 3:]
-    held = slice(0, None) if estimate_iop else slice(3, None)
-    solve_theta, b_theta = _orientation_inverse(J, w, r, network, held, point_information)
-    Nvt = vstack([AtW[c] @ J[c * len(xy) : (c + 1) * len(xy)] for c in range(2)]).tocsr()
-    G, k_gauge = _gauge_penalty(A, xy, w, iop_px, estimate_iop)
-    Ntv = Nvt.T.tocsr()
-    rhs = bv - Nvt @ solve_theta(b_theta)
-
-    def matvec(v):
-        return Nvv @ v - Nvt @ solve_theta(Ntv @ v) + k_gauge * (G.T @ (G @ v))
-
+    matvec, rhs = _reduced_system(A, xy, w, r, Nvv, bv, AtW, network, iop_px, estimate_iop, respond, point_information)
     x0 = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1, 2).T.ravel()
     v = _solve_reduced(Nvv, matvec, rhs, np.array_equal(w[:, 0], w[:, 1]), max_cg_iterations, cg_tolerance, x0)
     n_nodes = A.shape[1]
     return grid_result(xn, yn, np.column_stack([v[:n_nodes], v[n_nodes:]]), A, xy, cv_rms_px, grid, (width, height))
+
+
+def _reduced_system(A, xy, w, r, Nvv, bv, AtW, network, iop_px, estimate_iop, respond, point_information):
+    """The node values' system with the responding parameters eliminated: its matrix-vector product and right side."""
+    held = slice(network.point_col if respond == "points" else 0 if estimate_iop else 3, None)
+    J = network.J[:, held]
+    solve_theta, b_theta = _orientation_inverse(J, w, r, network, held, point_information)
+    Nvt = vstack([AtW[c] @ J[c * len(xy) : (c + 1) * len(xy)] for c in range(2)]).tocsr()
+    G, k_gauge = _gauge_penalty(A, xy, w, iop_px, estimate_iop)
+    k_gauge = 0.0 if respond == "points" else k_gauge  # nothing responds that could carry the gauge
+    Ntv = Nvt.T.tocsr()
+
+    def matvec(v):
+        return Nvv @ v - Nvt @ solve_theta(Ntv @ v) + k_gauge * (G.T @ (G @ v))
+
+    return matvec, bv - Nvt @ solve_theta(b_theta)
 
 
 def _field_normal(A, w, r, reg, base_v):
@@ -154,7 +165,8 @@ def _orientation_inverse(J, w, r, network: Network, held: slice, point_informati
         N += kappa * F @ F.T
         b = b - kappa * F @ network.affine_gap_mm
     E = d[:, None] * network.datum[held]
-    E /= np.linalg.norm(E, axis=0)
+    # the similarity is a datum only when the poses respond too (the points alone move the image)
+    E = E / np.linalg.norm(E, axis=0) if held.start < network.point_col else np.zeros((len(d), 0))
     # a ridge on the beads' coordinates, in the Jacobi-scaled problem, for what no data fix beyond the datum: the
     # depth of a bead one exposure saw (the data's gradient along it is nil too). Not on the poses and the IOP: their
     # weakest combinations, which the field trades against, sit far below any ridge that would make a difference

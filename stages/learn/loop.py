@@ -77,6 +77,7 @@ class _Plan:
     smooth: bool
     refine: str
     acceleration: str
+    respond: str  # what responds to the refinement's field step: "orientation" or "points"
 
     @property
     def xy(self) -> np.ndarray:
@@ -208,7 +209,10 @@ def _plan(params: LearnParams, observations, sizes, adjuster: Adjuster, estimate
     # Anderson and the gridded refinement combine gridded fields: the unsmoothed schemes run without them
     refine = params.refine if smooth else "none"
     acceleration = "none" if params.acceleration == "anderson" and not smooth else params.acceleration
-    return _Plan(params, observations, rows, sizes, adjuster, estimate_iop, smooth, refine, acceleration)
+    several = len(sizes) > 1
+    joint = params.orientation_response == "yes" or (params.orientation_response == "auto" and several)
+    respond = "orientation" if joint else "points"
+    return _Plan(params, observations, rows, sizes, adjuster, estimate_iop, smooth, refine, acceleration, respond)
 
 
 def _initial_state(plan: _Plan, adj, out: Outcome) -> _State:
@@ -456,6 +460,7 @@ def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory,
         cg_tolerance=LOOP_CG_TOLERANCE,
         start=None if start is None else start.delta_px,
         point_information=shared,
+        respond=plan.respond,
         **fit,
     )
     return model, mem

@@ -19,6 +19,7 @@ PRESETS = {
     "recommended": {
         "acceleration": "anderson",
         "refine": "grid+points",
+        "orientation_response": "auto",
         "affine_datum": True,
         "smoothness_orders": (2, 3, 4),
         "max_iterations": 3,
@@ -33,6 +34,7 @@ PRESETS = {
     "paper": {
         "acceleration": "none",
         "refine": "none",
+        "orientation_response": "no",
         "affine_datum": False,
         "smoothness_orders": (2,),
         "max_iterations": 30,
@@ -154,6 +156,17 @@ class LearnParams:
         and every object point (:func:`~fluorocal.stages.learn.joint.fit_grid_jointly`:
         a Gauss-Newton step of the joint problem, so the alternation converges
         in a few steps). The unsmoothed schemes run without a refinement.
+    orientation_response : str *(preset)*
+        With ``refine="grid+points"``, what the field's step is estimated jointly with: ``"no"``: the
+        object points alone; ``"yes"``: the IOP, every pose and every point too (a Gauss-Newton step of
+        the joint problem: the alternation converges in a few steps instead of dozens); ``"auto"``
+        (recommended): ``"yes"`` when two or more systems view the phantom, ``"no"`` with one. With
+        one view per exposure the principal point and the phantom's shape trade off against the field
+        along a direction the data barely fix; the joint step moves far along it and stops at a worse
+        fit than the slow alternation (a 40 + 40-exposure 1024 px set, seed 1 of
+        ``benchmarks/robust.py``: 0.0148 against 0.0070 mm out of sample), while with two views it
+        converges to as good a fit or better (``benchmarks/evaluate.py``: 0.027 mm at every training
+        size, against 0.027-0.100 mm).
     tau_grid_px : tuple of float
         Candidate smoothness priors (px, standard deviation of a node's
         difference of the prior's order) for the refinement, chosen by
@@ -274,6 +287,7 @@ class LearnParams:
     relaxation: float = 1.5
     anderson_depth: int = 10
     refine: str | None = None
+    orientation_response: str | None = None
     tau_grid_px: tuple = DEFAULT_TAU_GRID_PX
     smoothness_folds: int = 5
     smoothness_orders: tuple[int, ...] | None = None
@@ -307,6 +321,8 @@ class LearnParams:
             raise InputError(f"acceleration must be 'none', 'overrelax' or 'anderson'; got {self.acceleration!r}")
         if self.refine not in ("none", "grid", "grid+points"):
             raise InputError(f"refine must be 'none', 'grid' or 'grid+points'; got {self.refine!r}")
+        if self.orientation_response not in ("auto", "yes", "no"):
+            raise InputError(f"orientation_response must be 'auto', 'yes' or 'no'; got {self.orientation_response!r}")
         if self.affine_datum and self.refine != "grid+points":
             raise InputError(
                 f"affine_datum needs refine='grid+points' (it constrains the point shifts); got refine={self.refine!r}"
