@@ -30,6 +30,8 @@ _C_ITERATIONS = 2
 _RESOLVE_RMS = 3.0
 # ... and outlines closer than touching by this many times the frame's relative spread of bead sizes still overlap
 _OUTLINE_SIGMAS = 2.0
+# ... at most (sizes that scattered say little of the outlines; beads overlapping more have biased centroids)
+_MAX_SLACK = 0.1
 
 
 def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
@@ -112,7 +114,15 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
     }
 
 
-def _told_apart(frame, where, app, i_pred, i_det, resid, clean) -> np.ndarray:
+def _told_apart(
+    frame: CubeFrame,
+    where: np.ndarray,
+    app: np.ndarray,
+    i_pred: np.ndarray,
+    i_det: np.ndarray,
+    resid: np.ndarray,
+    clean: np.ndarray,
+) -> np.ndarray:
     """``(P,) bool``: beads judged overlapping whose own detections tell them apart (:func:`.assign.told_apart`).
 
     From the ``clean`` pairs (labelled, not overlapping): the tolerance is ``_RESOLVE_RMS`` times their RMS
@@ -131,7 +141,7 @@ def _told_apart(frame, where, app, i_pred, i_det, resid, clean) -> np.ndarray:
     spread = 1.4826 * float(np.median(np.abs(log_ratio - np.median(log_ratio)))) if len(log_ratio) >= 6 else 0.0
     fits = np.zeros(len(where), dtype=bool)
     fits[i_pred[resid <= tol]] = True
-    return told_apart(where, app, p.ambiguity_bead_diameters, fits, tol, min(_OUTLINE_SIGMAS * spread, 0.5))
+    return told_apart(where, app, p.ambiguity_bead_diameters, fits, tol, min(_OUTLINE_SIGMAS * spread, _MAX_SLACK))
 
 
 def apparent_diameters(corr: Correction, ideal: np.ndarray, pred: np.ndarray, diam: np.ndarray) -> np.ndarray:
