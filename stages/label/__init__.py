@@ -21,7 +21,11 @@ and the interior orientation):
   the centre) outward, and the correction's degree grows with it. Beads whose
   outlines lie within about one bead diameter of another bead's are ambiguous
   (front and back faces of the cube overlap in the X-ray) and are left out,
-  together with the detections they absorb. A labelling is accepted only if
+  together with the detections they absorb, unless their own detection tells them apart: it lies
+  within three times the frame's RMS residual of the bead's prediction, and no other bead is closer
+  than touching by more than the precision of the estimated outlines (twice the frame's spread of
+  measured bead sizes) — a bead judged a few % short of touching on estimated centres and diameters
+  is usually clear of its neighbour (:func:`.assign.told_apart`). A labelling is accepted only if
   it explains most detections with small residuals and puts marker-sized
   detections on markers. A bead phantom is periodic, so a labelling may have rivals
   that explain the frame almost as well: the phantom slipped by a bead row, turned a

@@ -58,14 +58,52 @@ def assign(pred_xy: np.ndarray, gate_px: np.ndarray, det_xy: np.ndarray, det_tre
 
 def ambiguous(pred_xy: np.ndarray, diam_px: np.ndarray, factor: float) -> np.ndarray:
     """Beads whose projection lies within ``factor`` x the mean of both diameters of another's."""
+    amb = np.zeros(len(pred_xy), dtype=bool)
+    amb[overlapping(pred_xy, diam_px, factor).ravel()] = True
+    return amb
+
+
+def overlapping(pred_xy: np.ndarray, diam_px: np.ndarray, factor: float) -> np.ndarray:
+    """``(K, 2) int``: the pairs of beads whose projections lie within ``factor`` x their mean diameter."""
     from scipy.spatial import cKDTree
 
-    amb = np.zeros(len(pred_xy), dtype=bool)
     if len(pred_xy) < 2:
-        return amb
+        return np.empty((0, 2), dtype=np.int64)
     pairs = cKDTree(pred_xy).query_pairs(r=factor * float(np.max(diam_px)), output_type="ndarray")
-    if len(pairs):
-        d = np.linalg.norm(pred_xy[pairs[:, 0]] - pred_xy[pairs[:, 1]], axis=1)
-        close = pairs[d < factor * 0.5 * (diam_px[pairs[:, 0]] + diam_px[pairs[:, 1]])]
-        amb[close.ravel()] = True
-    return amb
+    if not len(pairs):
+        return np.empty((0, 2), dtype=np.int64)
+    d = np.linalg.norm(pred_xy[pairs[:, 0]] - pred_xy[pairs[:, 1]], axis=1)
+    return pairs[d < factor * 0.5 * (diam_px[pairs[:, 0]] + diam_px[pairs[:, 1]])].astype(np.int64)
+
+
+def told_apart(
+    xy: np.ndarray, diam_px: np.ndarray, factor: float, fits: np.ndarray, tol_px: float, slack: float
+) -> np.ndarray:
+    """``(P,) bool``: beads whose own detection tells them apart from their neighbours.
+
+    A bead is told apart when its assigned detection lies within ``tol_px`` of its prediction (``fits``),
+    no other bead lies within ``factor * (1 - slack)`` times their mean diameter (the overlap test of
+    :func:`ambiguous`, relaxed by ``slack``, the relative precision to which the frame shows a bead's
+    outline), and none within ``3 * tol_px``, so that the detection is at least twice as near its own
+    bead as any other. Overlapping beads merged into one blob leave a detection between them: for beads
+    of one size, equally near both.
+
+    Parameters
+    ----------
+    xy : (P, 2) float64 ndarray, px
+        The beads' centres (measured where detected, predicted elsewhere).
+    diam_px : (P,) float64 ndarray, px
+        Their apparent diameters.
+    factor : float
+        The ambiguity distance in mean diameters (:func:`ambiguous`).
+    fits : (P,) bool ndarray
+        Beads assigned a detection within ``tol_px`` of their prediction.
+    tol_px, slack : float
+    """
+    from scipy.spatial import cKDTree
+
+    out = fits.copy()
+    out[overlapping(xy, diam_px, factor * (1.0 - slack)).ravel()] = False
+    if len(xy) > 1 and tol_px > 0:
+        out[cKDTree(xy).query_pairs(r=3.0 * tol_px, output_type="ndarray").ravel()] = False
+    return out

@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 from fluorocal.stages.geometry import camera_matrix
-from fluorocal.stages.label.assign import ambiguous, assign
+from fluorocal.stages.label.assign import ambiguous, assign, told_apart
 from fluorocal.stages.label.camera import pose_from_cv, pose_to_cv, project_cam
 from fluorocal.stages.label.correction import Correction, fit_correction, max_degree
 from fluorocal.stages.label.cube_frame import CubeFrame, visible
@@ -25,6 +25,13 @@ _DEGREE_SCHEDULE = (0, 1, 3, 5)
 _MIN_DEPTH_SPREAD = 0.02
 # ... in the first iterations after the coarse pose only (it settles in two)
 _C_ITERATIONS = 2
+# overlapping beads are told apart by detections within this many times the frame's RMS residual of their
+# predictions: a 2D Gaussian residual exceeds 3 RMS with probability exp(-9), about 1e-4
+_RESOLVE_RMS = 3.0
+# ... and outlines closer than touching by this many times the frame's relative spread of bead sizes still overlap
+_OUTLINE_SIGMAS = 2.0
+# ... at most (sizes that scattered say little of the outlines; beads overlapping more have biased centroids)
+_MAX_SLACK = 0.1
 
 
 def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
@@ -79,8 +86,11 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
     # overlap is judged on the measured outlines where a bead was detected, on the prediction elsewhere
     where = pred.copy()
     where[i_pred] = frame.det_xy[i_det]
-    amb = ambiguous(where, apparent_diameters(corr, ideal[vis], pred, diam[vis]), p.ambiguity_bead_diameters)
+    app = apparent_diameters(corr, ideal[vis], pred, diam[vis])
+    amb = ambiguous(where, app, p.ambiguity_bead_diameters)
     close = resid <= p.final_gate_bead_diameters * diam[vis][i_pred]
+    if amb.any():
+        amb &= ~_told_apart(frame, where, app, i_pred, i_det, resid, close & ~amb[i_pred])
     lab = close & ~amb[i_pred]
     ambig = amb[i_pred]
     beads, dets = vis[i_pred[lab]], i_det[lab]
@@ -102,6 +112,36 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
         "size_evidence": evidence,
         "corr": corr,
     }
+
+
+def _told_apart(
+    frame: CubeFrame,
+    where: np.ndarray,
+    app: np.ndarray,
+    i_pred: np.ndarray,
+    i_det: np.ndarray,
+    resid: np.ndarray,
+    clean: np.ndarray,
+) -> np.ndarray:
+    """``(P,) bool``: beads judged overlapping whose own detections tell them apart (:func:`.assign.told_apart`).
+
+    From the ``clean`` pairs (labelled, not overlapping): the tolerance is ``_RESOLVE_RMS`` times their RMS
+    residual (the frame's centroid noise and unmodelled distortion, which a detection merging two beads
+    exceeds), and the overlap test's slack is ``_OUTLINE_SIGMAS`` times the robust spread of their
+    measured sizes over their apparent diameters (how precisely the frame shows a bead's outline; a
+    separation estimated that close to touching does not tell whether the outlines overlap).
+    """
+    p = frame.params
+    if clean.sum() < 6:
+        return np.zeros(len(where), dtype=bool)
+    tol = _RESOLVE_RMS * float(np.sqrt(np.mean(resid[clean] ** 2)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_ratio = np.log(frame.det.size_px[frame.det_idx[i_det[clean]]] / app[i_pred[clean]])
+    log_ratio = log_ratio[np.isfinite(log_ratio)]
+    spread = 1.4826 * float(np.median(np.abs(log_ratio - np.median(log_ratio)))) if len(log_ratio) >= 6 else 0.0
+    fits = np.zeros(len(where), dtype=bool)
+    fits[i_pred[resid <= tol]] = True
+    return told_apart(where, app, p.ambiguity_bead_diameters, fits, tol, min(_OUTLINE_SIGMAS * spread, _MAX_SLACK))
 
 
 def apparent_diameters(corr: Correction, ideal: np.ndarray, pred: np.ndarray, diam: np.ndarray) -> np.ndarray:

@@ -42,7 +42,8 @@ class LabelParams:
         A bead is ambiguous when another bead's outline centre lies closer than this times the mean of their
         apparent diameters (default 1.0: the outlines touch). Centres are the measured ones where a bead was
         detected, the predicted ones elsewhere; diameters are projected from the pose, scaled by the local
-        magnification of the correction.
+        magnification of the correction. A bead so judged is labelled all the same when its own detection tells it
+        apart (:func:`fluorocal.stages.label.assign.told_apart`).
     ransac_threshold_bead_diameters : float
         Inlier threshold of the RANSAC pose on the first, coarse assignment (default 0.3).
     ransac_iterations : int

@@ -59,8 +59,8 @@ def test_three_random_markers_on_a_wobbling_turntable():
     dets = [detections_from_truth(ft, rng, merged_keep=0.2) for ft in fts]
     labs = label_sequence([c for c, _ in dets], sim.phantom, params_of(sp))
     assert [lab.pose_source for lab in labs].count("prior") == 6
-    # 97 %: the labelling leaves out beads within a few % of touching (ambiguous), ~1 % of the clean ones
-    check_sequence(labs, dets, fts, min_fraction=0.97)
+    # 99 %: the issue's target (beads within a few % of touching are told apart by their own detections)
+    check_sequence(labs, dets, fts, min_fraction=0.99)
 
 
 def test_no_markers_seeds_on_the_first_frame_of_a_wobbling_sequence():
@@ -72,7 +72,7 @@ def test_no_markers_seeds_on_the_first_frame_of_a_wobbling_sequence():
     dets = [detections_from_truth(ft, rng, merged_keep=0.2) for ft in fts]
     labs = label_sequence([c for c, _ in dets], sim.phantom, params_of(sp), {0: seeds_from_truth(fts[0], rng)})
     assert [lab.pose_source for lab in labs] == ["seeds"] + ["prior"] * 5
-    check_sequence(labs, dets, fts, min_fraction=0.97)
+    check_sequence(labs, dets, fts, min_fraction=0.99)  # the issue's target, as above
 
 
 def test_a_labelling_one_row_off_gives_way_to_the_truth():
@@ -82,13 +82,14 @@ def test_a_labelling_one_row_off_gives_way_to_the_truth():
     """
     from fluorocal.stages.label.cube_frame import make_cube_frame
     from fluorocal.stages.label.detections import Detections, assumed_iop
-    from fluorocal.stages.label.iterate import acceptable, iterate
+    from fluorocal.stages.label.iterate import iterate
     from fluorocal.stages.label.rivals import _slip_poses, settle
 
     from tests.stages.test_label import without_roles
 
-    # a view 30 deg off a wall's, where a slip explains the detections well enough to be acceptable (at most
-    # views the phantom's ends rule slips out at once)
+    # a view 30 deg off a wall's, where slips explain the detections almost as well as the truth (at most
+    # views the phantom's ends rule slips out at once); one of them was acceptable on its own evidence until
+    # touching beads were told apart (their sizes now give it away), so settle is checked from every slip
     sp = SimulateParams(n_frames=4, seed=2, turntable_step_deg=10.0)
     sim = simulate(sp, render=False)
     phantom = without_roles(sim.phantom)
@@ -104,8 +105,8 @@ def test_a_labelling_one_row_off_gives_way_to_the_truth():
     truth = iterate(frame, quat_to_matrix(ft.q), ft.source_mm)
     assert right(truth) == 1.0
     slips = [iterate(frame, R, T) for R, T in _slip_poses(frame, truth, truth["R"], truth["T"])]
-    slips = [r for r in slips if r is not None and acceptable(frame, r)[0] and right(r) < 0.5]
-    assert slips, "the cube's periodic layout gives acceptable labellings a row off"
+    slips = [r for r in slips if r is not None and right(r) < 0.5]
+    assert len(slips) >= 5, "the cube's periodic layout gives labellings a row off"
     for slipped in slips:
         best, why = settle(frame, [slipped])
         assert best is not None and right(best) == 1.0, why
