@@ -312,8 +312,10 @@ def _field_step_sigma(before: tuple, after: tuple) -> float:
 def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
     """``(action, converged, reason)``: ``"continue"``, ``"refine"`` (start the refinement) or ``"stop"``."""
     in_phase = state.iteration - state.phase_start + 1
+    # the stall rule is the joint step's: the beads-alone step creeps, its cost falling slowly for many iterations
+    stall = plan.params.stall_tolerance if plan.respond == "orientation" else 0.0
     action, converged, reason = decide(plan.params, state.history, n_obs=len(plan.xy), iterations_in_phase=in_phase,
-                                       refine=plan.refine)  # fmt: skip
+                                       refine=plan.refine, stall_tolerance=stall)  # fmt: skip
     if action == "continue":
         return action, converged, reason
     if state.phase == "knn" and plan.refine != "none":

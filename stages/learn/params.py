@@ -130,14 +130,16 @@ class LearnParams:
         being learned slowly (small steps, the cost falling by percents) and through a small
         step that an accelerated iteration follows with a large one.
     stall_tolerance : float *(preset)*
-        The refinement also ends when the adjustment's cost (equation 2) has fallen by less than
-        this fraction of itself below the refinement's best, at two iterations running
-        (recommended 1e-3; paper 0: off). Each refinement step is a Gauss-Newton step of the joint
-        problem (``refine``), so once the cost stops falling the field has converged: on a rendered
-        40-frame 1024 px set the field is within 0.0005 px of its converged accuracy after 5
-        refinement steps, while the cost's last changes, a few hundredths of a percent, come from
-        inexact inner solves; a weighted sum of squares of ``2n`` residuals fluctuates by about
-        ``1/sqrt(n)`` of itself from sample to sample (3 % at 1 000 observations), far above 1e-3.
+        A refinement whose steps move the orientation too (``orientation_response``) also ends when
+        the adjustment's cost (equation 2) has fallen by less than this fraction of itself below the
+        refinement's best, at two iterations running (recommended 1e-3; paper 0: off). Each such
+        step is a Gauss-Newton step of the joint problem, so once the cost stops falling the field has
+        converged: on a rendered 40-frame 1024 px set the field was within 0.0005 px of its
+        converged accuracy after 5 refinement steps, while the cost's last changes, a few hundredths
+        of a percent, come from inexact inner solves; a weighted sum of squares of ``2n`` residuals
+        fluctuates by about ``1/sqrt(n)`` of itself from sample to sample (3 % at 1 000
+        observations), far above 1e-3. The beads-alone step creeps (its cost falls slowly for many
+        iterations): the rule is off for it.
     acceleration : str *(preset)*
         ``"none"`` (the paper's plain fixed-point loop), ``"overrelax"``
         (``Δ += relaxation δ``) or ``"anderson"`` (recommended: Anderson

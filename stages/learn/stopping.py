@@ -5,19 +5,23 @@ cost changes by less than ``tolerance`` per observation, when the correction
 moves by less than ``step_tolerance`` times the inlier RMS, when (smoothed
 schemes, in the refinement or when there is none) the gridded field moves by
 less than ``field_tolerance`` times its own uncertainty with the adjustment's
-cost stalled, or, in the refinement, when the adjustment's cost stops falling
-by more than ``stall_tolerance`` of itself; each of the last two for two
-iterations running. Otherwise at its iteration cap.
+cost stalled, or, in a refinement whose steps move the orientation too (Gauss-Newton
+steps of the joint problem), when the adjustment's cost stops falling by more
+than ``stall_tolerance`` of itself; each of the last two for two iterations
+running. Otherwise at its iteration cap.
 """
 
 from __future__ import annotations
 
 
-def decide(params, history: tuple, *, n_obs: int, iterations_in_phase: int, refine: str) -> tuple[str, bool, str]:
+def decide(
+    params, history: tuple, *, n_obs: int, iterations_in_phase: int, refine: str, stall_tolerance: float
+) -> tuple[str, bool, str]:
     """``(action, converged, reason)``: ``"continue"`` or ``"end of phase"``, and why it ended.
 
     ``history``: the :class:`~fluorocal.stages.learn.result.IterationRecord` of every iteration so far;
-    ``refine``: the loop's refinement (``"none"`` for the unsmoothed schemes, whatever ``params`` says).
+    ``refine``: the loop's refinement (``"none"`` for the unsmoothed schemes, whatever ``params`` says);
+    ``stall_tolerance``: ``params.stall_tolerance`` where the loop applies it, else 0 (off).
     """
     last, phase = history[-1], history[-1].phase
     prev = previous_total(history)
@@ -31,7 +35,7 @@ def decide(params, history: tuple, *, n_obs: int, iterations_in_phase: int, refi
     still_field = field_phase and all(
         _field_settled(history[:end], params.field_tolerance, cost_tolerance) for end in running
     )
-    stalled = phase == "grid" and all(_cost_stalled(history[:end], params.stall_tolerance) for end in running)
+    stalled = phase == "grid" and all(_cost_stalled(history[:end], stall_tolerance) for end in running)
     done = small_change or small_step or still_field or stalled
     cap = params.max_iterations if phase == "knn" else params.refine_iterations
     if not done and iterations_in_phase < cap:
@@ -52,7 +56,7 @@ def decide(params, history: tuple, *, n_obs: int, iterations_in_phase: int, refi
         )
     elif stalled:
         reason = (
-            f"the adjustment's cost fell by less than {params.stall_tolerance:g} of itself below its best, "
+            f"the adjustment's cost fell by less than {stall_tolerance:g} of itself below its best, "
             "two iterations running"
         )
     elif phase == "grid":
