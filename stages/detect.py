@@ -52,7 +52,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from fluorocal.stages._fov import bead_polarity, field_of_view, fov_clearance, pixel_noise
 from fluorocal.stages._image import frame_name, log_image
-from fluorocal.stages._regions import flatten, pixel_index, regions
+from fluorocal.stages._regions import cores, flatten, regions
 from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, as_arrays, check_shape, freeze
 from fluorocal.stages.errors import InputError, ShapeError
 
@@ -406,36 +406,48 @@ def _blobs(
     connectivity = 4 if reduced else 8
     # only blobs whose peak clears the absolute floors become regions (a top-hat of pure noise is itself positive)
     floor = max(params.min_contrast, params.min_snr * noise)
-    half, half_labels = regions(*flattened, 0.5, floor, polarity, connectivity)
+    half, half_labels, boxes = regions(*flattened, 0.5, floor, polarity, connectivity)
     reason = _reasons(half, d_min, d_max, noise, params)
-    retry = np.isin(reason, ("size", "not_round"))
+    retry = (reason == "size") | (reason == "not_round")
     if not retry.any():
         return half, reason
-    core, _ = regions(*flattened, 0.85, floor, polarity, connectivity)
-    core_rc = pixel_index(core["xy_px"], half_labels.shape)
-    # shape (M,): the half-maximum blob each core lies in (-1: none)
-    parent = half_labels[core_rc[:, 0], core_rc[:, 1]] - 1
-    has_parent = parent >= 0
     clean = reason == ""
-    core_of_clean = has_parent & clean[np.maximum(parent, 0)]
     # the 85 % contour lies inside the half-maximum one by about the edge's blur width, whatever the size
-    widen = (
-        float(np.median(half["radius_px"][parent[core_of_clean]] - core["radius_px"][core_of_clean]))
-        if core_of_clean.any()
-        else 0.0
-    )
-    # the size test on the core itself (smaller than its outline), then its radius widened to the outline's
-    core_reason = _reasons(
-        core, max(d_min - 2 * widen, 0.0), d_max, noise, params, typical_contrast=_typical_contrast(half, clean)
-    )
+    widen = _core_widening(flattened, half_labels, half["radius_px"], clean, 0.85)
+    # the size test on the core itself (smaller than its outline), then its radius widened to the outline's;
+    # a core lies inside its blob, so a blob narrower than the smallest core holds none
+    core_d_min = max(d_min - 2 * widen, 0.0)
+    retry &= 2 * half["radius_px"] >= core_d_min
+    if not retry.any():
+        return half, reason
+    core, parent = cores(flattened, half_labels, boxes, np.flatnonzero(retry), 0.85, floor, polarity, connectivity)
+    core_reason = _reasons(core, core_d_min, d_max, noise, params, typical_contrast=_typical_contrast(half, clean))
     core["radius_px"] = core["radius_px"] + widen
-    rescued = has_parent & retry[np.maximum(parent, 0)] & (core_reason == "")
+    rescued = core_reason == ""
     if not rescued.any():
         return half, reason
     replaced = np.zeros(len(reason), bool)
     replaced[parent[rescued]] = True
     blobs = {k: np.concatenate([v[~replaced], core[k][rescued]]) for k, v in half.items()}
     return blobs, np.concatenate([reason[~replaced], core_reason[rescued]])
+
+
+def _core_widening(flattened, labels, radius_px, clean, fraction: float) -> float:
+    """Median over the ``clean`` regions of ``labels`` of their radius minus that of their part above ``fraction``.
+
+    Returns 0 without a clean region.
+    """
+    import cv2
+
+    _, change, local_change = flattened
+    found = cv2.findNonZero(cv2.compare(change, local_change * np.float32(fraction), cv2.CMP_GE))
+    if found is None or not clean.any():
+        return 0.0
+    found = found.reshape(-1, 2)
+    label = labels[found[:, 1], found[:, 0]]
+    core_area = np.bincount(label[label > 0] - 1, minlength=len(radius_px))
+    with_core = clean & (core_area > 0)
+    return float(np.median(radius_px[with_core] - np.sqrt(core_area[with_core] / np.pi))) if with_core.any() else 0.0
 
 
 def _typical_contrast(blobs: dict, plausible: np.ndarray) -> float:
@@ -495,7 +507,7 @@ def _estimate_diameter_range(half_log, half_mask, polarity, noise, params: Detec
     """
     # averaging 2x2 pixels halves white noise
     flattened = flatten(half_log, half_mask, polarity, 2.0, _MAX_ESTIMATE_DIAMETER_PX / 2, 1.0)
-    blobs, _ = regions(*flattened, 0.5, max(params.min_contrast, params.min_snr * noise / 2), polarity)
+    blobs, _, _ = regions(*flattened, 0.5, max(params.min_contrast, params.min_snr * noise / 2), polarity)
     diameter = 2 * 2 * blobs["radius_px"]
     strong = (blobs["contrast"] >= max(params.min_contrast, params.min_snr * noise / 2)) & (diameter >= 4)
     round_ = (blobs["axis_ratio"] >= params.min_axis_ratio) & (blobs["fill"] >= params.min_fill)
