@@ -138,8 +138,7 @@ def edge_points(
 
     # sorted by bead (raster order within each)
     dx, dy = x - centre0[owner, 0], y - centre0[owner, 1]
-    # a stable sort of 16-bit keys is a radix sort
-    order = np.argsort(owner.astype(np.uint16) if len(centre0) < 2**16 else owner, kind="stable")
+    order = np.argsort(owner.astype(np.uint16) if len(centre0) < 2**16 else owner, kind="stable")  # 16 bits: radix
     x, y, owner, centre_mag, dx, dy = (v[order] for v in (x, y, owner, centre_mag, dx, dy))
     keep = _strong_in_annulus(owner, centre_mag, np.sqrt(dx * dx + dy * dy), r_in, r_out, min_gradient_fraction)
     return np.column_stack([x[keep], y[keep]]), owner[keep]
