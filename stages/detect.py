@@ -440,12 +440,12 @@ def _core_widening(flattened, labels, radius_px, clean, fraction: float) -> floa
     import cv2
 
     _, change, local_change = flattened
-    found = cv2.findNonZero(cv2.compare(change, local_change * np.float32(fraction), cv2.CMP_GE))
+    above = cv2.compare(change, local_change * np.float32(fraction), cv2.CMP_GE)
+    found = cv2.findNonZero(cv2.bitwise_and(above, cv2.compare(labels, 0, cv2.CMP_GT)))
     if found is None or not clean.any():
         return 0.0
     found = found.reshape(-1, 2)
-    label = labels[found[:, 1], found[:, 0]]
-    core_area = np.bincount(label[label > 0] - 1, minlength=len(radius_px))
+    core_area = np.bincount(labels[found[:, 1], found[:, 0]] - 1, minlength=len(radius_px))
     with_core = clean & (core_area > 0)
     return float(np.median(radius_px[with_core] - np.sqrt(core_area[with_core] / np.pi))) if with_core.any() else 0.0
 
