@@ -30,6 +30,21 @@ def _gaussian_gradient(image: np.ndarray, sigma_px: float) -> tuple[np.ndarray, 
     return gx, gy
 
 
+def _axis_maxima(magnitude: np.ndarray, owner_image: np.ndarray) -> np.ndarray:
+    """``(x, y)`` of the pixels with an owner that are at least both neighbours along x or along y; (K, 2) int64.
+
+    ``owner_image`` is 0 on the border.
+    """
+    import cv2
+
+    inner, m = magnitude[1:-1, 1:-1], magnitude
+    along_x = cv2.compare(inner, cv2.max(m[1:-1, :-2], m[1:-1, 2:]), cv2.CMP_GE)
+    along_y = cv2.compare(inner, cv2.max(m[:-2, 1:-1], m[2:, 1:-1]), cv2.CMP_GE)
+    owned = cv2.compare(owner_image[1:-1, 1:-1], 0, cv2.CMP_GT)
+    found = cv2.findNonZero(cv2.bitwise_and(cv2.bitwise_or(along_x, along_y), owned))
+    return found.reshape(-1, 2).astype(np.int64) + 1 if found is not None else np.empty((0, 2), np.int64)
+
+
 def _window(shape, centre0, r_out, sigma_px: float):
     """The part of a frame of ``shape`` that the edge search looks at: its slices, and its corner ``(x, y)``, px.
 
@@ -121,17 +136,12 @@ def edge_points(
     square_px = odd_size(1.25 * 2 * radius0.max() + 8)
     gx, gy = _gaussian_gradient(image[window] - background(image, polarity, square_px, reduce=True)[window], sigma_px)
     magnitude = cv2.magnitude(gx, gy)
-    height, width = magnitude.shape
-    owner_image = _annulus_owners((height, width), centre0, r_out)
+    owner_image = _annulus_owners(magnitude.shape, centre0, r_out)
+    width = magnitude.shape[1]
     # non-maximum suppression along the gradient's dominant axis: over the frame, the pixels that are a
-    # maximum along x or along y (a 3-px dilation each); then, at those in an annulus, the test along
-    # the dominant axis (strictly greater than the pixel before it, so that a plateau gives one point)
-    along_x = cv2.compare(magnitude, cv2.dilate(magnitude, np.ones((1, 3), np.uint8)), cv2.CMP_GE)
-    along_y = cv2.compare(magnitude, cv2.dilate(magnitude, np.ones((3, 1), np.uint8)), cv2.CMP_GE)
-    candidate = cv2.bitwise_and(cv2.bitwise_or(along_x, along_y), cv2.compare(owner_image, 0, cv2.CMP_GT))
-    found = cv2.findNonZero(candidate)
-    # shape (K, 2): (x, y) of the candidate peaks (the annuli stop short of the frame's border)
-    found_xy = found.reshape(-1, 2).astype(np.int64) if found is not None else np.empty((0, 2), np.int64)
+    # maximum along x or along y; then, at those in an annulus, the test along the dominant axis (strictly
+    # greater than the pixel before it, so that a plateau gives one point)
+    found_xy = _axis_maxima(magnitude, owner_image)
     flat = found_xy[:, 1] * width + found_xy[:, 0]
     gx_p, gy_p, centre_mag = gx.ravel()[flat], gy.ravel()[flat], magnitude.ravel()[flat]
     horizontal = np.abs(gx_p) >= np.abs(gy_p)
