@@ -37,7 +37,9 @@ blobs found with a generous top-hat. When the smallest expected bead is at
 least 6 px wide (its smoothing, a sixth of that, is then at least the 1 px
 floor), steps 4-6 also run on a 2x-reduced copy, smoothed by the same
 Gaussian in full-frame px (the candidates' centres need only be good to a few
-tenths of a pixel: the centroid stage refines them).
+tenths of a pixel: the centroid stage refines them); there a ``"merged"``
+blob is also measured again at 85 % (two beads a pixel or two apart can merge
+on the coarser grid).
 
 Coordinates follow ``stages/geometry.py``: ``(x, y)`` with x = column, y = row,
 the centre of the top-left pixel at ``(0, 0)``.
@@ -387,8 +389,10 @@ def _blobs(
     """Candidate blobs and their rejection reasons.
 
     ``reduced``: ``log_frame`` is the frame reduced 2x; it is smoothed as the full frame would be (in full-frame
-    px), and regions meeting only at a corner are two (a bead's region is 4-connected; two beads a pixel or two
-    apart, which the full frame keeps apart, often meet at a corner of the coarser grid).
+    px), and regions meeting only at a corner are two (a bead's region is 4-connected). Two beads a pixel or two
+    apart, which the full frame keeps apart, can still merge on the coarser grid: a blob taken for two merged
+    beads is measured again at 85 % too, and its cores replace it when their outlines keep a full-frame pixel
+    apart.
 
     Each blob is first measured at half its local peak. A blob too large or
     not round there (a bead on a pedestal of anatomy of about its own width)
@@ -409,6 +413,9 @@ def _blobs(
     half, half_labels, boxes = regions(*flattened, 0.5, floor, polarity, connectivity)
     reason = _reasons(half, d_min, d_max, noise, params)
     retry = (reason == "size") | (reason == "not_round")
+    if reduced:
+        # two beads a pixel or two apart, which the full frame keeps apart, can merge on the coarser grid
+        retry |= reason == "merged"
     if not retry.any():
         return half, reason
     clean = reason == ""
@@ -424,12 +431,23 @@ def _blobs(
     core_reason = _reasons(core, core_d_min, d_max, noise, params, typical_contrast=_typical_contrast(half, clean))
     core["radius_px"] = core["radius_px"] + widen
     rescued = core_reason == ""
+    if reduced:
+        # ... and are two beads again when their outlines (the widened cores) keep a full-frame pixel apart
+        rescued &= ~_overlapping(core["xy_px"], core["radius_px"], parent, 0.5)
     if not rescued.any():
         return half, reason
     replaced = np.zeros(len(reason), bool)
     replaced[parent[rescued]] = True
     blobs = {k: np.concatenate([v[~replaced], core[k][rescued]]) for k, v in half.items()}
     return blobs, np.concatenate([reason[~replaced], core_reason[rescued]])
+
+
+def _overlapping(xy, radius, group, margin: float) -> np.ndarray:
+    """Circles (``xy``, ``radius``) within ``margin`` of another circle of the same ``group``; (M,) bool."""
+    distance = np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1))
+    near = (group[:, None] == group[None]) & (distance < radius[:, None] + radius[None] + margin)
+    np.fill_diagonal(near, False)
+    return near.any(axis=1)
 
 
 def _core_widening(flattened, labels, radius_px, clean, fraction: float) -> float:
