@@ -52,14 +52,14 @@ def pixel_index(points_xy: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def regions(
-    smooth, change, local_change, fraction: float, floor: float, polarity: str, connectivity: int = 8, within=None
+    flattened, fraction: float, floor: float, polarity: str, connectivity: int = 8, within=None, core_fraction=None
 ) -> tuple[dict, np.ndarray, np.ndarray]:
     """Regions above ``fraction`` of their local peak in intensity (peaks below ``floor`` ignored), measured.
 
     Parameters
     ----------
-    smooth, change, local_change : (H, W) float32 ndarray
-        As :func:`flatten` returns them.
+    flattened : tuple of three (H, W) float32 ndarray
+        ``smooth, change, local_change`` as :func:`flatten` returns them.
     fraction : float
     floor : float
         Log contrast below which a peak is ignored.
@@ -68,6 +68,8 @@ def regions(
         Pixels touching at a corner belong to one region (8) or not (4).
     within : (H, W) uint8 ndarray, optional
         Only its non-zero pixels can belong to a region.
+    core_fraction : float, optional
+        Also count each region's pixels above this fraction of their local peak (``core_area``, px).
 
     Returns
     -------
@@ -75,7 +77,8 @@ def regions(
         ``xy_px`` (N, 2) px; ``radius_px`` (N,) px (equal-area disc);
         ``contrast`` (N,) log contrast at the centre; ``axis_ratio`` (N,)
         minor/major of the moment ellipse; ``fill`` (N,) area over
-        moment-ellipse area; ``minor_diameter_px`` (N,) px.
+        moment-ellipse area; ``minor_diameter_px`` (N,) px; ``core_area`` (N,)
+        with ``core_fraction``.
     labels : (H, W) int32 ndarray
         Region ``i`` is labelled ``i + 1``; 0 is background.
     boxes : (N, 4) int32 ndarray
@@ -83,6 +86,7 @@ def regions(
     """
     import cv2
 
+    smooth, change, local_change = flattened
     above = cv2.compare(change, local_change * np.float32(fraction), cv2.CMP_GE)
     region = cv2.bitwise_and(above, cv2.compare(local_change, float(intensity_change(floor, polarity)), cv2.CMP_GE))
     if within is not None:
@@ -119,6 +123,9 @@ def regions(
         "fill": area / (4 * np.pi * np.sqrt(lam_min * lam_max)),
         "minor_diameter_px": 4 * np.sqrt(lam_min),
     }
+    if core_fraction is not None:
+        core = change[pixel_xy[:, 1], pixel_xy[:, 0]] >= local_change[pixel_xy[:, 1], pixel_xy[:, 0]] * core_fraction
+        blobs["core_area"] = np.bincount(lab, core, n_blobs)
     return blobs, labels, stats[1:, :4]
 
 
@@ -150,7 +157,7 @@ def cores(flattened, labels, boxes, parents, fraction: float, floor: float, pola
     starts = np.concatenate([[0], np.cumsum(widths)[:-1]])
     shape = (int(boxes[parents, 3].max()), int(widths.sum()))
     if shape[0] * shape[1] >= labels.size:
-        blobs, _, _ = regions(*flattened, fraction, floor, polarity, connectivity, within=_member(labels, parents))
+        blobs, _, _ = regions(flattened, fraction, floor, polarity, connectivity, within=_member(labels, parents))
         centre_rc = pixel_index(blobs["xy_px"], labels.shape)
         parent = labels[centre_rc[:, 0], centre_rc[:, 1]].astype(np.int64) - 1
         keep = np.isin(parent, parents)
@@ -162,7 +169,7 @@ def cores(flattened, labels, boxes, parents, fraction: float, floor: float, pola
         for tile, image in zip(mosaic, flattened):
             tile[:h, x0 : x0 + w] = image[y : y + h, x : x + w]
         inside[:h, x0 : x0 + w] = labels[y : y + h, x : x + w] == i + 1
-    blobs, _, _ = regions(*mosaic, fraction, floor, polarity, connectivity, within=inside)
+    blobs, _, _ = regions(mosaic, fraction, floor, polarity, connectivity, within=inside)
     tile = np.searchsorted(starts, blobs["xy_px"][:, 0], side="right") - 1
     parent = parents[tile]
     blobs["xy_px"] = blobs["xy_px"] + boxes[parent, :2] - np.column_stack([starts[tile], np.zeros(len(tile))])

@@ -410,7 +410,8 @@ def _blobs(
     connectivity = 4 if reduced else 8
     # only blobs whose peak clears the absolute floors become regions (a top-hat of pure noise is itself positive)
     floor = max(params.min_contrast, params.min_snr * noise)
-    half, half_labels, boxes = regions(*flattened, 0.5, floor, polarity, connectivity)
+    half, half_labels, boxes = regions(flattened, 0.5, floor, polarity, connectivity, core_fraction=0.85)
+    core_area = half.pop("core_area")
     reason = _reasons(half, d_min, d_max, noise, params)
     retry = (reason == "size") | (reason == "not_round")
     if reduced:
@@ -420,7 +421,12 @@ def _blobs(
         return half, reason
     clean = reason == ""
     # the 85 % contour lies inside the half-maximum one by about the edge's blur width, whatever the size
-    widen = _core_widening(flattened, half_labels, half["radius_px"], clean, 0.85)
+    with_core = clean & (core_area > 0)
+    widen = (
+        float(np.median(half["radius_px"][with_core] - np.sqrt(core_area[with_core] / np.pi)))
+        if with_core.any()
+        else 0.0
+    )
     # the size test on the core itself (smaller than its outline), then its radius widened to the outline's;
     # a core lies inside its blob, so a blob narrower than the smallest core holds none
     core_d_min = max(d_min - 2 * widen, 0.0)
@@ -448,24 +454,6 @@ def _overlapping(xy, radius, group, margin: float) -> np.ndarray:
     near = (group[:, None] == group[None]) & (distance < radius[:, None] + radius[None] + margin)
     np.fill_diagonal(near, False)
     return near.any(axis=1)
-
-
-def _core_widening(flattened, labels, radius_px, clean, fraction: float) -> float:
-    """Median over the ``clean`` regions of ``labels`` of their radius minus that of their part above ``fraction``.
-
-    Returns 0 without a clean region.
-    """
-    import cv2
-
-    _, change, local_change = flattened
-    above = cv2.compare(change, local_change * np.float32(fraction), cv2.CMP_GE)
-    found = cv2.findNonZero(cv2.bitwise_and(above, cv2.compare(labels, 0, cv2.CMP_GT)))
-    if found is None or not clean.any():
-        return 0.0
-    found = found.reshape(-1, 2)
-    core_area = np.bincount(labels[found[:, 1], found[:, 0]] - 1, minlength=len(radius_px))
-    with_core = clean & (core_area > 0)
-    return float(np.median(radius_px[with_core] - np.sqrt(core_area[with_core] / np.pi))) if with_core.any() else 0.0
 
 
 def _typical_contrast(blobs: dict, plausible: np.ndarray) -> float:
@@ -525,7 +513,7 @@ def _estimate_diameter_range(half_log, half_mask, polarity, noise, params: Detec
     """
     # averaging 2x2 pixels halves white noise
     flattened = flatten(half_log, half_mask, polarity, 2.0, _MAX_ESTIMATE_DIAMETER_PX / 2, 1.0)
-    blobs, _, _ = regions(*flattened, 0.5, max(params.min_contrast, params.min_snr * noise / 2), polarity)
+    blobs, _, _ = regions(flattened, 0.5, max(params.min_contrast, params.min_snr * noise / 2), polarity)
     diameter = 2 * 2 * blobs["radius_px"]
     strong = (blobs["contrast"] >= max(params.min_contrast, params.min_snr * noise / 2)) & (diameter >= 4)
     round_ = (blobs["axis_ratio"] >= params.min_axis_ratio) & (blobs["fill"] >= params.min_fill)
