@@ -53,7 +53,8 @@ def _window(shape, centre0, r_out, sigma_px: float):
     are those of the whole frame.
     """
     reach = np.ceil(r_out.max()) + 4 + np.ceil(3 * sigma_px)
-    corner = np.maximum(np.floor(centre0.min(axis=0) - reach), 0).astype(int)
+    # an even corner: centres shifted by it round alike (np.round takes halves to the even neighbour)
+    corner = 2 * np.maximum(np.floor((centre0.min(axis=0) - reach) / 2), 0).astype(int)
     end = np.minimum(np.ceil(centre0.max(axis=0) + reach) + 1, shape[::-1]).astype(int)
     return (slice(corner[1], end[1]), slice(corner[0], end[0])), corner.astype(np.float64)
 
