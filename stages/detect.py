@@ -286,16 +286,17 @@ def detect_beads(radiograph: Radiograph, params: DetectParams) -> BeadCandidates
 def _prepared(image: np.ndarray):
     """``(hull_xy, fov_mask, noise, half_log, half_mask)`` of a frame (None without a field of view).
 
-    ``half_*``: of a 2x-reduced copy, for the size estimate and for finding beads of 10 px and more.
+    ``half_*``: of a 2x-reduced copy, for the size estimate and for finding beads of 6 px and more.
     """
     import cv2
 
-    fov = field_of_view(image)
+    height, width = image.shape
+    half = cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
+    fov = field_of_view(image, half)
     if fov is None:
         return None
     hull_xy, fov_mask = fov
-    height, width = image.shape
-    half_log = log_image(cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA))
+    half_log = log_image(half)
     half_mask = cv2.resize(fov_mask, (width // 2, height // 2), interpolation=cv2.INTER_NEAREST)
     return hull_xy, fov_mask, pixel_noise(image, fov_mask), half_log, half_mask
 
