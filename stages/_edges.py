@@ -30,6 +30,35 @@ def _gaussian_gradient(image: np.ndarray, sigma_px: float) -> tuple[np.ndarray, 
     return gx, gy
 
 
+def _axis_maxima(magnitude: np.ndarray, owner_image: np.ndarray) -> np.ndarray:
+    """``(x, y)`` of the pixels with an owner that are at least both neighbours along x or along y; (K, 2) int64.
+
+    ``owner_image`` is 0 on the border.
+    """
+    import cv2
+
+    inner, m = magnitude[1:-1, 1:-1], magnitude
+    along_x = cv2.compare(inner, cv2.max(m[1:-1, :-2], m[1:-1, 2:]), cv2.CMP_GE)
+    along_y = cv2.compare(inner, cv2.max(m[:-2, 1:-1], m[2:, 1:-1]), cv2.CMP_GE)
+    owned = cv2.compare(owner_image[1:-1, 1:-1], 0, cv2.CMP_GT)
+    found = cv2.findNonZero(cv2.bitwise_and(cv2.bitwise_or(along_x, along_y), owned))
+    return found.reshape(-1, 2).astype(np.int64) + 1 if found is not None else np.empty((0, 2), np.int64)
+
+
+def _window(shape, centre0, r_out, sigma_px: float):
+    """The part of a frame of ``shape`` that the edge search looks at: its slices, and its corner ``(x, y)``, px.
+
+    Every search disc (drawn out to ``ceil(r_out) + 1`` px about the rounded centre), its neighbours for the
+    non-maximum suppression and the reach of the filter (``ceil(3 sigma_px)``), so that the gradients there
+    are those of the whole frame.
+    """
+    reach = np.ceil(r_out.max()) + 4 + np.ceil(3 * sigma_px)
+    # an even corner: centres shifted by it round alike (np.round takes halves to the even neighbour)
+    corner = 2 * np.maximum(np.floor((centre0.min(axis=0) - reach) / 2), 0).astype(int)
+    end = np.minimum(np.ceil(centre0.max(axis=0) + reach) + 1, shape[::-1]).astype(int)
+    return (slice(corner[1], end[1]), slice(corner[0], end[0])), corner.astype(np.float64)
+
+
 def _annulus_owners(shape, centre0, r_out) -> np.ndarray:
     """Image of each bead's search disc, labelled bead + 1 (0 elsewhere and on the frame's border).
 
@@ -99,24 +128,21 @@ def edge_points(
     """
     import cv2
 
-    height, width = image.shape
+    half_width = np.maximum(annulus_fraction * radius0, min_annulus_px)
+    r_in, r_out = np.maximum(radius0 - half_width, 0.0), radius0 + half_width
+    window, corner_xy = _window(image.shape, centre0, r_out, sigma_px)
+    centre0 = centre0 - corner_xy
     # the beads alone: a flat closing (opening) also removes steps such as a phantom wall's edge next to a
     # bead, which would otherwise pull the gradient maxima on that side
     square_px = odd_size(1.25 * 2 * radius0.max() + 8)
-    gx, gy = _gaussian_gradient(image - background(image, polarity, square_px, reduce=True), sigma_px)
+    gx, gy = _gaussian_gradient(image[window] - background(image, polarity, square_px, reduce=True)[window], sigma_px)
     magnitude = cv2.magnitude(gx, gy)
-    half_width = np.maximum(annulus_fraction * radius0, min_annulus_px)
-    r_in, r_out = np.maximum(radius0 - half_width, 0.0), radius0 + half_width
-    owner_image = _annulus_owners((height, width), centre0, r_out)
+    owner_image = _annulus_owners(magnitude.shape, centre0, r_out)
+    width = magnitude.shape[1]
     # non-maximum suppression along the gradient's dominant axis: over the frame, the pixels that are a
-    # maximum along x or along y (a 3-px dilation each); then, at those in an annulus, the test along
-    # the dominant axis (strictly greater than the pixel before it, so that a plateau gives one point)
-    along_x = cv2.compare(magnitude, cv2.dilate(magnitude, np.ones((1, 3), np.uint8)), cv2.CMP_GE)
-    along_y = cv2.compare(magnitude, cv2.dilate(magnitude, np.ones((3, 1), np.uint8)), cv2.CMP_GE)
-    candidate = cv2.bitwise_and(cv2.bitwise_or(along_x, along_y), cv2.compare(owner_image, 0, cv2.CMP_GT))
-    found = cv2.findNonZero(candidate)
-    # shape (K, 2): (x, y) of the candidate peaks (the annuli stop short of the frame's border)
-    found_xy = found.reshape(-1, 2).astype(np.int64) if found is not None else np.empty((0, 2), np.int64)
+    # maximum along x or along y; then, at those in an annulus, the test along the dominant axis (strictly
+    # greater than the pixel before it, so that a plateau gives one point)
+    found_xy = _axis_maxima(magnitude, owner_image)
     flat = found_xy[:, 1] * width + found_xy[:, 0]
     gx_p, gy_p, centre_mag = gx.ravel()[flat], gy.ravel()[flat], magnitude.ravel()[flat]
     horizontal = np.abs(gx_p) >= np.abs(gy_p)
@@ -135,20 +161,20 @@ def edge_points(
     offset = _log_parabola_offset(before, centre_mag, after)
     x = found_xy[:, 0] + np.where(horizontal, offset, 0.0)
     y = found_xy[:, 1] + np.where(horizontal, 0.0, offset)
-
     # sorted by bead (raster order within each)
-    dx, dy = x - centre0[owner, 0], y - centre0[owner, 1]
-    order = np.argsort(owner, kind="stable")
-    x, y, owner, centre_mag, dx, dy = (v[order] for v in (x, y, owner, centre_mag, dx, dy))
-    keep = _strong_in_annulus(owner, centre_mag, np.sqrt(dx * dx + dy * dy), r_in, r_out, min_gradient_fraction)
-    return np.column_stack([x[keep], y[keep]]), owner[keep]
+    order = np.argsort(owner.astype(np.uint16) if len(centre0) < 2**16 else owner, kind="stable")  # 16 bits: radix
+    x, y, owner, centre_mag = (v[order] for v in (x, y, owner, centre_mag))
+    keep = _strong_in_annulus(x, y, owner, centre_mag, centre0, r_in, r_out, min_gradient_fraction)
+    return np.column_stack([x[keep], y[keep]]) + corner_xy, owner[keep]
 
 
-def _strong_in_annulus(owner, magnitude, dist, r_in, r_out, min_gradient_fraction: float) -> np.ndarray:
+def _strong_in_annulus(x, y, owner, magnitude, centre0, r_in, r_out, min_gradient_fraction: float) -> np.ndarray:
     """Points of each bead (``owner`` sorted) at least ``min_gradient_fraction`` of its strongest and in its annulus.
 
-    Drops weak maxima (noise) and points outside ``r_in .. r_out`` of their bead; (P,) bool.
+    Drops weak maxima (noise) and points outside ``r_in .. r_out`` of their bead's ``centre0``; (P,) bool.
     """
+    dx, dy = x - centre0[owner, 0], y - centre0[owner, 1]
+    dist = np.sqrt(dx * dx + dy * dy)
     strongest = np.zeros(len(r_in))
     if len(owner):
         starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])

@@ -57,7 +57,10 @@ def _group_sum(owner: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     from scipy import sparse
 
     n_points = len(owner)
-    summer = sparse.csc_matrix((np.ones(n_points), owner, np.arange(n_points + 1)), shape=(n, n_points))
+    # 32-bit indices, as scipy keeps them (64-bit ones are checked and converted on every call)
+    summer = sparse.csc_matrix(
+        (np.ones(n_points), owner.astype(np.int32), np.arange(n_points + 1, dtype=np.int32)), shape=(n, n_points)
+    )
     return np.asarray(summer @ values.reshape(n_points, -1)).reshape((n,) + values.shape[1:])
 
 
@@ -71,8 +74,10 @@ def _group_normal(owner: np.ndarray, left: np.ndarray, right: np.ndarray, n: int
     from scipy import sparse
 
     n_points, k = left.shape
-    rows = (owner[:, None] * k + np.arange(k)).ravel()
-    spread = sparse.csc_matrix((left.ravel(), rows, np.arange(0, n_points * k + 1, k)), shape=(n * k, n_points))
+    # 32-bit indices, as scipy keeps them (64-bit ones are checked and converted on every call)
+    rows = (owner.astype(np.int32)[:, None] * np.int32(k) + np.arange(k, dtype=np.int32)).ravel()
+    columns = np.arange(0, n_points * k + 1, k, dtype=np.int32)
+    spread = sparse.csc_matrix((left.ravel(), rows, columns), shape=(n * k, n_points))
     return np.asarray(spread @ right).reshape(n, k, right.shape[1])
 
 

@@ -402,7 +402,7 @@ def _result(candidates, index, centre0, fit, covariance, rmse, n_inliers, reason
 
 
 def _neighbours(index, all_xy, all_radius, params: CentroidParams) -> np.ndarray:
-    """Up to 7 other blobs near each fitted bead, nearest first, padded with ``M`` (no blob); (n, K) int64.
+    """Up to 7 other blobs near each fitted bead, nearest first, padded with ``M`` (no blob); (n, K) int64, K >= 1.
 
     Near: close enough for its outline to reach a point of the bead's search annulus.
     """
@@ -421,7 +421,9 @@ def _neighbours(index, all_xy, all_radius, params: CentroidParams) -> np.ndarray
     near = np.where(np.isfinite(distance) & (near != index[:, None]), near, n_blobs)
     # each row's blobs nearest first (the bead itself, at distance 0, is now padding)
     order = np.argsort(np.where(near < n_blobs, distance, np.inf), axis=1, kind="stable")
-    return np.take_along_axis(near, order, axis=1)
+    near = np.take_along_axis(near, order, axis=1)
+    # columns of padding only (past every bead's last neighbour) are dropped
+    return near[:, : max(int(np.max(np.sum(near < n_blobs, axis=1))), 1)]
 
 
 def _edge_sigma(index, near, all_xy, all_radius, params: CentroidParams) -> float:
@@ -480,22 +482,29 @@ def _drop_near_neighbours(points_xy, owner, index, near, all_xy, all_radius, par
     """
     if len(all_xy) < 2 or len(points_xy) == 0:
         return points_xy, owner
-    crowded_bead = np.any(near < len(all_xy), axis=1)
-    keep = np.ones(len(owner), bool)
-    check = crowded_bead[owner]
-    if not check.any():
-        return points_xy, owner
     padded_xy = np.vstack([all_xy, np.full((1, 2), np.inf)])
     # the margin shrinks for small blobs (whose outline is otherwise left with too few points), but not below
     # 3 px: a neighbour's edge pulls over the blur and filter widths, whatever the blob's size
     padded_reach = np.append(
         all_radius + np.minimum(params.neighbour_margin_px, np.maximum(0.6 * all_radius, 3.0)), 0.0
     )
-    neighbours = near[owner[check]]  # shape (P', K)
-    gap = np.hypot(
-        points_xy[check, None, 0] - padded_xy[neighbours, 0], points_xy[check, None, 1] - padded_xy[neighbours, 1]
-    )
-    keep[check] = np.all(gap >= padded_reach[neighbours], axis=1)
+    # only a neighbour whose reach meets the bead's search annulus can drop a point: the others become padding
+    radius = all_radius[index]
+    r_out = radius + np.maximum(params.annulus_fraction * radius, params.min_annulus_px)
+    distance = np.hypot(*(padded_xy[near] - all_xy[index][:, None]).transpose(2, 0, 1))
+    near = np.where(distance < r_out[:, None] + padded_reach[near], near, len(all_xy))
+    near = np.take_along_axis(near, np.argsort(near == len(all_xy), axis=1, kind="stable"), axis=1)
+    near = near[:, : int(np.max(np.sum(near < len(all_xy), axis=1)))]
+    crowded_bead = np.any(near < len(all_xy), axis=1)
+    keep = np.ones(len(owner), bool)
+    check = crowded_bead[owner]
+    if not check.any():
+        return points_xy, owner
+    x, y = points_xy[check, 0], points_xy[check, 1]
+    clear = np.ones(len(x), bool)
+    for column in near[owner[check]].T:  # each point's k-th nearest blob (padding: at infinity)
+        clear &= (x - padded_xy[column, 0]) ** 2 + (y - padded_xy[column, 1]) ** 2 >= padded_reach[column] ** 2
+    keep[check] = clear
     # a bead surrounded on all sides (a grid plate) keeps all its points: its neighbours pull symmetrically
     n = len(index)
     needed = np.maximum(params.min_edge_fraction * 2 * np.pi * all_radius[index], 6)

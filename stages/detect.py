@@ -34,9 +34,12 @@ scale-aware and insensitive to vignetting, the heel effect and anatomy:
 With ``min_diameter_px = max_diameter_px = 0`` the expected diameter range is
 estimated from the frame itself, on a 2x-reduced copy, from the round, strong
 blobs found with a generous top-hat. When the smallest expected bead is at
-least 10 px wide, steps 4-6 also run on a 2x-reduced copy (the candidates'
-centres need only be good to a few tenths of a pixel: the centroid stage
-refines them).
+least 6 px wide (its smoothing, a sixth of that, is then at least the 1 px
+floor), steps 4-6 also run on a 2x-reduced copy, smoothed by the same
+Gaussian in full-frame px (the candidates' centres need only be good to a few
+tenths of a pixel: the centroid stage refines them); there a ``"merged"``
+blob is also measured again at 85 % (two beads a pixel or two apart can merge
+on the coarser grid).
 
 Coordinates follow ``stages/geometry.py``: ``(x, y)`` with x = column, y = row,
 the centre of the top-left pixel at ``(0, 0)``.
@@ -50,10 +53,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from fluorocal.stages._fov import bead_polarity, field_of_view, fov_clearance, pixel_noise
-from fluorocal.stages._image import bead_signal, frame_name, log_image, odd_size
+from fluorocal.stages._image import frame_name, log_image
+from fluorocal.stages._regions import cores, flatten, regions
 from fluorocal.stages.artifacts import SCHEMA_VERSION, Radiograph, as_arrays, check_shape, freeze
 from fluorocal.stages.errors import InputError, ShapeError
-from fluorocal.stages.geometry import xy_to_rc
 
 log = logging.getLogger(__name__)
 
@@ -283,16 +286,17 @@ def detect_beads(radiograph: Radiograph, params: DetectParams) -> BeadCandidates
 def _prepared(image: np.ndarray):
     """``(hull_xy, fov_mask, noise, half_log, half_mask)`` of a frame (None without a field of view).
 
-    ``half_*``: of a 2x-reduced copy, for the size estimate and for finding beads of 10 px and more.
+    ``half_*``: of a 2x-reduced copy, for the size estimate and for finding beads of 6 px and more.
     """
     import cv2
 
-    fov = field_of_view(image)
+    height, width = image.shape
+    half = cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
+    fov = field_of_view(image, half)
     if fov is None:
         return None
     hull_xy, fov_mask = fov
-    height, width = image.shape
-    half_log = log_image(cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA))
+    half_log = log_image(half)
     half_mask = cv2.resize(fov_mask, (width // 2, height // 2), interpolation=cv2.INTER_NEAREST)
     return hull_xy, fov_mask, pixel_noise(image, fov_mask), half_log, half_mask
 
@@ -348,13 +352,13 @@ def _frame_blobs(image, fov_mask, half_log, half_mask, polarity, d_min, d_max, n
     """
     height, width = image.shape
     if d_min >= _REDUCE_FROM_DIAMETER_PX and min(height, width) >= 128:
-        blobs, reason = _blobs(half_log, half_mask, polarity, d_min / 2, d_max / 2, noise, params)
+        blobs, reason = _blobs(half_log, half_mask, polarity, d_min / 2, d_max / 2, noise, params, reduced=True)
         # a reduced pixel i covers full pixels 2i and 2i + 1: its centre is at 2i + 0.5
         blobs["xy_px"] = 2 * blobs["xy_px"] + 0.5
         for key in ("radius_px", "minor_diameter_px"):
             blobs[key] = 2 * blobs[key]
     else:
-        blobs, reason = _blobs(log_image(image), fov_mask, polarity, d_min, d_max, noise, params)
+        blobs, reason = _blobs(log_image(image), fov_mask, polarity, d_min, d_max, noise, params, reduced=False)
     return blobs, reason
 
 
@@ -375,109 +379,21 @@ def _empty(radiograph, params, name, why, polarity=None, fov_center=(0.0, 0.0), 
     )
 
 
-def _flatten(log_frame, fov_mask, polarity, d_min, d_max):
-    """Smoothed top-hat (bead contrast positive) as log contrast and as intensity change; the change's running maximum.
-
-    Returns
-    -------
-    smooth : (H, W) float32 ndarray
-        Log contrast.
-    change, local_change : (H, W) float32 ndarray
-        :func:`_intensity_change` of ``smooth``, and its maximum over a
-        square of ``d_max`` px (that of ``smooth``, as the change grows with
-        the contrast).
-    """
-    import cv2
-
-    # the square must reach past the bead and its blurred skirt (a few px each side) from any point inside it
-    tophat = bead_signal(log_frame, polarity, odd_size(1.25 * d_max + 8)) * fov_mask.astype(np.float32)
-    smooth = cv2.GaussianBlur(tophat, (0, 0), max(1.0, d_min / 6))
-    change = _intensity_change(smooth, polarity)
-    return smooth, change, cv2.dilate(change, np.ones((odd_size(d_max),) * 2, np.uint8))
+#: beads at least this wide (px) are found on a 2x-reduced copy (4x fewer pixels; the centroid stage refines): their
+#: smoothing, a sixth of that, is then at least the full frame's 1 px floor, so both see the same smoothed beads
+_REDUCE_FROM_DIAMETER_PX = 6.0
 
 
-def _intensity_change(log_contrast, polarity: str):
-    """Fraction by which a log contrast ``P`` changes the intensity: ``1 - exp(-P)`` (dark) or ``exp(P) - 1`` (bright).
-
-    Thresholding a bead at a fraction ``q`` of its peak *change* (not at
-    ``q P``) puts a blurred bead's half-maximum contour on its outline, as in
-    the intensity image. Works on float32 images and on floats.
-    """
-    if polarity == "dark":
-        return -np.expm1(-log_contrast)
-    return np.expm1(np.minimum(log_contrast, np.float32(20)))  # exp overflows float32 beyond 88
-
-
-def _pixel_index(points_xy: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """``(row, col)`` of the pixel containing each point, clipped to the image; (N, 2) int64."""
-    return np.clip(np.round(xy_to_rc(points_xy)).astype(np.int64), 0, np.array(shape) - 1)
-
-
-def _regions(smooth, change, local_change, fraction: float, floor: float, polarity: str) -> tuple[dict, np.ndarray]:
-    """Regions above ``fraction`` of their local peak in intensity (peaks below ``floor`` ignored), measured.
-
-    Parameters
-    ----------
-    smooth, change, local_change : (H, W) float32 ndarray
-        As :func:`_flatten` returns them.
-    fraction : float
-    floor : float
-        Log contrast below which a peak is ignored.
-    polarity : {"dark", "bright"}
-
-    Returns
-    -------
-    blobs : dict of ndarray
-        ``xy_px`` (N, 2) px; ``radius_px`` (N,) px (equal-area disc);
-        ``contrast`` (N,) log contrast at the centre; ``axis_ratio`` (N,)
-        minor/major of the moment ellipse; ``fill`` (N,) area over
-        moment-ellipse area; ``minor_diameter_px`` (N,) px.
-    labels : (H, W) int32 ndarray
-        Region ``i`` is labelled ``i + 1``; 0 is background.
-    """
-    import cv2
-
-    above = cv2.compare(change, local_change * np.float32(fraction), cv2.CMP_GE)
-    region = cv2.bitwise_and(above, cv2.compare(local_change, float(_intensity_change(floor, polarity)), cv2.CMP_GE))
-    # the block-based algorithm: the same labels, about twice as fast as the default on sparse masks
-    n, labels, stats, centres = cv2.connectedComponentsWithStatsWithAlgorithm(region, 8, cv2.CV_32S, cv2.CCL_BBDT)
-    n_blobs = n - 1
-    area = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)
-    # cv2 centroids are the mean (col, row) = (x, y) of each region's pixel centres
-    mean_xy = centres[1:].reshape(-1, 2)
-    found = cv2.findNonZero(region)
-    # shape (K, 2): (x, y) of every region pixel
-    pixel_xy = found.reshape(-1, 2) if found is not None else np.empty((0, 2), np.int32)
-    lab = labels[pixel_xy[:, 1], pixel_xy[:, 0]] - 1
-    dx, dy = pixel_xy[:, 0] - mean_xy[lab, 0], pixel_xy[:, 1] - mean_xy[lab, 1]
-    # second moments of each region; a pixel is a unit square, which adds 1/12 px^2 along each axis
-    sxx = np.bincount(lab, dx * dx, n_blobs) / np.maximum(area, 1) - 1 / 12
-    syy = np.bincount(lab, dy * dy, n_blobs) / np.maximum(area, 1) - 1 / 12
-    sxy = np.bincount(lab, dx * dy, n_blobs) / np.maximum(area, 1)
-    half_trace, root = (sxx + syy) / 2, np.sqrt(((sxx - syy) / 2) ** 2 + sxy**2)
-    lam_max, lam_min = np.maximum(half_trace + root, 1e-6), np.maximum(half_trace - root, 1e-6)
-    # a round bead peaks at its centre; elsewhere the value at the centre is a lower bound that rejects oddly
-    # shaped blobs
-    centre_rc = _pixel_index(mean_xy, labels.shape)
-    contrast = smooth[centre_rc[:, 0], centre_rc[:, 1]].astype(np.float64)
-    blobs = {
-        "xy_px": mean_xy,
-        "radius_px": np.sqrt(area / np.pi),
-        "contrast": contrast,
-        "axis_ratio": np.sqrt(lam_min / lam_max),
-        # a disc of radius R has both moments R^2/4, so its moment ellipse has area 4 pi sqrt(l1 l2) = pi R^2
-        "fill": area / (4 * np.pi * np.sqrt(lam_min * lam_max)),
-        "minor_diameter_px": 4 * np.sqrt(lam_min),
-    }
-    return blobs, labels
-
-
-#: beads at least this wide (px) are found on a 2x-reduced copy: 4x fewer pixels, and the centroid stage refines
-_REDUCE_FROM_DIAMETER_PX = 10.0
-
-
-def _blobs(log_frame, fov_mask, polarity, d_min, d_max, noise, params: DetectParams) -> tuple[dict, np.ndarray]:
+def _blobs(
+    log_frame, fov_mask, polarity, d_min, d_max, noise, params: DetectParams, *, reduced: bool
+) -> tuple[dict, np.ndarray]:
     """Candidate blobs and their rejection reasons.
+
+    ``reduced``: ``log_frame`` is the frame reduced 2x; it is smoothed as the full frame would be (in full-frame
+    px), and regions meeting only at a corner are two (a bead's region is 4-connected). Two beads a pixel or two
+    apart, which the full frame keeps apart, can still merge on the coarser grid: a blob taken for two merged
+    beads is measured again at 85 % too, and its cores replace it when their outlines keep a full-frame pixel
+    apart.
 
     Each blob is first measured at half its local peak. A blob too large or
     not round there (a bead on a pedestal of anatomy of about its own width)
@@ -488,42 +404,57 @@ def _blobs(log_frame, fov_mask, polarity, d_min, d_max, noise, params: DetectPar
     Returns
     -------
     blobs : dict of ndarray
-        As :func:`_regions`.
+        As :func:`~stages._regions.regions`.
     reason : (N,) str ndarray
     """
-    flattened = _flatten(log_frame, fov_mask, polarity, d_min, d_max)
+    flattened = flatten(log_frame, fov_mask, polarity, d_min, d_max, 0.5 if reduced else 1.0)
+    connectivity = 4 if reduced else 8
     # only blobs whose peak clears the absolute floors become regions (a top-hat of pure noise is itself positive)
     floor = max(params.min_contrast, params.min_snr * noise)
-    half, half_labels = _regions(*flattened, 0.5, floor, polarity)
+    half, half_labels, boxes = regions(flattened, 0.5, floor, polarity, connectivity, core_fraction=0.85)
+    core_area = half.pop("core_area")
     reason = _reasons(half, d_min, d_max, noise, params)
-    retry = np.isin(reason, ("size", "not_round"))
+    retry = (reason == "size") | (reason == "not_round")
+    if reduced:
+        # two beads a pixel or two apart, which the full frame keeps apart, can merge on the coarser grid
+        retry |= reason == "merged"
     if not retry.any():
         return half, reason
-    core, _ = _regions(*flattened, 0.85, floor, polarity)
-    core_rc = _pixel_index(core["xy_px"], half_labels.shape)
-    # shape (M,): the half-maximum blob each core lies in (-1: none)
-    parent = half_labels[core_rc[:, 0], core_rc[:, 1]] - 1
-    has_parent = parent >= 0
     clean = reason == ""
-    core_of_clean = has_parent & clean[np.maximum(parent, 0)]
     # the 85 % contour lies inside the half-maximum one by about the edge's blur width, whatever the size
+    with_core = clean & (core_area > 0)
     widen = (
-        float(np.median(half["radius_px"][parent[core_of_clean]] - core["radius_px"][core_of_clean]))
-        if core_of_clean.any()
+        float(np.median(half["radius_px"][with_core] - np.sqrt(core_area[with_core] / np.pi)))
+        if with_core.any()
         else 0.0
     )
-    # the size test on the core itself (smaller than its outline), then its radius widened to the outline's
-    core_reason = _reasons(
-        core, max(d_min - 2 * widen, 0.0), d_max, noise, params, typical_contrast=_typical_contrast(half, clean)
-    )
+    # the size test on the core itself (smaller than its outline), then its radius widened to the outline's;
+    # a core lies inside its blob, so a blob narrower than the smallest core holds none
+    core_d_min = max(d_min - 2 * widen, 0.0)
+    retry &= 2 * half["radius_px"] >= core_d_min
+    if not retry.any():
+        return half, reason
+    core, parent = cores(flattened, half_labels, boxes, np.flatnonzero(retry), 0.85, floor, polarity, connectivity)
+    core_reason = _reasons(core, core_d_min, d_max, noise, params, typical_contrast=_typical_contrast(half, clean))
     core["radius_px"] = core["radius_px"] + widen
-    rescued = has_parent & retry[np.maximum(parent, 0)] & (core_reason == "")
+    rescued = core_reason == ""
+    if reduced:
+        # ... and are two beads again when their outlines (the widened cores) keep a full-frame pixel apart
+        rescued &= ~_overlapping(core["xy_px"], core["radius_px"], parent, 0.5)
     if not rescued.any():
         return half, reason
     replaced = np.zeros(len(reason), bool)
     replaced[parent[rescued]] = True
     blobs = {k: np.concatenate([v[~replaced], core[k][rescued]]) for k, v in half.items()}
     return blobs, np.concatenate([reason[~replaced], core_reason[rescued]])
+
+
+def _overlapping(xy, radius, group, margin: float) -> np.ndarray:
+    """Circles (``xy``, ``radius``) within ``margin`` of another circle of the same ``group``; (M,) bool."""
+    distance = np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1))
+    near = (group[:, None] == group[None]) & (distance < radius[:, None] + radius[None] + margin)
+    np.fill_diagonal(near, False)
+    return near.any(axis=1)
 
 
 def _typical_contrast(blobs: dict, plausible: np.ndarray) -> float:
@@ -582,8 +513,8 @@ def _estimate_diameter_range(half_log, half_mask, polarity, noise, params: Detec
     Returns ``None`` when there is no such blob.
     """
     # averaging 2x2 pixels halves white noise
-    flattened = _flatten(half_log, half_mask, polarity, 2.0, _MAX_ESTIMATE_DIAMETER_PX / 2)
-    blobs, _ = _regions(*flattened, 0.5, max(params.min_contrast, params.min_snr * noise / 2), polarity)
+    flattened = flatten(half_log, half_mask, polarity, 2.0, _MAX_ESTIMATE_DIAMETER_PX / 2, 1.0)
+    blobs, _, _ = regions(flattened, 0.5, max(params.min_contrast, params.min_snr * noise / 2), polarity)
     diameter = 2 * 2 * blobs["radius_px"]
     strong = (blobs["contrast"] >= max(params.min_contrast, params.min_snr * noise / 2)) & (diameter >= 4)
     round_ = (blobs["axis_ratio"] >= params.min_axis_ratio) & (blobs["fill"] >= params.min_fill)

@@ -169,6 +169,19 @@ def test_rejects_merged_elongated_and_faint_blobs():
     assert reason_at([216.0, 216.0]) in ("faint", "<none>")
 
 
+@pytest.mark.parametrize("direction", [(1.0, 0.0), (0.6, 0.8)])
+def test_beads_a_few_pixels_apart_are_two_beads(direction):
+    # 16 px beads in pairs whose outlines are 2.5 px apart, blurred by 1.5 px: their half-maximum regions are apart
+    # on the full frame; beads of 10 px and more are searched on the 2x-reduced copy, where they must stay apart
+    first = np.array([[50.3, 40.6], [130.7, 40.2], [50.5, 130.4], [130.1, 130.8], [50.8, 200.3], [160.4, 200.6]])
+    centres = np.vstack([first, first + 18.5 * np.array(direction)])
+    image = render_beads(SHAPE, centres, 8, blur_sigma_px=1.5, noise_dn=16, dtype=np.uint16, seed=3)
+    found = detect_beads(_frame(image), DetectParams(polarity="dark", min_diameter_px=10, max_diameter_px=24))
+    # every bead found, each within a quarter of its diameter, nothing else accepted
+    hit, false = _match(found.xy_px[found.accepted], centres, 4.0)
+    assert hit.all() and false == 0
+
+
 def test_background_edges_create_and_hide_nothing():
     # a bone-like step (attenuation x0.6) with a bright gap, heavy vignetting, beads on both sides of the step
     yy, xx = np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]]
