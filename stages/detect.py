@@ -291,6 +291,8 @@ def _prepared(image: np.ndarray):
     import cv2
 
     height, width = image.shape
+    if min(height, width) < 8:  # too small to hold a bead and its surround, or a half-size copy of one
+        return None
     half = cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
     fov = field_of_view(image, half)
     if fov is None:
@@ -439,8 +441,10 @@ def _blobs(
     core["radius_px"] = core["radius_px"] + widen
     rescued = core_reason == ""
     if reduced:
-        # ... and are two beads again when their outlines (the widened cores) keep a full-frame pixel apart
-        rescued &= ~_overlapping(core["xy_px"], core["radius_px"], parent, 0.5)
+        # ... and are two beads again when their outlines (the widened cores) keep two full-frame pixels apart:
+        # closer, each one's centroid is pulled by the other's edge by more than its stated uncertainty
+        ok = np.flatnonzero(rescued)
+        rescued[ok] = ~_overlapping(core["xy_px"][ok], core["radius_px"][ok], parent[ok], 1.0)
     if not rescued.any():
         return half, reason
     replaced = np.zeros(len(reason), bool)

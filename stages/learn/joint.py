@@ -165,8 +165,10 @@ def _orientation_inverse(J, w, r, network: Network, held: slice, point_informati
         N += kappa * F @ F.T
         b = b - kappa * F @ network.affine_gap_mm
     E = d[:, None] * network.datum[held]
-    # the similarity is a datum only when the poses respond too (the points alone move the image)
-    E = E / np.linalg.norm(E, axis=0) if held.start < network.point_col else np.zeros((len(d), 0))
+    # the similarity is a datum only when nothing else fixes it: not when the points alone respond (they move the
+    # image), nor when other systems' views of the beads, their orientation held, pin them
+    free_similarity = held.start < network.point_col and point_information is None
+    E = E / np.linalg.norm(E, axis=0) if free_similarity else np.zeros((len(d), 0))
     # a ridge on the beads' coordinates, in the Jacobi-scaled problem, for what no data fix beyond the datum: the
     # depth of a bead one exposure saw (the data's gradient along it is nil too). Not on the poses and the IOP: their
     # weakest combinations, which the field trades against, sit far below any ridge that would make a difference

@@ -56,8 +56,6 @@ logger = logging.getLogger(__name__)
 #: conjugate-gradient cap and relative tolerance of the joint field step inside the loop: an inexact
 #: inner solve is enough, since the next iteration starts from the new residuals
 LOOP_CG_ITERATIONS, LOOP_CG_TOLERANCE = 100, 1e-3
-#: halvings of a refinement step that raised the adjustment's cost
-MAX_HALVINGS = 3
 
 
 @dataclass(frozen=True)
@@ -77,7 +75,7 @@ class _Plan:
     smooth: bool
     refine: str
     acceleration: str
-    respond: str  # what responds to the refinement's field step: "orientation" or "points"
+    respond: str  # the refinement's first choice of what responds to its field step: "orientation" or "points"
 
     @property
     def xy(self) -> np.ndarray:
@@ -111,6 +109,7 @@ class _State:
     history: tuple  # of IterationRecord
     updates: tuple = ()  # the last regression's update per system
     trained: np.ndarray | None = None  # shape (N,): the observations the last regression learned from
+    respond: str = "points"  # what responds to the refinement's field step: "orientation" or "points"
 
 
 def calibrate(
@@ -230,6 +229,7 @@ def _initial_state(plan: _Plan, adj, out: Outcome) -> _State:
         memory=tuple(_Memory() for _ in plan.sizes),
         anderson=Anderson(plan.params.anderson_depth),
         history=(IterationRecord(0, "adjust", out.cost, 0.0, out.cost, (), out.rms_px, 0.0),),
+        respond=plan.respond,
     )
 
 
@@ -240,9 +240,18 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     corrections, grids, pointwise, anderson = _update_field(plan, state, updates)
     adj = plan.adjuster(corrections, state.adj, final=False)
     out = adjustment_outcome(adj, plan.observations.sigma_px)
-    if phase == "grid" and plan.refine == "grid+points" and out.cost > state.out.cost:
-        corrections, grids, adj, out = _backtracked(plan, state, corrections, grids)
-        anderson = anderson.restarted()
+    respond = state.respond
+    if phase == "grid" and respond == "orientation" and out.cost > state.out.cost:
+        # the joint step went further than its linearisation holds: this step and the rest of the refinement
+        # move the beads alone, the slower step that always descends
+        logger.info("joint step raised the adjustment's cost (%.6g > %.6g): the beads alone respond from here",
+                    out.cost, state.out.cost)  # fmt: skip
+        respond = "points"
+        state = replace(state, respond=respond, anderson=state.anderson.restarted())
+        updates, memory, fit_cost, trained = _regress(plan, state)
+        corrections, grids, pointwise, anderson = _update_field(plan, state, updates)
+        adj = plan.adjuster(corrections, state.adj, final=False)
+        out = adjustment_outcome(adj, plan.observations.sigma_px)
     total = out.cost + fit_cost
     step = float(np.max(np.abs(corrections - state.corrections))) if len(corrections) else 0.0
     step_sigma = _field_step_sigma(state.grids, grids) if plan.smooth else float("nan")
@@ -278,25 +287,8 @@ def _iterate(plan: _Plan, state: _State) -> _State:
         history,
         updates,
         trained,
+        respond,
     )
-
-
-def _backtracked(plan: _Plan, state: _State, corrections: np.ndarray, grids: tuple):
-    """The joint step halved until the adjustment's cost is not above the last iteration's (at most a few times).
-
-    A Gauss-Newton step along a direction the orientation only partly mimics can be long (a pixel
-    of field against tens of pixels of principal point), where the linearisation and the fast
-    intermediate adjustment stop following it; the shorter step keeps the iteration descending.
-    """
-    for _ in range(MAX_HALVINGS):
-        corrections = 0.5 * (corrections + state.corrections)
-        grids = tuple(g.with_delta(0.5 * (g.delta_px + old.delta_px)) for g, old in zip(grids, state.grids))
-        adj = plan.adjuster(corrections, state.adj, final=False)
-        out = adjustment_outcome(adj, plan.observations.sigma_px)
-        if out.cost <= state.out.cost:
-            break
-    logger.info("refinement step halved: adjustment cost %.6g (last iteration %.6g)", out.cost, state.out.cost)
-    return corrections, grids, adj, out
 
 
 def _field_step_sigma(before: tuple, after: tuple) -> float:
@@ -313,7 +305,7 @@ def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
     """``(action, converged, reason)``: ``"continue"``, ``"refine"`` (start the refinement) or ``"stop"``."""
     in_phase = state.iteration - state.phase_start + 1
     # the stall rule is the joint step's: the beads-alone step creeps, its cost falling slowly for many iterations
-    stall = plan.params.stall_tolerance if plan.respond == "orientation" else 0.0
+    stall = plan.params.stall_tolerance if state.respond == "orientation" else 0.0
     action, converged, reason = decide(plan.params, state.history, n_obs=len(plan.xy), iterations_in_phase=in_phase,
                                        refine=plan.refine, stall_tolerance=stall)  # fmt: skip
     if action == "continue":
@@ -462,7 +454,7 @@ def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory,
         cg_tolerance=LOOP_CG_TOLERANCE,
         start=None if start is None else start.delta_px,
         point_information=shared,
-        respond=plan.respond,
+        respond=state.respond,
         **fit,
     )
     return model, mem

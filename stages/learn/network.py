@@ -43,8 +43,12 @@ def affine_shape_modes(points_mm: np.ndarray, nominal_mm: np.ndarray) -> tuple[n
     """Orthonormal directions ``B`` ``(3 n, 5)`` of the affine deformations beyond a similarity; ``B^T (P - P_nom)``.
 
     The deformations ``dP_i = E (P_i - mean P)`` with ``E`` symmetric and
-    traceless (stretches and shears); ``P_nom`` is the nominal design brought
-    onto ``P`` by a 7-parameter similarity, so only shape differs.
+    traceless (stretches and shears), less their components along a
+    similarity's displacements (a translation, a rotation and a scaling about
+    the centroid: for a point set that is not isotropic they are not
+    orthogonal to the stretches), so that holding them never holds the
+    similarity, the free network's datum. ``P_nom`` is the nominal design
+    brought onto ``P`` by a 7-parameter similarity, so only shape differs.
     """
     c = points_mm - points_mm.mean(0)
     r3 = 1 / np.sqrt(3.0)
@@ -53,7 +57,11 @@ def affine_shape_modes(points_mm: np.ndarray, nominal_mm: np.ndarray) -> tuple[n
         e = np.zeros((3, 3))
         e[i, j] = e[j, i] = 1.0
         mats.append(e)
-    B, _ = np.linalg.qr(np.column_stack([(c @ e.T).ravel() for e in mats]))
+    similarity = [np.tile(np.eye(3)[a], len(c)) for a in range(3)]
+    similarity += [np.cross(np.eye(3)[a], c).ravel() for a in range(3)] + [c.ravel()]
+    S, _ = np.linalg.qr(np.column_stack(similarity))
+    shapes = np.column_stack([(c @ e.T).ravel() for e in mats])
+    B, _ = np.linalg.qr(shapes - S @ (S.T @ shapes))
     scale, R, t = similarity_fit(nominal_mm, points_mm)
     aligned = scale * nominal_mm @ R.T + t
     return B, B.T @ (points_mm - aligned).ravel()

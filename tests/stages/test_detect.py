@@ -50,6 +50,9 @@ def test_artifact_shapes_and_read_only():
         (np.zeros(SHAPE), "blank"),
         (np.full(SHAPE, 4095.0), "saturated"),
         (render_beads(SHAPE, np.empty((0, 2)), 8, vignetting=0.3, noise_dn=16, seed=3), "bead-free"),
+        # frames too small for a bead and its surround (found in review: a 1 x N frame crashed in the resize)
+        (np.full((1, 64), 2000.0), "one-row"),
+        (np.full((3, 3), 2000.0), "three-pixel"),
     ],
 )
 def test_empty_frames_warn_and_return_no_bead(image, why):

@@ -79,8 +79,10 @@ def test_network_similarity_modes_project_to_nothing(linearised):
     # J E = 0 to first order, relative to |J|: a similarity of object space moves nothing in the image
     scale = np.sqrt(net.J.multiply(net.J).sum())
     assert np.linalg.norm(net.J @ net.datum, axis=0).max() < 1e-9 * scale
-    # the affine modes are orthonormal and live on the points' columns only
+    # the affine modes are orthonormal, orthogonal to the similarity (holding them never holds the datum) and live on
+    # the points' columns only
     np.testing.assert_allclose(net.affine.T @ net.affine, np.eye(5), atol=1e-12)
+    assert np.abs(net.affine.T @ net.datum).max() < 1e-12
     assert not net.affine[: net.point_col].any()
 
 

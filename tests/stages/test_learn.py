@@ -574,8 +574,9 @@ def test_stall_tolerance_stops_once_the_cost_stops_falling_as_accurate_as_runnin
     from fluorocal.stages.learn import calibrate
 
     obs, phantom, initial, distortion, fov_radius_px = simulated
-    # the recommended loop with the other early rules off: only the stall rule can end the refinement early
-    base = dict(refine_iterations=15, step_tolerance=0.0, field_tolerance=0.0)
+    # the recommended loop with the other early rules off: only the stall rule can end the refinement early; it is
+    # the joint step's rule (the orientation responding), which a one-system set takes only when asked
+    base = dict(refine_iterations=15, step_tolerance=0.0, field_tolerance=0.0, orientation_response="yes")
     run = dict(image_size=(E2E_SIZE, E2E_SIZE), scheme="knn+iop+smooth")
     stopped = calibrate(obs, phantom, initial, params=LearnParams(**base), **run)
     with warnings.catch_warnings():
@@ -596,6 +597,8 @@ def test_stall_tolerance_stops_once_the_cost_stops_falling_as_accurate_as_runnin
     assert after < after_cap + 0.01, (after, after_cap)
     with pytest.raises(InputError, match="stall_tolerance"):
         LearnParams(stall_tolerance=-0.1)
+    with pytest.raises(InputError, match="orientation_response"):
+        LearnParams(orientation_response="maybe")
 
 
 def test_intermediate_solves_at_their_cap_do_not_warn_the_final_one_does(simulated, caplog):
