@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.field import CorrectionField, bilinear_design
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import difference_operator, factor_spd, grid_result
@@ -100,6 +101,8 @@ def fit_grid_jointly(
     CorrectionField
         The update ``δ`` (not ``base + δ``).
     """
+    if respond not in ("orientation", "points"):
+        raise InputError(f"respond must be 'orientation' or 'points'; got {respond!r}")
     xy, r, w = (np.asarray(a, dtype=np.float64) for a in (xy_px, residuals_px, weights))
     width, height = (int(s) for s in image_size)
     xn, yn = grid.nodes((width, height))
@@ -174,7 +177,13 @@ def _orientation_inverse(J, w, r, network: Network, held: slice, point_informati
     # weakest combinations, which the field trades against, sit far below any ridge that would make a difference
     ridge = np.zeros(len(d))
     ridge[network.point_col - held.start :] = POINT_RIDGE
-    factor = cho_factor(N / d[:, None] / d[None, :] + E @ E.T + np.diag(ridge))
+    try:
+        factor = cho_factor(N / d[:, None] / d[None, :] + E @ E.T + np.diag(ridge))
+    except np.linalg.LinAlgError as exc:
+        raise EstimationError(
+            "the refinement's field step: the orientation's normal matrix is singular (an exposure with too few "
+            'observations left?); set [learn] orientation_response = "no" to move the beads alone'
+        ) from exc
     return (lambda x: cho_solve(factor, x / d) / d), b
 
 

@@ -53,9 +53,11 @@ from fluorocal.stages.learn.uncertainty import learned_uncertainty, with_field_s
 
 logger = logging.getLogger(__name__)
 
-#: conjugate-gradient cap and relative tolerance of the joint field step inside the loop: an inexact
-#: inner solve is enough, since the next iteration starts from the new residuals
-LOOP_CG_ITERATIONS, LOOP_CG_TOLERANCE = 100, 1e-3
+#: conjugate-gradient cap of the refinement's field step inside the loop, and its relative tolerance per what
+#: responds: the joint step is linearised afresh at every iteration, so an inexact solve is enough; the beads-alone
+#: step's convergence test reads its steps against the field's uncertainty, which a loose solve would blur
+LOOP_CG_ITERATIONS = 100
+LOOP_CG_TOLERANCE = {"orientation": 1e-3, "points": 1e-6}
 
 
 @dataclass(frozen=True)
@@ -451,7 +453,7 @@ def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory,
         estimate_iop=plan.estimate_iop,
         cv_rms_px=mem.cv.cv_rms_px,
         max_cg_iterations=LOOP_CG_ITERATIONS,
-        cg_tolerance=LOOP_CG_TOLERANCE,
+        cg_tolerance=LOOP_CG_TOLERANCE[state.respond],
         start=None if start is None else start.delta_px,
         point_information=shared,
         respond=state.respond,
