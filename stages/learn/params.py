@@ -19,7 +19,7 @@ PRESETS = {
     "recommended": {
         "acceleration": "anderson",
         "refine": "grid+points",
-        "orientation_response": "auto",
+        "orientation_response": "no",
         "affine_datum": True,
         "smoothness_orders": (2, 3, 4),
         "max_iterations": 3,
@@ -159,16 +159,16 @@ class LearnParams:
         a Gauss-Newton step of the joint problem, so the alternation converges
         in a few steps). The unsmoothed schemes run without a refinement.
     orientation_response : str *(preset)*
-        With ``refine="grid+points"``, what the field's step is estimated jointly with: ``"no"``: the
-        object points alone; ``"yes"``: the IOP, every pose and every point too (a Gauss-Newton step of
-        the joint problem: the alternation converges in a few steps instead of dozens); ``"auto"``
-        (recommended): ``"yes"`` when two or more systems view the phantom, ``"no"`` with one. With
-        one view per exposure the principal point and the phantom's shape trade off against the field
-        along a direction the data barely fix; the joint step moves far along it and stops at a worse
-        fit than the slow alternation (a 40 + 40-exposure 1024 px set, seed 1 of
-        ``benchmarks/robust.py``: 0.0148 against 0.0070 mm out of sample), while with two views it
-        converges to as good a fit or better (``benchmarks/evaluate.py``: 0.027 mm at every training
-        size, against 0.027-0.100 mm).
+        With ``refine="grid+points"``, what the field's step is estimated jointly with: ``"no"``
+        (recommended): the object points alone, each system's step knowing what the other systems'
+        views tell of the beads they share; ``"yes"``: the IOP, every pose and every point too (a
+        Gauss-Newton step of the joint problem); ``"auto"``: ``"yes"`` with two or more systems,
+        ``"no"`` with one. The joint step reaches a fit in fewer iterations on large biplanar sets
+        (``benchmarks/evaluate.py``, 0.027 mm out of sample at every training size either way), but
+        with one view per exposure it moved far along the principal point / shape / field direction
+        the data barely fix and stopped at a worse fit (a 40 + 40-exposure 1024 px set, seed 1 of
+        ``benchmarks/robust.py``: 0.0148 against 0.0070 mm out of sample), and on a weak biplanar set
+        (4 + 4 frames of 512 px) it needed more than 100 iterations where the beads-alone step took 59.
     tau_grid_px : tuple of float
         Candidate smoothness priors (px, standard deviation of a node's
         difference of the prior's order) for the refinement, chosen by
