@@ -441,13 +441,9 @@ def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory,
     w_obs = t_weight / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
     nominal = plan.adjuster.nominal_shape(adj)[1] if params.affine_datum else None
     network = linearised_network(adj, observations, sel, s, nominal)
-    # the joint step's beads are pinned by the other systems' views; the beads-alone step is the former one (with
-    # them pinned too it crept: 86 iterations on a rendered 75 + 75 biplanar set)
     others = np.flatnonzero(adj.used & adj.inlier & (observations.system != s))
-    shared = None
-    if state.respond == "orientation" and len(others):
-        w_others = adj.weight[others, None] / (adj.sigma0 * observations.sigma_px[others, :2]) ** 2
-        shared = point_information(adj, observations, others, w_others, network.beads)
+    w_others = adj.weight[others, None] / (adj.sigma0 * observations.sigma_px[others, :2]) ** 2
+    shared = point_information(adj, observations, others, w_others, network.beads) if len(others) else None
     model = fit_grid_jointly(
         xy,
         r,

@@ -160,9 +160,9 @@ class LearnParams:
         in a few steps). The unsmoothed schemes run without a refinement.
     orientation_response : str *(preset)*
         With ``refine="grid+points"``, what the field's step is estimated jointly with: ``"no"``
-        (recommended): the object points alone; ``"yes"``: the IOP, every pose and every point too (a
-        Gauss-Newton step of the joint problem, each system's step knowing what the other systems'
-        views tell of the beads they share); ``"auto"``: ``"yes"`` with two or more systems,
+        (recommended): the object points alone, each system's step knowing what the other systems'
+        views tell of the beads they share; ``"yes"``: the IOP, every pose and every point too (a
+        Gauss-Newton step of the joint problem); ``"auto"``: ``"yes"`` with two or more systems,
         ``"no"`` with one. The joint step reaches a fit in fewer iterations on large biplanar sets
         (``benchmarks/evaluate.py``, 0.027 mm out of sample at every training size either way), but
         with one view per exposure it moved far along the principal point / shape / field direction
