@@ -122,12 +122,13 @@ def _reduced_system(A, xy, w, r, Nvv, bv, AtW, network, iop_px, estimate_iop, re
     J = network.J[:, held]
     solve_theta, b_theta = _orientation_inverse(J, w, r, network, held, point_information)
     Nvt = vstack([AtW[c] @ J[c * len(xy) : (c + 1) * len(xy)] for c in range(2)]).tocsr()
-    G, k_gauge = _gauge_penalty(A, xy, w, iop_px, estimate_iop)
-    k_gauge = 0.0 if respond == "points" else k_gauge  # nothing responds that could carry the gauge
+    # the gauge is held only where the orientation, which could carry it, responds
+    G, k_gauge = _gauge_penalty(A, xy, w, iop_px, estimate_iop) if respond == "orientation" else (None, 0.0)
     Ntv = Nvt.T.tocsr()
 
     def matvec(v):
-        return Nvv @ v - Nvt @ solve_theta(Ntv @ v) + k_gauge * (G.T @ (G @ v))
+        reduced = Nvv @ v - Nvt @ solve_theta(Ntv @ v)
+        return reduced if G is None else reduced + k_gauge * (G.T @ (G @ v))
 
     return matvec, bv - Nvt @ solve_theta(b_theta)
 

@@ -40,16 +40,21 @@ def cubic_field(xy):
     return np.column_stack([0.6 * x**3 - 0.3 * x * y**2 + 0.2 * y**2, 0.5 * y**3 + 0.4 * x**2 * y - 0.2 * x * y])
 
 
+def cubic_case(linearised):
+    """``(xy, network, zero field, bilinear design, the cubic field on the grid)`` at the linearised set."""
+    adj, obs, rows, _ = linearised
+    xy = obs.xy_px[rows]
+    zero = CorrectionField.constant(SIZE, SIZE, spacing_px=SPACING)
+    A = bilinear_design(zero.x_nodes_px, zero.y_nodes_px, xy)
+    truth = zero.with_delta(cubic_field(zero.nodes_px.reshape(-1, 2)).reshape(zero.delta_px.shape))
+    return xy, linearised_network(adj, obs, rows, 0), zero, A, truth
+
+
 def test_one_step_splits_a_field_from_the_orientations_change(linearised):
     # noise-free residuals = a (gauge-free) cubic field + the projection of a random change of every pose and
     # bead; the linearised joint problem's solution is exactly that field: one step recovers it
-    adj, obs, rows, _ = linearised
-    xy = obs.xy_px[rows]
-    net = linearised_network(adj, obs, rows, 0)
-    zero = CorrectionField.constant(SIZE, SIZE, spacing_px=SPACING)
-    A = bilinear_design(zero.x_nodes_px, zero.y_nodes_px, xy)
-    nodes = zero.nodes_px.reshape(-1, 2)
-    truth = zero.with_delta(cubic_field(nodes).reshape(zero.delta_px.shape))
+    adj, _, rows, _ = linearised
+    xy, net, zero, A, truth = cubic_case(linearised)
     # gauge-free at the observations: the gauge fields interpolated from the nodes differ from the exact ones at
     # second order, so one removal leaves a ~1e-3 px component; each further one shrinks it by as much again
     for _ in range(4):
@@ -90,12 +95,8 @@ def test_points_alone_respond_when_the_orientation_is_held(linearised):
     # residuals = a cubic field + the projection of a change of the beads alone: with the points responding (the
     # IOP and the poses held) one step recovers the field; the gauge is not held then, so the field need not be free
     # of it (the orientation that could carry it does not move)
-    adj, obs, rows, _ = linearised
-    xy = obs.xy_px[rows]
-    net = linearised_network(adj, obs, rows, 0)
-    zero = CorrectionField.constant(SIZE, SIZE, spacing_px=SPACING)
-    A = bilinear_design(zero.x_nodes_px, zero.y_nodes_px, xy)
-    truth = zero.with_delta(cubic_field(zero.nodes_px.reshape(-1, 2)).reshape(zero.delta_px.shape))
+    adj, _, rows, _ = linearised
+    xy, net, zero, A, truth = cubic_case(linearised)
     d_theta = np.zeros(net.J.shape[1])
     d_theta[net.point_col :] = np.random.default_rng(4).normal(0, 1e-3, net.J.shape[1] - net.point_col)
     r = (A @ truth.delta_px.reshape(-1, 2)) + (net.J @ d_theta).reshape(2, -1).T
