@@ -58,6 +58,15 @@ def make_centroids(xy_px, diameter_px, *, sigma_px=0.05, major_px=None) -> Centr
     )
 
 
+def params_of(sp: SimulateParams) -> LabelParams:
+    """The labelling's geometry parameters of a simulated set (source distance, pixel pitch, image size)."""
+    return LabelParams(
+        source_image_distance_mm=sp.source_image_distance_mm,
+        pixel_pitch_mm=sp.pixel_pitch_mm,
+        image_size_px=(sp.image_size_px, sp.image_size_px),
+    )
+
+
 def detections_from_truth(ft, rng, *, noise_px=0.05, dropout=0.01, merged_keep=0.5, n_false=1, image_size_px=1024):
     """Detection-like centroids of one simulated frame, and the true bead id of each (-1: not one bead).
 

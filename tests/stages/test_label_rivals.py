@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fluorocal.stages.label import LabelParams
 from fluorocal.stages.label.correction import Correction
 from fluorocal.stages.label.cube_frame import make_cube_frame
 from fluorocal.stages.label.detections import Detections, assumed_iop
@@ -20,18 +19,14 @@ from fluorocal.stages.label.rivals import _EVIDENCE_MARGIN, evidence, model_evid
 from fluorocal.stages.simulate import SimulateParams, simulate
 from scipy.spatial.transform import Rotation
 
-from tests.stages.test_label import detections_from_truth
+from tests.stages.test_label import detections_from_truth, params_of
 
 
 def _labelled(**detection_options):
     """A simulated frame of the default cube, its CubeFrame, its labelling from the markers and the true ids."""
     sp = SimulateParams(n_frames=1, seed=3)
     sim = simulate(sp, render=False)
-    params = LabelParams(
-        source_image_distance_mm=sp.source_image_distance_mm,
-        pixel_pitch_mm=sp.pixel_pitch_mm,
-        image_size_px=(sp.image_size_px,) * 2,
-    )
+    params = params_of(sp)
     c, ids = detections_from_truth(sim.truth.frames[0][0], np.random.default_rng(3), **detection_options)
     det = Detections.from_centroids(c)
     frame, _ = make_cube_frame(det, sim.phantom, params, assumed_iop(det, c, params, need_c=True))

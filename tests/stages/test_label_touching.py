@@ -11,12 +11,12 @@ out. Ground truth: analytic point sets, and the simulator's geometry made detect
 from __future__ import annotations
 
 import numpy as np
-from fluorocal.stages.label import LabelParams, label_beads
+from fluorocal.stages.label import label_beads
 from fluorocal.stages.label.assign import ambiguous, told_apart
 from fluorocal.stages.simulate import SimulateParams, simulate
 from scipy.spatial import cKDTree
 
-from tests.stages.test_label import detections_from_truth, make_centroids, unambiguous_ids
+from tests.stages.test_label import detections_from_truth, make_centroids, params_of, unambiguous_ids
 
 # --------------------------------------------------------------------------------------------
 # told_apart on hand-built pairs (20 px beads)
@@ -71,11 +71,7 @@ def test_touching_beads_are_labelled_and_overlapping_ones_are_not():
     """
     sp = SimulateParams(n_frames=4, seed=21, distortion="strong")
     sim = simulate(sp, render=False)
-    params = LabelParams(
-        source_image_distance_mm=sp.source_image_distance_mm,
-        pixel_pitch_mm=sp.pixel_pitch_mm,
-        image_size_px=(sp.image_size_px,) * 2,
-    )
+    params = params_of(sp)
     rng = np.random.default_rng(21)
     n_touching = n_touching_labelled = n_clean = n_clean_labelled = 0
     for ft in sim.truth.frames[0]:
@@ -112,11 +108,7 @@ def test_labelled_beads_do_not_overlap_their_neighbours():
     """
     sp = SimulateParams(n_frames=2, seed=22)
     sim = simulate(sp, render=False)
-    params = LabelParams(
-        source_image_distance_mm=sp.source_image_distance_mm,
-        pixel_pitch_mm=sp.pixel_pitch_mm,
-        image_size_px=(sp.image_size_px,) * 2,
-    )
+    params = params_of(sp)
     rng = np.random.default_rng(22)
     for ft in sim.truth.frames[0]:
         keep = ~ft.field_edge

@@ -10,23 +10,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from fluorocal.stages.geometry import quat_to_matrix
-from fluorocal.stages.label import LabelParams, label_sequence
+from fluorocal.stages.label import label_sequence
 from fluorocal.stages.label.motion import OrientationPrior, predict
 from fluorocal.stages.simulate import SimulateParams, simulate
 from scipy.spatial.transform import Rotation
 
-from tests.stages.test_label import detections_from_truth, seeds_from_truth, unambiguous_ids
+from tests.stages.test_label import detections_from_truth, params_of, seeds_from_truth, unambiguous_ids
 
 #: the motion of issue 12: the turntable's axis wobbling by up to 5 deg, shifts of up to +-20 mm
 WOBBLY = dict(turntable_wobble_deg=5.0, turntable_translation_mm=20.0, turntable_step_deg=10.0)
-
-
-def params_of(sp: SimulateParams) -> LabelParams:
-    return LabelParams(
-        source_image_distance_mm=sp.source_image_distance_mm,
-        pixel_pitch_mm=sp.pixel_pitch_mm,
-        image_size_px=(sp.image_size_px, sp.image_size_px),
-    )
 
 
 # --------------------------------------------------------------------------------------------
