@@ -47,6 +47,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from fluorocal.stages.adjust.collinearity import whiten, whitening
 from fluorocal.stages.adjust.covariance import covariance_factor
 from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.field import bilinear_design
@@ -103,10 +104,11 @@ def _network(adj, observations, rows, system: int, shape_nominal_mm=None) -> _Ne
     net = linearised_network(adj, observations, rows, system, shape_nominal_mm)
     # each observation's weight matrix: the inverse of its (σx, σy, ρ) covariance, times its t-weight over the
     # adjustment's variance factor
-    sx, sy, rho = observations.sigma_px[rows].T
-    scale = adj.weight[rows] / variance_factor(adj, observations) / (1 - rho**2)
-    w = np.concatenate([scale / sx**2, scale / sy**2])
-    return _Network(net.J, w, -scale * rho / (sx * sy), net.datum, net.affine)
+    # W = L^-T L^-1 with L^-1 = [[l11, 0], [l21, l22]], the adjustment's whitening
+    l11, l21, l22 = whitening(observations.sigma_px[rows]).T
+    scale = adj.weight[rows] / variance_factor(adj, observations)
+    w = np.concatenate([scale * (l11**2 + l21**2), scale * l22**2])
+    return _Network(net.J, w, scale * l21 * l22, net.datum, net.affine)
 
 
 def variance_factor(adj, observations) -> float:
@@ -117,9 +119,8 @@ def variance_factor(adj, observations) -> float:
     """
     used = adj.used
     r = adj.residual_px[used]
-    sx, sy, rho = observations.sigma_px[used].T
     # squared Mahalanobis norm of each residual under (σx, σy, ρ)
-    s = ((r[:, 0] / sx) ** 2 - 2 * rho * r[:, 0] * r[:, 1] / (sx * sy) + (r[:, 1] / sy) ** 2) / (1 - rho**2)
+    s = np.sum(whiten(whitening(observations.sigma_px[used]), r) ** 2, axis=1)
     return covariance_factor(s, adj.weight[used], adj.nu, adj.t_scale**2, adj.n_parameters - 7, adj.dof)
 
 
