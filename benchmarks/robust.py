@@ -211,7 +211,7 @@ def main(argv=None) -> None:
             )
         )
         print(
-            f"  {kind}: field vs clean {diff[0]:.4f} px (mod H {diff[1]:.4f}), 3D {e3:.4f} mm ({e3 / clean[2]:.2f}x), "
+            f"  {kind}: field vs clean {diff[0]:.4f} px (mod H {diff[1]:.4f}), 3D {e3:.4f} mm ({e3 / clean[2]:.3f}x), "
             f"RMS {rms:.4f} px, pp shift {dpp:.2f} px, {len(res.history) - 1} it, {wall:.1f} s",
             flush=True,
         )
@@ -227,11 +227,22 @@ def main(argv=None) -> None:
     for kind, n, diff, truth, at_test, e3, r3, e3c, r3c, rms, flagged, pulled, dpp, zpp, dc, it, wall in rows:
         print(
             f"| {kind} | {n} | {diff[0]:.4f} | {diff[1]:.4f} | {truth[0]:.4f} / {truth[1]:.4f} | {at_test:.4f} "
-            f"| {e3:.4f} | {r3:.2f} | {e3c:.4f} | {r3c:.2f} | {rms:.4f} | {100 * flagged:.0f} % "
+            f"| {e3:.4f} | {r3:.3f} | {e3c:.4f} | {r3c:.3f} | {rms:.4f} | {100 * flagged:.0f} % "
             f"| {pulled[0]} / {pulled[1]} "
             f"| {dpp:.2f} | {zpp:.1f} "
             f"| {dc:+.2f} | {it} | {wall:.0f} |"
         )
+    worst_field = max(row[2][0] for row in rows)
+    worst_3d = max(max(row[6], row[8]) for row in rows)
+    print(
+        f"targets: field within 0.05 px RMS of the clean run's: {_verdict(worst_field <= 0.05)} "
+        f"(worst {worst_field:.4f} px); "
+        f"out-of-sample 3D within 10 % of the clean run's: {_verdict(worst_3d <= 1.10)} (worst {worst_3d:.3f}x)"
+    )
+
+
+def _verdict(met: bool) -> str:
+    return "met" if met else "NOT met"
 
 
 if __name__ == "__main__":
