@@ -361,7 +361,8 @@ def _notes(args, config, heldout, scores, ours: str, seconds: float) -> list[str
 
 
 def _argv(args) -> list[str]:
-    out = [str(args.config), "--holdout", *args.holdout]
+    """The command's arguments as given (``--holdout`` only when given: a plate's default is every frame)."""
+    out = [str(args.config), *(["--holdout", *args.holdout] if args.holdout else [])]
     for flag, value in (("--train-sizes", args.train_sizes), ("--schemes", args.schemes)):
         if value:
             out += [flag, value]

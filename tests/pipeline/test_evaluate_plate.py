@@ -109,3 +109,15 @@ def test_real_grid_frames_evaluated(arcadis_dir, tmp_path):
     assert float(row["out_rms_px"]) < 0.06
     # the plate's own errors matter: the same corrected holes lie > 2.5x farther from the nominal lattice
     assert float(row["out_nominal_rms_px"]) > 2.5 * float(row["out_rms_px"])
+
+
+def test_made_by_line_of_a_plate_without_holdout():
+    """A plate's default scores every frame (no --holdout): the table's "Made by" line says what was run."""
+    from argparse import Namespace
+    from pathlib import Path
+
+    from fluorocal.cmd_evaluate import _argv
+
+    args = Namespace(config=Path("plate.toml"), holdout=None, train_sizes="1,3", schemes=None, reference=None)
+    assert _argv(args) == ["plate.toml", "--train-sizes", "1,3"]
+    assert _argv(Namespace(**{**vars(args), "holdout": ["odd"]}))[1:3] == ["--holdout", "odd"]
