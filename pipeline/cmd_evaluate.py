@@ -25,7 +25,18 @@ evaluation.csv (a row per scheme and size), evaluation.md (the table; a line for
 where a peer beats fluorocal's scheme), evaluation_errors.png (each figure against the training
 size), evaluation_improvement.png (over none) and evaluation_residuals_<system>.png (held-out
 residuals of each scheme at the largest size).
-Grid plates are not evaluated here yet: `python benchmarks/plate.py` scores them.
+
+Grid plates ([phantom] lattice) are scored on held-out holes instead: for every frame (--holdout: the
+frames scored; default all) and lattice-row parity, each scheme is fitted without that frame's holes on
+those rows, and the held-out holes, corrected, are compared by a best-fitting homography with the plate's
+layout as self-calibrated from the same training holes, and with the nominal lattice (RMS lengths, px).
+A training size counts the frames the plate is self-calibrated from: the scored frame (its other rows)
+and others evenly spaced (default: 5 sizes up to every frame of a system). Schemes: plate (fluorocal's:
+a field per orientation and the plate's errors, with the project's [plate]; always run, its layout is
+the reference), none (a homography of the nominal plate per frame) and polynomial (the radial +
+decentring model of scheme polynomial per orientation, the plate nominal). The in-sample figure is the
+same comparison on the scored frames' training rows. No opencv for a plate: calibrateCamera needs the
+plate seen at several tilts to fix its intrinsics, and a plate on the intensifier is seen square on.
 """
 
 from __future__ import annotations
@@ -53,21 +64,22 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--holdout",
         nargs="+",
-        default=["odd"],
         metavar="RULE|FILE",
         help="held-out epochs: odd (every other one from the second; the default), even, random:SEED (half, "
-        "drawn with SEED), or frame files of the project (their epochs are held out in every system)",
+        "drawn with SEED), or frame files of the project (their epochs are held out in every system); for a "
+        "grid plate the frames whose alternate rows are scored (default: every frame)",
     )
     p.add_argument(
         "--train-sizes",
         metavar="N,N,...",
-        help="training epochs per calibration (default: 5 sizes evenly spaced up to all training epochs)",
+        help="training epochs per calibration (default: 5 sizes evenly spaced up to all training epochs); for a "
+        "grid plate, frames (default: 5 sizes up to every frame of a system)",
     )
     p.add_argument(
         "--schemes",
         metavar="a,b,...",
         help=f"comma-separated, of {', '.join(SCHEME_NAMES)} (default: none, polynomial, the project's scheme; "
-        "opencv too with --reference)",
+        "opencv too with --reference); for a grid plate of none, polynomial, plate (default: all three)",
     )
     p.add_argument("--reference", type=Path, metavar="CSV", help="surveyed check points id,x,y,z mm (default: none)")
     p.add_argument("--out", type=Path, metavar="DIR", help="output folder (default: evaluation/ beside the config)")
@@ -75,11 +87,13 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    from fluorocal.evaluation import headline, publish_evaluation
     from fluorocal.stages.evaluate import evaluate
 
     config, runner = _project(args)
     out_dir = _check_out(args, config)
+    if config.phantom.lattice:
+        return _run_plate(args, config, runner, out_dir)
+    args.holdout = args.holdout or ["odd"]
     reference = _reference(args.reference, runner) if args.reference else None
     schemes, ours = _schemes(args.schemes, config.scheme, reference is not None)
     _parsed_sizes(args.train_sizes)  # the syntax before any work; the range once the epochs are known
@@ -96,24 +110,93 @@ def run(args) -> int:
         ",".join(schemes),
     )
     t0 = time.perf_counter()
+    result = evaluate(obs, heldout, sizes, schemes, setup, progress=_progress)
+    notes = _notes(args, config, heldout, result.scores, ours, time.perf_counter() - t0)
+    return _publish(out_dir, config, result, ours, notes, setup.image_size_px, t0)
 
-    def progress(score):
-        log.info(
-            "  %s, %d epochs: out-of-sample RMS %.4f px (%.1f s)",
-            score.scheme,
-            score.n_train,
-            score.out_rms_px,
-            score.wall_s,
+
+def _run_plate(args, config, runner, out_dir: Path) -> int:
+    """The grid plate's protocol (module docstring): held-out rows of each frame, per training size and scheme."""
+    import numpy as np
+    from fluorocal.stages.evaluate.plate import PlateSetup, evaluate_plate
+
+    schemes = _plate_schemes(args.schemes)
+    _plate_sizes(args.train_sizes, [sum(u.system == s for u in runner.units) for s in range(len(config.systems))])
+    runner.run()
+    obs = _observations(runner)
+    scored = None if args.holdout is None else _heldout(args.holdout, runner, obs)
+    sizes = _plate_sizes(
+        args.train_sizes, [len(np.unique(obs.exposure[obs.system == s])) for s in range(len(config.systems))]
+    )
+    extras = _stage("learn").extras(config, runner.units)
+    plan = extras["setup"]
+    setup = PlateSetup(
+        runner.get("phantom", None), plan.image_size_px, plan.orientations, extras["plate"], extras["solver"]
+    )
+    log.info("evaluate (grid plate): sizes %s frames; schemes %s", ",".join(map(str, sizes)), ",".join(schemes))
+    t0 = time.perf_counter()
+    result = evaluate_plate(obs, sizes, schemes, setup, scored=scored, progress=_progress)
+    held = "every frame" if args.holdout is None else f"the frames of --holdout {' '.join(args.holdout)}"
+    notes = [
+        f"Project `{config.path.name}` (grid plate): {held} scored on alternate lattice rows, each row parity "
+        "held out in turn; RMS lengths of the corrected holes after a best-fitting homography, px; the "
+        "self-calibrated layout is fluorocal's (scheme plate) from the same training holes; % improvement is "
+        "over `none`.",
+        f"A training size counts the frames the plate is self-calibrated from (the scored one among them). "
+        f"Wall time {time.perf_counter() - t0:.1f} s.",
+        "Made by `fluorocal evaluate " + " ".join(_argv(args)) + "`.",
+    ]
+    return _publish(out_dir, config, result, "plate", notes, setup.image_size_px, t0)
+
+
+def _plate_schemes(text) -> list[str]:
+    """A grid plate's schemes of ``--schemes`` (default none, polynomial, plate); plate always among them."""
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.evaluate.plate import PLATE_SCHEMES
+
+    if text is None:
+        return ["none", "polynomial", "plate"]
+    names = list(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
+    unknown = [n for n in names if n not in PLATE_SCHEMES]
+    if unknown or not names:
+        why = (
+            " (OpenCV's calibrateCamera needs the plate seen at several tilts; on the intensifier it is seen square on)"
+            if "opencv" in unknown
+            else ""
         )
+        raise InputError(
+            f"--schemes: a grid plate is evaluated with {', '.join(PLATE_SCHEMES)}; "
+            f"got {unknown[0] if unknown else text!r}{why}"
+        )
+    return names + [PLATE_SCHEMES[0]] * (PLATE_SCHEMES[0] not in names)
 
-    result = evaluate(obs, heldout, sizes, schemes, setup, progress=progress)
-    scores = result.scores
-    notes = _notes(args, config, heldout, scores, ours, time.perf_counter() - t0)
+
+def _plate_sizes(text, counts: list[int]) -> tuple[int, ...]:
+    """A grid plate's training sizes (frames; default 5 up to the fewest frames of a system), checked."""
+    from fluorocal.stages.evaluate import check_train_sizes, default_train_sizes
+
+    n = min(counts)
+    why = f"a system of the plate project has {n} frame(s), the scored one among its training frames"
+    if text is None:
+        return check_train_sizes(default_train_sizes(n, minimum=1), n, 1, why=why)
+    return check_train_sizes(_parsed_sizes(text), n, 1, why=why)
+
+
+def _progress(score) -> None:
+    log.info(
+        "  %s, %d: out-of-sample RMS %.4f px (%.1f s)", score.scheme, score.n_train, score.out_rms_px, score.wall_s
+    )
+
+
+def _publish(out_dir: Path, config, result, ours: str, notes: list[str], image_size_px, t0: float) -> int:
+    """Write the evaluation's files, print its table and the headline line."""
+    from fluorocal.evaluation import headline, publish_evaluation
+
     names = tuple(s.name for s in config.systems)
-    written = publish_evaluation(out_dir, result, ours, notes, systems=names, image_size_px=setup.image_size_px)
+    written = publish_evaluation(out_dir, result, ours, notes, systems=names, image_size_px=image_size_px)
     md = next(p for p in written if p.name == "evaluation.md")
     print("\n".join(line for line in md.read_text().splitlines() if line.startswith(("|", "- ", "No peer"))))
-    key = headline(scores)
+    key = headline(result.scores)
     print(f"headline figure: {key}; wall {time.perf_counter() - t0:.1f} s; wrote {len(written)} file(s) to {out_dir}")
     return 0
 
@@ -123,11 +206,8 @@ def _project(args):
     from fluorocal.stages.errors import InputError
 
     config = _load(args.config)
-    if config.phantom.lattice:
-        raise InputError(
-            f"{args.config}: a grid plate is not evaluated by `fluorocal evaluate` yet; "
-            "`python benchmarks/plate.py` scores plates on held-out holes"
-        )
+    if config.phantom.lattice and args.reference:
+        raise InputError("--reference: a grid plate has no check points (its holes are scored on held-out rows)")
     return config, _runner(args, config, until="label")
 
 
@@ -281,7 +361,8 @@ def _notes(args, config, heldout, scores, ours: str, seconds: float) -> list[str
 
 
 def _argv(args) -> list[str]:
-    out = [str(args.config), "--holdout", *args.holdout]
+    """The command's arguments as given (``--holdout`` only when given: a plate's default is every frame)."""
+    out = [str(args.config), *(["--holdout", *args.holdout] if args.holdout else [])]
     for flag, value in (("--train-sizes", args.train_sizes), ("--schemes", args.schemes)):
         if value:
             out += [flag, value]

@@ -27,6 +27,28 @@ FIGURES = {
     "in_rms_px": "in-sample reprojection RMS (px)",
 }
 
+#: a grid plate's figures (:func:`fluorocal.stages.evaluate.plate.evaluate_plate`): RMS lengths after a homography
+PLATE_FIGURES = {
+    "out_rms_px": "held-out holes vs self-calibrated layout (px)",
+    "out_nominal_rms_px": "held-out holes vs nominal lattice (px)",
+    "in_rms_px": "in-sample holes vs self-calibrated layout (px)",
+}
+
+
+def is_plate(scores) -> bool:
+    """Whether the scores are a grid plate's (held-out holes against the nominal lattice given)."""
+    return any(math.isfinite(s.out_nominal_rms_px) for s in scores)
+
+
+def figures(scores) -> dict:
+    """The figures of these scores and their headings: :data:`PLATE_FIGURES` for a grid plate, else :data:`FIGURES`."""
+    return PLATE_FIGURES if is_plate(scores) else FIGURES
+
+
+def size_unit(scores) -> str:
+    """What a training size counts: a plate's frames, else epochs."""
+    return "frames" if is_plate(scores) else "epochs"
+
 
 def headline(scores) -> str:
     """The out-of-sample 3D figure of these scores: two-ray mean when biplanar, else check points (rigid)."""
@@ -41,7 +63,8 @@ def peer_wins(scores, ours: str) -> list[str]:
     """One line per (figure, training size) where a peer's figure is lower than scheme ``ours``'s."""
     lines = []
     by = {(s.scheme, s.n_train): s for s in scores}
-    for name, heading in FIGURES.items():
+    unit = size_unit(scores)
+    for name, heading in figures(scores).items():
         for s in scores:
             mine = by.get((ours, s.n_train))
             if s.scheme == ours or mine is None:
@@ -49,7 +72,7 @@ def peer_wins(scores, ours: str) -> list[str]:
             theirs, own = getattr(s, name), getattr(mine, name)
             if math.isfinite(theirs) and math.isfinite(own) and theirs < own:
                 lines.append(
-                    f"- peer **{s.scheme}** beats {ours} on {heading} with {s.n_train} training epochs: "
+                    f"- peer **{s.scheme}** beats {ours} on {heading} with {s.n_train} training {unit}: "
                     f"{theirs:.4f} against {own:.4f}"
                 )
     return lines
@@ -64,10 +87,11 @@ def _cell(value) -> str:
 def markdown(scores, ours: str, notes: list[str]) -> str:
     """The table (TABLE I's columns where they apply), the improvement of each scheme over ``none``, the peers' wins."""
     key = headline(scores)
+    names = figures(scores)
     base = {s.n_train: getattr(s, key) for s in scores if s.scheme == "none"}
     biplanar = any(s.tworay_pairs for s in scores)
     checks = any(math.isfinite(s.out_3d_rigid_mm) for s in scores)
-    head = ["training epochs", "scheme"]
+    head = [f"training {size_unit(scores)}", "scheme"]
     cols = []
     if biplanar:
         cols += ["tworay_x_rmse_mm", "tworay_y_rmse_mm", "tworay_z_rmse_mm", "tworay_avg_rmse_mm", "tworay_mean_mm"]
@@ -76,8 +100,13 @@ def markdown(scores, ours: str, notes: list[str]) -> str:
         cols += ["in_3d_rigid_mm", "in_3d_similarity_mm", "out_3d_rigid_mm", "out_3d_similarity_mm"]
         head += ["in-sample 3D rigid (mm)", "in-sample 3D similarity (mm)", "out-of-sample 3D rigid (mm)"]
         head += ["out-of-sample 3D similarity (mm)"]
-    cols += ["in_rms_px", "out_rms_px"]
-    head += ["in-sample RMS (px)", "out-of-sample RMS (px)", f"% improvement ({FIGURES[key]})", "wall (s)"]
+    if is_plate(scores):
+        cols += ["in_rms_px", "out_rms_px", "out_nominal_rms_px"]
+        head += [names[c] for c in cols]
+    else:
+        cols += ["in_rms_px", "out_rms_px"]
+        head += ["in-sample RMS (px)", "out-of-sample RMS (px)"]
+    head += [f"% improvement ({names[key]})", "wall (s)"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     previous = None
     for s in scores:
@@ -102,7 +131,8 @@ def write_csv_table(path: Path, scores) -> Path:
 
 def write_plots(folder: Path, scores, ours: str) -> list[Path]:
     """Each applicable figure against the training size (a line per scheme), and the improvement over ``none``."""
-    names = [n for n in FIGURES if any(math.isfinite(getattr(s, n)) for s in scores)]
+    headings = figures(scores)
+    names = [n for n in headings if any(math.isfinite(getattr(s, n)) for s in scores)]
     schemes = list(dict.fromkeys(s.scheme for s in scores))
     import matplotlib
 
@@ -120,8 +150,8 @@ def write_plots(folder: Path, scores, ours: str) -> list[Path]:
             rows = [s for s in scores if s.scheme == scheme]
             ax.plot([s.n_train for s in rows], [getattr(s, name) for s in rows], "o-", label=scheme)
         ax.set_yscale("log")
-        ax.set_xlabel("training epochs")
-        ax.set_title(FIGURES[name], fontsize=9)
+        ax.set_xlabel(f"training {size_unit(scores)}")
+        ax.set_title(headings[name], fontsize=9)
     if len(schemes) > 1:
         axes[0].legend(fontsize=8)
     written = [_save(plt, fig, inside(folder, "evaluation_errors.png"))]
@@ -134,20 +164,20 @@ def write_plots(folder: Path, scores, ours: str) -> list[Path]:
             if rows:
                 better = [100 * (1 - getattr(s, key) / base[s.n_train]) for s in rows]
                 ax.plot([s.n_train for s in rows], better, "o-", label=scheme)
-        ax.set_xlabel("training epochs")
+        ax.set_xlabel(f"training {size_unit(scores)}")
         ax.set_ylabel("% improvement over none")
-        ax.set_title(FIGURES[key], fontsize=9)
+        ax.set_title(headings[key], fontsize=9)
         ax.legend(fontsize=8)
         written.append(_save(plt, fig, inside(folder, "evaluation_improvement.png")))
     return written
 
 
-def write_residual_maps(folder: Path, residuals, system_names, image_size_px) -> list[Path]:
+def write_residual_maps(folder: Path, residuals, system_names, image_size_px, unit: str = "epochs") -> list[Path]:
     """Per system, the held-out inlier residuals of each scheme at the largest training size, a panel each."""
     written = []
     for s, name in enumerate(system_names):
         panels = [
-            (f"{r.scheme}, {r.n_train} epochs, held out", r.xy_px[r.system == s], r.residual_px[r.system == s])
+            (f"{r.scheme}, {r.n_train} {unit}, held out", r.xy_px[r.system == s], r.residual_px[r.system == s])
             for r in residuals
         ]
         path = inside(folder, f"evaluation_residuals_{safe_name(name, what='system name')}.png")
@@ -162,7 +192,7 @@ def publish_evaluation(out_dir: Path, evaluation, ours: str, notes: list[str], *
     def write(staging: Path) -> list[Path]:
         md = inside(staging, "evaluation.md")
         md.write_text(markdown(scores, ours, notes))
-        maps = write_residual_maps(staging, evaluation.residuals, systems, image_size_px)
+        maps = write_residual_maps(staging, evaluation.residuals, systems, image_size_px, size_unit(scores))
         return [
             write_csv_table(inside(staging, "evaluation.csv"), scores),
             md,

@@ -37,6 +37,22 @@ def calibrated_project(tmp_path_factory) -> Path:
     return root
 
 
+@pytest.fixture(scope="session")
+def simulated_grid(tmp_path_factory) -> Path:
+    """A simulated plate moved by hand between three 1024² frames at one C-arm orientation, calibrated once.
+
+    (A 512 px frame cannot resolve the holes.) Modules that change it take a copy (:func:`copy_project`).
+    """
+    from fluorocal.cli import main
+    from fluorocal.cmd_simulate import write_dataset
+    from fluorocal.stages.simulate import SimulateParams, simulate
+
+    root = tmp_path_factory.mktemp("grid") / "project"
+    write_dataset(simulate(SimulateParams(phantom="grid", n_frames=3, seed=4)), root)
+    assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
+    return root
+
+
 def copy_project(source: Path, destination: Path) -> Path:
     """A copy of a project folder (frames, config, cache and outputs) at ``destination``."""
     import shutil

@@ -11,7 +11,9 @@ Modules
 - :mod:`.split`: held-out epochs and training subsets;
 - :mod:`.metrics`: the figures, pure functions of points;
 - :mod:`.protocol`: :func:`evaluate`, the calibrations (:func:`learned_interior`,
-  the OpenCV peer :func:`opencv_interior`) and :func:`score_interior`.
+  the OpenCV peer :func:`opencv_interior`) and :func:`score_interior`;
+- :mod:`.plate`: a grid plate's protocol, scored on held-out holes
+  (:func:`~fluorocal.stages.evaluate.plate.evaluate_plate`).
 """
 
 from __future__ import annotations

@@ -97,9 +97,12 @@ class Score:
     """One row of the evaluation: a scheme calibrated on ``n_train`` epochs, scored on ``n_heldout``.
 
     Lengths mm, reprojection px; NaN where a figure does not apply (no check points, one system).
-    ``tworay_*`` are the held-out pairs' two-ray intersections after a per-epoch rigid fit onto
-    ``tworay_reference`` (``"check points"`` or ``"nominal phantom"``); ``in_3d_*`` / ``out_3d_*`` the
-    training / held-out adjustment's object points against the check points.
+    A grid plate's rows (:func:`~fluorocal.stages.evaluate.plate.evaluate_plate`): ``n_train`` frames,
+    ``n_heldout`` held-out holes, ``in_rms_px`` / ``out_rms_px`` the training / held-out holes against the
+    self-calibrated layout and ``out_nominal_rms_px`` the held-out holes against the nominal lattice (RMS
+    lengths after a homography). ``tworay_*`` are the held-out pairs' two-ray intersections after a
+    per-epoch rigid fit onto ``tworay_reference`` (``"check points"`` or ``"nominal phantom"``);
+    ``in_3d_*`` / ``out_3d_*`` the training / held-out adjustment's object points against the check points.
     """
 
     scheme: str
@@ -118,6 +121,7 @@ class Score:
     tworay_avg_rmse_mm: float = float("nan")
     tworay_mean_mm: float = float("nan")
     tworay_reference: str = ""
+    out_nominal_rms_px: float = float("nan")
     wall_s: float = 0.0
 
 

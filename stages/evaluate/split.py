@@ -81,17 +81,20 @@ def default_train_sizes(n_train: int, n_sizes: int = 5, minimum: int = MIN_TRAIN
     return tuple(sorted(s for s in sizes if s <= n_train))
 
 
-def check_train_sizes(sizes, n_train: int, minimum: int = MIN_TRAIN) -> tuple[int, ...]:
-    """``sizes`` sorted and unique, refused (:class:`InputError`) when empty or outside ``minimum..n_train``."""
+def check_train_sizes(sizes, n_train: int, minimum: int = MIN_TRAIN, *, why: str = "") -> tuple[int, ...]:
+    """``sizes`` sorted and unique, refused (:class:`InputError`) when empty or outside ``minimum..n_train``.
+
+    ``why``: what limits the sizes, said in the refusal (default: the training epochs after the holdout).
+    """
     sizes = tuple(sorted(set(int(s) for s in sizes)))
     if not sizes:
         raise InputError("--train-sizes is empty; give comma-separated counts of training epochs")
     if sizes[0] < minimum or sizes[-1] > n_train:
         bad = sizes[0] if sizes[0] < minimum else sizes[-1]
-        raise InputError(
-            f"--train-sizes: {bad} is outside {minimum}..{n_train} (the project has {n_train} training "
-            f"epoch(s) after the holdout; a calibration needs at least {minimum})"
+        why = why or (
+            f"the project has {n_train} training epoch(s) after the holdout; a calibration needs at least {minimum}"
         )
+        raise InputError(f"--train-sizes: {bad} is outside {minimum}..{n_train} ({why})")
     return sizes
 
 

@@ -14,7 +14,7 @@ separates the two.
 
 Modules: :mod:`.homography` (normalisation, the homography modes of the datum), :mod:`.problem`
 (observations indexed per system), :mod:`.solve` (the alternation), :mod:`.holdout` (the held-out
-score), :mod:`.result` (:class:`PlateCalibration`).
+score), :mod:`.polynomial` (the evaluation's polynomial peer), :mod:`.result` (:class:`PlateCalibration`).
 """
 
 from __future__ import annotations

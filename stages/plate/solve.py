@@ -116,6 +116,25 @@ class PlateProblem:
             self.image_size,
         )
 
+    def of_frames(self, frames) -> tuple["PlateProblem", np.ndarray]:
+        """The problem of ``frames`` alone, frames and orientations numbered afresh (holes keep theirs).
+
+        Returns the problem and each new frame's index in this one ``(F',)`` (sorted).
+        """
+        frames = np.unique(np.asarray(frames, dtype=np.int64))
+        keep = np.isin(self.frame, frames)
+        _, local = np.unique(self.orientation_of_frame[frames], return_inverse=True)
+        sub = PlateProblem(
+            np.searchsorted(frames, self.frame[keep]),
+            local.astype(np.int64),
+            self.hole[keep],
+            self.nominal_mm,
+            self.xy_px[keep],
+            self.sigma_px[keep],
+            self.image_size,
+        )
+        return sub, frames
+
 
 @dataclass(frozen=True)
 class SolveSettings:

@@ -256,7 +256,7 @@ def test_holdout_files_hold_their_epoch_out_in_every_system(project, tmp_path):
     assert [(r["n_train"], r["n_heldout"]) for r in rows] == [("2", "2")]
 
 
-def test_grid_plate_is_refused(tmp_path, capsys):
+def test_plate_with_too_few_frames_for_the_sizes_is_refused_before_any_work(tmp_path, capsys):
     frame = tmp_path / "frame.tif"
     from fluorocal.stages.io import write_still
 
@@ -265,4 +265,6 @@ def test_grid_plate_is_refused(tmp_path, capsys):
         '[phantom]\nlattice = "hex"\npitch = 3.3\n\n[[systems]]\nname = "A"\nframes = "frame.tif"\n'
         "source_image_distance = 1000\npixel_pitch = 0.2\n"
     )
-    assert "benchmarks/plate.py" in _error(["evaluate", str(tmp_path / "plate.toml")], capsys)
+    # one frame: a plate's training frames include the scored one, so 1 is the most (refused before labelling)
+    assert "outside 1..1" in _error(["evaluate", str(tmp_path / "plate.toml"), "--train-sizes", "2"], capsys)
+    assert not (tmp_path / ".fluorocal").exists() and not (tmp_path / "evaluation").exists()

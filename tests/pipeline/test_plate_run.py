@@ -45,22 +45,6 @@ def real_grid_config(folder: Path, arcadis: Path, names) -> Path:
     return folder / "fluorocal.toml"
 
 
-@pytest.fixture(scope="module")
-def simulated_grid(tmp_path_factory):
-    """A simulated plate moved by hand between three 1024² frames at one C-arm orientation, calibrated once.
-
-    (A 512 px frame cannot resolve the holes.)
-    """
-    from fluorocal.cmd_simulate import write_dataset
-    from fluorocal.stages.simulate import SimulateParams, simulate
-
-    root = tmp_path_factory.mktemp("grid") / "project"
-    params = SimulateParams(phantom="grid", n_frames=3, seed=4)
-    write_dataset(simulate(params), root)
-    assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
-    return root
-
-
 def test_simulated_grid_outputs(simulated_grid):
     out = simulated_grid / "out"
     doc = json.loads((out / "calibration.json").read_text())
