@@ -41,6 +41,10 @@ OWNED_ELSEWHERE = {
 }
 
 
+#: the schemes a grid plate accepts: the default (the plate's own solve) and none
+_PLATE_SCHEMES = ("knn+iop+smooth", "none")
+
+
 def _reject_owned(section: str, table: dict, path: Path) -> None:
     for key in table:
         if (section, key) in OWNED_ELSEWHERE:
@@ -383,6 +387,12 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     if not isinstance(scheme, str) or scheme not in SCHEMES:
         raise ConfigError(
             f"{_where(path, '[calibration] ', 'scheme')}: expected one of {', '.join(SCHEMES)}; got {scheme!r}"
+        )
+    if phantom.lattice and scheme not in _PLATE_SCHEMES:
+        raise ConfigError(
+            f"{_where(path, '[calibration] ', 'scheme')}: a grid plate is calibrated by the plate's own solve "
+            f"(a field per orientation and the plate's errors); expected one of {', '.join(_PLATE_SCHEMES)} "
+            f"(none: no correction); got {scheme!r}"
         )
 
     output = _expect(data.get("output", {}), dict, "a table [output]", path, "", "output")

@@ -80,6 +80,18 @@ def test_params_from_dict_coerces_ints_to_floats_and_keeps_defaults():
     assert p == DetectLike(min_diameter_px=8.0) and isinstance(p.min_diameter_px, float)
 
 
+@pytest.mark.parametrize("scheme", ["polynomial", "knn", "knn+smooth"])
+def test_a_grid_plate_refuses_a_scheme_it_would_not_use(tmp_path, scheme):
+    """A plate is calibrated by its own solve; another scheme was silently replaced by it."""
+    path = make_project(tmp_path)
+    text = path.read_text().replace('file = "phantom.csv"', 'lattice = "hex"\npitch = 5.0')
+    path.write_text(text + f'\n[calibration]\nscheme = "{scheme}"\n')
+    with pytest.raises(ConfigError, match=r"\[calibration\] key 'scheme': a grid plate is calibrated by"):
+        load_config(path)
+    path.write_text(text + '\n[calibration]\nscheme = "none"\n')
+    assert load_config(path).scheme == "none"
+
+
 def test_polynomial_scheme_is_accepted(tmp_path):
     path = make_project(tmp_path)
     path.write_text(path.read_text() + '\n[calibration]\nscheme = "polynomial"\n')
