@@ -9,6 +9,7 @@ chooses the prior's order and weight by shuffled K-fold cross-validation.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from fluorocal.stages.artifacts import freeze
@@ -229,7 +230,7 @@ def cross_validate_smoothness(
     tests = [(A[test], w[test], r[test]) for test in folds]
     evaluated = []  # (order, tau, cost, RMS)
     for order in orders:
-        DtD = _prior_normal(len(yn), len(xn), order)
+        DtD = prior_normal(len(yn), len(xn), order)
         for tau in sorted(tau_grid_px):
             cost, rms = _out_of_fold(normals, tests, DtD, tau, base, cost_cap)
             rising = bool(evaluated) and evaluated[-1][0] == order and cost > evaluated[-1][2]
@@ -275,9 +276,20 @@ def _out_of_fold(normals, tests, DtD, tau_px, base, cost_cap):
     return cost / n, float(np.sqrt(sq / (2 * max(n_sq, 1))))
 
 
-def _prior_normal(n_y: int, n_x: int, order: int):
-    """``D^T D`` of :func:`difference_operator`, sparse CSR."""
-    D = difference_operator(n_y, n_x, int(order))
+@lru_cache(maxsize=8)
+def prior_normal(n_y: int, n_x: int, order: int):
+    """``D^T D`` of :func:`difference_operator`, sparse CSR; read-only, built once per grid and order.
+
+    Every field step of the refinement and every candidate of its cross-validation needs it.
+    """
+    matrix = _difference_normal(n_y, n_x, int(order))
+    for a in (matrix.data, matrix.indices, matrix.indptr):
+        a.flags.writeable = False
+    return matrix
+
+
+def _difference_normal(n_y: int, n_x: int, order: int):
+    D = difference_operator(n_y, n_x, order)
     return (D.T @ D).tocsr()
 
 
@@ -333,7 +345,7 @@ def fit_grid_field(
     A = bilinear_design(xn, yn, xy)
     v = _grid_solve(
         A,
-        _prior_normal(len(yn), len(xn), order),
+        prior_normal(len(yn), len(xn), order),
         1.0 / var,
         r,
         float(tau_px),
@@ -369,4 +381,5 @@ __all__ = [
     "difference_operator",
     "fit_grid_field",
     "grid_result",
+    "prior_normal",
 ]

@@ -20,7 +20,7 @@ import numpy as np
 from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.field import CorrectionField, bilinear_design
 from fluorocal.stages.learn.gauge import gauge_basis
-from fluorocal.stages.learn.grid import difference_operator, factor_spd, grid_result
+from fluorocal.stages.learn.grid import factor_spd, grid_result, prior_normal
 from fluorocal.stages.learn.network import Network
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec
 from scipy.linalg import cho_factor, cho_solve
@@ -107,8 +107,8 @@ def fit_grid_jointly(
     width, height = (int(s) for s in image_size)
     xn, yn = grid.nodes((width, height))
     A = bilinear_design(xn, yn, xy)
-    D = difference_operator(len(yn), len(xn), int(order))
-    Nvv, bv, AtW = _field_normal(A, w, r, (D.T @ D).tocsr() / tau_px**2, base.delta_px.reshape(-1, 2))
+    reg = prior_normal(len(yn), len(xn), int(order)) / tau_px**2
+    Nvv, bv, AtW = _field_normal(A, w, r, reg, base.delta_px.reshape(-1, 2))
     matvec, rhs = _reduced_system(A, xy, w, r, Nvv, bv, AtW, network, iop_px, estimate_iop, respond, point_information)
     x0 = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1, 2).T.ravel()
     v = _solve_reduced(Nvv, matvec, rhs, np.array_equal(w[:, 0], w[:, 1]), max_cg_iterations, cg_tolerance, x0)
