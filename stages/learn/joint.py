@@ -20,7 +20,7 @@ import numpy as np
 from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.field import CorrectionField, bilinear_design
 from fluorocal.stages.learn.gauge import gauge_basis
-from fluorocal.stages.learn.grid import difference_operator, factor_spd, grid_result
+from fluorocal.stages.learn.grid import factor_spd, grid_result, prior_normal
 from fluorocal.stages.learn.network import Network
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec
 from scipy.linalg import cho_factor, cho_solve
@@ -107,8 +107,8 @@ def fit_grid_jointly(
     width, height = (int(s) for s in image_size)
     xn, yn = grid.nodes((width, height))
     A = bilinear_design(xn, yn, xy)
-    D = difference_operator(len(yn), len(xn), int(order))
-    Nvv, bv, AtW = _field_normal(A, w, r, (D.T @ D).tocsr() / tau_px**2, base.delta_px.reshape(-1, 2))
+    reg = prior_normal(len(yn), len(xn), int(order)) / tau_px**2
+    Nvv, bv, AtW = _field_normal(A, w, r, reg, base.delta_px.reshape(-1, 2))
     matvec, rhs = _reduced_system(A, xy, w, r, Nvv, bv, AtW, network, iop_px, estimate_iop, respond, point_information)
     x0 = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1, 2).T.ravel()
     v = _solve_reduced(Nvv, matvec, rhs, np.array_equal(w[:, 0], w[:, 1]), max_cg_iterations, cg_tolerance, x0)
@@ -152,7 +152,11 @@ def _orientation_inverse(J, w, r, network: Network, held: slice, point_informati
     ``N_θθ = J^T W J`` plus the datum (a unit curvature along each similarity mode, in the
     Jacobi-scaled problem: the data's gradient along them is nil, so they stay put) and
     the affine hold ``κ |B^T (P + dP) - B^T P_nominal|²``; ``point_information`` is added to the beads' blocks.
+    With the points alone responding, ``N_θθ`` is the beads' 3x3 blocks and the hold's rank-5 term
+    (:func:`_points_inverse`).
     """
+    if held.start == network.point_col:
+        return _points_inverse(J, w, r, network, point_information)
     wf, rf = w.T.ravel(), r.T.ravel()
     JW = J.multiply(wf[:, None]).tocsr()
     N = (J.T @ JW).toarray()
@@ -169,10 +173,9 @@ def _orientation_inverse(J, w, r, network: Network, held: slice, point_informati
         N += kappa * F @ F.T
         b = b - kappa * F @ network.affine_gap_mm
     E = d[:, None] * network.datum[held]
-    # the similarity is a datum only when nothing else fixes it: not when the points alone respond (they move the
-    # image), nor when other systems' views of the beads, their orientation held, pin them
-    free_similarity = held.start < network.point_col and point_information is None
-    E = E / np.linalg.norm(E, axis=0) if free_similarity else np.zeros((len(d), 0))
+    # the similarity is a datum only when nothing else fixes it: not when other systems' views of the beads, their
+    # orientation held, pin them
+    E = E / np.linalg.norm(E, axis=0) if point_information is None else np.zeros((len(d), 0))
     # a ridge on the beads' coordinates, in the Jacobi-scaled problem, for what no data fix beyond the datum: the
     # depth of a bead one exposure saw (the data's gradient along it is nil too). Not on the poses and the IOP: their
     # weakest combinations, which the field trades against, sit far below any ridge that would make a difference
@@ -185,7 +188,46 @@ def _orientation_inverse(J, w, r, network: Network, held: slice, point_informati
             "the refinement's field step: the orientation's normal matrix is singular (an exposure with too few "
             'observations left?); set [learn] orientation_response = "no" to move the beads alone'
         ) from exc
-    return (lambda x: cho_solve(factor, x / d) / d), b
+    # the factor is finite (checked by cho_factor): no check of it at every one of the CG's solves
+    return (lambda x: cho_solve(factor, x / d, check_finite=False) / d), b
+
+
+def _points_inverse(J, w, r, network: Network, point_information=None):
+    """:func:`_orientation_inverse` when the points alone respond: their 3x3 blocks, less a Woodbury term.
+
+    Each observation sees one bead, so ``J^T W J`` (and ``point_information``) is block diagonal;
+    the affine hold adds ``κ F F^T`` (rank 5), inverted by Woodbury's identity. The same matrix as
+    the dense path's, the ridge ``POINT_RIDGE`` on the Jacobi-scaled diagonal included (no datum:
+    the points move the image), at a cost linear in the beads instead of a dense Cholesky.
+    """
+    wf, rf = w.T.ravel(), r.T.ravel()
+    JW = J.multiply(wf[:, None]).tocsr()
+    b = JW.T @ rf
+    n_beads = J.shape[1] // 3
+    coo = (J.T @ JW).tocoo()
+    blocks = np.zeros((n_beads, 3, 3))
+    np.add.at(blocks, (coo.row // 3, coo.row % 3, coo.col % 3), coo.data)
+    if point_information is not None:
+        blocks += point_information
+    diag = np.einsum("bii->bi", blocks)
+    d2 = np.maximum(diag, 1e-300)
+    kappa = AFFINE_STIFFNESS * float(np.max(diag)) if network.affine is not None else 0.0
+    blocks[:, np.arange(3), np.arange(3)] += POINT_RIDGE * d2
+    try:
+        blocks_inv = np.linalg.inv(blocks)
+    except np.linalg.LinAlgError as exc:
+        raise EstimationError("the refinement's field step: a bead's normal block is singular") from exc
+
+    def block_solve(x):
+        return np.einsum("bij,bj...->bi...", blocks_inv, x.reshape(n_beads, 3, *x.shape[1:])).reshape(x.shape)
+
+    if network.affine is None:
+        return block_solve, b
+    F = network.affine[network.point_col :]
+    b = b - kappa * F @ network.affine_gap_mm
+    NiF = block_solve(F)
+    core = np.linalg.inv(np.eye(F.shape[1]) / kappa + F.T @ NiF)
+    return (lambda x: block_solve(x) - NiF @ (core @ (NiF.T @ x))), b
 
 
 def _gauge_penalty(A, xy, w, iop_px, with_iop: bool):

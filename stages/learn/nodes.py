@@ -42,7 +42,7 @@ class GridSpec:
 
     def support_mask(self, xy_px: np.ndarray, nodes_px: np.ndarray) -> np.ndarray:
         """``(n_nodes,)`` True where at least ``min_support`` points lie within ``support_radius_px`` of a node."""
-        counts = np.array([len(c) for c in KDTree(xy_px).query_ball_point(nodes_px, r=self.support_radius_px)])
+        counts = KDTree(xy_px).query_ball_point(nodes_px, r=self.support_radius_px, return_length=True)
         return counts >= self.min_support
 
 

@@ -53,7 +53,7 @@ from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.field import bilinear_design
 from fluorocal.stages.learn.blocktri import block_cholesky
 from fluorocal.stages.learn.gauge import gauge_basis
-from fluorocal.stages.learn.grid import difference_operator
+from fluorocal.stages.learn.grid import prior_normal
 from fluorocal.stages.learn.network import linearised_network
 from scipy.sparse import bmat, csr_matrix, diags, identity, issparse, vstack
 
@@ -166,8 +166,7 @@ def joint_uncertainty(
     xn, yn = field.x_nodes_px, field.y_nodes_px
     A = bilinear_design(xn, yn, xy)
     n = len(rows)
-    DtD = difference_operator(len(yn), len(xn), int(order))
-    DtD = (DtD.T @ DtD).tocsr() / float(tau_px) ** 2
+    DtD = prior_normal(len(yn), len(xn), int(order)) / float(tau_px) ** 2
     s_inv = _field_inverse(A, net.w.reshape(2, n), net.w_xy, DtD)
     W = diags(net.w) + diags([net.w_xy, net.w_xy], [n, -n])  # (2n, 2n): x rows then y rows
     JW = (W @ net.J).tocsr()

@@ -108,3 +108,29 @@ def test_points_alone_respond_when_the_orientation_is_held(linearised):
     q = np.random.default_rng(5).uniform(16, SIZE - 16, (400, 2))
     # exact up to the solve's tolerance and rounding (as above, without the gauge removals' remainder): 1e-6 px
     np.testing.assert_allclose(step.correction_at(q), truth.correction_at(q), atol=1e-6)
+
+
+def test_points_inverse_is_the_dense_normal_matrix_inverse(linearised):
+    # the beads-alone step's orientation inverse (3x3 blocks less a Woodbury term for the affine hold) against a
+    # dense solve of the matrix it stands for: J^T W J + the other systems' information + κ F F^T + the ridge on
+    # the Jacobi-scaled diagonal
+    from fluorocal.stages.learn.joint import AFFINE_STIFFNESS, POINT_RIDGE, _orientation_inverse
+    from scipy.linalg import block_diag
+
+    adj, obs, rows, nominal = linearised
+    net = linearised_network(adj, obs, rows, 0, nominal)
+    held = slice(net.point_col, None)
+    rng = np.random.default_rng(6)
+    w, r = rng.uniform(200, 400, (len(rows), 2)), rng.normal(0, 0.05, (len(rows), 2))
+    B = rng.normal(size=(len(net.beads), 3, 3))
+    info = 1e3 * B @ B.transpose(0, 2, 1)
+    solve, b = _orientation_inverse(net.J[:, held], w, r, net, held, info)
+    J, wf = net.J[:, held].toarray(), w.T.ravel()
+    N = J.T @ (wf[:, None] * J) + block_diag(*info)
+    kappa, F = AFFINE_STIFFNESS * np.diag(N).max(), net.affine[held]
+    M = N + kappa * F @ F.T + POINT_RIDGE * np.diag(np.diag(N))
+    x = rng.normal(size=len(M))
+    exact = np.linalg.solve(M, x)
+    # two solves of a matrix conditioned ~1e8 (the stiff hold against the weakest bead) agree to ~1e-9 relative
+    np.testing.assert_allclose(solve(x), exact, atol=1e-8 * np.abs(exact).max())
+    np.testing.assert_allclose(b, J.T @ (wf * r.T.ravel()) - kappa * F @ net.affine_gap_mm, rtol=1e-12)
