@@ -16,7 +16,8 @@ class Anderson:
     (the grid nodes the data support) are combined; the others take the plain
     step, since nodes far from all data barely change the cost and would only
     add noise to the least-squares combination. :meth:`restarted` forgets the
-    history (after a step that raised the cost).
+    history (after a step that raised the cost); :func:`anderson_step` forgets
+    it too when the residual ``g - x`` has grown since the last step.
 
     Attributes
     ----------
@@ -53,13 +54,20 @@ class Anderson:
 def anderson_step(
     memory: Anderson, x: np.ndarray, g: np.ndarray, mask: np.ndarray | None = None
 ) -> tuple[np.ndarray, Anderson]:
-    """The accelerated next iterate from ``x`` and its image ``g = g(x)``, and the memory after it."""
+    """The accelerated next iterate from ``x`` and its image ``g = g(x)``, and the memory after it.
+
+    A residual ``g - x`` larger than the last one's means the last combination did not help: near the
+    fixed point of an inexactly evaluated map (the learning's inner solves) the differences are mostly
+    noise, which the combination amplifies. The history is forgotten then and the step is the plain one.
+    """
     keep = memory.mask
     if keep is None:
         keep = np.ones(len(x), bool) if mask is None else np.asarray(mask, bool).copy()
     out = g.copy()
     xm, gm = x[keep], g[keep]
     f = gm - xm
+    if memory.x is not None and np.linalg.norm(f) > np.linalg.norm(memory.g - memory.x):
+        memory = replace(memory, x=None, g=None, dF=(), dG=())
     dF, dG = memory.dF, memory.dG
     if memory.x is not None:
         dF = (dF + (f - (memory.g - memory.x),))[-memory.depth :]

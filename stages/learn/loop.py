@@ -22,7 +22,9 @@ ends the loop.
 With ``acceleration="anderson"`` the iterate is the vector of all node
 values of the gridded fields: the update ``x <- x + δ(x)`` is a fixed-point
 iteration, and Anderson acceleration combines the last few iterates;
-a step that raises the combined cost restarts its history.
+a step that raises the cost (the combined cost in the kNN phase, the
+adjustment's in the refinement) restarts its history, and so does one that
+does not shrink the update (:func:`fluorocal.stages.learn.anderson.anderson_step`).
 """
 
 from __future__ import annotations
@@ -272,8 +274,7 @@ def _iterate(plan: _Plan, state: _State) -> _State:
         step_sigma,
         ks,
     )
-    prev = previous_total(history)
-    if plan.acceleration == "anderson" and prev is not None and total > prev:
+    if plan.acceleration == "anderson" and _raised(history):
         anderson = anderson.restarted()
     return _State(
         iteration,
@@ -291,6 +292,21 @@ def _iterate(plan: _Plan, state: _State) -> _State:
         trained,
         respond,
     )
+
+
+def _raised(history: tuple) -> bool:
+    """Whether the last step raised the cost, the refinement's adjustment cost, the kNN phase's combined one.
+
+    The refinement's in-sample regression cost wanders by tens of percent from step to step (see
+    :mod:`fluorocal.stages.learn.stopping`): read in the combined cost, it restarted Anderson's history
+    every other step.
+    """
+    if previous_total(history) is None:
+        return False
+    last, prev = history[-1], history[-2]
+    if last.phase == "grid":
+        return last.cost_adjust > prev.cost_adjust
+    return last.cost_total > prev.cost_total
 
 
 def _field_step_sigma(before: tuple, after: tuple) -> float:

@@ -192,7 +192,8 @@ class LearnParams:
     refine_iterations : int
         Cap on the alternation's iterations with the gridded least-squares field (default 100;
         the convergence tests end it before). The beads-alone step converges linearly: on a rendered
-        40-frame 1024 px set it took 32 refinement iterations, and a cap of 15 left the field 0.066 px
+        40-frame 1024 px set it took 25 refinement iterations (32 before Anderson's history outlived the
+        regression cost's wandering: :mod:`fluorocal.stages.learn.loop`), and a cap of 15 left the field 0.066 px
         from the truth (modulo a homography) against 0.016 px converged; the joint step on a weak
         biplanar set (4 + 4 frames of 512 px) took 74.
     affine_datum : bool *(preset)*
