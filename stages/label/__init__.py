@@ -35,9 +35,10 @@ and the interior orientation):
   beads predicted where nothing was detected, the markers' sizes), and it stands only
   if it is clearly the best.
 - **Sequences** (:func:`label_sequence`): each frame is first labelled from its own
-  seeds or markers; a frame that fails, or whose pose lies far from its neighbours',
-  is then labelled from its labelled neighbours on either side (:mod:`.motion`,
-  :mod:`.prior`): the orientation is predicted between them (or from one side and the
+  seeds or markers; a frame that fails, whose pose lies far from its neighbours', or whose
+  labelling from its markers leaves much of it unexplained (a marker pose a few degrees off
+  converges with the correction bent to fit), is then labelled from its labelled neighbours
+  on either side (:mod:`.motion`, :mod:`.prior`): the orientation is predicted between them (or from one side and the
   sequence's mean step), with uncertainties about and across the turntable axis
   measured on the sequence itself (a regular step predicts the turn well, a wobbling
   axis the tilt less so), and so is the phantom's depth; small rotations of the

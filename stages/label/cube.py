@@ -21,7 +21,7 @@ from fluorocal.stages.label.params import (
     LabelParams,
 )
 from fluorocal.stages.label.prior import label_from_prior
-from fluorocal.stages.label.rivals import settle
+from fluorocal.stages.label.rivals import explains_most, settle
 
 # a second pose hypothesis whose coarse score reaches this fraction of the best's is labelled too
 _RIVAL_SCORE = 0.8
@@ -166,4 +166,5 @@ def _labels_from_result(frame: CubeFrame, res: dict) -> Labels:
         ok=True,
         reason="",
         pose_source=res["source"],
+        explains_most=explains_most(frame, res),
     )

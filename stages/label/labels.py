@@ -54,6 +54,11 @@ class Labels:
         Why it failed ("" when ok).
     pose_source : str
         ``"markers"``, ``"seeds"``, ``"prior"``, ``"lattice"`` or ``""``.
+    explains_most : bool
+        The labelling explains most of the frame's usable detections (a 3D phantom:
+        :func:`~fluorocal.stages.label.rivals.explains_most`). One that does not may have converged from a
+        start a few degrees off with its polynomial correction bent to fit; :func:`label_sequence` checks
+        such a frame against its neighbours.
     """
 
     det_index: np.ndarray
@@ -73,6 +78,7 @@ class Labels:
     ok: bool = True
     reason: str = ""
     pose_source: str = ""
+    explains_most: bool = True
     schema_version: int = SCHEMA_VERSION
 
     def __post_init__(self):
@@ -89,7 +95,8 @@ class Labels:
         check_shape("object_xyz_mm", self.object_xyz_mm, (n, 3))
         for name in ("n_labelled", "n_ambiguous", "n_unmatched"):
             object.__setattr__(self, name, int(getattr(self, name)))
-        object.__setattr__(self, "ok", bool(self.ok))
+        for name in ("ok", "explains_most"):
+            object.__setattr__(self, name, bool(getattr(self, name)))
         freeze(self)
 
     def __len__(self) -> int:
@@ -145,4 +152,5 @@ def failed_labels(valid: np.ndarray, iop: np.ndarray, reason: str, pose_source: 
         ok=False,
         reason=reason,
         pose_source=pose_source,
+        explains_most=False,
     )

@@ -23,8 +23,10 @@ def label_sequence(
     """Label the frames of one system's sequence, each from its own evidence, else from its neighbours.
 
     First every frame is labelled alone: from its seeds (``seeds_by_frame[i]``, ``(id, x_px, y_px)``
-    triples) or its markers. Then each frame that failed is labelled from its labelled neighbours,
-    those nearest a labelled frame first, and each frame so labelled serves its own neighbours in turn:
+    triples) or its markers. A frame labelled from its markers whose labelling leaves much of it
+    unexplained, or whose pose lies far from its neighbours', is weighed against the labellings found near
+    its neighbours' orientation (:func:`_suspect`). Then each frame that failed is labelled from its labelled
+    neighbours, those nearest a labelled frame first, and each frame so labelled serves its own neighbours in turn:
     the orientation is predicted between the nearest labelled frames on either side (or from one side
     and the sequence's mean motion per frame), and rotations about it are searched with the position
     free (:func:`fluorocal.stages.label.prior.label_from_prior`), then turns about the turntable axis
@@ -67,14 +69,15 @@ def label_sequence(
             return out
         rotations = {i: quat_to_matrix(lab.q) for i, lab in labelled.items()}
         motion = Motion.of(rotations, {i: _depth(lab, phantom, c_assumed) for i, lab in labelled.items()})
-        i = _suspect(rotations, checked, motion)
-        if i is not None:
-            # its pose lies far from its neighbours': weighed against the labellings found near theirs
-            # (before it serves as a neighbour itself)
+        suspect = _suspect(labelled, rotations, checked, motion)
+        if suspect is not None:
+            # weighed against the labellings found near its neighbours' orientation (before it serves as a
+            # neighbour itself)
+            i, why = suspect
             checked.add(i)
             others = {j: lab for j, lab in labelled.items() if j != i}
             lab = _from_neighbours(centroids_seq[i], phantom, base, i, others, motion, pool=True)
-            out[i] = lab if lab.ok else replace(lab, reason=f"its pose is far from its neighbours': {lab.reason}")
+            out[i] = lab if lab.ok else replace(lab, reason=f"{why}: {lab.reason}")
             continue
         # a frame is tried again when the labellings of its nearest labelled neighbours change
         pending = [(i, neighbours(i, rotations)) for i in range(n) if i not in labelled]
@@ -122,11 +125,20 @@ def _from_neighbours(
     )
 
 
-def _suspect(rotations: dict, checked: set, motion) -> int | None:
-    """The labelled frame, not ``checked`` yet, farthest from its neighbours' prediction; None if none is suspect.
+def _suspect(labelled: dict, rotations: dict, checked: set, motion) -> tuple[int, str] | None:
+    """A labelled frame, not ``checked`` yet, to weigh against its neighbours, and why; None if there is none.
 
-    A frame is suspect when its orientation lies beyond ``_SUSPECT_SIGMAS`` of the prediction's uncertainty.
+    First a frame labelled from its own markers whose labelling leaves much of it unexplained: a marker
+    pose a few degrees off converges with the polynomial correction bent to fit, its residuals as small as
+    the truth's, and no slip or symmetry of it is the truth, while a wobbling turntable puts that pose
+    well within its neighbours' prediction. Then the frame farthest from its neighbours' prediction, when
+    beyond ``_SUSPECT_SIGMAS`` of the prediction's uncertainty.
     """
+    if len(labelled) < 2:
+        return None
+    for i, lab in labelled.items():
+        if i not in checked and lab.pose_source == "markers" and not lab.explains_most:
+            return i, "its labelling from its markers leaves much of the frame unexplained, and from its neighbours"
     worst, worst_d = None, _SUSPECT_SIGMAS
     for i, R in rotations.items():
         if i in checked:
@@ -134,4 +146,4 @@ def _suspect(rotations: dict, checked: set, motion) -> int | None:
         predicted = predict(i, rotations, motion)
         if predicted is not None and predicted[0].distance(R) > worst_d:
             worst, worst_d = i, predicted[0].distance(R)
-    return worst
+    return None if worst is None else (worst, "its pose is far from its neighbours'")
