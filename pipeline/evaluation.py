@@ -29,9 +29,9 @@ FIGURES = {
 
 #: a grid plate's figures (:func:`fluorocal.stages.evaluate.plate.evaluate_plate`): RMS lengths after a homography
 PLATE_FIGURES = {
-    "out_rms_px": "held-out holes vs self-calibrated layout (px)",
-    "out_nominal_rms_px": "held-out holes vs nominal lattice (px)",
-    "in_rms_px": "in-sample holes vs self-calibrated layout (px)",
+    "out_rms_px": "held-out holes vs self-calibrated layout, RMS length (px)",
+    "out_nominal_rms_px": "held-out holes vs nominal lattice, RMS length (px)",
+    "in_rms_px": "in-sample holes vs self-calibrated layout, RMS length (px)",
 }
 
 

@@ -21,7 +21,7 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages.errors import InputError
+from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.evaluate.protocol import Evaluation, HeldOutResiduals, Score
 from fluorocal.stages.evaluate.split import training_subset
 
@@ -136,11 +136,16 @@ def evaluate_plate(observations, sizes, schemes, setup: PlateSetup, *, scored=No
     scores, residuals = [], []
     for size in sizes:
         parts = {name: [] for name in fits}
-        for s, ((problem, _, row), frames) in enumerate(zip(systems, chosen)):
+        for s, ((problem, exposures, row), frames) in enumerate(zip(systems, chosen)):
             for f in frames:
                 sub, back = problem.of_frames(training_frames(problem.n_frames, f, size))
                 local = int(np.searchsorted(back, f))
-                for name, score in holdout_scores(sub, fits, row, layout=PLATE_SCHEMES[0], frames=[local]).items():
+                try:
+                    held = holdout_scores(sub, fits, row, layout=PLATE_SCHEMES[0], frames=[local])
+                except EstimationError as exc:
+                    where = f"system {observations.system_names[s]}, exposure {exposures[f]}"
+                    raise EstimationError(f"{where} (training size {size}): {exc}") from None
+                for name, score in held.items():
                     parts[name].append((s, dataclasses.replace(score, frame=back[score.frame])))
         for name in schemes:
             pooled = HoldoutScore.concatenate(p for _, p in parts[name])

@@ -13,6 +13,7 @@ from functools import lru_cache
 
 import numpy as np
 from fluorocal.stages.artifacts import freeze
+from fluorocal.stages.errors import EstimationError
 from fluorocal.stages.field import CorrectionField, bilinear_design
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec, check_training, node_coordinates
 from fluorocal.stages.learn.robust import capped_cost
@@ -73,20 +74,27 @@ def factor_spd(M):
     the prior's order in node rows; beyond, a sparse LU with a symmetric fill-reducing ordering and no
     pivoting, several times faster than SuperLU's default (COLAMD, partial pivoting) on the grid's normal
     matrices, whose band widens with the prior's order; an SPD matrix needs no pivoting for stability.
-    Raises ``numpy.linalg.LinAlgError`` (banded) when ``M`` is not positive definite.
+    Raises :class:`~fluorocal.stages.errors.EstimationError` when ``M`` is singular or (banded) not positive
+    definite.
     """
     from scipy.linalg import cholesky_banded
     from scipy.sparse.linalg import splu
 
-    if M.shape[0] > BANDED_MAX_NODES:
-        return splu(M.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    coo = M.tocsr().tocoo()  # canonical: duplicates summed
-    upper = coo.col >= coo.row
-    row, col = coo.row[upper], coo.col[upper]
-    band = int(np.max(col - row, initial=0))
-    ab = np.zeros((band + 1, M.shape[0]))
-    ab[band + row - col, col] = coo.data[upper]
-    return BandedCholesky(cholesky_banded(ab, lower=False, check_finite=False))
+    try:
+        if M.shape[0] > BANDED_MAX_NODES:
+            return splu(M.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        coo = M.tocoo()
+        coo.sum_duplicates()  # the band below takes one entry per position
+        upper = coo.col >= coo.row
+        row, col = coo.row[upper], coo.col[upper]
+        band = int(np.max(col - row, initial=0))
+        ab = np.zeros((band + 1, M.shape[0]))
+        ab[band + row - col, col] = coo.data[upper]
+        return BandedCholesky(cholesky_banded(ab, lower=False, check_finite=False))
+    except (np.linalg.LinAlgError, RuntimeError) as exc:
+        raise EstimationError(
+            f"the field's normal equations are singular ({exc}): too few observations for its nodes"
+        ) from None
 
 
 def _grid_solve(A, DtD, w, r, tau_px, base=None):

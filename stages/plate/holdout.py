@@ -27,6 +27,9 @@ from fluorocal.stages.plate.solve import PlateProblem, SolveSettings, solve_plat
 #: the name under which :func:`holdout_score` runs its settings
 _OURS = "plate"
 
+#: fewest holes on either side of a frame's split: a homography (8 parameters) fitted to 4 leaves no residual
+MIN_SPLIT_HOLES = 12
+
 
 @dataclass(frozen=True)
 class PlateFit:
@@ -139,13 +142,16 @@ def holdout_scores(problem: PlateProblem, schemes: dict, row: np.ndarray, *, lay
     Raises
     ------
     EstimationError
-        A split leaves fewer than 4 holes on either side (no homography to score them by).
+        A split leaves fewer than ``MIN_SPLIT_HOLES`` holes on either side, or holes on one line (no
+        homography to score them by with residuals left over).
     """
     parts = {name: [] for name in schemes}
     for f, test in holdout_splits(problem, row, frames):
         train_f = (problem.frame == f) & ~test
-        if min(int(test.sum()), int(train_f.sum())) < 4:
-            raise EstimationError(f"frame {f}: fewer than 4 holes on alternate lattice rows; it cannot be scored")
+        if min(int(test.sum()), int(train_f.sum())) < MIN_SPLIT_HOLES:
+            raise EstimationError(
+                f"frame {f}: fewer than {MIN_SPLIT_HOLES} holes on alternate lattice rows; it cannot be scored"
+            )
         train = problem.subset(~test)
         fits, seconds = {}, {}
         for name, fit in schemes.items():
@@ -154,11 +160,21 @@ def holdout_scores(problem: PlateProblem, schemes: dict, row: np.ndarray, *, lay
             seconds[name] = time.perf_counter() - t0
         error = fits[layout].plate_error_mm
         for name, fit in fits.items():
-            held = [homography_fit(t, fit.correct(problem.xy_px[test]))[1] for t in _targets(problem, test, error)]
-            inside = homography_fit(_targets(problem, train_f, error)[0], fit.correct(problem.xy_px[train_f]))[1]
+            held = [
+                _homography_residual(t, fit.correct(problem.xy_px[test]), f) for t in _targets(problem, test, error)
+            ]
+            inside = _homography_residual(_targets(problem, train_f, error)[0], fit.correct(problem.xy_px[train_f]), f)
             frame = np.full(int(test.sum()), f)
             parts[name].append(HoldoutScore(frame, *held, problem.xy_px[test], inside, seconds[name]))
     return {name: HoldoutScore.concatenate(p) for name, p in parts.items()}
+
+
+def _homography_residual(plate_mm: np.ndarray, xy_px: np.ndarray, frame: int) -> np.ndarray:
+    """``xy_px`` less the best homography of ``plate_mm`` ``(M, 2)``; EstimationError when there is none."""
+    fitted = homography_fit(plate_mm, xy_px)
+    if fitted is None:
+        raise EstimationError(f"frame {frame}: its holes on alternate lattice rows lie on a line; it cannot be scored")
+    return fitted[1]
 
 
 def _targets(problem: PlateProblem, mask: np.ndarray, error_mm) -> tuple[np.ndarray, np.ndarray]:

@@ -73,9 +73,9 @@ def test_simulated_plate_scored_against_truth(evaluated):
     assert ours < 0.8 * float(rows[("plate", 1)]["out_rms_px"])
     assert ours < 0.8 * float(rows[("plate", 3)]["out_nominal_rms_px"])
     md = (out / "evaluation.md").read_text()
-    assert "| training frames | scheme |" in md and "held-out holes vs nominal lattice (px)" in md
-    wins = [line for line in md.splitlines() if line.startswith("- peer ")]
-    assert bool(wins) != ("No peer beats plate" in md)  # the peers' wins listed, or that there were none
+    assert "| training frames | scheme |" in md and "held-out holes vs nominal lattice, RMS length (px)" in md
+    # the simulated distortion is strong (none leaves > 10x ours, above): no peer wins, and the table says so
+    assert "No peer beats plate" in md and not [line for line in md.splitlines() if line.startswith("- peer ")]
     for name in ("evaluation_errors.png", "evaluation_improvement.png", "evaluation_residuals_A.png"):
         assert (out / name).stat().st_size > 1000
 

@@ -220,6 +220,19 @@ def test_factor_spd_solves_the_grid_normal_matrix(n_side):
     np.testing.assert_allclose(factor_spd(M).solve(b[:, 0]), exact[:, 0], atol=1e-7 * np.abs(exact).max())
 
 
+def test_factor_spd_sums_duplicate_entries_and_refuses_a_singular_matrix():
+    # a matrix given with an entry split in two (COO duplicates) is their sum; [[2+2, 1], [1, 2]] x = [1, 0]
+    from fluorocal.stages.errors import EstimationError
+    from fluorocal.stages.learn.grid import factor_spd
+    from scipy.sparse import coo_matrix
+
+    M = coo_matrix(([2.0, 2.0, 1.0, 1.0, 2.0], ([0, 0, 0, 1, 1], [0, 0, 1, 0, 1])), shape=(2, 2)).tocsr()
+    np.testing.assert_allclose(factor_spd(M).solve(np.array([1.0, 0.0])), [2 / 7, -1 / 7], rtol=1e-12)
+    singular = coo_matrix(([1.0, 1.0, 1.0, 1.0], ([0, 0, 1, 1], [0, 1, 0, 1])), shape=(2, 2)).tocsr()
+    with pytest.raises(EstimationError, match="singular"):
+        factor_spd(singular)
+
+
 def test_second_order_prior_is_the_thin_plate_energy():
     from fluorocal.stages.learn.grid import difference_operator
 
