@@ -41,8 +41,10 @@ OWNED_ELSEWHERE = {
 }
 
 
+#: the calibration scheme when ``[calibration] scheme`` is not given
+DEFAULT_SCHEME = "knn+iop+smooth"
 #: the schemes a grid plate accepts: the default (the plate's own solve) and none
-_PLATE_SCHEMES = ("knn+iop+smooth", "none")
+_PLATE_SCHEMES = (DEFAULT_SCHEME, "none")
 
 
 def _reject_owned(section: str, table: dict, path: Path) -> None:
@@ -96,7 +98,7 @@ class Config:
     path: Path
     phantom: PhantomConfig
     systems: tuple[SystemConfig, ...]
-    scheme: str = "knn+iop+smooth"
+    scheme: str = DEFAULT_SCHEME
     output_dir: Path = Path("out")
     cache_dir: Path = Path(".fluorocal")
     stage_params: dict = field(default_factory=dict)
@@ -381,7 +383,7 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
 
     calibration = _expect(data.get("calibration", {}), dict, "a table [calibration]", path, "", "calibration")
     _reject_unknown(calibration, {"scheme"}, path, "[calibration] ")
-    scheme = calibration.get("scheme", "knn+iop+smooth")
+    scheme = calibration.get("scheme", DEFAULT_SCHEME)
     from fluorocal.stages.learn import SCHEMES
 
     if not isinstance(scheme, str) or scheme not in SCHEMES:
