@@ -155,7 +155,7 @@ def _plate_schemes(text) -> list[str]:
     from fluorocal.stages.evaluate.plate import PLATE_SCHEMES
 
     if text is None:
-        return ["none", "polynomial", "plate"]
+        return [*PLATE_SCHEMES[1:], PLATE_SCHEMES[0]]  # the peers, then fluorocal's
     names = list(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
     unknown = [n for n in names if n not in PLATE_SCHEMES]
     if unknown or not names:
