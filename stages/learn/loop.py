@@ -212,9 +212,7 @@ def _plan(params: LearnParams, observations, sizes, adjuster: Adjuster, estimate
     # Anderson and the gridded refinement combine gridded fields: the unsmoothed schemes run without them
     refine = params.refine if smooth else "none"
     acceleration = "none" if params.acceleration == "anderson" and not smooth else params.acceleration
-    several = len(sizes) > 1
-    joint = params.orientation_response == "yes" or (params.orientation_response == "auto" and several)
-    respond = "orientation" if joint else "points"
+    respond = "orientation" if params.orientation_response == "yes" else "points"
     return _Plan(params, observations, rows, sizes, adjuster, estimate_iop, smooth, refine, acceleration, respond)
 
 

@@ -571,9 +571,9 @@ def test_field_tolerance_stops_before_the_cap_as_accurate_as_running_to_it(simul
     from fluorocal.stages.learn import calibrate
 
     obs, phantom, initial, distortion, fov_radius_px = simulated
-    # the recommended loop with the residual-RMS step and the stall rules off: only the field rule can end the
-    # refinement early
-    base = dict(refine_iterations=15, step_tolerance=0.0, stall_tolerance=0.0)
+    # the recommended loop with the combined-cost, residual-RMS step and stall rules off: only the field rule can end
+    # the refinement early
+    base = dict(refine_iterations=15, tolerance=0.0, step_tolerance=0.0, stall_tolerance=0.0)
     run = dict(image_size=(E2E_SIZE, E2E_SIZE), scheme="knn+iop+smooth")
     stopped = calibrate(obs, phantom, initial, params=LearnParams(**base), **run)
     with warnings.catch_warnings(record=True) as caught:
