@@ -15,6 +15,7 @@ steps instead of dozens (beyond the paper).
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 from fluorocal.stages.errors import EstimationError, InputError
@@ -23,6 +24,7 @@ from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import factor_spd, grid_result, prior_normal
 from fluorocal.stages.learn.network import Network
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec
+from scipy.linalg import block_diag as dense_block_diag
 from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import block_diag, diags, vstack
 from scipy.sparse.linalg import LinearOperator, cg
@@ -35,6 +37,36 @@ logger = logging.getLogger(__name__)
 AFFINE_STIFFNESS = 1e2
 #: ridge of the beads' coordinates in the orientation's Jacobi-scaled normal matrix (unit diagonal)
 POINT_RIDGE = 1e-8
+
+
+@dataclass(frozen=True)
+class SystemStep:
+    """One system's part of the joint field step: its observations, residuals, weights and field prior.
+
+    Attributes
+    ----------
+    xy_px, residuals_px : (n, 2) float64 ndarray, px
+        Measured coordinates (the observations the field learns from) and their residuals.
+    weights : (n, 2) float64 ndarray, 1/px²
+        Observation weights (inverse variances, times the t-weights).
+    iop_px : (3,) array_like, px
+        The system's ``(xp, yp, c)`` (for the gauge fields).
+    image_size, tau_px, base, cv_rms_px, order
+        As in :func:`fluorocal.stages.learn.grid.fit_grid_field` (``order``: the difference prior's).
+    start : (H_g, W_g, 2) float64 ndarray, px, optional
+        Node values to start the conjugate gradients from.
+    """
+
+    xy_px: np.ndarray
+    residuals_px: np.ndarray
+    weights: np.ndarray
+    iop_px: np.ndarray
+    image_size: tuple
+    tau_px: float
+    base: CorrectionField
+    cv_rms_px: float
+    order: int = 2
+    start: np.ndarray | None = None
 
 
 def fit_grid_jointly(
@@ -54,83 +86,142 @@ def fit_grid_jointly(
     cg_tolerance: float = 1e-6,
     order: int = 2,
     start: np.ndarray | None = None,
-    point_information: np.ndarray | None = None,
     respond: str = "orientation",
 ) -> CorrectionField:
-    """Gridded field update estimated jointly with the orientation's response (IOP, poses, points).
+    """One system's gridded field update estimated jointly with the orientation's response (IOP, poses, points).
 
-    From the linearised model ``r ≈ A δ + J dθ``, minimises
-    ``Σ w (r - A δ - J dθ)² + |D (base + δ)|² / τ²`` (+ the holds below) over
-    the node values' update ``δ`` and ``dθ``; ``dθ`` is eliminated (its normal
-    matrix is small and dense: a Cholesky factor) and the reduced system in
-    ``δ`` solved by conjugate gradients preconditioned with the field-only
-    normal matrix (a sparse LU). What no data fix is held: the free network's
-    similarity (``network.datum``), the field's gauge (the fields the IOP and a
-    common camera rotation reproduce exactly, :mod:`fluorocal.stages.learn.gauge`)
-    and, when ``network.affine`` is given, the phantom's five affine shape modes
-    beyond a similarity, at the nominal design's: the free network's datum
-    leaves them to weak perspective effects, and a field that mimics them (an
-    image aspect ratio or shear) would otherwise stretch the reconstruction.
+    :func:`fit_grids_jointly` of one system (its :class:`SystemStep` fields are the arguments of the same names).
+    """
+    step = SystemStep(xy_px, residuals_px, weights, iop_px, image_size, tau_px, base, cv_rms_px, order, start)
+    options = dict(grid=grid, max_cg_iterations=max_cg_iterations, cg_tolerance=cg_tolerance, respond=respond)
+    return fit_grids_jointly((step,), network, estimate_iop=estimate_iop, **options)[0]
+
+
+def fit_grids_jointly(
+    systems,
+    network: Network,
+    *,
+    estimate_iop: bool,
+    grid: GridSpec = DEFAULT_GRID,
+    max_cg_iterations: int = 400,
+    cg_tolerance: float = 1e-6,
+    respond: str = "orientation",
+) -> tuple[CorrectionField, ...]:
+    """Every system's gridded field update, estimated jointly with the orientation's response.
+
+    From the linearised model ``r_s ≈ A_s δ_s + J_s dθ`` of each system ``s``, minimises
+    ``Σ_s [Σ w (r_s - A_s δ_s - J_s dθ)² + |D (base_s + δ_s)|² / τ_s²]`` (+ the holds below) over
+    the node values' updates ``δ_s`` of every system and ``dθ``, every system's IOP and poses and
+    the beads, which the systems share; ``dθ`` is eliminated (its normal matrix is small and dense:
+    a Cholesky factor) and the reduced system in the stacked ``δ`` solved by conjugate gradients
+    preconditioned with the field-only normal matrix (sparse factors per system). One system's
+    step is the system's Gauss-Newton step, several systems' the whole problem's: the shared
+    beads tie their fields, which one system's step at a time (the others' orientation held)
+    could only approach by a slow block iteration. What no data fix is held: the network's
+    similarity (``network.datum``), each field's gauge (the fields its IOP and a common rotation
+    of its cameras reproduce exactly, :mod:`fluorocal.stages.learn.gauge`) and, when
+    ``network.affine`` is given, the phantom's five affine shape modes beyond a similarity, at the
+    nominal design's: the free network's datum leaves them to weak perspective effects, and a
+    field that mimics them (an image aspect ratio or shear) would otherwise stretch the
+    reconstruction.
 
     Parameters
     ----------
-    xy_px, residuals_px : (n, 2) float64 ndarray, px
-        Measured coordinates (inliers of one system) and their residuals.
-    weights : (n, 2) float64 ndarray, 1/px²
-        Observation weights (inverse variances, times the t-weights).
+    systems : sequence of SystemStep
+        Each system's observations, in the order of ``network``'s rows.
     network : Network
-        The system's orientation linearised at the adjustment, at the same observations
-        (:func:`fluorocal.stages.learn.network.linearised_network`).
-    iop_px, estimate_iop : (3,) array_like px, bool
-        The system's ``(xp, yp, c)`` (for the gauge fields); whether the adjustment estimates it.
-    image_size, tau_px, base, cv_rms_px, grid, order
-        As in :func:`fluorocal.stages.learn.grid.fit_grid_field` (``order``: the difference prior's, default 2).
-    max_cg_iterations, cg_tolerance, start
-        The conjugate gradients' cap, relative tolerance and start (node values ``(H_g, W_g, 2)`` px, optional).
-    point_information : (n_beads, 3, 3) float64 ndarray, 1/mm², optional
-        What other systems' observations tell of ``network.beads`` (their orientation held,
-        :func:`fluorocal.stages.learn.network.point_information`): the beads a biplanar set
-        shares are not free for this system's field step to move.
+        The systems' orientation linearised at the adjustment, at the same observations
+        (:func:`fluorocal.stages.learn.network.systems_network`).
+    estimate_iop : bool
+        Whether the adjustment estimates the IOP (then they respond, and their gauge fields are held).
+    grid : GridSpec
+    max_cg_iterations, cg_tolerance
+        The conjugate gradients' cap and relative tolerance.
     respond : str
-        What responds to the field's update: ``"orientation"`` (the IOP, the poses and the points, as
+        What responds to the fields' update: ``"orientation"`` (the IOP, the poses and the points, as
         above) or ``"points"`` (the points alone, the IOP and the poses held: no datum and no gauge
         to hold then).
 
     Returns
     -------
-    CorrectionField
-        The update ``δ`` (not ``base + δ``).
+    tuple of CorrectionField
+        Each system's update ``δ_s`` (not ``base + δ_s``).
     """
     if respond not in ("orientation", "points"):
         raise InputError(f"respond must be 'orientation' or 'points'; got {respond!r}")
-    xy, r, w = (np.asarray(a, dtype=np.float64) for a in (xy_px, residuals_px, weights))
-    width, height = (int(s) for s in image_size)
-    xn, yn = grid.nodes((width, height))
+    parts = [_field_part(step, grid) for step in systems]
+    matvec, rhs = _reduced_system(parts, network, estimate_iop, respond)
+    starts = [step.start for step in systems]
+    x0 = None if any(s is None for s in starts) else np.concatenate([_node_vector(s) for s in starts])
+    v = _solve_reduced(parts, matvec, rhs, max_cg_iterations, cg_tolerance, x0)
+    bounds = np.cumsum([0] + [2 * p.n_nodes for p in parts])
+    return tuple(
+        grid_result(p.xn, p.yn, v[a:b].reshape(2, -1).T, p.A, p.xy, step.cv_rms_px, grid, p.size)
+        for p, step, a, b in zip(parts, systems, bounds[:-1], bounds[1:])
+    )
+
+
+@dataclass(frozen=True)
+class _FieldPart:
+    """One system's field block of the joint normal equations (:func:`_field_part`)."""
+
+    xn: np.ndarray
+    yn: np.ndarray
+    A: object  # (n, n_nodes) sparse: the bilinear design at the observations
+    xy: np.ndarray
+    w: np.ndarray
+    r: np.ndarray
+    iop_px: np.ndarray
+    size: tuple
+    Nvv: object  # (2 n_nodes, 2 n_nodes) sparse
+    bv: np.ndarray
+    AtW: list
+
+    @property
+    def n_nodes(self) -> int:
+        return self.A.shape[1]
+
+
+def _field_part(step: SystemStep, grid: GridSpec) -> _FieldPart:
+    xy, r, w = (np.asarray(a, dtype=np.float64) for a in (step.xy_px, step.residuals_px, step.weights))
+    size = tuple(int(s) for s in step.image_size)
+    xn, yn = grid.nodes(size)
     A = bilinear_design(xn, yn, xy)
-    reg = prior_normal(len(yn), len(xn), int(order)) / tau_px**2
-    Nvv, bv, AtW = _field_normal(A, w, r, reg, base.delta_px.reshape(-1, 2))
-    matvec, rhs = _reduced_system(A, xy, w, r, Nvv, bv, AtW, network, iop_px, estimate_iop, respond, point_information)
-    x0 = None if start is None else np.asarray(start, dtype=np.float64).reshape(-1, 2).T.ravel()
-    v = _solve_reduced(Nvv, matvec, rhs, np.array_equal(w[:, 0], w[:, 1]), max_cg_iterations, cg_tolerance, x0)
-    n_nodes = A.shape[1]
-    return grid_result(xn, yn, np.column_stack([v[:n_nodes], v[n_nodes:]]), A, xy, cv_rms_px, grid, (width, height))
+    reg = prior_normal(len(yn), len(xn), int(step.order)) / step.tau_px**2
+    Nvv, bv, AtW = _field_normal(A, w, r, reg, step.base.delta_px.reshape(-1, 2))
+    return _FieldPart(xn, yn, A, xy, w, r, np.asarray(step.iop_px, dtype=np.float64), size, Nvv, bv, AtW)
 
 
-def _reduced_system(A, xy, w, r, Nvv, bv, AtW, network, iop_px, estimate_iop, respond, point_information):
-    """The node values' system with the responding parameters eliminated: its matrix-vector product and right side."""
-    held = slice(network.point_col if respond == "points" else 0 if estimate_iop else 3, None)
+def _node_vector(values) -> np.ndarray:
+    """Node values ``(H_g, W_g, 2)`` as the solve's vector: the x components, then the y components."""
+    return np.asarray(values, dtype=np.float64).reshape(-1, 2).T.ravel()
+
+
+def _reduced_system(parts, network: Network, estimate_iop: bool, respond: str):
+    """The stacked node values' system with the responding parameters eliminated: its product and right side."""
+    iop_cols = 0 if estimate_iop else 3 * network.n_systems
+    held = slice(network.point_col if respond == "points" else iop_cols, None)
     J = network.J[:, held]
-    solve_theta, b_theta = _orientation_inverse(J, w, r, network, held, point_information)
-    Nvt = vstack([AtW[c] @ J[c * len(xy) : (c + 1) * len(xy)] for c in range(2)]).tocsr()
-    # the gauge is held only where the orientation, which could carry it, responds
-    G, k_gauge = _gauge_penalty(A, xy, w, iop_px, estimate_iop) if respond == "orientation" else (None, 0.0)
+    w, r = (np.concatenate([getattr(p, a) for p in parts]) for a in ("w", "r"))
+    solve_theta, b_theta = _orientation_inverse(J, w, r, network, held)
+    # each system's rows of J: its observations' x rows, then their y rows
+    n_obs, bounds = len(w), np.cumsum([0] + [len(p.xy) for p in parts])
+    Nvt = vstack(
+        [p.AtW[c] @ J[c * n_obs + a : c * n_obs + b] for p, a, b in zip(parts, bounds[:-1], bounds[1:]) for c in (0, 1)]
+    ).tocsr()
     Ntv = Nvt.T.tocsr()
+    Nvv = block_diag([p.Nvv for p in parts], format="csr")
+    # the gauge is held only where the orientation, which could carry it, responds
+    G = None
+    if respond == "orientation":
+        G = dense_block_diag(*(np.sqrt(k) * g for g, k in (_gauge_penalty(p.A, p.xy, p.w, p.iop_px, estimate_iop)
+                                                            for p in parts)))  # fmt: skip
 
     def matvec(v):
         reduced = Nvv @ v - Nvt @ solve_theta(Ntv @ v)
-        return reduced if G is None else reduced + k_gauge * (G.T @ (G @ v))
+        return reduced if G is None else reduced + G.T @ (G @ v)
 
-    return matvec, bv - Nvt @ solve_theta(b_theta)
+    return matvec, np.concatenate([p.bv for p in parts]) - Nvt @ solve_theta(b_theta)
 
 
 def _field_normal(A, w, r, reg, base_v):
@@ -146,25 +237,21 @@ def _field_normal(A, w, r, reg, base_v):
     return Nvv, bv, AtW
 
 
-def _orientation_inverse(J, w, r, network: Network, held: slice, point_information=None):
+def _orientation_inverse(J, w, r, network: Network, held: slice):
     """``x -> N_θθ^-1 x`` for the orientation's normal matrix with its holds, and the right-hand side ``J^T W r``.
 
     ``N_θθ = J^T W J`` plus the datum (a unit curvature along each similarity mode, in the
     Jacobi-scaled problem: the data's gradient along them is nil, so they stay put) and
-    the affine hold ``κ |B^T (P + dP) - B^T P_nominal|²``; ``point_information`` is added to the beads' blocks.
+    the affine hold ``κ |B^T (P + dP) - B^T P_nominal|²``.
     With the points alone responding, ``N_θθ`` is the beads' 3x3 blocks and the hold's rank-5 term
     (:func:`_points_inverse`).
     """
     if held.start == network.point_col:
-        return _points_inverse(J, w, r, network, point_information)
+        return _points_inverse(J, w, r, network)
     wf, rf = w.T.ravel(), r.T.ravel()
     JW = J.multiply(wf[:, None]).tocsr()
     N = (J.T @ JW).toarray()
     b = JW.T @ rf
-    if point_information is not None:
-        p0 = network.point_col - held.start
-        idx = p0 + 3 * np.arange(len(point_information))[:, None] + np.arange(3)
-        N[idx[:, :, None], idx[:, None, :]] += point_information
     # the Jacobi scaling of the data's normal matrix (the stiff affine hold would swamp the points' diagonal)
     d = np.sqrt(np.maximum(np.diag(N), 1e-300))
     if network.affine is not None:
@@ -173,9 +260,7 @@ def _orientation_inverse(J, w, r, network: Network, held: slice, point_informati
         N += kappa * F @ F.T
         b = b - kappa * F @ network.affine_gap_mm
     E = d[:, None] * network.datum[held]
-    # the similarity is a datum only when nothing else fixes it: not when other systems' views of the beads, their
-    # orientation held, pin them
-    E = E / np.linalg.norm(E, axis=0) if point_information is None else np.zeros((len(d), 0))
+    E = E / np.linalg.norm(E, axis=0)
     # a ridge on the beads' coordinates, in the Jacobi-scaled problem, for what no data fix beyond the datum: the
     # depth of a bead one exposure saw (the data's gradient along it is nil too). Not on the poses and the IOP: their
     # weakest combinations, which the field trades against, sit far below any ridge that would make a difference
@@ -192,10 +277,10 @@ def _orientation_inverse(J, w, r, network: Network, held: slice, point_informati
     return (lambda x: cho_solve(factor, x / d, check_finite=False) / d), b
 
 
-def _points_inverse(J, w, r, network: Network, point_information=None):
+def _points_inverse(J, w, r, network: Network):
     """:func:`_orientation_inverse` when the points alone respond: their 3x3 blocks, less a Woodbury term.
 
-    Each observation sees one bead, so ``J^T W J`` (and ``point_information``) is block diagonal;
+    Each observation sees one bead, so ``J^T W J`` is block diagonal;
     the affine hold adds ``κ F F^T`` (rank 5), inverted by Woodbury's identity. The same matrix as
     the dense path's, the ridge ``POINT_RIDGE`` on the Jacobi-scaled diagonal included (no datum:
     the points move the image), at a cost linear in the beads instead of a dense Cholesky.
@@ -207,8 +292,6 @@ def _points_inverse(J, w, r, network: Network, point_information=None):
     coo = (J.T @ JW).tocoo()
     blocks = np.zeros((n_beads, 3, 3))
     np.add.at(blocks, (coo.row // 3, coo.row % 3, coo.col % 3), coo.data)
-    if point_information is not None:
-        blocks += point_information
     diag = np.einsum("bii->bi", blocks)
     d2 = np.maximum(diag, 1e-300)
     kappa = AFFINE_STIFFNESS * float(np.max(diag)) if network.affine is not None else 0.0
@@ -242,22 +325,26 @@ def _gauge_penalty(A, xy, w, iop_px, with_iop: bool):
     return G, float(np.mean(w)) / max(len(xy), 1)
 
 
-def _solve_reduced(Nvv, matvec, rhs, same_weights: bool, max_cg_iterations: int, cg_tolerance: float, x0=None):
-    """The node values of the reduced system, by CG preconditioned with the field block's LU."""
-    n_nodes = Nvv.shape[0] // 2
-    op = LinearOperator((2 * n_nodes, 2 * n_nodes), matvec=matvec, dtype=np.float64)
-    # the preconditioner, block by block: one factorisation when both components weigh alike
-    blocks = [Nvv[:n_nodes, :n_nodes]] if same_weights else [Nvv[:n_nodes, :n_nodes], Nvv[n_nodes:, n_nodes:]]
-    lus = [factor_spd(blk) for blk in blocks]
+def _solve_reduced(parts, matvec, rhs, max_cg_iterations: int, cg_tolerance: float, x0=None):
+    """The stacked node values of the reduced system, by CG preconditioned with each field block's factor."""
+    # the preconditioner, block by block: one factorisation per system when both components weigh alike
+    blocks, start = [], 0
+    for p in parts:
+        n = p.n_nodes
+        comps = [p.Nvv[:n, :n]] if np.array_equal(p.w[:, 0], p.w[:, 1]) else [p.Nvv[:n, :n], p.Nvv[n:, n:]]
+        lus = [factor_spd(blk) for blk in comps]
+        blocks += [(slice(start, start + n), lus[0]), (slice(start + n, start + 2 * n), lus[-1])]
+        start += 2 * n
 
     def precondition(v):
-        return np.concatenate([lus[0].solve(v[:n_nodes]), lus[-1].solve(v[n_nodes:])])
+        return np.concatenate([lu.solve(v[at]) for at, lu in blocks])
 
-    pre = LinearOperator((2 * n_nodes, 2 * n_nodes), matvec=precondition, dtype=np.float64)
+    op = LinearOperator((start, start), matvec=matvec, dtype=np.float64)
+    pre = LinearOperator((start, start), matvec=precondition, dtype=np.float64)
     v, info = cg(op, rhs, x0=x0, rtol=cg_tolerance, maxiter=max_cg_iterations, M=pre)
     if info > 0:
         logger.info("joint field step: CG stopped after %d iterations short of its tolerance", info)
     return v
 
 
-__all__ = ["fit_grid_jointly"]
+__all__ = ["SystemStep", "fit_grid_jointly", "fit_grids_jointly"]

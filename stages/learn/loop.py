@@ -42,9 +42,9 @@ from fluorocal.stages.learn.adjuster import Adjuster, Outcome, adjustment_outcom
 from fluorocal.stages.learn.anderson import Anderson, anderson_step
 from fluorocal.stages.learn.gauge import gauge_fixed
 from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
-from fluorocal.stages.learn.joint import fit_grid_jointly
+from fluorocal.stages.learn.joint import SystemStep, fit_grids_jointly
 from fluorocal.stages.learn.knn import fit_knn_field, node_statistics, restricted_k_grid
-from fluorocal.stages.learn.network import linearised_network, point_information
+from fluorocal.stages.learn.network import systems_network
 from fluorocal.stages.learn.nodes import image_sizes
 from fluorocal.stages.learn.params import LearnParams, scheme_flags
 from fluorocal.stages.learn.polynomial import calibrate_polynomial
@@ -341,20 +341,20 @@ def _regress(plan: _Plan, state: _State) -> tuple[tuple, tuple, float, np.ndarra
 
     And the mask ``(N,)`` of the observations the updates were fitted to.
     """
-    updates, memory, fit_cost = [], [], 0.0
-    trained = np.zeros(len(plan.xy), bool)
-    for s in range(len(plan.sizes)):
-        model, sel, mem = _regress_system(plan, state, s)
+    if state.phase == "grid" and plan.refine == "grid+points":
+        updates, memory, sels = _regress_jointly(plan, state)
+    else:
+        updates, memory, sels = zip(*(_regress_system(plan, state, s) for s in range(len(plan.sizes))))
+    fit_cost, trained = 0.0, np.zeros(len(plan.xy), bool)
+    for model, sel in zip(updates, sels):
         trained[sel] = True
         r, var = state.out.residuals_px[sel], state.out.residual_var_px2[sel]
         fit_cost += float(np.sum((r - model.correction_at(plan.xy[sel])) ** 2 / var))
-        updates.append(model)
-        memory.append(mem)
     return tuple(updates), tuple(memory), fit_cost, trained
 
 
 def _regress_system(plan: _Plan, state: _State, s: int):
-    """System ``s``'s update, the observations it was fitted to and its memory after it.
+    """System ``s``'s update, its memory after it and the observations it was fitted to.
 
     With ``training="local"``, gross errors are what the field cannot explain
     (:mod:`fluorocal.stages.learn.robust`): screen every used observation
@@ -362,6 +362,31 @@ def _regress_system(plan: _Plan, state: _State, s: int):
     it keeps (each out-of-fold cost bounded at the screen's threshold), test
     every observation against the fitted field, refit to those it explains.
     """
+    candidates, sel, cost_cap = _screened(plan, state, s)
+    model, mem = _fit(plan, state, s, sel, state.memory[s], cost_cap=cost_cap)
+    if plan.params.training != "local":
+        return model, mem, sel
+    refit = _explained(plan, state, candidates, model)
+    if not np.array_equal(refit, sel):
+        model, mem = _fit(plan, state, s, refit, mem, refit=model)
+    return model, mem, refit
+
+
+def _regress_jointly(plan: _Plan, state: _State):
+    """The refinement's joint step (:func:`_regress_system`'s, every system's field at once): updates, memory, rows."""
+    screened = [_screened(plan, state, s) for s in range(len(plan.sizes))]
+    sels = [sel for _, sel, _ in screened]
+    memory = tuple(_smoothness(plan, state, s, sel, state.memory[s], cap) for s, (_, sel, cap) in enumerate(screened))
+    updates = _fit_jointly(plan, state, sels, memory)
+    if plan.params.training == "local":
+        refits = [_explained(plan, state, candidates, u) for (candidates, _, _), u in zip(screened, updates)]
+        if not all(np.array_equal(a, b) for a, b in zip(refits, sels)):
+            updates, sels = _fit_jointly(plan, state, refits, memory, start=updates), refits
+    return updates, memory, sels
+
+
+def _screened(plan: _Plan, state: _State, s: int):
+    """System ``s``'s candidate observations, those its regression learns from and their out-of-fold cost cap."""
     params, out, rows = plan.params, state.out, plan.rows[s]
     local = params.training == "local"
     sel = rows[state.adj.used[rows]] if local else rows[out.inlier[rows]]
@@ -371,25 +396,16 @@ def _regress_system(plan: _Plan, state: _State, s: int):
             f"the regression needs at least {params.n_folds}"
         )
     if not local:
-        model, mem = _fit(plan, state, s, sel, state.memory[s])
-        return model, sel, mem
-    candidates = sel
-    r, var = out.residuals_px[candidates], out.residual_var_px2[candidates]
-    screen = local_screen(plan.xy[candidates], r, var, chi2=params.screen_chi2)
-    sel = _enough(candidates, screen.keep, params.n_folds)
-    model, mem = _fit(plan, state, s, sel, state.memory[s], cost_cap=screen.cost_cap)
-    explained, _ = misfit_inliers(r, model.correction_at(plan.xy[candidates]), var, params.outlier_chi2)
-    refit = _enough(candidates, explained, params.n_folds)
-    if not np.array_equal(refit, sel):
-        model, mem = _fit(plan, state, s, refit, mem, refit=model)
-    logger.debug(
-        "system %s: %d observations, %d left out by the local screen, %d by the field's misfit",
-        plan.observations.system_names[s],
-        len(candidates),
-        len(candidates) - len(sel),
-        len(candidates) - len(refit),
-    )
-    return model, refit, mem
+        return sel, sel, None
+    screen = local_screen(plan.xy[sel], out.residuals_px[sel], out.residual_var_px2[sel], chi2=params.screen_chi2)
+    return sel, _enough(sel, screen.keep, params.n_folds), screen.cost_cap
+
+
+def _explained(plan: _Plan, state: _State, candidates: np.ndarray, model) -> np.ndarray:
+    """The ``candidates`` the fitted ``model`` explains (the local training's misfit test)."""
+    r, var = state.out.residuals_px[candidates], state.out.residual_var_px2[candidates]
+    explained, _ = misfit_inliers(r, model.correction_at(plan.xy[candidates]), var, plan.params.outlier_chi2)
+    return _enough(candidates, explained, plan.params.n_folds)
 
 
 def _enough(candidates: np.ndarray, keep: np.ndarray, n_min: int) -> np.ndarray:
@@ -401,11 +417,10 @@ def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refi
     """One regression of system ``s`` on observations ``sel``: the update and the memory after it.
 
     ``refit``: the update just fitted, when this is the same step again (after the local outlier test), with
-    the ``k`` just chosen, or the refinement's step started from it. ``cost_cap`` bounds each observation's
-    out-of-fold cost in the cross-validations.
+    the ``k`` just chosen. ``cost_cap`` bounds each observation's out-of-fold cost in the cross-validations.
     """
     if state.phase == "grid":
-        return _fit_grid(plan, state, s, sel, mem, cost_cap, start=refit)
+        return _fit_grid(plan, state, s, sel, mem, cost_cap)
     params = plan.params
     r, var = state.out.residuals_px[sel], state.out.residual_var_px2[sel]
     knn = dict(image_size=plan.sizes[s], grid=params.grid, smooth=plan.smooth, n_folds=params.n_folds, seed=params.seed)
@@ -419,61 +434,47 @@ def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refi
     return model, replace(mem, cv=cv, k_prev=cv.k)
 
 
-def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, cost_cap=None, start=None):
-    """The refinement's update of system ``s``: the gridded least squares, alone or the joint problem's step.
+def _fit_grid(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, cost_cap=None):
+    """The refinement's update of system ``s`` by the gridded least squares alone (``refine="grid"``)."""
+    mem = _smoothness(plan, state, s, sel, mem, cost_cap)
+    xy, r, var = plan.xy[sel], state.out.residuals_px[sel], state.out.residual_var_px2[sel]
+    fit = dict(image_size=plan.sizes[s], tau_px=mem.tau_px, grid=plan.params.grid, base=state.grids[s])
+    return fit_grid_field(xy, r, var, cv_rms_px=mem.cv.cv_rms_px, order=mem.cv.order, **fit), mem
 
-    ``start``: an update of nearly the same observations to start the joint step's iterative solve from.
+
+def _smoothness(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, cost_cap=None) -> _Memory:
+    """System ``s``'s memory with the refinement's smoothness prior, cross-validated once (its first step)."""
+    if mem.tau_px is not None:
+        return mem
+    params, out = plan.params, state.out
+    cv = cross_validate_smoothness(plan.xy[sel], out.residuals_px[sel], out.residual_var_px2[sel],
+                                   image_size=plan.sizes[s], grid=params.grid, tau_grid_px=params.tau_grid_px,
+                                   orders=params.smoothness_orders, n_folds=params.smoothness_folds, seed=params.seed,
+                                   base_px=state.grids[s].delta_px, cost_cap=cost_cap)  # fmt: skip
+    name = plan.observations.system_names[s]
+    logger.info("system %s: gridded refinement, smoothness order %d, tau %.3g px (CV)", name, cv.order, cv.tau_px)
+    return replace(mem, cv=cv, tau_px=cv.tau_px)
+
+
+def _fit_jointly(plan: _Plan, state: _State, sels: list, memory: tuple, start=None) -> tuple:
+    """Every system's refinement update by the joint problem's step (:func:`fit_grids_jointly`), from ``sels``.
+
+    ``start``: updates of nearly the same observations to start the iterative solve from.
     """
     params, adj, observations = plan.params, state.adj, plan.observations
-    xy, r, var = plan.xy[sel], state.out.residuals_px[sel], state.out.residual_var_px2[sel]
-    base = state.grids[s]
-    if mem.tau_px is None:
-        cv = cross_validate_smoothness(
-            xy,
-            r,
-            var,
-            image_size=plan.sizes[s],
-            grid=params.grid,
-            tau_grid_px=params.tau_grid_px,
-            orders=params.smoothness_orders,
-            n_folds=params.smoothness_folds,
-            seed=params.seed,
-            base_px=base.delta_px,
-            cost_cap=cost_cap,
-        )
-        mem = replace(mem, cv=cv, tau_px=cv.tau_px)
-        logger.info(
-            "system %s: gridded refinement, smoothness order %d, tau %.3g px (CV)",
-            observations.system_names[s],
-            cv.order,
-            cv.tau_px,
-        )
-    fit = dict(image_size=plan.sizes[s], tau_px=mem.tau_px, grid=params.grid, base=base, order=mem.cv.order)
-    if plan.refine != "grid+points":
-        return fit_grid_field(xy, r, var, cv_rms_px=mem.cv.cv_rms_px, **fit), mem
-    t_weight = adj.weight[sel, None] if params.training == "inliers" else 1.0
-    w_obs = t_weight / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
     nominal = plan.adjuster.nominal_shape(adj)[1] if params.affine_datum else None
-    network = linearised_network(adj, observations, sel, s, nominal)
-    others = np.flatnonzero(adj.used & adj.inlier & (observations.system != s))
-    w_others = adj.weight[others, None] / (adj.sigma0 * observations.sigma_px[others, :2]) ** 2
-    shared = point_information(adj, observations, others, w_others, network.beads) if len(others) else None
-    model = fit_grid_jointly(
-        xy,
-        r,
-        w_obs,
-        network,
-        iop_px=adj.iop_px[s],
-        estimate_iop=plan.estimate_iop,
-        cv_rms_px=mem.cv.cv_rms_px,
-        max_cg_iterations=LOOP_CG_ITERATIONS,
-        cg_tolerance=LOOP_CG_TOLERANCE[state.respond],
-        start=None if start is None else start.delta_px,
-        point_information=shared,
-        respond=state.respond,
-        **fit,
-    )
-    return model, mem
+    network = systems_network(adj, observations, sels, range(len(sels)), nominal)
+    steps = []
+    for s, (sel, mem) in enumerate(zip(sels, memory)):
+        t_weight = adj.weight[sel, None] if params.training == "inliers" else 1.0
+        w_obs = t_weight / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
+        r = state.out.residuals_px[sel]
+        base, origin = state.grids[s], None if start is None else start[s].delta_px
+        steps.append(SystemStep(plan.xy[sel], r, w_obs, adj.iop_px[s], plan.sizes[s], mem.tau_px, base,
+                                mem.cv.cv_rms_px, mem.cv.order, origin))  # fmt: skip
+    cg = dict(max_cg_iterations=LOOP_CG_ITERATIONS, cg_tolerance=LOOP_CG_TOLERANCE[state.respond])
+    return fit_grids_jointly(steps, network, estimate_iop=plan.estimate_iop, grid=params.grid, respond=state.respond,
+                             **cg)  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------

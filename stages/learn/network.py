@@ -1,8 +1,9 @@
-"""One system's orientation linearised at an adjustment: the Jacobian by ``(IOP, poses, points)`` and its datum.
+"""The orientation of one or more systems linearised at an adjustment: the Jacobian by ``(IOP, poses, points)``.
 
-Shared by the refinement's joint field step (:mod:`.joint`) and the joint
-uncertainty (:mod:`.uncertainty`). Each system is taken on its own with a free
-pose per exposure (a biplanar pair's ROP, which ties them, is not used).
+Shared by the refinement's joint field step (:mod:`.joint`, every system at
+once) and the joint uncertainty (:mod:`.uncertainty`, one system). Each system
+has a free pose per exposure (a biplanar pair's ROP, which ties them, is not
+used); the systems share the beads.
 """
 
 from __future__ import annotations
@@ -17,13 +18,15 @@ from scipy.sparse import csr_matrix, vstack
 def camera_jacobians(iop_px, R, T_mm, xyz_mm):
     """Derivatives of ``x = xp + c p_x/p_z``, ``p = R (P - T)`` per observation, px per unit.
 
+    ``iop_px`` ``(3,)`` or, per observation, ``(n, 3)``.
+
     Returns ``(J_iop (n, 2, 3), J_rot (n, 2, 3), J_src (n, 2, 3), J_point (n, 2, 3))``: by
     ``(xp, yp, c)``, by a small rotation ``φ`` of the camera (``R <- exp([φ]x) R``), by the
     source ``T`` (mm) and by the bead ``P`` (mm).
     """
     p = np.einsum("nij,nj->ni", R, xyz_mm - T_mm)
     u, v = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
-    c = float(iop_px[2])
+    c = np.asarray(iop_px, dtype=np.float64)[..., 2]  # one system's, or (n,) per observation
     D = np.zeros((len(p), 2, 3))
     D[:, 0, 0] = D[:, 1, 1] = 1.0
     D[:, 0, 2], D[:, 1, 2] = -u, -v
@@ -86,14 +89,15 @@ def similarity_modes(R, T_mm, P_mm, n_theta: int, pose_col: int, point_col: int)
 
 @dataclass(frozen=True)
 class Network:
-    """One system's linearised orientation.
+    """The linearised orientation of one or more systems.
 
     Attributes
     ----------
     J : (2 n, n_theta) sparse csr_matrix, px per unit
-        Derivatives of the observations' projections (x rows, then y rows) by ``θ``: the IOP
-        ``(xp, yp, c)`` (columns 0-2), each exposure's rotation and source (6 columns each), each
-        bead's coordinates (3 columns each, from ``point_col``).
+        Derivatives of the observations' projections (x rows, then y rows) by ``θ``: each system's IOP
+        ``(xp, yp, c)`` (columns ``3 s`` to ``3 s + 2``), each exposure's rotation and source (6 columns
+        each, from ``3 n_systems``, system by system), each bead's coordinates (3 columns each, from
+        ``point_col``), once for every system that sees it.
     datum : (n_theta, 7) float64 ndarray
         The free network's similarity modes (unit columns), under which nothing projects differently.
     affine : (n_theta, 5) float64 ndarray or None
@@ -103,6 +107,7 @@ class Network:
     point_col : int
     beads : (n_beads,) int ndarray
         The beads of the point columns, in order (indices into the adjustment's ``bead_id``).
+    n_systems : int
     """
 
     J: csr_matrix
@@ -111,6 +116,7 @@ class Network:
     affine_gap_mm: np.ndarray | None
     point_col: int
     beads: np.ndarray
+    n_systems: int = 1
 
 
 def linearised_network(adj, observations, rows, system: int, shape_nominal_mm=None) -> Network:
@@ -118,17 +124,37 @@ def linearised_network(adj, observations, rows, system: int, shape_nominal_mm=No
 
     ``shape_nominal_mm`` ``(n_beads, 3)``: the design coordinates of ``adj.bead_id``, for the affine modes.
     """
-    epochs, e_of = np.unique(np.searchsorted(adj.exposure, observations.exposure[rows]), return_inverse=True)
+    return systems_network(adj, observations, (rows,), (system,), shape_nominal_mm)
+
+
+def systems_network(adj, observations, rows_by_system, systems, shape_nominal_mm=None) -> Network:
+    """The Jacobian of the observations ``rows_by_system[k]`` of each system ``systems[k]``, at ``adj``.
+
+    The observations in that order (system by system); the beads once, whichever systems see them.
+    The datum is the similarity of the whole network (every system's poses and the beads); the
+    affine modes are the shape's of all the beads seen (one phantom).
+    """
+    rows = np.concatenate(rows_by_system)
+    s_of = np.repeat(np.arange(len(systems)), [len(r) for r in rows_by_system])
+    n_epochs = len(adj.exposure)
+    keys, e_of = np.unique(s_of * n_epochs + np.searchsorted(adj.exposure, observations.exposure[rows]),
+                           return_inverse=True)  # fmt: skip
     beads, b_of = np.unique(_bead_index(adj, observations, rows), return_inverse=True)
-    q_s, T_s = adj.orientation.poses(system)
-    R_e, T_e, P_b = quat_to_matrix(q_s[epochs]), T_s[epochs], adj.xyz_mm[beads]
-    J_iop, J_rot, J_src, J_pt = camera_jacobians(adj.iop_px[system], R_e[e_of], T_e[e_of], P_b[b_of])
-    n, m, nb = len(rows), len(epochs), len(beads)
-    pose_col, point_col = 3, 3 + 6 * m
+    q_e, T_e = np.zeros((len(keys), 4)), np.zeros((len(keys), 3))
+    for k, system in enumerate(systems):
+        at = keys // n_epochs == k
+        q_s, T_s = adj.orientation.poses(int(system))
+        q_e[at], T_e[at] = q_s[keys[at] % n_epochs], T_s[keys[at] % n_epochs]
+    R_e, P_b = quat_to_matrix(q_e), adj.xyz_mm[beads]
+    iop = np.asarray(adj.iop_px, dtype=np.float64)[np.asarray(systems)][s_of]
+    J_iop, J_rot, J_src, J_pt = camera_jacobians(iop, R_e[e_of], T_e[e_of], P_b[b_of])
+    n, m, nb = len(rows), len(keys), len(beads)
+    pose_col = 3 * len(systems)
+    point_col = pose_col + 6 * m
     n_theta = point_col + 3 * nb
     cols = np.concatenate(
         [
-            np.tile(np.arange(3), (n, 1)),
+            3 * s_of[:, None] + np.arange(3),
             pose_col + 6 * e_of[:, None] + np.arange(6),
             point_col + 3 * b_of[:, None] + np.arange(3),
         ],
@@ -144,29 +170,7 @@ def linearised_network(adj, observations, rows, system: int, shape_nominal_mm=No
         B, gap = affine_shape_modes(P_b, shape_nominal_mm[beads])
         affine = np.zeros((n_theta, B.shape[1]))
         affine[point_col:] = B
-    return Network(vstack(blocks).tocsr(), datum, affine, gap, point_col, beads)
-
-
-def point_information(adj, observations, rows, weights, beads) -> np.ndarray:
-    """``(len(beads), 3, 3)``: what observations ``rows`` (any systems) tell of the beads ``beads``, orientation held.
-
-    ``Σ J_P^T W J_P`` per bead over the rows that observe it (``weights`` ``(n, 2)``, 1/px²), with
-    ``J_P`` the projection's derivative by the bead's coordinates at ``adj``. The other systems'
-    information on the beads a system's joint field step shares with them: in a biplanar set the
-    points are pinned by both views, not free for one system's field to push.
-    """
-    info = np.zeros((len(beads), 3, 3))
-    bead = _bead_index(adj, observations, rows)
-    where = np.searchsorted(beads, bead)
-    seen = (where < len(beads)) & (beads[np.minimum(where, len(beads) - 1)] == bead)
-    epoch = np.searchsorted(adj.exposure, observations.exposure[rows])
-    for system in np.unique(observations.system[rows]):
-        at = seen & (observations.system[rows] == system)
-        q_s, T_s = adj.orientation.poses(int(system))
-        *_, J_pt = camera_jacobians(adj.iop_px[system], quat_to_matrix(q_s[epoch[at]]), T_s[epoch[at]],
-                                    adj.xyz_mm[bead[at]])  # fmt: skip
-        np.add.at(info, where[at], np.einsum("nci,nc,ncj->nij", J_pt, weights[at], J_pt))
-    return info
+    return Network(vstack(blocks).tocsr(), datum, affine, gap, point_col, beads, len(systems))
 
 
 def _bead_index(adj, observations, rows) -> np.ndarray:
@@ -180,6 +184,6 @@ __all__ = [
     "affine_shape_modes",
     "camera_jacobians",
     "linearised_network",
-    "point_information",
     "similarity_modes",
+    "systems_network",
 ]
