@@ -24,8 +24,8 @@ Modules, one job each
   K-fold cross-validation of the equation-3 cost) and :func:`fit_knn_field`.
 - :mod:`.grid`: the gridded least-squares field :func:`fit_grid_field` and its
   smoothness by :func:`cross_validate_smoothness` (beyond the paper).
-- :mod:`.network`: one system's orientation linearised at an adjustment (Jacobian, datum, affine modes).
-- :mod:`.joint`: :func:`fit_grid_jointly`, the refinement's field step with the
+- :mod:`.network`: the systems' orientation linearised at an adjustment (Jacobian, datum, affine modes).
+- :mod:`.joint`: :func:`fit_grids_jointly`, the refinement's field step of every system at once with the
   orientation's response (IOP, poses, points) eliminated (beyond the paper).
 - :mod:`.robust`: gross errors in the regressions: the local screen, the misfit test, bounded CV costs.
 - :mod:`.gauge`: what the orientation reproduces exactly, removed from a field.

@@ -5,11 +5,14 @@ partly mimic: the IOP, the poses (a common rotation, the scale) and a
 deformation of the (unknown, free-network) phantom. Each adjustment absorbs
 part of the remaining field, and the next regression sees only what is left;
 estimated alone, the field's update ignores that response and creeps. Here
-the update is estimated with the response: :func:`fit_grid_jointly` solves
-the linearised joint problem in the field *and* the IOP, every pose and every
-bead, and keeps the field's part (the next adjustment re-solves the rest,
-non-linearly). Its fixed point is the alternation's; it is reached in a few
-steps instead of dozens (beyond the paper).
+the update is estimated with the response: :func:`fit_grids_jointly` solves
+the linearised joint problem in every system's field *and* the IOP, every pose
+and every bead, and keeps the fields' part (the next adjustment re-solves the
+rest, non-linearly). Its fixed point is the alternation's; it is reached in a
+few steps instead of dozens (beyond the paper). The systems of a biplanar set
+are solved together: the beads they share tie their fields, and one system's
+step at a time, the others held, would only approach the joint step by a slow
+block iteration between them.
 """
 
 from __future__ import annotations

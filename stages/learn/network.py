@@ -70,8 +70,12 @@ def affine_shape_modes(points_mm: np.ndarray, nominal_mm: np.ndarray) -> tuple[n
     return B, B.T @ (points_mm - aligned).ravel()
 
 
-def similarity_modes(R, T_mm, P_mm, n_theta: int, pose_col: int, point_col: int) -> np.ndarray:
-    """The 7 directions ``(n_theta, 7)`` of a similarity of object space, under which nothing projects differently."""
+def similarity_modes(R, T_mm, P_mm, n_theta: int, pose_col: int, point_col: int, baselines=None) -> np.ndarray:
+    """The 7 directions ``(n_theta, 7)`` of a similarity of object space, under which nothing projects differently.
+
+    ``baselines``: ``(col, b_mm (k, 3))``, the columns and values of the ROP's source offsets (in the reference
+    camera's frame: a scaling of object space scales them, a rotation or a translation leaves them).
+    """
     E = np.zeros((n_theta, 7))
     m, n = len(T_mm), len(P_mm)
     rot = np.arange(m)[:, None] * 6 + pose_col + np.arange(3)
@@ -84,6 +88,9 @@ def similarity_modes(R, T_mm, P_mm, n_theta: int, pose_col: int, point_col: int)
         E[pts, 3 + a] = np.cross(e, P_mm)
         E[rot, 3 + a] = -R @ e
     E[src, 6], E[pts, 6] = T_mm, P_mm
+    if baselines is not None:
+        col, b_mm = baselines
+        E[np.arange(len(b_mm))[:, None] * 6 + col + 3 + np.arange(3), 6] = b_mm
     return E / np.linalg.norm(E, axis=0)
 
 
@@ -95,9 +102,12 @@ class Network:
     ----------
     J : (2 n, n_theta) sparse csr_matrix, px per unit
         Derivatives of the observations' projections (x rows, then y rows) by ``θ``: each system's IOP
-        ``(xp, yp, c)`` (columns ``3 s`` to ``3 s + 2``), each exposure's rotation and source (6 columns
-        each, from ``3 n_systems``, system by system), each bead's coordinates (3 columns each, from
-        ``point_col``), once for every system that sees it.
+        ``(xp, yp, c)`` (columns ``3 s`` to ``3 s + 2``), each epoch's reference pose, its rotation and
+        source (6 columns each, from ``3 n_systems``), with several systems each further system's
+        relative orientation (ROP: its rotation and source offset, 6 columns each, system 0's being the
+        reference), each bead's coordinates (3 columns each, from ``point_col``), once for every system
+        that sees it. As the adjustment's parameters: system ``s``'s pose at epoch ``j`` is the ROP
+        composed with the reference pose, ``R_s R_j`` and ``T_j + R_j^T b_s``.
     datum : (n_theta, 7) float64 ndarray
         The free network's similarity modes (unit columns), under which nothing projects differently.
     affine : (n_theta, 5) float64 ndarray or None
@@ -130,47 +140,69 @@ def linearised_network(adj, observations, rows, system: int, shape_nominal_mm=No
 def systems_network(adj, observations, rows_by_system, systems, shape_nominal_mm=None) -> Network:
     """The Jacobian of the observations ``rows_by_system[k]`` of each system ``systems[k]``, at ``adj``.
 
-    The observations in that order (system by system); the beads once, whichever systems see them.
-    The datum is the similarity of the whole network (every system's poses and the beads); the
-    affine modes are the shape's of all the beads seen (one phantom).
+    The observations in that order (system by system); the beads once, whichever systems see them;
+    the poses as the adjustment's, the epochs' reference poses and the systems' ROP (:class:`Network`).
+    The datum is the similarity of the whole network; the affine modes are the shape's of all the
+    beads seen (one phantom).
     """
     rows = np.concatenate(rows_by_system)
     s_of = np.repeat(np.arange(len(systems)), [len(r) for r in rows_by_system])
-    n_epochs = len(adj.exposure)
-    keys, e_of = np.unique(s_of * n_epochs + np.searchsorted(adj.exposure, observations.exposure[rows]),
-                           return_inverse=True)  # fmt: skip
+    epochs, e_of = np.unique(np.searchsorted(adj.exposure, observations.exposure[rows]), return_inverse=True)
     beads, b_of = np.unique(_bead_index(adj, observations, rows), return_inverse=True)
-    q_e, T_e = np.zeros((len(keys), 4)), np.zeros((len(keys), 3))
+    ori, n, m, nb, n_sys = adj.orientation, len(rows), len(epochs), len(beads), len(systems)
+    R_pose, T_pose = np.zeros((n, 3, 3)), np.zeros((n, 3))
     for k, system in enumerate(systems):
-        at = keys // n_epochs == k
-        q_s, T_s = adj.orientation.poses(int(system))
-        q_e[at], T_e[at] = q_s[keys[at] % n_epochs], T_s[keys[at] % n_epochs]
-    R_e, P_b = quat_to_matrix(q_e), adj.xyz_mm[beads]
+        q_s, T_s = ori.poses(int(system))
+        at = epochs[e_of[s_of == k]]
+        R_pose[s_of == k], T_pose[s_of == k] = quat_to_matrix(q_s[at]), T_s[at]
+    R_ref, T_ref, P_b = quat_to_matrix(ori.q_cam_from_obj[epochs]), ori.source_mm[epochs], adj.xyz_mm[beads]
     iop = np.asarray(adj.iop_px, dtype=np.float64)[np.asarray(systems)][s_of]
-    J_iop, J_rot, J_src, J_pt = camera_jacobians(iop, R_e[e_of], T_e[e_of], P_b[b_of])
-    n, m, nb = len(rows), len(keys), len(beads)
-    pose_col = 3 * len(systems)
-    point_col = pose_col + 6 * m
-    n_theta = point_col + 3 * nb
-    cols = np.concatenate(
-        [
-            3 * s_of[:, None] + np.arange(3),
-            pose_col + 6 * e_of[:, None] + np.arange(6),
-            point_col + 3 * b_of[:, None] + np.arange(3),
-        ],
-        axis=1,
-    )
-    blocks = []
-    for comp in range(2):
-        vals = np.concatenate([J_iop[:, comp], J_rot[:, comp], J_src[:, comp], J_pt[:, comp]], axis=1)
-        blocks.append(csr_matrix((vals.ravel(), (np.repeat(np.arange(n), 12), cols.ravel())), shape=(n, n_theta)))
-    datum = similarity_modes(R_e, T_e, P_b, n_theta, pose_col, point_col)
+    J_iop, J_rot, J_src, J_pt = camera_jacobians(iop, R_pose, T_pose, P_b[b_of])
+    R_rop, b_rop = quat_to_matrix(ori.rop_q[np.asarray(systems)]), ori.rop_source_mm[np.asarray(systems)]
+    # by the reference pose (ψ_j, T_j): φ = R_s ψ, δT = δT_j + R_j^T [b_s]x ψ; by the ROP (χ_s, b_s): φ = χ,
+    # δT = R_j^T δb
+    J_src_ref = J_src @ R_ref[e_of].transpose(0, 2, 1)
+    J_psi = J_rot @ R_rop[s_of] + J_src_ref @ _cross_matrix(b_rop[s_of])
+    pose_col = 3 * n_sys
+    rop_col = pose_col + 6 * m
+    point_col = rop_col + 6 * (n_sys - 1)
+    values = [J_iop, J_psi, J_src, J_pt, J_rot, J_src_ref]
+    cols = [3 * s_of[:, None] + np.arange(3), pose_col + 6 * e_of[:, None] + np.arange(6),
+            point_col + 3 * b_of[:, None] + np.arange(3), rop_col + 6 * (s_of[:, None] - 1) + np.arange(6)]  # fmt: skip
+    J = _sparse_jacobian(values, cols, s_of > 0, point_col + 3 * nb)
+    datum = similarity_modes(R_ref, T_ref, P_b, J.shape[1], pose_col, point_col, (rop_col, b_rop[1:]))
     affine = gap = None
     if shape_nominal_mm is not None:
         B, gap = affine_shape_modes(P_b, shape_nominal_mm[beads])
-        affine = np.zeros((n_theta, B.shape[1]))
+        affine = np.zeros((J.shape[1], B.shape[1]))
         affine[point_col:] = B
-    return Network(vstack(blocks).tocsr(), datum, affine, gap, point_col, beads, len(systems))
+    return Network(J, datum, affine, gap, point_col, beads, n_sys)
+
+
+def _cross_matrix(v: np.ndarray) -> np.ndarray:
+    """``[v]x`` ``(n, 3, 3)`` of vectors ``v`` ``(n, 3)``: ``[v]x u = v x u``."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    return out - out.transpose(0, 2, 1)
+
+
+def _sparse_jacobian(values, cols, with_rop: np.ndarray, n_theta: int) -> csr_matrix:
+    """``J`` (x rows, then y rows) from the per-observation blocks ``(n, 2, 3)`` and their columns.
+
+    ``values``: by the IOP, the reference rotation and source, the point, then (rows ``with_rop``) the ROP's
+    rotation and offset; ``cols``: the IOP's, the reference pose's, the point's and the ROP's.
+    """
+    n = len(with_rop)
+    blocks = []
+    for comp in range(2):
+        main = np.concatenate([v[:, comp] for v in values[:4]], axis=1)
+        main_cols = np.concatenate(cols[:3], axis=1)
+        rop = np.concatenate([v[with_rop, comp] for v in values[4:]], axis=1)
+        data = np.concatenate([main.ravel(), rop.ravel()])
+        r = np.concatenate([np.repeat(np.arange(n), 12), np.repeat(np.flatnonzero(with_rop), 6)])
+        c = np.concatenate([main_cols.ravel(), cols[3][with_rop].ravel()])
+        blocks.append(csr_matrix((data, (r, c)), shape=(n, n_theta)))
+    return vstack(blocks).tocsr()
 
 
 def _bead_index(adj, observations, rows) -> np.ndarray:
