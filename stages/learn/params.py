@@ -155,14 +155,16 @@ class LearnParams:
         least-squares field of :func:`~fluorocal.stages.learn.grid.fit_grid_field`,
         or ``"grid+points"`` (recommended): the same with each field step
         estimated jointly with the orientation's response, the IOP, every pose
-        and every object point (:func:`~fluorocal.stages.learn.joint.fit_grid_jointly`:
+        and every object point (:func:`~fluorocal.stages.learn.joint.fit_grids_jointly`:
         a Gauss-Newton step of the joint problem, so the alternation converges
         in a few steps). The unsmoothed schemes run without a refinement.
     orientation_response : str *(preset)*
-        With ``refine="grid+points"``, what the field's step is estimated jointly with: ``"yes"``
-        (recommended): the IOP, every pose and every object point (a Gauss-Newton step of the joint
-        problem); ``"no"``: the object points alone, the IOP and the poses held (each system's step
-        knowing what the other systems' views tell of the beads they share). With one system the
+        With ``refine="grid+points"``, what the fields' step is estimated jointly with: ``"yes"``
+        (recommended): the IOP, every pose (each epoch's reference pose and each further system's ROP)
+        and every object point (a Gauss-Newton step of the joint problem); ``"no"``: the object points
+        alone, the IOP and the poses held. Either way every system's field is solved in the same step,
+        the beads the systems share tying them (:func:`~fluorocal.stages.learn.joint.fit_grids_jointly`).
+        With one system the
         beads-alone step creeps along the principal point / field direction: on the 40 + 40-exposure
         1024 px sets of ``benchmarks/robust.py`` (seeds 0-2) it took 12 iterations to the joint
         step's 7-8, to the same out-of-sample 3D error or a larger one (0.0089 / 0.0069 / 0.0066
@@ -194,7 +196,7 @@ class LearnParams:
         40-frame 1024 px set it took 25 refinement iterations (32 before Anderson's history outlived the
         regression cost's wandering: :mod:`fluorocal.stages.learn.loop`), and a cap of 15 left the field 0.066 px
         from the truth (modulo a homography) against 0.016 px converged; the joint step on a weak
-        biplanar set (4 + 4 frames of 512 px) took 74.
+        biplanar set (4 + 4 frames of 512 px) took 74 when each system's step was solved alone.
     affine_datum : bool *(preset)*
         With ``refine="grid+points"``: hold the phantom's affine shape beyond a
         similarity (stretches and shears: 5 degrees of freedom) at the nominal
@@ -203,7 +205,7 @@ class LearnParams:
         ``"grid+points"``). In a free network these deformations trade off
         against an image aspect ratio or shear of the field through weak
         perspective effects only; see
-        :func:`~fluorocal.stages.learn.joint.fit_grid_jointly`. If a real
+        :func:`~fluorocal.stages.learn.joint.fit_grids_jointly`. If a real
         phantom is stretched or sheared as a whole, that error passes into
         the result: set it False then.
     training : str *(preset)*
