@@ -144,8 +144,7 @@ def publish(out_dir: str | os.PathLike, write: Callable[[Path], list[Path]]) -> 
     """
     out_dir = Path(out_dir).resolve()
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    with _publishing(out_dir):
-        sweep(out_dir)
+    sweep(out_dir)
     staging = _side_folder(out_dir, "staging")
     staging.mkdir()
     if out_dir.is_dir():
@@ -166,10 +165,19 @@ def publish(out_dir: str | os.PathLike, write: Callable[[Path], list[Path]]) -> 
 
 
 def sweep(out_dir: str | os.PathLike) -> None:
-    """Remove what killed runs left beside ``out_dir``; put back a previous set a kill left aside."""
+    """Remove what killed runs left beside ``out_dir``; put back a previous set a kill left aside.
+
+    Under the publishing lock: runs starting together would otherwise remove the same dead run's folder at
+    once, and each but the first fail on a file the others had just removed.
+    """
     out_dir = Path(out_dir).resolve()
     if not out_dir.parent.is_dir():
         return
+    with _publishing(out_dir):
+        _sweep_unlocked(out_dir)
+
+
+def _sweep_unlocked(out_dir: Path) -> None:
     for side in sorted(out_dir.parent.iterdir()):
         m = _SIDE.fullmatch(side.name)
         if m is None or m["out"] != out_dir.name or not side.is_dir() or _alive(int(m["pid"])):

@@ -172,7 +172,7 @@ def _best_shift(ij, offset, ij_ref, offset_ref, n_best: int = 3):
 def _renumbered(frame: Labels, reference: Labels, ref_print: Fingerprint, lattice: str, pitch_mm: float) -> Labels:
     """``frame`` on ``reference``'s numbering, or failed when neither its plate errors nor its position tell."""
     M, t, corr, margin = match_fingerprints(fingerprint(frame, lattice), ref_print, lattice)
-    log.info("plate fingerprint against the reference frame: correlation %.3f, lead %.3f", corr, margin)
+    log.debug("plate fingerprint against the reference frame: correlation %.3f, lead %.3f", corr, margin)
     ij = lattice_index(frame.bead_id)
     if corr >= _MIN_CORRELATION and margin >= _MIN_MARGIN:
         mapped = ij @ M.T + t

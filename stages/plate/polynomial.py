@@ -32,7 +32,7 @@ def fit_polynomial(train: PlateProblem, frame: int) -> PlateFit:
     Raises
     ------
     EstimationError
-        A frame of the orientation admits no homography.
+        A frame of the orientation admits no homography, or the fit does not converge.
     """
     from scipy.optimize import least_squares
 
@@ -59,6 +59,8 @@ def fit_polynomial(train: PlateProblem, frame: int) -> PlateFit:
         return ((ideal - p[:, :2] / p[:, 2:3]) * weight[:, None]).ravel()
 
     solution = least_squares(residual, np.concatenate(start), loss="soft_l1", f_scale=_LOSS_SCALE, x_scale="jac")
+    if solution.status <= 0 or not np.all(np.isfinite(solution.x)):
+        raise EstimationError(f"the polynomial model's fit did not converge: {solution.message}")
     coefficients = np.zeros(polynomial.N_AP)
     coefficients[:_FREE] = solution.x[:_FREE]
     return PlateFit(partial(_corrected, centre, radius, coefficients))

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from fluorocal.stages.adjust import polynomial
 from fluorocal.stages.artifacts import Phantom
-from fluorocal.stages.errors import InputError
+from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.evaluate.plate import PlateSetup, plate_fits, training_frames
 from fluorocal.stages.geometry import homography_fit
 from fluorocal.stages.label.lattice import lattice_index, lattice_xyz_mm
@@ -89,8 +89,8 @@ def test_heldout_scores_against_truth(plate):
     assert rms(ours.in_sample_residual_px) <= rms(ours.residual_px) * 1.05
 
 
-def test_polynomial_peer_recovers_its_own_model():
-    """Analytic: holes through a homography and the radial + decentring model, no noise: undone exactly."""
+def _polynomial_problem():
+    """Holes through a homography and the radial + decentring model, no noise: the problem, ideal and measured."""
     ij = np.array([(i, j) for i in range(-30, 31) for j in range(-30, 31)])
     nominal = lattice_xyz_mm(ij, "hex", PITCH_MM)[:, :2]
     H = np.array([[4.1, 0.3, 255.5], [-0.25, 3.9, 255.5], [1e-4, -2e-4, 1.0]])
@@ -112,10 +112,33 @@ def test_polynomial_peer_recovers_its_own_model():
         np.column_stack([np.full((n, 2), NOISE_PX), np.zeros(n)]),
         (SIZE, SIZE),
     )
+    return problem, ideal, measured
+
+
+def test_polynomial_peer_recovers_its_own_model():
+    """Analytic: holes through a homography and the radial + decentring model, no noise: undone exactly."""
+    problem, ideal, measured = _polynomial_problem()
     corrected = fit_polynomial(problem, 0).correct(measured)
     # a homography is the datum: the ideal points are recovered up to one, to rounding (1e-3 px: the solver's tolerance)
     assert np.abs(homography_fit(ideal, corrected)[1]).max() < 1e-3
     assert np.abs(measured - ideal).max() > 2.0  # and there was a distortion of px to undo
+
+
+def test_polynomial_peer_that_does_not_converge_is_an_error(monkeypatch):
+    """A fit stopped short (the optimiser's evaluation cap) is an EstimationError, never a silently partial model."""
+    import scipy.optimize
+    from scipy.optimize import OptimizeResult
+
+    problem, _, _ = _polynomial_problem()
+
+    def capped(fun, x0, **kwargs):
+        return OptimizeResult(
+            x=np.asarray(x0), status=0, message="The maximum number of function evaluations is exceeded."
+        )
+
+    monkeypatch.setattr(scipy.optimize, "least_squares", capped)
+    with pytest.raises(EstimationError, match="did not converge: The maximum number"):
+        fit_polynomial(problem, 0)
 
 
 def test_training_frames():
