@@ -243,9 +243,11 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     adj = plan.adjuster(corrections, state.adj, final=False)
     out = adjustment_outcome(adj, plan.observations.sigma_px)
     respond = state.respond
-    if phase == "grid" and respond == "orientation" and out.cost > state.out.cost:
+    if phase == "grid" and respond == "orientation" and out.cost > state.out.cost and len(plan.sizes) == 1:
         # the joint step went further than its linearisation holds: this step and the rest of the refinement
-        # move the beads alone, the slower step that always descends
+        # move the beads alone, the slower step that always descends. Not with several systems: their beads-alone
+        # step, every system's field at once with no view held, wanders (a 2 + 2-epoch biplanar set ran to the
+        # cap); the stall rule ends a joint refinement whose cost has stopped falling
         logger.info("joint step raised the adjustment's cost (%.6g > %.6g): the beads alone respond from here",
                     out.cost, state.out.cost)  # fmt: skip
         respond = "points"
