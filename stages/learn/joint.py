@@ -274,7 +274,7 @@ def _orientation_inverse(J, w, r, network: Network, held: slice):
     except np.linalg.LinAlgError as exc:
         raise EstimationError(
             "the refinement's field step: the orientation's normal matrix is singular (an exposure with too few "
-            'observations left?); set [learn] orientation_response = "no" to move the beads alone'
+            "observations left?); raise [adjust] min_beads_per_exposure to leave such exposures out"
         ) from exc
     # the factor is finite (checked by cho_factor): no check of it at every one of the CG's solves
     return (lambda x: cho_solve(factor, x / d, check_finite=False) / d), b

@@ -1,9 +1,9 @@
 """The orientation of one or more systems linearised at an adjustment: the Jacobian by ``(IOP, poses, points)``.
 
 Shared by the refinement's joint field step (:mod:`.joint`, every system at
-once) and the joint uncertainty (:mod:`.uncertainty`, one system). Each system
-has a free pose per exposure (a biplanar pair's ROP, which ties them, is not
-used); the systems share the beads.
+once) and the joint uncertainty (:mod:`.uncertainty`, one system). The poses are
+the adjustment's: each epoch's reference pose and each further system's ROP; one
+system alone is linearised in its own poses. The systems share the beads.
 """
 
 from __future__ import annotations
@@ -159,6 +159,11 @@ def systems_network(adj, observations, rows_by_system, systems, shape_nominal_mm
     iop = np.asarray(adj.iop_px, dtype=np.float64)[np.asarray(systems)][s_of]
     J_iop, J_rot, J_src, J_pt = camera_jacobians(iop, R_pose, T_pose, P_b[b_of])
     R_rop, b_rop = quat_to_matrix(ori.rop_q[np.asarray(systems)]), ori.rop_source_mm[np.asarray(systems)]
+    if n_sys == 1:
+        # one system alone: its own poses are the reference (no ROP), so that a similarity scales its sources too
+        first = np.unique(e_of, return_index=True)[1]  # an observation of each epoch
+        R_ref, T_ref = R_pose[first], T_pose[first]
+        R_rop, b_rop = np.eye(3)[None], np.zeros((1, 3))
     # by the reference pose (ψ_j, T_j): φ = R_s ψ, δT = δT_j + R_j^T [b_s]x ψ; by the ROP (χ_s, b_s): φ = χ,
     # δT = R_j^T δb
     J_src_ref = J_src @ R_ref[e_of].transpose(0, 2, 1)

@@ -256,3 +256,13 @@ def test_two_systems_network_is_the_rigs_jacobian(biplanar_linearised):
     np.testing.assert_allclose((plus - minus) / (2 * h), linear, atol=1e-6 * np.abs(linear).max())
     scale = np.sqrt(net.J.multiply(net.J).sum())
     assert np.linalg.norm(net.J @ net.datum, axis=0).max() < 1e-9 * scale
+
+
+def test_second_system_alone_network_datum_projects_to_nothing(biplanar_linearised):
+    # system B's observations alone (the per-system network of the joint uncertainty): a similarity of object space
+    # still moves nothing in B's image; parametrised by the epochs' reference poses, B's ROP offset had no column and
+    # the scale mode moved B's sources (found in review)
+    adj, obs, rows = biplanar_linearised
+    net = linearised_network(adj, obs, rows[1], 1)
+    scale = np.sqrt(net.J.multiply(net.J).sum())
+    assert np.linalg.norm(net.J @ net.datum, axis=0).max() < 1e-9 * scale
