@@ -24,7 +24,10 @@ Figures per configuration and overall:
 
 A few rendered frames go through detect + centroid + label_sequence as a cross-check (``--rendered``).
 
-Run: .venv/bin/python benchmarks/label_varied.py [--frames 40] [--seeds 3] [--rendered 6]
+``--cut K`` labels each sequence in pieces of K frames, each on its own (seeds on each piece's first frame
+in the seeded configuration): short sequences, where a frame has few neighbours or none.
+
+Run: .venv/bin/python benchmarks/label_varied.py [--frames 40] [--seeds 3] [--rendered 6] [--cut K]
 """
 
 from __future__ import annotations
@@ -124,8 +127,12 @@ def label_params(sp: SimulateParams) -> LabelParams:
     )
 
 
-def run_config(overrides: dict, seeded: bool, seeds: list, n_frames: int, reasons: dict) -> Tally:
-    """One configuration over the simulator ``seeds``: detections from the truth, labelled as a sequence."""
+def run_config(overrides: dict, seeded: bool, seeds: list, n_frames: int, reasons: dict, cut: int = 0) -> Tally:
+    """One configuration over the simulator ``seeds``: detections from the truth, labelled as a sequence.
+
+    ``cut``: each sequence cut into sequences of that many frames, each labelled on its own (seeded: seeds
+    on the first frame of each).
+    """
     tally = Tally()
     for seed in seeds:
         sp = SimulateParams(n_frames=n_frames, seed=seed, **MOTION, **overrides)
@@ -133,10 +140,13 @@ def run_config(overrides: dict, seeded: bool, seeds: list, n_frames: int, reason
         fts = data.truth.frames[0]
         rng = np.random.default_rng([seed, 12])
         dets = [detections_from_truth(ft, rng, merged_keep=0.2) for ft in fts]
-        frame_seeds = {0: seeds_from_truth(fts[0], rng)} if seeded else {}
-        t = time.process_time()
-        labs = label_sequence([c for c, _ in dets], data.phantom, label_params(sp), frame_seeds)
-        tally.add_sequence(labs, dets, fts, time.process_time() - t, reasons)
+        step = cut or n_frames
+        for a in range(0, n_frames, step):
+            piece = slice(a, a + step)
+            frame_seeds = {0: seeds_from_truth(fts[a], rng)} if seeded else {}
+            t = time.process_time()
+            labs = label_sequence([c for c, _ in dets[piece]], data.phantom, label_params(sp), frame_seeds)
+            tally.add_sequence(labs, dets[piece], fts[piece], time.process_time() - t, reasons)
     return tally
 
 
@@ -178,6 +188,12 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--rendered", type=int, default=6, help="rendered frames of the first configuration (default: 6; 0 = skip)"
     )
+    ap.add_argument(
+        "--cut",
+        type=int,
+        default=0,
+        help="cut each sequence into sequences of this many frames, labelled each on its own (default: 0 = uncut)",
+    )
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     seeds = list(range(args.seeds))
@@ -186,6 +202,7 @@ def main(argv=None) -> int:
         f"+-{MOTION['turntable_wobble_deg']:.0f} deg, shifts +-{MOTION['turntable_translation_mm']:.0f} mm "
         f"(height +-{MOTION['turntable_height_mm']:.0f} mm), markers hidden in "
         f"{MOTION['hidden_marker_fraction']:.0%} of frames"
+        + (f"; cut into sequences of {args.cut}" if args.cut else "")
     )
     print()
     print(HEADER)
@@ -193,7 +210,7 @@ def main(argv=None) -> int:
     all_reasons = []
     for name, overrides, seeded in CONFIGS:
         reasons: dict = {}
-        tally = run_config(overrides, seeded, seeds, args.frames, reasons)
+        tally = run_config(overrides, seeded, seeds, args.frames, reasons, args.cut)
         print(tally.row(name), flush=True)
         total.merge(tally)
         all_reasons += [(name, r, n) for r, n in reasons.items()]

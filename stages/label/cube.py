@@ -67,6 +67,8 @@ def label_cube(
             found, why = _label_from_poses(frame, poses, scores)
             if found and not (pool and prior_pose is not None):
                 best, why = settle(frame, found)
+                if best is not None and not explains_most(frame, best):
+                    best, why = _searched_around(frame, best, found)
         if best is not None or prior_pose is None:
             return _finish(frame, best, why, "markers")
         reasons.append(f"from the markers: {why}")
@@ -88,6 +90,22 @@ def label_cube(
     reasons.append(why)
     source = "markers" if best is not None and any(best is f for f in found) else "prior"
     return _finish(frame, best, "; ".join(reasons), source)
+
+
+def _searched_around(frame: CubeFrame, best: dict, found: list) -> tuple[dict | None, str]:
+    """A marker labelling that leaves much of the frame unexplained, weighed against the poses around it.
+
+    A marker pose a few degrees off converges with its polynomial correction bent to fit and passes every
+    check (:func:`~fluorocal.stages.label.rivals.explains_most`); the truth then lies within a few degrees of
+    it. Rotations within the prior search's region around it (``_PRIOR_SIGMA_DEG`` a standard deviation) are
+    searched with the position free, and the marker labellings compete with what is found on their evidence
+    alone: the region is centred on the suspect pose, so nearness to it decides nothing.
+    """
+    R, T = best["R"], best["T"]
+    p_centre = R @ (frame.phantom.xyz_mm.mean(0) - T)
+    prior = OrientationPrior.isotropic(R, np.radians(_PRIOR_SIGMA_DEG))
+    around, why = label_from_prior(frame, prior, p_centre, also=found, decide=False)
+    return (around, "") if around is not None else (None, f"around the markers' pose: {why}")
 
 
 def _camera_of(frame: CubeFrame, labels: Labels) -> dict | None:

@@ -62,6 +62,7 @@ def label_from_prior(
     turn_search: bool = False,
     also: list = (),
     camera: dict | None = None,
+    decide: bool = True,
 ) -> tuple[dict | None, str]:
     """Label a frame from a predicted orientation ``prior`` and the phantom centre's place ``p_centre``.
 
@@ -80,7 +81,8 @@ def label_from_prior(
     (:func:`~fluorocal.stages.label.rivals.stands_alone`: nothing found later could displace it). With
     ``turn_search`` and no winner, turns about the prior's axis over the full circle close the search
     (:func:`_turn_starts`). Labellings found otherwise (``also``: the frame's markers') compete with them
-    on their evidence alone, wherever they lie.
+    on their evidence alone, wherever they lie. ``decide=False``: the prior does not decide between
+    labellings the frame cannot tell apart (a prior centred on a suspect pose would favour it).
 
     ``camera`` (a neighbouring frame's: its ``iop`` and polynomial ``corr``, the system's distortion)
     sharpens the search: the detections vote corrected, and the starts are ranked by their
@@ -106,7 +108,7 @@ def label_from_prior(
             # every region is searched: a labelling found in a narrower one may be a hinge or slip of the
             # truth, which lies a few sigmas out when the axis wobbles; the wider search replaces the narrower's
             # winner only with a labelling that stands against everything found
-            best, why = settle(frame, found, prior, None if also else within)
+            best, why = settle(frame, found, prior if decide else None, None if also else within)
             if best is not None:
                 winner = best
                 if view.depth_mm is None and explains_most(frame, best):
