@@ -286,10 +286,7 @@ def _bordered_inverse(B: np.ndarray, U: np.ndarray, k: int):
     Woodbury's identity on the 3x3 blocks, which leaves a dense Cholesky factor of the poses and the IOP alone (a
     Cholesky factor of the whole in another order): a few percent of the whole's, and each solve a fraction.
     """
-    n_beads = (B.shape[0] - k) // 3
-    coo = B[k:, k:].tocoo()
-    blocks = np.zeros((n_beads, 3, 3))
-    np.add.at(blocks, (coo.row // 3, coo.row % 3, coo.col % 3), coo.data)
+    blocks = _bead_blocks(B[k:, k:])
     blocks[:, np.arange(3), np.arange(3)] += POINT_RIDGE
     ridge = np.where(np.arange(B.shape[0]) >= k, POINT_RIDGE, 0.0)
     try:
@@ -297,9 +294,7 @@ def _bordered_inverse(B: np.ndarray, U: np.ndarray, k: int):
     except np.linalg.LinAlgError as exc:
         raise _singular_orientation() from exc
 
-    def block_solve(y):
-        return np.einsum("bij,bj...->bi...", blocks_inv, y.reshape(n_beads, 3, *y.shape[1:])).reshape(y.shape)
-
+    block_solve = _block_solver(blocks_inv)
     U_p = U[k:]
     BiU = block_solve(U_p)
     try:
@@ -347,10 +342,7 @@ def _points_inverse(J, w, r, network: Network):
     wf, rf = w.T.ravel(), r.T.ravel()
     JW = J.multiply(wf[:, None]).tocsr()
     b = JW.T @ rf
-    n_beads = J.shape[1] // 3
-    coo = (J.T @ JW).tocoo()
-    blocks = np.zeros((n_beads, 3, 3))
-    np.add.at(blocks, (coo.row // 3, coo.row % 3, coo.col % 3), coo.data)
+    blocks = _bead_blocks(J.T @ JW)
     diag = np.einsum("bii->bi", blocks)
     d2 = np.maximum(diag, 1e-300)
     kappa = AFFINE_STIFFNESS * float(np.max(diag)) if network.affine is not None else 0.0
@@ -360,9 +352,7 @@ def _points_inverse(J, w, r, network: Network):
     except np.linalg.LinAlgError as exc:
         raise EstimationError("the refinement's field step: a bead's normal block is singular") from exc
 
-    def block_solve(x):
-        return np.einsum("bij,bj...->bi...", blocks_inv, x.reshape(n_beads, 3, *x.shape[1:])).reshape(x.shape)
-
+    block_solve = _block_solver(blocks_inv)
     if network.affine is None:
         return block_solve, b
     F = network.affine[network.point_col :]
@@ -370,6 +360,24 @@ def _points_inverse(J, w, r, network: Network):
     NiF = block_solve(F)
     core = np.linalg.inv(np.eye(F.shape[1]) / kappa + F.T @ NiF)
     return (lambda x: block_solve(x) - NiF @ (core @ (NiF.T @ x))), b
+
+
+def _bead_blocks(N) -> np.ndarray:
+    """The 3x3 diagonal blocks ``(n_beads, 3, 3)`` of the beads' block of a normal matrix (sparse, block diagonal)."""
+    coo = N.tocoo()
+    blocks = np.zeros((N.shape[0] // 3, 3, 3))
+    np.add.at(blocks, (coo.row // 3, coo.row % 3, coo.col % 3), coo.data)
+    return blocks
+
+
+def _block_solver(blocks_inv: np.ndarray):
+    """``x -> diag(blocks_inv) x`` for ``x`` ``(3 n_beads, ...)``: each bead's 3x3 inverse applied to its rows."""
+    n_beads = len(blocks_inv)
+
+    def block_solve(x):
+        return np.einsum("bij,bj...->bi...", blocks_inv, x.reshape(n_beads, 3, *x.shape[1:])).reshape(x.shape)
+
+    return block_solve
 
 
 def _gauge_penalty(A, xy, w, iop_px, with_iop: bool):
