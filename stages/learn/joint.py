@@ -253,31 +253,82 @@ def _orientation_inverse(J, w, r, network: Network, held: slice):
         return _points_inverse(J, w, r, network)
     wf, rf = w.T.ravel(), r.T.ravel()
     JW = J.multiply(wf[:, None]).tocsr()
-    N = (J.T @ JW).toarray()
+    N = (J.T @ JW).tocsr()
     b = JW.T @ rf
     # the Jacobi scaling of the data's normal matrix (the stiff affine hold would swamp the points' diagonal)
-    d = np.sqrt(np.maximum(np.diag(N), 1e-300))
+    d = np.sqrt(np.maximum(N.diagonal(), 1e-300))
     if network.affine is not None:
-        kappa = AFFINE_STIFFNESS * float(np.max(np.diag(N)[network.point_col - held.start :]))
+        kappa = AFFINE_STIFFNESS * float(np.max(N.diagonal()[network.point_col - held.start :]))
         F = network.affine[held]
-        N += kappa * F @ F.T
         b = b - kappa * F @ network.affine_gap_mm
     E = d[:, None] * network.datum[held]
     E = E / np.linalg.norm(E, axis=0)
-    # a ridge on the beads' coordinates, in the Jacobi-scaled problem, for what no data fix beyond the datum: the
-    # depth of a bead one exposure saw (the data's gradient along it is nil too). Not on the poses and the IOP: their
-    # weakest combinations, which the field trades against, sit far below any ridge that would make a difference
-    ridge = np.zeros(len(d))
-    ridge[network.point_col - held.start :] = POINT_RIDGE
+    # the low-rank terms of the Jacobi-scaled matrix: the datum, and the affine hold (on the beads' columns)
+    U = E if network.affine is None else np.hstack([E, np.sqrt(kappa) * F / d[:, None]])
+    scaling = diags(1.0 / d)
+    solve = _bordered_inverse((scaling @ N @ scaling).tocsr(), U, network.point_col - held.start)
+
+    def solve_theta(x):
+        scale = d.reshape(d.shape + (1,) * (np.ndim(x) - 1))
+        return solve(x / scale) / scale
+
+    return solve_theta, b
+
+
+def _bordered_inverse(B: np.ndarray, U: np.ndarray, k: int):
+    """``x -> (B + diag(ridge) + U U^T)^-1 x``, the beads eliminated first (the bundle adjustment's Schur complement).
+
+    ``B`` ``(n, n)`` the Jacobi-scaled normal matrix, whose beads' block (from column ``k``) is block diagonal in 3x3
+    (each observation sees one bead); the ridge ``POINT_RIDGE`` on that block, for what no data fix beyond the datum:
+    the depth of a bead one exposure saw (the data's gradient along it is nil too). Not on the poses and the IOP:
+    their weakest combinations, which the field trades against, sit far below any ridge that would make a difference.
+    ``U`` ``(n, m)`` the datum and the affine hold. The beads' block with its part of ``U U^T`` is inverted by
+    Woodbury's identity on the 3x3 blocks, which leaves a dense Cholesky factor of the poses and the IOP alone (a
+    Cholesky factor of the whole in another order): a few percent of the whole's, and each solve a fraction.
+    """
+    blocks = _bead_blocks(B[k:, k:])
+    blocks[:, np.arange(3), np.arange(3)] += POINT_RIDGE
+    ridge = np.where(np.arange(B.shape[0]) >= k, POINT_RIDGE, 0.0)
     try:
-        factor = cho_factor(N / d[:, None] / d[None, :] + E @ E.T + np.diag(ridge))
+        blocks_inv = np.linalg.inv(blocks)
     except np.linalg.LinAlgError as exc:
-        raise EstimationError(
-            "the refinement's field step: the orientation's normal matrix is singular (an exposure with too few "
-            "observations left?); raise [adjust] min_beads_per_exposure to leave such exposures out"
-        ) from exc
-    # the factor is finite (checked by cho_factor): no check of it at every one of the CG's solves
-    return (lambda x: cho_solve(factor, x / d, check_finite=False) / d), b
+        raise _singular_orientation() from exc
+
+    block_solve = _block_solver(blocks_inv)
+    U_p = U[k:]
+    BiU = block_solve(U_p)
+    try:
+        core = cho_factor(np.eye(U.shape[1]) + U_p.T @ BiU)
+        C = B[:k, k:].toarray() + U[:k] @ U_p.T
+
+        def beads_solve(y):
+            return block_solve(y) - BiU @ cho_solve(core, BiU.T @ y, check_finite=False)
+
+        PiCt = beads_solve(C.T)
+        factor = cho_factor(B[:k, :k].toarray() + U[:k] @ U[:k].T - C @ PiCt)
+    except np.linalg.LinAlgError as exc:
+        raise _singular_orientation() from exc
+
+    def solve_once(y):
+        t = beads_solve(y[k:])
+        x_c = cho_solve(factor, y[:k] - C @ t, check_finite=False)
+        return np.concatenate([x_c, t - PiCt @ x_c])
+
+    def solve(y):
+        # one step of iterative refinement against the sparse matrix: Woodbury's identity on the stiff hold loses
+        # digits that a Cholesky factor of the whole keeps
+        x = solve_once(y)
+        r = y - (B @ x + (ridge * x.T).T + U @ (U.T @ x))
+        return x + solve_once(r)
+
+    return solve
+
+
+def _singular_orientation() -> EstimationError:
+    return EstimationError(
+        "the refinement's field step: the orientation's normal matrix is singular (an exposure with too few "
+        "observations left?); raise [adjust] min_beads_per_exposure to leave such exposures out"
+    )
 
 
 def _points_inverse(J, w, r, network: Network):
@@ -291,10 +342,7 @@ def _points_inverse(J, w, r, network: Network):
     wf, rf = w.T.ravel(), r.T.ravel()
     JW = J.multiply(wf[:, None]).tocsr()
     b = JW.T @ rf
-    n_beads = J.shape[1] // 3
-    coo = (J.T @ JW).tocoo()
-    blocks = np.zeros((n_beads, 3, 3))
-    np.add.at(blocks, (coo.row // 3, coo.row % 3, coo.col % 3), coo.data)
+    blocks = _bead_blocks(J.T @ JW)
     diag = np.einsum("bii->bi", blocks)
     d2 = np.maximum(diag, 1e-300)
     kappa = AFFINE_STIFFNESS * float(np.max(diag)) if network.affine is not None else 0.0
@@ -304,9 +352,7 @@ def _points_inverse(J, w, r, network: Network):
     except np.linalg.LinAlgError as exc:
         raise EstimationError("the refinement's field step: a bead's normal block is singular") from exc
 
-    def block_solve(x):
-        return np.einsum("bij,bj...->bi...", blocks_inv, x.reshape(n_beads, 3, *x.shape[1:])).reshape(x.shape)
-
+    block_solve = _block_solver(blocks_inv)
     if network.affine is None:
         return block_solve, b
     F = network.affine[network.point_col :]
@@ -314,6 +360,24 @@ def _points_inverse(J, w, r, network: Network):
     NiF = block_solve(F)
     core = np.linalg.inv(np.eye(F.shape[1]) / kappa + F.T @ NiF)
     return (lambda x: block_solve(x) - NiF @ (core @ (NiF.T @ x))), b
+
+
+def _bead_blocks(N) -> np.ndarray:
+    """The 3x3 diagonal blocks ``(n_beads, 3, 3)`` of the beads' block of a normal matrix (sparse, block diagonal)."""
+    coo = N.tocoo()
+    blocks = np.zeros((N.shape[0] // 3, 3, 3))
+    np.add.at(blocks, (coo.row // 3, coo.row % 3, coo.col % 3), coo.data)
+    return blocks
+
+
+def _block_solver(blocks_inv: np.ndarray):
+    """``x -> diag(blocks_inv) x`` for ``x`` ``(3 n_beads, ...)``: each bead's 3x3 inverse applied to its rows."""
+    n_beads = len(blocks_inv)
+
+    def block_solve(x):
+        return np.einsum("bij,bj...->bi...", blocks_inv, x.reshape(n_beads, 3, *x.shape[1:])).reshape(x.shape)
+
+    return block_solve
 
 
 def _gauge_penalty(A, xy, w, iop_px, with_iop: bool):

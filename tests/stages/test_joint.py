@@ -137,6 +137,34 @@ def test_points_inverse_is_the_dense_normal_matrix_inverse(linearised):
     np.testing.assert_allclose(b, J.T @ (wf * r.T.ravel()) - kappa * F @ net.affine_gap_mm, rtol=1e-12)
 
 
+def test_orientation_inverse_is_the_dense_normal_matrix_inverse(linearised):
+    # the joint step's orientation inverse (the beads eliminated first, the datum and the affine hold as borders)
+    # against a dense solve of the matrix it stands for: J^T W J + κ F F^T, plus, Jacobi-scaled, a unit curvature
+    # along each similarity mode and the ridge on the beads' diagonal
+    from fluorocal.stages.learn.joint import AFFINE_STIFFNESS, POINT_RIDGE, _orientation_inverse
+
+    adj, obs, rows, nominal = linearised
+    net = linearised_network(adj, obs, rows, 0, nominal)
+    held = slice(0, None)
+    rng = np.random.default_rng(7)
+    w, r = rng.uniform(200, 400, (len(rows), 2)), rng.normal(0, 0.05, (len(rows), 2))
+    solve, b = _orientation_inverse(net.J, w, r, net, held)
+    J, wf = net.J.toarray(), w.T.ravel()
+    N = J.T @ (wf[:, None] * J)
+    d = np.sqrt(np.diag(N))
+    kappa, F = AFFINE_STIFFNESS * np.diag(N)[net.point_col :].max(), net.affine
+    E = d[:, None] * net.datum
+    E /= np.linalg.norm(E, axis=0)
+    ridge = np.where(np.arange(len(N)) >= net.point_col, POINT_RIDGE, 0.0)
+    M = N + kappa * F @ F.T + d[:, None] * (E @ E.T + np.diag(ridge)) * d[None, :]
+    x = rng.normal(size=(len(M), 2))
+    exact = np.linalg.solve(M, x)
+    # two solves of a matrix conditioned ~1e10 agree to ~1e-7 relative
+    np.testing.assert_allclose(solve(x), exact, atol=1e-7 * np.abs(exact).max())
+    np.testing.assert_allclose(solve(x[:, 0]), exact[:, 0], atol=1e-7 * np.abs(exact).max())
+    np.testing.assert_allclose(b, J.T @ (wf * r.T.ravel()) - kappa * F @ net.affine_gap_mm, rtol=1e-12)
+
+
 @pytest.fixture(scope="module")
 def biplanar_linearised():
     """A 512 px, 6 + 6-exposure biplanar set adjusted with the true corrections held, and its two systems' rows."""
