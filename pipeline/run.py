@@ -355,15 +355,18 @@ class Runner:
     def _run_frame_stages(self, todo: dict[str, list]) -> None:
         """Compute the frame chain's missing entries on the pool or cluster, if ``compute`` asks for one.
 
-        Serial (in the loop of :meth:`run`) with ``jobs = 1``, and on a local pool of fewer
-        than :data:`~fluorocal.parallel.MIN_POOL_FRAMES` frames to do.
+        In this process, a frame at a time (:meth:`_run_frames_here`), with ``jobs = 1`` and
+        when a local pool would get fewer than :data:`~fluorocal.parallel.MIN_POOL_FRAMES` frames to do.
         """
         from fluorocal.parallel import MIN_POOL_FRAMES, run_tasks
 
         chain = self.frame_chain()
         units = sorted({u for stage in chain for u in todo[stage.name]})
         local = not self.compute.scheduler
-        if not units or (local and (self.compute.workers < 2 or len(units) < MIN_POOL_FRAMES)):
+        if not units:
+            return
+        if local and (self.compute.workers < 2 or len(units) < MIN_POOL_FRAMES):
+            self._run_frames_here(chain, todo, units)
             return
         tasks = self._frame_tasks(chain, todo, units)
         where = self.compute.scheduler or f"{min(self.compute.workers, len(tasks))} local processes"
@@ -372,6 +375,28 @@ class Runner:
         for results in run_tasks(tasks, self.compute, preload=preload):
             for result in results:
                 self._accept(result)
+        for stage in chain:
+            todo[stage.name] = []
+
+    def _run_frames_here(self, chain: list[Stage], todo: dict[str, list], units: list[int]) -> None:
+        """The frame chain in this process, one frame at a time: each frame is read once for all its stages.
+
+        (Stage by stage, every frame was read again by each stage that takes it: detect, then centroid.)
+        """
+        from tqdm import tqdm
+
+        pending = {s.name: set(todo[s.name]) for s in chain}
+        bar = tqdm(
+            units,
+            desc=f"{'+'.join(s.name for s in chain):>9}",
+            unit="frame",
+            leave=False,
+            disable=not (self.progress and sys.stderr.isatty()),
+        )
+        for u in bar:
+            for stage in chain:
+                if u in pending[stage.name]:
+                    self._compute(stage, u)
         for stage in chain:
             todo[stage.name] = []
 

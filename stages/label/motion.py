@@ -102,11 +102,12 @@ class Motion:
         axis = turntable_axis(list(rotations.values()))
         depths = dict(depths or {})
         from_neighbours, sigma = _depth_model(depths)
+        turn = _turns(rotations)
         return cls(
             axis,
-            _mean_step(rotations),
-            _prediction_sigmas(rotations, axis, True),
-            _prediction_sigmas(rotations, axis, False),
+            _mean_step(rotations, turn),
+            _prediction_sigmas(rotations, axis, True, turn),
+            _prediction_sigmas(rotations, axis, False, turn),
             depths,
             from_neighbours,
             sigma,
@@ -189,37 +190,54 @@ def _predicted_rotation(i: int, nb: tuple, rotations: dict, step: np.ndarray | N
     return Rotation.from_rotvec(step * (i - near)).as_matrix() @ rotations[near], near, True
 
 
-def _mean_step(rotations: dict) -> np.ndarray | None:
-    """The median rotation per frame (rotation vector, camera frame) between labelled frames a few frames apart."""
+def _turns(rotations: dict):
+    """``turn(j, k)``: the rotation from frame ``j`` to frame ``k`` of ``rotations`` (rotation vector, camera frame).
+
+    Each pair converted once: the leave-one-out predictions of :func:`_prediction_sigmas` take the mean
+    step of overlapping windows of frames, and scipy's conversion costs ~0.1 ms a call.
+    """
     from scipy.spatial.transform import Rotation
 
+    memo = {}
+
+    def turn(j: int, k: int) -> np.ndarray:
+        if (j, k) not in memo:
+            memo[(j, k)] = Rotation.from_matrix(rotations[k] @ rotations[j].T).as_rotvec()
+        return memo[(j, k)]
+
+    return turn
+
+
+def _mean_step(rotations: dict, turn=None) -> np.ndarray | None:
+    """The median rotation per frame (rotation vector, camera frame) between labelled frames a few frames apart.
+
+    ``turn``: :func:`_turns` of ``rotations`` or of a set holding them (default: made here).
+    """
+    turn = turn or _turns(rotations)
     frames = sorted(rotations)
-    steps = [
-        Rotation.from_matrix(rotations[k] @ rotations[j].T).as_rotvec() / (k - j)
-        for j, k in zip(frames, frames[1:])
-        if k - j <= _MAX_MOTION_GAP
-    ]
+    steps = [turn(j, k) / (k - j) for j, k in zip(frames, frames[1:]) if k - j <= _MAX_MOTION_GAP]
     return np.median(steps, axis=0) if steps else None
 
 
-def _prediction_sigmas(rotations: dict, axis: np.ndarray, both_sides: bool) -> tuple[float, float]:
+def _prediction_sigmas(rotations: dict, axis: np.ndarray, both_sides: bool, turn=None) -> tuple[float, float]:
     """1-sigma errors (rad) of the prediction about ``axis`` and across it, measured on the labelled frames.
 
     Each labelled frame with labelled frames near it (on both sides, or before it, as the prediction
     will be made) is predicted from them; the robust standard deviations of the misses about the axis
     (1.4826 x the median absolute turn) and across it (per component: the median tilt / 1.1774, the
     median of a 2D normal's length in its sigmas), floored at ``_MIN_SIGMA_DEG``. ``_DEFAULT_SIGMA_DEG``
-    until ``_MIN_RESIDUALS`` frames show them.
+    until ``_MIN_RESIDUALS`` frames show them. ``turn``: :func:`_turns` of ``rotations`` (default: made here).
     """
     from scipy.spatial.transform import Rotation
 
+    turn = turn or _turns(rotations)
     misses = []
     for j in rotations:
         others = {k: R for k, R in rotations.items() if k != j and abs(k - j) <= _MAX_MOTION_GAP}
         nb = neighbours(j, others)
         if (both_sides and None in nb) or nb[0] is None:
             continue
-        R, _, known = _predicted_rotation(j, nb if both_sides else (nb[0], None), others, _mean_step(others))
+        R, _, known = _predicted_rotation(j, nb if both_sides else (nb[0], None), others, _mean_step(others, turn))
         if known:
             misses.append(Rotation.from_matrix(rotations[j] @ R.T).as_rotvec())
     if len(misses) < _MIN_RESIDUALS:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from functools import lru_cache
 
 import numpy as np
 import pytest
@@ -199,3 +200,30 @@ def test_an_artifact_counted_cached_then_recomputed_counts_computed():
     report.record("label", [1], "cached")
     assert report.computed == {"label": 3} and report.cached == {"label": 0}
     assert not any("nothing recomputed" in line for line in report.lines())
+
+
+def _frame_peak(radiograph, mean: toy.Value, params: toy.ScaleParams) -> toy.Value:
+    return toy.Value(np.array([float(radiograph.image.max()) - mean.value[0]]))
+
+
+def test_a_serial_run_reads_each_frame_once_for_every_stage_that_takes_it(tmp_path, monkeypatch):
+    from fluorocal import run as run_module
+    from fluorocal.compute import ComputeConfig
+    from fluorocal.graph import Stage
+
+    cfg = make_project(tmp_path, n_frames=3)
+    stages = [toy_stages()[0], Stage("peak", _frame_peak, toy.ScaleParams, ("frame", "mean"))]
+    config = load_config(cfg, stage_params_allowed={s.name: s.params_cls for s in stages})
+    reads = []
+    real = run_module._read_file_frames.__wrapped__
+
+    def counted(path, sha):
+        reads.append(path.name)
+        return real(path, sha)
+
+    monkeypatch.setattr(run_module, "_read_file_frames", lru_cache(maxsize=2)(counted))
+    runner = Runner(config, stages, ArtifactCache(config.cache_dir), progress=False, compute=ComputeConfig(jobs=1))
+    report = runner.run()
+    assert report.computed == {"mean": 3, "peak": 3}
+    assert sorted(reads) == ["f0.tif", "f1.tif", "f2.tif"]  # stage by stage: 6 reads (3 frames, 2 cached slots)
+    assert [runner.get("peak", u).value[0] for u in range(3)] == [0.0, 0.0, 0.0]
