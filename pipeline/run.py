@@ -552,7 +552,8 @@ class Runner:
         rows = []
         for stage in self.stages:
             keys = [self.keys[(stage.name, u)] for u in self._stage_units(stage)]
-            present = [k for k in keys if self.cache.has(stage.name, k)]
+            # intact entries only: a tampered or corrupt one is what `run` recomputes, not "cached"
+            present = [k for k in keys if self.cache.verify(stage.name, k, warn=False)]
             others = set(self.cache.keys(stage.name)) - set(keys)
             status = "cached" if len(present) == len(keys) else ("stale" if others or present else "missing")
             size = sum(self.cache.size_bytes(stage.name, k) for k in present)

@@ -94,6 +94,21 @@ def test_inspect_reads_no_untrusted_type(project, tmp_path, capsys):
     assert not marker.exists()
 
 
+def test_inspect_does_not_call_a_tampered_entry_cached(project, tmp_path):
+    # benchmarks/attack.py manifest_os_system_learn_inspect: `inspect` said "cached 1/1" for an entry `run` recomputes
+    runner = _runner(project)
+    runner.run()
+    key = runner.keys[("scale", 0)]
+
+    def inject(manifest):
+        manifest["artifact"] = {"__dataclass__": "os:system", "fields": {"command": "true"}}
+
+    _rewrite_manifest(runner.cache.entry_dir("scale", key), inject, fix_checksum=True)
+    status = {r["stage"]: (r["status"], r["n"] - r["cached"]) for r in _runner(project).status()}
+    assert status["scale"] == ("stale", 1)  # the tampered entry alone is not counted
+    assert status["mean"] == ("cached", 0)
+
+
 def test_decoding_builds_only_registered_classes_with_their_own_fields():
     types = {"tests.pipeline.toy:Value": toy.Value}
     tree = {"__dataclass__": "tests.pipeline.toy:Value", "fields": {"value": {"__array__": "v"}, "note": "x"}}
