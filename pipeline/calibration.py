@@ -162,13 +162,19 @@ def _system_from_doc(s: dict, path: Path) -> "SystemCalibration":
             read[name] = _read_field(field_file(path, name), w, h)
         return read[name]
 
+    try:
+        safe_name(s["name"], what="system name")
+    except InputError as exc:
+        raise ArtifactError(f"{path}: {exc}") from None
+    iop = np.array([s["iop_px"]["xp"], s["iop_px"]["yp"], s["iop_px"]["c"]], dtype=float)
+    if not (np.isfinite(iop).all() and iop[2] > 0):
+        raise ArtifactError(f"{path}: system {s['name']}: iop_px must be finite with c > 0; got {iop.tolist()}")
     orientations = tuple(_orientation_from_doc(o, path, field_of) for o in s.get("orientations", []))
     field = field_of(s["field"]) if "field" in s or not orientations else None
-    iop = s["iop_px"]
     return SystemCalibration(
         s["name"],
         (w, h),
-        np.array([iop["xp"], iop["yp"], iop["c"]], dtype=float),
+        iop,
         np.array([np.nan if v is None else v for v in s.get("iop_std_px", [0.0, 0.0, 0.0])], dtype=float),
         np.array(s["rop"]["q_cam_from_ref"], dtype=float),
         np.array(s["rop"]["source_in_ref_camera_mm"], dtype=float),
@@ -260,6 +266,8 @@ class Calibration:
             doc = json.loads(raw)
         except (OSError, ValueError) as exc:
             raise ArtifactError(f"{path}: cannot read calibration ({exc})") from exc
+        except RecursionError:
+            raise ArtifactError(f"{path}: not a {SCHEMA} file (JSON nested too deeply)") from None
         if not isinstance(doc, dict):
             raise ArtifactError(f"{path}: not a {SCHEMA} file (a JSON {type(doc).__name__}, not an object)")
         if doc.get("schema") != SCHEMA or doc.get("schema_version") not in READ_VERSIONS:
@@ -277,6 +285,9 @@ class Calibration:
             if isinstance(exc, ArtifactError):
                 raise
             raise ArtifactError(f"{path}: malformed calibration ({type(exc).__name__}: {exc})") from exc
+        names = [s.name for s in systems]
+        if len(set(names)) != len(names):
+            raise ArtifactError(f"{path}: malformed calibration (system names must differ; got {names})")
         meta = {k: v for k, v in doc.items() if k not in ("systems", "exposures")}
         cal = cls(systems, exposures, meta)
         cal.path, cal._content_sha256 = path, _content_sha256(path, raw, doc)
