@@ -94,6 +94,25 @@ def test_inspect_reads_no_untrusted_type(project, tmp_path, capsys):
     assert not marker.exists()
 
 
+@pytest.mark.parametrize("artifact", [{"__dict__": {"value": 1}}, {"__tuple__": [1, 2]}, 7])
+def test_an_entry_decoding_into_another_type_is_recomputed(project, artifact):
+    # benchmarks/attack.py manifest_dict_payload: a label entry edited to a plain dict (checksums recomputed)
+    # decoded, and the run died on it with an AttributeError traceback
+    runner = _runner(project)
+    runner.run()
+    _rewrite_manifest(
+        runner.cache.entry_dir("scale", runner.keys[("scale", 0)]),
+        lambda m: m.__setitem__("artifact", artifact),
+        fix_checksum=True,
+    )
+    CALLS.clear()
+    rerun = _runner(project)
+    rerun.run()
+    with pytest.warns(CacheWarning, match="scale/.*not the stage's Value"):
+        value = rerun.get("scale", 0)  # what writing the outputs reads
+    assert value.value[0] == pytest.approx(200.0) and CALLS == {"scale": 1}
+
+
 def test_inspect_does_not_call_a_tampered_entry_cached(project, tmp_path):
     # benchmarks/attack.py manifest_os_system_learn_inspect: `inspect` said "cached 1/1" for an entry `run` recomputes
     runner = _runner(project)
