@@ -29,6 +29,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
 import resource
 import shutil
 import signal
@@ -153,6 +154,8 @@ def snapshot(root: Path) -> dict[str, tuple]:
                 snap[rel] = ("link", os.readlink(p))
             elif stat.S_ISDIR(st.st_mode):
                 snap[rel] = ("dir",)
+            elif not stat.S_ISREG(st.st_mode):  # a FIFO or device: never opened (it would block)
+                snap[rel] = ("special", st.st_mode)
             else:
                 try:
                     digest = hashlib.sha256(p.read_bytes()).hexdigest()
@@ -212,8 +215,17 @@ def default_runner(c: Ctx, commands: list[list[str]], nobody=False) -> list[tupl
     return [run_cmd(argv, c.proj, nobody=nobody) for argv in commands]
 
 
+ERROR_LINE = re.compile(r"fluorocal( [a-z]+)*: error: ")
+
+
 def error_lines(text: str) -> list[str]:
-    return [ln for ln in text.splitlines() if ln.strip() and "warning" not in ln.lower()[:40]]
+    """The lines of a command's output that are not warnings nor argparse's usage lines."""
+    lines, usage = [], False
+    for ln in text.splitlines():
+        usage = ln.startswith("usage:") or (usage and ln.startswith(" "))
+        if ln.strip() and not usage and "warning" not in ln.lower()[:40]:
+            lines.append(ln)
+    return lines
 
 
 def judge(case: Case, c: Ctx, results, before, after, seconds) -> Outcome:
@@ -225,8 +237,8 @@ def judge(case: Case, c: Ctx, results, before, after, seconds) -> Outcome:
         message = " / ".join(f"[{r}] {(error_lines(o) or [''])[-1][:90]}" for r, o in results)
     clear = (
         rc == 2
-        and len([ln for ln in lines if ln.startswith("fluorocal: error:")]) == 1
-        and message.startswith("fluorocal: error:")
+        and len([ln for ln in lines if ERROR_LINE.match(ln)]) == 1
+        and ERROR_LINE.match(message) is not None
         and (not case.hints or any(h.lower() in message.lower() for h in case.hints))
     )
     wrong = None
@@ -695,36 +707,36 @@ def _can_mount() -> bool:
 CAN_MOUNT = _can_mount()
 
 
-def full_disk(folder: str, free_kb: int):
-    """``proj/folder`` on a tmpfs with ``free_kb`` free: the first command fills it; grown, the rest run.
+def full_disk(free_kb: int):
+    """The project on a tmpfs with ``free_kb`` free: the first command fills it; the disk grown, the rest run.
 
     Without mount rights: RLIMIT_FSIZE of ``free_kb`` on the first command (EFBIG rather than ENOSPC).
     """
 
     def runner(c: Ctx, commands):
-        target = c.proj / folder
         if not CAN_MOUNT:
             first = [run_cmd(commands[0], c.proj, fsize=free_kb * 1024)]
             return first + [run_cmd(a, c.proj) for a in commands[1:]]
-        keep = c.root / f"{folder}.keep"
-        shutil.move(target, keep)
-        target.mkdir()
-        used = sum(p.stat().st_size for p in keep.rglob("*") if p.is_file())
-        size_kb = used // 1024 + 64 * len(list(keep.rglob("*"))) // 16 + free_kb + 64
-        subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kb}k", "tmpfs", target], check=True)
+        keep = c.root / "proj.keep"
+        os.rename(c.proj, keep)
+        c.proj.mkdir()
+        subprocess.run(["mount", "-t", "tmpfs", "-o", "size=400m", "tmpfs", c.proj], check=True)
         try:
             for p in keep.iterdir():
-                shutil.move(p, target / p.name)
+                shutil.move(p, c.proj / p.name)
             keep.rmdir()
+            st = os.statvfs(c.proj)
+            used_kb = (st.f_blocks - st.f_bfree) * st.f_frsize // 1024
+            subprocess.run(["mount", "-o", f"remount,size={used_kb + free_kb}k", c.proj], check=True)
             first = run_cmd(commands[0], c.proj)
-            subprocess.run(["mount", "-o", "remount,size=200m", target], check=True)
+            subprocess.run(["mount", "-o", "remount,size=400m", c.proj], check=True)
             rest = [run_cmd(a, c.proj) for a in commands[1:]]
-            # copy out before unmounting, so the snapshot and the result check see what the runs left
-            shutil.copytree(target, c.root / f"{folder}.final", symlinks=True)
+            # copied off the tmpfs before unmounting, so the snapshot and the result check see what the runs left
+            shutil.copytree(c.proj, keep, symlinks=True)
         finally:
-            subprocess.run(["umount", "-l", target])
-        target.rmdir()
-        shutil.move(c.root / f"{folder}.final", target)
+            subprocess.run(["umount", "-l", c.proj])
+        c.proj.rmdir()
+        os.rename(keep, c.proj)
         return [first] + rest
 
     return runner
@@ -893,7 +905,7 @@ def all_cases() -> list[Case]:
         ("nul", '"frames/A/\\u0000*.tif"'),
         ("list_of_int", "[1, 2]"),
     ):
-        add(f"frames_{label}", "config", _cfg_key("frames", value), hints=("frames",))
+        add(f"frames_{label}", "config", _cfg_key("frames", value), hints=("frames", "/etc/"))
     add(
         "frames_outside_project",
         "config",
@@ -974,8 +986,16 @@ def all_cases() -> list[Case]:
     add("scheme_unknown", "config", _cfg_edit('scheme = "knn+iop+smooth"', 'scheme = "magic"'), hints=("scheme",))
     add("scheme_int", "config", _cfg_edit('scheme = "knn+iop+smooth"', "scheme = 3"), hints=("scheme",))
     add("compute_scheduler", "config", _cfg_append("[compute]\nscheduler = 'tcp://evil:8786'"), hints=("scheduler",))
-    for label, value in (("neg", "-1"), ("zero", "0"), ("str", '"x"'), ("huge", "100000000"), ("float", "1.5")):
+    for label, value in (("neg", "-1"), ("zero", "0"), ("str", '"x"'), ("float", "1.5")):
         add(f"compute_jobs_{label}", "config", _cfg_append(f"[compute]\njobs = {value}"), hints=("jobs",))
+    add(
+        "compute_jobs_huge",
+        "config",
+        _cfg_append("[compute]\njobs = 100000000"),
+        expect="either",
+        note="DEBATABLE: accepted; the pool starts min(jobs, frames to compute) workers, so the number is bounded "
+        "by the work, not refused",
+    )
     add("compute_threads_zero", "config", _cfg_append("[compute]\nthreads = 0"), hints=("threads",))
     add("stage_unknown_key", "config", _cfg_append("[detect]\nbogus = 1"), hints=("bogus",))
     add("stage_owned_key", "config", _cfg_append("[learn]\nsmooth = true"), hints=("smooth",))
@@ -1099,6 +1119,15 @@ def all_cases() -> list[Case]:
             _phantom_cell(3, col, value),
             hints=("phantom.csv",),
             **({"expect": "either"} if label in ("id_negative", "role_garbage") else {}),
+            **(
+                {
+                    "expect": "either",
+                    "check": lambda c: same_as_clean(c, tol_mm=0.05),
+                    "note": "DEBATABLE: 'nan' reads as an empty cell, a diameter not given (the column is optional)",
+                }
+                if label == "nan_diameter"
+                else {}
+            ),
         )
     add(
         "phantom_missing_column",
@@ -1677,8 +1706,9 @@ def all_cases() -> list[Case]:
         return lambda c: {"__dataclass__": ref, "fields": {"command": _touch_cmd(c), "args": [_touch_cmd(c)]}}
 
     for stage in ("label", "learn"):
-        for ref in ("os:system", "subprocess:getoutput", "builtins:eval", "posix:system", "pty:spawn"):
-            for cmd in ("run",) if stage == "learn" and ref != "os:system" else ("run", "inspect"):
+        refs = ("os:system", "subprocess:getoutput", "builtins:eval", "posix:system", "pty:spawn")
+        for ref in refs if stage == "label" else refs[:1]:  # a learn entry recomputed costs a learning run
+            for cmd in ("run", "inspect"):
                 add(
                     f"manifest_{ref.replace(':', '_')}_{stage}_{cmd}",
                     T,
@@ -2038,6 +2068,9 @@ def all_cases() -> list[Case]:
         lambda c: [fluorocal("detect", "--out", c.proj / "det.csv", c.proj / "one.tif")],
         hints=("one.tif",),
         allow=("proj/det.csv",),
+        expect="either",
+        check=lambda c: None if len((c.proj / "det.csv").read_text().splitlines()) <= 1 else "beads in a 1x1 frame",
+        note="DEBATABLE: the debugging command reports the frame (no field of view, no candidates), writes no row",
     )
 
     def det_csv(text):
@@ -2074,7 +2107,21 @@ def all_cases() -> list[Case]:
         ("inf_sigma", head + "f.tif,0,1,2,inf,0.1,0,5,5\n"),
         ("negative_frame", head + "f.tif,-1,1,2,0.1,0.1,0,5,5\n"),
     ):
-        add(f"label_detections_{label}", CMD, det_csv(text), lab(), hints=("det.csv",), allow=("proj/lab.csv",))
+        documented = label in ("nan_x", "inf_sigma", "negative_frame")
+        add(
+            f"label_detections_{label}",
+            CMD,
+            det_csv(text),
+            lab(),
+            hints=("det.csv",),
+            allow=("proj/lab.csv",),
+            expect="either" if documented else "refuse",
+            check=lambda c: None if len((c.proj / "lab.csv").read_text().splitlines()) <= 1 else "labels from nothing",
+            note="DEBATABLE: a non-finite detection is a failed fit by the CSV's definition (README); the frame's "
+            "labelling fails with its reason, no label is written"
+            if documented
+            else "",
+        )
     add("label_sid_nan", CMD, det_csv(head), lab("--sid", "nan"), hints=("sid",), allow=("proj/lab.csv",))
     add(
         "label_image_size_negative",
@@ -2344,7 +2391,7 @@ def all_cases() -> list[Case]:
         rerun("--force", "label"),
         expect="ok",
         check=clean_and_no_leftovers,
-        runner=full_disk(".fluorocal", 40),
+        runner=full_disk(40),
         hints=("space", "too large"),
     )
     add(
@@ -2354,7 +2401,7 @@ def all_cases() -> list[Case]:
         rerun(),
         expect="ok",
         check=clean_and_no_leftovers,
-        runner=full_disk("out", 200),
+        runner=full_disk(200),
         hints=("space", "too large"),
     )
     add(
@@ -2364,7 +2411,7 @@ def all_cases() -> list[Case]:
         rerun(),
         expect="ok",
         check=clean_and_no_leftovers,
-        runner=full_disk("out", 4),
+        runner=full_disk(8),
         hints=("space", "too large"),
     )
     add(
@@ -2395,7 +2442,7 @@ def all_cases() -> list[Case]:
         ],
         expect="ok",
         check=undistorted_ok("proj/out/und2", 4),
-        runner=full_disk("out", 300),
+        runner=full_disk(300),
         hints=("space", "too large"),
     )
     return K
