@@ -196,7 +196,7 @@ def _preexec(nobody: bool, fsize: int | None):
 
 
 def run_cmd(argv: list[str], cwd: Path, *, nobody=False, fsize=None, timeout=900) -> tuple[int, str]:
-    if nobody:  # root without the capabilities that override file permissions: read-only means read-only
+    if nobody and os.geteuid() == 0:  # root without the capabilities that override permissions: read-only is read-only
         argv = [*UNPRIVILEGED, *argv]
     p = subprocess.run(
         argv,

@@ -165,7 +165,7 @@ def _resolve_frames(value, root: Path, path: Path, section: str) -> tuple[Path, 
 def _check_regular(files, path: Path, section: str) -> None:
     """Refuse a frame that is a device or a pipe (``/dev/zero`` is read, and hashed, forever)."""
     for f in files:
-        if os.path.exists(f) and not stat.S_ISREG(os.stat(f).st_mode):
+        if os.path.exists(f) and not os.path.isdir(f) and not stat.S_ISREG(os.stat(f).st_mode):  # folders: below
             raise ConfigError(f"{_where(path, section, 'frames')}: {f} is not a regular file; list frame files")
 
 
@@ -352,6 +352,17 @@ def check_writable_dir(folder: Path, *, where: str) -> None:
         raise ConfigError(f"{where}: {probe} is not writable; fix its permissions or choose another folder")
 
 
+def _parse_toml(path: Path) -> dict:
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        return tomllib.loads(read_text(path))
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path.name}: not valid TOML ({exc})") from exc
+    except RecursionError:
+        raise ConfigError(f"{path.name}: not a project file (arrays or tables nested too deeply)") from None
+
+
 def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | None = None) -> Config:
     """Read and validate a project TOML file.
 
@@ -369,14 +380,7 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
         message names the file and key.
     """
     path = Path(path).resolve()
-    if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
-    try:
-        data = tomllib.loads(read_text(path))
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path.name}: not valid TOML ({exc})") from exc
-    except RecursionError:
-        raise ConfigError(f"{path.name}: not a project file (arrays or tables nested too deeply)") from None
+    data = _parse_toml(path)
     stage_params_allowed = stage_params_allowed or {}
     _reject_unknown(
         data, {"phantom", "systems", "calibration", "output", "cache", "compute"} | set(stage_params_allowed), path, ""

@@ -317,3 +317,13 @@ def test_a_cache_another_process_makes_meanwhile_is_accepted(tmp_path, monkeypat
     (root / "notes.txt").write_text("a user's file")
     with pytest.raises(InputError, match="holds files that are not a fluorocal cache"):
         ArtifactCache(root).prepare_root()  # a stranger's folder is still refused
+
+
+def test_each_stage_entry_has_its_kind_including_the_per_system_label_stage():
+    # benchmarks/attack.py manifest_dict_payload: the label stage returns a tuple per system, one Labels per
+    # frame's entry; without its kind a label entry edited into a dict still reached the run (AttributeError)
+    from fluorocal.artifact_codec import stage_kinds
+    from fluorocal.graph import default_stages
+    from fluorocal.stages.label import Labels
+
+    assert stage_kinds(default_stages())["label"] is Labels
