@@ -79,6 +79,19 @@ def artifact_types(stages=()) -> dict[str, type]:
     return found
 
 
+def stage_kinds(stages) -> dict[str, type]:
+    """Stage name -> the class its function returns (stages whose annotation names one class only)."""
+    kinds = {}
+    for stage in stages:
+        hint = _return_hint(stage.func)
+        args = typing.get_args(hint)
+        if getattr(stage, "per_system", False) and typing.get_origin(hint) is tuple and args[1:] == (Ellipsis,):
+            hint = args[0]  # a per-system stage returns its sequence; each frame's entry holds one element
+        if isinstance(hint, type):
+            kinds[stage.name] = hint
+    return kinds
+
+
 def _return_hint(func):
     try:
         return typing.get_type_hints(func).get("return")

@@ -145,6 +145,7 @@ class ArtifactCache:
     def __init__(self, root: str | os.PathLike, types: dict[str, type] | None = None):
         self.root = Path(root)
         self._types = dict(types) if types is not None else None
+        self._kinds: dict[str, type] = {}
 
     # --- names and the registry ----------------------------------------------------------------
 
@@ -157,9 +158,14 @@ class ArtifactCache:
             self._types = artifact_types(default_stages())
         return self._types
 
-    def register(self, types: dict[str, type]) -> None:
-        """Trust ``types`` (a runner's stages' artifact classes) as well."""
+    def register(self, types: dict[str, type], kinds: dict[str, type] | None = None) -> None:
+        """Trust ``types`` (a runner's stages' artifact classes) as well; ``kinds``: what each stage's entries hold.
+
+        An entry whose artifact decodes into a registered type other than its stage's kind (a manifest edited
+        to hold a plain dict, or another stage's artifact) is a miss like any other tampered entry.
+        """
         self._types = {**(self._types or {}), **types}
+        self._kinds.update(kinds or {})
 
     def entry_dir(self, stage: str, key: str) -> Path:
         """``<root>/<stage>/<key>``; raises ValueError for a name the cache would not write."""
@@ -190,7 +196,11 @@ class ArtifactCache:
         try:
             with np.load(self.entry_dir(stage, key) / ARRAYS, allow_pickle=False) as npz:
                 arrays = {k: npz[k] for k in npz.files}
-            return decode(manifest["artifact"], arrays, self.types)
+            artifact = decode(manifest["artifact"], arrays, self.types)
+            kind = self._kinds.get(stage)
+            if kind is not None and not isinstance(artifact, kind):
+                raise UntrustedData(f"holds a {type(artifact).__name__}, not the stage's {kind.__name__}")
+            return artifact
         except Exception as exc:  # any failure to read is a miss, never fatal
             if warn:
                 _warn_unreadable(stage, key, exc)

@@ -23,13 +23,19 @@ from __future__ import annotations
 import hashlib
 import json
 import operator
-import zipfile
-import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from fluorocal.calibration_doc import (
+    FIELD_ARRAYS,
+    MAX_IMAGE_SIDE_PX,
+    checked_name,
+    field_file,
+    image_size,
+    read_field,
+)
 from fluorocal.maps import cached_maps, orientation_key
 from fluorocal.outputs import inside, safe_name
 from fluorocal.stages.errors import ArtifactError, InputError, ShapeError
@@ -52,9 +58,6 @@ SCHEMA = "fluorocal-calibration"
 #: the version written; version 1 (one field per system, no orientations) is read as well
 SCHEMA_VERSION = 2
 READ_VERSIONS = (1, 2)
-FIELD_ARRAYS = ("x_nodes_px", "y_nodes_px", "delta_px", "sigma_px", "support")
-#: largest image side a calibration may give, px (DICOM's Rows and Columns are 16-bit)
-MAX_IMAGE_SIDE_PX = 65535
 #: the frame dtypes cv2.remap resamples
 _REMAP_DTYPES = tuple(np.dtype(t) for t in (np.uint8, np.uint16, np.int16, np.float32, np.float64))
 
@@ -100,19 +103,6 @@ class SystemCalibration:
         return [o.name for o in self.orientations]
 
 
-def _image_size(value, path: Path) -> tuple[int, int]:
-    ok = (
-        isinstance(value, list)
-        and len(value) == 2
-        and all(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_IMAGE_SIDE_PX for v in value)
-    )
-    if not ok:
-        raise ArtifactError(
-            f"{path}: image_size_px must be [width, height], integers in 1..{MAX_IMAGE_SIDE_PX}; got {value!r}"
-        )
-    return value[0], value[1]
-
-
 def _output_size(value) -> tuple[int, int]:
     """``(width, height)``: two integers in 1..:data:`MAX_IMAGE_SIDE_PX`, else InputError."""
     try:
@@ -124,51 +114,26 @@ def _output_size(value) -> tuple[int, int]:
     return w, h
 
 
-def field_file(path: Path, name) -> Path:
-    """The field file ``name`` a calibration at ``path`` refers to: a bare name, in the calibration's folder.
-
-    Raises
-    ------
-    ArtifactError
-        ``name`` is not a bare file name (absolute, a folder, ``..``) or resolves outside the folder.
-    """
-    if not isinstance(name, str) or not name or Path(name).name != name or name in (".", "..") or "\\" in name:
-        raise ArtifactError(f"{path}: field file must be a bare file name beside the calibration; got {name!r}")
-    try:
-        return inside(path.parent, name)
-    except InputError as exc:
-        raise ArtifactError(f"{path}: field file {name!r}: {exc}") from exc
-
-
-def _read_field(file: Path, w: int, h: int) -> CorrectionField:
-    try:
-        with open(file, "rb") as fh:  # opened here so that a corrupt file is closed too
-            npz = np.load(fh, allow_pickle=False)
-            if not isinstance(npz, np.lib.npyio.NpzFile):
-                raise ValueError("a single array, not an .npz archive of the field's arrays")
-            with npz:
-                return CorrectionField(*(npz[k] for k in FIELD_ARRAYS), w, h)
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        raise ArtifactError(f"{file}: unreadable or corrupt field file ({type(exc).__name__}: {exc})") from exc
-
-
 def _system_from_doc(s: dict, path: Path) -> "SystemCalibration":
-    w, h = _image_size(s["image_size_px"], path)
+    w, h = image_size(s["image_size_px"], path)
     read: dict[str, CorrectionField] = {}  # by file name: a single orientation shares the system's field file
 
     def field_of(entry) -> CorrectionField:
         name = entry["file"]
         if name not in read:
-            read[name] = _read_field(field_file(path, name), w, h)
+            read[name] = read_field(field_file(path, name), w, h)
         return read[name]
 
+    checked_name(s["name"], path, "system name")
+    iop = np.array([s["iop_px"]["xp"], s["iop_px"]["yp"], s["iop_px"]["c"]], dtype=float)
+    if not (np.isfinite(iop).all() and iop[2] > 0):
+        raise ArtifactError(f"{path}: system {s['name']}: iop_px must be finite with c > 0; got {iop.tolist()}")
     orientations = tuple(_orientation_from_doc(o, path, field_of) for o in s.get("orientations", []))
     field = field_of(s["field"]) if "field" in s or not orientations else None
-    iop = s["iop_px"]
     return SystemCalibration(
         s["name"],
         (w, h),
-        np.array([iop["xp"], iop["yp"], iop["c"]], dtype=float),
+        iop,
         np.array([np.nan if v is None else v for v in s.get("iop_std_px", [0.0, 0.0, 0.0])], dtype=float),
         np.array(s["rop"]["q_cam_from_ref"], dtype=float),
         np.array(s["rop"]["source_in_ref_camera_mm"], dtype=float),
@@ -178,11 +143,7 @@ def _system_from_doc(s: dict, path: Path) -> "SystemCalibration":
 
 
 def _orientation_from_doc(o: dict, path: Path, field_of) -> OrientationField:
-    name = o["name"]
-    try:
-        safe_name(name, what="orientation name")
-    except InputError as exc:
-        raise ArtifactError(f"{path}: {exc}") from None
+    name = checked_name(o["name"], path, "orientation name")
     return OrientationField(name, o.get("orbit_deg"), o.get("tilt_deg"), field_of(o["field"]))
 
 
@@ -258,7 +219,7 @@ class Calibration:
         try:
             raw = path.read_bytes()
             doc = json.loads(raw)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, RecursionError) as exc:  # RecursionError: JSON nested too deeply
             raise ArtifactError(f"{path}: cannot read calibration ({exc})") from exc
         if not isinstance(doc, dict):
             raise ArtifactError(f"{path}: not a {SCHEMA} file (a JSON {type(doc).__name__}, not an object)")
@@ -277,6 +238,9 @@ class Calibration:
             if isinstance(exc, ArtifactError):
                 raise
             raise ArtifactError(f"{path}: malformed calibration ({type(exc).__name__}: {exc})") from exc
+        names = [s.name for s in systems]
+        if len(set(names)) != len(names):
+            raise ArtifactError(f"{path}: malformed calibration (system names must differ; got {names})")
         meta = {k: v for k, v in doc.items() if k not in ("systems", "exposures")}
         cal = cls(systems, exposures, meta)
         cal.path, cal._content_sha256 = path, _content_sha256(path, raw, doc)

@@ -97,6 +97,7 @@ def _read_observations(path: Path):
 def run(args) -> int:
     """Read, adjust and write the outputs; return the exit code."""
     import logging
+    import math
 
     from fluorocal.stages.adjust import FreeParameters, SolverOptions, adjust_bundle, initial_orientation
     from fluorocal.stages.errors import InputError
@@ -104,8 +105,10 @@ def run(args) -> int:
     from fluorocal.stages.io import read_phantom
 
     log = logging.getLogger("fluorocal")
-    if args.sid <= 0 or args.pixel_pitch <= 0:
-        raise InputError(f"--sid and --pixel-pitch must be > 0; got {args.sid}, {args.pixel_pitch}")
+    if not (0 < args.sid < math.inf and 0 < args.pixel_pitch < math.inf):  # NaN and inf fail too
+        raise InputError(f"--sid and --pixel-pitch must be finite and > 0; got {args.sid}, {args.pixel_pitch}")
+    if min(args.image_size) <= 0:
+        raise InputError(f"--image-size must be two positive numbers of px; got {' '.join(map(str, args.image_size))}")
     phantom = read_phantom(args.phantom)
     obs, rows, corrections = _read_observations(args.observations)
     w, h = args.image_size
@@ -131,7 +134,14 @@ def run(args) -> int:
         res.usable,
         out,
     )
-    return 0 if res.usable else 1
+    if not res.usable:  # said in one line even with --quiet, not a bare exit code
+        from fluorocal.stages.errors import EstimationError
+
+        raise EstimationError(
+            f"the adjustment of {args.observations} is not usable (σ0 {res.sigma0:.3g}, {res.stop_reason}); "
+            f"its tables are in {out}; check --sid, --pixel-pitch and --image-size against the frames"
+        )
+    return 0
 
 
 def _write_tables(out: Path, obs, table: dict, res) -> None:

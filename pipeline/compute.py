@@ -171,7 +171,7 @@ def config_threads(config_path: Path | None) -> int | None:
     try:
         table = tomllib.loads(Path(config_path).read_bytes().decode("utf-8-sig")).get("compute", {})
         return compute_from_table(table, Path(config_path).name).threads
-    except (OSError, ValueError, AttributeError):  # InputError and TOML errors are ValueErrors
+    except (OSError, ValueError, AttributeError, RecursionError):  # InputError and TOML errors are ValueErrors
         return None
 
 

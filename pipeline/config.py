@@ -11,6 +11,7 @@ import dataclasses
 import glob
 import math
 import os
+import stat
 import tomllib
 import types
 import typing
@@ -121,6 +122,8 @@ def _expect(value, kind, what: str, path: Path, section: str, key: str):
     ok = isinstance(value, kind) and not (kind in ((int, float), float) and isinstance(value, bool))
     if not ok:
         raise ConfigError(f"{_where(path, section, key)}: expected {what}; got {value!r}")
+    if isinstance(value, str) and "\x00" in value:  # no file name or name holds one; the OS refuses it mid-run
+        raise ConfigError(f"{_where(path, section, key)}: expected {what}; got {value!r} with a NUL character")
     return value
 
 
@@ -143,9 +146,11 @@ def _resolve_frames(value, root: Path, path: Path, section: str) -> tuple[Path, 
                 f"{_where(path, section, 'frames')}: {value!r} matches the folder {folders[0]}; "
                 "use a pattern that matches frame files only (e.g. frames/*.dcm)"
             )
+        _check_regular(matches, path, section)
         return tuple(Path(m) for m in matches)
     if isinstance(value, list) and value and all(isinstance(v, str) for v in value):
         files = tuple(root / v for v in value)
+        _check_regular(files, path, section)
         for f in files:
             if f.is_dir():
                 raise ConfigError(f"{_where(path, section, 'frames')}: {f} is a folder; list frame files")
@@ -155,6 +160,13 @@ def _resolve_frames(value, root: Path, path: Path, section: str) -> tuple[Path, 
     raise ConfigError(
         f"{_where(path, section, 'frames')}: expected a glob string or a non-empty list of files; got {value!r}"
     )
+
+
+def _check_regular(files, path: Path, section: str) -> None:
+    """Refuse a frame that is a device or a pipe (``/dev/zero`` is read, and hashed, forever)."""
+    for f in files:
+        if os.path.exists(f) and not os.path.isdir(f) and not stat.S_ISREG(os.stat(f).st_mode):  # folders: below
+            raise ConfigError(f"{_where(path, section, 'frames')}: {f} is not a regular file; list frame files")
 
 
 def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
@@ -340,6 +352,17 @@ def check_writable_dir(folder: Path, *, where: str) -> None:
         raise ConfigError(f"{where}: {probe} is not writable; fix its permissions or choose another folder")
 
 
+def _parse_toml(path: Path) -> dict:
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        return tomllib.loads(read_text(path))
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path.name}: not valid TOML ({exc})") from exc
+    except RecursionError:
+        raise ConfigError(f"{path.name}: not a project file (arrays or tables nested too deeply)") from None
+
+
 def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | None = None) -> Config:
     """Read and validate a project TOML file.
 
@@ -357,12 +380,7 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
         message names the file and key.
     """
     path = Path(path).resolve()
-    if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
-    try:
-        data = tomllib.loads(read_text(path))
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path.name}: not valid TOML ({exc})") from exc
+    data = _parse_toml(path)
     stage_params_allowed = stage_params_allowed or {}
     _reject_unknown(
         data, {"phantom", "systems", "calibration", "output", "cache", "compute"} | set(stage_params_allowed), path, ""

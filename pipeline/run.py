@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
-from fluorocal.artifact_codec import artifact_types, decode
+from fluorocal.artifact_codec import artifact_types, decode, stage_kinds
 from fluorocal.cache import ArtifactCache, artifact_key, file_sha256
 from fluorocal.compute import ComputeConfig
 from fluorocal.config import Config, params_from_dict
@@ -228,7 +228,8 @@ class Runner:
         if until:
             stages = stages[: names.index(until) + 1]
         self.config, self.stages, self.cache = config, stages, cache
-        cache.register(artifact_types(stages))  # what entries may decode into: these stages' artifact classes
+        # what entries may decode into (these stages' artifact classes), and what each stage's entries hold
+        cache.register(artifact_types(stages), stage_kinds(stages))
         self.by_name = {s.name: s for s in stages}
         self.force = downstream(stages, set(force)) if force else set()
         self.progress = progress
@@ -577,7 +578,8 @@ class Runner:
         rows = []
         for stage in self.stages:
             keys = [self.keys[(stage.name, u)] for u in self._stage_units(stage)]
-            present = [k for k in keys if self.cache.has(stage.name, k)]
+            # intact entries only: a tampered or corrupt one is what `run` recomputes, not "cached"
+            present = [k for k in keys if self.cache.verify(stage.name, k, warn=False)]
             others = set(self.cache.keys(stage.name)) - set(keys)
             status = "cached" if len(present) == len(keys) else ("stale" if others or present else "missing")
             size = sum(self.cache.size_bytes(stage.name, k) for k in present)

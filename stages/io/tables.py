@@ -30,6 +30,8 @@ MAX_PHANTOM_BEADS = 100_000
 _MIN_PHANTOM_EXTENT_MM = 1.0
 #: bead diameters below this (mm) cannot be imaged: a diameter in metres
 _MIN_BEAD_DIAMETER_MM = 0.1
+#: no fluoroscope images an object larger than this (mm): a larger phantom was written in a smaller unit
+_MAX_PHANTOM_EXTENT_MM = 2000.0
 
 
 @dataclass(frozen=True)
@@ -446,7 +448,8 @@ def check_phantom_units(path, xyz_mm: np.ndarray, diameter_mm: np.ndarray) -> No
     Real phantoms span centimetres and hold beads millimetres apart and at least
     0.1 mm across. A phantom spanning under 1 mm, or with beads under 0.05 mm apart
     (median nearest neighbour) or under 0.1 mm across, was written in metres; beads
-    0.05..1 mm apart, in inches. A single bead is not judged.
+    0.05..1 mm apart, in inches; spanning over 2 m, in a smaller unit (micrometres?). A single bead is
+    not judged.
 
     Raises
     ------
@@ -466,6 +469,12 @@ def check_phantom_units(path, xyz_mm: np.ndarray, diameter_mm: np.ndarray) -> No
     from scipy.spatial import cKDTree
 
     extent = float(np.ptp(xyz_mm, axis=0).max())
+    if not extent <= _MAX_PHANTOM_EXTENT_MM:  # before the k-d tree, which overflows on huge coordinates
+        raise InputError(
+            f"{path}: the phantom spans {extent:.3g} mm, more than any fluoroscope images "
+            f"({_MAX_PHANTOM_EXTENT_MM:g} mm): looks like micrometres or another small unit "
+            "(the phantom CSV is in mm)"
+        )
     distance, _ = cKDTree(xyz_mm).query(xyz_mm, k=2)
     if not distance[:, 1].all():
         i = int(np.argmin(distance[:, 1]))

@@ -26,6 +26,10 @@ RNG_WOBBLE, RNG_MARKERS, RNG_HIDDEN = 5, 6, 7
 MARKER_LAYOUTS = ("fixed", "random")
 
 
+#: largest simulated image side (px): a 16-bit frame of 16384 px is 512 MB, rendered supersampled
+MAX_IMAGE_SIZE_PX = 16384
+
+
 @dataclass(frozen=True)
 class SimulateParams:
     """Parameters of a simulated acquisition (defaults give ARCADIS-like 1024² frames).
@@ -229,8 +233,8 @@ class SimulateParams:
         for name in ("n_frames", "image_size_px"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"{name} must be >= 1; got {getattr(self, name)}")
-        if self.image_size_px < 16:
-            raise InputError(f"image_size_px must be >= 16; got {self.image_size_px}")
+        if not 16 <= self.image_size_px <= MAX_IMAGE_SIZE_PX:  # beyond it the frames' arrays exhaust memory
+            raise InputError(f"image_size_px must lie in 16..{MAX_IMAGE_SIZE_PX}; got {self.image_size_px}")
         if not 1.0 < self.magnification < 3.0:
             raise InputError(f"magnification must lie in (1, 3); got {self.magnification}")
         if not 0 < self.fov_radius_frac <= 0.75:

@@ -131,6 +131,21 @@ def test_config_numbers_and_names_are_checked_at_load(tmp_path, old, new, match)
     assert str(info.value).startswith("project.toml") and "\n" not in str(info.value)
 
 
+@pytest.mark.parametrize("section", ["output", "cache"])
+def test_nul_in_a_folder_name_is_refused_at_load(tmp_path, capsys, section):
+    # benchmarks/attack.py output_dir_nul, cache_dir_nul: a ValueError traceback from os.stat before
+    cfg = make_project(tmp_path, extra_toml=f'\n[{section}]\ndir = "out\\u0000x"\n')
+    rc, err = _cli(["run", cfg], capsys)
+    assert rc == 2 and f"[{section}] key 'dir'" in err and "NUL character" in err
+
+
+def test_config_nested_too_deeply_is_one_line(tmp_path, capsys):
+    # benchmarks/attack.py config_deep_nesting: tomllib's RecursionError was a traceback
+    cfg = make_project(tmp_path, extra_toml="x = " + "[" * 5000 + "]" * 5000 + "\n")
+    rc, err = _cli(["run", cfg], capsys)
+    assert rc == 2 and "project.toml: not a project file (arrays or tables nested too deeply)" in err
+
+
 def test_non_utf8_config_is_one_line(tmp_path, capsys):
     cfg = make_project(tmp_path)
     cfg.write_bytes(cfg.read_bytes().replace(b'name = "A"', b'name = "\xe9"'))
@@ -165,6 +180,16 @@ def test_non_finite_phantom_coordinate_names_the_line(tmp_path, cell):
         read_phantom(path)
 
 
+@pytest.mark.parametrize("scale", [1000.0, 1e300])
+def test_phantom_larger_than_any_field_is_refused(tmp_path, scale):
+    # benchmarks/attack.py phantom_x1000 (singular normal equations after 78 s of work), phantom_huge_x (1e300:
+    # scipy's k-d tree overflowed with a traceback): a phantom spanning more than 2 m is in a smaller unit
+    path = tmp_path / "p.csv"
+    path.write_text(f"id,x,y,z\n1,0,0,0\n2,{10 * scale:g},0,0\n3,0,{10 * scale:g},{5 * scale:g}\n")
+    with pytest.raises(InputError, match=r"p.csv: the phantom spans .* mm, more than any fluoroscope images"):
+        read_phantom(path)
+
+
 def test_non_positive_bead_diameter_is_refused(tmp_path):
     path = tmp_path / "p.csv"
     path.write_text("id,x,y,z,diameter\n1,0,0,0,3\n2,10,0,0,-3\n")
@@ -194,6 +219,18 @@ def test_glob_matching_a_folder_is_refused(tmp_path, capsys):
     cfg.write_text(cfg.read_text().replace("frames/*.tif", "frames/*"))
     rc, err = _cli(["run", cfg], capsys)
     assert rc == 2 and "'frames/*' matches the folder" in err and "frames/old" in err
+
+
+@pytest.mark.parametrize("listed", [False, True])
+def test_frame_that_is_a_device_is_refused_at_load(tmp_path, listed):
+    # benchmarks/attack.py frame_symlink_devzero: a frame linked to /dev/zero was hashed for ever
+    cfg = make_project(tmp_path)
+    (tmp_path / "frames" / "f1.tif").unlink()
+    (tmp_path / "frames" / "f1.tif").symlink_to("/dev/zero")
+    if listed:
+        cfg.write_text(cfg.read_text().replace('"frames/*.tif"', '["frames/f0.tif", "frames/f1.tif"]'))
+    with pytest.raises(ConfigError, match=r"frames/f1.tif is not a regular file"):
+        load_config(cfg)
 
 
 def test_frame_list_naming_a_folder_is_refused(tmp_path):
@@ -323,3 +360,11 @@ def test_a_system_with_no_frame_labelled_is_one_line(tmp_path, capsys):
     write_dataset(simulate(SimulateParams(n_frames=4, n_systems=2, image_size_px=256, seed=0)), tmp_path / "p")
     rc, err = _cli(["--quiet", "run", tmp_path / "p" / "fluorocal.toml", "--jobs", "1"], capsys)
     assert rc == 2 and "could be labelled" in err
+
+
+@pytest.mark.parametrize("size", [10_000_000, 15])
+def test_simulate_refuses_an_image_size_beyond_memory(tmp_path, capsys, size):
+    # benchmarks/attack.py simulate_image_size_huge: --image-size 10000000 died allocating 728 TiB (traceback)
+    rc, err = _cli(["simulate", tmp_path / "sim", "--image-size", size], capsys)
+    assert rc == 2 and "image_size_px must lie in 16..16384" in err
+    assert not (tmp_path / "sim").exists() or not any((tmp_path / "sim").iterdir())

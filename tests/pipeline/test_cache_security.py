@@ -94,6 +94,40 @@ def test_inspect_reads_no_untrusted_type(project, tmp_path, capsys):
     assert not marker.exists()
 
 
+@pytest.mark.parametrize("artifact", [{"__dict__": {"value": 1}}, {"__tuple__": [1, 2]}, 7])
+def test_an_entry_decoding_into_another_type_is_recomputed(project, artifact):
+    # benchmarks/attack.py manifest_dict_payload: a label entry edited to a plain dict (checksums recomputed)
+    # decoded, and the run died on it with an AttributeError traceback
+    runner = _runner(project)
+    runner.run()
+    _rewrite_manifest(
+        runner.cache.entry_dir("scale", runner.keys[("scale", 0)]),
+        lambda m: m.__setitem__("artifact", artifact),
+        fix_checksum=True,
+    )
+    CALLS.clear()
+    rerun = _runner(project)
+    rerun.run()
+    with pytest.warns(CacheWarning, match="scale/.*not the stage's Value"):
+        value = rerun.get("scale", 0)  # what writing the outputs reads
+    assert value.value[0] == pytest.approx(200.0) and CALLS == {"scale": 1}
+
+
+def test_inspect_does_not_call_a_tampered_entry_cached(project, tmp_path):
+    # benchmarks/attack.py manifest_os_system_learn_inspect: `inspect` said "cached 1/1" for an entry `run` recomputes
+    runner = _runner(project)
+    runner.run()
+    key = runner.keys[("scale", 0)]
+
+    def inject(manifest):
+        manifest["artifact"] = {"__dataclass__": "os:system", "fields": {"command": "true"}}
+
+    _rewrite_manifest(runner.cache.entry_dir("scale", key), inject, fix_checksum=True)
+    status = {r["stage"]: (r["status"], r["n"] - r["cached"]) for r in _runner(project).status()}
+    assert status["scale"] == ("stale", 1)  # the tampered entry alone is not counted
+    assert status["mean"] == ("cached", 0)
+
+
 def test_decoding_builds_only_registered_classes_with_their_own_fields():
     types = {"tests.pipeline.toy:Value": toy.Value}
     tree = {"__dataclass__": "tests.pipeline.toy:Value", "fields": {"value": {"__array__": "v"}, "note": "x"}}
@@ -283,3 +317,13 @@ def test_a_cache_another_process_makes_meanwhile_is_accepted(tmp_path, monkeypat
     (root / "notes.txt").write_text("a user's file")
     with pytest.raises(InputError, match="holds files that are not a fluorocal cache"):
         ArtifactCache(root).prepare_root()  # a stranger's folder is still refused
+
+
+def test_each_stage_entry_has_its_kind_including_the_per_system_label_stage():
+    # benchmarks/attack.py manifest_dict_payload: the label stage returns a tuple per system, one Labels per
+    # frame's entry; without its kind a label entry edited into a dict still reached the run (AttributeError)
+    from fluorocal.artifact_codec import stage_kinds
+    from fluorocal.graph import default_stages
+    from fluorocal.stages.label import Labels
+
+    assert stage_kinds(default_stages())["label"] is Labels

@@ -6,6 +6,7 @@ import csv
 import json
 
 import numpy as np
+import pytest
 from fluorocal.cli import main
 
 from tests.stages.ba_synthetic import make_problem
@@ -68,3 +69,30 @@ def test_adjust_command_reports_missing_columns(tmp_path, capsys):
     rc = main(["adjust", "--observations", str(bad), "--phantom", str(phantom), "--out", str(tmp_path / "o")])
     assert rc == 2
     assert "missing id" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flags", [["--sid", "inf"], ["--pixel-pitch", "nan"], ["--image-size", "0", "512"]])
+def test_adjust_command_refuses_non_finite_start_values(tmp_path, capsys, flags):
+    # benchmarks/attack.py adjust_sid_inf: --sid inf ended in an OpenCV assertion's traceback
+    _, phantom, table = _write_inputs(tmp_path)
+    rc = main(["adjust", "--observations", str(table), "--phantom", str(phantom), "--out", str(tmp_path / "o"), *flags])
+    err = capsys.readouterr().err
+    assert rc == 2 and flags[0] in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+
+
+def test_adjust_command_says_in_one_line_when_the_adjustment_is_not_usable(tmp_path, capsys, monkeypatch):
+    # benchmarks/attack.py adjust_obs_latin1: start values far off (--pixel-pitch and --image-size left at their
+    # defaults for 0.5 mm, 512 px frames) gave an unusable adjustment: exit 1 and nothing said under --quiet
+    import dataclasses
+
+    import fluorocal.stages.adjust as adjust
+
+    real = adjust.adjust_bundle
+    monkeypatch.setattr(adjust, "adjust_bundle", lambda *a, **k: dataclasses.replace(real(*a, **k), usable=False))
+    _, phantom, table = _write_inputs(tmp_path)
+    argv = ["--quiet", "adjust", "--observations", str(table), "--phantom", str(phantom), "--out", str(tmp_path / "o")]
+    rc = main([*argv, "--sid", "1100", "--pixel-pitch", "0.25"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith("fluorocal: error: the adjustment of") and "not usable" in err
+    assert len(err.splitlines()) == 1 and (tmp_path / "o" / "orientation.json").is_file()
