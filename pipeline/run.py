@@ -387,14 +387,9 @@ class Runner:
         from tqdm import tqdm
 
         pending = {s.name: set(todo[s.name]) for s in chain}
-        bar = tqdm(
-            units,
-            desc=f"{'+'.join(s.name for s in chain):>9}",
-            unit="frame",
-            leave=False,
-            disable=not (self.progress and sys.stderr.isatty()),
-        )
-        for u in bar:
+        shown = self.progress and sys.stderr.isatty()
+        desc = f"{'+'.join(s.name for s in chain):>9}"
+        for u in tqdm(units, desc=desc, unit="frame", leave=False, disable=not shown):
             for stage in chain:
                 if u in pending[stage.name]:
                     self._compute(stage, u)
