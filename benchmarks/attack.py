@@ -308,7 +308,11 @@ def same_as_clean(c: Ctx, tol_mm: float = 1e-6) -> str | None:
             return f"{f.name} missing"
         with np.load(f) as x, np.load(g) as y:
             for k in x.files:
-                if k not in y.files or x[k].shape != y[k].shape or not np.allclose(x[k], y[k], atol=1e-6, equal_nan=True):
+                if (
+                    k not in y.files
+                    or x[k].shape != y[k].shape
+                    or not np.allclose(x[k], y[k], atol=1e-6, equal_nan=True)
+                ):
                     return f"{f.name}[{k}] differs from the clean run's"
     return None
 
