@@ -99,10 +99,14 @@ def _searched_around(frame: CubeFrame, best: dict, found: list) -> tuple[dict | 
     check (:func:`~fluorocal.stages.label.rivals.explains_most`); the truth then lies within a few degrees of
     it. Rotations within the prior search's region around it (``_PRIOR_SIGMA_DEG`` a standard deviation) are
     searched with the position free, and the marker labellings compete with what is found on their evidence
-    alone: the region is centred on the suspect pose, so nearness to it decides nothing.
+    alone: the region is centred on the suspect pose, so nearness to it decides nothing, and labellings the
+    frame cannot tell apart leave it failed. The result keeps ``pose_source = "markers"``: in a sequence, one
+    that still leaves much unexplained is weighed against its neighbours' prediction too.
     """
     R, T = best["R"], best["T"]
     p_centre = R @ (frame.phantom.xyz_mm.mean(0) - T)
+    # its depth was found with its own principal distance; the search sees the frame with the assumed one
+    p_centre[2] *= frame.iop[2] / best["iop"][2]
     prior = OrientationPrior.isotropic(R, np.radians(_PRIOR_SIGMA_DEG))
     around, why = label_from_prior(frame, prior, p_centre, also=found, decide=False)
     return (around, "") if around is not None else (None, f"around the markers' pose: {why}")

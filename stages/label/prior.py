@@ -82,7 +82,8 @@ def label_from_prior(
     ``turn_search`` and no winner, turns about the prior's axis over the full circle close the search
     (:func:`_turn_starts`). Labellings found otherwise (``also``: the frame's markers') compete with them
     on their evidence alone, wherever they lie. ``decide=False``: the prior does not decide between
-    labellings the frame cannot tell apart (a prior centred on a suspect pose would favour it).
+    labellings the frame cannot tell apart (a prior centred on a suspect pose would favour it), and a
+    winner that a wider region's labelling ties is dropped: the frame is then ambiguous.
 
     ``camera`` (a neighbouring frame's: its ``iop`` and polynomial ``corr``, the system's distortion)
     sharpens the search: the detections vote corrected, and the starts are ranked by their
@@ -120,9 +121,10 @@ def label_from_prior(
                     # prediction; one about as good would leave the frame ambiguous, which keeps the winner
                     # found first: the search is over
                     break
-            elif winner is None:
-                # a labelling found but not singled out says more than the failures of the other starts
-                reason, settled = why, True
+            elif winner is None or not decide:
+                # a labelling found but not singled out says more than the failures of the other starts; without
+                # the prior to decide, a narrower region's winner that a wider one's labelling ties stands no more
+                winner, reason, settled = None, why, True
         elif not settled:
             reason = why or reason
     return (winner, "") if winner is not None else (None, reason)
