@@ -196,11 +196,7 @@ class ArtifactCache:
         try:
             with np.load(self.entry_dir(stage, key) / ARRAYS, allow_pickle=False) as npz:
                 arrays = {k: npz[k] for k in npz.files}
-            artifact = decode(manifest["artifact"], arrays, self.types)
-            kind = self._kinds.get(stage)
-            if kind is not None and not isinstance(artifact, kind):
-                raise UntrustedData(f"holds a {type(artifact).__name__}, not the stage's {kind.__name__}")
-            return artifact
+            return decode(manifest["artifact"], arrays, self.types)
         except Exception as exc:  # any failure to read is a miss, never fatal
             if warn:
                 _warn_unreadable(stage, key, exc)
@@ -229,11 +225,22 @@ class ArtifactCache:
             unknown = named_types(manifest["artifact"]) - set(self.types)
             if unknown:
                 raise UntrustedData(f"names unregistered type(s) {', '.join(map(repr, sorted(unknown)))}")
+            self._check_kind(stage, manifest["artifact"])
             return manifest
         except Exception as exc:
             if warn and entry.exists():  # an entry that vanished meanwhile (replaced, cleaned) is a plain miss
                 _warn_unreadable(stage, key, exc)
             return None
+
+    def _check_kind(self, stage: str, tree) -> None:
+        """Raise UntrustedData unless ``tree`` encodes the stage's registered kind (checked before any decoding)."""
+        kind = self._kinds.get(stage)
+        if kind is None:
+            return
+        name = tree.get("__dataclass__") if isinstance(tree, dict) else None
+        cls = self.types.get(name) if isinstance(name, str) else None
+        if not (isinstance(cls, type) and issubclass(cls, kind)):
+            raise UntrustedData(f"holds a {name or type(tree).__name__}, not the stage's {kind.__name__}")
 
     def keys(self, stage: str) -> list[str]:
         """Keys of the entries of ``stage`` (not checked)."""

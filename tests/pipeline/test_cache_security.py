@@ -107,9 +107,9 @@ def test_an_entry_decoding_into_another_type_is_recomputed(project, artifact):
     )
     CALLS.clear()
     rerun = _runner(project)
-    rerun.run()
-    with pytest.warns(CacheWarning, match="scale/.*not the stage's Value"):
-        value = rerun.get("scale", 0)  # what writing the outputs reads
+    with pytest.warns(CacheWarning, match="scale/.*not the stage's Value"):  # found before anything is decoded
+        rerun.run()
+    value = rerun.get("scale", 0)  # what writing the outputs reads
     assert value.value[0] == pytest.approx(200.0) and CALLS == {"scale": 1}
 
 
