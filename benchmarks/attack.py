@@ -2388,36 +2388,22 @@ def all_cases() -> list[Case]:
 
     # ---- full disk ----
     D = "disk"
-    add(
-        "full_disk_cache",
-        D,
-        nothing,
-        rerun("--force", "label"),
-        expect="ok",
-        check=clean_and_no_leftovers,
-        runner=full_disk(40),
-        hints=("space", "too large"),
-    )
-    add(
-        "full_disk_outputs",
-        D,
-        nothing,
-        rerun(),
-        expect="ok",
-        check=clean_and_no_leftovers,
-        runner=full_disk(200),
-        hints=("space", "too large"),
-    )
-    add(
-        "full_disk_outputs_tiny",
-        D,
-        nothing,
-        rerun(),
-        expect="ok",
-        check=clean_and_no_leftovers,
-        runner=full_disk(8),
-        hints=("space", "too large"),
-    )
+    # (name, the run's arguments, the disk's free space in kB)
+    for name, args, free in (
+        ("full_disk_cache", ("--force", "label"), 40),
+        ("full_disk_outputs", (), 200),
+        ("full_disk_outputs_tiny", (), 8),
+    ):
+        add(
+            name,
+            D,
+            nothing,
+            rerun(*args),
+            expect="ok",
+            check=clean_and_no_leftovers,
+            runner=full_disk(free),
+            hints=("space", "too large"),
+        )
     add(
         "full_disk_undistort",
         D,
