@@ -209,6 +209,8 @@ class ArtifactCache:
     def _read(self, stage: str, key: str, *, warn: bool) -> dict | None:
         entry = self.entry_dir(stage, key)
         if not entry.is_dir():
+            if warn and (entry.exists() or entry.is_symlink()):
+                _warn_unreadable(stage, key, ValueError("not a directory"))
             return None
         try:
             raw = (entry / MANIFEST).read_bytes()
@@ -307,15 +309,16 @@ class ArtifactCache:
             os.replace(tmp, final)
             return
         except OSError as exc:
-            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR):
                 raise
         if self._read(stage, key, warn=False) is not None:
             shutil.rmtree(tmp, ignore_errors=True)
             return
-        old = Path(tempfile.mkdtemp(prefix=f".tmp-{key}-", dir=final.parent))
-        os.replace(final, old)  # over the empty folder: readers see the old entry or none
+        trash = Path(tempfile.mkdtemp(prefix=f".tmp-{key}-", dir=final.parent))
+        # a folder goes over the empty one, a file or link in its place into it: readers see the old entry or none
+        os.replace(final, trash if final.is_dir() and not final.is_symlink() else trash / "entry")
         os.replace(tmp, final)
-        shutil.rmtree(old, ignore_errors=True)
+        shutil.rmtree(trash, ignore_errors=True)
 
     # --- the cache folder ------------------------------------------------------------------------
 

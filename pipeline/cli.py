@@ -50,10 +50,15 @@ def _command_modules():
             yield importlib.import_module(f"fluorocal.cmd_{name}")
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors in one line like every other refusal; the usage is one ``--help`` away."""
+
+    def error(self, message: str):
+        self.exit(2, f"fluorocal: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="fluorocal", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = _Parser(prog="fluorocal", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars, warnings and errors only")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -75,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     where = p.add_mutually_exclusive_group()
     where.add_argument(
         "--jobs",
-        type=_positive_int,
+        type=positive_int,
         metavar="N",
         help="worker processes for the per-frame stages; 1: serial (default: [compute] jobs, else every core)",
     )
@@ -130,7 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _positive_int(text: str) -> int:
+def positive_int(text: str) -> int:
+    """An argparse type: a positive integer (``--jobs``, ``--image-size``)."""
     if not text.isdigit() or int(text) < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer; got {text!r}")
     return int(text)
@@ -143,11 +149,11 @@ def _compute(args, config):
     return where_to_run(config.compute, getattr(args, "jobs", None), getattr(args, "scheduler", None))
 
 
-def _load(config_path: Path):
+def _load(config_path: Path, *, writable: bool = True):
     from fluorocal.config import load_config
     from fluorocal.graph import stage_params_classes
 
-    return load_config(config_path, stage_params_allowed=stage_params_classes())
+    return load_config(config_path, stage_params_allowed=stage_params_classes(), writable=writable)
 
 
 def _runner(args, config=None, **kw):
@@ -189,7 +195,7 @@ def cmd_inspect(args) -> int:
         return 0
     if args.out is not None:
         raise InputError("--out applies to a calibration.json; a project's overlays go to its output folder")
-    runner = _runner(args)
+    runner = _runner(args, _load(args.config, writable=args.frame is not None))  # only an overlay is written
     rows = runner.status()
     if args.stage:
         return _inspect_stage(runner, args.stage, args.frame)

@@ -25,6 +25,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fluorocal.cli import positive_int
+
 
 def add_parser(subparsers) -> None:
     """Register the ``adjust`` subcommand."""
@@ -48,7 +50,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--image-size",
-        type=int,
+        type=positive_int,
         nargs=2,
         default=(1024, 1024),
         metavar=("W", "H"),
@@ -69,11 +71,12 @@ def _read_observations(path: Path):
     import numpy as np
     from fluorocal.stages.artifacts import Observations
     from fluorocal.stages.errors import InputError
-    from fluorocal.stages.io import OBSERVATIONS, read_table
+    from fluorocal.stages.io import OBSERVATIONS, check_finite, read_table
 
     table = read_table(path, OBSERVATIONS)
     if not len(table["id"]):
         raise InputError(f"{path}: no observations")
+    check_finite(path, {c: table[c] for c in ("x", "y", "sigma_x", "sigma_y", "rho")})
     names = tuple(sorted(set(table["system"].tolist())))
     system = np.searchsorted(np.array(names), table["system"])
     exposure = table.get("exposure")
@@ -107,8 +110,6 @@ def run(args) -> int:
     log = logging.getLogger("fluorocal")
     if not (0 < args.sid < math.inf and 0 < args.pixel_pitch < math.inf):  # NaN and inf fail too
         raise InputError(f"--sid and --pixel-pitch must be finite and > 0; got {args.sid}, {args.pixel_pitch}")
-    if min(args.image_size) <= 0:
-        raise InputError(f"--image-size must be two positive numbers of px; got {' '.join(map(str, args.image_size))}")
     phantom = read_phantom(args.phantom)
     obs, rows, corrections = _read_observations(args.observations)
     w, h = args.image_size

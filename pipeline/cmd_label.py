@@ -27,6 +27,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from fluorocal.cli import positive_int
+
 log = logging.getLogger(__name__)
 
 #: the columns written, in order: file and frame, then those of ``Labels.to_table`` (schema ``stages.io.LABELS``)
@@ -74,7 +76,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--image-size",
-        type=int,
+        type=positive_int,
         nargs=2,
         metavar=("W", "H"),
         help="frame size in px; the principal point is its centre (default: centre of the detections)",

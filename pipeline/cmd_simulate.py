@@ -132,6 +132,16 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+_FLAGS = {  # SimulateParams field -> the option that sets it
+    "n_frames": "--frames",
+    "seed": "--seed",
+    "image_size_px": "--image-size",
+    "noise_scale": "--noise",
+    "orientations_deg": "--orientations",
+    "plate_error_mm": "--plate-error",
+}
+
+
 def run(args) -> int:
     """Simulate and write the data set; return the exit code."""
     import logging
@@ -149,18 +159,20 @@ def run(args) -> int:
     for option, value in grid_only.items():
         if value not in ("", None) and args.phantom != "grid":
             raise InputError(f"{option} is for the grid plate; add --phantom grid")
-    plate = {} if args.plate_error is None else {"plate_error_mm": args.plate_error}
-    params = SimulateParams(
-        n_frames=args.frames,
-        n_systems=args.systems,
-        seed=args.seed,
-        image_size_px=args.image_size,
-        distortion=args.distortion,
-        phantom=args.phantom,
-        noise_scale=args.noise,
-        orientations_deg=parse_orientations(args.orientations),
-        **plate,
-    )
+    values = {
+        "n_frames": args.frames,
+        "seed": args.seed,
+        "image_size_px": args.image_size,
+        "noise_scale": args.noise,
+        "orientations_deg": parse_orientations(args.orientations),
+    }
+    if args.plate_error is not None:
+        values["plate_error_mm"] = args.plate_error
+    try:
+        params = SimulateParams(n_systems=args.systems, distortion=args.distortion, phantom=args.phantom, **values)
+    except InputError as exc:  # name the option the user typed, not the parameter behind it
+        flag = next((f for name, f in _FLAGS.items() if str(exc).startswith(name)), None)
+        raise InputError(f"{flag}: {exc}" if flag else str(exc)) from None
     from tqdm import tqdm
 
     quiet = bool(getattr(args, "quiet", False))

@@ -363,7 +363,9 @@ def _parse_toml(path: Path) -> dict:
         raise ConfigError(f"{path.name}: not a project file (arrays or tables nested too deeply)") from None
 
 
-def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | None = None) -> Config:
+def load_config(
+    path: str | Path, *, stage_params_allowed: dict[str, type] | None = None, writable: bool = True
+) -> Config:
     """Read and validate a project TOML file.
 
     Parameters
@@ -372,6 +374,8 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     stage_params_allowed : dict of str to dataclass type, optional
         Stage sections allowed in the file (``[detect]`` ...) and their
         ``Params`` classes, used to reject unknown keys early.
+    writable : bool
+        Check that the output and cache folders can be written (``inspect`` only reads them).
 
     Raises
     ------
@@ -421,7 +425,7 @@ def load_config(path: str | Path, *, stage_params_allowed: dict[str, type] | Non
     cache = _expect(data.get("cache", {}), dict, "a table [cache]", path, "", "cache")
     _reject_unknown(cache, {"dir"}, path, "[cache] ")
     cache_dir = root / _expect(cache.get("dir", ".fluorocal"), str, "a directory name", path, "[cache] ", "dir")
-    for section, folder in (("[output] ", out_dir), ("[cache] ", cache_dir)):
+    for section, folder in (("[output] ", out_dir), ("[cache] ", cache_dir)) if writable else ():
         check_writable_dir(folder, where=_where(path, section, "dir"))
 
     try:

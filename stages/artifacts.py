@@ -85,6 +85,9 @@ class Radiograph:
         return float(2**self.bit_depth - 1)
 
 
+MIN_PHANTOM_BEADS = 4  # a 3D bead phantom's fewest beads: a pose needs four points
+
+
 @dataclass(frozen=True)
 class Phantom:
     """A calibration phantom's beads in its nominal (design) coordinates.

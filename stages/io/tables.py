@@ -385,7 +385,8 @@ def write_csv(path: str | os.PathLike, header: list[str], rows) -> None:
 def read_phantom(path: str | os.PathLike, *, lattice: str = "", pitch_mm: float = 0.0):
     """Read a phantom CSV ``id,x,y,z[,diameter][,role]`` (mm) as a :class:`~fluorocal.stages.artifacts.Phantom`.
 
-    At most :data:`MAX_PHANTOM_BEADS` beads. Coordinates must be finite; diameters
+    At most :data:`MAX_PHANTOM_BEADS` beads; a bead phantom (no ``lattice``) at least
+    :data:`~fluorocal.stages.artifacts.MIN_PHANTOM_BEADS`. Coordinates must be finite; diameters
     finite and positive where given. A phantom whose size says it was written in
     metres or inches (:func:`check_phantom_units`) is refused with the guess.
 
@@ -395,19 +396,21 @@ def read_phantom(path: str | os.PathLike, *, lattice: str = "", pitch_mm: float 
         Missing file, missing column, a value that is not a number or not finite (naming the line),
         too many beads, or coordinates that are not in mm.
     """
-    from fluorocal.stages.artifacts import Phantom
+    from fluorocal.stages.artifacts import MIN_PHANTOM_BEADS, Phantom
 
     t = read_table(path, PHANTOM, max_rows=MAX_PHANTOM_BEADS)
     if not len(t["id"]):
         raise InputError(f"{path}: phantom CSV has no beads")
     xyz = np.stack([t["x"], t["y"], t["z"]], axis=1)
-    _check_finite(path, {"x": t["x"], "y": t["y"], "z": t["z"]})
+    check_finite(path, {"x": t["x"], "y": t["y"], "z": t["z"]})
     diameter = t["diameter"]
     bad = ~np.isnan(diameter) & ~(np.isfinite(diameter) & (diameter > 0))
     if bad.any():
         i = int(np.argmax(bad))
         raise InputError(f"{path}:{i + 2}: diameter must be a positive number of mm (or empty); got {diameter[i]}")
     check_phantom_units(path, xyz, diameter)
+    if not lattice and len(t["id"]) < MIN_PHANTOM_BEADS:
+        raise InputError(f"{path}: a bead phantom needs at least {MIN_PHANTOM_BEADS} beads; got {len(t['id'])}")
     try:
         return Phantom(t["id"], xyz, t["diameter"], t["role"], lattice, pitch_mm)
     except InputError as exc:
@@ -425,7 +428,7 @@ def read_seeds(path: str | os.PathLike) -> dict:
         Missing file or column, or a value that is not a number, naming the line.
     """
     t = read_table(path, SEEDS)
-    _check_finite(path, {"x": t["x"], "y": t["y"]})
+    check_finite(path, {"x": t["x"], "y": t["y"]})
     seeds: dict = {}
     for i, x, y, file, frame in zip(t["id"], t["x"], t["y"], t["file"], t["frame"]):
         key = (Path(file).name, int(frame)) if file else ("", 0)
@@ -433,7 +436,7 @@ def read_seeds(path: str | os.PathLike) -> dict:
     return {k: tuple(v) for k, v in seeds.items()}
 
 
-def _check_finite(path, columns: dict[str, np.ndarray]) -> None:
+def check_finite(path, columns: dict[str, np.ndarray]) -> None:
     """Refuse NaN or infinite cells, naming the first one's line and column."""
     for name, values in columns.items():
         bad = ~np.isfinite(values)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fluorocal.stages.artifacts import Phantom
+from fluorocal.stages.artifacts import MIN_PHANTOM_BEADS, Phantom
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.label.cube import label_cube
 from fluorocal.stages.label.detections import Detections, assumed_iop
@@ -57,6 +57,6 @@ def label_frame(centroids, phantom: Phantom, params: LabelParams, prior_pose=Non
         if not phantom.pitch_mm > 0:
             raise InputError(f"phantom.pitch_mm must be > 0 for a grid plate; got {phantom.pitch_mm}")
         return label_grid(det, phantom, params, iop)
-    if phantom.n_beads < 4:
-        raise InputError(f"phantom must have at least 4 beads; got {phantom.n_beads}")
+    if phantom.n_beads < MIN_PHANTOM_BEADS:
+        raise InputError(f"phantom must have at least {MIN_PHANTOM_BEADS} beads; got {phantom.n_beads}")
     return label_cube(det, phantom, params, iop, prior_pose, **search)

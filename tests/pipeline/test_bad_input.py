@@ -77,10 +77,13 @@ def test_equal_frame_counts_pair_across_multipage_files(tmp_path):
 @pytest.mark.parametrize(
     "rows, guess",
     [
-        ("1,0,0,0,0.0035\n2,0.01,0,0,0.0035\n3,0,0.01,0.005,0.0035\n", "metres; multiply .* by 1000"),
-        ("1,0,0,0,\n2,0.05,0,0,\n3,0,0.05,0.02,\n", "metres; multiply .* by 1000"),  # no diameters: by extent
+        (
+            "1,0,0,0,0.0035\n2,0.01,0,0,0.0035\n3,0,0.01,0.005,0.0035\n4,0.01,0.01,0,0.0035\n",
+            "metres; multiply .* by 1000",
+        ),
+        ("1,0,0,0,\n2,0.05,0,0,\n3,0,0.05,0.02,\n4,0.05,0.05,0,\n", "metres; multiply .* by 1000"),  # by extent
         ("1,0,0,0,0.138\n2,0.354,0,0,0.138\n3,0,0.354,1.5,0.138\n4,3.9,3.9,3.9,0.138\n", "inches; multiply .* 25.4"),
-        ("1,0,0,0,0.0035\n2,10,0,0,0.0035\n3,0,10,5,0.0035\n", "metres"),  # mm coordinates, diameters in metres
+        ("1,0,0,0,0.0035\n2,10,0,0,0.0035\n3,0,10,5,0.0035\n4,10,10,0,0.0035\n", "metres"),  # diameters in metres
     ],
 )
 def test_phantom_not_in_mm_is_refused_with_the_guess(tmp_path, rows, guess):
@@ -92,13 +95,21 @@ def test_phantom_not_in_mm_is_refused_with_the_guess(tmp_path, rows, guess):
 
 def test_phantom_in_mm_is_accepted(tmp_path):
     path = tmp_path / "p.csv"
-    path.write_text("id,x,y,z,diameter\n1,0,0,0,3.5\n2,9,0,0,3.5\n3,0,9,4.5,3.5\n")
-    assert read_phantom(path).n_beads == 3
+    path.write_text("id,x,y,z,diameter\n1,0,0,0,3.5\n2,9,0,0,3.5\n3,0,9,4.5,3.5\n4,9,9,0,3.5\n")
+    assert read_phantom(path).n_beads == 4
+
+
+def test_a_bead_phantom_of_fewer_than_four_beads_is_refused_naming_the_file(tmp_path, capsys):
+    cfg = make_project(tmp_path)
+    (tmp_path / "phantom.csv").write_text("id,x,y,z\n1,0,0,0\n2,10,0,0\n3,0,10,0\n")
+    rc, err = _cli(["run", cfg], capsys)
+    assert rc == 2 and "phantom.csv: a bead phantom needs at least 4 beads; got 3" in err
+    assert not (tmp_path / "out").exists() and not (tmp_path / ".fluorocal").exists()
 
 
 def test_phantom_beads_at_one_point_are_refused(tmp_path):
     path = tmp_path / "p.csv"
-    path.write_text("id,x,y,z\n1,0,0,0\n2,10,0,0\n3,10,0,0\n")
+    path.write_text("id,x,y,z\n1,0,0,0\n2,10,0,0\n3,10,0,0\n4,0,10,0\n")
     with pytest.raises(InputError, match="lines 3 and 4 place two beads at the same point"):
         read_phantom(path)
 
@@ -168,8 +179,8 @@ def test_non_utf8_phantom_is_one_line(tmp_path, capsys):
 
 def test_phantom_with_byte_order_mark_reads(tmp_path):
     path = tmp_path / "p.csv"
-    path.write_text("\ufeffid,x,y,z\n1,0,0,0\n2,10,0,0\n", encoding="utf-8")
-    assert list(read_phantom(path).ids) == [1, 2]
+    path.write_text("\ufeffid,x,y,z\n1,0,0,0\n2,10,0,0\n3,0,10,0\n4,0,0,10\n", encoding="utf-8")
+    assert list(read_phantom(path).ids) == [1, 2, 3, 4]
 
 
 @pytest.mark.parametrize("cell", ["nan", "inf", "-inf"])
@@ -366,5 +377,5 @@ def test_a_system_with_no_frame_labelled_is_one_line(tmp_path, capsys):
 def test_simulate_refuses_an_image_size_beyond_memory(tmp_path, capsys, size):
     # benchmarks/attack.py simulate_image_size_huge: --image-size 10000000 died allocating 728 TiB (traceback)
     rc, err = _cli(["simulate", tmp_path / "sim", "--image-size", size], capsys)
-    assert rc == 2 and "image_size_px must lie in 16..16384" in err
+    assert rc == 2 and "--image-size: image_size_px must lie in 16..16384" in err
     assert not (tmp_path / "sim").exists() or not any((tmp_path / "sim").iterdir())

@@ -250,6 +250,27 @@ def test_an_entry_published_meanwhile_is_accepted_and_a_broken_one_replaced(tmp_
     assert sorted(p.name for p in (cache.root / "mean").iterdir()) == [key]
 
 
+@pytest.mark.parametrize("replacement", ["file", "symlink"])
+def test_an_entry_replaced_by_a_file_or_link_is_a_miss_and_displaced(tmp_path, replacement):
+    cache = ArtifactCache(tmp_path / "c", types={"tests.pipeline.toy:Value": toy.Value})
+    key = "e" * 64
+    cache.store("mean", key, toy.Value(np.array([1.0])))
+    entry = cache.entry_dir("mean", key)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "keep.txt").write_text("a user's file")
+    for p in entry.iterdir():
+        p.unlink()
+    entry.rmdir()
+    entry.write_text("x") if replacement == "file" else entry.symlink_to(outside, target_is_directory=True)
+    with pytest.warns(CacheWarning, match="unreadable"):
+        assert cache.load("mean", key) is None
+    cache.store("mean", key, toy.Value(np.array([2.0])))
+    assert cache.load("mean", key).value[0] == 2.0
+    assert sorted(p.name for p in (cache.root / "mean").iterdir()) == [key]
+    assert (outside / "keep.txt").read_text() == "a user's file"  # a link is removed, not followed
+
+
 # --- finding 8: leftovers ----------------------------------------------------------------------------
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
 from fluorocal.cli import main
 
 from tests.pipeline.toy import make_project
@@ -32,3 +33,35 @@ def test_help_does_not_import_heavy_libraries():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "[]"
+
+
+def test_inspect_reads_a_project_whose_folders_cannot_be_written(tmp_path, monkeypatch, capsys):
+    cfg = make_project(tmp_path)
+    monkeypatch.setattr("fluorocal.config.os.access", lambda path, mode: False)  # a read-only share, even for root
+    assert main(["inspect", str(cfg)]) == 0
+    assert "missing" in capsys.readouterr().out
+    assert main(["run", str(cfg)]) == 2
+    assert "is not writable" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists() and not (tmp_path / ".fluorocal").exists()
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["label", "d.csv", "--lattice", "hex", "--pitch", "2"],
+        ["adjust", "--observations", "o.csv", "--phantom", "p.csv"],
+    ],
+)
+def test_a_usage_error_is_one_line_naming_the_option(tmp_path, capsys, command):
+    with pytest.raises(SystemExit) as exc:
+        main([*command, "--out", str(tmp_path / "l.csv"), "--image-size", "-1", "0"])
+    err = capsys.readouterr().err.strip()
+    assert exc.value.code == 2 and len(err.splitlines()) == 1
+    assert err.startswith("fluorocal: error: argument --image-size: expected a positive integer; got '-1'")
+    assert not (tmp_path / "l.csv").exists()
+
+
+def test_simulate_names_the_option_behind_a_refused_parameter(tmp_path, capsys):
+    assert main(["simulate", str(tmp_path / "sim"), "--frames", "-3"]) == 2
+    assert capsys.readouterr().err.strip() == "fluorocal: error: --frames: n_frames must be >= 1; got -3"
+    assert not (tmp_path / "sim").exists()

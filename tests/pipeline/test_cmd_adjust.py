@@ -71,13 +71,24 @@ def test_adjust_command_reports_missing_columns(tmp_path, capsys):
     assert "missing id" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("flags", [["--sid", "inf"], ["--pixel-pitch", "nan"], ["--image-size", "0", "512"]])
+@pytest.mark.parametrize("flags", [["--sid", "inf"], ["--pixel-pitch", "nan"]])  # --image-size: test_cli.py
 def test_adjust_command_refuses_non_finite_start_values(tmp_path, capsys, flags):
     # benchmarks/attack.py adjust_sid_inf: --sid inf ended in an OpenCV assertion's traceback
     _, phantom, table = _write_inputs(tmp_path)
     rc = main(["adjust", "--observations", str(table), "--phantom", str(phantom), "--out", str(tmp_path / "o"), *flags])
     err = capsys.readouterr().err
     assert rc == 2 and flags[0] in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+
+
+def test_adjust_command_names_the_file_and_line_of_a_non_finite_observation(tmp_path, capsys):
+    _, phantom, table = _write_inputs(tmp_path)
+    lines = table.read_text().splitlines()
+    lines[3] = ",".join(v if i != 4 else "nan" for i, v in enumerate(lines[3].split(",")))  # x of the 3rd row
+    table.write_text("\n".join(lines) + "\n")
+    rc = main(["adjust", "--observations", str(table), "--phantom", str(phantom), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err == f"fluorocal: error: {table}:4: column x must be a finite number; got nan"
     assert not (tmp_path / "o").exists()
 
 

@@ -149,7 +149,7 @@ def _dicom_project(root, extra: str = ""):
     _dicom(frames / "a.dcm", angles=(30, 0))
     _dicom(frames / "b.dcm")
     _dicom(frames / "c.dcm", angles=(0, 15), n_frames=3)
-    (root / "phantom.csv").write_text("id,x,y,z\n1,0,0,0\n2,10,0,0\n")
+    (root / "phantom.csv").write_text("id,x,y,z\n1,0,0,0\n2,10,0,0\n3,0,10,0\n4,0,0,10\n")
     cfg = root / "project.toml"
     cfg.write_text(
         '[phantom]\nfile = "phantom.csv"\n\n[[systems]]\nname = "A"\nframes = "frames/*.dcm"\n'

@@ -98,7 +98,7 @@ def make_two_system_project(root: Path, n_frames: int = 3, extra_toml: str = "")
         (root / "frames" / name).mkdir(parents=True, exist_ok=True)
         for i in range(n_frames):
             write_still(root / "frames" / name / f"f{i}.tif", np.full((8, 10), scale * (i + 1), np.uint16))
-    (root / "phantom.csv").write_text("id,x,y,z\n1,0,0,0\n2,10,0,0\n")
+    (root / "phantom.csv").write_text("id,x,y,z\n1,0,0,0\n2,10,0,0\n3,0,10,0\n4,0,0,10\n")
     systems = "".join(
         f'\n[[systems]]\nname = "{name}"\nframes = "frames/{name}/*.tif"\n'
         "source_image_distance = 1100\npixel_pitch = 0.25\n"
@@ -114,7 +114,7 @@ def make_project(root: Path, n_frames: int = 3, extra_toml: str = "") -> Path:
     (root / "frames").mkdir(parents=True, exist_ok=True)
     for i in range(n_frames):
         write_still(root / "frames" / f"f{i}.tif", np.full((8, 10), 100 * (i + 1), np.uint16))
-    (root / "phantom.csv").write_text("id,x,y,z\n1,0,0,0\n2,10,0,0\n")
+    (root / "phantom.csv").write_text("id,x,y,z\n1,0,0,0\n2,10,0,0\n3,0,10,0\n4,0,0,10\n")
     cfg = root / "project.toml"
     cfg.write_text(
         '[phantom]\nfile = "phantom.csv"\n\n[[systems]]\nname = "A"\nframes = "frames/*.tif"\n'

@@ -70,9 +70,9 @@ def test_unreadable_files_name_the_file(tmp_path):
 
 def test_phantom_csv(tmp_path):
     p = tmp_path / "p.csv"
-    p.write_text("id,x,y,z,diameter,role\n1,0,0,0,3.5,\n2,1,2,3,5,marker\n")
+    p.write_text("id,x,y,z,diameter,role\n1,0,0,0,3.5,\n2,1,2,3,5,marker\n3,9,0,0,3.5,\n4,0,9,0,3.5,\n")
     ph = read_phantom(p)
-    assert ph.n_beads == 2 and list(ph.role) == ["", "marker"] and ph.xyz_mm[1].tolist() == [1, 2, 3]
+    assert ph.n_beads == 4 and list(ph.role) == ["", "marker", "", ""] and ph.xyz_mm[1].tolist() == [1, 2, 3]
     p.write_text("id,x,y\n1,0,0\n")
     with pytest.raises(InputError, match="missing z"):
         read_phantom(p)
