@@ -39,7 +39,19 @@ network, and the field's marginal covariance is
 ``S_c^-1 + G Cov_θ G^T``, ``G = S_c^-1 M``. ``S`` is banded, so its solves and
 the diagonal of ``S^-1`` are dense block work on a block-bidiagonal Cholesky
 factor (:mod:`fluorocal.stages.learn.blocktri`); ``M`` is sparse (a bead's
-columns touch only the nodes around its observations).
+columns touch only the nodes around its observations), so the solves start each
+column at its first non-zero block. The orientation's marginal normal matrix is
+inverted from Bunch-Kaufman ``L D L^T`` factors, and the field's variance from
+them, ``diag(G Cov_θ G^T)`` as ``G P L^-T`` times ``D^-1`` (a triangular product,
+half a general one's work).
+
+Numerics: ``J^T W J - M^T S_c^-1 M`` is nearly singular (a Jacobi-scaled
+condition ~1e14 on a 40-exposure set: a common turn of the cameras that the field
+nearly mimics), so the σ are determined in float64 only to ~1e-4 relative (the
+same problem with its parameters in another order gives σ that differ by that
+much). A symmetric factor reads one triangle: ``M^T S_c^-1 M`` enters as its
+symmetric part, since its rounding asymmetry (~1e-12 of the scaled matrix) moves a
+one-triangle inverse's IOP σ by a factor of two there.
 """
 
 from __future__ import annotations
@@ -55,6 +67,7 @@ from fluorocal.stages.learn.blocktri import block_cholesky
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import prior_normal
 from fluorocal.stages.learn.network import linearised_network
+from scipy.linalg import blas, lapack, ldl
 from scipy.sparse import bmat, csr_matrix, diags, identity, issparse, vstack
 
 
@@ -183,22 +196,23 @@ def joint_uncertainty(
     H_cond = (net.J.T @ JW).toarray()
     scale = float(np.mean(np.diag(H_cond)))
     border = scale * net.datum @ net.datum.T
-    H_joint = H_cond - (M.T @ G)
     # the IOP as the final adjustment estimates it: the phantom's shape free
-    cov = _sym_inv(H_joint + border)
-    # the field as the refinement learned it: with the phantom's affine shape held, if it was
-    # (the Gaussian conditioned on F^T θ = 0: cov - cov F (F^T cov F)^-1 F^T cov)
-    cov_field = cov
-    if net.affine is not None:
-        cF = cov @ net.affine
-        cov_field = cov - cF @ np.linalg.solve(net.affine.T @ cF, cF.T)
+    MtG = M.T @ G  # M^T S_c^-1 M, symmetric but for rounding: its symmetric part (module docstring, Numerics)
+    cov = _symmetric_inverse(H_cond - 0.5 * (MtG + MtG.T) + border)
+    iop_cov = cov.quadratic(np.eye(len(H_cond), 3))
     node_var = s_inv.diagonal() - np.sum((Y @ CY_inv) * Y, axis=1)
-    node_var += np.sum((G @ cov_field) * G, axis=1)
+    # the field as the refinement learned it: with the phantom's affine shape held, if it was (the Gaussian
+    # conditioned on F^T θ = 0: cov - cov F (F^T cov F)^-1 F^T cov), by rows of G: diag(G cov G^T) less that term
+    node_var += cov.quadratic_diagonal(G.T)
+    if net.affine is not None:
+        cF = cov.solve(net.affine)
+        GcF = G @ cF
+        node_var -= np.sum(GcF * np.linalg.solve(net.affine.T @ cF, GcF.T).T, axis=1)
     # the IOP's block of the conditional covariance (the field held): three columns of the inverse
-    cov_cond = np.linalg.solve(H_cond + border, np.eye(len(H_cond), 3))[:3]
+    cov_cond = _symmetric_inverse(H_cond + border).quadratic(np.eye(len(H_cond), 3))
     shape = (len(yn), len(xn))
     node_std = _std(node_var).reshape(2, *shape).transpose(1, 2, 0)
-    return JointUncertainty(cov[:3, :3], _std(np.diag(cov)[:3]), node_std, _std(np.diag(cov_cond)))
+    return JointUncertainty(iop_cov, _std(np.diag(iop_cov)), node_std, _std(np.diag(cov_cond)))
 
 
 def _std(var: np.ndarray) -> np.ndarray:
@@ -269,9 +283,60 @@ def _dense(X) -> np.ndarray:
     return X.toarray() if issparse(X) else np.asarray(X)
 
 
-def _sym_inv(H: np.ndarray) -> np.ndarray:
-    inv = np.linalg.inv(H)
-    return 0.5 * (inv + inv.T)
+@dataclass(frozen=True)
+class _SymmetricInverse:
+    """``H^-1`` of a symmetric ``(n, n)`` ``H`` from its Bunch-Kaufman factors ``H = P L D L^T P^T``.
+
+    ``H^-1 = P L^-T D^-1 L^-1 P^T``: a quadratic form ``X^T H^-1 X`` is ``E^T D^-1 E`` with ``E = L^-1 P^T X``,
+    a product by a triangular matrix (BLAS trmm, half a general product's work), and ``D`` block diagonal
+    (1x1 and 2x2 blocks). A factor and a triangular inverse cost a third of a general inverse.
+    """
+
+    L_inv: np.ndarray  # (n, n) unit lower-triangular: the inverse of L
+    D_inv: csr_matrix  # (n, n) block diagonal: the inverse of D
+    perm: np.ndarray  # (n,) P^T X is X[perm]
+
+    def _half(self, X: np.ndarray) -> np.ndarray:
+        """``L^-1 P^T X`` for ``X`` ``(n, k)``; trmm on the Fortran view ``X[perm]^T``: ``(L^-1 Y)^T = Y^T L^-T``."""
+        XpT = np.asarray(X, dtype=np.float64)[self.perm].T
+        return blas.dtrmm(1.0, self.L_inv, XpT, side=1, lower=1, trans_a=1, diag=1, overwrite_b=1).T
+
+    def quadratic(self, X: np.ndarray) -> np.ndarray:
+        """``X^T H^-1 X`` ``(k, k)`` for ``X`` ``(n, k)``, symmetric."""
+        E = self._half(X)
+        Q = E.T @ (self.D_inv @ E)
+        return 0.5 * (Q + Q.T)
+
+    def quadratic_diagonal(self, X: np.ndarray) -> np.ndarray:
+        """The diagonal ``(k,)`` of ``X^T H^-1 X`` for ``X`` ``(n, k)``."""
+        E = self._half(X)
+        return np.einsum("ij,ij->j", E, self.D_inv @ E)
+
+    def solve(self, X: np.ndarray) -> np.ndarray:
+        """``H^-1 X`` for ``X`` ``(n, k)``."""
+        out = np.empty(X.shape)
+        out[self.perm] = self.L_inv.T @ (self.D_inv @ self._half(X))
+        return out
+
+
+def _symmetric_inverse(H: np.ndarray) -> _SymmetricInverse:
+    """:class:`_SymmetricInverse` of a symmetric ``H``."""
+    lu, d, perm = ldl(H, lower=True)
+    L_inv, _ = lapack.dtrtri(lu[perm], lower=1, unitdiag=1)  # lu[perm] is unit lower triangular
+    return _SymmetricInverse(np.asfortranarray(L_inv), _block_diagonal_inverse(d), perm)
+
+
+def _block_diagonal_inverse(d: np.ndarray) -> csr_matrix:
+    """The inverse of a block diagonal ``d`` ``(n, n)`` of 1x1 and 2x2 blocks (the ``D`` of ``ldl``), sparse."""
+    n = len(d)
+    first = np.flatnonzero(np.diag(d, -1))  # the first row of each 2x2 block
+    single = np.setdiff1d(np.arange(n), np.concatenate([first, first + 1]))
+    a, b, c = d[first, first], d[first + 1, first], d[first + 1, first + 1]
+    det = a * c - b * b
+    rows = np.concatenate([single, first, first, first + 1, first + 1])
+    cols = np.concatenate([single, first, first + 1, first, first + 1])
+    vals = np.concatenate([1.0 / d[single, single], c / det, -b / det, -b / det, a / det])
+    return csr_matrix((vals, (rows, cols)), shape=(n, n))
 
 
 def learned_uncertainty(
