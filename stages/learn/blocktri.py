@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import blas, cholesky, solve_triangular
+from scipy.linalg import blas, cholesky, lapack
 
 
 @dataclass(frozen=True)
@@ -37,29 +37,33 @@ class BlockCholesky:
         """``S^-1 X`` for ``X`` ``(n, m)``: a forward and a backward block substitution.
 
         The forward substitution of a column starts at its first non-zero block (the blocks above stay zero):
-        the columns are taken in the order of their first non-zero row, so that each block's are a leading slice.
+        the columns are taken in the order of their first non-zero row, so that each block's are a leading slice
+        (without copying them when they come in that order).
         """
         X = np.asarray(X, dtype=np.float64)
         nonzero = X != 0
         first = np.where(nonzero.any(axis=0), np.argmax(nonzero, axis=0), len(X)) // self.block
-        by_first = np.argsort(first, kind="stable")
-        X, first = X[:, by_first], first[by_first]
+        by_first = None if np.all(np.diff(first) >= 0) else np.argsort(first, kind="stable")
+        if by_first is not None:
+            X, first = X[:, by_first], first[by_first]
         Y = np.zeros(X.shape)
         for k in range(len(self.diagonal)):
             m, rows = int(np.searchsorted(first, k, side="right")), self._rows(k)
             rhs = X[rows, :m]
             if k > 0:
                 rhs = rhs - _tri_mul(self.below[k - 1], Y[self._rows(k - 1), :m], lower=False)
-            Y[rows, :m] = _tri_mul(self.inverse[k], rhs, lower=True)
-        Z = np.empty(X.shape)
+            Y[rows, :m] = _tri_mul(self.inverse[k], rhs, lower=True, overwrite=k > 0)
+        # the backward substitution in place: block k of Y is read once, where block k of the result goes
         last = len(self.diagonal) - 1
         for k in range(last, -1, -1):
             rhs = Y[self._rows(k)]
             if k < last:
-                rhs = rhs - _tri_mul(self.below[k], Z[self._rows(k + 1)], lower=False, transpose=True)
-            Z[self._rows(k)] = _tri_mul(self.inverse[k], rhs, lower=True, transpose=True)
+                rhs -= _tri_mul(self.below[k], Y[self._rows(k + 1)], lower=False, transpose=True)
+            Y[self._rows(k)] = _tri_mul(self.inverse[k], rhs, lower=True, transpose=True, overwrite=True)
+        if by_first is None:
+            return Y
         out = np.empty(X.shape)
-        out[:, by_first] = Z
+        out[:, by_first] = Y
         return out
 
     def diag_inverse(self) -> np.ndarray:
@@ -67,30 +71,33 @@ class BlockCholesky:
 
         With ``Z = S^-1`` (``L^T Z = L^-1``, lower triangular): ``Z_NN = L_NN^-T L_NN^-1`` and, going up
         with ``X = L_k+1,k L_kk^-1``, ``Z_k+1,k = -Z_k+1,k+1 X`` and
-        ``Z_kk = L_kk^-T L_kk^-1 + X^T Z_k+1,k+1 X``: only the diagonal blocks are kept.
+        ``Z_kk = L_kk^-T L_kk^-1 + X^T Z_k+1,k+1 X``: only the diagonal blocks are kept. (``(Z B)^T = B^T Z`` and
+        ``(Y L^-1)^T = L^-T Y`` for the symmetric ``Z`` and ``Y``: every product is a triangular one from the left.)
         """
         out = np.empty(sum(len(L) for L in self.diagonal))
         Z = None
         for k in range(len(self.diagonal) - 1, -1, -1):
+            # Z_kk = L_kk^-T (I + B^T Z_k+1,k+1 B) L_kk^-1 with B = L_k+1,k: triangular products of symmetric ones
             L_inv = self.inverse[k]
-            Z_kk = L_inv.T @ L_inv
+            inner = np.eye(len(L_inv))
             if Z is not None:
-                X = self.below[k] @ L_inv
-                Z_kk += X.T @ (Z @ X)
-            Z = Z_kk
+                B = self.below[k]
+                inner += _tri_mul(B, _tri_mul(B, Z, lower=False, transpose=True).T, lower=False, transpose=True)
+            Z = _tri_mul(L_inv, _tri_mul(L_inv, inner, lower=True, transpose=True).T, lower=True, transpose=True)
             out[self._rows(k)] = np.diag(Z)
         return out
 
 
-def _tri_mul(T: np.ndarray, X: np.ndarray, *, lower: bool, transpose: bool = False) -> np.ndarray:
+def _tri_mul(T: np.ndarray, X: np.ndarray, *, lower: bool, transpose: bool = False, overwrite: bool = False):
     """``T X`` (``T^T X`` with ``transpose``) for a triangular ``T`` and a C-ordered ``X``, by BLAS ``trmm``.
 
-    ``trmm`` works in Fortran order: ``X^T`` is ``X``'s Fortran view, and ``(T X)^T = X^T T^T``.
+    ``trmm`` works in Fortran order: ``X^T`` is ``X``'s Fortran view, and ``(T X)^T = X^T T^T``. With ``overwrite``,
+    a contiguous ``X`` may hold the result.
     """
     if X.shape[1] == 0 or T.shape[0] != T.shape[1]:  # the last block's coupling may be rectangular
         return (T.T if transpose else T) @ X
     Xt = np.asarray(X).T
-    return blas.dtrmm(1.0, T, Xt, side=1, lower=int(lower), trans_a=int(not transpose), overwrite_b=0).T
+    return blas.dtrmm(1.0, T, Xt, side=1, lower=int(lower), trans_a=int(not transpose), overwrite_b=int(overwrite)).T
 
 
 def block_cholesky(S) -> BlockCholesky:
@@ -113,7 +120,7 @@ def block_cholesky(S) -> BlockCholesky:
             below.append(C)
         L = cholesky(S_kk, lower=True)
         diagonal.append(L)
-        inverse.append(np.asfortranarray(solve_triangular(L, np.eye(len(L)), lower=True)))
+        inverse.append(np.asfortranarray(lapack.dtrtri(L, lower=1)[0]))
     return BlockCholesky(block, tuple(diagonal), tuple(below), tuple(inverse))
 
 

@@ -56,7 +56,7 @@ one-triangle inverse's IOP σ by a factor of two there.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from fluorocal.stages.adjust.collinearity import whiten, whitening
@@ -185,6 +185,11 @@ def joint_uncertainty(
     JW = (W @ net.J).tocsr()
     # (2 n_nodes, n_theta), sparse: a bead's columns touch only the nodes around its observations
     M = vstack([A.T @ JW[c * n : (c + 1) * n] for c in range(2)]).tocsr()
+    theta = _by_first_node(M, A.shape[1])
+    net = replace(
+        net, J=net.J[:, theta], datum=net.datum[theta], affine=None if net.affine is None else net.affine[theta]
+    )
+    JW, M = JW[:, theta], M[:, theta]
     # the gauge C v = 0: the field's components at the observations along the gauge fields, (K, 2 n_nodes)
     B = gauge_basis(xy, adj.iop_px[system], True)
     C = np.concatenate([(A.T @ B[:, c, :]).T for c in range(2)], axis=1)
@@ -209,10 +214,25 @@ def joint_uncertainty(
         GcF = G @ cF
         node_var -= np.sum(GcF * np.linalg.solve(net.affine.T @ cF, GcF.T).T, axis=1)
     # the IOP's block of the conditional covariance (the field held): three columns of the inverse
-    cov_cond = _symmetric_inverse(H_cond + border).quadratic(np.eye(len(H_cond), 3))
+    cov_cond = np.linalg.solve(H_cond + border, np.eye(len(H_cond), 3))[:3]
     shape = (len(yn), len(xn))
     node_std = _std(node_var).reshape(2, *shape).transpose(1, 2, 0)
     return JointUncertainty(iop_cov, _std(np.diag(iop_cov)), node_std, _std(np.diag(cov_cond)))
+
+
+def _by_first_node(M, n_nodes: int) -> np.ndarray:
+    """The orientation's parameters ``(n_theta,)`` in the order of the first node their columns of ``M`` touch.
+
+    The IOP's three stay first (where they are reported). The field's solves start each column at its first non-zero
+    block (:meth:`fluorocal.stages.learn.blocktri.BlockCholesky.solve`) and take the columns in this order without
+    copying them: a node's row is ``2 i + c`` in the coupled factor's order, ``i`` in a component's.
+    """
+    Mc = M.tocsc()
+    first = np.full(Mc.shape[1], n_nodes)
+    touched = np.diff(Mc.indptr) > 0
+    first[touched] = np.minimum.reduceat(Mc.indices % n_nodes, Mc.indptr[:-1][touched])
+    first[:3] = -1
+    return np.argsort(first, kind="stable")
 
 
 def _std(var: np.ndarray) -> np.ndarray:
