@@ -34,11 +34,15 @@ class BlockCholesky:
         return slice(k * self.block, k * self.block + len(self.diagonal[k]))
 
     def solve(self, X: np.ndarray) -> np.ndarray:
-        """``S^-1 X`` for ``X`` ``(n, m)``: a forward and a backward block substitution.
+        """``S^-1 X`` for ``X`` ``(n, m)``: a forward and a backward block substitution."""
+        return self.backward(self.forward(X), overwrite=True)
 
-        The forward substitution of a column starts at its first non-zero block (the blocks above stay zero):
-        the columns are taken in the order of their first non-zero row, so that each block's are a leading slice
-        (without copying them when they come in that order).
+    def forward(self, X: np.ndarray) -> np.ndarray:
+        """``L^-1 X`` for ``X`` ``(n, m)``, block by block.
+
+        A column's substitution starts at its first non-zero block (the blocks above stay zero): the columns
+        are taken in the order of their first non-zero row, so that each block's are a leading slice (without
+        copying them when they come in that order).
         """
         X = np.asarray(X, dtype=np.float64)
         nonzero = X != 0
@@ -53,18 +57,23 @@ class BlockCholesky:
             if k > 0:
                 rhs = rhs - _tri_mul(self.below[k - 1], Y[self._rows(k - 1), :m], lower=False)
             Y[rows, :m] = _tri_mul(self.inverse[k], rhs, lower=True, overwrite=k > 0)
-        # the backward substitution in place: block k of Y is read once, where block k of the result goes
+        if by_first is None:
+            return Y
+        out = np.empty(X.shape)
+        out[:, by_first] = Y
+        return out
+
+    def backward(self, Y: np.ndarray, *, overwrite: bool = False) -> np.ndarray:
+        """``L^-T Y`` for ``Y`` ``(n, m)``, block by block; in place in ``Y`` with ``overwrite``."""
+        Y = np.array(Y, dtype=np.float64, copy=not overwrite)
+        # block k of Y is read once, where block k of the result goes
         last = len(self.diagonal) - 1
         for k in range(last, -1, -1):
             rhs = Y[self._rows(k)]
             if k < last:
                 rhs -= _tri_mul(self.below[k], Y[self._rows(k + 1)], lower=False, transpose=True)
             Y[self._rows(k)] = _tri_mul(self.inverse[k], rhs, lower=True, transpose=True, overwrite=True)
-        if by_first is None:
-            return Y
-        out = np.empty(X.shape)
-        out[:, by_first] = Y
-        return out
+        return Y
 
     def diag_inverse(self) -> np.ndarray:
         """The diagonal ``(n,)`` of ``S^-1``.

@@ -39,19 +39,22 @@ network, and the field's marginal covariance is
 ``S_c^-1 + G Cov_θ G^T``, ``G = S_c^-1 M``. ``S`` is banded, so its solves and
 the diagonal of ``S^-1`` are dense block work on a block-bidiagonal Cholesky
 factor (:mod:`fluorocal.stages.learn.blocktri`); ``M`` is sparse (a bead's
-columns touch only the nodes around its observations), so the solves start each
-column at its first non-zero block. The orientation's marginal normal matrix is
-inverted from Bunch-Kaufman ``L D L^T`` factors, and the field's variance from
-them, ``diag(G Cov_θ G^T)`` as ``G P L^-T`` times ``D^-1`` (a triangular product,
-half a general one's work).
+columns touch only the nodes around its observations), so the forward substitutions
+start each column at its first non-zero block. ``M^T S_c^-1 M`` is ``|Π L^-1 M|²``
+(``S = L L^T``, ``Π`` the projector of the gauge: ``S_c^-1 = L^-T Π L^-1``), one
+symmetric product; the orientation's marginal normal matrix is inverted from
+Bunch-Kaufman ``L D L^T`` factors, and the field's variance from them,
+``diag(G Cov_θ G^T)`` as ``G P L^-T`` times ``D^-1`` (a triangular product, half a
+general one's work).
 
 Numerics: ``J^T W J - M^T S_c^-1 M`` is nearly singular (a Jacobi-scaled
 condition ~1e14 on a 40-exposure set: a common turn of the cameras that the field
 nearly mimics), so the σ are determined in float64 only to ~1e-4 relative (the
 same problem with its parameters in another order gives σ that differ by that
-much). A symmetric factor reads one triangle: ``M^T S_c^-1 M`` enters as its
-symmetric part, since its rounding asymmetry (~1e-12 of the scaled matrix) moves a
-one-triangle inverse's IOP σ by a factor of two there.
+much). Its data term must be symmetric to the last bit: a symmetric factor reads
+one triangle, and the rounding asymmetry of a general product ``M^T (S_c^-1 M)``
+(~1e-12 of the scaled matrix) moved a one-triangle inverse's IOP σ by a factor of
+two there.
 """
 
 from __future__ import annotations
@@ -194,16 +197,17 @@ def joint_uncertainty(
     B = gauge_basis(xy, adj.iop_px[system], True)
     C = np.concatenate([(A.T @ B[:, c, :]).T for c in range(2)], axis=1)
     C /= np.linalg.norm(C, axis=1, keepdims=True)
-    Y = s_inv.solve(C.T)
-    CY_inv = np.linalg.inv(C @ Y)
-    G = s_inv.solve(M)
-    G -= Y @ (CY_inv @ (C @ G))
+    # S_c^-1 = L^-T Π L^-1 with Π = I - V (V^T V)^-1 V^T, V = L^-1 C^T: M^T S_c^-1 M = |Π L^-1 M|², symmetric
+    V = s_inv.forward(C.T)
+    CY_inv = np.linalg.inv(V.T @ V)
+    Z = s_inv.forward(M)
+    Z -= V @ (CY_inv @ (V.T @ Z))
     H_cond = (net.J.T @ JW).toarray()
     scale = float(np.mean(np.diag(H_cond)))
     border = scale * net.datum @ net.datum.T
     # the IOP as the final adjustment estimates it: the phantom's shape free
-    MtG = M.T @ G  # M^T S_c^-1 M, symmetric but for rounding: its symmetric part (module docstring, Numerics)
-    cov = _symmetric_inverse(H_cond - 0.5 * (MtG + MtG.T) + border)
+    cov = _symmetric_inverse(H_cond - Z.T @ Z + border)
+    Y, G = s_inv.backward(V), s_inv.backward(Z)  # S^-1 C^T and S_c^-1 M (V and Z overwritten)
     iop_cov = cov.quadratic(np.eye(len(H_cond), 3))
     node_var = s_inv.diagonal() - np.sum((Y @ CY_inv) * Y, axis=1)
     # the field as the refinement learned it: with the phantom's affine shape held, if it was (the Gaussian
@@ -254,13 +258,25 @@ class _FieldInverse:
         """The coupled factor's order of the node values (:func:`_interleaving`), None for per-component factors."""
         return _interleaving(self.n_nodes) if len(self.factors) == 1 else None
 
-    def solve(self, X) -> np.ndarray:
-        """``S^-1 X`` for ``X`` ``(2 n_nodes, k)``, dense or sparse."""
+    def forward(self, X) -> np.ndarray:
+        """``L^-1 X`` for ``X`` ``(2 n_nodes, k)``, dense or sparse, with ``S = L L^T`` in the factors' order of rows.
+
+        ``S^-1 = L^-T L^-1``: ``X^T S^-1 X`` is ``|L^-1 X|²`` whatever that order.
+        """
         X, n, order = _dense(X), self.n_nodes, self._interleaved()
         if order is None:
-            return np.concatenate([f.solve(X[c * n : (c + 1) * n]) for c, f in enumerate(self.factors)])
-        out = np.empty(X.shape)
-        out[order] = self.factors[0].solve(X[order])
+            return np.concatenate([f.forward(X[c * n : (c + 1) * n]) for c, f in enumerate(self.factors)])
+        return self.factors[0].forward(X[order])
+
+    def backward(self, Y: np.ndarray) -> np.ndarray:
+        """``L^-T Y`` for ``Y`` ``(2 n_nodes, k)`` in the factors' order of rows (overwritten), in node order."""
+        n, order = self.n_nodes, self._interleaved()
+        if order is None:
+            return np.concatenate(
+                [f.backward(Y[c * n : (c + 1) * n], overwrite=True) for c, f in enumerate(self.factors)]
+            )
+        out = np.empty(Y.shape)
+        out[order] = self.factors[0].backward(Y, overwrite=True)
         return out
 
     def diagonal(self) -> np.ndarray:
