@@ -228,7 +228,7 @@ def _by_first_node(M, n_nodes: int) -> np.ndarray:
     """The orientation's parameters ``(n_theta,)`` in the order of the first node their columns of ``M`` touch.
 
     The IOP's three stay first (where they are reported). The field's solves start each column at its first non-zero
-    block (:meth:`fluorocal.stages.learn.blocktri.BlockCholesky.solve`) and take the columns in this order without
+    block (:meth:`fluorocal.stages.learn.blocktri.BlockCholesky.forward`) and take the columns in this order without
     copying them: a node's row is ``2 i + c`` in the coupled factor's order, ``i`` in a component's.
     """
     Mc = M.tocsc()
