@@ -6,6 +6,11 @@ into blocks of the bandwidth it is block tridiagonal, so its Cholesky factor is 
 everything the uncertainty needs of ``S^-1`` is dense BLAS-3 work on ``b x b`` blocks: solves with
 many right-hand sides, and the diagonal of ``S^-1`` by the backward recurrence of the inverse's
 diagonal blocks (Takahashi's equations by blocks), without solving for a column of the identity per node.
+
+The factor's blocks are triangular: ``L_kk`` lower and, within the band, ``L_k+1,k`` upper (row ``i`` of
+block ``k+1`` reaches back at most the bandwidth, to column ``i`` of block ``k``). The solves multiply by
+them and by the diagonal blocks' inverses (kept with the factor) as triangular matrices, half a general
+product's work, instead of triangular solves, which BLAS does at half a product's speed.
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cholesky, solve_triangular
+from scipy.linalg import blas, cholesky, lapack
 
 
 @dataclass(frozen=True)
@@ -22,42 +27,86 @@ class BlockCholesky:
 
     block: int
     diagonal: tuple  # of (b_k, b_k) lower-triangular float64 ndarrays
-    below: tuple  # of (b_k+1, b_k) float64 ndarrays
+    below: tuple  # of (b_k+1, b_k) float64 ndarrays, upper triangular (module docstring)
+    inverse: tuple  # of (b_k, b_k) lower-triangular float64 ndarrays: L_kk^-1, Fortran order
 
     def _rows(self, k: int) -> slice:
         return slice(k * self.block, k * self.block + len(self.diagonal[k]))
 
     def solve(self, X: np.ndarray) -> np.ndarray:
         """``S^-1 X`` for ``X`` ``(n, m)``: a forward and a backward block substitution."""
-        Y = np.empty(X.shape)
-        for k, L in enumerate(self.diagonal):
-            rhs = X[self._rows(k)] if k == 0 else X[self._rows(k)] - self.below[k - 1] @ Y[self._rows(k - 1)]
-            Y[self._rows(k)] = solve_triangular(L, rhs, lower=True)
-        Z = np.empty(X.shape)
+        return self.backward(self.forward(X), overwrite=True)
+
+    def forward(self, X: np.ndarray) -> np.ndarray:
+        """``L^-1 X`` for ``X`` ``(n, m)``, block by block.
+
+        A column's substitution starts at its first non-zero block (the blocks above stay zero): the columns
+        are taken in the order of their first non-zero row, so that each block's are a leading slice (without
+        copying them when they come in that order).
+        """
+        X = np.asarray(X, dtype=np.float64)
+        nonzero = X != 0
+        first = np.where(nonzero.any(axis=0), np.argmax(nonzero, axis=0), len(X)) // self.block
+        by_first = None if np.all(np.diff(first) >= 0) else np.argsort(first, kind="stable")
+        if by_first is not None:
+            X, first = X[:, by_first], first[by_first]
+        Y = np.zeros(X.shape)
+        for k in range(len(self.diagonal)):
+            m, rows = int(np.searchsorted(first, k, side="right")), self._rows(k)
+            rhs = X[rows, :m]
+            if k > 0:
+                rhs = rhs - _tri_mul(self.below[k - 1], Y[self._rows(k - 1), :m], lower=False)
+            Y[rows, :m] = _tri_mul(self.inverse[k], rhs, lower=True, overwrite=k > 0)
+        if by_first is None:
+            return Y
+        out = np.empty(X.shape)
+        out[:, by_first] = Y
+        return out
+
+    def backward(self, Y: np.ndarray, *, overwrite: bool = False) -> np.ndarray:
+        """``L^-T Y`` for ``Y`` ``(n, m)``, block by block; in place in ``Y`` with ``overwrite``."""
+        Y = np.array(Y, dtype=np.float64, copy=not overwrite)
+        # block k of Y is read once, where block k of the result goes
         last = len(self.diagonal) - 1
         for k in range(last, -1, -1):
-            rhs = Y[self._rows(k)] if k == last else Y[self._rows(k)] - self.below[k].T @ Z[self._rows(k + 1)]
-            Z[self._rows(k)] = solve_triangular(self.diagonal[k], rhs, lower=True, trans="T")
-        return Z
+            rhs = Y[self._rows(k)]
+            if k < last:
+                rhs -= _tri_mul(self.below[k], Y[self._rows(k + 1)], lower=False, transpose=True)
+            Y[self._rows(k)] = _tri_mul(self.inverse[k], rhs, lower=True, transpose=True, overwrite=True)
+        return Y
 
     def diag_inverse(self) -> np.ndarray:
         """The diagonal ``(n,)`` of ``S^-1``.
 
         With ``Z = S^-1`` (``L^T Z = L^-1``, lower triangular): ``Z_NN = L_NN^-T L_NN^-1`` and, going up
         with ``X = L_k+1,k L_kk^-1``, ``Z_k+1,k = -Z_k+1,k+1 X`` and
-        ``Z_kk = L_kk^-T L_kk^-1 + X^T Z_k+1,k+1 X``: only the diagonal blocks are kept.
+        ``Z_kk = L_kk^-T L_kk^-1 + X^T Z_k+1,k+1 X``: only the diagonal blocks are kept. (``(Z B)^T = B^T Z`` and
+        ``(Y L^-1)^T = L^-T Y`` for the symmetric ``Z`` and ``Y``: every product is a triangular one from the left.)
         """
         out = np.empty(sum(len(L) for L in self.diagonal))
         Z = None
         for k in range(len(self.diagonal) - 1, -1, -1):
-            L_inv = solve_triangular(self.diagonal[k], np.eye(len(self.diagonal[k])), lower=True)
-            if Z is None:
-                Z = L_inv.T @ L_inv
-            else:
-                X = self.below[k] @ L_inv
-                Z = L_inv.T @ L_inv + X.T @ (Z @ X)
+            # Z_kk = L_kk^-T (I + B^T Z_k+1,k+1 B) L_kk^-1 with B = L_k+1,k: triangular products of symmetric ones
+            L_inv = self.inverse[k]
+            inner = np.eye(len(L_inv))
+            if Z is not None:
+                B = self.below[k]
+                inner += _tri_mul(B, _tri_mul(B, Z, lower=False, transpose=True).T, lower=False, transpose=True)
+            Z = _tri_mul(L_inv, _tri_mul(L_inv, inner, lower=True, transpose=True).T, lower=True, transpose=True)
             out[self._rows(k)] = np.diag(Z)
         return out
+
+
+def _tri_mul(T: np.ndarray, X: np.ndarray, *, lower: bool, transpose: bool = False, overwrite: bool = False):
+    """``T X`` (``T^T X`` with ``transpose``) for a triangular ``T`` and a C-ordered ``X``, by BLAS ``trmm``.
+
+    ``trmm`` works in Fortran order: ``X^T`` is ``X``'s Fortran view, and ``(T X)^T = X^T T^T``. With ``overwrite``,
+    a contiguous ``X`` may hold the result.
+    """
+    if X.shape[1] == 0 or T.shape[0] != T.shape[1]:  # the last block's coupling may be rectangular
+        return (T.T if transpose else T) @ X
+    Xt = np.asarray(X).T
+    return blas.dtrmm(1.0, T, Xt, side=1, lower=int(lower), trans_a=int(not transpose), overwrite_b=int(overwrite)).T
 
 
 def block_cholesky(S) -> BlockCholesky:
@@ -69,17 +118,19 @@ def block_cholesky(S) -> BlockCholesky:
     coo = S.tocoo()
     block = max(int(np.max(np.abs(coo.row - coo.col), initial=0)), 1)
     n = S.shape[0]
-    diagonal, below = [], []
+    diagonal, below, inverse = [], [], []
     for lo in range(0, n, block):
         hi = min(lo + block, n)
         S_kk = S[lo:hi, lo:hi].toarray()
         if diagonal:
-            # L_k,k-1 = S_k,k-1 L_k-1,k-1^-T
-            C = solve_triangular(diagonal[-1], S[lo:hi, lo - block : lo].toarray().T, lower=True).T
+            # L_k,k-1 = S_k,k-1 L_k-1,k-1^-T; upper triangular where S_k,k-1 is (the band), exactly
+            C = np.triu(S[lo:hi, lo - block : lo].toarray() @ inverse[-1].T)
             S_kk -= C @ C.T
             below.append(C)
-        diagonal.append(cholesky(S_kk, lower=True))
-    return BlockCholesky(block, tuple(diagonal), tuple(below))
+        L = cholesky(S_kk, lower=True)
+        diagonal.append(L)
+        inverse.append(np.asfortranarray(lapack.dtrtri(L, lower=1)[0]))
+    return BlockCholesky(block, tuple(diagonal), tuple(below), tuple(inverse))
 
 
 __all__ = ["BlockCholesky", "block_cholesky"]

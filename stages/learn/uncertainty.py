@@ -39,12 +39,27 @@ network, and the field's marginal covariance is
 ``S_c^-1 + G Cov_θ G^T``, ``G = S_c^-1 M``. ``S`` is banded, so its solves and
 the diagonal of ``S^-1`` are dense block work on a block-bidiagonal Cholesky
 factor (:mod:`fluorocal.stages.learn.blocktri`); ``M`` is sparse (a bead's
-columns touch only the nodes around its observations).
+columns touch only the nodes around its observations), so the forward substitutions
+start each column at its first non-zero block. ``M^T S_c^-1 M`` is ``|Π L^-1 M|²``
+(``S = L L^T``, ``Π`` the projector of the gauge: ``S_c^-1 = L^-T Π L^-1``), one
+symmetric product; the orientation's marginal normal matrix is inverted from
+Bunch-Kaufman ``L D L^T`` factors, and the field's variance from them,
+``diag(G Cov_θ G^T)`` as ``G P L^-T`` times ``D^-1`` (a triangular product, half a
+general one's work).
+
+Numerics: ``J^T W J - M^T S_c^-1 M`` is nearly singular (a Jacobi-scaled
+condition ~1e14 on a 40-exposure set: a common turn of the cameras that the field
+nearly mimics), so the σ are determined in float64 only to ~1e-4 relative (the
+same problem with its parameters in another order gives σ that differ by that
+much). Its data term must be symmetric to the last bit: a symmetric factor reads
+one triangle, and the rounding asymmetry of a general product ``M^T (S_c^-1 M)``
+(~1e-12 of the scaled matrix) moved a one-triangle inverse's IOP σ by a factor of
+two there.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from fluorocal.stages.adjust.collinearity import whiten, whitening
@@ -55,6 +70,7 @@ from fluorocal.stages.learn.blocktri import block_cholesky
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import prior_normal
 from fluorocal.stages.learn.network import linearised_network
+from scipy.linalg import blas, lapack, ldl
 from scipy.sparse import bmat, csr_matrix, diags, identity, issparse, vstack
 
 
@@ -172,33 +188,55 @@ def joint_uncertainty(
     JW = (W @ net.J).tocsr()
     # (2 n_nodes, n_theta), sparse: a bead's columns touch only the nodes around its observations
     M = vstack([A.T @ JW[c * n : (c + 1) * n] for c in range(2)]).tocsr()
+    theta = _by_first_node(M, A.shape[1])
+    net = replace(
+        net, J=net.J[:, theta], datum=net.datum[theta], affine=None if net.affine is None else net.affine[theta]
+    )
+    JW, M = JW[:, theta], M[:, theta]
     # the gauge C v = 0: the field's components at the observations along the gauge fields, (K, 2 n_nodes)
     B = gauge_basis(xy, adj.iop_px[system], True)
     C = np.concatenate([(A.T @ B[:, c, :]).T for c in range(2)], axis=1)
     C /= np.linalg.norm(C, axis=1, keepdims=True)
-    Y = s_inv.solve(C.T)
-    CY_inv = np.linalg.inv(C @ Y)
-    G = s_inv.solve(M)
-    G -= Y @ (CY_inv @ (C @ G))
+    # S_c^-1 = L^-T Π L^-1 with Π = I - V (V^T V)^-1 V^T, V = L^-1 C^T: M^T S_c^-1 M = |Π L^-1 M|², symmetric
+    V = s_inv.forward(C.T)
+    CY_inv = np.linalg.inv(V.T @ V)
+    Z = s_inv.forward(M)
+    Z -= V @ (CY_inv @ (V.T @ Z))
     H_cond = (net.J.T @ JW).toarray()
     scale = float(np.mean(np.diag(H_cond)))
     border = scale * net.datum @ net.datum.T
-    H_joint = H_cond - (M.T @ G)
     # the IOP as the final adjustment estimates it: the phantom's shape free
-    cov = _sym_inv(H_joint + border)
-    # the field as the refinement learned it: with the phantom's affine shape held, if it was
-    # (the Gaussian conditioned on F^T θ = 0: cov - cov F (F^T cov F)^-1 F^T cov)
-    cov_field = cov
-    if net.affine is not None:
-        cF = cov @ net.affine
-        cov_field = cov - cF @ np.linalg.solve(net.affine.T @ cF, cF.T)
+    cov = _symmetric_inverse(H_cond - Z.T @ Z + border)
+    Y, G = s_inv.backward(V), s_inv.backward(Z)  # S^-1 C^T and S_c^-1 M (V and Z overwritten)
+    iop_cov = cov.quadratic(np.eye(len(H_cond), 3))
     node_var = s_inv.diagonal() - np.sum((Y @ CY_inv) * Y, axis=1)
-    node_var += np.sum((G @ cov_field) * G, axis=1)
+    # the field as the refinement learned it: with the phantom's affine shape held, if it was (the Gaussian
+    # conditioned on F^T θ = 0: cov - cov F (F^T cov F)^-1 F^T cov), by rows of G: diag(G cov G^T) less that term
+    node_var += cov.quadratic_diagonal(G.T)
+    if net.affine is not None:
+        cF = cov.solve(net.affine)
+        GcF = G @ cF
+        node_var -= np.sum(GcF * np.linalg.solve(net.affine.T @ cF, GcF.T).T, axis=1)
     # the IOP's block of the conditional covariance (the field held): three columns of the inverse
     cov_cond = np.linalg.solve(H_cond + border, np.eye(len(H_cond), 3))[:3]
     shape = (len(yn), len(xn))
     node_std = _std(node_var).reshape(2, *shape).transpose(1, 2, 0)
-    return JointUncertainty(cov[:3, :3], _std(np.diag(cov)[:3]), node_std, _std(np.diag(cov_cond)))
+    return JointUncertainty(iop_cov, _std(np.diag(iop_cov)), node_std, _std(np.diag(cov_cond)))
+
+
+def _by_first_node(M, n_nodes: int) -> np.ndarray:
+    """The orientation's parameters ``(n_theta,)`` in the order of the first node their columns of ``M`` touch.
+
+    The IOP's three stay first (where they are reported). The field's solves start each column at its first non-zero
+    block (:meth:`fluorocal.stages.learn.blocktri.BlockCholesky.forward`) and take the columns in this order without
+    copying them: a node's row is ``2 i + c`` in the coupled factor's order, ``i`` in a component's.
+    """
+    Mc = M.tocsc()
+    first = np.full(Mc.shape[1], n_nodes)
+    touched = np.diff(Mc.indptr) > 0
+    first[touched] = np.minimum.reduceat(Mc.indices % n_nodes, Mc.indptr[:-1][touched])
+    first[:3] = -1
+    return np.argsort(first, kind="stable")
 
 
 def _std(var: np.ndarray) -> np.ndarray:
@@ -220,13 +258,25 @@ class _FieldInverse:
         """The coupled factor's order of the node values (:func:`_interleaving`), None for per-component factors."""
         return _interleaving(self.n_nodes) if len(self.factors) == 1 else None
 
-    def solve(self, X) -> np.ndarray:
-        """``S^-1 X`` for ``X`` ``(2 n_nodes, k)``, dense or sparse."""
+    def forward(self, X) -> np.ndarray:
+        """``L^-1 X`` for ``X`` ``(2 n_nodes, k)``, dense or sparse, with ``S = L L^T`` in the factors' order of rows.
+
+        ``S^-1 = L^-T L^-1``: ``X^T S^-1 X`` is ``|L^-1 X|²`` whatever that order.
+        """
         X, n, order = _dense(X), self.n_nodes, self._interleaved()
         if order is None:
-            return np.concatenate([f.solve(X[c * n : (c + 1) * n]) for c, f in enumerate(self.factors)])
-        out = np.empty(X.shape)
-        out[order] = self.factors[0].solve(X[order])
+            return np.concatenate([f.forward(X[c * n : (c + 1) * n]) for c, f in enumerate(self.factors)])
+        return self.factors[0].forward(X[order])
+
+    def backward(self, Y: np.ndarray) -> np.ndarray:
+        """``L^-T Y`` for ``Y`` ``(2 n_nodes, k)`` in the factors' order of rows (overwritten), in node order."""
+        n, order = self.n_nodes, self._interleaved()
+        if order is None:
+            return np.concatenate(
+                [f.backward(Y[c * n : (c + 1) * n], overwrite=True) for c, f in enumerate(self.factors)]
+            )
+        out = np.empty(Y.shape)
+        out[order] = self.factors[0].backward(Y, overwrite=True)
         return out
 
     def diagonal(self) -> np.ndarray:
@@ -269,9 +319,60 @@ def _dense(X) -> np.ndarray:
     return X.toarray() if issparse(X) else np.asarray(X)
 
 
-def _sym_inv(H: np.ndarray) -> np.ndarray:
-    inv = np.linalg.inv(H)
-    return 0.5 * (inv + inv.T)
+@dataclass(frozen=True)
+class _SymmetricInverse:
+    """``H^-1`` of a symmetric ``(n, n)`` ``H`` from its Bunch-Kaufman factors ``H = P L D L^T P^T``.
+
+    ``H^-1 = P L^-T D^-1 L^-1 P^T``: a quadratic form ``X^T H^-1 X`` is ``E^T D^-1 E`` with ``E = L^-1 P^T X``,
+    a product by a triangular matrix (BLAS trmm, half a general product's work), and ``D`` block diagonal
+    (1x1 and 2x2 blocks). A factor and a triangular inverse cost a third of a general inverse.
+    """
+
+    L_inv: np.ndarray  # (n, n) unit lower-triangular: the inverse of L
+    D_inv: csr_matrix  # (n, n) block diagonal: the inverse of D
+    perm: np.ndarray  # (n,) P^T X is X[perm]
+
+    def _half(self, X: np.ndarray) -> np.ndarray:
+        """``L^-1 P^T X`` for ``X`` ``(n, k)``; trmm on the Fortran view ``X[perm]^T``: ``(L^-1 Y)^T = Y^T L^-T``."""
+        XpT = np.asarray(X, dtype=np.float64)[self.perm].T
+        return blas.dtrmm(1.0, self.L_inv, XpT, side=1, lower=1, trans_a=1, diag=1, overwrite_b=1).T
+
+    def quadratic(self, X: np.ndarray) -> np.ndarray:
+        """``X^T H^-1 X`` ``(k, k)`` for ``X`` ``(n, k)``, symmetric."""
+        E = self._half(X)
+        Q = E.T @ (self.D_inv @ E)
+        return 0.5 * (Q + Q.T)
+
+    def quadratic_diagonal(self, X: np.ndarray) -> np.ndarray:
+        """The diagonal ``(k,)`` of ``X^T H^-1 X`` for ``X`` ``(n, k)``."""
+        E = self._half(X)
+        return np.einsum("ij,ij->j", E, self.D_inv @ E)
+
+    def solve(self, X: np.ndarray) -> np.ndarray:
+        """``H^-1 X`` for ``X`` ``(n, k)``."""
+        out = np.empty(X.shape)
+        out[self.perm] = self.L_inv.T @ (self.D_inv @ self._half(X))
+        return out
+
+
+def _symmetric_inverse(H: np.ndarray) -> _SymmetricInverse:
+    """:class:`_SymmetricInverse` of a symmetric ``H``."""
+    lu, d, perm = ldl(H, lower=True)
+    L_inv, _ = lapack.dtrtri(lu[perm], lower=1, unitdiag=1)  # lu[perm] is unit lower triangular
+    return _SymmetricInverse(np.asfortranarray(L_inv), _block_diagonal_inverse(d), perm)
+
+
+def _block_diagonal_inverse(d: np.ndarray) -> csr_matrix:
+    """The inverse of a block diagonal ``d`` ``(n, n)`` of 1x1 and 2x2 blocks (the ``D`` of ``ldl``), sparse."""
+    n = len(d)
+    first = np.flatnonzero(np.diag(d, -1))  # the first row of each 2x2 block
+    single = np.setdiff1d(np.arange(n), np.concatenate([first, first + 1]))
+    a, b, c = d[first, first], d[first + 1, first], d[first + 1, first + 1]
+    det = a * c - b * b
+    rows = np.concatenate([single, first, first, first + 1, first + 1])
+    cols = np.concatenate([single, first, first + 1, first, first + 1])
+    vals = np.concatenate([1.0 / d[single, single], c / det, -b / det, -b / det, a / det])
+    return csr_matrix((vals, (rows, cols)), shape=(n, n))
 
 
 def learned_uncertainty(
