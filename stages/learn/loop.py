@@ -431,8 +431,9 @@ def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refi
         return model, mem
     k_grid = restricted_k_grid(params.k_grid, mem.k_prev)
     model, cv = fit_knn_field(
-        plan.xy[sel], r, var, k_grid=k_grid, neighbour_cache=mem.neighbour_cache, cost_cap=cost_cap, **knn
-    )
+        plan.xy[sel], r, var, k_grid=k_grid, neighbour_cache=mem.neighbour_cache,
+        neighbour_pool_px=plan.xy[plan.rows[s]], cost_cap=cost_cap, **knn
+    )  # fmt: skip
     return model, replace(mem, cv=cv, k_prev=cv.k)
 
 
