@@ -34,17 +34,17 @@ def weighted_neighbour_means(values, weights, idx, ks):
     values, weights : (N, 2) float64 ndarray
     idx : (M, K) int ndarray
         Neighbour indices, nearest first.
-    ks : sequence of int, each <= K
+    ks : sequence of int, increasing, each <= K
 
     Returns
     -------
     (M, len(ks), 2) float64 ndarray
     """
-    w = weights[idx]  # shape (M, K, 2)
-    cw = np.cumsum(w, axis=1)
-    cwr = np.cumsum(w * values[idx], axis=1)
-    sel = np.asarray(ks) - 1
-    return cwr[:, sel] / cw[:, sel]
+    ks = np.asarray(ks)
+    both = np.concatenate([weights, weights * values], axis=1)[idx[:, : ks[-1]]]  # shape (M, k_max, 4): w, w r
+    # the sums between consecutive candidates, then their running sums: one pass over the neighbours
+    sums = np.cumsum(np.add.reduceat(both, np.concatenate([[0], ks[:-1]]), axis=1), axis=1)
+    return sums[..., 2:] / sums[..., :2]
 
 
 @dataclass(frozen=True)

@@ -301,6 +301,20 @@ def test_cv_neighbour_cache_gives_the_same_table_and_skips_the_queries(monkeypat
     )
 
 
+def test_weighted_neighbour_means_are_the_inverse_variance_means_of_the_first_k():
+    from fluorocal.stages.learn.knn import weighted_neighbour_means
+
+    rng = np.random.default_rng(16)
+    values, weights = rng.normal(size=(50, 2)), rng.uniform(0.5, 4.0, (50, 2))
+    idx = np.array([rng.permutation(50)[:12] for _ in range(7)])
+    ks = [1, 3, 4, 9]  # the last below the neighbours given: the rest must not count
+    got = weighted_neighbour_means(values, weights, idx, ks)
+    for j, k in enumerate(ks):
+        w, v = weights[idx[:, :k]], values[idx[:, :k]]
+        # sums of a dozen terms in another order: equal to rounding
+        np.testing.assert_allclose(got[:, j], np.sum(w * v, axis=1) / np.sum(w, axis=1), rtol=1e-13)
+
+
 def test_cv_neighbour_pool_serves_other_inliers_with_the_folds_own_neighbours():
     """A later iteration's inliers (some dropped, some back) read their folds' neighbours from the pool's table.
 
