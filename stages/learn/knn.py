@@ -312,12 +312,16 @@ class _NeighbourTable:
             return None
         return rows
 
+    def positions(self, rows: np.ndarray) -> np.ndarray:
+        """Each base point's position among the points at base ``rows`` (-1: not among them)."""
+        position = np.full(len(self.xy), -1)
+        position[rows] = np.arange(len(rows))
+        return position
+
     def fold_neighbours(self, xy: np.ndarray, rows: np.ndarray, folds: list, k_max: int) -> list:
         """Per fold, ``(n_test, k_max)`` int32 indices into its training points (``xy`` less the fold, in order)."""
-        n = len(xy)
-        position = np.full(len(self.xy), -1)  # each base point's position in xy (-1: left out)
-        position[rows] = np.arange(n)
-        fold_of = np.empty(n, np.int64)
+        position = self.positions(rows)
+        fold_of = np.empty(len(xy), np.int64)
         for f, test in enumerate(folds):
             fold_of[test] = f
         out = []
@@ -325,16 +329,47 @@ class _NeighbourTable:
             cand = position[self.idx[rows[test]]]  # shape (n_test, K)
             valid = (cand >= 0) & (fold_of[np.maximum(cand, 0)] != f)  # the test point itself is in fold f
             rank = np.cumsum(fold_of != f) - 1  # a training point's index among the fold's training points
-            ok = valid.sum(axis=1) >= k_max
-            first = valid & (np.cumsum(valid, axis=1) <= k_max)
-            idx = np.empty((len(test), k_max), np.int32)
-            idx[ok] = rank[cand[ok][first[ok]]].reshape(-1, k_max)
+            idx, ok = _first_valid(cand, valid, k_max)
+            idx[ok] = rank[idx[ok]]
             if not ok.all():
                 train = np.flatnonzero(fold_of != f)
                 _, missing = KDTree(xy[train]).query(xy[test[~ok]], k=k_max)
                 idx[~ok] = missing.reshape(-1, k_max)
             out.append(idx)
         return out
+
+    def nearest_others(self, xy: np.ndarray, rows: np.ndarray, m: int) -> np.ndarray:
+        """Each point's ``m`` nearest other points of ``xy`` ``(n, m)`` (indices into ``xy``, nearest first)."""
+        cand = self.positions(rows)[self.idx[rows]]  # shape (n, K)
+        idx, ok = _first_valid(cand, (cand >= 0) & (cand != np.arange(len(xy))[:, None]), m)
+        if not ok.all():
+            _, missing = KDTree(xy).query(xy[~ok], k=m + 1)
+            idx[~ok] = missing[:, 1:]
+        return idx
+
+
+def _first_valid(cand: np.ndarray, valid: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``k`` valid entries of each row of ``cand``, ``(n, k)`` int32, and the rows that have ``k``.
+
+    The rows short of ``k`` are left unset.
+    """
+    ok = valid.sum(axis=1) >= k
+    first = valid & (np.cumsum(valid, axis=1) <= k)
+    idx = np.empty((len(cand), k), np.int32)
+    idx[ok] = cand[ok][first[ok]].reshape(-1, k)
+    return idx, ok
+
+
+def pool_neighbours(cache: dict, xy_px: np.ndarray, m: int) -> np.ndarray | None:
+    """Each point's ``m`` nearest other points of ``xy_px`` ``(n, m)``, from the neighbour table in ``cache``.
+
+    The table is the one :func:`cross_validate_k` left there with ``neighbour_pool_px``; None when there is
+    none, or it does not hold every point of ``xy_px``.
+    """
+    table = cache.get("table")
+    xy = np.asarray(xy_px, dtype=np.float64)
+    rows = None if table is None or len(xy) <= m else table.rows_of(xy)
+    return None if rows is None else table.nearest_others(xy, rows, m)
 
 
 def node_statistics(model: KnnModel, nodes_px: np.ndarray, cv_rms_px: float, grid: GridSpec, idx=None):
@@ -448,5 +483,6 @@ __all__ = [
     "cross_validate_k",
     "fit_knn_field",
     "node_statistics",
+    "pool_neighbours",
     "restricted_k_grid",
 ]
