@@ -34,17 +34,17 @@ def weighted_neighbour_means(values, weights, idx, ks):
     values, weights : (N, 2) float64 ndarray
     idx : (M, K) int ndarray
         Neighbour indices, nearest first.
-    ks : sequence of int, each <= K
+    ks : sequence of int, increasing, each <= K
 
     Returns
     -------
     (M, len(ks), 2) float64 ndarray
     """
-    w = weights[idx]  # shape (M, K, 2)
-    cw = np.cumsum(w, axis=1)
-    cwr = np.cumsum(w * values[idx], axis=1)
-    sel = np.asarray(ks) - 1
-    return cwr[:, sel] / cw[:, sel]
+    ks = np.asarray(ks)
+    both = np.concatenate([weights, weights * values], axis=1)[idx[:, : ks[-1]]]  # shape (M, k_max, 4): w, w r
+    # the sums between consecutive candidates, then their running sums: one pass over the neighbours
+    sums = np.cumsum(np.add.reduceat(both, np.concatenate([[0], ks[:-1]]), axis=1), axis=1)
+    return sums[..., 2:] / sums[..., :2]
 
 
 @dataclass(frozen=True)
@@ -106,7 +106,10 @@ class KnnModel:
         xy = np.asarray(xy_px, dtype=np.float64).reshape(-1, 2)
         if len(xy) == 0:
             return np.empty((0, 2))
-        _, idx = self.neighbours(xy)
+        return self.mean_over(self.neighbours(xy)[1])
+
+    def mean_over(self, idx: np.ndarray) -> np.ndarray:
+        """The prediction ``(M, 2)`` px from the neighbour indices ``(M, k_used)`` of :meth:`neighbours`."""
         return weighted_neighbour_means(self.values_px, self.weights, idx, [self.k_used])[:, 0]
 
     def scaled(self, factor: float) -> "KnnModel":
@@ -159,6 +162,7 @@ def cross_validate_k(
     n_folds: int,
     seed: int,
     neighbour_cache: dict | None = None,
+    neighbour_pool_px: np.ndarray | None = None,
     cost_cap: float | None = None,
 ) -> CvReport:
     """Choose ``k`` by shuffled K-fold cross-validation of the equation-3 cost.
@@ -180,6 +184,11 @@ def cross_validate_k(
         on the same coordinates, folds and at most as many neighbours (they
         depend on the coordinates only, not on the residuals: the
         alternation's iterations share them).
+    neighbour_pool_px : (P, 2) float64 ndarray, px, optional
+        Points that ``xy_px`` of this and later calls with the same cache are drawn from (the system's
+        observations, of which each iteration trains on the inliers): the cache then keeps every pool
+        point's nearest neighbours, from which a later call on other inliers reads its folds' neighbours
+        without a KD-tree (the same neighbours). Default: ``xy_px``.
     cost_cap : float, optional
         Bound on each observation's out-of-fold cost ``(r - g)^T C_r^-1 (r - g)``
         (default None: unbounded), see :func:`fluorocal.stages.learn.robust.capped_cost`:
@@ -210,7 +219,7 @@ def cross_validate_k(
     if len(ks) == 0:
         raise InputError(f"k_grid {tuple(k_grid)} has no candidate <= the training fold size {n_train_min}")
     cache = neighbour_cache if neighbour_cache is not None else {}
-    _fill_neighbour_cache(cache, xy, folds, seed, int(ks[-1]))
+    _fill_neighbour_cache(cache, xy, folds, seed, int(ks[-1]), neighbour_pool_px)
     cost = np.zeros(len(ks))
     sq = np.zeros(len(ks))
     n_sq = np.zeros(len(ks))
@@ -241,8 +250,14 @@ def _fold_costs(err, w, cost_cap):
     )
 
 
-def _fill_neighbour_cache(cache: dict, xy: np.ndarray, folds: list, seed: int, k_max: int) -> None:
-    """Each fold's ``k_max`` nearest training neighbours of its test points, unless ``cache`` holds them already."""
+def _fill_neighbour_cache(cache: dict, xy: np.ndarray, folds: list, seed: int, k_max: int, pool=None) -> None:
+    """Each fold's ``k_max`` nearest training neighbours of its test points, unless ``cache`` holds them already.
+
+    They are read from the cache's :class:`_NeighbourTable` when it covers ``xy`` (the alternation's inliers
+    change by a few observations from one iteration to the next, its coordinates never): the same neighbours as
+    a KD-tree of each fold's training points would give, without querying one. ``pool`` (default ``xy``): the
+    points of the table, when it is built.
+    """
     n_folds = len(folds)
     if (
         cache.get("n_folds") == n_folds
@@ -251,21 +266,123 @@ def _fill_neighbour_cache(cache: dict, xy: np.ndarray, folds: list, seed: int, k
         and np.array_equal(cache.get("xy"), xy)
     ):
         return
+    table = cache.get("table")
+    rows = None if table is None or table.k_max < k_max else table.rows_of(xy)
+    if rows is None:
+        pool = xy if pool is None else np.asarray(pool, dtype=np.float64)
+        table = _NeighbourTable.build(pool, k_max, n_folds, len(xy))
+        rows = table.rows_of(xy)
+    if rows is None:  # xy is not drawn from the pool
+        table, rows = _NeighbourTable.build(xy, k_max, n_folds, len(xy)), np.arange(len(xy))
     cache.clear()
-    cache.update(xy=xy.copy(), n_folds=n_folds, seed=seed, k=k_max, idx=[])
-    for test in folds:
-        train = np.setdiff1d(np.arange(len(xy)), test, assume_unique=True)
-        _, idx = KDTree(xy[train]).query(xy[test], k=k_max)
-        cache["idx"].append(idx.reshape(len(test), -1).astype(np.int32))
+    cache.update(xy=xy.copy(), n_folds=n_folds, seed=seed, k=k_max, table=table,
+                 idx=table.fold_neighbours(xy, rows, folds, k_max))  # fmt: skip
 
 
-def node_statistics(model: KnnModel, nodes_px: np.ndarray, cv_rms_px: float, grid: GridSpec):
-    """Per-node uncertainty ``cv_rms / sqrt(n_eff)`` and support mask, both ``(n_nodes,)``."""
-    _, idx = model.neighbours(nodes_px)
+@dataclass(frozen=True)
+class _NeighbourTable:
+    """Every point's nearest neighbours among a set of points, enough of them to serve the folds of any subset.
+
+    ``idx`` ``(n_base, K)``: the ``K`` nearest of each base point (itself first), nearest first; ``k_max``:
+    the most neighbours per fold it was sized for.
+    """
+
+    xy: np.ndarray
+    idx: np.ndarray
+    k_max: int
+
+    @classmethod
+    def build(cls, xy: np.ndarray, k_max: int, n_folds: int, n_used: int) -> "_NeighbourTable":
+        """The table of the points ``xy``, sized for ``k_max`` neighbours of folds of ``n_used`` of them."""
+        # a test point's own fold takes 1 / n_folds of its neighbours, the points not used the rest of the pool: a
+        # margin for their spread (a shortfall costs a query of that point's fold, not a wrong neighbour)
+        share = n_used / max(len(xy), 1) * (n_folds - 1) / n_folds
+        k = min(len(xy), int(np.ceil(1.05 * (k_max + 1) / share)) + 16)
+        _, idx = KDTree(xy).query(xy, k=k)
+        return cls(xy.copy(), idx.reshape(len(xy), k).astype(np.int32), k_max)
+
+    def rows_of(self, xy: np.ndarray) -> np.ndarray | None:
+        """The base rows of the points ``xy``, one each, or None when one is not a base point (or two share one)."""
+        if len(xy) > len(self.xy):
+            return None
+        if len(xy) == len(self.xy) and np.array_equal(xy, self.xy):
+            return np.arange(len(xy))
+        dist, rows = KDTree(self.xy).query(xy, k=1) if len(xy) else (np.empty(0), np.empty(0, np.int64))
+        if np.any(dist != 0) or len(np.unique(rows)) != len(rows):
+            return None
+        return rows
+
+    def positions(self, rows: np.ndarray) -> np.ndarray:
+        """Each base point's position among the points at base ``rows`` (-1: not among them)."""
+        position = np.full(len(self.xy), -1)
+        position[rows] = np.arange(len(rows))
+        return position
+
+    def fold_neighbours(self, xy: np.ndarray, rows: np.ndarray, folds: list, k_max: int) -> list:
+        """Per fold, ``(n_test, k_max)`` int32 indices into its training points (``xy`` less the fold, in order)."""
+        position = self.positions(rows)
+        fold_of = np.empty(len(xy), np.int64)
+        for f, test in enumerate(folds):
+            fold_of[test] = f
+        out = []
+        for f, test in enumerate(folds):
+            cand = position[self.idx[rows[test]]]  # shape (n_test, K)
+            valid = (cand >= 0) & (fold_of[np.maximum(cand, 0)] != f)  # the test point itself is in fold f
+            rank = np.cumsum(fold_of != f) - 1  # a training point's index among the fold's training points
+            idx, ok = _first_valid(cand, valid, k_max)
+            idx[ok] = rank[idx[ok]]
+            if not ok.all():
+                train = np.flatnonzero(fold_of != f)
+                _, missing = KDTree(xy[train]).query(xy[test[~ok]], k=k_max)
+                idx[~ok] = missing.reshape(-1, k_max)
+            out.append(idx)
+        return out
+
+    def nearest_others(self, xy: np.ndarray, rows: np.ndarray, m: int) -> np.ndarray:
+        """Each point's ``m`` nearest other points of ``xy`` ``(n, m)`` (indices into ``xy``, nearest first)."""
+        cand = self.positions(rows)[self.idx[rows]]  # shape (n, K)
+        idx, ok = _first_valid(cand, (cand >= 0) & (cand != np.arange(len(xy))[:, None]), m)
+        if not ok.all():
+            _, missing = KDTree(xy).query(xy[~ok], k=m + 1)
+            idx[~ok] = missing[:, 1:]
+        return idx
+
+
+def _first_valid(cand: np.ndarray, valid: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``k`` valid entries of each row of ``cand``, ``(n, k)`` int32, and the rows that have ``k``.
+
+    The rows short of ``k`` are left unset.
+    """
+    ok = valid.sum(axis=1) >= k
+    first = valid & (np.cumsum(valid, axis=1) <= k)
+    idx = np.empty((len(cand), k), np.int32)
+    idx[ok] = cand[ok][first[ok]].reshape(-1, k)
+    return idx, ok
+
+
+def pool_neighbours(cache: dict, xy_px: np.ndarray, m: int) -> np.ndarray | None:
+    """Each point's ``m`` nearest other points of ``xy_px`` ``(n, m)``, from the neighbour table in ``cache``.
+
+    The table is the one :func:`cross_validate_k` left there with ``neighbour_pool_px``; None when there is
+    none, or it does not hold every point of ``xy_px``.
+    """
+    table = cache.get("table")
+    xy = np.asarray(xy_px, dtype=np.float64)
+    rows = None if table is None or len(xy) <= m else table.rows_of(xy)
+    return None if rows is None else table.nearest_others(xy, rows, m)
+
+
+def node_statistics(model: KnnModel, nodes_px: np.ndarray, cv_rms_px: float, grid: GridSpec, idx=None):
+    """Per-node uncertainty ``cv_rms / sqrt(n_eff)`` and support mask, both ``(n_nodes,)``.
+
+    ``idx``: the nodes' neighbours from ``model.neighbours(nodes_px)``, when already at hand.
+    """
+    if idx is None:
+        _, idx = model.neighbours(nodes_px)
     w = model.weights[idx].mean(axis=2)  # shape (n_nodes, k)
     n_eff = w.sum(1) ** 2 / np.sum(w**2, axis=1)
     sigma = cv_rms_px / np.sqrt(n_eff)
-    counts = np.array([len(c) for c in model.tree.query_ball_point(nodes_px, r=grid.support_radius_px)])
+    counts = model.tree.query_ball_point(nodes_px, r=grid.support_radius_px, return_length=True)
     return sigma, counts >= grid.min_support
 
 
@@ -282,6 +399,7 @@ def fit_knn_field(
     seed: int = 0,
     cv: CvReport | None = None,
     neighbour_cache: dict | None = None,
+    neighbour_pool_px: np.ndarray | None = None,
     cost_cap: float | None = None,
 ) -> tuple[CorrectionField | KnnModel, CvReport]:
     """Learn the deterministic part of the residuals: one kNN regression step.
@@ -309,7 +427,7 @@ def fit_knn_field(
         A cross-validation already run on (nearly) the same observations: its
         ``k`` and out-of-fold RMS are used and none is run (the refit after
         the local outlier test, which drops a few observations).
-    neighbour_cache, cost_cap : optional
+    neighbour_cache, neighbour_pool_px, cost_cap : optional
         Passed to :func:`cross_validate_k`.
 
     Returns
@@ -333,16 +451,18 @@ def fit_knn_field(
     width, height = (int(s) for s in image_size)
     if cv is None:
         cv = cross_validate_k(
-            xy, r, var, k_grid=k_grid, n_folds=n_folds, seed=seed, neighbour_cache=neighbour_cache, cost_cap=cost_cap
-        )
+            xy, r, var, k_grid=k_grid, n_folds=n_folds, seed=seed, neighbour_cache=neighbour_cache,
+            neighbour_pool_px=neighbour_pool_px, cost_cap=cost_cap,
+        )  # fmt: skip
         logger.debug("kNN cross-validation over %d points:\n%s", len(xy), cv.table())
     model = KnnModel(xy, r, 1.0 / var, cv.k)
     if not smooth:
         return model, cv
     xn, yn = grid.nodes((width, height))
     nodes = node_coordinates(xn, yn)
-    delta = model.correction_at(nodes).reshape(len(yn), len(xn), 2)
-    sigma, support = node_statistics(model, nodes, cv.cv_rms_px, grid)
+    _, idx = model.neighbours(nodes)
+    delta = model.mean_over(idx).reshape(len(yn), len(xn), 2)
+    sigma, support = node_statistics(model, nodes, cv.cv_rms_px, grid, idx=idx)
     return CorrectionField(
         xn, yn, delta, sigma.reshape(delta.shape[:2]), support.reshape(delta.shape[:2]), width, height
     ), cv
@@ -363,5 +483,6 @@ __all__ = [
     "cross_validate_k",
     "fit_knn_field",
     "node_statistics",
+    "pool_neighbours",
     "restricted_k_grid",
 ]

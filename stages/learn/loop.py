@@ -43,13 +43,13 @@ from fluorocal.stages.learn.anderson import Anderson, anderson_step
 from fluorocal.stages.learn.gauge import gauge_fixed
 from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
 from fluorocal.stages.learn.joint import SystemStep, fit_grids_jointly
-from fluorocal.stages.learn.knn import fit_knn_field, node_statistics, restricted_k_grid
+from fluorocal.stages.learn.knn import fit_knn_field, node_statistics, pool_neighbours, restricted_k_grid
 from fluorocal.stages.learn.network import systems_network
 from fluorocal.stages.learn.nodes import image_sizes
 from fluorocal.stages.learn.params import LearnParams, scheme_flags
 from fluorocal.stages.learn.polynomial import calibrate_polynomial
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
-from fluorocal.stages.learn.robust import local_screen, misfit_inliers
+from fluorocal.stages.learn.robust import SCREEN_NEIGHBOURS, local_screen, misfit_inliers
 from fluorocal.stages.learn.stopping import decide, previous_total
 from fluorocal.stages.learn.uncertainty import learned_uncertainty, with_field_std
 
@@ -399,7 +399,10 @@ def _screened(plan: _Plan, state: _State, s: int):
         )
     if not local:
         return sel, sel, None
-    screen = local_screen(plan.xy[sel], out.residuals_px[sel], out.residual_var_px2[sel], chi2=params.screen_chi2)
+    # the kNN's neighbour table of the system's observations, once its first cross-validation built it
+    near = pool_neighbours(state.memory[s].neighbour_cache, plan.xy[sel], SCREEN_NEIGHBOURS)
+    screen = local_screen(plan.xy[sel], out.residuals_px[sel], out.residual_var_px2[sel], chi2=params.screen_chi2,
+                          neighbours=near)  # fmt: skip
     return sel, _enough(sel, screen.keep, params.n_folds), screen.cost_cap
 
 
@@ -431,8 +434,9 @@ def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refi
         return model, mem
     k_grid = restricted_k_grid(params.k_grid, mem.k_prev)
     model, cv = fit_knn_field(
-        plan.xy[sel], r, var, k_grid=k_grid, neighbour_cache=mem.neighbour_cache, cost_cap=cost_cap, **knn
-    )
+        plan.xy[sel], r, var, k_grid=k_grid, neighbour_cache=mem.neighbour_cache,
+        neighbour_pool_px=plan.xy[plan.rows[s]], cost_cap=cost_cap, **knn
+    )  # fmt: skip
     return model, replace(mem, cv=cv, k_prev=cv.k)
 
 

@@ -74,7 +74,7 @@ class Screen:
 
 
 def local_screen(
-    xy_px, residuals_px, residual_var_px2, *, chi2: float, n_neighbours: int = SCREEN_NEIGHBOURS
+    xy_px, residuals_px, residual_var_px2, *, chi2: float, n_neighbours: int = SCREEN_NEIGHBOURS, neighbours=None
 ) -> Screen:
     """Screen observations against the leave-one-out median residual of their nearest neighbours.
 
@@ -86,6 +86,9 @@ def local_screen(
         Threshold in units of the robust scale (``LearnParams.screen_chi2``).
     n_neighbours : int
         Neighbours of the median (default 16; fewer when there are fewer observations).
+    neighbours : (N, >= n_neighbours) int ndarray, optional
+        Each observation's nearest other observations (indices, nearest first), when at hand
+        (:func:`fluorocal.stages.learn.knn.pool_neighbours`); default: a KD-tree's.
 
     Returns
     -------
@@ -105,9 +108,12 @@ def local_screen(
     m = min(int(n_neighbours), len(xy) - 1)
     if m < 3:
         return Screen(np.ones(len(xy), bool), float("inf"))
-    _, idx = KDTree(xy).query(xy, k=m + 1)
-    # the nearest is the observation itself (or one at the same place: a tie, dropped alike)
-    local = np.median(r[idx[:, 1:]], axis=1)  # shape (N, 2)
+    if neighbours is not None and np.shape(neighbours)[1] >= m:
+        idx = np.asarray(neighbours)[:, :m]
+    else:
+        # the nearest is the observation itself (or one at the same place: a tie, dropped alike)
+        idx = KDTree(xy).query(xy, k=m + 1)[1][:, 1:]
+    local = np.median(r[idx], axis=1)  # shape (N, 2)
     keep, limit = misfit_inliers(r, local, var, chi2)
     return Screen(keep, limit)
 

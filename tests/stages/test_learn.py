@@ -301,6 +301,46 @@ def test_cv_neighbour_cache_gives_the_same_table_and_skips_the_queries(monkeypat
     )
 
 
+def test_weighted_neighbour_means_are_the_inverse_variance_means_of_the_first_k():
+    from fluorocal.stages.learn.knn import weighted_neighbour_means
+
+    rng = np.random.default_rng(16)
+    values, weights = rng.normal(size=(50, 2)), rng.uniform(0.5, 4.0, (50, 2))
+    idx = np.array([rng.permutation(50)[:12] for _ in range(7)])
+    ks = [1, 3, 4, 9]  # the last below the neighbours given: the rest must not count
+    got = weighted_neighbour_means(values, weights, idx, ks)
+    for j, k in enumerate(ks):
+        w, v = weights[idx[:, :k]], values[idx[:, :k]]
+        # sums of a dozen terms in another order: equal to rounding
+        np.testing.assert_allclose(got[:, j], np.sum(w * v, axis=1) / np.sum(w, axis=1), rtol=1e-13)
+
+
+def test_cv_neighbour_pool_serves_other_inliers_with_the_folds_own_neighbours():
+    """A later iteration's inliers (some dropped, some back) read their folds' neighbours from the pool's table.
+
+    They must be exactly a fresh KD-tree's of each fold's training points, so the CV table is the same to
+    rounding (the sums run over the same neighbours in the same order); a fold of 2 (half the neighbours in the
+    test fold) and a large ``k`` make the table fall short for some points, which are queried instead.
+    """
+    from fluorocal.stages.learn import knn as learn
+
+    rng = np.random.default_rng(15)
+    pool, r, var = sample(rng, 3000, 0.1)
+    cache = {}
+    for n_folds, k_grid in [(10, (1, 4, 16, 64)), (10, (4, 16)), (2, (4, 16, 64))]:
+        sel = np.sort(rng.choice(len(pool), 2900, replace=False))
+        cached = cross_validate_k(pool[sel], r[sel], var[sel], k_grid=k_grid, n_folds=n_folds, seed=0,
+                                  neighbour_cache=cache, neighbour_pool_px=pool)  # fmt: skip
+        fresh = cross_validate_k(pool[sel], r[sel], var[sel], k_grid=k_grid, n_folds=n_folds, seed=0)
+        np.testing.assert_allclose(cached.cv_cost, fresh.cv_cost, rtol=1e-12)
+        folds = np.array_split(np.random.default_rng(0).permutation(len(sel)), n_folds)
+        for test, idx in zip(folds, cache["idx"]):
+            train = np.setdiff1d(np.arange(len(sel)), test)
+            _, expected = learn.KDTree(pool[sel][train]).query(pool[sel][test], k=max(k_grid))
+            np.testing.assert_array_equal(idx, expected)
+    assert cache["table"].xy.shape == pool.shape  # built once, over the pool
+
+
 def test_knn_refit_with_a_given_cv_uses_its_k_without_cross_validating(monkeypatch):
     from fluorocal.stages.learn import knn as learn
 

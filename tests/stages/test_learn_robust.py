@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from fluorocal.stages.learn import LearnParams, calibrate, cross_validate_k
 from fluorocal.stages.learn.robust import local_screen
+from scipy.spatial import KDTree
 
 NOISE_PX = 0.05
 
@@ -127,3 +128,29 @@ def test_gross_errors_leave_the_learned_field_as_on_clean_data(small_set):
     # with too few observations to tell: measured 3 of 157)
     assert not np.any(res.trained & ~adj.inlier & contaminated)
     assert np.sum(res.trained & contaminated) <= 0.05 * len(rows)
+
+
+def test_local_screen_from_the_pool_neighbour_table_equals_its_own_kd_tree():
+    """The kNN's table of a system's observations gives the screen of a subset its own nearest neighbours.
+
+    The same neighbours as the screen's KD-tree (distinct random points: no ties), hence the same screen.
+    """
+    from fluorocal.stages.learn.knn import pool_neighbours
+
+    rng = np.random.default_rng(21)
+    pool = rng.uniform(0, 200, (3000, 2))
+    r = 0.01 * pool + rng.normal(0, 0.05, pool.shape)
+    r[:30] += 2.0
+    var = np.full(pool.shape, 0.05**2)
+    cache = {}
+    assert pool_neighbours(cache, pool, 16) is None  # no table yet
+    cross_validate_k(pool, r, var, k_grid=(4, 16), n_folds=10, seed=0, neighbour_cache=cache, neighbour_pool_px=pool)
+    sel = np.sort(rng.choice(len(pool), 2800, replace=False))
+    near = pool_neighbours(cache, pool[sel], 16)
+    _, expected = KDTree(pool[sel]).query(pool[sel], k=17)
+    np.testing.assert_array_equal(near, expected[:, 1:])
+    plain = local_screen(pool[sel], r[sel], var[sel], chi2=23.0)
+    cached = local_screen(pool[sel], r[sel], var[sel], chi2=23.0, neighbours=near)
+    np.testing.assert_array_equal(cached.keep, plain.keep)
+    assert cached.cost_cap == plain.cost_cap
+    assert pool_neighbours(cache, pool[sel] + 0.5, 16) is None  # points not in the table
