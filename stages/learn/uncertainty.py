@@ -214,14 +214,19 @@ def joint_uncertainty(
     # conditioned on F^T θ = 0: cov - cov F (F^T cov F)^-1 F^T cov), by rows of G: diag(G cov G^T) less that term
     node_var += cov.quadratic_diagonal(G.T)
     if net.affine is not None:
-        cF = cov.solve(net.affine)
-        GcF = G @ cF
-        node_var -= np.sum(GcF * np.linalg.solve(net.affine.T @ cF, GcF.T).T, axis=1)
+        node_var -= _held_affine_variance(cov, G, net.affine)
     # the IOP's block of the conditional covariance (the field held): three columns of the inverse
     cov_cond = np.linalg.solve(H_cond + border, np.eye(len(H_cond), 3))[:3]
     shape = (len(yn), len(xn))
     node_std = _std(node_var).reshape(2, *shape).transpose(1, 2, 0)
     return JointUncertainty(iop_cov, _std(np.diag(iop_cov)), node_std, _std(np.diag(cov_cond)))
+
+
+def _held_affine_variance(cov, G: np.ndarray, affine: np.ndarray) -> np.ndarray:
+    """``diag(G cov F (F^T cov F)^-1 F^T cov G^T)``: what holding ``F^T θ = 0`` takes from each row's variance."""
+    cF = cov.solve(affine)
+    GcF = G @ cF
+    return np.sum(GcF * np.linalg.solve(affine.T @ cF, GcF.T).T, axis=1)
 
 
 def _by_first_node(M, n_nodes: int) -> np.ndarray:
