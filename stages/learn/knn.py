@@ -340,12 +340,23 @@ class _NeighbourTable:
 
     def nearest_others(self, xy: np.ndarray, rows: np.ndarray, m: int) -> np.ndarray:
         """Each point's ``m`` nearest other points of ``xy`` ``(n, m)`` (indices into ``xy``, nearest first)."""
-        cand = self.positions(rows)[self.idx[rows]]  # shape (n, K)
-        idx, ok = _first_valid(cand, (cand >= 0) & (cand != np.arange(len(xy))[:, None]), m)
+        position = self.positions(rows)
+        # the m others and the point itself are nearly always among a row's first 2 m + 8 (the rest of the table
+        # serves the folds): those first, the whole row where a row is short of m others there
+        idx, ok = _other_points(position, self.idx[rows, : 2 * m + 8], np.arange(len(xy)), m)
+        short = np.flatnonzero(~ok)
+        if len(short) and self.idx.shape[1] > 2 * m + 8:
+            idx[short], ok[short] = _other_points(position, self.idx[rows[short]], short, m)
         if not ok.all():
             _, missing = KDTree(xy).query(xy[~ok], k=m + 1)
             idx[~ok] = missing[:, 1:]
         return idx
+
+
+def _other_points(position: np.ndarray, table_rows: np.ndarray, own: np.ndarray, m: int):
+    """The first ``m`` of each table row ``table_rows`` among the points at ``position``, each row's own ``own`` not."""
+    cand = position[table_rows]
+    return _first_valid(cand, (cand >= 0) & (cand != own[:, None]), m)
 
 
 def _first_valid(cand: np.ndarray, valid: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -268,10 +268,11 @@ class _FieldInverse:
 
         ``S^-1 = L^-T L^-1``: ``X^T S^-1 X`` is ``|L^-1 X|²`` whatever that order.
         """
-        X, n, order = _dense(X), self.n_nodes, self._interleaved()
+        n, order = self.n_nodes, self._interleaved()
         if order is None:
+            X = _dense(X)
             return np.concatenate([f.forward(X[c * n : (c + 1) * n]) for c, f in enumerate(self.factors)])
-        return self.factors[0].forward(X[order])
+        return self.factors[0].forward(_dense(X[order]))  # a sparse X reordered before it is made dense
 
     def backward(self, Y: np.ndarray) -> np.ndarray:
         """``L^-T Y`` for ``Y`` ``(2 n_nodes, k)`` in the factors' order of rows (overwritten), in node order."""

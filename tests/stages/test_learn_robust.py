@@ -154,3 +154,26 @@ def test_local_screen_from_the_pool_neighbour_table_equals_its_own_kd_tree():
     np.testing.assert_array_equal(cached.keep, plain.keep)
     assert cached.cost_cap == plain.cost_cap
     assert pool_neighbours(cache, pool[sel] + 0.5, 16) is None  # points not in the table
+
+
+def test_pool_neighbours_of_a_subset_thinned_in_one_half_equal_a_kd_tree():
+    """A subset with most of some points' table neighbours left out: the same neighbours as its own KD-tree.
+
+    Such points' neighbours are looked for further along their table row, then by a KD-tree.
+    Left of x = 100 one point in three is kept (a row's first 2 m + 8 entries hold about 13 of the 17 needed, its
+    whole row of about 90 more than enough), left of x = 20 one in fifteen (a whole row falls short too).
+    """
+    from fluorocal.stages.learn.knn import pool_neighbours
+
+    rng = np.random.default_rng(5)
+    pool = rng.uniform(0, 200, (3000, 2))
+    r = rng.normal(0, 0.05, pool.shape)
+    cache = {}
+    cross_validate_k(pool, r, np.full(pool.shape, 0.05**2), k_grid=(4, 64), n_folds=10, seed=0,
+                     neighbour_cache=cache, neighbour_pool_px=pool)  # fmt: skip
+    i = np.arange(len(pool))
+    keep = (pool[:, 0] > 100) | ((pool[:, 0] > 20) & (i % 3 == 0)) | (i % 15 == 0)
+    sel = np.flatnonzero(keep)
+    near = pool_neighbours(cache, pool[sel], 16)
+    _, expected = KDTree(pool[sel]).query(pool[sel], k=17)
+    np.testing.assert_array_equal(near, expected[:, 1:])
