@@ -272,7 +272,7 @@ class _FieldInverse:
         if order is None:
             X = _dense(X)
             return np.concatenate([f.forward(X[c * n : (c + 1) * n]) for c, f in enumerate(self.factors)])
-        return self.factors[0].forward(_dense(X[order]))  # a sparse X reordered before it is made dense
+        return self.factors[0].forward(_dense(X.tocsr()[order] if issparse(X) else X[order]))  # rows, then dense
 
     def backward(self, Y: np.ndarray) -> np.ndarray:
         """``L^-T Y`` for ``Y`` ``(2 n_nodes, k)`` in the factors' order of rows (overwritten), in node order."""

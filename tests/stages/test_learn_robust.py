@@ -156,13 +156,14 @@ def test_local_screen_from_the_pool_neighbour_table_equals_its_own_kd_tree():
     assert pool_neighbours(cache, pool[sel] + 0.5, 16) is None  # points not in the table
 
 
-def test_pool_neighbours_of_a_subset_thinned_in_one_half_equal_a_kd_tree():
+def test_pool_neighbours_of_a_subset_thinned_in_one_half_equal_a_kd_tree(monkeypatch):
     """A subset with most of some points' table neighbours left out: the same neighbours as its own KD-tree.
 
     Such points' neighbours are looked for further along their table row, then by a KD-tree.
     Left of x = 100 one point in three is kept (a row's first 2 m + 8 entries hold about 13 of the 17 needed, its
     whole row of about 90 more than enough), left of x = 20 one in fifteen (a whole row falls short too).
     """
+    from fluorocal.stages.learn import knn
     from fluorocal.stages.learn.knn import pool_neighbours
 
     rng = np.random.default_rng(5)
@@ -174,6 +175,17 @@ def test_pool_neighbours_of_a_subset_thinned_in_one_half_equal_a_kd_tree():
     i = np.arange(len(pool))
     keep = (pool[:, 0] > 100) | ((pool[:, 0] > 20) & (i % 3 == 0)) | (i % 15 == 0)
     sel = np.flatnonzero(keep)
+    asked = []
+
+    class CountingKDTree(KDTree):
+        def query(self, x, k=1, **kwargs):
+            if k > 1:  # k = 1: the table's lookup of the subset's rows
+                asked.append(len(x))
+            return super().query(x, k=k, **kwargs)
+
+    monkeypatch.setattr(knn, "KDTree", CountingKDTree)
     near = pool_neighbours(cache, pool[sel], 16)
     _, expected = KDTree(pool[sel]).query(pool[sel], k=17)
     np.testing.assert_array_equal(near, expected[:, 1:])
+    # only the points whose whole row falls short (left of x = 20, about one in a hundred) go to a KD-tree
+    assert 0 < sum(asked) < 0.02 * len(sel)
