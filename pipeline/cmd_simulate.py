@@ -132,16 +132,6 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-_FLAGS = {  # SimulateParams field -> the option that sets it
-    "n_frames": "--frames",
-    "seed": "--seed",
-    "image_size_px": "--image-size",
-    "noise_scale": "--noise",
-    "orientations_deg": "--orientations",
-    "plate_error_mm": "--plate-error",
-}
-
-
 def run(args) -> int:
     """Simulate and write the data set; return the exit code."""
     import logging
@@ -159,20 +149,21 @@ def run(args) -> int:
     for option, value in grid_only.items():
         if value not in ("", None) and args.phantom != "grid":
             raise InputError(f"{option} is for the grid plate; add --phantom grid")
-    values = {
-        "n_frames": args.frames,
-        "seed": args.seed,
-        "image_size_px": args.image_size,
-        "noise_scale": args.noise,
-        "orientations_deg": parse_orientations(args.orientations),
+    by_option = {  # option -> (SimulateParams field, value)
+        "--frames": ("n_frames", args.frames),
+        "--seed": ("seed", args.seed),
+        "--image-size": ("image_size_px", args.image_size),
+        "--noise": ("noise_scale", args.noise),
+        "--orientations": ("orientations_deg", parse_orientations(args.orientations)),
     }
     if args.plate_error is not None:
-        values["plate_error_mm"] = args.plate_error
+        by_option["--plate-error"] = ("plate_error_mm", args.plate_error)
+    values = dict(by_option.values())
     try:
         params = SimulateParams(n_systems=args.systems, distortion=args.distortion, phantom=args.phantom, **values)
     except InputError as exc:  # name the option the user typed, not the parameter behind it
-        flag = next((f for name, f in _FLAGS.items() if str(exc).startswith(name)), None)
-        raise InputError(f"{flag}: {exc}" if flag else str(exc)) from None
+        option = next((o for o, (name, _) in by_option.items() if str(exc).startswith(name)), None)
+        raise InputError(f"{option}: {exc}" if option else str(exc)) from None
     from tqdm import tqdm
 
     quiet = bool(getattr(args, "quiet", False))

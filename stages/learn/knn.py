@@ -284,12 +284,13 @@ class _NeighbourTable:
     """Every point's nearest neighbours among a set of points, enough of them to serve the folds of any subset.
 
     ``idx`` ``(n_base, K)``: the ``K`` nearest of each base point (itself first), nearest first; ``k_max``:
-    the most neighbours per fold it was sized for.
+    the most neighbours per fold it was sized for; ``tree``: the base points' KD-tree (to find a subset's rows).
     """
 
     xy: np.ndarray
     idx: np.ndarray
     k_max: int
+    tree: KDTree
 
     @classmethod
     def build(cls, xy: np.ndarray, k_max: int, n_folds: int, n_used: int) -> "_NeighbourTable":
@@ -298,8 +299,10 @@ class _NeighbourTable:
         # margin for their spread (a shortfall costs a query of that point's fold, not a wrong neighbour)
         share = n_used / max(len(xy), 1) * (n_folds - 1) / n_folds
         k = min(len(xy), int(np.ceil(1.05 * (k_max + 1) / share)) + 16)
-        _, idx = KDTree(xy).query(xy, k=k)
-        return cls(xy.copy(), idx.reshape(len(xy), k).astype(np.int32), k_max)
+        xy = xy.copy()
+        tree = KDTree(xy)
+        _, idx = tree.query(xy, k=k)
+        return cls(xy, idx.reshape(len(xy), k).astype(np.int32), k_max, tree)
 
     def rows_of(self, xy: np.ndarray) -> np.ndarray | None:
         """The base rows of the points ``xy``, one each, or None when one is not a base point (or two share one)."""
@@ -307,7 +310,7 @@ class _NeighbourTable:
             return None
         if len(xy) == len(self.xy) and np.array_equal(xy, self.xy):
             return np.arange(len(xy))
-        dist, rows = KDTree(self.xy).query(xy, k=1) if len(xy) else (np.empty(0), np.empty(0, np.int64))
+        dist, rows = self.tree.query(xy, k=1) if len(xy) else (np.empty(0), np.empty(0, np.int64))
         if np.any(dist != 0) or len(np.unique(rows)) != len(rows):
             return None
         return rows

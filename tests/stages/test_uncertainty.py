@@ -141,19 +141,27 @@ def dense_joint(net, xy, field, tau, order, iop, hold_affine: bool):
     return inv[:n_t, :n_t], inv[n_t : n_t + 2 * n_nodes, n_t : n_t + 2 * n_nodes]
 
 
-@pytest.mark.parametrize("hold_affine", [False, True])
-def test_joint_covariance_equals_the_dense_constrained_inverse(small_adjustment, hold_affine):
-    """Closed form: blocks of the inverse of the whole joint normal matrix with the constraints as hard ones."""
-    adj, obs, field, nominal_shape = small_adjustment
+def fast_and_dense(fixture, field, tau, order, hold_affine):
+    """``joint_uncertainty`` of a fixture's adjustment and :func:`dense_joint`'s IOP and field covariances.
+
+    Also the network: the IOP's dense covariance leaves the phantom's shape free, the field's holds its affine modes
+    when asked.
+    """
+    adj, obs, _, nominal_shape = fixture
     rows = np.flatnonzero(adj.used)
-    tau, order = 0.3, 2
     shape = nominal_shape if hold_affine else None
     got = joint_uncertainty(adj, obs, rows, 0, field, tau_px=tau, order=order, shape_nominal_mm=shape)
     net = _network(adj, obs, rows, 0, nominal_shape)
     xy, iop = obs.xy_px[rows], adj.iop_px[0]
-    # the IOP's σ leaves the phantom's shape free; the field's holds its affine modes when asked
     cov_t, _ = dense_joint(net, xy, field, tau, order, iop, hold_affine=False)
     _, cov_v = dense_joint(net, xy, field, tau, order, iop, hold_affine=hold_affine)
+    return got, cov_t, cov_v, net
+
+
+@pytest.mark.parametrize("hold_affine", [False, True])
+def test_joint_covariance_equals_the_dense_constrained_inverse(small_adjustment, hold_affine):
+    """Closed form: blocks of the inverse of the whole joint normal matrix with the constraints as hard ones."""
+    got, cov_t, cov_v, _ = fast_and_dense(small_adjustment, small_adjustment[2], 0.3, 2, hold_affine)
     # the same linear algebra done two ways in float64 (a Schur complement and a conditioned Gaussian against
     # one dense inverse): agreement to 1e-6 relative
     np.testing.assert_allclose(got.iop_cov_px2, cov_t[:3, :3], rtol=1e-6)
@@ -233,14 +241,8 @@ def test_correlated_centroids_conditional_sigma_is_the_adjustments(correlated_ad
 @pytest.mark.parametrize("hold_affine", [False, True])
 def test_correlated_centroids_joint_covariance_equals_the_dense_inverse(correlated_adjustment, hold_affine):
     """The field's two components coupled by ρ (one factor of both, interleaved) against one dense inverse."""
-    adj, obs, field, nominal_shape = correlated_adjustment
-    rows = np.flatnonzero(adj.used)
-    shape = nominal_shape if hold_affine else None
-    got = joint_uncertainty(adj, obs, rows, 0, field, tau_px=0.3, order=2, shape_nominal_mm=shape)
-    net = _network(adj, obs, rows, 0, nominal_shape)
+    got, cov_t, cov_v, net = fast_and_dense(correlated_adjustment, correlated_adjustment[2], 0.3, 2, hold_affine)
     assert np.all(net.w_xy != 0)  # the coupled path is the one tested
-    cov_t, _ = dense_joint(net, obs.xy_px[rows], field, 0.3, 2, adj.iop_px[0], hold_affine=False)
-    _, cov_v = dense_joint(net, obs.xy_px[rows], field, 0.3, 2, adj.iop_px[0], hold_affine=hold_affine)
     # the same linear algebra two ways in float64, as for uncorrelated centroids (1e-6 relative; the IOP's
     # covariance relative to its largest entry: its small off-diagonal ones carry the others' rounding, 4e-7 px²)
     np.testing.assert_allclose(got.iop_cov_px2, cov_t[:3, :3], rtol=1e-6, atol=1e-6 * np.abs(cov_t[:3, :3]).max())
@@ -256,16 +258,8 @@ def test_joint_covariance_on_a_finer_grid_equals_the_dense_inverse(request, fixt
     from LDL^T factors; 9x9 nodes with an order-4 prior (blocks of 4 node rows), per component (uncorrelated
     centroids) and both components coupled (correlated ones).
     """
-    adj, obs, _, nominal_shape = request.getfixturevalue(fixture)
     field = CorrectionField.constant(256, 256, spacing_px=32.0)
-    rows = np.flatnonzero(adj.used)
-    tau, order = 0.3, 4
-    shape = nominal_shape if hold_affine else None
-    got = joint_uncertainty(adj, obs, rows, 0, field, tau_px=tau, order=order, shape_nominal_mm=shape)
-    net = _network(adj, obs, rows, 0, nominal_shape)
-    xy, iop = obs.xy_px[rows], adj.iop_px[0]
-    cov_t, _ = dense_joint(net, xy, field, tau, order, iop, hold_affine=False)
-    _, cov_v = dense_joint(net, xy, field, tau, order, iop, hold_affine=hold_affine)
+    got, cov_t, cov_v, _ = fast_and_dense(request.getfixturevalue(fixture), field, 0.3, 4, hold_affine)
     # the same linear algebra two ways in float64: with the order-4 prior the two disagree by up to 2.2e-6 relative
     # (measured; the general dense inverses and block solves of issue 14's code, before the fast path, by the same
     # 1.7-2.2e-6), bounded at 1e-5; a block started late or a coupling dropped is off by O(1)
