@@ -10,12 +10,14 @@ with README-style minimal configs, and measures:
    given explicitly;
 2. **the learn stage** of a 40-exposure one-system project (system A's first 40 frames): CPU and wall
    time of the stage alone (detection, centroiding and labelling run first, cached), its iterations and
-   why it stopped (target: converged, no cap reached, <= 5 s CPU);
+   why it stopped (target: converged, no cap reached, <= 5 s CPU), and where its time goes (a second run
+   under cProfile: the cumulative time of each part);
 3. **a full ``fluorocal run``** of system A's frames, in subprocesses with fresh caches: with the
    environment's default BLAS/OpenMP threads and forced to one (``OPENBLAS_NUM_THREADS=1
    OMP_NUM_THREADS=1 MKL_NUM_THREADS=1``): CPU time (children's user + system) and wall, and the ratio;
 4. **biplanar end to end**: ``fluorocal run`` of both systems, fresh cache, one BLAS thread: wall and CPU
-   (target: <= 30 s wall on a quiet machine), with each stage's wall time from the run's log.
+   (target: <= 30 s wall on a quiet machine), with each stage's wall time from the run's log and the
+   time outside the stages.
 
 ``--profile`` adds a cProfile of the biplanar run (in process, fresh cache): the top functions by
 cumulative and by own time.
@@ -151,6 +153,38 @@ def learn_speed(root: Path, truth: dict) -> None:
             f"{result.converged}: {result.stop_reason}\n"
             f"  {'':<21}  field vs truth (mod a homography) {field_px:.4f} px, object points {points_mm:.4f} mm"
         )
+    learn_parts(runner.by_name["learn"].func, inputs, params, extras)
+
+
+#: the learn stage's parts timed by :func:`learn_parts`: label -> (module path suffix, function name)
+LEARN_PARTS = {
+    "start values (resection)": ("learn/adjuster.py", "start_orientation"),
+    "bundle adjustments": ("adjust/bundle.py", "adjust_bundle"),
+    "kNN regressions": ("learn/knn.py", "fit_knn_field"),
+    "smoothness cross-validation": ("learn/grid.py", "cross_validate_smoothness"),
+    "joint field steps": ("learn/joint.py", "fit_grids_jointly"),
+    "gross-error screens": ("learn/robust.py", "local_screen"),
+    "joint uncertainty (issue 14)": ("learn/uncertainty.py", "learned_uncertainty"),
+}
+
+
+def learn_parts(func, inputs, params, extras) -> None:
+    """Where the default learn stage's time goes: a second run under cProfile, cumulative time per part."""
+    profiler = cProfile.Profile()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        c0 = time.process_time()
+        profiler.runcall(func, *inputs, params, **extras)
+        cpu = time.process_time() - c0
+    stats = pstats.Stats(profiler).stats  # (file, line, name) -> (calls, primitive calls, own, cumulative, callers)
+    print(f"  where the default's time goes (a second run under cProfile, {cpu:.1f} s CPU there):")
+    total = 0.0
+    for label, (suffix, name) in LEARN_PARTS.items():
+        hits = [v for (file, _, fn), v in stats.items() if fn == name and file.replace(os.sep, "/").endswith(suffix)]
+        calls, seconds = sum(v[1] for v in hits), sum(v[3] for v in hits)
+        total += seconds
+        print(f"    {label:<29}: {seconds:5.2f} s in {calls} call(s)")
+    print(f"    {'the rest':<29}: {cpu - total:5.2f} s")
 
 
 def learn_truth_errors(result, truth: dict) -> tuple[float, float]:
@@ -215,9 +249,12 @@ def biplanar(root: Path, truth: dict, n_frames: int, profile: bool) -> None:
     print(
         f"  {wall:.1f} s wall, {cpu:.1f} s CPU (target <= 30 s wall on a quiet machine); load {os.getloadavg()[0]:.1f}"
     )
+    stages = 0.0
     for line in log.splitlines():
         if re.search(r"computed|stopped|converged|reached|after \d+ iterations", line):
             print(f"    | {line.strip()}")
+        stages += sum(float(t) for t in re.findall(r"computed in ([0-9.]+) s", line))
+    print(f"  outside the stages (start-up, code digests, cache, outputs and report): {wall - stages:.1f} s wall")
     if profile:
         write_config(root, truth, "biplanar", ("A", "B"))
         profiler = cProfile.Profile()

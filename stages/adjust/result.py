@@ -214,7 +214,8 @@ def summarise(
 
     finite = all(np.all(np.isfinite(arr)) for arr in (state.points_mm, state.q, state.source_mm, state.iop_px, r_px))
     inlier_fraction = float(inlier.mean()) if problem.n_obs else 0.0
-    usable = bool(solved.converged and finite and inlier_fraction >= solver.min_inlier_fraction)
+    unusable = _unusable(solved.converged, finite, inlier_fraction, solver.min_inlier_fraction)
+    usable = not unusable
     log.debug(
         "adjustment: %d iterations (%s), σ0 %.3g, %.2f %% outliers, dof %d%s",
         solved.iterations,
@@ -222,7 +223,7 @@ def summarise(
         sigma0,
         100 * (1 - inlier_fraction),
         dof,
-        "" if usable else f"; not usable (minimum {100 * solver.min_inlier_fraction:.1f} % inliers)",
+        f"; not usable: {unusable}" if unusable else "",
     )
     n_ap = problem.n_ap
     return Adjustment(
@@ -270,6 +271,17 @@ def solution_weights(solved: SolverResult, problem) -> tuple[np.ndarray, np.ndar
     r_px, e = residuals(solved.state, problem)
     s = (e * e).sum(1)
     return r_px, s, t_weights(s, solved.nu, solved.scale2)
+
+
+def _unusable(converged: bool, finite: bool, inlier_fraction: float, min_inlier_fraction: float) -> str:
+    """Why a solution is not usable, "" when it is (:class:`Adjustment`'s ``usable``)."""
+    if not converged:
+        return "not converged"
+    if not finite:
+        return "non-finite parameters"
+    if inlier_fraction < min_inlier_fraction:
+        return f"fewer than {100 * min_inlier_fraction:.1f} % inliers"
+    return ""
 
 
 def _fit_statistics(solved: SolverResult, problem, compute_covariance: bool) -> tuple:

@@ -495,6 +495,14 @@ def test_bead_seen_once_is_dropped_with_message(mono, caplog):
     assert res.usable and np.all(np.isfinite(res.residual_px))
 
 
+def test_unusable_solution_logs_its_own_reason(mono, caplog):
+    """A solve stopped at its iteration cap is not usable for that reason, not for its inliers."""
+    with caplog.at_level(logging.DEBUG, logger="fluorocal.stages.adjust"):
+        res = _solve(mono, solver=SolverOptions(max_iterations=1))
+    assert not res.usable and not res.converged and res.inlier[res.used].mean() > 0.5
+    assert "not usable: not converged" in caplog.text and "% inliers" not in caplog.text.split("not usable")[1]
+
+
 def _two_rays_one_gross(mono, bead_at: int, shift_px) -> tuple[Observations, int, np.ndarray]:
     """``mono``'s observations with bead ``mono.ids[bead_at]`` seen in two epochs only, the second ray moved."""
     obs = mono.observations
