@@ -14,7 +14,8 @@ with README-style minimal configs, and measures:
    under cProfile: the cumulative time of each part);
 3. **a full ``fluorocal run``** of system A's frames, in subprocesses with fresh caches: with the
    environment's default BLAS/OpenMP threads and forced to one (``OPENBLAS_NUM_THREADS=1
-   OMP_NUM_THREADS=1 MKL_NUM_THREADS=1``): CPU time (children's user + system) and wall, and the ratio;
+   OMP_NUM_THREADS=1 MKL_NUM_THREADS=1``), ``--repeats`` times each in ABBA order: the median CPU time
+   (children's user + system) and wall of each, and the ratio of the medians;
 4. **biplanar end to end**: ``fluorocal run`` of both systems, fresh cache, one BLAS thread: wall and CPU
    (target: <= 30 s wall on a quiet machine), with each stage's wall time from the run's log and the
    time outside the stages.
@@ -23,7 +24,7 @@ with README-style minimal configs, and measures:
 cumulative and by own time.
 
 Usage: ``python benchmarks/run_speed.py [--frames N] [--detect-frames N] [--sections a,b,...]
-[--profile] [--keep DIR]`` (defaults: 75 exposures per system, 20 frames for the detection, every
+[--profile] [--repeats N] [--keep DIR]`` (defaults: 75 exposures per system, 20 frames for the detection, every
 section: detect,learn,threads,biplanar; ``--keep``: the data set is written there, and reused when
 it is the same).
 """
@@ -232,14 +233,25 @@ def run_subprocess(cfg: Path, env: dict) -> tuple[float, float, str]:
     return wall, cpu, proc.stdout + proc.stderr
 
 
-def thread_ratio(root: Path, truth: dict, n_frames: int) -> None:
+def thread_ratio(root: Path, truth: dict, n_frames: int, repeats: int) -> None:
+    """The same run with the default threads and with one, ``repeats`` times each in ABBA order: the medians."""
+    import numpy as np
+
     cfg = write_config(root, truth, "threads", ("A",))
-    default_wall, default_cpu, _ = run_subprocess(cfg, USER_ENV)
-    one_wall, one_cpu, _ = run_subprocess(cfg, {**USER_ENV, **ONE_THREAD})
-    print(f"\n3. fluorocal run of {n_frames} frames (one system), fresh cache, in a subprocess")
-    print(f"  default threads : {default_cpu:6.1f} s CPU, {default_wall:6.1f} s wall")
-    print(f"  one BLAS thread : {one_cpu:6.1f} s CPU, {one_wall:6.1f} s wall")
-    print(f"  CPU ratio default / one thread: {default_cpu / one_cpu:.2f}x (target <= 1.05x)")
+    envs = {"default threads": USER_ENV, "one BLAS thread": {**USER_ENV, **ONE_THREAD}}
+    runs = {name: [] for name in envs}
+    for i in range(repeats):
+        for name in list(envs)[:: 1 if i % 2 == 0 else -1]:  # ABBA: what runs first, on a warmer machine, alternates
+            runs[name].append(run_subprocess(cfg, envs[name])[:2])
+    print(f"\n3. fluorocal run of {n_frames} frames (one system), fresh cache, in a subprocess, {repeats} runs each")
+    cpu = {}
+    for name, times in runs.items():
+        walls, cpus = np.array(times).T
+        cpu[name] = float(np.median(cpus))
+        listed = ", ".join(f"{c:.1f}" for c in cpus)
+        print(f"  {name} : median {cpu[name]:6.1f} s CPU ({listed}), {np.median(walls):6.1f} s wall")
+    ratio = cpu["default threads"] / cpu["one BLAS thread"]
+    print(f"  CPU ratio default / one thread (medians): {ratio:.3f}x (target <= 1.05x)")
 
 
 def biplanar(root: Path, truth: dict, n_frames: int, profile: bool) -> None:
@@ -273,6 +285,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sections", default="detect,learn,threads,biplanar", help="comma-separated (default: all)")
     ap.add_argument("--seed", type=int, default=11, help="simulation seed (default 11)")
     ap.add_argument("--profile", action="store_true", help="also profile the biplanar run with cProfile")
+    ap.add_argument("--repeats", type=int, default=4, help="runs of each thread setting in section 3 (default 4)")
     ap.add_argument("--keep", type=Path, help="write the data set here instead of a temporary folder")
     args = ap.parse_args(argv)
     sections = set(args.sections.split(","))
@@ -296,7 +309,7 @@ def main(argv=None) -> int:
     if "learn" in sections:
         learn_speed(root, truth)
     if "threads" in sections:
-        thread_ratio(root, truth, params.n_frames)
+        thread_ratio(root, truth, params.n_frames, args.repeats)
     if "biplanar" in sections:
         biplanar(root, truth, params.n_frames, args.profile)
     if args.keep is None:

@@ -326,6 +326,31 @@ def _dense(X) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class _BlockDiagonal:
+    """A symmetric block diagonal matrix ``B`` of 1x1 and 2x2 blocks (the inverse of the ``D`` of ``ldl``).
+
+    The diagonal of a quadratic form in it is one pass over the operand, without the product ``B E``: on the
+    uncertainty's ``(1716, 8450)`` operand a sparse matrix's product took 0.5 s, the pass 0.02 s.
+    """
+
+    diagonal: np.ndarray  # (n,)
+    first: np.ndarray  # (m,) the first row of each 2x2 block
+    off: np.ndarray  # (m,) the off-diagonal entry of each 2x2 block
+
+    def __matmul__(self, X: np.ndarray) -> np.ndarray:
+        """The product with ``X`` ``(n, k)``."""
+        out = self.diagonal[:, None] * X
+        out[self.first] += self.off[:, None] * X[self.first + 1]
+        out[self.first + 1] += self.off[:, None] * X[self.first]
+        return out
+
+    def quadratic_diagonal(self, E: np.ndarray) -> np.ndarray:
+        """The diagonal ``(k,)`` of ``E^T B E`` for ``E`` ``(n, k)``, without forming ``B E``."""
+        out = np.einsum("i,ij,ij->j", self.diagonal, E, E)
+        return out + 2.0 * np.einsum("i,ij,ij->j", self.off, E[self.first], E[self.first + 1])
+
+
+@dataclass(frozen=True)
 class _SymmetricInverse:
     """``H^-1`` of a symmetric ``(n, n)`` ``H`` from its Bunch-Kaufman factors ``H = P L D L^T P^T``.
 
@@ -335,7 +360,7 @@ class _SymmetricInverse:
     """
 
     L_inv: np.ndarray  # (n, n) unit lower-triangular: the inverse of L
-    D_inv: csr_matrix  # (n, n) block diagonal: the inverse of D
+    D_inv: _BlockDiagonal  # the inverse of D
     perm: np.ndarray  # (n,) P^T X is X[perm]
 
     def _half(self, X: np.ndarray) -> np.ndarray:
@@ -351,8 +376,7 @@ class _SymmetricInverse:
 
     def quadratic_diagonal(self, X: np.ndarray) -> np.ndarray:
         """The diagonal ``(k,)`` of ``X^T H^-1 X`` for ``X`` ``(n, k)``."""
-        E = self._half(X)
-        return np.einsum("ij,ij->j", E, self.D_inv @ E)
+        return self.D_inv.quadratic_diagonal(self._half(X))
 
     def solve(self, X: np.ndarray) -> np.ndarray:
         """``H^-1 X`` for ``X`` ``(n, k)``."""
@@ -368,17 +392,14 @@ def _symmetric_inverse(H: np.ndarray) -> _SymmetricInverse:
     return _SymmetricInverse(np.asfortranarray(L_inv), _block_diagonal_inverse(d), perm)
 
 
-def _block_diagonal_inverse(d: np.ndarray) -> csr_matrix:
-    """The inverse of a block diagonal ``d`` ``(n, n)`` of 1x1 and 2x2 blocks (the ``D`` of ``ldl``), sparse."""
-    n = len(d)
+def _block_diagonal_inverse(d: np.ndarray) -> _BlockDiagonal:
+    """The inverse of a block diagonal ``d`` ``(n, n)`` of 1x1 and 2x2 blocks (the ``D`` of ``ldl``)."""
     first = np.flatnonzero(np.diag(d, -1))  # the first row of each 2x2 block
-    single = np.setdiff1d(np.arange(n), np.concatenate([first, first + 1]))
+    diagonal = 1.0 / np.diag(d)
     a, b, c = d[first, first], d[first + 1, first], d[first + 1, first + 1]
     det = a * c - b * b
-    rows = np.concatenate([single, first, first, first + 1, first + 1])
-    cols = np.concatenate([single, first, first + 1, first, first + 1])
-    vals = np.concatenate([1.0 / d[single, single], c / det, -b / det, -b / det, a / det])
-    return csr_matrix((vals, (rows, cols)), shape=(n, n))
+    diagonal[first], diagonal[first + 1] = c / det, a / det
+    return _BlockDiagonal(diagonal, first, -b / det)
 
 
 def learned_uncertainty(
