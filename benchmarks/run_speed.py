@@ -15,10 +15,13 @@ with README-style minimal configs, and measures:
 3. **a full ``fluorocal run``** of system A's frames, in subprocesses with fresh caches: with the
    environment's default BLAS/OpenMP threads and forced to one (``OPENBLAS_NUM_THREADS=1
    OMP_NUM_THREADS=1 MKL_NUM_THREADS=1``), ``--repeats`` times each in ABBA order: the median CPU time
-   (children's user + system) and wall of each, and the ratio of the medians;
+   (children's user + system) and wall of each, and the ratio of the medians. ``fluorocal`` sets one thread
+   per library itself unless ``FLUOROCAL_THREADS`` or ``[compute] threads`` say otherwise, so the two
+   settings run alike and the ratio shows whether anything still starts threads of its own;
 4. **biplanar end to end**: ``fluorocal run`` of both systems, fresh cache, one BLAS thread: wall and CPU
-   (target: <= 30 s wall on a quiet machine), with each stage's wall time from the run's log and the
-   time outside the stages.
+   (target: <= 30 s wall on a quiet machine), with each stage's time from the run's log and the wall
+   time less those (the per-frame stages' times are summed over the pool's workers, so it understates the
+   time outside the stages).
 
 ``--profile`` adds a cProfile of the biplanar run (in process, fresh cache): the top functions by
 cumulative and by own time.
@@ -170,15 +173,15 @@ LEARN_PARTS = {
 
 
 def learn_parts(func, inputs, params, extras) -> None:
-    """Where the default learn stage's time goes: a second run under cProfile, cumulative time per part."""
-    profiler = cProfile.Profile()
+    """Where the default learn stage's time goes: a second run under cProfile (CPU time), cumulative time per part."""
+    profiler = cProfile.Profile(time.process_time)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         c0 = time.process_time()
         profiler.runcall(func, *inputs, params, **extras)
         cpu = time.process_time() - c0
-    stats = pstats.Stats(profiler).stats  # (file, line, name) -> (calls, primitive calls, own, cumulative, callers)
-    print(f"  where the default's time goes (a second run under cProfile, {cpu:.1f} s CPU there):")
+    stats = pstats.Stats(profiler).stats  # (file, line, name) -> (primitive calls, calls, own, cumulative, callers)
+    print(f"  where the default's CPU time goes (a second run under cProfile, {cpu:.1f} s CPU there):")
     total = 0.0
     for label, (suffix, name) in LEARN_PARTS.items():
         hits = [v for (file, _, fn), v in stats.items() if fn == name and file.replace(os.sep, "/").endswith(suffix)]
@@ -249,7 +252,7 @@ def thread_ratio(root: Path, truth: dict, n_frames: int, repeats: int) -> None:
         walls, cpus = np.array(times).T
         cpu[name] = float(np.median(cpus))
         listed = ", ".join(f"{c:.1f}" for c in cpus)
-        print(f"  {name} : median {cpu[name]:6.1f} s CPU ({listed}), {np.median(walls):6.1f} s wall")
+        print(f"  {name} : median {cpu[name]:6.1f} s CPU ({listed}), median {np.median(walls):6.1f} s wall")
     ratio = cpu["default threads"] / cpu["one BLAS thread"]
     print(f"  CPU ratio default / one thread (medians): {ratio:.3f}x (target <= 1.05x)")
 
@@ -266,7 +269,10 @@ def biplanar(root: Path, truth: dict, n_frames: int, profile: bool) -> None:
         if re.search(r"computed|stopped|converged|reached|after \d+ iterations", line):
             print(f"    | {line.strip()}")
         stages += sum(float(t) for t in re.findall(r"computed in ([0-9.]+) s", line))
-    print(f"  outside the stages (start-up, code digests, cache, outputs and report): {wall - stages:.1f} s wall")
+    # the per-frame stages' times are their frames' times summed over the pool's workers: the difference
+    # understates the time outside the stages by up to what the workers ran side by side
+    outside = wall - stages
+    print(f"  wall less the stages' logged times (start-up, code digests, cache, outputs, report): {outside:.1f} s")
     if profile:
         write_config(root, truth, "biplanar", ("A", "B"))
         profiler = cProfile.Profile()
@@ -285,9 +291,13 @@ def main(argv=None) -> int:
     ap.add_argument("--sections", default="detect,learn,threads,biplanar", help="comma-separated (default: all)")
     ap.add_argument("--seed", type=int, default=11, help="simulation seed (default 11)")
     ap.add_argument("--profile", action="store_true", help="also profile the biplanar run with cProfile")
-    ap.add_argument("--repeats", type=int, default=4, help="runs of each thread setting in section 3 (default 4)")
+    ap.add_argument(
+        "--repeats", type=int, default=4, help="runs of each thread setting in section 3, ABBA: even (default 4)"
+    )
     ap.add_argument("--keep", type=Path, help="write the data set here instead of a temporary folder")
     args = ap.parse_args(argv)
+    if args.repeats < 2 or args.repeats % 2:
+        ap.error(f"--repeats must be an even number of at least 2 (ABBA order); got {args.repeats}")
     sections = set(args.sections.split(","))
     root = Path(tempfile.mkdtemp(prefix="run-speed-")) if args.keep is None else args.keep
     t0 = time.perf_counter()

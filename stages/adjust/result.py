@@ -279,7 +279,7 @@ def _unusable(converged: bool, finite: bool, inlier_fraction: float, min_inlier_
         return "not converged"
     if not finite:
         return "non-finite parameters"
-    if inlier_fraction < min_inlier_fraction:
+    if not inlier_fraction >= min_inlier_fraction:  # a NaN minimum is not met
         return f"fewer than {100 * min_inlier_fraction:.1f} % inliers"
     return ""
 

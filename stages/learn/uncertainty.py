@@ -338,7 +338,7 @@ class _BlockDiagonal:
     off: np.ndarray  # (m,) the off-diagonal entry of each 2x2 block
 
     def __matmul__(self, X: np.ndarray) -> np.ndarray:
-        """The product with ``X`` ``(n, k)``."""
+        """The product with a 2-D ``X`` ``(n, k)``."""
         out = self.diagonal[:, None] * X
         out[self.first] += self.off[:, None] * X[self.first + 1]
         out[self.first + 1] += self.off[:, None] * X[self.first]
@@ -393,11 +393,18 @@ def _symmetric_inverse(H: np.ndarray) -> _SymmetricInverse:
 
 
 def _block_diagonal_inverse(d: np.ndarray) -> _BlockDiagonal:
-    """The inverse of a block diagonal ``d`` ``(n, n)`` of 1x1 and 2x2 blocks (the ``D`` of ``ldl``)."""
+    """The inverse of a block diagonal ``d`` ``(n, n)`` of 1x1 and 2x2 blocks (the ``D`` of ``ldl``).
+
+    A 2x2 block's diagonal may be zero (a Bunch-Kaufman pivot of an indefinite matrix): only the 1x1 blocks
+    are inverted entry by entry.
+    """
+    n = len(d)
     first = np.flatnonzero(np.diag(d, -1))  # the first row of each 2x2 block
-    diagonal = 1.0 / np.diag(d)
+    single = np.setdiff1d(np.arange(n), np.concatenate([first, first + 1]))
     a, b, c = d[first, first], d[first + 1, first], d[first + 1, first + 1]
     det = a * c - b * b
+    diagonal = np.empty(n)
+    diagonal[single] = 1.0 / d[single, single]
     diagonal[first], diagonal[first + 1] = c / det, a / det
     return _BlockDiagonal(diagonal, first, -b / det)
 

@@ -499,7 +499,7 @@ def test_unusable_solution_logs_its_own_reason(mono, caplog):
     """A solve stopped at its iteration cap is not usable for that reason, not for its inliers."""
     with caplog.at_level(logging.DEBUG, logger="fluorocal.stages.adjust"):
         res = _solve(mono, solver=SolverOptions(max_iterations=1))
-    assert not res.usable and not res.converged and res.inlier[res.used].mean() > 0.5
+    assert not res.usable and not res.converged and res.inlier[res.used].mean() >= SolverOptions().min_inlier_fraction
     assert "not usable: not converged" in caplog.text and "% inliers" not in caplog.text.split("not usable")[1]
 
 

@@ -267,14 +267,23 @@ def test_joint_covariance_on_a_finer_grid_equals_the_dense_inverse(request, fixt
     np.testing.assert_allclose(got.node_std_px.transpose(2, 0, 1).ravel(), np.sqrt(np.diag(cov_v)), rtol=1e-5)
 
 
-def test_symmetric_inverse_with_two_by_two_pivots_equals_the_dense_inverse():
-    """An indefinite symmetric matrix: the Bunch-Kaufman factors then have 2x2 blocks in D."""
+@pytest.mark.parametrize("kind", ["random", "zero diagonal"])
+def test_symmetric_inverse_with_two_by_two_pivots_equals_the_dense_inverse(kind):
+    """An indefinite symmetric matrix: the Bunch-Kaufman factors then have 2x2 blocks in D.
+
+    A saddle-point matrix ``[[0, K], [K, 0]]`` gives 2x2 blocks with zero diagonals.
+    """
     rng = np.random.default_rng(4)
-    X = rng.normal(size=(40, 40))
-    H = X + X.T
+    if kind == "random":
+        X = rng.normal(size=(40, 40))
+        H = X + X.T
+    else:
+        K = np.diag(rng.uniform(1.0, 3.0, 20))
+        H = np.block([[np.zeros((20, 20)), K], [K, np.zeros((20, 20))]])
     assert np.any(np.diag(ldl(H, lower=True)[1], -1))  # the 2x2 blocks are exercised
     inv, V = np.linalg.inv(H), rng.normal(size=(40, 3))
-    got = _symmetric_inverse(H)
+    with np.errstate(divide="raise", invalid="raise"):
+        got = _symmetric_inverse(H)
     # condition ~1e2-1e3: round-off ~1e-14 relative to the largest entry
     scale = np.abs(V.T @ inv @ V).max()
     np.testing.assert_allclose(got.quadratic(V), V.T @ inv @ V, rtol=0, atol=1e-12 * scale)
