@@ -134,7 +134,7 @@ def run(args) -> int:
 
 @dataclass(frozen=True, eq=False)
 class _Job:
-    """One input file: where it goes, its maps, and its frames as stored (None: read and written as radiographs)."""
+    """One input file: where it goes, its maps, and its frames as stored (read, remapped and written back as such)."""
 
     path: Path
     out: Path
@@ -142,57 +142,50 @@ class _Job:
     params: UndistortParams
     n_frames: int
     derivation: Derivation
-    stored: StoredFrames | None = None
+    stored: StoredFrames
 
     def remap(self, frame):
-        from fluorocal.stages.undistort import remap_image, undistort_frame
+        from fluorocal.stages.undistort import remap_stored
 
-        if self.stored is None:
-            return undistort_frame(frame, *self.maps, self.params)
-        return remap_image(frame, *self.maps, self.params)
+        return remap_stored(frame, *self.maps, self.params)
 
 
 def _job(cal, args, path: Path, out: Path, orientation, derivation: Derivation) -> _Job:
     """The checked job of one input: its frames' size against the calibration's, and its maps."""
     from fluorocal.stages.errors import InputError
-    from fluorocal.stages.io import open_stored, probe_frames
+    from fluorocal.stages.io import open_stored
     from fluorocal.stages.undistort import UndistortParams
 
     system = cal.systems[args.system]
-    stored = open_stored(path)
-    n_frames, size = (stored.n_frames, stored.size_px) if stored is not None else probe_frames(path)
+    stored = open_stored(path)  # refuses, naming the file, what cannot be written back as stored
+    n_frames, size = stored.n_frames, stored.size_px
     if tuple(size) != tuple(system.image_size_px):
         raise InputError(
             f"{path}: frame is {size[0]}x{size[1]} px; "
             f"system {args.system} was calibrated at {system.image_size_px[0]}x{system.image_size_px[1]}"
         )
     maps = cal.remap_maps(args.system, orientation=orientation)
-    border = 0.0 if stored is None else stored.black  # the dark outside of the field, in stored units
+    border = stored.black  # the dark outside of the field, in stored units
     return _Job(path, out, maps, UndistortParams(args.interpolation, border), n_frames, derivation, stored)
 
 
 def _frames(jobs):
     """``(job, frame)`` for every frame of every job, read as they are asked for."""
-    from fluorocal.stages.io import read_frames
-
     for job in jobs:
-        for frame in read_frames(job.path) if job.stored is None else job.stored.frames:
+        for frame in job.stored.frames:
             yield job, frame
 
 
 def _write_all(items) -> None:
-    """Write the ``(job, frame)`` items, file by file as they come: streamed where stored, else per file."""
+    """Write the ``(job, frame)`` items, file by file as they come, each file's frames streamed."""
     from itertools import groupby
     from operator import itemgetter
 
-    from fluorocal.stages.io import write_frames_like, write_stored_like
+    from fluorocal.stages.io import write_stored_like
 
     for job, group in groupby(items, key=itemgetter(0)):  # jobs compare by identity
         frames = (frame for _, frame in group)
-        if job.stored is None:
-            write_frames_like(job.path, list(frames), job.out, derivation=job.derivation)
-        else:
-            write_stored_like(job.path, frames, job.out, job.n_frames, derivation=job.derivation)
+        write_stored_like(job.path, frames, job.out, job.n_frames, derivation=job.derivation)
 
 
 def parse_orientation(text: str):

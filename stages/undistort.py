@@ -173,3 +173,40 @@ def remap_image(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, params:
         bounds = np.array([min(float(image.min()), border), max(float(image.max()), border)]).astype(out.dtype)
         out = np.clip(out, bounds[0], bounds[1], out=out)
     return out
+
+
+#: the sample types ``cv2.remap`` resamples as they are; others go through float64
+_REMAPPED = (np.uint8, np.uint16, np.int16, np.float32, np.float64)
+
+
+def remap_stored(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, params: UndistortParams) -> np.ndarray:
+    """:func:`remap_image` for a frame as a file stores it: every channel, any integer or float sample type.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, C) ndarray
+        The frame's samples; each channel is resampled on its own (with ``params.border_value``).
+    map_x, map_y : (H_out, W_out) float32 ndarray, px
+    params : UndistortParams
+
+    Returns
+    -------
+    (H_out, W_out) or (H_out, W_out, C) ndarray of ``image``'s dtype
+        Types ``cv2.remap`` does not take (int8, 32-bit integers) are resampled in float64 (exact
+        for them) and rounded back, clipped to the type's range.
+
+    Examples
+    --------
+    >>> img = np.arange(24, dtype=np.uint32).reshape(3, 4, 2) * 100_000
+    >>> yy, xx = np.mgrid[0:3, 0:4].astype(np.float32)
+    >>> bool(np.array_equal(remap_stored(img, xx, yy, UndistortParams()), img))
+    True
+    """
+    if image.ndim == 3:
+        channels = [remap_stored(image[..., c], map_x, map_y, params) for c in range(image.shape[2])]
+        return np.stack(channels, axis=-1)
+    if image.dtype in _REMAPPED:
+        return remap_image(image, map_x, map_y, params)
+    info = np.iinfo(image.dtype)
+    out = remap_image(image.astype(np.float64), map_x, map_y, params)
+    return np.clip(np.rint(out), info.min, info.max).astype(image.dtype)

@@ -1,4 +1,4 @@
-"""DICOM frames through pydicom: single and multi-frame, modality LUT applied, MONOCHROME1 inverted.
+"""DICOM frames through pydicom: single and multi-frame, signed or not, any rescale, MONOCHROME1 or 2.
 
 One writer, :func:`write_dicom`, saves every DICOM file fluorocal makes (the
 simulator's XA frames and the undistorted copies of a source data set).
@@ -80,31 +80,83 @@ def positioner_angles_deg(path: Path) -> tuple[float | None, float | None]:
 
 
 def read(path: Path, indices: list[int] | None = None) -> list[Radiograph]:
-    """Frames ``indices`` (every frame when None), float32 after the modality LUT, MONOCHROME2 (larger = brighter).
+    """Frames ``indices`` (every frame when None) as displayed, larger = brighter (:func:`display`), float32.
 
-    With ``indices`` only those frames are decoded (:func:`pydicom.pixels.iter_pixels`), in the order given.
+    The stored frames are :func:`open_stored`'s, the reader ``undistort`` uses: only the frames
+    ``indices`` are decoded, in the order given.
     """
     import pydicom
-    from pydicom.pixels import apply_modality_lut, iter_pixels
 
-    ds = pydicom.dcmread(path, stop_before_pixels=indices is not None)
-    if indices is None:
-        if "PixelData" not in ds:
-            raise InputError(f"{path}: DICOM file has no pixel data")
-        pixels = ds.pixel_array
-        wanted = range(int(getattr(ds, "NumberOfFrames", 1) or 1))
-    else:
-        wanted = checked_indices(path, indices, int(getattr(ds, "NumberOfFrames", 1) or 1))
-        pixels = np.stack(list(iter_pixels(path, indices=wanted))) if wanted else np.empty((0, 1, 1))
-    pixels = apply_modality_lut(pixels, ds).astype(np.float32)
-    frames = pixels.reshape((len(wanted),) + pixels.shape[-2:]) if pixels.ndim >= 2 else pixels
-    if frames.ndim != 3:
-        raise InputError(f"{path}: expected monochrome frames; got pixel array of shape {pixels.shape}")
-    bit_depth = int(getattr(ds, "BitsStored", 16))
-    if str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2")) == "MONOCHROME1":
-        frames = float(2**bit_depth - 1) - frames
+    ds = pydicom.dcmread(path, stop_before_pixels=True)
+    n_frames = int(getattr(ds, "NumberOfFrames", 1) or 1)
+    wanted = list(range(n_frames)) if indices is None else checked_indices(path, indices, n_frames)
     meta = _meta(ds)
-    return [Radiograph(np.ascontiguousarray(f), bit_depth, str(path), i, meta) for i, f in zip(wanted, frames)]
+    frames = _decoded(path, ds, wanted)
+    return [Radiograph(display(f, ds), _bits_stored(ds), str(path), i, meta) for i, f in zip(wanted, frames)]
+
+
+def display(stored: np.ndarray, ds) -> np.ndarray:
+    """A stored frame as displayed through its modality LUT and photometric, in stored steps above black, float32.
+
+    The modality LUT (RescaleSlope, RescaleIntercept) is affine, so the displayed value is an affine
+    function of ``stored - darkest`` where ``darkest`` is the stored value displayed darkest (the
+    smallest the stored bits hold, signed or not; the largest for a negative slope or MONOCHROME1).
+    That difference, ``0 .. 2**BitsStored - 1`` larger = brighter, is the frame every command
+    detects on: a frame reads the same whatever rescale or sign its file stores it with.
+
+    Examples
+    --------
+    >>> from pydicom.dataset import Dataset
+    >>> ds = Dataset()
+    >>> ds.BitsStored, ds.PixelRepresentation, ds.RescaleSlope, ds.RescaleIntercept = 12, 1, 2, -1000
+    >>> display(np.array([[-2048, 0, 2047]], np.int16), ds)
+    array([[   0., 2048., 4095.]], dtype=float32)
+    """
+    low, high = stored_range(ds)
+    brighter = (_slope(ds) > 0) != (str(ds.get("PhotometricInterpretation", "MONOCHROME2")) == "MONOCHROME1")
+    values = stored.astype(np.float32)
+    return values - low if brighter else high - values
+
+
+def stored_range(ds) -> tuple[int, int]:
+    """The smallest and largest stored values of BitsStored bits, signed when PixelRepresentation is 1."""
+    bits = _bits_stored(ds)
+    return (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1) if _signed(ds) else (0, 2**bits - 1)
+
+
+def _bits_stored(ds) -> int:
+    return int(ds.get("BitsStored", ds.get("BitsAllocated", 16)) or 16)
+
+
+def _signed(ds) -> bool:
+    return int(ds.get("PixelRepresentation", 0) or 0) == 1
+
+
+def _slope(ds) -> float:
+    return float(ds.get("RescaleSlope", 1) or 1)
+
+
+def _decoded(path: Path, ds, wanted: list[int]):
+    """The stored frames ``wanted`` (2-D, native byte order, signed as stored), one at a time.
+
+    Deflated files are inflated whole (pydicom decodes their frames from the data set only);
+    every other transfer syntax decodes only the frames wanted.
+    """
+    import pydicom
+    from pydicom.pixels import iter_pixels
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    if not wanted:
+        return
+    if ds.file_meta.get("TransferSyntaxUID") == DeflatedExplicitVRLittleEndian:
+        full = pydicom.dcmread(path).pixel_array
+        frames = (full.reshape((-1,) + full.shape[-2:]) if full.ndim == 2 else full)[wanted]
+    else:
+        frames = iter_pixels(path, indices=wanted)
+    for frame in frames:
+        if frame.ndim != 2:
+            raise InputError(f"{path}: expected monochrome frames; got pixel array of shape {frame.shape}")
+        yield frame.astype(frame.dtype.newbyteorder("="), copy=False)
 
 
 def _meta(ds) -> dict:
@@ -163,35 +215,37 @@ def write_dicom(path: str | os.PathLike, ds, pixels: np.ndarray) -> None:
 
 
 def _stored_dtype(ds) -> np.dtype:
-    return np.dtype(np.uint16 if int(ds.get("BitsAllocated", 16)) == 16 else np.uint8)
+    size = 2 if int(ds.get("BitsAllocated", 16)) == 16 else 1
+    return np.dtype(f"{'i' if _signed(ds) else 'u'}{size}")
 
 
-def open_stored(path: Path) -> StoredFrames | None:
-    """The frames as stored, read one at a time; None unless they are displayed as themselves or inverted.
+def open_stored(path: Path) -> StoredFrames:
+    """The frames as stored (signed or not, native byte order), read one at a time.
 
-    Streaming works on stored values when the display is the identity or the MONOCHROME1
-    inversion of them: monochrome, unsigned, 8 or 16 bits allocated, no rescale (slope 1,
-    intercept 0). Other files take the general path (:func:`read`, :func:`write_like`).
+    Monochrome frames of 8 or 16 bits allocated, signed or unsigned, any rescale: resampling the
+    stored values and storing the result back keeps the file's representation, its modality LUT
+    applying as before. The border is the stored value displayed darkest (:func:`display`).
+
+    Raises
+    ------
+    InputError
+        Colour or palette frames, or bits allocated other than 8 or 16, naming the file.
     """
     import pydicom
-    from pydicom.pixels import iter_pixels
 
     ds = pydicom.dcmread(path, stop_before_pixels=True)
     photometric = str(ds.get("PhotometricInterpretation", "MONOCHROME2"))
-    slope, intercept = float(ds.get("RescaleSlope", 1) or 1), float(ds.get("RescaleIntercept", 0) or 0)
-    if (
-        photometric not in ("MONOCHROME1", "MONOCHROME2")
-        or int(ds.get("SamplesPerPixel", 1)) != 1
-        or int(ds.get("PixelRepresentation", 0)) != 0
-        or int(ds.get("BitsAllocated", 16)) not in (8, 16)
-        or (slope, intercept) != (1.0, 0.0)
-    ):
-        return None
-    bits = int(ds.get("BitsStored", ds.get("BitsAllocated", 16)))
-    black = float(2**bits - 1) if photometric == "MONOCHROME1" else 0.0
+    if photometric not in ("MONOCHROME1", "MONOCHROME2") or int(ds.get("SamplesPerPixel", 1)) != 1:
+        raise InputError(f"{path}: DICOM {photometric} frames are not supported; only monochrome frames")
+    if int(ds.get("BitsAllocated", 16)) not in (8, 16):
+        bits = ds.get("BitsAllocated")
+        raise InputError(f"{path}: DICOM frames of {bits} bits allocated are not supported (8 or 16)")
+    low, high = stored_range(ds)
+    black = float(low if display(np.array([low, high]), ds)[0] == 0 else high)
     size, dtype = (int(ds.Columns), int(ds.Rows)), _stored_dtype(ds)
-    frames = (check_stored(path, f, dtype, size, i) for i, f in enumerate(iter_pixels(path, raw=True)))
-    return StoredFrames(int(ds.get("NumberOfFrames", 1) or 1), size, dtype, black, frames)
+    n_frames = int(ds.get("NumberOfFrames", 1) or 1)
+    frames = (check_stored(path, f, dtype, size, i) for i, f in enumerate(_decoded(path, ds, list(range(n_frames)))))
+    return StoredFrames(n_frames, size, dtype, black, frames)
 
 
 def source_series(path: Path) -> str:
@@ -308,23 +362,18 @@ def write_stored(
 def write_like(source: Path, frames: list[Radiograph], out_path: Path, derivation: Derivation | None = None) -> None:
     """The source's data set with new pixel data, as a derived instance (:func:`derived_header`, :func:`write_stored`).
 
-    The frames' displayed values are stored back through the source's MONOCHROME1 inversion and
-    rescale, rounded once and clipped to the stored bits (the displayed range of a rescaled source
-    may exceed them).
+    The frames' values (as :func:`read` gives them) are stored back through the inverse of
+    :func:`display`, rounded once and clipped to the stored bits.
     """
     import pydicom
 
     ds = pydicom.dcmread(source, stop_before_pixels=True)
-    bits_stored = int(ds.get("BitsStored", 16))
-    monochrome1 = str(getattr(ds, "PhotometricInterpretation", "")) == "MONOCHROME1"
-    slope, intercept = float(getattr(ds, "RescaleSlope", 1) or 1), float(getattr(ds, "RescaleIntercept", 0) or 0)
+    low, high = stored_range(ds)
+    ramp = display(np.array([low, high]), ds)
 
     def stored(frame: Radiograph) -> np.ndarray:
         values = frame.image.astype(np.float64)
-        if monochrome1:  # as read: inverted after the modality LUT
-            values = 2**frame.bit_depth - 1 - values
-        if (slope, intercept) != (1.0, 0.0):  # store raw values so the modality LUT gives the output back
-            values = (values - intercept) / slope
-        return np.clip(np.rint(values), 0, 2**bits_stored - 1).astype(_stored_dtype(ds))
+        values = low + values if ramp[0] == 0 else high - values
+        return np.clip(np.rint(values), low, high).astype(_stored_dtype(ds))
 
     write_stored(source, map(stored, frames), out_path, len(frames), derivation)

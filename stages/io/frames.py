@@ -52,9 +52,11 @@ class FrameFormat:
     write_like : callable (Path, list of Radiograph, Path, Derivation or None) -> None
         Write frames to the output path in the source's format, bit depth and metadata, atomically,
         recording the :class:`~fluorocal.stages.io.pixels.Derivation` where the format's header can.
-    open_stored : callable (Path) -> StoredFrames or None, optional
-        The frames as stored, read one at a time, where streaming them is exact (None: not this file).
-    write_stored : callable (Path, iterable of ndarray, Path, int, Derivation or None) -> None, optional
+    open_stored : callable (Path) -> StoredFrames
+        The frames as stored, read one at a time: the one decoder, ``read`` displays its frames.
+        Raises InputError (one line, naming the file and why) for a file whose frames cannot be
+        written back as stored.
+    write_stored : callable (Path, iterable of ndarray, Path, int, Derivation or None) -> None
         Write that many stored frames like the source as they come, atomically (the derivation as above).
     series : callable (Path) -> str, optional
         The series a file belongs to, from its header, for formats that group files in series
@@ -68,8 +70,8 @@ class FrameFormat:
     probe: Callable[[Path], tuple[int, tuple[int, int]]]
     read: Callable[[Path, list[int] | None], list[Radiograph]]
     write_like: Callable[[Path, list[Radiograph], Path, Derivation | None], None]
-    open_stored: Callable[[Path], StoredFrames | None] | None = None
-    write_stored: Callable[[Path, Iterable[np.ndarray], Path, int, Derivation | None], None] | None = None
+    open_stored: Callable[[Path], StoredFrames]
+    write_stored: Callable[[Path, Iterable[np.ndarray], Path, int, Derivation | None], None]
     series: Callable[[Path], str] | None = None
 
     def describe(self) -> str:
@@ -97,6 +99,8 @@ VIDEO = FrameFormat(
     video.probe,
     video.read,
     video.write_like,
+    video.open_stored,
+    video.write_stored,
 )
 STILL = FrameFormat(
     still.NAME,
@@ -224,24 +228,21 @@ def write_frames_like(
     frame_format(source).write_like(source, frames, Path(out_path), derivation)
 
 
-def open_stored(path: str | os.PathLike) -> StoredFrames | None:
+def open_stored(path: str | os.PathLike) -> StoredFrames:
     """The frames of a file as stored, read one at a time as they are iterated, for streaming.
 
-    None where the format cannot stream this file exactly (video; DICOM with a rescale; colour
-    or rescaled-depth stills): read it with :func:`read_frames` and write it with :func:`write_frames_like`.
+    The frames :func:`read_frames` displays, in the file's own sample type, channels and
+    photometric: what :func:`write_stored_like` writes back exactly (video: through its lossy codec).
 
     Raises
     ------
     InputError
-        The file is missing, unreadable or of no supported format (frames that fail to decode raise
-        while iterated, naming the file).
+        The file is missing, unreadable or of no supported format, or its frames cannot be written
+        back as stored (frames that fail to decode raise while iterated, naming the file).
     """
     path = Path(path)
-    fmt = frame_format(path)
-    if fmt.open_stored is None:
-        return None
-    stored = _call(path, fmt.open_stored)
-    return None if stored is None else replace(stored, frames=_named(path, stored.frames))
+    stored = _call(path, frame_format(path).open_stored)
+    return replace(stored, frames=_named(path, stored.frames))
 
 
 def _named(path: Path, frames):
@@ -269,13 +270,11 @@ def write_stored_like(
     Raises
     ------
     InputError
-        ``source``'s format cannot stream, a frame does not fit the source, or the count is not ``n_frames``.
+        ``source``'s frames cannot be written back as stored, a frame does not fit the source, or the
+        count is not ``n_frames``.
     """
     source = Path(source)
-    fmt = frame_format(source)
-    if fmt.write_stored is None:
-        raise InputError(f"{source}: {fmt.name} frames cannot be streamed; use write_frames_like")
-    fmt.write_stored(source, frames, Path(out_path), n_frames, derivation)
+    frame_format(source).write_stored(source, frames, Path(out_path), n_frames, derivation)
 
 
 def series_of(path: str | os.PathLike) -> str | None:

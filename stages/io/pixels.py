@@ -29,8 +29,9 @@ def to_source_dtype(radiograph: Radiograph) -> np.ndarray:
 class StoredFrames:
     """A file's frames as stored (no modality LUT, no inversion), read one at a time.
 
-    For streaming: a linear resampling of stored values equals that of the displayed values when the
-    display is an affine function of them (MONOCHROME1 inversion; a rescale slope of 1), apart from
+    Every command reads frames through these (``read_frames`` displays them); ``undistort`` resamples
+    and writes them back as stored. A linear resampling of stored values equals that of the displayed
+    values, the display being an affine function of them (inversion, rescale, sign offset), apart from
     the border, which is given here in stored units.
 
     Attributes
@@ -39,11 +40,13 @@ class StoredFrames:
     size_px : (int, int)
         ``(width, height)`` px of every frame.
     dtype : numpy.dtype
-        uint8 or uint16, every frame's.
+        Every frame's sample type, as the file stores it (signed, 32-bit and float types too).
     black : float
         The stored value displayed as 0 (the dark outside of the field): the border value to resample with.
-    frames : iterator of (H, W) ndarray
+    frames : iterator of (H, W) or (H, W, C) ndarray
         The frames, read from the file as they are asked for.
+    n_channels : int
+        Samples per pixel (C; 1: the frames are 2-D).
     """
 
     n_frames: int
@@ -51,14 +54,18 @@ class StoredFrames:
     dtype: np.dtype
     black: float
     frames: Iterator[np.ndarray]
+    n_channels: int = 1
 
 
-def check_stored(path, frame: np.ndarray, dtype, size_px: tuple[int, int], i_frame: int) -> np.ndarray:
-    """``frame`` if it is a 2-D array of ``dtype`` and ``size_px``, else InputError naming ``path`` and the frame."""
-    if frame.ndim != 2 or frame.dtype != dtype or frame.shape != (size_px[1], size_px[0]):
+def check_stored(
+    path, frame: np.ndarray, dtype, size_px: tuple[int, int], i_frame: int, n_channels: int = 1
+) -> np.ndarray:
+    """``frame`` if ``size_px`` of ``n_channels`` ``dtype`` samples (2-D for one), else InputError naming ``path``."""
+    shape = (size_px[1], size_px[0]) + ((n_channels,) if n_channels > 1 else ())
+    if frame.dtype != dtype or frame.shape != shape:
         raise InputError(
-            f"{path}: frame {i_frame} must be {size_px[0]}x{size_px[1]} px of {np.dtype(dtype)}; "
-            f"got shape {frame.shape} of {frame.dtype}"
+            f"{path}: frame {i_frame} must be {size_px[0]}x{size_px[1]} px of {n_channels} {np.dtype(dtype)} "
+            f"sample(s); got shape {frame.shape} of {frame.dtype}"
         )
     return frame
 

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import itertools
 import os
 from collections.abc import Iterable
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
@@ -12,7 +12,7 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
-from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored, checked_indices, to_source_dtype
+from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored, checked_indices
 
 NAME = "still image (OpenImageIO)"
 #: the suffixes named in messages; any extension OpenImageIO has a reader for is accepted
@@ -21,11 +21,8 @@ COMMON_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".bmp", ".exr", "...")
 _MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+", b"\x89PNG", b"\xff\xd8\xff", b"BM", b"v/1\x01")
 _MAGIC_JP2 = b"\x00\x00\x00\x0cjP  "
 _OIIO_DTYPE = {np.dtype(np.uint8): "uint8", np.dtype(np.uint16): "uint16", np.dtype(np.float32): "float"}
-_STORED_DTYPE = {"uint8": np.dtype(np.uint8), "uint16": np.dtype(np.uint16)}
-#: OpenImageIO's format names that OpenCV encodes as fast as cv2.imwrite, with OpenCV's suffix for them
+#: OpenImageIO's names of the lossless formats OpenCV decodes as it does and encodes fast, with OpenCV's suffix
 _CV2_SUFFIX = {"tiff": ".tiff", "png": ".png"}
-#: OpenImageIO's format names of the single images OpenCV reads as OpenImageIO does (one grey channel, as stored)
-_CV2_READS = ("tiff", "png", "jpeg", "bmp", "pnm")
 
 
 def sniff_content(head: bytes) -> bool:
@@ -48,62 +45,185 @@ def _oiio_suffixes() -> frozenset[str]:
     return frozenset("." + ext.lower() for entry in listed.split(";") for ext in entry.partition(":")[2].split(","))
 
 
+#: OpenImageIO's names of the sample types written back exactly, and their numpy types
+_TYPES = {
+    "uint8": np.dtype(np.uint8),
+    "int8": np.dtype(np.int8),
+    "uint16": np.dtype(np.uint16),
+    "int16": np.dtype(np.int16),
+    "uint": np.dtype(np.uint32),
+    "int": np.dtype(np.int32),
+    "float": np.dtype(np.float32),
+    "double": np.dtype(np.float64),
+}
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """What a still holds, page by page alike: the facts its frames are read and written back with.
+
+    ``bits``: significant bits of an integer sample (PNM: of its maxval; else OpenImageIO's
+    BitsPerSample); ``maxval``: a PNM's, else None; ``refusal``: why its frames cannot be written
+    back exactly (None: they can).
+    """
+
+    format_name: str
+    n_frames: int
+    size_px: tuple[int, int]
+    n_channels: int
+    type_name: str
+    bits: int
+    min_is_white: bool
+    alpha_channel: int
+    maxval: int | None
+    refusal: str | None
+
+    @property
+    def dtype(self) -> np.dtype:
+        return _TYPES[self.type_name]
+
+    @property
+    def black(self) -> float:
+        """The stored value displayed darkest: the border to resample with."""
+        if self.dtype.kind == "f":
+            return 0.0
+        low, high = _int_range(self)
+        return float(high if self.min_is_white else low)
+
+
+def _int_range(layout: _Layout) -> tuple[int, int]:
+    if layout.dtype.kind == "i":
+        return -(2 ** (layout.bits - 1)), 2 ** (layout.bits - 1) - 1
+    return 0, (layout.maxval or 2**layout.bits - 1)
+
+
+def _hints():
+    """Open with alpha as stored: OpenImageIO premultiplies colour by an unassociated alpha otherwise."""
+    import OpenImageIO as oiio
+
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    return config
+
+
 def _open(path: Path):
     import OpenImageIO as oiio
 
-    inp = oiio.ImageInput.open(str(path))
+    inp = oiio.ImageInput.open(str(path), _hints())
     if inp is None:
         raise InputError(f"{path}: cannot read as an image ({oiio.geterror()})")
     return inp
 
 
-def probe(path: Path) -> tuple[int, tuple[int, int]]:
-    """Number of subimages and the first one's ``(width, height)`` px, from the header."""
+def _layout(path: Path) -> _Layout:
+    """The file's :class:`_Layout`, from its headers (pixels not read).
+
+    Raises
+    ------
+    InputError
+        Pages of different sizes, channel counts or sample types, more than 4 channels, or a
+        sample type without an exact numpy equivalent (half floats), naming the file.
+    """
     inp = _open(path)
-    size = (inp.spec().width, inp.spec().height)
-    n = 0
-    while inp.seek_subimage(n, 0):
-        n += 1
-    inp.close()
-    return n, size
+    try:
+        specs = []
+        while inp.seek_subimage(len(specs), 0):
+            specs.append(inp.spec())
+        format_name = inp.format_name()
+    finally:
+        inp.close()
+    if not specs:
+        raise InputError(f"{path}: holds no image")
+    first = specs[0]
+    pages = {((s.width, s.height), s.nchannels, str(s.format)) for s in specs}
+    if len(pages) > 1:
+        shown = ", ".join(f"{w}x{h} px {t} x{c}" for (w, h), c, t in sorted(pages))
+        raise InputError(f"{path}: pages differ ({shown}); a frame file must hold frames of one size and type")
+    type_name = str(first.format)
+    if type_name not in _TYPES or not 1 <= first.nchannels <= 4:
+        raise InputError(f"{path}: {first.nchannels} channel(s) of {type_name} samples are not supported")
+    container = _TYPES[type_name].itemsize * 8
+    maxval = _pnm_maxval(path) if format_name == "pnm" else None
+    bits = int(maxval).bit_length() if maxval else first.get_int_attribute("oiio:BitsPerSample", container) or container
+    refusal = None
+    if maxval is None and _TYPES[type_name].kind == "u" and bits < container:
+        refusal = f"{bits}-bit samples in {container}-bit words cannot be written back as stored"
+    elif format_name == "pnm" and not maxval:
+        refusal = "a bitmap (PBM) cannot be written back as stored"
+    return _Layout(
+        format_name,
+        len(specs),
+        (first.width, first.height),
+        first.nchannels,
+        type_name,
+        int(bits),
+        first.get_int_attribute("tiff:PhotometricInterpretation", 1) == 0,
+        first.alpha_channel,
+        maxval,
+        refusal,
+    )
+
+
+def _pnm_maxval(path: Path) -> int | None:
+    """The maxval of a PGM/PPM (P2, P3, P5, P6) header; None for a bitmap (P1, P4) or another PNM."""
+    with open(path, "rb") as fh:
+        head = fh.read(1024)
+    tokens = b" ".join(line.partition(b"#")[0] for line in head.split(b"\n")).split()
+    if len(tokens) < 4 or tokens[0] not in (b"P2", b"P3", b"P5", b"P6") or not tokens[3].isdigit():
+        return None
+    return int(tokens[3])
+
+
+def probe(path: Path) -> tuple[int, tuple[int, int]]:
+    """Number of subimages and their ``(width, height)`` px, from the headers (pages of two sizes refused)."""
+    layout = _layout(path)
+    return layout.n_frames, layout.size_px
+
+
+def _decode(path: Path, inp, subimage: int, layout: _Layout) -> np.ndarray:
+    """Subimage ``subimage`` as stored: ``(H, W)`` or ``(H, W, C)`` of the layout's dtype, alpha unpremultiplied."""
+    if not inp.seek_subimage(subimage, 0):
+        raise InputError(f"{path}: holds fewer than {subimage + 1} frames; frame {subimage} asked for")
+    pixels = inp.read_image(layout.type_name)
+    if pixels is None:
+        raise InputError(f"{path}: cannot decode subimage {subimage} ({inp.geterror()})")
+    pixels = np.asarray(pixels).reshape(layout.size_px[1], layout.size_px[0], layout.n_channels)
+    if layout.maxval is not None and layout.maxval != np.iinfo(layout.dtype).max:
+        # OpenImageIO scales a PNM's 0..maxval to its word's full range; the stored values are exact multiples
+        pixels = np.rint(pixels * (layout.maxval / np.iinfo(layout.dtype).max)).astype(layout.dtype)
+    elif layout.dtype.kind == "u" and layout.bits < layout.dtype.itemsize * 8:
+        pixels = np.rint(pixels * ((2**layout.bits - 1) / np.iinfo(layout.dtype).max)).astype(layout.dtype)
+    return pixels[..., 0] if layout.n_channels == 1 else pixels
+
+
+def display(stored: np.ndarray, layout: _Layout) -> np.ndarray:
+    """A stored frame as one grey plane, larger = brighter, 0 at the darkest value the type holds, float32.
+
+    Colour is Rec. 601 luma; an alpha channel is dropped (grey + alpha: the grey); MinIsWhite is
+    inverted; signed integers are offset by their type's smallest value. Floats are kept as stored.
+    """
+    values = stored.astype(np.float64)
+    if layout.n_channels == 2:
+        values = values[..., 0]
+    elif layout.n_channels >= 3:
+        values = values[..., :3] @ np.array([0.299, 0.587, 0.114])
+    if layout.dtype.kind in "iu":
+        low, high = _int_range(layout)
+        values = high - values if layout.min_is_white else values - low
+    return values.astype(np.float32)
 
 
 def read(path: Path, indices: list[int] | None = None) -> list[Radiograph]:
-    """Subimages ``indices`` (every one when None) as monochrome frames (RGB via Rec. 601 luma), in stored bit depth."""
+    """Subimages ``indices`` (all when None) decoded as :func:`open_stored` does, as :func:`display` shows them."""
+    layout = _layout(path)
+    wanted = range(layout.n_frames) if indices is None else checked_indices(path, indices, layout.n_frames)
+    bits = layout.bits if layout.dtype.kind in "iu" else 32
+    meta = {"format": layout.format_name or path.suffix.lstrip(".").lower()}  # OpenImageIO's name: "tiff", ...
     inp = _open(path)
     try:
-        frames = []
-        wanted = itertools.count() if indices is None else iter(checked_indices(path, indices, None))
-        for subimage in wanted:
-            if not inp.seek_subimage(subimage, 0):
-                if indices is None:
-                    break
-                raise InputError(f"{path}: holds fewer than {subimage + 1} frames; frame {subimage} asked for")
-            spec = inp.spec()
-            pixels = inp.read_image(spec.format)
-            if pixels is None:
-                raise InputError(f"{path}: cannot decode subimage {subimage} ({inp.geterror()})")
-            frames.append(_to_radiograph(path, subimage, spec, pixels, inp.format_name()))
+        return [Radiograph(display(_decode(path, inp, i, layout), layout), bits, str(path), i, meta) for i in wanted]
     finally:
         inp.close()
-    return frames
-
-
-def _to_radiograph(path: Path, index: int, spec, pixels: np.ndarray, format_name: str) -> Radiograph:
-    pixels = np.asarray(pixels)
-    if pixels.ndim == 3:
-        if spec.nchannels not in (1, 2, 3, 4):
-            raise InputError(f"{path}: unsupported channel count {spec.nchannels}")
-        # grey + alpha, or RGB(A) converted with Rec. 601 luma
-        pixels = pixels[..., 0] if spec.nchannels <= 2 else pixels[..., :3] @ np.array([0.299, 0.587, 0.114])
-    native_bits = pixels.dtype.itemsize * 8 if np.issubdtype(pixels.dtype, np.integer) else 32
-    bits = spec.get_int_attribute("oiio:BitsPerSample", native_bits) or native_bits
-    image = pixels.astype(np.float32)
-    if np.issubdtype(pixels.dtype, np.integer) and bits < native_bits:
-        # OIIO rescales fewer stored bits to the container's full range; undo it
-        image = np.round(image * ((2**bits - 1) / (2**native_bits - 1))).astype(np.float32)
-    meta = {"format": format_name or path.suffix.lstrip(".").lower()}  # OpenImageIO's name: "tiff", "png", ...
-    return Radiograph(image, int(bits), str(path), index, meta)
 
 
 def write_still(
@@ -139,39 +259,28 @@ def write_still(
     atomic_write(path, _write)
 
 
-def open_stored(path: Path) -> StoredFrames | None:
-    """The frames as stored, read one at a time; None unless every subimage is one channel of 8 or 16 bits in full.
+def open_stored(path: Path) -> StoredFrames:
+    """The frames as stored (every channel, the file's sample type), read one at a time.
 
-    A single TIFF, PNG, JPEG, BMP or PNM image is read by OpenCV (which releases the GIL while it
-    decodes), other types and the subimages of a multi-page TIFF by OpenImageIO. Stills display
-    their stored values: black is 0. Colour images, floats and bit depths below their container's
-    (which OpenImageIO rescales) take the general path (:func:`read`, :func:`write_like`).
+    A single grey 8- or 16-bit TIFF or PNG is decoded by OpenCV (which releases the GIL while it
+    decodes, and reads these exactly as OpenImageIO does); other files by OpenImageIO, alpha unpremultiplied.
+
+    Raises
+    ------
+    InputError
+        A file whose frames cannot be written back as stored (:func:`_layout`), naming the file and why.
     """
-    inp = _open(path)
-    try:
-        specs = []
-        while inp.seek_subimage(len(specs), 0):
-            specs.append(inp.spec())
-        by_opencv = len(specs) == 1 and inp.format_name() in _CV2_READS
-    finally:
-        inp.close()
-    dtype = _STORED_DTYPE.get(str(specs[0].format)) if specs else None
-    if dtype is None or any(
-        spec.nchannels != 1
-        or str(spec.format) != str(specs[0].format)
-        or (spec.width, spec.height) != (specs[0].width, specs[0].height)
-        or spec.get_int_attribute("oiio:BitsPerSample", dtype.itemsize * 8) != dtype.itemsize * 8
-        for spec in specs
-    ):
-        return None
-    size = (specs[0].width, specs[0].height)
+    layout = _layout(path)
+    if layout.refusal is not None:
+        raise InputError(f"{path}: {layout.refusal}; convert it to 8 or 16 bits first")
     frames = (
-        check_stored(path, f, dtype, size, i) for i, f in enumerate(_iter_stored(path, len(specs), dtype, by_opencv))
+        check_stored(path, f, layout.dtype, layout.size_px, i, layout.n_channels)
+        for i, f in enumerate(_iter_stored(path, layout, _by_opencv(layout)))
     )
-    return StoredFrames(len(specs), size, dtype, 0.0, frames)
+    return StoredFrames(layout.n_frames, layout.size_px, layout.dtype, layout.black, frames, layout.n_channels)
 
 
-def _iter_stored(path: Path, n_frames: int, dtype: np.dtype, by_opencv: bool):
+def _iter_stored(path: Path, layout: _Layout, by_opencv: bool):
     import cv2
 
     if by_opencv:
@@ -182,10 +291,8 @@ def _iter_stored(path: Path, n_frames: int, dtype: np.dtype, by_opencv: bool):
         return
     inp = _open(path)
     try:
-        for i in range(n_frames):
-            if not inp.seek_subimage(i, 0):
-                raise InputError(f"{path}: cannot seek to subimage {i} ({inp.geterror()})")
-            yield np.asarray(inp.read_image(_OIIO_DTYPE[dtype])).reshape(inp.spec().height, inp.spec().width)
+        for i in range(layout.n_frames):
+            yield _decode(path, inp, i, layout)
     finally:
         inp.close()
 
@@ -193,72 +300,124 @@ def _iter_stored(path: Path, n_frames: int, dtype: np.dtype, by_opencv: bool):
 def write_stored(
     source: Path, frames: Iterable[np.ndarray], out_path: Path, n_frames: int, derivation: Derivation | None = None
 ) -> None:
-    """Write ``n_frames`` frames in ``source``'s image type, atomically, as fast as OpenCV writes them.
+    """Write ``n_frames`` frames as stored in ``source``'s layout (type, channels, photometric, maxval), atomically.
 
-    One frame of TIFF or PNG: encoded by OpenCV (TIFF with LZW, PNG with zlib at OpenCV's level),
-    the only uint8/uint16 path as fast as ``cv2.imwrite`` (OpenImageIO's default zip TIFF is ~5x
-    slower). Several frames (the subimages of a multi-page TIFF), other types and float32 frames:
-    OpenImageIO, TIFF with LZW, one subimage at a time.
+    One grey 8- or 16-bit frame of TIFF or PNG: encoded by OpenCV (TIFF with LZW, PNG with zlib at
+    OpenCV's level), the only path as fast as ``cv2.imwrite`` (OpenImageIO's default zip TIFF is ~5x
+    slower). PGM/PPM: written here, binary, with the source's maxval. Others: OpenImageIO (TIFF with
+    LZW, JPEG at quality 100), one subimage at a time, alpha unassociated; a MinIsWhite TIFF's
+    pages are marked MinIsWhite again.
 
     Raises
     ------
     InputError
-        A frame count other than the source's, or a format that cannot hold the frames.
+        A frame count other than the source's, a frame unlike the source's, or a source whose frames
+        cannot be written back as stored.
 
     Notes
     -----
     ``derivation`` is not recorded: a still's header has no place fluorocal writes it.
     """
+    layout = _layout(source)
+    if layout.refusal is not None:
+        raise InputError(f"{source}: {layout.refusal}; convert it to 8 or 16 bits first")
+    if n_frames != layout.n_frames:
+        raise InputError(f"{source}: writing {n_frames} frames to a still image of {layout.n_frames} is not supported")
+    checked = (
+        check_stored(out_path, f, layout.dtype, layout.size_px, i, layout.n_channels) for i, f in enumerate(frames)
+    )
+    if layout.maxval is not None:
+        atomic_write(out_path, lambda tmp: _write_pnm(tmp, checked, layout, out_path))
+    elif _by_opencv(layout):
+        _write_cv2(out_path, checked, layout)
+    else:
+        atomic_write(out_path, lambda tmp: _write_subimages(tmp, checked, layout, out_path))
+
+
+def _by_opencv(layout: _Layout) -> bool:
+    """Whether OpenCV reads and writes the file as OpenImageIO does: one grey 8- or 16-bit TIFF or PNG image."""
+    return (
+        layout.n_frames == 1
+        and layout.format_name in _CV2_SUFFIX
+        and layout.n_channels == 1
+        and layout.type_name in ("uint8", "uint16")
+        and not layout.min_is_white
+    )
+
+
+def _write_cv2(out_path: Path, frames, layout: _Layout) -> None:
     import cv2
 
-    inp = _open(source)
-    file_format = inp.format_name()
-    n_source = 1
-    while inp.seek_subimage(n_source, 0):
-        n_source += 1
-    inp.close()
-    if n_frames != n_source:
-        raise InputError(f"{source}: writing {n_frames} frames to a still image of {n_source} is not supported")
-    frames = iter(frames)
-    if n_frames == 1 and file_format in _CV2_SUFFIX:
-        frame = next(frames, None)
-        if frame is None:
-            raise InputError(f"{out_path}: expected 1 frame like {source}; got none")
-        if frame.dtype in (np.uint8, np.uint16) and frame.ndim == 2:
-            ok, encoded = cv2.imencode(_CV2_SUFFIX[file_format], frame)
-            if not ok:
-                raise InputError(f"{out_path}: OpenCV cannot encode the frame as {file_format}")
-            atomic_write(out_path, lambda tmp: Path(tmp).write_bytes(encoded.data))
-            return
-        frames = iter([frame])
-    atomic_write(out_path, lambda tmp: _write_subimages(tmp, file_format, frames, n_frames, out_path))
+    frame = next(frames, None)
+    if frame is None:
+        raise InputError(f"{out_path}: expected 1 frame; got none")
+    ok, encoded = cv2.imencode(_CV2_SUFFIX[layout.format_name], frame)
+    if not ok:
+        raise InputError(f"{out_path}: OpenCV cannot encode the frame as {layout.format_name}")
+    atomic_write(out_path, lambda tmp: Path(tmp).write_bytes(encoded.data))
 
 
-def _write_subimages(tmp: str, file_format: str, frames, n_frames: int, out_path: Path) -> None:
+def _write_pnm(tmp: str, frames, layout: _Layout, out_path: Path) -> None:
+    """Binary PGM (P5) or PPM (P6) with the layout's maxval: big-endian words above 255."""
+    frame = next(frames, None)
+    if frame is None or layout.n_channels not in (1, 3):
+        raise InputError(f"{out_path}: expected 1 grey or RGB frame for a PNM file")
+    magic = b"P5" if layout.n_channels == 1 else b"P6"
+    header = b"%s\n%d %d\n%d\n" % (magic, layout.size_px[0], layout.size_px[1], layout.maxval)
+    word = ">u2" if layout.maxval > 255 else "u1"
+    Path(tmp).write_bytes(header + np.ascontiguousarray(frame, dtype=word).tobytes())
+
+
+def _write_subimages(tmp: str, frames, layout: _Layout, out_path: Path) -> None:
     import OpenImageIO as oiio
 
-    out = oiio.ImageOutput.create(file_format)
+    out = oiio.ImageOutput.create(layout.format_name)
     if out is None:
         raise InputError(f"{out_path}: no writer for this format ({oiio.geterror()})")
     count = 0
     for frame in frames:
-        frame = np.ascontiguousarray(frame)
-        fmt = _OIIO_DTYPE.get(frame.dtype)
-        if frame.ndim != 2 or fmt is None:
-            raise InputError(f"{out_path}: frame {count} must be 2-D uint8, uint16 or float32; got {frame.dtype}")
-        spec = oiio.ImageSpec(frame.shape[1], frame.shape[0], 1, fmt)
-        if file_format == "tiff":
-            spec.attribute("compression", "lzw")
+        spec = oiio.ImageSpec(layout.size_px[0], layout.size_px[1], layout.n_channels, layout.type_name)
+        spec.alpha_channel = layout.alpha_channel
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+        spec.attribute("compression", {"tiff": "lzw", "jpeg": "jpeg:100"}.get(layout.format_name, ""))
         mode = "Create" if count == 0 else "AppendSubimage"
-        # OIIO misreads a 2-D array's strides: pass (H, W, 1)
-        if not out.open(tmp, spec, mode) or not out.write_image(frame.reshape(frame.shape[0], frame.shape[1], 1)):
+        pixels = np.ascontiguousarray(frame).reshape(layout.size_px[1], layout.size_px[0], layout.n_channels)
+        if not out.open(tmp, spec, mode) or not out.write_image(pixels):
             raise InputError(f"{out_path}: write failed ({out.geterror()})")
         count += 1
     out.close()
-    if count != n_frames:
-        raise InputError(f"{out_path}: expected {n_frames} frame(s); got {count}")
+    if count != layout.n_frames:
+        raise InputError(f"{out_path}: expected {layout.n_frames} frame(s); got {count}")
+    if layout.min_is_white:
+        _mark_min_is_white(tmp)
+
+
+def _mark_min_is_white(path: str) -> None:
+    """Set every page's PhotometricInterpretation to MinIsWhite (0) in place: OpenImageIO writes MinIsBlack only."""
+    import tifffile
+
+    with tifffile.TiffFile(path, mode="r+b") as tif:
+        for page in tif.pages:
+            page.tags["PhotometricInterpretation"].overwrite(0)
 
 
 def write_like(source: Path, frames: list[Radiograph], out_path: Path, derivation: Derivation | None = None) -> None:
-    """The frames in the source's bit depth and image type (TIFF, PNG, ...: what OpenImageIO read it as)."""
-    write_stored(source, map(to_source_dtype, frames), out_path, len(frames), derivation)
+    """Grey frames (as :func:`read` gives them) back in a grey source's type: rounded, clipped, MinIsWhite re-inverted.
+
+    Raises
+    ------
+    InputError
+        A colour source (its frames were read as luma), or one :func:`write_stored` refuses.
+    """
+    layout = _layout(source)
+    if layout.n_channels != 1:
+        raise InputError(f"{source}: a colour image cannot be written back from grey frames")
+
+    def stored(frame: Radiograph) -> np.ndarray:
+        if layout.dtype.kind == "f":
+            return frame.image.astype(layout.dtype)
+        low, high = _int_range(layout)
+        values = high - frame.image if layout.min_is_white else frame.image + low
+        return np.clip(np.rint(values), low, high).astype(layout.dtype)
+
+    write_stored(source, map(stored, frames), out_path, len(frames), derivation)

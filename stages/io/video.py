@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
-from fluorocal.stages.io.pixels import Derivation, checked_indices
+from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored, checked_indices
 
 NAME = "video (OpenCV)"
 SUFFIXES = (".avi", ".mp4", ".mov", ".mkv", ".m4v", ".wmv")
@@ -35,9 +36,33 @@ def _open(path: Path):
 
 
 def probe(path: Path) -> tuple[int, tuple[int, int]]:
-    """Frame count and ``(width, height)`` px. Containers' frame counts are unreliable, so frames are counted."""
-    frames = read(path)
-    return len(frames), (frames[0].shape[1], frames[0].shape[0])
+    """Frame count and ``(width, height)`` px. Containers' frame counts are unreliable, so frames are counted.
+
+    Every frame is decoded (``grab`` alone may count frames the decoder then refuses) and none is kept.
+    """
+    n_frames, size = 0, None
+    for frame in _grey_frames(path):
+        n_frames, size = n_frames + 1, (frame.shape[1], frame.shape[0])
+    if size is None:
+        raise InputError(f"{path}: video holds no decodable frame")
+    return n_frames, size
+
+
+def _grey_frames(path: Path, last: int | None = None):
+    """The decoded frames in grey (8 or 16 bits), one at a time, up to frame ``last`` (None: every one)."""
+    import cv2
+
+    cap = _open(path)
+    try:
+        index = 0
+        while last is None or index <= last:
+            ok, frame = cap.read()
+            if not ok:
+                return
+            yield frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+            index += 1
+    finally:
+        cap.release()
 
 
 def read(path: Path, indices: list[int] | None = None) -> list[Radiograph]:
@@ -46,26 +71,13 @@ def read(path: Path, indices: list[int] | None = None) -> list[Radiograph]:
     Containers cannot seek to an exact frame reliably, so the file is read from its start up to
     the last frame wanted; only the frames wanted are kept.
     """
-    import cv2
-
     wanted = None if indices is None else checked_indices(path, indices, None)
     keep = None if wanted is None else set(wanted)
-    last = None if wanted is None else max(wanted, default=-1)
-    cap = _open(path)
-    kept = {}
-    try:
-        index = 0
-        while last is None or index <= last:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            if keep is None or index in keep:
-                grey = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-                bits = 16 if grey.dtype == np.uint16 else 8
-                kept[index] = Radiograph(grey.astype(np.float32), bits, str(path), index, {"format": "video"})
-            index += 1
-    finally:
-        cap.release()
+    kept, index = {}, 0
+    for index, grey in enumerate(_grey_frames(path, None if wanted is None else max(wanted, default=-1)), 1):
+        if keep is None or index - 1 in keep:
+            bits = 16 if grey.dtype == np.uint16 else 8
+            kept[index - 1] = Radiograph(grey.astype(np.float32), bits, str(path), index - 1, {"format": "video"})
     if not kept and wanted is None:
         raise InputError(f"{path}: video holds no decodable frame")
     if wanted is None:
@@ -76,22 +88,50 @@ def read(path: Path, indices: list[int] | None = None) -> list[Radiograph]:
     return [kept[i] for i in wanted]
 
 
-def write_like(source: Path, frames: list[Radiograph], out_path: Path, derivation: Derivation | None = None) -> None:
-    """The source's container, codec (FourCC) and frame rate, 8-bit grey frames (``derivation`` is not recorded)."""
+def open_stored(path: Path) -> StoredFrames:
+    """The frames in 8-bit grey as decoded, one at a time (the count and size by a first pass, :func:`probe`)."""
+    n_frames, size = probe(path)
+    frames = (check_stored(path, f, np.uint8, size, i) for i, f in enumerate(_grey_frames(path)))
+    return StoredFrames(n_frames, size, np.dtype(np.uint8), 0.0, frames)
+
+
+def write_stored(
+    source: Path, frames: Iterable[np.ndarray], out_path: Path, n_frames: int, derivation: Derivation | None = None
+) -> None:
+    """The source's container, codec (FourCC) and frame rate, 8-bit grey frames written as they come.
+
+    ``derivation`` is not recorded. The codec is the source's, lossy or not: a video is the one
+    frame format whose pixels are not written back exactly.
+
+    Raises
+    ------
+    InputError
+        No writer for the codec, or a frame count other than ``n_frames``.
+    """
     import cv2
 
-    cap = cv2.VideoCapture(str(source))
+    cap = _open(source)
     fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
     fourcc = int(cap.get(cv2.CAP_PROP_FOURCC)) or cv2.VideoWriter_fourcc(*"MJPG")
+    size = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
     cap.release()
-    h, w = frames[0].shape
 
     def _write(tmp):
-        writer = cv2.VideoWriter(tmp, fourcc, fps, (w, h), isColor=False)
+        writer = cv2.VideoWriter(tmp, fourcc, fps, size, isColor=False)
         if not writer.isOpened():
             raise InputError(f"{out_path}: cannot open a video writer for this codec")
-        for f in frames:
-            writer.write(np.clip(np.rint(f.image), 0, 255).astype(np.uint8))
+        count = 0
+        for frame in frames:
+            writer.write(check_stored(out_path, frame, np.uint8, size, count))
+            count += 1
         writer.release()
+        if count != n_frames:
+            raise InputError(f"{out_path}: expected {n_frames} frame(s) like {source}; got {count}")
 
     atomic_write(out_path, _write)
+
+
+def write_like(source: Path, frames: list[Radiograph], out_path: Path, derivation: Derivation | None = None) -> None:
+    """Grey frames as :func:`read` gives them, rounded to 8 bits, like :func:`write_stored`."""
+    stored = (np.clip(np.rint(f.image), 0, 255).astype(np.uint8) for f in frames)
+    write_stored(source, stored, out_path, len(frames), derivation)

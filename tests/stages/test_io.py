@@ -29,9 +29,9 @@ def test_monochrome1_and_multiframe_dicom(arcadis_dir, tmp_path):
     ds.save_as(tmp_path / "mf.dcm")
     frames = read_frames(tmp_path / "mf.dcm")
     assert len(frames) == 2 and probe_frames(tmp_path / "mf.dcm") == (2, (48, 64))
-    # modality LUT first (2 v + 10), then MONOCHROME1 inverted against the 12-bit full scale
-    np.testing.assert_array_equal(frames[0].image, 4095 - (2.0 * raw + 10))
-    np.testing.assert_array_equal(frames[1].image, 4095 - (2.0 * (raw // 2) + 10))
+    # displayed 2 v + 10, inverted (MONOCHROME1): in stored steps above the darkest 12-bit value (stored 4095)
+    np.testing.assert_array_equal(frames[0].image, 4095.0 - raw)
+    np.testing.assert_array_equal(frames[1].image, 4095.0 - raw // 2)
 
 
 @pytest.mark.parametrize("dtype, bits", [(np.uint8, 8), (np.uint16, 16), (np.float32, 32)])
