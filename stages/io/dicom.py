@@ -332,6 +332,8 @@ def write_stored(
     InputError
         A frame of another size or dtype than the source's, or a count other than ``n_frames``.
     """
+    import pydicom
+
     ds = derived_header(source, derivation)
     if n_frames > 1 or "NumberOfFrames" in ds:
         ds.NumberOfFrames = n_frames
@@ -341,7 +343,8 @@ def write_stored(
     element = struct.pack("<HH2s2xI", 0x7FE0, 0x0010, b"OW" if dtype.itemsize == 2 else b"OB", n_bytes + n_bytes % 2)
 
     def _write(tmp):
-        ds.save_as(tmp, enforce_file_format=True)
+        # dcmwrite, not save_as: it re-encodes a big-endian source's header as little endian
+        pydicom.dcmwrite(tmp, ds, enforce_file_format=True, little_endian=True, implicit_vr=False)
         with open(tmp, "ab") as fh:
             fh.write(element)
             count = 0

@@ -146,10 +146,10 @@ def _layout(path: Path) -> _Layout:
     maxval = _pnm_maxval(path) if format_name == "pnm" else None
     bits = int(maxval).bit_length() if maxval else first.get_int_attribute("oiio:BitsPerSample", container) or container
     refusal = None
-    if maxval is None and _TYPES[type_name].kind == "u" and bits < container:
-        refusal = f"{bits}-bit samples in {container}-bit words cannot be written back as stored"
-    elif format_name == "pnm" and not maxval:
+    if format_name == "pnm" and not maxval:
         refusal = "a bitmap (PBM) cannot be written back as stored"
+    elif maxval is None and _TYPES[type_name].kind == "u" and bits < container:
+        refusal = f"{bits}-bit samples in {container}-bit words cannot be written back as stored"
     return _Layout(
         format_name,
         len(specs),

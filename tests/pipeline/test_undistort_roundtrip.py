@@ -1,0 +1,292 @@
+"""`fluorocal undistort` writes every pixel type back exactly as it came, or refuses it in one line.
+
+With a zero correction field the inverse maps are the pixel centres themselves (checked below), and
+a remap at pixel centres reproduces every sample: each lossless type must come back sample for sample,
+with its header (sample type, channels, photometric, maxval, rescale, signedness) unchanged. The
+outputs are read back with other readers than fluorocal's where one exists (pydicom, tifffile's tags,
+raw PGM bytes, OpenCV), and otherwise with OpenImageIO asked for the samples as stored.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pydicom
+import pytest
+import tifffile
+from fluorocal.calibration import Calibration, SystemCalibration
+from fluorocal.cli import main
+from pydicom import uid
+
+from tests.pipeline.test_undistort_api import H, W, _field
+from tests.stages.test_dicom_derived import _source
+
+
+@pytest.fixture()
+def identity(tmp_path):
+    """A calibration of one system at W x H whose correction field is zero everywhere; its path."""
+    iop = np.array([W / 2, H / 2, 1000.0])
+    system = SystemCalibration("A", (W, H), iop, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros(3), _field(0.0))
+    cal = Calibration([system], {}, {"scheme": "test"})
+    map_x, map_y = cal.remap_maps("A")
+    yy, xx = np.mgrid[0:H, 0:W]
+    # the premise of every exact comparison below: a zero field maps each output pixel centre to itself
+    assert np.array_equal(map_x, xx) and np.array_equal(map_y, yy)
+    path = tmp_path / "cal" / "calibration.json"
+    path.parent.mkdir()
+    cal.save(path)
+    return path
+
+
+def _undistort(calibration, out, *inputs):
+    return main(
+        ["--quiet", "undistort", *map(str, inputs), "--calibration", str(calibration), "--system", "A"]
+        + [
+            "--out",
+            str(out),
+        ]
+    )
+
+
+def _ramp(dtype, channels: int = 0, seed: int = 0) -> np.ndarray:
+    """Samples spanning ``dtype``'s whole range (its extremes included) in a known pseudo-random order."""
+    shape = (H, W, channels) if channels else (H, W)
+    rng = np.random.default_rng(seed)
+    if np.dtype(dtype).kind == "f":
+        values = rng.normal(0, 1000, shape)
+        values.flat[:3] = [0.0, -1e30, 1e-30]
+        return values.astype(dtype)
+    info = np.iinfo(dtype)
+    values = rng.integers(info.min, info.max, shape, dtype=np.int64, endpoint=True)
+    values.flat[:2] = [info.min, info.max]
+    return values.astype(dtype)
+
+
+def _oiio_samples(path, page: int = 0) -> np.ndarray:
+    """The samples of a still as stored (alpha not premultiplied), through OpenImageIO."""
+    import OpenImageIO as oiio
+
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(str(path), config)
+    assert inp.seek_subimage(page, 0)
+    pixels = np.asarray(inp.read_image(str(inp.spec().format)))
+    inp.close()
+    return pixels[..., 0] if pixels.shape[-1] == 1 else pixels
+
+
+def _tiff_header(path) -> tuple:
+    """Photometric, samples per pixel, extra samples (alpha kind) and sample type of each page, by tifffile."""
+    with tifffile.TiffFile(path) as tif:
+        return [(p.photometric, p.samplesperpixel, p.extrasamples, p.dtype) for p in tif.pages]
+
+
+# --- stills -------------------------------------------------------------------------------------------
+
+
+def _tiff(**kwargs):
+    def make(path, data):
+        tifffile.imwrite(path, data, **kwargs)
+
+    return make
+
+
+STILLS = {
+    # name: (suffix, samples, writer)
+    "tiff uint8": (".tif", _ramp(np.uint8), _tiff()),
+    "tiff uint16": (".tif", _ramp(np.uint16), _tiff()),
+    "tiff int16": (".tif", _ramp(np.int16), _tiff()),
+    "tiff uint32": (".tif", _ramp(np.uint32), _tiff()),
+    "tiff int32": (".tif", _ramp(np.int32), _tiff()),
+    "tiff float32": (".tif", _ramp(np.float32), _tiff()),
+    "tiff float64": (".tif", _ramp(np.float64), _tiff()),
+    "tiff MinIsWhite uint16": (".tif", _ramp(np.uint16), _tiff(photometric="miniswhite")),
+    "tiff RGB uint8": (".tif", _ramp(np.uint8, 3), _tiff(photometric="rgb")),
+    "tiff RGBA uint16 unassociated": (
+        ".tif",
+        _ramp(np.uint16, 4),
+        _tiff(photometric="rgb", extrasamples=["unassalpha"]),
+    ),
+    "png grey uint16": (".png", _ramp(np.uint16), lambda p, d: cv2.imwrite(str(p), d)),
+    "png RGB uint8": (".png", _ramp(np.uint8, 3), lambda p, d: cv2.imwrite(str(p), d)),
+    "png RGBA uint16": (".png", _ramp(np.uint16, 4), lambda p, d: cv2.imwrite(str(p), d)),
+}
+
+
+@pytest.mark.parametrize("name", list(STILLS))
+def test_a_still_comes_back_sample_for_sample_in_its_own_type(identity, tmp_path, name):
+    suffix, samples, make = STILLS[name]
+    source = tmp_path / f"in{suffix}"
+    make(source, samples)
+    assert _undistort(identity, tmp_path / "out", source) == 0
+    out = tmp_path / "out" / source.name
+    stored = _oiio_samples(source)
+    if suffix == ".tif":  # the samples as tifffile wrote them (PNG: OpenCV wrote BGR(A), read below)
+        np.testing.assert_array_equal(stored, samples)
+    back = _oiio_samples(out)
+    assert back.dtype == stored.dtype and back.shape == stored.shape
+    np.testing.assert_array_equal(back, stored)
+    if suffix == ".tif":
+        assert _tiff_header(out) == _tiff_header(source)
+    else:  # PNG: OpenCV reads the channels as stored (BGR order) in both
+        np.testing.assert_array_equal(cv2.imread(str(out), cv2.IMREAD_UNCHANGED), samples)
+
+
+def test_a_multi_page_tiff_comes_back_page_for_page(identity, tmp_path):
+    pages = [_ramp(np.uint16, seed=k) for k in range(3)]
+    source = tmp_path / "cine.tif"
+    with tifffile.TiffWriter(source) as tif:
+        for page in pages:
+            tif.write(page)
+    assert _undistort(identity, tmp_path / "out", source) == 0
+    out = tmp_path / "out" / "cine.tif"
+    assert len(_tiff_header(out)) == 3
+    for k, page in enumerate(pages):
+        np.testing.assert_array_equal(_oiio_samples(out, k), page)
+
+
+@pytest.mark.parametrize("maxval", [255, 4095, 65535, 1000])
+def test_a_pgm_keeps_its_maxval_and_stored_values(identity, tmp_path, maxval):
+    rng = np.random.default_rng(maxval)
+    samples = rng.integers(0, maxval, (H, W), endpoint=True)
+    samples.flat[:2] = [0, maxval]
+    word = ">u2" if maxval > 255 else "u1"
+    source = tmp_path / "in.pgm"
+    source.write_bytes(b"P5\n# a comment\n%d %d\n%d\n" % (W, H, maxval) + samples.astype(word).tobytes())
+    assert _undistort(identity, tmp_path / "out", source) == 0
+    data = (tmp_path / "out" / "in.pgm").read_bytes()
+    header = b"P5\n%d %d\n%d\n" % (W, H, maxval)
+    assert data.startswith(header)
+    np.testing.assert_array_equal(np.frombuffer(data[len(header) :], word).reshape(H, W), samples)
+
+
+def test_a_jpeg_keeps_its_channels_within_its_codec_loss(identity, tmp_path):
+    # JPEG is lossy: re-encoding (at quality 100) cannot give every sample back; the type and channels
+    # must, and a smooth image within a few DN (quality 100 quantises every DCT coefficient by 1)
+    yy, xx = np.mgrid[0:H, 0:W]
+    rgb = np.stack([xx * 2, yy * 3, 255 - xx - yy], axis=-1).clip(0, 255).astype(np.uint8)
+    source = tmp_path / "in.jpg"
+    cv2.imwrite(str(source), rgb, [cv2.IMWRITE_JPEG_QUALITY, 100])
+    assert _undistort(identity, tmp_path / "out", source) == 0
+    back, stored = cv2.imread(str(tmp_path / "out" / "in.jpg")), cv2.imread(str(source))
+    assert back.shape == stored.shape == (H, W, 3) and back.dtype == np.uint8
+    assert np.abs(back.astype(int) - stored).max() <= 3
+
+
+# --- DICOM --------------------------------------------------------------------------------------------
+
+
+def _dicom(path, samples, *, transfer=uid.ExplicitVRLittleEndian, **tags):
+    """A DICOM of ``samples`` (H, W) int16 or uint16 as stored, in ``transfer`` syntax, with ``tags``."""
+    signed = samples.dtype == np.int16
+    ds = _source(path, np.zeros((1, H, W), np.uint16), PixelRepresentation=int(signed), Rows=H, Columns=W, **tags)
+    ds.file_meta.TransferSyntaxUID = transfer
+    order = ">" if transfer == uid.ExplicitVRBigEndian else "<"
+    ds.PixelData = samples.astype(order + samples.dtype.str[1:]).tobytes()
+    pydicom.dcmwrite(path, ds, enforce_file_format=True, little_endian=order == "<", implicit_vr=False)
+
+
+DICOMS = {
+    # name: (stored samples, tags, transfer syntax)
+    "unsigned 12-bit": (_ramp(np.uint16) % 4096, {}, uid.ExplicitVRLittleEndian),
+    "MONOCHROME1": (_ramp(np.uint16) % 4096, {"PhotometricInterpretation": "MONOCHROME1"}, uid.ExplicitVRLittleEndian),
+    "slope 2 intercept -1000": (
+        _ramp(np.uint16) % 4096,
+        {"RescaleSlope": 2, "RescaleIntercept": -1000},
+        uid.ExplicitVRLittleEndian,
+    ),
+    "signed 12-bit": (
+        (_ramp(np.uint16) % 4096).astype(np.int16) - 2048,
+        {"BitsStored": 12, "HighBit": 11},
+        uid.ExplicitVRLittleEndian,
+    ),
+    "signed 16-bit with intercept": (
+        _ramp(np.int16),
+        {"BitsStored": 16, "HighBit": 15, "RescaleIntercept": 1024, "RescaleSlope": 1},
+        uid.ExplicitVRLittleEndian,
+    ),
+    "big endian": (_ramp(np.uint16) % 4096, {}, uid.ExplicitVRBigEndian),
+    "deflated": (_ramp(np.uint16) % 4096, {}, uid.DeflatedExplicitVRLittleEndian),
+}
+
+
+@pytest.mark.parametrize("name", list(DICOMS))
+def test_a_dicom_comes_back_with_its_stored_values_and_representation(identity, tmp_path, name):
+    samples, tags, transfer = DICOMS[name]
+    source = tmp_path / "in.dcm"
+    _dicom(source, samples, transfer=transfer, **tags)
+    assert _undistort(identity, tmp_path / "out", source) == 0
+    back = pydicom.dcmread(tmp_path / "out" / "in.dcm")
+    original = pydicom.dcmread(source)
+    for tag in ("PixelRepresentation", "BitsAllocated", "BitsStored", "PhotometricInterpretation"):
+        assert back.get(tag) == original.get(tag), tag
+    for tag in ("RescaleSlope", "RescaleIntercept"):
+        assert float(back.get(tag, 0)) == float(original.get(tag, 0)), tag
+    assert back.pixel_array.dtype == samples.dtype
+    np.testing.assert_array_equal(back.pixel_array, samples)
+
+
+def test_colour_dicom_is_refused(identity, tmp_path, capsys):
+    source = tmp_path / "rgb.dcm"
+    ds = _source(source, np.zeros((1, H, W), np.uint16), Rows=H, Columns=W)
+    ds.PhotometricInterpretation, ds.SamplesPerPixel, ds.PlanarConfiguration = "RGB", 3, 0
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit = 8, 8, 7
+    ds.PixelData = np.zeros((H, W, 3), np.uint8).tobytes()
+    ds.save_as(source, enforce_file_format=True)
+    _assert_refused(identity, tmp_path, capsys, source, "DICOM RGB frames are not supported")
+
+
+# --- video --------------------------------------------------------------------------------------------
+
+
+def test_a_lossless_video_comes_back_frame_for_frame(identity, tmp_path):
+    frames = [_ramp(np.uint8, seed=k) for k in range(5)]
+    source = tmp_path / "cine.avi"
+    writer = cv2.VideoWriter(str(source), cv2.VideoWriter_fourcc(*"FFV1"), 10, (W, H), isColor=False)
+    assert writer.isOpened()
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+    assert _undistort(identity, tmp_path / "out", source) == 0
+    cap = cv2.VideoCapture(str(tmp_path / "out" / "cine.avi"))
+    fourcc = int(cap.get(cv2.CAP_PROP_FOURCC)).to_bytes(4, "little").decode()
+    assert fourcc.upper() == "FFV1"  # the source's codec (FFmpeg reports it in lower case)
+    back = []
+    while (got := cap.read())[0]:
+        back.append(cv2.cvtColor(got[1], cv2.COLOR_BGR2GRAY))
+    cap.release()
+    assert len(back) == len(frames)
+    for frame, again in zip(frames, back):
+        np.testing.assert_array_equal(again, frame)
+
+
+# --- refusals -----------------------------------------------------------------------------------------
+
+
+def _assert_refused(identity, tmp_path, capsys, source, message):
+    out = tmp_path / "out"
+    assert _undistort(identity, out, source) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.splitlines() == [err], err
+    assert str(source) in err and message in err, err
+    assert not (out / source.name).exists() and not (out.exists() and any(out.iterdir()))
+
+
+def test_pages_of_two_sizes_are_refused(identity, tmp_path, capsys):
+    source = tmp_path / "two.tif"
+    with tifffile.TiffWriter(source) as tif:
+        tif.write(_ramp(np.uint16))
+        tif.write(_ramp(np.uint16)[: H // 2, : W // 2])
+    _assert_refused(identity, tmp_path, capsys, source, "pages differ")
+
+
+def test_half_floats_are_refused(identity, tmp_path, capsys):
+    source = tmp_path / "half.tif"
+    tifffile.imwrite(source, _ramp(np.uint8).astype(np.float16))
+    _assert_refused(identity, tmp_path, capsys, source, "of half samples are not supported")
+
+
+def test_a_bitmap_is_refused(identity, tmp_path, capsys):
+    source = tmp_path / "bits.pbm"
+    source.write_bytes(b"P4\n%d %d\n" % (W, H) + bytes(W // 8 * H))
+    _assert_refused(identity, tmp_path, capsys, source, "a bitmap (PBM) cannot be written back")
