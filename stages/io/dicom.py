@@ -182,7 +182,7 @@ def write_dicom(path: str | os.PathLike, ds, pixels: np.ndarray) -> None:
     """Save data set ``ds`` with ``pixels`` as its pixel data, uncompressed, atomically.
 
     The one DICOM writer: the transfer syntax becomes explicit VR little endian,
-    the pixels are stored in the data set's ``BitsAllocated`` (8 or 16) and, for
+    the pixels are stored in the data set's ``BitsAllocated`` (8 or 16) and ``PixelRepresentation`` and, for
     more than one frame, ``NumberOfFrames`` is set. Every other tag is written as
     ``ds`` holds it.
 
@@ -206,9 +206,8 @@ def write_dicom(path: str | os.PathLike, ds, pixels: np.ndarray) -> None:
     if pixels.shape[-2:] != (int(ds.Rows), int(ds.Columns)) or pixels.ndim not in (2, 3):
         raise InputError(f"{path}: pixels must have shape ([F,] {ds.Rows}, {ds.Columns}); got {pixels.shape}")
     ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    stored = "<u2" if int(ds.BitsAllocated) == 16 else "u1"
     frames = pixels[0] if pixels.ndim == 3 and len(pixels) == 1 else pixels
-    ds.PixelData = np.ascontiguousarray(frames, dtype=stored).tobytes()
+    ds.PixelData = np.ascontiguousarray(frames, dtype="<" + _stored_dtype(ds).str[1:]).tobytes()
     if frames.ndim == 3:
         ds.NumberOfFrames = len(frames)
     atomic_write(path, lambda tmp: ds.save_as(tmp, enforce_file_format=True))
