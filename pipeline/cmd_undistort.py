@@ -3,7 +3,9 @@ r"""`fluorocal undistort`: remove a system's learned distortion from clinical or
 Each INPUT (DICOM, TIFF, PNG or video; a file of one or many frames, or a
 folder of them) is resampled onto the ideal pinhole image of the calibrated
 system and written to OUTDIR under the same name, in the input's own format,
-bit depth and metadata. DICOM outputs form a derived series: a new Series
+pixel type (sample type, channels, photometric) and metadata; a file
+whose samples cannot be written back so is refused before anything is
+written. DICOM outputs form a derived series: a new Series
 Instance UID per source series and run, a new SOP Instance UID per file,
 ImageType DERIVED\SECONDARY, a Source Image Sequence naming the original and
 a Derivation Description naming the calibration (file and content SHA-256),

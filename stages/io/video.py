@@ -38,12 +38,19 @@ def _open(path: Path):
 def probe(path: Path) -> tuple[int, tuple[int, int]]:
     """Frame count and ``(width, height)`` px. Containers' frame counts are unreliable, so frames are counted.
 
-    Every frame is decoded (``grab`` alone may count frames the decoder then refuses) and none is kept.
+    Each frame is grabbed (demuxed and decoded, not converted to an array) and none is kept.
     """
-    n_frames, size = 0, None
-    for frame in _grey_frames(path):
-        n_frames, size = n_frames + 1, (frame.shape[1], frame.shape[0])
-    if size is None:
+    import cv2
+
+    cap = _open(path)
+    try:
+        n_frames = 0
+        while cap.grab():
+            n_frames += 1
+        size = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+    finally:
+        cap.release()
+    if n_frames == 0:
         raise InputError(f"{path}: video holds no decodable frame")
     return n_frames, size
 
