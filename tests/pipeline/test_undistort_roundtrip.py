@@ -102,6 +102,11 @@ STILLS = {
     "tiff float64": (".tif", _ramp(np.float64), _tiff()),
     "tiff MinIsWhite uint16": (".tif", _ramp(np.uint16), _tiff(photometric="miniswhite")),
     "tiff RGB uint8": (".tif", _ramp(np.uint8, 3), _tiff(photometric="rgb")),
+    "tiff grey+alpha uint16": (
+        ".tif",
+        _ramp(np.uint16, 2),
+        _tiff(photometric="minisblack", extrasamples=["unassalpha"]),
+    ),
     "tiff RGBA uint16 unassociated": (
         ".tif",
         _ramp(np.uint16, 4),
@@ -177,8 +182,8 @@ def test_a_jpeg_keeps_its_channels_within_its_codec_loss(identity, tmp_path):
 
 
 def _dicom(path, samples, *, transfer=uid.ExplicitVRLittleEndian, **tags):
-    """A DICOM of ``samples`` (H, W) int16 or uint16 as stored, in ``transfer`` syntax, with ``tags``."""
-    signed = samples.dtype == np.int16
+    """A DICOM of ``samples`` (H, W) as stored (int16: signed), in ``transfer`` syntax, with ``tags``."""
+    signed = samples.dtype.kind == "i"
     ds = _source(path, np.zeros((1, H, W), np.uint16), PixelRepresentation=int(signed), Rows=H, Columns=W, **tags)
     ds.file_meta.TransferSyntaxUID = transfer
     order = ">" if transfer == uid.ExplicitVRBigEndian else "<"
@@ -205,6 +210,7 @@ DICOMS = {
         {"BitsStored": 16, "HighBit": 15, "RescaleIntercept": 1024, "RescaleSlope": 1},
         uid.ExplicitVRLittleEndian,
     ),
+    "8-bit": (_ramp(np.uint8), {"BitsAllocated": 8, "BitsStored": 8, "HighBit": 7}, uid.ExplicitVRLittleEndian),
     "big endian": (_ramp(np.uint16) % 4096, {}, uid.ExplicitVRBigEndian),
     "deflated": (_ramp(np.uint16) % 4096, {}, uid.DeflatedExplicitVRLittleEndian),
 }
