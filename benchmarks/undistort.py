@@ -14,9 +14,10 @@ corners, on a 32 px grid) and synthetic 12-bit frames stored as 16-bit TIFF (smo
    ``cv2.remap`` with the maps from a ``.npy``, ``cv2.imwrite``: TIFF with LZW), interleaved, medians; with
    each process's peak memory (``ru_maxrss`` from ``os.wait4`` in a small launcher process: see :func:`_run`).
 4. Memory against count: ``fluorocal undistort`` of ``--frames``/10 and ``--frames`` frames (a folder of
-   links to 10 distinct frames; outputs deleted after each run): peak memory of each.
+   links to 10 distinct frames; outputs deleted after each run): peak memory of each; and of one MJPG AVI
+   of ``--video-frames``/4 and ``--video-frames`` 8-bit frames (video streamed like a multi-page file).
 
-Usage: ``python benchmarks/undistort.py [--frames 10000] [--rounds 5] [--keep DIR]``.
+Usage: ``python benchmarks/undistort.py [--frames 10000] [--video-frames 1000] [--rounds 5] [--keep DIR]``.
 Targets (issue 15): in memory >= 90 % of the bare remap; end to end within 1.5x of OpenCV; peak memory
 that does not grow with the number of frames.
 """
@@ -288,9 +289,25 @@ def memory_against_count(root: Path, cal: Path, frames: list[np.ndarray], n_larg
         shutil.rmtree(src)
 
 
+def video_memory_against_count(root: Path, cal: Path, frames: list[np.ndarray], n_large: int) -> None:
+    import cv2
+
+    for n in (n_large // 4, n_large):
+        src, out = root / f"video_{n}.avi", root / f"video_out_{n}"
+        writer = cv2.VideoWriter(str(src), cv2.VideoWriter_fourcc(*"MJPG"), 25, (SIZE, SIZE), isColor=False)
+        for i in range(n):
+            writer.write((frames[i % len(frames)] >> 4).astype(np.uint8))
+        writer.release()
+        wall, rss, code = _run(_fluorocal(cal, src, out), root / "mem.log")
+        print(f"memory, fluorocal undistort of a {n:5d}-frame AVI: peak {rss:.0f} MiB, {wall:.1f} s (exit {code})")
+        shutil.rmtree(out, ignore_errors=True)
+        src.unlink()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=10000, help="frames of the memory run (default 10000)")
+    parser.add_argument("--video-frames", type=int, default=1000, help="frames of the video run (default 1000)")
     parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds of each comparison (default 5)")
     parser.add_argument("--keep", type=Path, help="work in this folder and keep it (default: a temporary one)")
     args = parser.parse_args()
@@ -304,6 +321,7 @@ def main() -> None:
         writers(root / "writers", frames, args.rounds)
         end_to_end(root, cal, frames, max(3, args.rounds // 2 + 1))
         memory_against_count(root, cal, frames, args.frames)
+        video_memory_against_count(root, cal, frames, args.video_frames)
     finally:
         if args.keep is None:
             shutil.rmtree(root, ignore_errors=True)
