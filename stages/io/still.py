@@ -45,8 +45,9 @@ def _oiio_suffixes() -> frozenset[str]:
     return frozenset("." + ext.lower() for entry in listed.split(";") for ext in entry.partition(":")[2].split(","))
 
 
-#: OpenImageIO's names of the sample types written back exactly, and their numpy types
+#: OpenImageIO's names of the sample types read, and their numpy types (all but half written back exactly)
 _TYPES = {
+    "half": np.dtype(np.float16),
     "uint8": np.dtype(np.uint8),
     "int8": np.dtype(np.int8),
     "uint16": np.dtype(np.uint16),
@@ -122,7 +123,7 @@ def _layout(path: Path) -> _Layout:
     ------
     InputError
         Pages of different sizes, channel counts or sample types, more than 4 channels, or a
-        sample type without an exact numpy equivalent (half floats), naming the file.
+        sample type without a numpy equivalent, naming the file.
     """
     inp = _open(path)
     try:
@@ -146,7 +147,9 @@ def _layout(path: Path) -> _Layout:
     maxval = _pnm_maxval(path) if format_name == "pnm" else None
     bits = int(maxval).bit_length() if maxval else first.get_int_attribute("oiio:BitsPerSample", container) or container
     refusal = None
-    if format_name == "pnm" and not maxval:
+    if type_name == "half":
+        refusal = "half-float samples cannot be written back as stored (OpenImageIO writes them as float)"
+    elif format_name == "pnm" and not maxval:
         refusal = "a bitmap (PBM) cannot be written back as stored"
     elif maxval is None and _TYPES[type_name].kind == "u" and bits < container:
         refusal = f"{bits}-bit samples in {container}-bit words cannot be written back as stored"
@@ -172,6 +175,14 @@ def _pnm_maxval(path: Path) -> int | None:
     if len(tokens) < 4 or tokens[0] not in (b"P2", b"P3", b"P5", b"P6") or not tokens[3].isdigit():
         return None
     return int(tokens[3])
+
+
+def _writable_layout(path: Path) -> _Layout:
+    """:func:`_layout`, refusing in one line a file whose frames cannot be written back as stored."""
+    layout = _layout(path)
+    if layout.refusal is not None:
+        raise InputError(f"{path}: {layout.refusal}; convert it to 8- or 16-bit samples first")
+    return layout
 
 
 def probe(path: Path) -> tuple[int, tuple[int, int]]:
@@ -270,9 +281,7 @@ def open_stored(path: Path) -> StoredFrames:
     InputError
         A file whose frames cannot be written back as stored (:func:`_layout`), naming the file and why.
     """
-    layout = _layout(path)
-    if layout.refusal is not None:
-        raise InputError(f"{path}: {layout.refusal}; convert it to 8 or 16 bits first")
+    layout = _writable_layout(path)
     frames = (
         check_stored(path, f, layout.dtype, layout.size_px, i, layout.n_channels)
         for i, f in enumerate(_iter_stored(path, layout, _by_opencv(layout)))
@@ -318,9 +327,7 @@ def write_stored(
     -----
     ``derivation`` is not recorded: a still's header has no place fluorocal writes it.
     """
-    layout = _layout(source)
-    if layout.refusal is not None:
-        raise InputError(f"{source}: {layout.refusal}; convert it to 8 or 16 bits first")
+    layout = _writable_layout(source)
     if n_frames != layout.n_frames:
         raise InputError(f"{source}: writing {n_frames} frames to a still image of {layout.n_frames} is not supported")
     checked = (
@@ -379,7 +386,9 @@ def _write_subimages(tmp: str, frames, layout: _Layout, out_path: Path) -> None:
         spec = oiio.ImageSpec(layout.size_px[0], layout.size_px[1], layout.n_channels, layout.type_name)
         spec.alpha_channel = layout.alpha_channel
         spec.attribute("oiio:UnassociatedAlpha", 1)
-        spec.attribute("compression", {"tiff": "lzw", "jpeg": "jpeg:100"}.get(layout.format_name, ""))
+        compression = {"tiff": "lzw", "jpeg": "jpeg:100"}.get(layout.format_name)
+        if compression is not None:
+            spec.attribute("compression", compression)
         mode = "Create" if count == 0 else "AppendSubimage"
         pixels = np.ascontiguousarray(frame).reshape(layout.size_px[1], layout.size_px[0], layout.n_channels)
         if not out.open(tmp, spec, mode) or not out.write_image(pixels):

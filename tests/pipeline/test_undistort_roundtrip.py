@@ -289,7 +289,7 @@ def test_pages_of_two_sizes_are_refused(identity, tmp_path, capsys):
 def test_half_floats_are_refused(identity, tmp_path, capsys):
     source = tmp_path / "half.tif"
     tifffile.imwrite(source, _ramp(np.uint8).astype(np.float16))
-    _assert_refused(identity, tmp_path, capsys, source, "of half samples are not supported")
+    _assert_refused(identity, tmp_path, capsys, source, "half-float samples cannot be written back")
 
 
 def test_a_bitmap_is_refused(identity, tmp_path, capsys):

@@ -117,6 +117,15 @@ def test_stills_read_as_displayed(tmp_path):
     np.testing.assert_allclose(frame.image, luma, rtol=1e-6)  # float32 rounding of values below 65536
 
 
+def test_what_undistort_refuses_is_still_read_for_detection(tmp_path):
+    half = (np.arange(24 * 32).reshape(24, 32) % 2000).astype(np.float16)
+    tifffile.imwrite(tmp_path / "h.tif", half)
+    (frame,) = read_frames(tmp_path / "h.tif")
+    np.testing.assert_array_equal(frame.image, half.astype(np.float32))
+    with pytest.raises(InputError, match="h.tif: half-float samples cannot be written back as stored"):
+        open_stored(tmp_path / "h.tif")
+
+
 def test_pages_of_two_sizes_are_refused_by_every_reader(tmp_path):
     with tifffile.TiffWriter(tmp_path / "two.tif") as tif:
         tif.write(np.zeros((64, 64), np.uint16))
