@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import ast
 import dataclasses
+import json
 import re
 import typing
 from pathlib import Path
@@ -65,6 +66,11 @@ def on_page_markdown(markdown: str, **kwargs) -> str:
     return markdown
 
 
+def on_page_content(html: str, **kwargs) -> str:
+    """Drop the Sphinx roles (``:func:`` ...) the docstrings use; mkdocstrings shows the name as code after them."""
+    return re.sub(r":(?:func|class|meth|data|attr|mod|exc):(?=<code>)", "", html)
+
+
 def benchmark_list() -> str:
     """Every script in ``benchmarks/``: what it measures, its command and its result page where one was written."""
     rows = ["| benchmark | what it measures | result page |", "|---|---|---|"]
@@ -88,9 +94,13 @@ def _cell(text) -> str:
 
 
 def _code(value) -> str:
+    """A default as it would be written in TOML (``"auto"``, ``[3]``, ``true``); ``-`` for none."""
     if value is None:
         return "-"
-    text = repr(value) if isinstance(value, str) else str(value)
+    if isinstance(value, (str, bool, tuple, list)):
+        text = json.dumps(list(value) if isinstance(value, tuple) else value)
+    else:
+        text = str(value)
     return f"`{text}`"
 
 
