@@ -104,4 +104,6 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    import docpage
+
+    docpage.run(__file__, main)

@@ -103,4 +103,6 @@ def measure(calibration: Path) -> None:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("calibration", type=Path, help="calibration.json of `fluorocal run` (tables beside it)")
-    measure(parser.parse_args().calibration)
+    import docpage
+
+    docpage.run(__file__, lambda: measure(parser.parse_args().calibration))

@@ -210,4 +210,6 @@ def _rendered_check(sp: SimulateParams, n_frames: int, params: LabelParams) -> N
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    import docpage
+
+    sys.exit(docpage.run(__file__, main))

@@ -325,4 +325,6 @@ def _system_orientation(init: Orientation, acq, s: int) -> Orientation:
 
 
 if __name__ == "__main__":
-    main()
+    import docpage
+
+    docpage.run(__file__, main)

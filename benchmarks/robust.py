@@ -246,4 +246,6 @@ def _verdict(met: bool) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    import docpage
+
+    docpage.run(__file__, main)

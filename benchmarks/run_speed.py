@@ -328,4 +328,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    import docpage
+
+    sys.exit(docpage.run(__file__, main))

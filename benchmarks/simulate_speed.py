@@ -98,4 +98,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    import docpage
+
+    sys.exit(docpage.run(__file__, main))

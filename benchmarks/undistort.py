@@ -328,4 +328,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    import docpage
+
+    docpage.run(__file__, main)

@@ -6,8 +6,8 @@ orientation and the ``.npz`` file(s) beside it with the correction field on
 its grid: one field, or one per C-arm orientation (an image intensifier's
 distortion changes with the orientation), each with its name and its angles
 when known; the relative orientation of a biplanar pair; each training
-exposure's pose; the scheme and the statistics of the solve. README.md,
-"The calibration file and the Python API", documents every key. Usage::
+exposure's pose; the scheme and the statistics of the solve. docs/calibration-file.md
+documents every key. Usage::
 
     from fluorocal import Calibration
     cal = Calibration.load("out/calibration.json")
@@ -188,7 +188,7 @@ class Calibration:
     """A loaded calibration.
 
     Methods take a system by name and points as ``(N, 2)`` px arrays
-    (README.md, "Conventions").
+    (docs/concepts.md, "Conventions").
     """
 
     def __init__(self, systems: list[SystemCalibration], exposures: dict, meta: dict):
@@ -247,7 +247,7 @@ class Calibration:
         return cal
 
     def save(self, path: str | Path) -> list[Path]:
-        """Write ``calibration.json`` and its field files (:func:`_field_files`) atomically; return the paths.
+        """Write ``calibration.json`` and its field files atomically; return the paths.
 
         Raises
         ------
@@ -403,7 +403,7 @@ class Calibration:
         Returns
         -------
         map_x, map_y : (H, W) float32 ndarray, px, read-only
-            The measured (distorted) source coordinate of each output pixel centre (README.md,
+            The measured (distorted) source coordinate of each output pixel centre (docs/concepts.md,
             "Conventions"). Float32 maps are OpenCV's fastest here and exact; ``cv2.convertMaps``'s
             fixed-point pair is slower (``benchmarks/undistort.py``).
 

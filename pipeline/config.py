@@ -44,6 +44,72 @@ OWNED_ELSEWHERE = {
 
 #: the calibration scheme when ``[calibration] scheme`` is not given
 DEFAULT_SCHEME = "knn+iop+smooth"
+
+
+@dataclass(frozen=True)
+class Key:
+    """One key of the project file: its table, TOML type, default and meaning.
+
+    The loader accepts exactly the keys of :data:`SCHEMA` in each table (the stage tables take
+    their ``Params`` fields), and the documentation's config reference is generated from it.
+    """
+
+    section: str
+    name: str
+    type: str
+    default: object = None
+    help: str = ""
+    required: bool = False
+
+
+#: every key of the project file outside the stage tables; ``section`` "systems.orientations" is an
+#: element of a system's ``orientations`` list
+SCHEMA = (
+    Key("phantom", "file", "string (path)", None, "phantom CSV `id,x,y,z[,diameter][,role]` in mm (design values)"),
+    Key("phantom", "lattice", "string", None, 'a perforated grid plate instead: `"hex"` or `"square"`'),
+    Key("phantom", "pitch", "number (mm)", None, "with `lattice`: distance between neighbouring holes (scale only)"),
+    Key("systems", "name", "string", None, "1-64 letters, digits, `-`, `_`, `.`; names differ", required=True),
+    Key("systems", "frames", "string or list", None, "a glob or a list of frame files", required=True),
+    Key("systems", "source_image_distance", "number (mm)", None, "approximate, 100-5000 mm", required=True),
+    Key("systems", "pixel_pitch", "number (mm)", None, "at the detector, approximate, 0.01-5 mm", required=True),
+    Key("systems", "seeds", "string (path)", None, "CSV `id,x,y[,file,frame]` (px): seeds for frames without markers"),
+    Key("systems", "orientations", "list of tables", None, "the frames grouped by C-arm orientation (below)"),
+    Key("systems.orientations", "name", "string", None, "1-64 letters, digits, `-`, `_`, `.`", required=True),
+    Key("systems.orientations", "frames", "string or list", None, "a glob or a list: the system's own frames"),
+    Key("systems.orientations", "orbit", "number (degrees)", None, "C-arm orbit angle; with `tilt`, within 180"),
+    Key("systems.orientations", "tilt", "number (degrees)", None, "C-arm tilt angle; with `orbit`, within 180"),
+    Key(
+        "calibration", "scheme", "string", DEFAULT_SCHEME, "knn, knn+iop, knn+smooth, knn+iop+smooth, none, polynomial"
+    ),
+    Key("output", "dir", "string (path)", "out", "folder of the published outputs"),
+    Key("cache", "dir", "string (path)", ".fluorocal", "folder of the artifact cache"),
+    Key("compute", "jobs", "integer", None, "worker processes for the per-frame stages (none: every core; 1: serial)"),
+    Key("compute", "threads", "integer", 1, "BLAS/OpenMP/OpenCV threads per process"),
+)
+
+
+def schema_keys(section: str) -> set[str]:
+    """The keys :data:`SCHEMA` allows in ``section`` (``"phantom"``, ``"systems.orientations"``, ...).
+
+    Examples
+    --------
+    >>> sorted(schema_keys("phantom"))
+    ['file', 'lattice', 'pitch']
+    """
+    return {k.name for k in SCHEMA if k.section == section}
+
+
+def schema_default(section: str, name: str):
+    """The default of key ``name`` of ``section`` in :data:`SCHEMA`.
+
+    Examples
+    --------
+    >>> schema_default("output", "dir")
+    'out'
+    """
+    return next(k.default for k in SCHEMA if k.section == section and k.name == name)
+
+
 #: the schemes a grid plate accepts: the default (the plate's own solve) and none
 _PLATE_SCHEMES = (DEFAULT_SCHEME, "none")
 
@@ -172,7 +238,7 @@ def _check_regular(files, path: Path, section: str) -> None:
 def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
     section = "[phantom] "
     _expect(table, dict, "a table [phantom]", path, "", "phantom")
-    _reject_unknown(table, {"file", "lattice", "pitch"}, path, section)
+    _reject_unknown(table, schema_keys("phantom"), path, section)
     if "file" in table:
         f = root / _expect(table["file"], str, "a file name", path, section, "file")
         if not f.is_file():
@@ -209,9 +275,7 @@ def _check_phantom_file(file: Path, path: Path) -> None:
 def _system(table: dict, i: int, root: Path, path: Path) -> SystemConfig:
     section = f"[[systems]] #{i + 1} "
     _expect(table, dict, "a [[systems]] table", path, "", "systems")
-    _reject_unknown(
-        table, {"name", "frames", "source_image_distance", "pixel_pitch", "seeds", "orientations"}, path, section
-    )
+    _reject_unknown(table, schema_keys("systems"), path, section)
     name = _expect(table.get("name"), str, 'a name such as "A"', path, section, "name")
     if not name.strip():
         raise ConfigError(f'{_where(path, section, "name")}: expected a non-empty name such as "A"; got {name!r}')
@@ -283,7 +347,7 @@ def _same_angles(a: OrientationConfig, b: OrientationConfig) -> bool:
 def _orientation(table, own: dict, root: Path, path: Path, where: str) -> OrientationConfig:
     """One group of ``orientations``: its name, its frames (each one of the system's) and its angles."""
     _expect(table, dict, 'a table {name = "...", frames = [...], orbit = ..., tilt = ...}', path, where, "orientations")
-    _reject_unknown(table, {"name", "frames", "orbit", "tilt"}, path, where)
+    _reject_unknown(table, schema_keys("systems.orientations"), path, where)
     name = _expect(table.get("name"), str, 'a name such as "orbit30"', path, where, "name")
     try:
         safe_name(name, what="orientation name")  # names become file names (field_<system>_<name>.npz)
@@ -386,9 +450,7 @@ def load_config(
     path = Path(path).resolve()
     data = _parse_toml(path)
     stage_params_allowed = stage_params_allowed or {}
-    _reject_unknown(
-        data, {"phantom", "systems", "calibration", "output", "cache", "compute"} | set(stage_params_allowed), path, ""
-    )
+    _reject_unknown(data, {k.section for k in SCHEMA if "." not in k.section} | set(stage_params_allowed), path, "")
     root = path.parent
     if "phantom" not in data:
         raise ConfigError(f"{path.name}: key 'phantom': missing; add a [phantom] table with file = \"phantom.csv\"")
@@ -404,8 +466,8 @@ def load_config(
         raise ConfigError(f"{path.name}: [[systems]] key 'name': names must differ; got {names}")
 
     calibration = _expect(data.get("calibration", {}), dict, "a table [calibration]", path, "", "calibration")
-    _reject_unknown(calibration, {"scheme"}, path, "[calibration] ")
-    scheme = calibration.get("scheme", DEFAULT_SCHEME)
+    _reject_unknown(calibration, schema_keys("calibration"), path, "[calibration] ")
+    scheme = calibration.get("scheme", schema_default("calibration", "scheme"))
     from fluorocal.stages.learn import SCHEMES
 
     if not isinstance(scheme, str) or scheme not in SCHEMES:
@@ -420,11 +482,15 @@ def load_config(
         )
 
     output = _expect(data.get("output", {}), dict, "a table [output]", path, "", "output")
-    _reject_unknown(output, {"dir"}, path, "[output] ")
-    out_dir = root / _expect(output.get("dir", "out"), str, "a directory name", path, "[output] ", "dir")
+    _reject_unknown(output, schema_keys("output"), path, "[output] ")
+    out_dir = root / _expect(
+        output.get("dir", schema_default("output", "dir")), str, "a directory name", path, "[output] ", "dir"
+    )
     cache = _expect(data.get("cache", {}), dict, "a table [cache]", path, "", "cache")
-    _reject_unknown(cache, {"dir"}, path, "[cache] ")
-    cache_dir = root / _expect(cache.get("dir", ".fluorocal"), str, "a directory name", path, "[cache] ", "dir")
+    _reject_unknown(cache, schema_keys("cache"), path, "[cache] ")
+    cache_dir = root / _expect(
+        cache.get("dir", schema_default("cache", "dir")), str, "a directory name", path, "[cache] ", "dir"
+    )
     for section, folder in (("[output] ", out_dir), ("[cache] ", cache_dir)) if writable else ():
         check_writable_dir(folder, where=_where(path, section, "dir"))
 

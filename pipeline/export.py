@@ -161,7 +161,7 @@ def calibration_from_result(runner, result):
 
 
 def uncertainty_note(result) -> str:
-    """What ``iop_std_px`` and the fields' ``sigma_px`` of a calibration mean (README.md, "Uncertainties")."""
+    """What ``iop_std_px`` and the fields' ``sigma_px`` of a calibration mean (docs/uncertainties.md)."""
     if result.uncertainty is not None:
         return (
             "README.md#uncertainties: iop_px under the field gauge (the field has no least-squares principal-point "

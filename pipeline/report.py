@@ -88,7 +88,7 @@ def field_map(path: Path, field, title: str) -> Path:
 
 
 def field_sigma_map(path: Path, field, title: str) -> Path:
-    """The learned field's per-node σ (``sigma_px``), unsupported nodes left blank (README "Uncertainties")."""
+    """The learned field's per-node σ (``sigma_px``), unsupported nodes left blank (docs/uncertainties.md)."""
     plt, fig, (ax,) = _figure(1, width=6.0, height=5.2)
     extent = (field.x_nodes_px[0], field.x_nodes_px[-1], field.y_nodes_px[-1], field.y_nodes_px[0])
     im = ax.imshow(np.where(field.support, field.sigma_px, np.nan), extent=extent, cmap="viridis")

@@ -2,5 +2,5 @@
 
 Stages never import the pipeline (the rest of :mod:`fluorocal`); they do no file I/O except in
 :mod:`fluorocal.stages.io`.
-Conventions (pixels, quaternions, units) are stated once in README.md, "Conventions".
+Conventions (pixels, quaternions, units) are stated once in docs/concepts.md, "Conventions".
 """

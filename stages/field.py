@@ -1,7 +1,7 @@
 """The correction-field model a calibration stores: ``Δ`` on a grid of nodes, interpolated bilinearly.
 
 A correction field maps measured (distorted) pixel coordinates to ideal
-pinhole ones, ``ideal = measured - Δ(measured)`` (README.md, "Conventions":
+pinhole ones, ``ideal = measured - Δ(measured)`` (docs/concepts.md, "Conventions":
 ``(x, y)`` with the centre of the top-left pixel at ``(0, 0)``).
 
 - :class:`CorrectionField`: ``Δ`` on a rectilinear grid of nodes over the

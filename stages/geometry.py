@@ -1,6 +1,6 @@
 """Geometry shared by the stages: pixel conventions, quaternions, the collinearity equation.
 
-Conventions (README.md, "Conventions"):
+Conventions (docs/concepts.md, "Conventions"):
 
 - Pixel coordinates ``(x, y)``: x = column to the right, y = row downward, the
   centre of the top-left pixel is ``(0, 0)``. Arrays of points have shape

@@ -1,6 +1,6 @@
 """Undistortion of frames with inverse maps (``cv2.remap``).
 
-The maps follow README.md "Conventions": ``map_x``, ``map_y`` are float32 of
+The maps follow docs/concepts.md, "Conventions": ``map_x``, ``map_y`` are float32 of
 shape ``(H_out, W_out)`` and give, for each undistorted output pixel centre,
 the source coordinate in the distorted (measured) image. Pixels whose source
 lies outside the frame get ``border_value``.

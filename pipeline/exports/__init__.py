@@ -1,7 +1,7 @@
 """A calibration in the formats of other tools: ``fluorocal export CALIBRATION --format NAME --out DIR``.
 
 One module per format, each exposing ``write(cal, out_dir) -> list[str]`` (what it wrote and the
-figures to state); :data:`FORMATS` is the fixed table of them. README.md, "Exports", documents
+figures to state); :data:`FORMATS` is the fixed table of them. docs/exports.md, documents
 each format, its frame and units.
 
 - ``opencv``: OpenCV FileStorage YAML per system (and orientation): camera matrix, image size and

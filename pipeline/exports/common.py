@@ -70,7 +70,7 @@ def projection_matrix(cal, system: str, exposure: int) -> np.ndarray:
     """The 3×4 pinhole projection ``K [R | -R T]`` of ``system`` at a training ``exposure``, fluorocal's pixel frame.
 
     ``P @ [X, Y, Z, 1]`` is proportional to ``[x, y, 1]``, the ideal (undistorted) pixel of an object
-    point in mm (README.md, "Conventions").
+    point in mm (docs/concepts.md, "Conventions").
     """
     q, source_mm = cal.pose(system, exposure)
     R = quat_to_matrix(q)

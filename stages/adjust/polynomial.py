@@ -15,7 +15,7 @@ point ``(xp, yp)`` px and reference radius ``r0`` px::
     Δy = v (k1 ρ² + k2 ρ⁴ + k3 ρ⁶) + 2 p1 u v + p2 (ρ² + 2 v²)
 
 and ``ideal = measured - Δ``, the sign of every correction in fluorocal
-(README, "Conventions"). The model acts on measured coordinates, like the
+(docs/concepts.md, "Conventions"). The model acts on measured coordinates, like the
 learned fields, and moves with the principal point.
 
 Normalisation: ``r0`` is fixed during a solve (:func:`reference_radius`: half

@@ -1,6 +1,6 @@
 """Automatic labelling: the phantom bead id of every detection in one frame, or in a sequence of frames.
 
-Two kinds of phantom are handled (README.md "Conventions" for pixels, poses
+Two kinds of phantom are handled (docs/concepts.md, "Conventions" for pixels, poses
 and the interior orientation):
 
 - **3D bead phantoms** (a cube, :mod:`.cube`): an approximate pose is found from the marker

@@ -1,7 +1,7 @@
 """The pinhole camera of the labelling: camera matrix, poses to and from OpenCV, projection, P3P.
 
 Poses are kept as ``(R, T)``: ``R`` (3, 3) rotates object vectors into the camera frame and ``T``
-(mm) is the X-ray source in object space, so ``p_cam = R (P - T)`` (README.md "Conventions";
+(mm) is the X-ray source in object space, so ``p_cam = R (P - T)`` (docs/concepts.md, "Conventions";
 :mod:`fluorocal.stages.geometry` has the same model with quaternions). OpenCV's camera frame
 (x right, y down, z forward) is ours; it maps object to camera as ``p = R P + t``, so ``t = -R T``
 and ``T = -R^T t``.

@@ -8,7 +8,7 @@ deterministic part ``δ``; the corrections are accumulated, ``Δ += δ``, at eve
 observation and the adjustment is repeated with ``Δ`` held constant, until the
 sum of the weighted costs of equations 2 and 3 stops falling.
 
-Conventions (README.md, "Conventions"): pixel coordinates ``(x, y)`` with the
+Conventions (docs/concepts.md, "Conventions"): pixel coordinates ``(x, y)`` with the
 centre of the top-left pixel at ``(0, 0)``; the correction ``Δ`` acts on
 measured (distorted) coordinates, ``ideal = measured - Δ(measured)``.
 
