@@ -45,7 +45,7 @@ def _rms(a) -> float:
 
 
 def opencv_figures(cal: Calibration, folder: Path) -> None:
-    for path in sorted(folder.glob("opencv_*.yml")):
+    for path in sorted(folder.glob("opencv_*.yml.gz")):
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         system, orientation = fs.getNode("system").string(), fs.getNode("orientation").string() or None
         map_x, map_y = fs.getNode("map_x").mat(), fs.getNode("map_y").mat()

@@ -44,7 +44,7 @@ Undistort the frames with this calibration first, either
 
 or, outside fluorocal, with the OpenCV maps of `fluorocal export {calibration} --format opencv --out DIR`:
 
-  fs = cv2.FileStorage("DIR/opencv_NAME.yml", cv2.FILE_STORAGE_READ)
+  fs = cv2.FileStorage("DIR/opencv_NAME.yml.gz", cv2.FILE_STORAGE_READ)
   undistorted = cv2.remap(frame, fs.getNode("map_x").mat(), fs.getNode("map_y").mat(), cv2.INTER_LINEAR)
 
 and load the undistorted frames in XMALab (no undistortion grid) or Autoscoper.

@@ -47,7 +47,7 @@ def _export(calibration, fmt, out) -> int:
     return main(["--quiet", "export", str(calibration), "--format", fmt, "--out", str(out)])
 
 
-@pytest.mark.parametrize("fmt, file", [("opencv", "opencv_A_x.yml"), ("mrcal", "A_x.cameramodel")])
+@pytest.mark.parametrize("fmt, file", [("opencv", "opencv_A_x.yml.gz"), ("mrcal", "A_x.cameramodel")])
 def test_a_system_named_like_another_systems_orientation_is_refused(tmp_path, capsys, fmt, file):
     path = _saved(tmp_path / "cal", "C")
     assert _export(path, fmt, tmp_path / "ok") == 0  # distinct names: every file written
@@ -63,7 +63,7 @@ def test_a_system_named_like_another_systems_orientation_is_refused(tmp_path, ca
     assert not (tmp_path / "x").exists() or not any((tmp_path / "x").iterdir())  # nothing written
 
 
-@pytest.mark.parametrize("fmt, file", [("opencv", "opencv_a_X.yml"), ("mrcal", "a_X.cameramodel")])
+@pytest.mark.parametrize("fmt, file", [("opencv", "opencv_a_X.yml.gz"), ("mrcal", "a_X.cameramodel")])
 def test_names_differing_only_in_case_are_refused(tmp_path, capsys, fmt, file):
     # field_A_x.npz, field_A_y.npz and field_a_X.npz: saved where case matters (here), clashing where it does not
     path = _saved(tmp_path / "cal", "a_X")

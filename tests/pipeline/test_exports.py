@@ -103,8 +103,8 @@ def test_opencv_yaml_read_back_and_remapped_equals_fluorocal_undistort(tmp_path)
     cal = Calibration.load(calibration)
     frame = _frame_1024()
     names = sorted(p.name for p in (tmp_path / "x").iterdir())
-    assert names == ["opencv_A_o0.yml", "opencv_A_o30.yml", "opencv_B.yml"]
-    for name, system, orientation in [("opencv_A_o30.yml", "A", "o30"), ("opencv_B.yml", "B", None)]:
+    assert names == ["opencv_A_o0.yml.gz", "opencv_A_o30.yml.gz", "opencv_B.yml.gz"]
+    for name, system, orientation in [("opencv_A_o30.yml.gz", "A", "o30"), ("opencv_B.yml.gz", "B", None)]:
         fs = cv2.FileStorage(str(tmp_path / "x" / name), cv2.FILE_STORAGE_READ)
         map_x, map_y, K = fs.getNode("map_x").mat(), fs.getNode("map_y").mat(), fs.getNode("camera_matrix").mat()
         size = (int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real()))
@@ -137,7 +137,7 @@ def test_opencv_yaml_remap_equals_the_fluorocal_undistort_command(tmp_path):
         == 0
     )
     undistorted = cv2.imread(str(tmp_path / "u" / "frame.png"), cv2.IMREAD_UNCHANGED)
-    fs = cv2.FileStorage(str(tmp_path / "x" / "opencv_B.yml"), cv2.FILE_STORAGE_READ)
+    fs = cv2.FileStorage(str(tmp_path / "x" / "opencv_B.yml.gz"), cv2.FILE_STORAGE_READ)
     map_x, map_y = fs.getNode("map_x").mat(), fs.getNode("map_y").mat()
     fs.release()
     remapped = cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -149,7 +149,7 @@ def test_opencv_yaml_remap_equals_the_fluorocal_undistort_command(tmp_path):
 def test_opencv_exports_a_grid_plate_with_the_camera_matrix_flagged_nominal(tmp_path):
     calibration = _save_1024(tmp_path / "cal", geometry=False)
     assert _export(calibration, "opencv", tmp_path / "x") == 0
-    fs = cv2.FileStorage(str(tmp_path / "x" / "opencv_B.yml"), cv2.FILE_STORAGE_READ)
+    fs = cv2.FileStorage(str(tmp_path / "x" / "opencv_B.yml.gz"), cv2.FILE_STORAGE_READ)
     assert int(fs.getNode("camera_matrix_nominal").real()) == 1
     map_x = fs.getNode("map_x").mat()
     fs.release()
