@@ -76,6 +76,14 @@ def add_parser(subparsers) -> None:
         help="resampling kernel (default: linear)",
     )
     p.add_argument(
+        "--outside",
+        choices=("background", "keep"),
+        default="background",
+        help="output pixels whose source lies outside the field's support (where the calibration saw no bead or "
+        "hole) or outside the frame's collimated area: set to the frame's background, or kept as remapped "
+        "(default: background)",
+    )
+    p.add_argument(
         "--overwrite",
         action="store_true",
         help="replace output files that already exist (default: refuse them before any work)",
@@ -86,6 +94,7 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     import logging
     import time
+    from datetime import datetime
 
     from fluorocal.calibration import Calibration
     from fluorocal.stages.errors import InputError
@@ -101,11 +110,14 @@ def run(args) -> int:
     chosen = None if args.orientation is None else parse_orientation(args.orientation)
     series = _derived_series(inputs)  # every DICOM input's references checked, a new series per source series
 
+    when = datetime.now()  # the derivation's ContentDate and ContentTime, one for the run
+    supported: dict = {}  # orientation key -> where the field is supported, computed once per orientation
+
     def jobs():
         for path in inputs:
             orientation = _orientation_for(cal, args.system, path, chosen)
-            derivation = _derivation(cal, args, orientation, series[path])
-            yield _job(cal, args, path, out_dir / path.name, orientation, derivation)
+            derivation = _derivation(cal, args, orientation, series[path], when)
+            yield _job(cal, args, path, out_dir / path.name, orientation, derivation, supported)
 
     # every orientation's maps and every file's size checked before anything is written; the jobs themselves
     # (open readers, headers) are made again as the frames stream, so memory does not grow with the file count
@@ -139,24 +151,29 @@ class _Job:
     path: Path
     out: Path
     maps: tuple  # (map_x, map_y)
+    supported: object  # (H, W) bool: where the output's source lies in the field's support
     params: UndistortParams
     n_frames: int
     derivation: Derivation
     stored: StoredFrames | None = None
 
     def remap(self, frame):
-        from fluorocal.stages.undistort import remap_image, undistort_frame
+        from fluorocal.stages.undistort import clear_outside, remap_image, undistort_frame
 
         if self.stored is None:
-            return undistort_frame(frame, *self.maps, self.params)
-        return remap_image(frame, *self.maps, self.params)
+            return undistort_frame(frame, *self.maps, self.params, self.supported)
+        out = remap_image(frame, *self.maps, self.params)
+        return clear_outside(frame, out, *self.maps, self.params, self.supported)
 
 
-def _job(cal, args, path: Path, out: Path, orientation, derivation: Derivation) -> _Job:
+def _job(cal, args, path: Path, out: Path, orientation, derivation: Derivation, supported: dict) -> _Job:
     """The checked job of one input: its frames' size against the calibration's, and its maps."""
+    import json
+
+    from fluorocal.maps import orientation_key
     from fluorocal.stages.errors import InputError
     from fluorocal.stages.io import open_stored, probe_frames
-    from fluorocal.stages.undistort import UndistortParams
+    from fluorocal.stages.undistort import UndistortParams, supported_output
 
     system = cal.systems[args.system]
     stored = open_stored(path)
@@ -167,8 +184,12 @@ def _job(cal, args, path: Path, out: Path, orientation, derivation: Derivation) 
             f"system {args.system} was calibrated at {system.image_size_px[0]}x{system.image_size_px[1]}"
         )
     maps = cal.remap_maps(args.system, orientation=orientation)
+    key = json.dumps(orientation_key(orientation))
+    if key not in supported:
+        supported[key] = supported_output(cal.field(args.system, orientation), *maps)
     border = 0.0 if stored is None else stored.black  # the dark outside of the field, in stored units
-    return _Job(path, out, maps, UndistortParams(args.interpolation, border), n_frames, derivation, stored)
+    params = UndistortParams(args.interpolation, border, outside=args.outside)
+    return _Job(path, out, maps, supported[key], params, n_frames, derivation, stored)
 
 
 def _frames(jobs):
@@ -315,7 +336,7 @@ def _derived_series(inputs: list[Path]) -> dict[Path, str | None]:
     return {path: new.get(key) for path, key in found.items()}
 
 
-def _derivation(cal, args, orientation, series_uid: str | None) -> Derivation:
+def _derivation(cal, args, orientation, series_uid: str | None, when=None) -> Derivation:
     """What one input's output records of its making: the calibration by name and content, system, orientation."""
     from importlib.metadata import PackageNotFoundError, version
 
@@ -332,8 +353,9 @@ def _derivation(cal, args, orientation, series_uid: str | None) -> Derivation:
         name = orientation if orientation is not None else (names[0] if len(names) == 1 else None)
         where = "the system's one field" if name is None else f"orientation {name}"
     digest = "" if cal.content_sha256 is None else f" (content sha256 {cal.content_sha256[:16]})"
+    edges = " (outside the field's support and the collimated area: background)" if args.outside == "background" else ""
     text = (
-        f"geometric distortion corrected by {by} with calibration {Path(args.calibration).name}{digest}, "
+        f"geometric distortion corrected{edges} by {by} with calibration {Path(args.calibration).name}{digest}, "
         f"system {args.system}, {where}, {args.interpolation} interpolation"
     )
-    return Derivation(text[:1024], series_uid)
+    return Derivation(text[:1024], series_uid, when)

@@ -28,6 +28,8 @@ DERIVATION_CODE = ("113085", "DCM", "Spatial resampling")
 SOURCE_PURPOSE_CODE = ("121322", "DCM", "Source image for image processing operation")
 #: appended to a derived instance's Series Description (VR LO: 64 characters at most in all)
 SERIES_MARK = "(undistorted)"
+#: a derived series' SeriesNumber is its source's plus this (21 -> 1021), so a PACS lists it apart and beside it
+SERIES_NUMBER_OFFSET = 1000
 
 
 def sniff_content(head: bytes) -> bool:
@@ -239,9 +241,13 @@ def derived_header(source: Path, derivation: Derivation | None = None):
     none); ImageType ``DERIVED\SECONDARY`` followed by the source's further values; the Series
     Description marked ``(undistorted)``; a Source Image Sequence referencing the source instance
     (:data:`SOURCE_PURPOSE_CODE`); the Derivation Code Sequence (:data:`DERIVATION_CODE`) and the
-    derivation's description. Every other attribute is the source's; the transfer syntax becomes
-    explicit VR little endian.
+    derivation's description; SeriesNumber the source's plus :data:`SERIES_NUMBER_OFFSET` (the offset
+    alone when the source has none, the source's when the sum would not fit VR IS), and ContentDate and
+    ContentTime the derivation's (``derivation.when``, else now). Every other attribute is the source's;
+    the transfer syntax becomes explicit VR little endian.
     """
+    from datetime import datetime
+
     import pydicom
     from pydicom.dataset import Dataset
     from pydicom.uid import ExplicitVRLittleEndian, generate_uid
@@ -262,7 +268,25 @@ def derived_header(source: Path, derivation: Derivation | None = None):
     ds.SeriesDescription = f"{series[: 64 - len(SERIES_MARK) - 1]} {SERIES_MARK}" if series else SERIES_MARK
     ds.DerivationCodeSequence = [_code(*DERIVATION_CODE)]
     ds.DerivationDescription = derivation.description
+    ds.SeriesNumber = derived_series_number(ds.get("SeriesNumber"))
+    when = derivation.when or datetime.now()
+    ds.ContentDate, ds.ContentTime = when.strftime("%Y%m%d"), when.strftime("%H%M%S.%f")
     return ds
+
+
+def derived_series_number(source) -> int:
+    """A derived series' SeriesNumber from its source's (an int, a DICOM IS, or None/empty).
+
+    Examples
+    --------
+    >>> derived_series_number(21), derived_series_number(None), derived_series_number(2**31 - 10)
+    (1021, 1000, 2147483638)
+    """
+    try:
+        number = int(source)
+    except (TypeError, ValueError):
+        return SERIES_NUMBER_OFFSET
+    return number + SERIES_NUMBER_OFFSET if number + SERIES_NUMBER_OFFSET < 2**31 else number
 
 
 def write_stored(
