@@ -30,7 +30,7 @@ A frame also fails when its plate is not recognised as the calibration's
 (another plate, or a frame of another C-arm), or when fewer than 100 of its
 holes lie where the field is supported. Each frame's row is appended to the
 QA record (--record, default qa_record.csv beside the calibration) and the
-record's trend is drawn beside it (qa_trend.png). Exit 0 when every frame
+record's trend is drawn beside it (qa_trend.png; for a record X.csv, X_trend.png). Exit 0 when every frame
 passes, 1 when one fails, 2 on bad input (nothing appended).
 """
 
@@ -125,7 +125,8 @@ def run(args) -> int:
             (log.info if result.passed else log.warning)("%s[%d]: %s", path.name, index, result.summary())
     record = args.record or Path(args.calibration).with_name("qa_record.csv")
     append_record(record, rows)
-    trend = draw_trend(record, record.with_name(record.stem.replace("record", "trend") + ".png"))
+    stem = record.stem.replace("record", "trend") if "record" in record.stem else record.stem + "_trend"
+    trend = draw_trend(record, record.with_name(stem + ".png"))
     log.info("appended %d row(s) to %s; trend: %s", len(rows), record, trend)
     return 0 if all(r[RECORD_COLUMNS.index("result")] == "pass" for r in rows) else 1
 
