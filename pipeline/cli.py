@@ -38,7 +38,7 @@ import warnings
 from pathlib import Path
 
 #: optional command modules: pipeline/cmd_<name>.py exposing add_parser(subparsers) and run(args)
-COMMAND_MODULES = ("simulate", "detect", "label", "adjust", "undistort", "export", "evaluate")
+COMMAND_MODULES = ("simulate", "detect", "label", "adjust", "undistort", "check", "export", "evaluate")
 
 log = logging.getLogger("fluorocal")
 

@@ -19,8 +19,15 @@ computed once per orientation and cached beside the calibration
 An image intensifier's distortion changes with the C-arm's orientation, so a
 calibration may hold a field per orientation. --orientation chooses one by
 name, or interpolates between calibrated ones at given angles
-(--orientation orbit=15,tilt=0; never beyond them). Without it: the system's
-one field, or the orientation named like each input's file stem.
+(--orientation orbit=15,tilt=0; never beyond them). Without it, for a system
+calibrated at orientations with C-arm angles, each frame's recorded angles
+choose or interpolate its field: a file's PositionerPrimaryAngle (orbit) and
+PositionerSecondaryAngle (tilt), or, for a rotational run (PositionerMotion
+DYNAMIC), each frame's from the per-frame functional groups or from
+PositionerPrimary/SecondaryAngleIncrement; the Derivation Description records
+the angles used, and a frame beyond the calibrated angles is refused, naming
+the frame and the calibrated range. A file without angles: the system's one
+field, or the orientation named like the file's stem.
 """
 
 from __future__ import annotations
@@ -78,6 +85,14 @@ def add_parser(subparsers) -> None:
         help="resampling kernel (default: linear)",
     )
     p.add_argument(
+        "--outside",
+        choices=("background", "keep"),
+        default="background",
+        help="output pixels whose source lies outside the field's support (where the calibration saw no bead or "
+        "hole) or outside the frame's collimated area: set to the frame's background, or kept as remapped "
+        "(default: background)",
+    )
+    p.add_argument(
         "--overwrite",
         action="store_true",
         help="replace output files that already exist (default: refuse them before any work)",
@@ -88,6 +103,7 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     import logging
     import time
+    from datetime import datetime
 
     from fluorocal.calibration import Calibration
     from fluorocal.stages.errors import InputError
@@ -103,11 +119,12 @@ def run(args) -> int:
     chosen = None if args.orientation is None else parse_orientation(args.orientation)
     series = _derived_series(inputs)  # every DICOM input's references checked, a new series per source series
 
+    when = datetime.now()  # the derivation's ContentDate and ContentTime, one for the run
+    views: dict = {}  # orientation key -> (maps, where the field is supported), made once per orientation
+
     def jobs():
         for path in inputs:
-            orientation = _orientation_for(cal, args.system, path, chosen)
-            derivation = _derivation(cal, args, orientation, series[path])
-            yield _job(cal, args, path, out_dir / path.name, orientation, derivation)
+            yield _job(cal, args, path, out_dir / path.name, chosen, (series[path], when), views)
 
     # every orientation's maps and every file's size checked before anything is written; the jobs themselves
     # (open readers, headers) are made again as the frames stream, so memory does not grow with the file count
@@ -117,9 +134,9 @@ def run(args) -> int:
     with tqdm(total=n_frames, desc="undistort", unit="frame", disable=args.quiet or None) as bar:
 
         def transform(item):
-            job, frame = item
+            job, index, frame = item
             bar.update()
-            return job, job.remap(frame)
+            return job, job.remap(frame, index)
 
         stream(_frames(jobs()), transform, _write_all)
     seconds = time.perf_counter() - start
@@ -136,27 +153,41 @@ def run(args) -> int:
 
 @dataclass(frozen=True, eq=False)
 class _Job:
-    """One input file: where it goes, its maps, and its frames as stored (read, remapped and written back as such)."""
+    """One input file: where it goes, each frame's orientation, and its frames as stored (read, remapped and written back as such)."""
 
     path: Path
     out: Path
-    maps: tuple  # (map_x, map_y)
+    keys: tuple  # per frame, the key of its orientation in views
+    views: dict  # orientation key -> ((map_x, map_y), (H, W) bool where the output's source is supported)
     params: UndistortParams
     n_frames: int
     derivation: Derivation
     stored: StoredFrames
 
-    def remap(self, frame):
-        from fluorocal.stages.undistort import remap_stored
+    def remap(self, frame, index: int):
+        import numpy as np
+        from fluorocal.stages.undistort import clear_outside, remap_stored
 
-        return remap_stored(frame, *self.maps, self.params)
+        maps, supported = self.views[self.keys[index]]
+        out = remap_stored(frame, *maps, self.params)
+        if frame.ndim == 2:
+            return clear_outside(frame, out, *maps, self.params, supported)
+        # each channel as remap_stored resamples it: its own collimated area and background
+        channels = range(frame.shape[2])
+        return np.stack([clear_outside(frame[..., c], out[..., c], *maps, self.params, supported) for c in channels], -1)
 
 
-def _job(cal, args, path: Path, out: Path, orientation, derivation: Derivation) -> _Job:
-    """The checked job of one input: its frames' size against the calibration's, and its maps."""
+def _job(cal, args, path: Path, out: Path, chosen, made, views: dict) -> _Job:
+    """The checked job of one input: its frames' size against the calibration's, each frame's orientation and maps.
+
+    ``made`` is ``(series_uid, when)`` of its derivation; ``views`` is filled with the maps of each orientation.
+    """
+    import json
+
+    from fluorocal.maps import orientation_key
     from fluorocal.stages.errors import InputError
     from fluorocal.stages.io import open_stored
-    from fluorocal.stages.undistort import UndistortParams
+    from fluorocal.stages.undistort import UndistortParams, supported_output
 
     system = cal.systems[args.system]
     stored = open_stored(path)  # refuses, naming the file, what cannot be written back as stored
@@ -166,16 +197,30 @@ def _job(cal, args, path: Path, out: Path, orientation, derivation: Derivation) 
             f"{path}: frame is {size[0]}x{size[1]} px; "
             f"system {args.system} was calibrated at {system.image_size_px[0]}x{system.image_size_px[1]}"
         )
-    maps = cal.remap_maps(args.system, orientation=orientation)
+    orientations, recorded = _orientations_for(cal, args.system, path, chosen, n_frames)
+    keys = []
+    for i, orientation in enumerate(orientations):
+        keys.append(json.dumps(orientation_key(orientation)))
+        if keys[-1] in views:
+            continue
+        try:
+            maps = cal.remap_maps(args.system, orientation=orientation)
+        except InputError as exc:
+            if not recorded:
+                raise
+            raise InputError(f"{path}, frame {i}: at the C-arm angles it records: {exc}") from None
+        views[keys[-1]] = maps, supported_output(cal.field(args.system, orientation), *maps)
     border = stored.black  # the dark outside of the field, in stored units
-    return _Job(path, out, maps, UndistortParams(args.interpolation, border), n_frames, derivation, stored)
+    params = UndistortParams(args.interpolation, border, outside=args.outside)
+    derivation = _derivation(cal, args, orientations, recorded, *made)
+    return _Job(path, out, tuple(keys), views, params, n_frames, derivation, stored)
 
 
 def _frames(jobs):
-    """``(job, frame)`` for every frame of every job, read as they are asked for."""
+    """``(job, index, frame)`` for every frame of every job, read as they are asked for."""
     for job in jobs:
-        for frame in job.stored.frames:
-            yield job, frame
+        for index, frame in enumerate(job.stored.frames):
+            yield job, index, frame
 
 
 def _write_all(items) -> None:
@@ -221,21 +266,46 @@ def parse_orientation(text: str):
     return values
 
 
-def _orientation_for(cal, system: str, path: Path, chosen):
-    """The orientation to undistort ``path`` with: ``chosen``; else the one field; else the one named like the file."""
+def _orientations_for(cal, system: str, path: Path, chosen, n_frames: int) -> tuple[tuple, bool]:
+    """Each frame's orientation, and whether they are the angles the file records.
+
+    ``chosen`` (``--orientation``) for every frame; else, for a system calibrated at orientations with
+    C-arm angles, the angles each frame records (:func:`fluorocal.stages.io.dicom.frame_angles_deg`) when
+    every frame records them; else the one field; else the orientation named like the file.
+    """
     from fluorocal.orientations import default_orientation_name
     from fluorocal.stages.errors import InputError
 
+    if chosen is not None:
+        return (chosen,) * n_frames, False
+    if any(o.has_angles for o in cal.systems[system].orientations):
+        recorded = _recorded_angles(path, n_frames)
+        if all(a is not None for a in recorded):
+            return tuple({"orbit": orbit, "tilt": tilt} for orbit, tilt in recorded), True
     names = cal.orientation_names(system)
-    if chosen is not None or len(names) <= 1:
-        return chosen
+    if len(names) <= 1:
+        return (None,) * n_frames, False
     stem = default_orientation_name(path)
     if stem in names:
-        return stem
+        return (stem,) * n_frames, False
     raise InputError(
         f"{path}: system {system} is calibrated at {len(names)} orientations ({', '.join(names)}) and none is "
-        f"named {stem!r} like this file; choose one with --orientation NAME, or --orientation orbit=DEG,tilt=DEG"
+        f"named {stem!r} like this file, which records no C-arm angles; choose one with --orientation NAME, or "
+        "--orientation orbit=DEG,tilt=DEG"
     )
+
+
+def _recorded_angles(path: Path, n_frames: int) -> tuple:
+    """Each frame's recorded ``(orbit, tilt)`` deg or None (formats other than DICOM record none)."""
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.io import dicom, frame_format
+
+    if frame_format(path).name != dicom.NAME:
+        return (None,) * n_frames
+    angles = dicom.frame_angles_deg(path)
+    if len(angles) != n_frames:
+        raise InputError(f"{path}: the header gives C-arm angles for {len(angles)} frame(s); it holds {n_frames}")
+    return angles
 
 
 def _expand(inputs: list[Path]) -> list[Path]:
@@ -310,8 +380,8 @@ def _derived_series(inputs: list[Path]) -> dict[Path, str | None]:
     return {path: new.get(key) for path, key in found.items()}
 
 
-def _derivation(cal, args, orientation, series_uid: str | None) -> Derivation:
-    """What one input's output records of its making: the calibration by name and content, system, orientation."""
+def _derivation(cal, args, orientations: tuple, recorded: bool, series_uid: str | None, when=None) -> Derivation:
+    """What one input's output records of its making: the calibration by name and content, system, orientation(s)."""
     from importlib.metadata import PackageNotFoundError, version
 
     from fluorocal.stages.io import Derivation
@@ -320,15 +390,26 @@ def _derivation(cal, args, orientation, series_uid: str | None) -> Derivation:
         by = f"fluorocal {version('fluorocal')}"
     except PackageNotFoundError:
         by = "fluorocal"
-    if isinstance(orientation, dict):
-        where = f"orientation interpolated at orbit {orientation['orbit']:g} deg, tilt {orientation['tilt']:g} deg"
-    else:
-        names = cal.orientation_names(args.system)
-        name = orientation if orientation is not None else (names[0] if len(names) == 1 else None)
-        where = "the system's one field" if name is None else f"orientation {name}"
+    where = _where(cal, args.system, orientations, recorded)
     digest = "" if cal.content_sha256 is None else f" (content sha256 {cal.content_sha256[:16]})"
-    text = (
-        f"geometric distortion corrected by {by} with calibration {Path(args.calibration).name}{digest}, "
-        f"system {args.system}, {where}, {args.interpolation} interpolation"
-    )
-    return Derivation(text[:1024], series_uid)
+    edges = " (outside the field's support and the collimated area: background)" if args.outside == "background" else ""
+    head = f"geometric distortion corrected{edges} by {by} with calibration {Path(args.calibration).name}{digest}, "
+    tail = f", {args.interpolation} interpolation"
+    room = 1024 - len(head) - len(tail)
+    if len(where) > room:  # a long rotational run: as many frames' angles as fit
+        where = where[: room - 4].rsplit(",", 1)[0] + ", ..."
+    return Derivation(f"{head}system {args.system}, {where}{tail}", series_uid, when)
+
+
+def _where(cal, system: str, orientations: tuple, recorded: bool) -> str:
+    """The orientation(s) used, as the Derivation Description names them."""
+    first = orientations[0] if orientations else None
+    if recorded and any(o != first for o in orientations):
+        angles = ", ".join(f"{o['orbit']:g}/{o['tilt']:g}" for o in orientations)
+        return f"per frame the field at the C-arm angles it records (orbit/tilt deg, frame by frame: {angles})"
+    if isinstance(first, dict):
+        source = " (the C-arm angles the file records)" if recorded else ""
+        return f"orientation interpolated at orbit {first['orbit']:g} deg, tilt {first['tilt']:g} deg{source}"
+    names = cal.orientation_names(system)
+    name = first if first is not None else (names[0] if len(names) == 1 else None)
+    return "the system's one field" if name is None else f"orientation {name}"

@@ -1,8 +1,10 @@
 """C-arm orientations of a project's frames, and how a calibration's field changes with them.
 
 - :func:`frame_orientations`: the orientation of every frame of a project: the
-  config's ``orientations`` groups, or by default each frame its own, named by
-  its file stem; angles from the config, else from the DICOM header.
+  config's ``orientations`` groups, or by default the frames' recorded C-arm
+  angles (frames within the read-out tolerance share one orientation, named by
+  its angles), a frame without angles its own, named by its file stem; angles
+  from the config, else from the DICOM header.
 - :func:`orientation_report`: the plots and Markdown lines of how a system's
   field changes with orientation (for the run report and ``fluorocal inspect``).
 - :func:`inspect_calibration`: ``fluorocal inspect calibration.json``.
@@ -75,8 +77,10 @@ def frame_orientations(config, units, *, read_angles=_dicom_angles) -> tuple[Fra
     tuple of FrameOrientation
         One per unit. When the system's config gives ``orientations``, the unit's group: its name and
         angles, or, where the group gives none, the angles its frames' files record (they must agree).
-        Otherwise each frame is its own orientation, named by :func:`default_orientation_name`
-        (with ``_<index>`` for the frames of a multi-frame file), with the angles its file records.
+        Otherwise the frames whose files record angles within :data:`ANGLE_TOL_DEG` of a first such
+        frame's (the C-arm's read-out resolution) are one orientation, named by those angles
+        (:func:`angle_orientation_name`); a frame without recorded angles is its own orientation, named
+        by :func:`default_orientation_name` (with ``_<index>`` for the frames of a multi-frame file).
 
     Raises
     ------
@@ -98,6 +102,7 @@ def frame_orientations(config, units, *, read_angles=_dicom_angles) -> tuple[Fra
         for f in g.frames
     }
     out = []
+    by_angles: dict[int, list[tuple[float, float]]] = {}  # per system: the first angles of each angle group
     for unit in units:
         system = config.systems[unit.system]
         group = group_of.get((unit.system, Path(unit.path).resolve()))
@@ -109,11 +114,32 @@ def frame_orientations(config, units, *, read_angles=_dicom_angles) -> tuple[Fra
             continue
         if system.orientations:
             raise InputError(f"{unit.path}: frame of system {system.name!r} is in none of its orientations")
+        recorded = angles(Path(unit.path))
+        if recorded[0] is not None:
+            firsts = by_angles.setdefault(unit.system, [])
+            first = next(
+                (a for a in firsts if math.hypot(a[0] - recorded[0], a[1] - recorded[1]) <= ANGLE_TOL_DEG), None
+            )
+            if first is None:
+                firsts.append(first := (recorded[0], recorded[1]))
+            out.append(FrameOrientation(angle_orientation_name(*first), *first))
+            continue
         n_in_file = sum(1 for u in units if u.system == unit.system and Path(u.path) == Path(unit.path))
         name = default_orientation_name(unit.path, unit.index if n_in_file > 1 else None)
-        out.append(FrameOrientation(name, *angles(Path(unit.path))))
+        out.append(FrameOrientation(name, None, None))
     _check_default_names(config, units, out)
     return tuple(out)
+
+
+def angle_orientation_name(orbit_deg: float, tilt_deg: float) -> str:
+    """The name of the orientation of the frames recorded at these C-arm angles.
+
+    Examples
+    --------
+    >>> angle_orientation_name(30.0, -7.5)
+    'orbit30_tilt-7.5'
+    """
+    return safe_name(f"orbit{orbit_deg:g}_tilt{tilt_deg:g}", what="orientation name")
 
 
 def _group_angles(system: str, group, recorded) -> tuple[float | None, float | None]:
@@ -135,7 +161,7 @@ def _group_angles(system: str, group, recorded) -> tuple[float | None, float | N
 def _check_default_names(config, units, orientations) -> None:
     seen: dict[tuple[int, str], Path] = {}
     for unit, o in zip(units, orientations):
-        if config.systems[unit.system].orientations:
+        if config.systems[unit.system].orientations or o.orbit_deg is not None:  # angle groups span files
             continue
         other = seen.setdefault((unit.system, o.name), Path(unit.path))
         if other != Path(unit.path):

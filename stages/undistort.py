@@ -4,6 +4,14 @@ The maps follow docs/concepts.md, "Conventions": ``map_x``, ``map_y`` are float3
 shape ``(H_out, W_out)`` and give, for each undistorted output pixel centre,
 the source coordinate in the distorted (measured) image. Pixels whose source
 lies outside the frame get ``border_value``.
+
+Edges (:func:`clear_outside`): an output pixel whose source lies outside the
+field's support (where the calibration saw no bead or hole, so the correction
+there is a guess) or outside the frame's collimated area (the intensifier's
+bright disc, :func:`collimated_area`) is set to the frame's background
+(:func:`frame_background`), so that nothing from beyond the calibrated,
+exposed part of the detector, such as a detector's bright rim row, is warped
+into the picture. ``UndistortParams(outside="keep")`` keeps them as remapped.
 """
 
 from __future__ import annotations
@@ -15,6 +23,11 @@ from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError, ShapeError
 
 _INTERPOLATION = {"nearest": 0, "linear": 1, "cubic": 2, "lanczos": 4}  # cv2.INTER_* values
+#: half the width, px, of each kernel's footprint beyond the nearest pixel: a source pixel that far from an
+#: excluded one may still be weighed into the output
+_REACH_PX = {"nearest": 0, "linear": 1, "cubic": 2, "lanczos": 4}
+#: what :func:`clear_outside` does with output pixels whose source is outside the support or collimated area
+OUTSIDE = ("background", "keep")
 
 
 @dataclass(frozen=True)
@@ -26,11 +39,28 @@ class UndistortParams:
     interpolation : str
         ``"linear"`` (default), ``"cubic"``, ``"lanczos"`` or ``"nearest"``.
     border_value : float
-        Value of output pixels whose source falls outside the frame (default 0, the dark outside of the field).
+        Value of output pixels whose source falls outside the frame (default 0, the dark outside of the field),
+        in the frame's units: the format's black.
+    outside : str
+        ``"keep"`` (default here; the pure remap) or ``"background"``: :func:`clear_outside` sets output
+        pixels whose source lies outside the field's support or the collimated area to the frame's background
+        (``fluorocal undistort``'s default).
+    collimation_fraction : float
+        A source pixel is in the collimated area when it is brighter than black by more than this fraction of
+        the frame's 99th percentile brightness (default 0.1: the ARCADIS disc's dark vignetted rim is still
+        about half of its centre, its outside about 0 DN; :func:`collimated_area`).
     """
 
     interpolation: str = "linear"
     border_value: float = 0.0
+    outside: str = "keep"
+    collimation_fraction: float = 0.1
+
+    def __post_init__(self):
+        if self.outside not in OUTSIDE:
+            raise InputError(f"outside must be one of {', '.join(OUTSIDE)}; got {self.outside!r}")
+        if not 0 < self.collimation_fraction < 1:
+            raise InputError(f"collimation_fraction must lie in (0, 1); got {self.collimation_fraction!r}")
 
 
 def check_shift(shift_px, width_px: int, height_px: int) -> None:
@@ -87,7 +117,7 @@ def check_maps(map_x: np.ndarray, map_y: np.ndarray) -> None:
 
 
 def undistort_frame(
-    radiograph: Radiograph, map_x: np.ndarray, map_y: np.ndarray, params: UndistortParams
+    radiograph: Radiograph, map_x: np.ndarray, map_y: np.ndarray, params: UndistortParams, supported=None
 ) -> Radiograph:
     """Resample a distorted frame onto the ideal (pinhole) image grid.
 
@@ -97,6 +127,9 @@ def undistort_frame(
     map_x, map_y : (H_out, W_out) float32 ndarray, px
         Source coordinates (x = column, y = row) in ``radiograph`` of each output pixel centre.
     params : UndistortParams
+    supported : (H_out, W_out) bool ndarray, optional
+        Where the output's source lies in the field's support (:func:`supported_output`; None: everywhere);
+        used with ``params.outside == "background"`` (:func:`clear_outside`).
 
     Returns
     -------
@@ -113,6 +146,7 @@ def undistort_frame(
     True
     """
     out = remap_image(radiograph.image, map_x, map_y, params)
+    out = clear_outside(radiograph.image, out, map_x, map_y, params, supported)
     meta = {**radiograph.metadata, "undistorted": True}
     return Radiograph(out, radiograph.bit_depth, radiograph.source, radiograph.frame_index, meta)
 
@@ -210,3 +244,105 @@ def remap_stored(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, params
     info = np.iinfo(image.dtype)
     out = remap_image(image.astype(np.float64), map_x, map_y, params)
     return np.clip(np.rint(out), info.min, info.max).astype(image.dtype)
+
+
+def collimated_area(image: np.ndarray, black: float = 0.0, fraction: float = 0.1) -> np.ndarray:
+    """Where a frame is exposed: the intensifier's disc (or the collimator's opening), as a ``(H, W)`` bool mask.
+
+    The pixels brighter than ``black`` by more than ``fraction`` of the 99th percentile brightness, their
+    largest 8-connected region, and that region's convex hull (dark anatomy or beads inside stay in). A frame
+    with no such pixel is exposed everywhere (nothing is taken for outside).
+
+    Examples
+    --------
+    >>> img = np.zeros((5, 7), np.uint16); img[1:4, 2:6] = 1000
+    >>> collimated_area(img).astype(int)[2]
+    array([0, 0, 1, 1, 1, 1, 0])
+    """
+    import cv2
+
+    brightness = np.abs(np.asarray(image, dtype=np.float32) - np.float32(black))
+    sample = brightness[::4, ::4] if brightness.size > 1 << 16 else brightness  # every 16th pixel is plenty
+    level = fraction * float(np.percentile(sample, 99))
+    bright = (brightness > level).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(bright, connectivity=8)
+    if not level > 0 or n < 2:
+        return np.ones(brightness.shape, bool)
+    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    contours, _ = cv2.findContours((labels == largest).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    mask = np.zeros(brightness.shape, np.uint8)
+    cv2.fillConvexPoly(mask, cv2.convexHull(np.concatenate(contours)), 1)
+    return mask.astype(bool)
+
+
+def frame_background(image: np.ndarray, collimated: np.ndarray, black: float = 0.0) -> float:
+    """The frame's background: the median outside its collimated area, or ``black`` when under 1 % lies outside.
+
+    Examples
+    --------
+    >>> img = np.full((10, 10), 7.0); img[1:9, 1:9] = 900
+    >>> frame_background(img, img > 100)
+    7.0
+    """
+    outside = np.asarray(image)[~collimated]
+    return float(np.median(outside)) if outside.size >= 0.01 * collimated.size else float(black)
+
+
+def supported_output(field, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    """``(H_out, W_out)`` bool: where the output pixel's source lies in ``field``'s support (a CorrectionField).
+
+    The support (1 at supported nodes, 0 at the others) is interpolated bilinearly and compared with 1/2:
+    the boundary runs midway between supported and unsupported nodes, a smooth curve rather than the
+    node grid's steps.
+
+    Examples
+    --------
+    >>> from fluorocal.stages.field import CorrectionField
+    >>> f = CorrectionField.constant(64, 16)  # nodes at x = -0.5, 15.5, 31.5, 47.5, 63.5
+    >>> f = f.with_delta(f.delta_px, support=f.support & (f.x_nodes_px < 30))
+    >>> yy, xx = np.mgrid[0:16, 0:64].astype(np.float32)
+    >>> int(np.flatnonzero(supported_output(f, xx, yy)[0])[-1])  # midway between the nodes at 15.5 and 31.5
+    23
+    """
+    from fluorocal.stages.field import bilinear
+
+    xy = np.column_stack([np.ravel(map_x), np.ravel(map_y)]).astype(np.float64)
+    level = bilinear(field.x_nodes_px, field.y_nodes_px, field.support[..., None].astype(float), xy)[:, 0]
+    return (level >= 0.5).reshape(np.shape(map_x))
+
+
+def clear_outside(
+    image: np.ndarray, out: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, params: UndistortParams, supported=None
+) -> np.ndarray:
+    """``out`` (the remap of ``image``) with pixels whose source is outside set to the frame's background.
+
+    Outside: beyond the frame, outside ``image``'s :func:`collimated_area` (within the interpolation kernel's
+    reach), or where ``supported`` (``(H_out, W_out)`` bool, :func:`supported_output`; None: everywhere) is
+    False. The background is :func:`frame_background`, in ``image``'s units and dtype. With
+    ``params.outside == "keep"``, ``out`` unchanged.
+
+    Examples
+    --------
+    >>> img = np.zeros((6, 6), np.uint16); img[1:5, 1:5] = 800; img[0] = 4095  # a bright rim row
+    >>> yy, xx = np.mgrid[0:6, 0:6].astype(np.float32)
+    >>> out = remap_image(img, xx, yy, UndistortParams())
+    >>> int(clear_outside(img, out, xx, yy, UndistortParams(outside="background"))[0].max())
+    0
+    """
+    import cv2
+
+    if params.outside == "keep":
+        return out
+    collimated = collimated_area(image, params.border_value, params.collimation_fraction)
+    reach = _REACH_PX[params.interpolation]
+    inside = collimated.astype(np.uint8)
+    if reach:  # a source pixel within the kernel's reach of an excluded one is excluded too
+        inside = cv2.erode(inside, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8), borderValue=0)
+    exposed = cv2.remap(inside, np.asarray(map_x, np.float32), np.asarray(map_y, np.float32), cv2.INTER_NEAREST)
+    keep = exposed.astype(bool) if supported is None else exposed.astype(bool) & supported
+    background = frame_background(image, collimated, params.border_value)
+    if np.issubdtype(out.dtype, np.integer):
+        background = np.clip(np.rint(background), np.iinfo(out.dtype).min, np.iinfo(out.dtype).max)
+    out = out.copy()
+    out[~keep] = background
+    return out

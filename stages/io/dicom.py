@@ -28,6 +28,8 @@ DERIVATION_CODE = ("113085", "DCM", "Spatial resampling")
 SOURCE_PURPOSE_CODE = ("121322", "DCM", "Source image for image processing operation")
 #: appended to a derived instance's Series Description (VR LO: 64 characters at most in all)
 SERIES_MARK = "(undistorted)"
+#: a derived series' SeriesNumber is its source's plus this (21 -> 1021), so a PACS lists it apart and beside it
+SERIES_NUMBER_OFFSET = 1000
 
 
 def sniff_content(head: bytes) -> bool:
@@ -64,19 +66,91 @@ def positioner_angles_deg(path: Path) -> tuple[float | None, float | None]:
         raise InputError(f"{path}: cannot read the DICOM header ({exc})") from exc
     if str(ds.get("PositionerMotion", "")).upper() == "DYNAMIC" and int(ds.get("NumberOfFrames", 1) or 1) > 1:
         return None, None
+    return _angles_of(ds, path) or (None, None)
+
+
+def frame_angles_deg(path: Path) -> tuple:
+    """Each frame's C-arm orbit and tilt in degrees from a DICOM header (pixels not read): ``(orbit, tilt)`` or None.
+
+    In order of preference: the per-frame functional groups' Positioner Position Sequence (enhanced
+    XA: ``PositionerPrimaryAngle``/``PositionerSecondaryAngle`` per frame), the shared functional
+    groups' (one for every frame); for a rotational run (``PositionerMotion`` ``DYNAMIC``, several
+    frames), the start angles plus the running sum of ``PositionerPrimaryAngleIncrement`` and
+    ``PositionerSecondaryAngleIncrement`` (one increment per frame, each the change since the frame
+    before; the first is usually 0), or None per frame without them; else the file's angles
+    (:func:`positioner_angles_deg`) for every frame.
+
+    Raises
+    ------
+    InputError
+        The file is not readable DICOM; an angle is not a number within ±180°; increments or per-frame
+        items that are not one per frame.
+    """
+    import pydicom
+
+    try:
+        ds = pydicom.dcmread(path, stop_before_pixels=True)
+    except (OSError, pydicom.errors.InvalidDicomError) as exc:
+        raise InputError(f"{path}: cannot read the DICOM header ({exc})") from exc
+    n = int(ds.get("NumberOfFrames", 1) or 1)
+    per_frame = [_positioner(item, path) for item in ds.get("PerFrameFunctionalGroupsSequence") or []]
+    if per_frame and any(a is not None for a in per_frame):
+        if len(per_frame) != n:
+            raise InputError(f"{path}: {len(per_frame)} per-frame functional group item(s) for {n} frame(s)")
+        return tuple(per_frame)
+    shared = [_positioner(item, path) for item in ds.get("SharedFunctionalGroupsSequence") or []]
+    if shared and shared[0] is not None:
+        return (shared[0],) * n
+    if str(ds.get("PositionerMotion", "")).upper() == "DYNAMIC" and n > 1:
+        start = _angles_of(ds, path)
+        steps = [ds.get(f"Positioner{axis}AngleIncrement") for axis in ("Primary", "Secondary")]
+        if start is None or any(step in (None, "") for step in steps):
+            return (None,) * n
+        columns = []
+        for axis, step in zip(("Primary", "Secondary"), steps):
+            values = [_angle(v, f"Positioner{axis}AngleIncrement", path) for v in _values(step)]
+            if len(values) != n:
+                raise InputError(f"{path}: Positioner{axis}AngleIncrement has {len(values)} value(s) for {n} frames")
+            columns.append(np.cumsum(values))
+        out = [(start[0] + float(a), start[1] + float(b)) for a, b in zip(*columns)]
+        for orbit, tilt in out:
+            _angle(orbit, "PositionerPrimaryAngle + increments", path)
+            _angle(tilt, "PositionerSecondaryAngle + increments", path)
+        return tuple(out)
+    return (_angles_of(ds, path),) * n
+
+
+def _values(value) -> list:
+    from pydicom.multival import MultiValue
+
+    return list(value) if isinstance(value, (list, tuple, MultiValue)) else [value]
+
+
+def _positioner(item, path: Path):
+    """``(orbit, tilt)`` of a functional group item's Positioner Position Sequence, or None without one."""
+    sequence = item.get("PositionerPositionSequence") or []
+    return _angles_of(sequence[0], path) if sequence else None
+
+
+def _angles_of(ds, path: Path):
+    """``(PositionerPrimaryAngle, PositionerSecondaryAngle)`` of a data set (or item), None when either is empty."""
     angles = []
     for tag in ("PositionerPrimaryAngle", "PositionerSecondaryAngle"):
         value = ds.get(tag)
         if value is None or value == "":
-            return None, None
-        try:
-            angle = float(value)
-        except (TypeError, ValueError):
-            raise InputError(f"{path}: {tag} must be one number (degrees); got {value!r}") from None
-        if not np.isfinite(angle) or abs(angle) > 180:
-            raise InputError(f"{path}: {tag} must be an angle in -180..180 degrees; got {angle:g}")
-        angles.append(angle)
+            return None
+        angles.append(_angle(value, tag, path))
     return angles[0], angles[1]
+
+
+def _angle(value, tag: str, path: Path) -> float:
+    try:
+        angle = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: {tag} must be one number (degrees); got {value!r}") from None
+    if not np.isfinite(angle) or abs(angle) > 180:
+        raise InputError(f"{path}: {tag} must be an angle in -180..180 degrees; got {angle:g}")
+    return angle
 
 
 def read(path: Path, indices: list[int] | None = None) -> list[Radiograph]:
@@ -292,9 +366,13 @@ def derived_header(source: Path, derivation: Derivation | None = None):
     none); ImageType ``DERIVED\SECONDARY`` followed by the source's further values; the Series
     Description marked ``(undistorted)``; a Source Image Sequence referencing the source instance
     (:data:`SOURCE_PURPOSE_CODE`); the Derivation Code Sequence (:data:`DERIVATION_CODE`) and the
-    derivation's description. Every other attribute is the source's; the transfer syntax becomes
-    explicit VR little endian.
+    derivation's description; SeriesNumber the source's plus :data:`SERIES_NUMBER_OFFSET` (the offset
+    alone when the source has none, the source's when the sum would not fit VR IS), and ContentDate and
+    ContentTime the derivation's (``derivation.when``, else now). Every other attribute is the source's;
+    the transfer syntax becomes explicit VR little endian.
     """
+    from datetime import datetime
+
     import pydicom
     from pydicom.dataset import Dataset
     from pydicom.uid import ExplicitVRLittleEndian, generate_uid
@@ -315,7 +393,25 @@ def derived_header(source: Path, derivation: Derivation | None = None):
     ds.SeriesDescription = f"{series[: 64 - len(SERIES_MARK) - 1]} {SERIES_MARK}" if series else SERIES_MARK
     ds.DerivationCodeSequence = [_code(*DERIVATION_CODE)]
     ds.DerivationDescription = derivation.description
+    ds.SeriesNumber = derived_series_number(ds.get("SeriesNumber"))
+    when = derivation.when or datetime.now()
+    ds.ContentDate, ds.ContentTime = when.strftime("%Y%m%d"), when.strftime("%H%M%S.%f")
     return ds
+
+
+def derived_series_number(source) -> int:
+    """A derived series' SeriesNumber from its source's (an int, a DICOM IS, or None/empty).
+
+    Examples
+    --------
+    >>> derived_series_number(21), derived_series_number(None), derived_series_number(2**31 - 10)
+    (1021, 1000, 2147483638)
+    """
+    try:
+        number = int(source)
+    except (TypeError, ValueError):
+        return SERIES_NUMBER_OFFSET
+    return number + SERIES_NUMBER_OFFSET if number + SERIES_NUMBER_OFFSET < 2**31 else number
 
 
 def write_stored(

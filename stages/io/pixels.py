@@ -82,10 +82,13 @@ class Derivation:
     series_uid : str or None
         DICOM's new SeriesInstanceUID, shared by the outputs of one run that came from one source
         series; None: a new one for this file alone.
+    when : datetime.datetime or None
+        When the derivation was made: DICOM's ContentDate and ContentTime (None: when the file is written).
     """
 
     description: str = "geometric distortion corrected by fluorocal"
     series_uid: str | None = None
+    when: object = None
 
     def __post_init__(self):
         if not self.description or len(self.description) > 1024:

@@ -158,15 +158,16 @@ def _dicom_project(root, extra: str = ""):
     return load_config(cfg)
 
 
-def test_by_default_each_frame_is_its_own_orientation_with_its_files_angles(tmp_path):
+def test_by_default_frames_are_grouped_by_their_recorded_angles_else_each_its_own(tmp_path):
     config = _dicom_project(tmp_path)
     got = frame_orientations(config, frame_units(config))
+    # issue 32: frames recording the same C-arm angles are one orientation, named by them
     assert [tuple(o) for o in got] == [
-        ("a", 30.0, 0.0),
+        ("orbit30_tilt0", 30.0, 0.0),
         ("b", None, None),
-        ("c_0", 0.0, 15.0),
-        ("c_1", 0.0, 15.0),
-        ("c_2", 0.0, 15.0),
+        ("orbit0_tilt15", 0.0, 15.0),
+        ("orbit0_tilt15", 0.0, 15.0),
+        ("orbit0_tilt15", 0.0, 15.0),
     ]
     tiffs = load_config(make_project(tmp_path / "tif"))
     assert [tuple(o) for o in frame_orientations(tiffs, frame_units(tiffs))] == [
@@ -358,9 +359,10 @@ def undistort_setup(tmp_path):
 
 
 def _run_undistort(cal, frame, out, *options):
+    # --outside keep: the ramp's dim corner would be taken for outside the collimated area (issue 32's edges)
     return main(
         ["--quiet", "undistort", str(frame), "--calibration", str(cal), "--system", "A", "--out", str(out)]
-        + list(options)
+        + ["--outside", "keep", *options]
     )
 
 

@@ -1,0 +1,204 @@
+"""Issue 32, angles from the frames: `fluorocal undistort` follows the C-arm angles each frame records.
+
+Ground truth: the simulator's grid plate seen through a C-arm whose distortion changes with its tilt (the
+earth field), at 0, 15, 30, 45 and 60 degrees; the calibration holds the true correction at 0, 30 and 60
+degrees, so the frames at 15 and 45 degrees take an interpolated field.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pydicom
+import pytest
+from fluorocal.calibration import Calibration, SystemCalibration
+from fluorocal.cli import main
+from fluorocal.config import load_config
+from fluorocal.orientations import frame_orientations
+from fluorocal.run import frame_units
+from fluorocal.stages.geometry import homography_fit
+from fluorocal.stages.io import read_frames
+from fluorocal.stages.io.dicom import frame_angles_deg
+from fluorocal.stages.orientation import OrientationField
+
+from tests.pipeline.test_orientations import _dicom
+from tests.stages.plate_truth import truth_field
+
+SIZE = 256
+TILTS = (0.0, 15.0, 30.0, 45.0, 60.0)
+CALIBRATED = {"centred": 0.0, "tilt30": 30.0, "tilt60": 60.0}
+#: corrected points against the truth modulo a homography, px: the true fields on the simulator's 16 px node grid
+#: leave 0.008 px (measured), the next orientation's field 0.023-0.037 px, the centred one at 60 deg 0.115 px
+TOL_PX = 0.05
+
+
+def _undistort(*inputs, calibration, out, options=(), system="A"):
+    args = ["--quiet", "undistort", *map(str, inputs), "--calibration", str(calibration), "--system", system]
+    return main(args + ["--out", str(out), *options])
+
+
+def _residual_px(ideal_true, ideal_est) -> float:
+    return float(np.sqrt(np.mean(homography_fit(ideal_true, ideal_est)[1] ** 2)))
+
+
+@pytest.fixture(scope="module")
+def rotational(tmp_path_factory):
+    """Simulated frames at :data:`TILTS`, their truth, and a calibration of the true fields at :data:`CALIBRATED`.
+
+    The frames are single-frame DICOMs as `fluorocal simulate` writes them.
+    """
+    from fluorocal.cmd_simulate import write_dataset
+    from fluorocal.stages.simulate import SimulateParams, simulate, truth_to_dict
+
+    root = tmp_path_factory.mktemp("rotational")
+    params = SimulateParams(
+        phantom="grid", n_frames=1, image_size_px=SIZE, seed=5, orientations_deg=tuple((0.0, t) for t in TILTS)
+    )
+    data = simulate(params)
+    write_dataset(data, root / "sim", fmt="dicom")
+    truth = truth_to_dict(data)
+    fields = {o["name"]: truth_field(o["correction_grid"], SIZE, SIZE) for o in truth["systems"][0]["orientations"]}
+    orientations = [OrientationField(n, 0.0, t, fields[n]) for n, t in CALIBRATED.items()]
+    system = SystemCalibration(
+        "A", (SIZE, SIZE), np.array([128.0, 128.0, 4000.0]), np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros(3),
+        None, tuple(orientations),
+    )  # fmt: skip
+    calibration = root / "cal" / "calibration.json"
+    calibration.parent.mkdir()
+    Calibration([system], {}, {"scheme": "truth", "geometry_estimated": False}).save(calibration)
+    files = sorted((root / "sim" / "frames" / "A").glob("*.dcm"))
+    return root, files, truth, calibration
+
+
+def _run_file(files, path: Path, tilts, how: str) -> Path:
+    """A rotational run: the frames of ``files`` in one multi-frame DICOM, ``PositionerMotion`` DYNAMIC.
+
+    The per-frame angles ``tilts`` are in the per-frame functional groups (``how="groups"``) or increments.
+    """
+    from pydicom.dataset import Dataset
+
+    ds = pydicom.dcmread(files[0])
+    frames = np.stack([pydicom.dcmread(f).pixel_array for f in files])
+    ds.NumberOfFrames, ds.PositionerMotion = len(files), "DYNAMIC"
+    ds.PixelData = frames.astype("<u2").tobytes()
+    if how == "groups":
+        del ds.PositionerPrimaryAngle, ds.PositionerSecondaryAngle
+        items = []
+        for tilt in tilts:
+            position, item = Dataset(), Dataset()
+            position.PositionerPrimaryAngle, position.PositionerSecondaryAngle = 0, tilt
+            item.PositionerPositionSequence = [position]
+            items.append(item)
+        ds.PerFrameFunctionalGroupsSequence = items
+    else:  # the start angles, then each frame's change since the one before
+        ds.PositionerPrimaryAngle, ds.PositionerSecondaryAngle = 0, tilts[0]
+        ds.PositionerPrimaryAngleIncrement = [0] * len(tilts)
+        ds.PositionerSecondaryAngleIncrement = [0] + list(np.diff(tilts))
+    ds.save_as(path, enforce_file_format=True)
+    return path
+
+
+def test_simulate_writes_the_c_arm_angles(rotational):
+    _, files, truth, _ = rotational
+    recorded = [frame_angles_deg(f) for f in files]
+    assert recorded == [((0.0, t),) for t in TILTS] and [f["tilt_deg"] for f in truth["frames"]] == list(TILTS)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["groups", "increments"])
+def test_a_rotational_run_is_undistorted_frame_by_frame_with_each_frames_field(rotational, tmp_path, how):
+    _, files, truth, calibration = rotational
+    run = _run_file(files, tmp_path / "run.dcm", TILTS, how)
+    assert frame_angles_deg(run) == tuple((0.0, t) for t in TILTS)
+    assert _undistort(run, calibration=calibration, out=tmp_path / "u", options=["--outside", "keep"]) == 0
+    cal = Calibration.load(calibration)
+    out = pydicom.dcmread(tmp_path / "u" / "run.dcm")
+    assert "frame by frame: 0/0, 0/15, 0/30, 0/45, 0/60" in out.DerivationDescription
+    sources = [f.image.astype(np.uint16) for f in read_frames(run)]
+    for k, (tilt, frame, source) in enumerate(zip(TILTS, truth["frames"], sources)):
+        angles = {"orbit": 0.0, "tilt": tilt}
+        # the frame was remapped with the field at its own angles ...
+        np.testing.assert_array_equal(out.pixel_array[k], cal.undistort_image("A", source, orientation=angles))
+        # ... which puts its holes where the truth has them
+        distorted, ideal = (np.array(frame["beads"][key]) for key in ("distorted_xy_px", "ideal_xy_px"))
+        assert _residual_px(ideal, cal.undistort_points("A", distorted, orientation=angles)) < TOL_PX
+    # one field for the whole run would not do: the centred field leaves more than the tolerance at 60 deg
+    last = truth["frames"][-1]["beads"]
+    centred = cal.undistort_points("A", np.array(last["distorted_xy_px"]), orientation="centred")
+    assert _residual_px(np.array(last["ideal_xy_px"]), centred) > 2 * TOL_PX
+    assert not np.array_equal(out.pixel_array[-1], cal.undistort_image("A", sources[-1], orientation="centred"))
+
+
+@pytest.mark.slow
+def test_a_frame_beyond_the_calibrated_angles_is_refused_naming_it_and_the_range(rotational, tmp_path, capsys):
+    _, files, _, calibration = rotational
+    run = _run_file(files[:3], tmp_path / "run.dcm", (0.0, 30.0, 75.0), "groups")
+    assert _undistort(run, calibration=calibration, out=tmp_path / "u") == 2
+    err = capsys.readouterr().err
+    assert "run.dcm, frame 2: at the C-arm angles it records" in err and "orbit 0°, tilt 0..60°" in err
+    assert not (tmp_path / "u").exists()
+    # --orientation overrides the recorded angles
+    assert _undistort(run, calibration=calibration, out=tmp_path / "v", options=["--orientation", "tilt60"]) == 0
+
+
+def test_the_calibration_groups_frames_by_their_recorded_angles_within_the_read_out_tolerance(tmp_path):
+    frames = tmp_path / "frames"
+    for name, angles in {"a": (30, 0), "b": (30.04, 0), "c": (30.1, 0), "d": None}.items():
+        _dicom(frames / f"{name}.dcm", angles=angles)
+    (tmp_path / "phantom.csv").write_text("id,x,y,z\n1,0,0,0\n2,10,0,0\n3,0,10,0\n4,0,0,10\n")
+    (tmp_path / "project.toml").write_text(
+        '[phantom]\nfile = "phantom.csv"\n\n[[systems]]\nname = "A"\nframes = "frames/*.dcm"\n'
+        "source_image_distance = 1100\npixel_pitch = 0.25\n"
+    )
+    config = load_config(tmp_path / "project.toml")
+    got = [tuple(o) for o in frame_orientations(config, frame_units(config))]
+    # 0.04 deg apart: within the read-out's 0.05 deg, one orientation; 0.1 deg (one DICOM step): another
+    assert got == [("orbit30_tilt0", 30.0, 0.0)] * 2 + [("orbit30.1_tilt0", 30.1, 0.0), ("d", None, None)]
+
+
+# --- the real frames, with angles written into copies -----------------------------------------------------------
+
+#: the C-arm angles written into copies of the real frames: two calibrated orientations and one in between
+REAL = {"grid_orbit_30.dcm": (30.0, 0.0), "grid_tilt_45.dcm": (0.0, 45.0), "spine_centered_0.dcm": (15.0, 0.0)}
+
+
+@pytest.fixture(scope="module")
+def arcadis_calibration(arcadis_dir, tmp_path_factory):
+    """The real ARCADIS grid plate calibrated at its six orientations (fixtures/arcadis/orientations.toml)."""
+    root = tmp_path_factory.mktemp("orientations")
+    config = Path(__file__).parents[2] / "fixtures" / "arcadis" / "orientations.toml"
+    text = config.read_text().replace("../../../shared/data/arcadis", str(Path(arcadis_dir).resolve()))
+    (root / "orientations.toml").write_text(text)
+    assert main(["--quiet", "run", str(root / "orientations.toml")]) == 0
+    return root / "out-orientations" / "calibration.json"
+
+
+@pytest.mark.slow
+def test_real_frames_with_recorded_angles_equal_the_explicit_orientation(arcadis_calibration, arcadis_dir, tmp_path):
+    folder = tmp_path / "with_angles"  # copies in the test's own folder: the shared data stay untouched
+    folder.mkdir()
+    for name, (orbit, tilt) in REAL.items():
+        ds = pydicom.dcmread(Path(arcadis_dir) / name)
+        ds.PositionerPrimaryAngle, ds.PositionerSecondaryAngle = orbit, tilt
+        ds.save_as(folder / name)
+    cal_args = {"calibration": arcadis_calibration, "system": "arcadis"}
+    assert _undistort(folder, out=tmp_path / "recorded", **cal_args) == 0
+    for name, (orbit, tilt) in REAL.items():
+        explicit = tmp_path / f"explicit_{name}"
+        assert (
+            _undistort(folder / name, out=explicit, options=["--orientation", f"orbit={orbit},tilt={tilt}"], **cal_args)
+            == 0
+        )
+        recorded = pydicom.dcmread(tmp_path / "recorded" / name)
+        assert recorded.PixelData == pydicom.dcmread(explicit / name).PixelData  # byte for byte
+        where = f"orbit {orbit:g} deg, tilt {tilt:g} deg (the C-arm angles the file records)"
+        assert where in recorded.DerivationDescription
+    # a copy recorded beyond the calibrated orientations is refused
+    shutil.copyfile(folder / "grid_orbit_30.dcm", tmp_path / "beyond.dcm")
+    ds = pydicom.dcmread(tmp_path / "beyond.dcm")
+    ds.PositionerPrimaryAngle = 45
+    ds.save_as(tmp_path / "beyond.dcm")
+    assert _undistort(tmp_path / "beyond.dcm", out=tmp_path / "refused", **cal_args) == 2
+    assert not (tmp_path / "refused").exists()

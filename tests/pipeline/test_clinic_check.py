@@ -1,0 +1,110 @@
+"""Issue 32, the quality check: `fluorocal check CALIBRATION FRAME...` on later grid-plate frames.
+
+On the real ARCADIS frames (the calibration's own, taken as the "later" frames: no others exist) every
+calibrated orientation passes; the tilt-60 frame checked against the centred field fails (the field changes by
+0.43 px RMS between the two orientations); a simulated frame of another C-arm and plate fails, saying why.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pydicom
+import pytest
+from fluorocal.cli import main
+from fluorocal.cmd_check import RECORD_COLUMNS, TOLERANCES_PX, append_record
+from fluorocal.stages.errors import InputError
+
+from tests.pipeline.test_clinic_angles import arcadis_calibration  # noqa: F401 (a fixture)
+from tests.pipeline.test_orientations import _orientation_calibration
+
+#: the six real grid frames and the angles written into their copies (fixtures/arcadis/orientations.toml's)
+GRID = {
+    "grid_centered_0.dcm": (0, 0),
+    "grid_orbit_30.dcm": (30, 0),
+    "grid_tilt_15.dcm": (0, 15),
+    "grid_tilt_30.dcm": (0, 30),
+    "grid_tilt_45.dcm": (0, 45),
+    "grid_tilt_60.dcm": (0, 60),
+}
+
+
+def _check(calibration, *frames, record, options=()):
+    return main(["--quiet", "check", str(calibration), *map(str, frames), "--record", str(record), *options])
+
+
+def _rows(record: Path) -> list[dict]:
+    with open(record, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_the_record_is_appended_and_a_foreign_csv_refused(tmp_path):
+    record = tmp_path / "qa.csv"
+    row = ["2026-01-01T00:00:00"] + ["x"] * (len(RECORD_COLUMNS) - 1)
+    append_record(record, [row])
+    append_record(record, [row])
+    assert [list(r.values()) for r in _rows(record)] == [row, row]
+    (tmp_path / "other.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(InputError, match="not a fluorocal QA record"):
+        append_record(tmp_path / "other.csv", [row])
+    assert (tmp_path / "other.csv").read_text() == "a,b\n1,2\n"
+
+
+def test_a_calibration_without_a_plate_is_bad_input(tmp_path, capsys):
+    calibration = tmp_path / "cal" / "calibration.json"
+    calibration.parent.mkdir()
+    _orientation_calibration().save(calibration)
+    frame = tmp_path / "f.tif"
+    frame.write_bytes(b"")
+    assert _check(calibration, frame, record=tmp_path / "qa.csv", options=["--system", "A"]) == 2
+    assert "not a grid-plate calibration" in capsys.readouterr().err and not (tmp_path / "qa.csv").exists()
+    assert _check(calibration, frame, record=tmp_path / "qa.csv", options=["--tol-rms", "0"]) == 2
+
+
+def test_the_defaults_are_stated_in_the_help(capsys):
+    with pytest.raises(SystemExit):
+        main(["check", "--help"])
+    text = capsys.readouterr().out
+    assert all(f"--tol-{name} {value:g} px" in text for name, value in TOLERANCES_PX.items())
+
+
+@pytest.mark.slow
+def test_real_frames_pass_at_their_orientation_and_fail_at_the_wrong_one(arcadis_calibration, arcadis_dir, tmp_path):  # noqa: F811
+    folder = tmp_path / "later"  # copies with the C-arm angles written in: the shared data stay untouched
+    folder.mkdir()
+    for name, (orbit, tilt) in GRID.items():
+        ds = pydicom.dcmread(Path(arcadis_dir) / name)
+        ds.PositionerPrimaryAngle, ds.PositionerSecondaryAngle = orbit, tilt
+        ds.save_as(folder / name)
+    record = tmp_path / "qa_record.csv"
+    assert _check(arcadis_calibration, folder, record=record) == 0
+    rows = _rows(record)
+    assert [r["file"] for r in rows] == sorted(GRID) and all(r["result"] == "pass" for r in rows)
+    # in sample: about 0.02 px per component, well inside the 0.1 px tolerance; mm = px x 0.21 mm
+    assert all(float(r["rms_px"]) < 0.05 and int(r["n_holes"]) > 3000 for r in rows)
+    assert all(abs(float(r["rms_mm"]) - 0.21 * float(r["rms_px"])) < 1e-5 for r in rows)
+    assert (tmp_path / "qa_trend.png").stat().st_size > 0
+    # the centred field on the tilt-60 frame: the field moved by 0.4 px between them, the check fails
+    wrong = ["--orientation", "centred"]
+    assert _check(arcadis_calibration, folder / "grid_tilt_60.dcm", record=record, options=wrong) == 1
+    last = _rows(record)[-1]
+    assert last["result"] == "fail" and float(last["rms_px"]) > 0.3 and "RMS" in last["reason"]
+    assert len(_rows(record)) == len(GRID) + 1
+
+
+@pytest.mark.slow
+def test_a_frame_of_another_c_arm_fails_with_its_reason(arcadis_calibration, tmp_path):  # noqa: F811
+    from fluorocal.cmd_simulate import write_dataset
+    from fluorocal.stages.simulate import SimulateParams, simulate
+
+    data = simulate(SimulateParams(phantom="grid", n_frames=1, image_size_px=1024, seed=9))
+    write_dataset(data, tmp_path / "sim", fmt="dicom")
+    (frame,) = sorted((tmp_path / "sim" / "frames" / "A").glob("*.dcm"))
+    assert pydicom.dcmread(frame).Rows == 1024
+    record = tmp_path / "qa.csv"
+    assert _check(arcadis_calibration, frame, record=record, options=["--orientation", "centred"]) == 1
+    (row,) = _rows(record)
+    assert row["result"] == "fail" and "another plate, or another C-arm" in row["reason"]
+    assert np.isnan(float(row["rms_px"]))
