@@ -153,7 +153,7 @@ def run(args) -> int:
 
 @dataclass(frozen=True, eq=False)
 class _Job:
-    """One input file: where it goes, each frame's orientation, and its frames as stored (read, remapped and written back as such)."""
+    """One input file: where it goes, each frame's orientation, and its frames as stored (written back as such)."""
 
     path: Path
     out: Path
@@ -173,8 +173,9 @@ class _Job:
         if frame.ndim == 2:
             return clear_outside(frame, out, *maps, self.params, supported)
         # each channel as remap_stored resamples it: its own collimated area and background
-        channels = range(frame.shape[2])
-        return np.stack([clear_outside(frame[..., c], out[..., c], *maps, self.params, supported) for c in channels], -1)
+        n_channels = out.shape[2]
+        cleared = [clear_outside(frame[..., c], out[..., c], *maps, self.params, supported) for c in range(n_channels)]
+        return np.stack(cleared, axis=-1)
 
 
 def _job(cal, args, path: Path, out: Path, chosen, made, views: dict) -> _Job:
