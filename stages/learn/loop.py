@@ -42,7 +42,7 @@ from fluorocal.stages.learn.adjuster import Adjuster, Outcome, adjustment_outcom
 from fluorocal.stages.learn.anderson import Anderson, anderson_step
 from fluorocal.stages.learn.finish import loop_result
 from fluorocal.stages.learn.gauge import gauge_fixed
-from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
+from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field, prior_normal
 from fluorocal.stages.learn.joint import SystemStep, fit_grids_jointly
 from fluorocal.stages.learn.knn import fit_knn_field, pool_neighbours, restricted_k_grid
 from fluorocal.stages.learn.network import systems_network
@@ -196,17 +196,17 @@ def _calibrate_sorted(observations, phantom, initial, image_size, scheme, params
     best = state
     while True:
         state = _iterate(plan, state)
-        best = state if _better(state, best) else best
+        best = state if best is None or _better(state, best) else best
         action, converged, reason = _decide(plan, state)
         if action == "refine":
             state = replace(state, phase="grid", phase_start=state.iteration + 1, anderson=state.anderson.restarted())
-            best = state
+            best = None  # the refinement's objective counts its prior: its best is among its own iterates
         elif action == "stop":
             break
     if not converged:
         _warn_capped(reason)
-    logger.info("scheme %s: stopped at iteration %d, the best iterate kept: iteration %d (adjustment cost %.6g)",
-                scheme, state.iteration, best.iteration, best.out.cost)  # fmt: skip
+    logger.info("scheme %s: stopped at iteration %d, the best iterate kept: iteration %d (objective %.6g)",
+                scheme, state.iteration, best.iteration, best.history[-1].objective)  # fmt: skip
     reason = f"{reason}; stopped at iteration {state.iteration}, kept iteration {best.iteration}, the best"
     state = replace(best, history=state.history)
     if params.fast_intermediate:
@@ -216,13 +216,14 @@ def _calibrate_sorted(observations, phantom, initial, image_size, scheme, params
 
 
 def _better(state: _State, best: _State) -> bool:
-    """Whether ``state`` improves on ``best``, the phase's best iterate so far: a lower adjustment cost (equation 2).
+    """Whether ``state`` improves on ``best``, the phase's best iterate so far: a lower objective.
 
-    Equation 2, the robust cost of the adjustment with the field held, is the measure a user cares about: how
-    well the corrected observations fit one orientation. The regression's own cost (equation 3) is normalised
-    by each adjustment's variance factor, so it is not comparable from one iteration to the next.
+    The objective (:attr:`IterationRecord.objective`) is equation 2, the robust cost of the adjustment with
+    the field held, plus in the refinement the fields' smoothness prior: what the field steps descend, so its
+    minimum is the loop's fixed point. The regression's own cost (equation 3) is normalised by each
+    adjustment's variance factor, so it is not comparable from one iteration to the next.
     """
-    return state.out.cost < best.out.cost
+    return state.history[-1].objective < best.history[-1].objective
 
 
 def _warn_capped(reason: str) -> None:
@@ -269,33 +270,37 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     corrections, grids, pointwise, anderson = _update_field(plan, state, updates)
     adj = plan.adjuster(corrections, state.adj, final=False)
     out = adjustment_outcome(adj, plan.observations.sigma_px)
-    respond = state.respond
-    if phase == "grid" and respond == "orientation" and out.cost > state.out.cost and len(plan.sizes) == 1:
+    respond, before = state.respond, state.history[-1]
+    prior = _prior_cost(plan, grids, memory) if phase == "grid" else 0.0
+    raised = out.cost + prior > before.objective if before.phase == "grid" else out.cost > before.cost_adjust
+    if phase == "grid" and respond == "orientation" and raised and len(plan.sizes) == 1:
         # the joint step went further than its linearisation holds: this step and the rest of the refinement
         # move the beads alone, the slower step that always descends. Not with several systems: their beads-alone
         # step, every system's field at once with no view held, wanders (a 2 + 2-epoch biplanar set ran to the
         # cap); the stall rule ends a joint refinement whose cost has stopped falling
-        logger.info("joint step raised the adjustment's cost (%.6g > %.6g): the beads alone respond from here",
-                    out.cost, state.out.cost)  # fmt: skip
+        logger.info("joint step raised the cost (%.6g > %.6g): the beads alone respond from here",
+                    out.cost + prior, before.objective)  # fmt: skip
         respond = "points"
         state = replace(state, respond=respond, anderson=state.anderson.restarted())
         updates, memory, fit_cost, trained = _regress(plan, state)
         corrections, grids, pointwise, anderson = _update_field(plan, state, updates)
         adj = plan.adjuster(corrections, state.adj, final=False)
         out = adjustment_outcome(adj, plan.observations.sigma_px)
+        prior = _prior_cost(plan, grids, memory)
     total = out.cost + fit_cost
     step = float(np.max(np.abs(corrections - state.corrections))) if len(corrections) else 0.0
     step_sigma = _field_step_sigma(state.grids, grids) if plan.smooth else float("nan")
     ks = tuple(int(m.k_prev or 0) if phase == "knn" else 0 for m in memory)
-    record = IterationRecord(iteration, phase, out.cost, fit_cost, total, ks, out.rms_px, step, step_sigma)
+    record = IterationRecord(iteration, phase, out.cost, fit_cost, total, ks, out.rms_px, step, step_sigma, prior)
     history = state.history + (record,)
     logger.info(
-        "iteration %d (%s): cost %.6g + %.6g = %.6g, RMS %.4f px, step %.4f px (%.2f sigma), k %s",
+        "iteration %d (%s): cost %.6g + %.6g = %.6g, objective %.6g, RMS %.4f px, step %.4f px (%.2f sigma), k %s",
         iteration,
         phase,
         out.cost,
         fit_cost,
         total,
+        record.objective,
         out.rms_px,
         step,
         step_sigma,
@@ -321,8 +326,20 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     )
 
 
+def _prior_cost(plan: _Plan, grids: tuple, memory: tuple) -> float:
+    """The refinement's smoothness prior of the fields, ``Σ_s Σ_c Δ_sc^T D^T D Δ_sc / (2 τ_s²)``."""
+    total = 0.0
+    for g, mem in zip(grids, memory):
+        if mem.tau_px is None:
+            continue
+        values = g.delta_px.reshape(-1, 2)
+        normal = prior_normal(g.delta_px.shape[0], g.delta_px.shape[1], mem.cv.order)
+        total += 0.5 * float(np.sum(values * (normal @ values))) / mem.tau_px**2
+    return total
+
+
 def _raised(history: tuple) -> bool:
-    """Whether the last step raised the cost, the refinement's adjustment cost, the kNN phase's combined one.
+    """Whether the last step raised the cost, the refinement's objective, the kNN phase's combined cost.
 
     The refinement's in-sample regression cost wanders by tens of percent from step to step (see
     :mod:`fluorocal.stages.learn.stopping`): read in the combined cost, it restarted Anderson's history
@@ -332,7 +349,7 @@ def _raised(history: tuple) -> bool:
         return False
     last, prev = history[-1], history[-2]
     if last.phase == "grid":
-        return last.cost_adjust > prev.cost_adjust
+        return last.objective > prev.objective
     return last.cost_total > prev.cost_total
 
 
