@@ -19,12 +19,19 @@ iteration cap (``params.max_iterations`` for the kNN phase,
 end of the kNN phase starts the gridded refinement; the end of the last phase
 ends the loop.
 
-With ``acceleration="anderson"`` the iterate is the vector of all node
-values of the gridded fields: the update ``x <- x + δ(x)`` is a fixed-point
+With ``acceleration="anderson"`` the kNN phase's iterate is the vector of all
+node values of the gridded fields: the update ``x <- x + δ(x)`` is a fixed-point
 iteration, and Anderson acceleration combines the last few iterates;
-a step that raises the cost (the combined cost in the kNN phase, the
-adjustment's in the refinement) restarts its history, and so does one that
+a step that raises the combined cost restarts its history, and so does one that
 does not shrink the update (:func:`fluorocal.stages.learn.anderson.anderson_step`).
+The refinement's joint steps are Gauss-Newton steps of the joint problem: they are
+taken as they are (extrapolated by Anderson, they overshot the fixed point and
+raised the adjustment's cost near it, issue 30).
+
+The loop keeps its best iterate, the lowest adjustment cost (equation 2) of its
+last phase, and stops at the first refinement step that does not lower it by
+``stall_tolerance`` of itself: by then the joint steps have reached their fixed
+point (a restart from the result moves the field by a small fraction of its σ).
 """
 
 from __future__ import annotations
@@ -42,7 +49,7 @@ from fluorocal.stages.learn.adjuster import Adjuster, Outcome, adjustment_outcom
 from fluorocal.stages.learn.anderson import Anderson, anderson_step
 from fluorocal.stages.learn.finish import loop_result
 from fluorocal.stages.learn.gauge import gauge_fixed
-from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field, prior_normal
+from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
 from fluorocal.stages.learn.joint import SystemStep, fit_grids_jointly
 from fluorocal.stages.learn.knn import fit_knn_field, pool_neighbours, restricted_k_grid
 from fluorocal.stages.learn.network import systems_network
@@ -200,13 +207,13 @@ def _calibrate_sorted(observations, phantom, initial, image_size, scheme, params
         action, converged, reason = _decide(plan, state)
         if action == "refine":
             state = replace(state, phase="grid", phase_start=state.iteration + 1, anderson=state.anderson.restarted())
-            best = None  # the refinement's objective counts its prior: its best is among its own iterates
+            best = None  # the refinement's best is among its own iterates
         elif action == "stop":
             break
     if not converged:
         _warn_capped(reason)
-    logger.info("scheme %s: stopped at iteration %d, the best iterate kept: iteration %d (objective %.6g)",
-                scheme, state.iteration, best.iteration, best.history[-1].objective)  # fmt: skip
+    logger.info("scheme %s: stopped at iteration %d, the best iterate kept: iteration %d (adjustment cost %.6g)",
+                scheme, state.iteration, best.iteration, best.out.cost)  # fmt: skip
     reason = f"{reason}; stopped at iteration {state.iteration}, kept iteration {best.iteration}, the best"
     state = replace(best, history=state.history)
     if params.fast_intermediate:
@@ -216,14 +223,14 @@ def _calibrate_sorted(observations, phantom, initial, image_size, scheme, params
 
 
 def _better(state: _State, best: _State) -> bool:
-    """Whether ``state`` improves on ``best``, the phase's best iterate so far: a lower objective.
+    """Whether ``state`` improves on ``best``, the phase's best iterate so far: a lower adjustment cost (equation 2).
 
-    The objective (:attr:`IterationRecord.objective`) is equation 2, the robust cost of the adjustment with
-    the field held, plus in the refinement the fields' smoothness prior: what the field steps descend, so its
-    minimum is the loop's fixed point. The regression's own cost (equation 3) is normalised by each
-    adjustment's variance factor, so it is not comparable from one iteration to the next.
+    Equation 2, the robust cost of the adjustment with the field held, is the measure a user cares about: how
+    well the corrected observations fit one orientation; the refinement's field steps, Gauss-Newton steps of
+    the joint problem, lower it to their fixed point. The regression's own cost (equation 3) is normalised by
+    each adjustment's variance factor, so it is not comparable from one iteration to the next.
     """
-    return state.history[-1].objective < best.history[-1].objective
+    return state.out.cost < best.out.cost
 
 
 def _warn_capped(reason: str) -> None:
@@ -270,37 +277,19 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     corrections, grids, pointwise, anderson = _update_field(plan, state, updates)
     adj = plan.adjuster(corrections, state.adj, final=False)
     out = adjustment_outcome(adj, plan.observations.sigma_px)
-    respond, before = state.respond, state.history[-1]
-    prior = _prior_cost(plan, grids, memory) if phase == "grid" else 0.0
-    raised = out.cost + prior > before.objective if before.phase == "grid" else out.cost > before.cost_adjust
-    if phase == "grid" and respond == "orientation" and raised and len(plan.sizes) == 1:
-        # the joint step went further than its linearisation holds: this step and the rest of the refinement
-        # move the beads alone, the slower step that always descends. Not with several systems: their beads-alone
-        # step, every system's field at once with no view held, wanders (a 2 + 2-epoch biplanar set ran to the
-        # cap); the stall rule ends a joint refinement whose cost has stopped falling
-        logger.info("joint step raised the cost (%.6g > %.6g): the beads alone respond from here",
-                    out.cost + prior, before.objective)  # fmt: skip
-        respond = "points"
-        state = replace(state, respond=respond, anderson=state.anderson.restarted())
-        updates, memory, fit_cost, trained = _regress(plan, state)
-        corrections, grids, pointwise, anderson = _update_field(plan, state, updates)
-        adj = plan.adjuster(corrections, state.adj, final=False)
-        out = adjustment_outcome(adj, plan.observations.sigma_px)
-        prior = _prior_cost(plan, grids, memory)
     total = out.cost + fit_cost
     step = float(np.max(np.abs(corrections - state.corrections))) if len(corrections) else 0.0
     step_sigma = _field_step_sigma(state.grids, grids) if plan.smooth else float("nan")
     ks = tuple(int(m.k_prev or 0) if phase == "knn" else 0 for m in memory)
-    record = IterationRecord(iteration, phase, out.cost, fit_cost, total, ks, out.rms_px, step, step_sigma, prior)
+    record = IterationRecord(iteration, phase, out.cost, fit_cost, total, ks, out.rms_px, step, step_sigma)
     history = state.history + (record,)
     logger.info(
-        "iteration %d (%s): cost %.6g + %.6g = %.6g, objective %.6g, RMS %.4f px, step %.4f px (%.2f sigma), k %s",
+        "iteration %d (%s): cost %.6g + %.6g = %.6g, RMS %.4f px, step %.4f px (%.2f sigma), k %s",
         iteration,
         phase,
         out.cost,
         fit_cost,
         total,
-        record.objective,
         out.rms_px,
         step,
         step_sigma,
@@ -322,24 +311,12 @@ def _iterate(plan: _Plan, state: _State) -> _State:
         history,
         updates,
         trained,
-        respond,
+        state.respond,
     )
 
 
-def _prior_cost(plan: _Plan, grids: tuple, memory: tuple) -> float:
-    """The refinement's smoothness prior of the fields, ``Σ_s Σ_c Δ_sc^T D^T D Δ_sc / (2 τ_s²)``."""
-    total = 0.0
-    for g, mem in zip(grids, memory):
-        if mem.tau_px is None:
-            continue
-        values = g.delta_px.reshape(-1, 2)
-        normal = prior_normal(g.delta_px.shape[0], g.delta_px.shape[1], mem.cv.order)
-        total += 0.5 * float(np.sum(values * (normal @ values))) / mem.tau_px**2
-    return total
-
-
 def _raised(history: tuple) -> bool:
-    """Whether the last step raised the cost, the refinement's objective, the kNN phase's combined cost.
+    """Whether the last step raised the cost, the refinement's adjustment cost, the kNN phase's combined one.
 
     The refinement's in-sample regression cost wanders by tens of percent from step to step (see
     :mod:`fluorocal.stages.learn.stopping`): read in the combined cost, it restarted Anderson's history
@@ -349,7 +326,7 @@ def _raised(history: tuple) -> bool:
         return False
     last, prev = history[-1], history[-2]
     if last.phase == "grid":
-        return last.objective > prev.objective
+        return last.cost_adjust > prev.cost_adjust
     return last.cost_total > prev.cost_total
 
 
@@ -563,7 +540,7 @@ def _update_grids(plan: _Plan, state: _State, updates: tuple, corrections: np.nd
     x = np.concatenate([g.delta_px.ravel() for g in state.grids])
     dx = np.concatenate([u.delta_px.ravel() for u in updates])
     anderson = state.anderson
-    if plan.acceleration == "anderson":
+    if plan.acceleration == "anderson" and state.phase == "knn":
         mask = np.concatenate([np.repeat(u.support.ravel(), 2) for u in updates])
         x_new, anderson = anderson_step(anderson, x, x + dx, mask)
     elif plan.acceleration == "overrelax":

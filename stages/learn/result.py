@@ -32,10 +32,6 @@ class IterationRecord:
     step_sigma : float
         Largest change of a gridded field at a supported node, in units of that node's uncertainty
         (the field's own ``sigma_px``); NaN for the unsmoothed schemes and iteration 0.
-    cost_prior : float
-        The refinement: the smoothness prior's negative log-density of the fields after the update,
-        ``Σ_s |D_s Δ_s|² / (2 τ_s²)`` (0 in the kNN phase). With :attr:`cost_adjust` it makes the
-        :attr:`objective` that the refinement's field steps descend.
     """
 
     iteration: int
@@ -47,16 +43,6 @@ class IterationRecord:
     rms_px: float
     step_px: float
     step_sigma: float = float("nan")
-    cost_prior: float = 0.0
-
-    @property
-    def objective(self) -> float:
-        """The refinement's objective, equation 2 plus the fields' smoothness prior (the kNN phase: equation 2).
-
-        The measure the loop's best iterate and its stall rule read: the fixed point of the refinement is
-        this objective's minimum, not equation 2's alone (a rougher field fits the residuals better).
-        """
-        return self.cost_adjust + self.cost_prior
 
 
 @dataclass(frozen=True)

@@ -67,8 +67,8 @@ def decide(
 
 
 def _phase_costs(history: tuple) -> list:
-    """The objective (equation 2, plus the prior in the refinement) at each iteration of the last one's phase."""
-    return [h.objective for h in history if h.phase == history[-1].phase]
+    """The adjustment's cost (equation 2) at each iteration of the last iteration's phase."""
+    return [h.cost_adjust for h in history if h.phase == history[-1].phase]
 
 
 def _field_settled(history: tuple, field_tolerance: float, cost_tolerance: float) -> bool:
