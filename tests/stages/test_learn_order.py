@@ -14,9 +14,13 @@ SIZE, NOISE_PX, N_FRAMES = 384, 0.05, 8
 
 @pytest.fixture(scope="module")
 def small_set():
-    """True distorted outline centres plus noise, start values as labelling gives them (as test_learn's set)."""
+    """True distorted outline centres plus noise, start values as labelling gives them (as test_learn's set).
+
+    Its calibration with the default parameters, and the loop's plan and states it decided on (recorded).
+    """
     from fluorocal.stages.adjust import Orientation
     from fluorocal.stages.geometry import quat_multiply, quat_normalize, rotvec_to_quat
+    from fluorocal.stages.learn import loop
     from fluorocal.stages.simulate import SimulateParams, simulate
 
     params = SimulateParams(n_frames=N_FRAMES, image_size_px=SIZE, distortion="strong", seed=5)
@@ -37,8 +41,17 @@ def small_set():
     q = quat_normalize(quat_multiply(q, acq.q[0]))
     iop = [[(SIZE - 1) / 2, (SIZE - 1) / 2, acq.systems[0].iop_px[2] * 1.01]]
     initial = Orientation(iop, np.arange(N_FRAMES), q, acq.source_mm[0] + rng.normal(0, 3, (N_FRAMES, 3)))
-    result = calibrate(obs, data.phantom, initial, image_size=(SIZE, SIZE))
-    return obs, data.phantom, initial, result
+    seen, decide = {"states": []}, loop._decide
+
+    def recording(plan, state):
+        seen["plan"] = plan
+        seen["states"].append(state)
+        return decide(plan, state)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(loop, "_decide", recording)
+        result = calibrate(obs, data.phantom, initial, image_size=(SIZE, SIZE))
+    return obs, data.phantom, initial, result, seen
 
 
 def _reordered(obs: Observations, rng) -> np.ndarray:
@@ -61,7 +74,7 @@ def test_canonical_order_sorts_by_system_exposure_bead():
 
 @pytest.mark.filterwarnings("ignore::fluorocal.stages.errors.NotConvergedWarning")
 def test_the_same_observations_in_another_order_give_the_same_calibration(small_set):
-    obs, phantom, initial, _ = small_set
+    obs, phantom, initial, _, _ = small_set
     order = _reordered(obs, np.random.default_rng(0))
     assert not np.array_equal(order, np.arange(len(obs)))
     # two kNN steps and two joint refinement steps (fast) exercise every order-dependent part: shuffled folds,
@@ -87,7 +100,7 @@ def test_the_same_observations_in_another_order_give_the_same_calibration(small_
 
 
 def test_the_loop_keeps_its_best_iterate_and_stops_once_the_cost_stops_falling(small_set):
-    _, _, _, result = small_set
+    _, _, _, result, _ = small_set
     grid = [h for h in result.history if h.phase == "grid"]
     costs = [h.cost_adjust for h in grid]
     kept = int(result.stop_reason.split("kept iteration ")[1].split(",")[0])
@@ -107,3 +120,19 @@ def test_the_loop_keeps_its_best_iterate_and_stops_once_the_cost_stops_falling(s
     # residual components (each standardised residual's square is about 1 at convergence)
     n_components = 2 * int(result.trained.sum())
     assert all(h.cost_fit < 3 * n_components for h in grid), [h.cost_fit for h in grid]
+
+
+def test_the_result_is_a_fixed_point_of_the_loop(small_set):
+    from fluorocal.stages.learn import loop
+
+    _, _, _, result, loop_states = small_set
+    kept = int(result.stop_reason.split("kept iteration ")[1].split(",")[0])
+    state = [s for s in loop_states["states"] if s.iteration == kept][-1]
+    # the kept iterate is the returned field
+    np.testing.assert_array_equal(state.grids[0].delta_px, result.fields[0].delta_px)
+    # the loop started again from its own output (one more regression and adjustment) moves the field by less than
+    # 1 % of its sigma (the joint uncertainty's node sigma) at every supported node: the issue's fixed point
+    again = loop._iterate(loop_states["plan"], state)
+    field = result.fields[0]
+    change = np.linalg.norm(again.grids[0].delta_px - field.delta_px, axis=-1)[field.support]
+    assert np.max(change / field.sigma_px[field.support]) < 0.01, np.max(change / field.sigma_px[field.support])
