@@ -32,6 +32,8 @@ Modules, one job each
 - :mod:`.anderson`: Anderson acceleration of the fixed-point iteration.
 - :mod:`.adjuster`: every call into :mod:`fluorocal.stages.adjust`.
 - :mod:`.loop`: :func:`calibrate`, the alternation, its stopping rule and acceleration.
+- :mod:`.order`: the observations' canonical order (one result whatever the order of the rows).
+- :mod:`.finish`: the result from the loop's final state.
 - :mod:`.polynomial`: scheme ``polynomial``, the expert method the paper
   compares with (a global model estimated in the adjustment).
 - :mod:`.result`: :class:`IterationRecord`, :class:`LearnResult`.
@@ -49,6 +51,7 @@ from fluorocal.stages.learn.joint import fit_grid_jointly
 from fluorocal.stages.learn.knn import CvReport, KnnModel, cross_validate_k, fit_knn_field
 from fluorocal.stages.learn.loop import calibrate
 from fluorocal.stages.learn.nodes import GridSpec
+from fluorocal.stages.learn.order import canonical_order, taken
 from fluorocal.stages.learn.params import PRESETS, SCHEMES, LearnParams
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
 
@@ -145,7 +148,8 @@ def learn_calibration(
             learn_fields=setup.scheme != "none",
             solver=solver,
         )
-    initial = start_orientation(observations, phantom, setup.iop_guess_px)
+    # the resection too sees the rows in the canonical order that calibrate runs on
+    initial = start_orientation(taken(observations, canonical_order(observations)), phantom, setup.iop_guess_px)
     return calibrate(
         observations,
         phantom,

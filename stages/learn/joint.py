@@ -109,6 +109,7 @@ def fit_grids_jointly(
     max_cg_iterations: int = 400,
     cg_tolerance: float = 1e-6,
     respond: str = "orientation",
+    with_response: bool = False,
 ) -> tuple[CorrectionField, ...]:
     """Every system's gridded field update, estimated jointly with the orientation's response.
 
@@ -144,24 +145,34 @@ def fit_grids_jointly(
         What responds to the fields' update: ``"orientation"`` (the IOP, the poses and the points, as
         above) or ``"points"`` (the points alone, the IOP and the poses held: no datum and no gauge
         to hold then).
+    with_response : bool
+        Also return the orientation's response ``J_s dθ`` at each system's observations.
 
     Returns
     -------
     tuple of CorrectionField
         Each system's update ``δ_s`` (not ``base + δ_s``).
+    tuple of (n_s, 2) float64 ndarray, px
+        With ``with_response``: each system's ``J_s dθ``, so that ``r_s - A_s δ_s - J_s dθ`` is what the step
+        leaves of its residuals (the in-sample cost of the step's fit is that of equation 3).
     """
     if respond not in ("orientation", "points"):
         raise InputError(f"respond must be 'orientation' or 'points'; got {respond!r}")
     parts = [_field_part(step, grid) for step in systems]
-    matvec, rhs = _reduced_system(parts, network, estimate_iop, respond)
+    matvec, rhs, response = _reduced_system(parts, network, estimate_iop, respond)
     starts = [step.start for step in systems]
     x0 = None if any(s is None for s in starts) else np.concatenate([_node_vector(s) for s in starts])
     v = _solve_reduced(parts, matvec, rhs, max_cg_iterations, cg_tolerance, x0)
     bounds = np.cumsum([0] + [2 * p.n_nodes for p in parts])
-    return tuple(
+    updates = tuple(
         grid_result(p.xn, p.yn, v[a:b].reshape(2, -1).T, p.A, p.xy, step.cv_rms_px, grid, p.size)
         for p, step, a, b in zip(parts, systems, bounds[:-1], bounds[1:])
     )
+    if not with_response:
+        return updates
+    rows = np.cumsum([0] + [len(p.xy) for p in parts])
+    at_obs = response(v)
+    return updates, tuple(at_obs[a:b] for a, b in zip(rows[:-1], rows[1:]))
 
 
 @dataclass(frozen=True)
@@ -201,7 +212,11 @@ def _node_vector(values) -> np.ndarray:
 
 
 def _reduced_system(parts, network: Network, estimate_iop: bool, respond: str):
-    """The stacked node values' system with the responding parameters eliminated: its product and right side."""
+    """The stacked node values' system with the responding parameters eliminated: its product and right side.
+
+    And ``v -> J dθ(v)`` ``(n, 2)``: the responding parameters' step given the node values' and its effect at
+    the observations.
+    """
     iop_cols = 0 if estimate_iop else 3 * network.n_systems
     held = slice(network.point_col if respond == "points" else iop_cols, None)
     J = network.J[:, held]
@@ -224,7 +239,10 @@ def _reduced_system(parts, network: Network, estimate_iop: bool, respond: str):
         reduced = Nvv @ v - Nvt @ solve_theta(Ntv @ v)
         return reduced if G is None else reduced + G.T @ (G @ v)
 
-    return matvec, np.concatenate([p.bv for p in parts]) - Nvt @ solve_theta(b_theta)
+    def response(v):
+        return (J @ solve_theta(b_theta - Ntv @ v)).reshape(2, n_obs).T
+
+    return matvec, np.concatenate([p.bv for p in parts]) - Nvt @ solve_theta(b_theta), response
 
 
 def _field_normal(A, w, r, reg, base_v):

@@ -19,12 +19,19 @@ iteration cap (``params.max_iterations`` for the kNN phase,
 end of the kNN phase starts the gridded refinement; the end of the last phase
 ends the loop.
 
-With ``acceleration="anderson"`` the iterate is the vector of all node
-values of the gridded fields: the update ``x <- x + δ(x)`` is a fixed-point
+With ``acceleration="anderson"`` the kNN phase's iterate is the vector of all
+node values of the gridded fields: the update ``x <- x + δ(x)`` is a fixed-point
 iteration, and Anderson acceleration combines the last few iterates;
-a step that raises the cost (the combined cost in the kNN phase, the
-adjustment's in the refinement) restarts its history, and so does one that
+a step that raises the combined cost restarts its history, and so does one that
 does not shrink the update (:func:`fluorocal.stages.learn.anderson.anderson_step`).
+The refinement's joint steps are Gauss-Newton steps of the joint problem: they are
+taken as they are (extrapolated by Anderson, they overshot the fixed point and
+raised the adjustment's cost near it, issue 30).
+
+The loop keeps its best iterate, the lowest adjustment cost (equation 2) of its
+last phase, and stops at the first refinement step that does not lower it by
+``stall_tolerance`` of itself: by then the joint steps have reached their fixed
+point (a restart from the result moves the field by a small fraction of its σ).
 """
 
 from __future__ import annotations
@@ -40,18 +47,19 @@ from fluorocal.stages.errors import EstimationError, NotConvergedWarning
 from fluorocal.stages.field import CorrectionField, PointwiseField
 from fluorocal.stages.learn.adjuster import Adjuster, Outcome, adjustment_outcome
 from fluorocal.stages.learn.anderson import Anderson, anderson_step
+from fluorocal.stages.learn.finish import loop_result
 from fluorocal.stages.learn.gauge import gauge_fixed
 from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
 from fluorocal.stages.learn.joint import SystemStep, fit_grids_jointly
-from fluorocal.stages.learn.knn import fit_knn_field, node_statistics, pool_neighbours, restricted_k_grid
+from fluorocal.stages.learn.knn import fit_knn_field, pool_neighbours, restricted_k_grid
 from fluorocal.stages.learn.network import systems_network
 from fluorocal.stages.learn.nodes import image_sizes
+from fluorocal.stages.learn.order import canonical_order, taken, unpermuted_result
 from fluorocal.stages.learn.params import LearnParams, scheme_flags
 from fluorocal.stages.learn.polynomial import calibrate_polynomial
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
 from fluorocal.stages.learn.robust import SCREEN_NEIGHBOURS, local_screen, misfit_inliers
 from fluorocal.stages.learn.stopping import decide, previous_total
-from fluorocal.stages.learn.uncertainty import learned_uncertainty, with_field_std
 
 logger = logging.getLogger(__name__)
 
@@ -164,8 +172,17 @@ def calibrate(
 
     Notes
     -----
-    The iteration and its stopping rule: see the module's docstring.
+    The iteration and its stopping rule: see the module's docstring. The result does not depend on the
+    order of the observations' rows: the loop runs on them in a canonical order
+    (:mod:`fluorocal.stages.learn.order`), and the per-observation arrays are returned in the caller's.
     """
+    order = canonical_order(observations)
+    args = (taken(observations, order), phantom, initial, image_size, scheme, params, solver, selection)
+    return unpermuted_result(_calibrate_sorted(*args), order)
+
+
+def _calibrate_sorted(observations, phantom, initial, image_size, scheme, params, solver, selection):
+    """:func:`calibrate` of observations in canonical order."""
     t0 = time.perf_counter()
     params = LearnParams() if params is None else params
     learn, estimate_iop, smooth = scheme_flags(scheme)
@@ -182,20 +199,38 @@ def calibrate(
     logger.info("scheme %s: initial adjustment cost %.6g, inlier RMS %.4f px", scheme, out.cost, out.rms_px)
     state = _initial_state(plan, adj, out)
     if not learn:
-        return _result(plan, scheme, state, True, "scheme 'none' learns nothing", t0, adj.residual_px)
+        return loop_result(plan, scheme, state, True, "scheme 'none' learns nothing", t0, adj.residual_px)
+    best = state
     while True:
         state = _iterate(plan, state)
+        best = state if best is None or _better(state, best) else best
         action, converged, reason = _decide(plan, state)
         if action == "refine":
             state = replace(state, phase="grid", phase_start=state.iteration + 1, anderson=state.anderson.restarted())
+            best = None  # the refinement's best is among its own iterates
         elif action == "stop":
             break
     if not converged:
         _warn_capped(reason)
+    logger.info("scheme %s: stopped at iteration %d, the best iterate kept: iteration %d (adjustment cost %.6g)",
+                scheme, state.iteration, best.iteration, best.out.cost)  # fmt: skip
+    reason = f"{reason}; stopped at iteration {state.iteration}, kept iteration {best.iteration}, the best"
+    state = replace(best, history=state.history)
     if params.fast_intermediate:
         # the final solve, warm-started, with the covariance and redundancy numbers
         state = replace(state, adj=adjuster(state.corrections, state.adj, final=True))
-    return _result(plan, scheme, state, converged, reason, t0, adj.residual_px)
+    return loop_result(plan, scheme, state, converged, reason, t0, adj.residual_px)
+
+
+def _better(state: _State, best: _State) -> bool:
+    """Whether ``state`` improves on ``best``, the phase's best iterate so far: a lower adjustment cost (equation 2).
+
+    Equation 2, the robust cost of the adjustment with the field held, is the measure a user cares about: how
+    well the corrected observations fit one orientation; the refinement's field steps, Gauss-Newton steps of
+    the joint problem, lower it to their fixed point. The regression's own cost (equation 3) is normalised by
+    each adjustment's variance factor, so it is not comparable from one iteration to the next.
+    """
+    return state.out.cost < best.out.cost
 
 
 def _warn_capped(reason: str) -> None:
@@ -242,20 +277,6 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     corrections, grids, pointwise, anderson = _update_field(plan, state, updates)
     adj = plan.adjuster(corrections, state.adj, final=False)
     out = adjustment_outcome(adj, plan.observations.sigma_px)
-    respond = state.respond
-    if phase == "grid" and respond == "orientation" and out.cost > state.out.cost and len(plan.sizes) == 1:
-        # the joint step went further than its linearisation holds: this step and the rest of the refinement
-        # move the beads alone, the slower step that always descends. Not with several systems: their beads-alone
-        # step, every system's field at once with no view held, wanders (a 2 + 2-epoch biplanar set ran to the
-        # cap); the stall rule ends a joint refinement whose cost has stopped falling
-        logger.info("joint step raised the adjustment's cost (%.6g > %.6g): the beads alone respond from here",
-                    out.cost, state.out.cost)  # fmt: skip
-        respond = "points"
-        state = replace(state, respond=respond, anderson=state.anderson.restarted())
-        updates, memory, fit_cost, trained = _regress(plan, state)
-        corrections, grids, pointwise, anderson = _update_field(plan, state, updates)
-        adj = plan.adjuster(corrections, state.adj, final=False)
-        out = adjustment_outcome(adj, plan.observations.sigma_px)
     total = out.cost + fit_cost
     step = float(np.max(np.abs(corrections - state.corrections))) if len(corrections) else 0.0
     step_sigma = _field_step_sigma(state.grids, grids) if plan.smooth else float("nan")
@@ -290,7 +311,7 @@ def _iterate(plan: _Plan, state: _State) -> _State:
         history,
         updates,
         trained,
-        respond,
+        state.respond,
     )
 
 
@@ -322,10 +343,8 @@ def _field_step_sigma(before: tuple, after: tuple) -> float:
 def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
     """``(action, converged, reason)``: ``"continue"``, ``"refine"`` (start the refinement) or ``"stop"``."""
     in_phase = state.iteration - state.phase_start + 1
-    # the stall rule is the joint step's: the beads-alone step creeps, its cost falling slowly for many iterations
-    stall = plan.params.stall_tolerance if state.respond == "orientation" else 0.0
     action, converged, reason = decide(plan.params, state.history, n_obs=len(plan.xy), iterations_in_phase=in_phase,
-                                       refine=plan.refine, stall_tolerance=stall)  # fmt: skip
+                                       refine=plan.refine, stall_tolerance=plan.params.stall_tolerance)  # fmt: skip
     if action == "continue":
         return action, converged, reason
     if state.phase == "knn" and plan.refine != "none":
@@ -341,17 +360,20 @@ def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
 def _regress(plan: _Plan, state: _State) -> tuple[tuple, tuple, float, np.ndarray]:
     """Every system's update, its regression memory after it, the in-sample equation-3 cost of the updates.
 
-    And the mask ``(N,)`` of the observations the updates were fitted to.
+    And the mask ``(N,)`` of the observations the updates were fitted to. The joint step's fit of the residuals
+    is its field update and the orientation's response together (issue 30: read without the response, its
+    equation-3 cost was hundreds of times the adjustment's, and the combined cost jumped by orders of magnitude).
     """
     if state.phase == "grid" and plan.refine == "grid+points":
-        updates, memory, sels = _regress_jointly(plan, state)
+        updates, memory, sels, responses = _regress_jointly(plan, state)
     else:
         updates, memory, sels = zip(*(_regress_system(plan, state, s) for s in range(len(plan.sizes))))
+        responses = (0.0,) * len(updates)
     fit_cost, trained = 0.0, np.zeros(len(plan.xy), bool)
-    for model, sel in zip(updates, sels):
+    for model, sel, response in zip(updates, sels, responses):
         trained[sel] = True
         r, var = state.out.residuals_px[sel], state.out.residual_var_px2[sel]
-        fit_cost += float(np.sum((r - model.correction_at(plan.xy[sel])) ** 2 / var))
+        fit_cost += float(np.sum((r - model.correction_at(plan.xy[sel]) - response) ** 2 / var))
     return tuple(updates), tuple(memory), fit_cost, trained
 
 
@@ -379,12 +401,22 @@ def _regress_jointly(plan: _Plan, state: _State):
     screened = [_screened(plan, state, s) for s in range(len(plan.sizes))]
     sels = [sel for _, sel, _ in screened]
     memory = tuple(_smoothness(plan, state, s, sel, state.memory[s], cap) for s, (_, sel, cap) in enumerate(screened))
-    updates = _fit_jointly(plan, state, sels, memory)
+    updates, responses = _fit_jointly(plan, state, sels, memory)
     if plan.params.training == "local":
-        refits = [_explained(plan, state, candidates, u) for (candidates, _, _), u in zip(screened, updates)]
+        # the misfit test reads the step's whole fit at the candidates: the field's update and the orientation's
+        # response, the latter known at the training rows (and set aside, nil, at the others)
+        fits = [_at_rows(c, sel, resp) for (c, _, _), sel, resp in zip(screened, sels, responses)]
+        refits = [_explained(plan, state, c, u, fit) for (c, _, _), u, fit in zip(screened, updates, fits)]
         if not all(np.array_equal(a, b) for a, b in zip(refits, sels)):
-            updates, sels = _fit_jointly(plan, state, refits, memory, start=updates), refits
-    return updates, memory, sels
+            (updates, responses), sels = _fit_jointly(plan, state, refits, memory, start=updates), refits
+    return updates, memory, sels, responses
+
+
+def _at_rows(candidates: np.ndarray, rows: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values`` ``(len(rows), 2)`` given at ``rows``, a subset of ``candidates``, at every candidate (0 elsewhere)."""
+    out = np.zeros((len(candidates), 2))
+    out[np.searchsorted(candidates, rows)] = values
+    return out
 
 
 def _screened(plan: _Plan, state: _State, s: int):
@@ -406,10 +438,11 @@ def _screened(plan: _Plan, state: _State, s: int):
     return sel, _enough(sel, screen.keep, params.n_folds), screen.cost_cap
 
 
-def _explained(plan: _Plan, state: _State, candidates: np.ndarray, model) -> np.ndarray:
-    """The ``candidates`` the fitted ``model`` explains (the local training's misfit test)."""
+def _explained(plan: _Plan, state: _State, candidates: np.ndarray, model, response=0.0) -> np.ndarray:
+    """The ``candidates`` the fitted ``model`` (plus the orientation's ``response``) explains (the misfit test)."""
     r, var = state.out.residuals_px[candidates], state.out.residual_var_px2[candidates]
-    explained, _ = misfit_inliers(r, model.correction_at(plan.xy[candidates]), var, plan.params.outlier_chi2)
+    fit = model.correction_at(plan.xy[candidates]) + response
+    explained, _ = misfit_inliers(r, fit, var, plan.params.outlier_chi2)
     return _enough(candidates, explained, plan.params.n_folds)
 
 
@@ -463,7 +496,7 @@ def _smoothness(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memor
 
 
 def _fit_jointly(plan: _Plan, state: _State, sels: list, memory: tuple, start=None) -> tuple:
-    """Every system's refinement update by the joint problem's step (:func:`fit_grids_jointly`), from ``sels``.
+    """Every system's refinement update by the joint step (:func:`fit_grids_jointly`) and the response, from ``sels``.
 
     ``start``: updates of nearly the same observations to start the iterative solve from.
     """
@@ -480,7 +513,7 @@ def _fit_jointly(plan: _Plan, state: _State, sels: list, memory: tuple, start=No
                                 mem.cv.cv_rms_px, mem.cv.order, origin))  # fmt: skip
     cg = dict(max_cg_iterations=LOOP_CG_ITERATIONS, cg_tolerance=LOOP_CG_TOLERANCE[state.respond])
     return fit_grids_jointly(steps, network, estimate_iop=plan.estimate_iop, grid=params.grid, respond=state.respond,
-                             **cg)  # fmt: skip
+                             with_response=True, **cg)  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------
@@ -507,7 +540,7 @@ def _update_grids(plan: _Plan, state: _State, updates: tuple, corrections: np.nd
     x = np.concatenate([g.delta_px.ravel() for g in state.grids])
     dx = np.concatenate([u.delta_px.ravel() for u in updates])
     anderson = state.anderson
-    if plan.acceleration == "anderson":
+    if plan.acceleration == "anderson" and state.phase == "knn":
         mask = np.concatenate([np.repeat(u.support.ravel(), 2) for u in updates])
         x_new, anderson = anderson_step(anderson, x, x + dx, mask)
     elif plan.acceleration == "overrelax":
@@ -532,69 +565,6 @@ def _split_nodes(grids, updates, x_new):
         )
         start += n
     return out
-
-
-# ---------------------------------------------------------------------------------------------
-# the result
-# ---------------------------------------------------------------------------------------------
-
-
-def _result(plan: _Plan, scheme: str, state: _State, converged: bool, reason: str, t0: float, initial_residual):
-    learned = state.iteration > 0
-    fields, pointwise = _stored_fields(plan, state) if learned else (_identity_fields(plan.sizes), None)
-    wall = time.perf_counter() - t0
-    if learned:
-        logger.info(
-            "scheme %s: %s after %d iterations (%.1f s, of which %.1f s in the adjustment)",
-            scheme,
-            reason,
-            state.iteration,
-            wall,
-            plan.adjuster.seconds,
-        )
-    cv = tuple(m.cv for m in state.memory) if learned else ()
-    uncertainty = None
-    if learned and plan.smooth and plan.refine != "none":  # the gridded refinement's fields: σ over the joint problem
-        shape = plan.adjuster.nominal_shape(state.adj)[1]
-        args = (state.adj, plan.observations, plan.rows, state.trained, state.grids, state.memory, plan.params)
-        uncertainty = learned_uncertainty(*args, estimate_iop=plan.estimate_iop, nominal_shape_mm=shape)
-        fields = fields if uncertainty is None else tuple(map(with_field_std, fields, uncertainty))
-    return LearnResult(
-        scheme=scheme,
-        fields=fields,
-        pointwise=pointwise,
-        corrections_px=state.corrections,
-        adjustment=state.adj,
-        history=state.history,
-        cv=cv,
-        converged=converged,
-        stop_reason=reason,
-        wall_time_s=wall,
-        adjust_time_s=plan.adjuster.seconds,
-        initial_residual_px=initial_residual,
-        trained=state.trained,
-        uncertainty=uncertainty,
-    )
-
-
-def _identity_fields(sizes) -> tuple:
-    return tuple(CorrectionField.constant(w, h) for w, h in sizes)
-
-
-def _stored_fields(plan: _Plan, state: _State) -> tuple[tuple, tuple | None]:
-    """The gridded fields to store, and the unsmoothed schemes' exact (pointwise) fields."""
-    if plan.smooth:
-        return state.grids, None
-    fields = []
-    for s, (model, mem) in enumerate(zip(state.updates, state.memory)):
-        grid = state.pointwise[s].to_grid(plan.params.grid_spacing_px)
-        sigma, support = node_statistics(model, grid.nodes_px, mem.cv.cv_rms_px, plan.params.grid)
-        fields.append(
-            grid.with_delta(
-                grid.delta_px, sigma_px=sigma.reshape(grid.sigma_px.shape), support=support.reshape(grid.support.shape)
-            )
-        )
-    return tuple(fields), state.pointwise
 
 
 __all__ = ["calibrate"]

@@ -130,20 +130,20 @@ class LearnParams:
         being learned slowly (small steps, the cost falling by percents) and through a small
         step that an accelerated iteration follows with a large one.
     stall_tolerance : float *(preset)*
-        A refinement whose steps move the orientation too (``orientation_response``) also ends when
-        the adjustment's cost (equation 2) has fallen by less than this fraction of itself below the
-        refinement's best, at two iterations running (recommended 1e-3; paper 0: off). Each such
-        step is a Gauss-Newton step of the joint problem, so once the cost stops falling the field has
-        converged: on a rendered 40-frame 1024 px set the field was within 0.0005 px of its
-        converged accuracy after 5 refinement steps, while the cost's last changes, a few hundredths
-        of a percent, come from inexact inner solves; a weighted sum of squares of ``2n`` residuals
-        fluctuates by about ``1/sqrt(n)`` of itself from sample to sample (3 % at 1 000
-        observations), far above 1e-3. The beads-alone step creeps (its cost falls slowly for many
-        iterations): the rule is off for it.
+        The refinement also ends at the first iteration whose adjustment cost (equation 2) is not
+        below the refinement's best by this fraction of itself (recommended 1e-3; paper 0: off); the
+        loop keeps its best iterate, never the last, so one such iteration is enough (issue 31). Each
+        joint step is a Gauss-Newton step of the joint problem, so once the cost stops falling the
+        field has reached the steps' fixed point: on the 8-exposure 384 px set of
+        ``tests/stages/test_learn_order.py`` one more step from the kept iterate moves the field by
+        less than 1 % of its σ. The cost's last changes, a few hundredths of a percent, come from
+        inexact inner solves; a weighted sum of squares of ``2n`` residuals fluctuates by about
+        ``1/sqrt(n)`` of itself from sample to sample (3 % at 1 000 observations), far above 1e-3.
     acceleration : str *(preset)*
         ``"none"`` (the paper's plain fixed-point loop), ``"overrelax"``
         (``Δ += relaxation δ``) or ``"anderson"`` (recommended: Anderson
-        acceleration of the gridded field's fixed-point iteration; the
+        acceleration of the kNN phase's fixed-point iteration of the gridded field;
+        the refinement's Gauss-Newton steps are taken as they are; the
         unsmoothed schemes run it as ``"none"``).
     relaxation : float
         Step factor of ``"overrelax"`` (default 1.5; 1 is the plain loop).

@@ -6,9 +6,11 @@ moves by less than ``step_tolerance`` times the inlier RMS, when (smoothed
 schemes, in the refinement or when there is none) the gridded field moves by
 less than ``field_tolerance`` times its own uncertainty with the adjustment's
 cost stalled, or, in a refinement whose steps move the orientation too (Gauss-Newton
-steps of the joint problem), when the adjustment's cost stops falling by more
-than ``stall_tolerance`` of itself; each of the last two for two iterations
-running. Otherwise at its iteration cap.
+steps of the joint problem, or steps of the beads alone), at the first iteration
+whose adjustment cost is not below the phase's best by ``stall_tolerance`` of it
+(the loop keeps its best iterate, never the last, so one such iteration is enough:
+issue 31). The field rule holds for two iterations running. Otherwise at its
+iteration cap.
 """
 
 from __future__ import annotations
@@ -35,7 +37,8 @@ def decide(
     still_field = field_phase and all(
         _field_settled(history[:end], params.field_tolerance, cost_tolerance) for end in running
     )
-    stalled = phase == "grid" and all(_cost_stalled(history[:end], stall_tolerance) for end in running)
+    # the loop keeps its best iterate: one iteration that does not improve on it ends the refinement
+    stalled = phase == "grid" and _cost_stalled(history, stall_tolerance)
     done = small_change or small_step or still_field or stalled
     cap = params.max_iterations if phase == "knn" else params.refine_iterations
     if not done and iterations_in_phase < cap:
@@ -55,10 +58,7 @@ def decide(
             "at every supported node and the adjustment's cost stopped falling, two iterations running"
         )
     elif stalled:
-        reason = (
-            f"the adjustment's cost fell by less than {stall_tolerance:g} of itself below its best, "
-            "two iterations running"
-        )
+        reason = f"the adjustment's cost fell by less than {stall_tolerance:g} of itself below its best"
     elif phase == "grid":
         reason = f"maximum number of refinement iterations ({params.refine_iterations}) reached"
     else:
