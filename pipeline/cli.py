@@ -37,6 +37,8 @@ import sys
 import warnings
 from pathlib import Path
 
+from fluorocal.cli_common import add_out, load_project, positive_int, project_runner
+
 #: optional command modules: pipeline/cmd_<name>.py exposing add_parser(subparsers) and run(args)
 COMMAND_MODULES = ("simulate", "detect", "label", "adjust", "undistort", "export", "evaluate")
 
@@ -57,11 +59,39 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"fluorocal: error: {message} (see {self.prog} --help)\n")
 
 
+def _add_common(parser: argparse.ArgumentParser, default) -> None:
+    """The options every command takes, before or after the command's name."""
+    parser.add_argument("--debug", action="store_true", default=default, help="show tracebacks and debug logging")
+    parser.add_argument(
+        "-q", "--quiet", action="store_true", default=default, help="no progress bars, warnings and errors only"
+    )
+
+
+class _CommandParser(_Parser):
+    """A command's parser: it takes the common options too (after the command), and its subcommands theirs.
+
+    Their default is suppressed, so that an option given before the command is not reset by the command's parser.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        _add_common(self, argparse.SUPPRESS)
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("fluorocal")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="fluorocal", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars, warnings and errors only")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    parser.add_argument("--version", action="version", version=f"fluorocal {_version()}")
+    _add_common(parser, False)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_CommandParser)
 
     p = sub.add_parser(
         "run",
@@ -108,12 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="with STAGE: write the debug overlay of frame N (0-based, over all systems)",
     )
-    p.add_argument(
-        "--out",
-        type=Path,
-        metavar="DIR",
-        help="with a calibration.json: folder for the orientation plots (default: overlays/ beside the calibration)",
-    )
+    add_out(p, "with a calibration.json: folder for the orientation plots (default: overlays/ beside the calibration)")
     p.set_defaults(func=cmd_inspect)
 
     p = sub.add_parser("cache", help="manage the artifact cache", description="Manage a project's artifact cache.")
@@ -135,43 +160,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def positive_int(text: str) -> int:
-    """An argparse type: a positive integer (``--jobs``, ``--image-size``)."""
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer; got {text!r}")
-    return int(text)
-
-
-def _compute(args, config):
-    """The config's ``[compute]`` with ``--jobs``, ``--scheduler`` or ``FLUOROCAL_SCHEDULER`` over it."""
-    from fluorocal.compute import where_to_run
-
-    return where_to_run(config.compute, getattr(args, "jobs", None), getattr(args, "scheduler", None))
-
-
-def _load(config_path: Path, *, writable: bool = True):
-    from fluorocal.config import load_config
-    from fluorocal.graph import stage_params_classes
-
-    return load_config(config_path, stage_params_allowed=stage_params_classes(), writable=writable)
-
-
-def _runner(args, config=None, **kw):
-    from fluorocal.cache import ArtifactCache
-    from fluorocal.graph import default_stages
-    from fluorocal.run import Runner
-
-    config = _load(args.config) if config is None else config
-    cache = ArtifactCache(config.cache_dir)
-    return Runner(config, default_stages(), cache, progress=not args.quiet, compute=_compute(args, config), **kw)
-
-
 def cmd_run(args) -> int:
     from fluorocal.export import check_outputs, export_outputs
 
-    config = _load(args.config)
+    config = load_project(args.config)
     out_dir = check_outputs(config)  # before any work: names, the output folder, leftovers of a killed run
-    runner = _runner(args, config, force=args.force, until=args.until)
+    runner = project_runner(args, config, force=args.force, until=args.until)
     runner.run()
     written = export_outputs(runner)
     log.info("wrote %d file(s) to %s", len(written), out_dir)
@@ -195,7 +189,9 @@ def cmd_inspect(args) -> int:
         return 0
     if args.out is not None:
         raise InputError("--out applies to a calibration.json; a project's overlays go to its output folder")
-    runner = _runner(args, _load(args.config, writable=args.frame is not None))  # only an overlay is written
+    runner = project_runner(
+        args, load_project(args.config, writable=args.frame is not None)
+    )  # only an overlay is written
     rows = runner.status()
     if args.stage:
         return _inspect_stage(runner, args.stage, args.frame)
@@ -240,10 +236,10 @@ def _inspect_stage(runner, stage: str, frame: int | None) -> int:
 def cmd_cache_clean(args) -> int:
     from fluorocal.cache import ArtifactCache
 
-    config = _load(args.config)
+    config = load_project(args.config)
     cache = ArtifactCache(config.cache_dir)
     if args.stale:
-        runner = _runner(args)
+        runner = project_runner(args)
         removed = cache.clean(keep={(stage, key) for (stage, _), key in runner.keys.items()})
     else:
         removed = cache.clean()

@@ -2,7 +2,7 @@ r"""`fluorocal undistort`: remove a system's learned distortion from clinical or
 
 Each INPUT (DICOM, TIFF, PNG or video; a file of one or many frames, or a
 folder of them) is resampled onto the ideal pinhole image of the calibrated
-system and written to OUTDIR under the same name, in the input's own format,
+system and written to --out under the same name, in the input's own format,
 bit depth and metadata. DICOM outputs form a derived series: a new Series
 Instance UID per source series and run, a new SOP Instance UID per file,
 ImageType DERIVED\SECONDARY, a Source Image Sequence naming the original and
@@ -28,6 +28,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from fluorocal.cli_common import add_calibration, add_out, add_overwrite, parse_orientation
+
 if TYPE_CHECKING:  # imported when run: `fluorocal undistort --help` loads neither OpenCV nor OpenImageIO
     from fluorocal.stages.io import Derivation, StoredFrames
     from fluorocal.stages.undistort import UndistortParams
@@ -41,6 +43,7 @@ def add_parser(subparsers) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    add_calibration(p)
     p.add_argument(
         "inputs",
         nargs="+",
@@ -48,7 +51,6 @@ def add_parser(subparsers) -> None:
         metavar="INPUT",
         help="frame files (single or multi-frame) or folders of them (their frame files, sorted by name)",
     )
-    p.add_argument("--calibration", type=Path, required=True, help="calibration.json written by `fluorocal run`")
     p.add_argument(
         "--system",
         required=True,
@@ -57,29 +59,19 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--orientation",
-        metavar="NAME",
+        metavar="NAME|orbit=DEG,tilt=DEG",
         help="the C-arm orientation of the inputs: a calibrated orientation's name, or orbit=DEG,tilt=DEG to "
         "interpolate between calibrated ones (default: the system's one field, or with several the orientation "
         "named like each input's file stem)",
     )
-    p.add_argument(
-        "--out",
-        type=Path,
-        default=Path("undistorted"),
-        metavar="OUTDIR",
-        help="output directory (default: ./undistorted)",
-    )
+    add_out(p, "output folder (default: ./undistorted)", default=Path("undistorted"))
     p.add_argument(
         "--interpolation",
         choices=("linear", "cubic", "lanczos", "nearest"),
         default="linear",
         help="resampling kernel (default: linear)",
     )
-    p.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace output files that already exist (default: refuse them before any work)",
-    )
+    add_overwrite(p, "output files that already exist")
     p.set_defaults(func=run)
 
 
@@ -193,37 +185,6 @@ def _write_all(items) -> None:
             write_frames_like(job.path, list(frames), job.out, derivation=job.derivation)
         else:
             write_stored_like(job.path, frames, job.out, job.n_frames, derivation=job.derivation)
-
-
-def parse_orientation(text: str):
-    """``--orientation``'s value: a name, or ``orbit=DEG,tilt=DEG`` as ``{"orbit": float, "tilt": float}``.
-
-    Raises
-    ------
-    InputError
-        ``key=value`` pairs that are not exactly orbit and tilt, each a number.
-
-    Examples
-    --------
-    >>> parse_orientation("orbit30")
-    'orbit30'
-    >>> parse_orientation("orbit=15, tilt=-7.5")
-    {'orbit': 15.0, 'tilt': -7.5}
-    """
-    from fluorocal.stages.errors import InputError
-
-    if "=" not in text:
-        return text
-    values = {}
-    for part in text.split(","):
-        key, _, value = part.partition("=")
-        try:
-            values[key.strip()] = float(value)
-        except ValueError:
-            raise InputError(f"--orientation {text!r}: {key.strip()} must be a number of degrees") from None
-    if set(values) != {"orbit", "tilt"} or text.count("=") != 2:
-        raise InputError(f"--orientation {text!r}: expected a name, or orbit=DEG,tilt=DEG (both, nothing else)")
-    return values
 
 
 def _orientation_for(cal, system: str, path: Path, chosen):
