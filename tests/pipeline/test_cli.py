@@ -54,11 +54,11 @@ def test_inspect_reads_a_project_whose_folders_cannot_be_written(tmp_path, monke
 )
 def test_a_usage_error_is_one_line_naming_the_option(tmp_path, capsys, command):
     with pytest.raises(SystemExit) as exc:
-        main([*command, "--out", str(tmp_path / "l.csv"), "--image-size", "-1", "0"])
+        main([*command, "--out", str(tmp_path / "l"), "--image-size", "-1", "0"])
     err = capsys.readouterr().err.strip()
     assert exc.value.code == 2 and len(err.splitlines()) == 1
     assert err.startswith("fluorocal: error: argument --image-size: expected a positive integer; got '-1'")
-    assert not (tmp_path / "l.csv").exists()
+    assert not (tmp_path / "l").exists()
 
 
 def test_simulate_names_the_option_behind_a_refused_parameter(tmp_path, capsys):

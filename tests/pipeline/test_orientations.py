@@ -358,10 +358,7 @@ def undistort_setup(tmp_path):
 
 
 def _run_undistort(cal, frame, out, *options):
-    return main(
-        ["--quiet", "undistort", str(frame), "--calibration", str(cal), "--system", "A", "--out", str(out)]
-        + list(options)
-    )
+    return main(["--quiet", "undistort", str(cal), str(frame), "--system", "A", "--out", str(out)] + list(options))
 
 
 @pytest.mark.parametrize(

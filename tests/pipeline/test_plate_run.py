@@ -119,7 +119,6 @@ def test_real_walkthrough_grid_to_spine(arcadis_dir, tmp_path):
             [
                 "--quiet",
                 "undistort",
-                "--calibration",
                 str(cal_path),
                 "--system",
                 "arcadis",

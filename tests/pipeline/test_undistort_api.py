@@ -264,7 +264,7 @@ def _dicom(path, frames: np.ndarray, photometric: str, syntax: str) -> pydicom.D
 
 
 def _undistort(saved, out, *inputs, system="B"):
-    args = ["--quiet", "undistort", *map(str, inputs), "--calibration", str(saved), "--system", system]
+    args = ["--quiet", "undistort", str(saved), *map(str, inputs), "--system", system]
     return main(args + ["--out", str(out)])
 
 

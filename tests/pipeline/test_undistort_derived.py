@@ -21,7 +21,7 @@ from tests.stages.test_dicom_derived import _source
 
 
 def _undistort(saved, out, *inputs, system="B", options=()):
-    args = ["--quiet", "undistort", *map(str, inputs), "--calibration", str(saved), "--system", system]
+    args = ["--quiet", "undistort", str(saved), *map(str, inputs), "--system", system]
     return main(args + ["--out", str(out), *options])
 
 
