@@ -24,15 +24,17 @@ or FLUOROCAL_THREADS says otherwise; the per-frame stages run on every core
 (--jobs, [compute] jobs) or on a Dask cluster (--scheduler).
 
 Exit codes: 0 success, 1 unexpected failure, 2 bad input (file, config key,
-argument), 130 interrupted. Add --debug for a traceback.
+argument), 130 interrupted, 141 output pipe closed (as by `| head`). Add --debug for a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import importlib
 import logging
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -166,14 +168,18 @@ def cmd_run(args) -> int:
     config = load_project(args.config)
     out_dir = check_outputs(config)  # before any work: names, the output folder, leftovers of a killed run
     runner = project_runner(args, config, force=args.force, until=args.until)
-    runner.run()
+    report = runner.run()
+    if "label" in report.outcomes:
+        from fluorocal.gather import labelling_line
+
+        log.info("label: %s", labelling_line([runner.get("label", u) for u in range(len(runner.units))]))
     written = export_outputs(runner)
     log.info("wrote %d file(s) to %s", len(written), out_dir)
-    report = out_dir / "report.md"
-    if report in written:
-        table = [line for line in report.read_text().splitlines() if line.startswith("|")]
+    report_md = out_dir / "report.md"
+    if report_md in written:
+        table = [line for line in report_md.read_text().splitlines() if line.startswith("|")]
         print("\n".join(table))
-        print(f"report: {report}")
+        print(f"report: {report_md}")
     return 0
 
 
@@ -192,19 +198,22 @@ def cmd_inspect(args) -> int:
     runner = project_runner(
         args, load_project(args.config, writable=args.frame is not None)
     )  # only an overlay is written
-    rows = runner.status()
     if args.stage:
         return _inspect_stage(runner, args.stage, args.frame)
+    from fluorocal.inspect import stage_summary
+
     print(f"{'stage':<10} {'key':<12} {'status':<8} {'entries':>9} {'size':>10}  summary")
-    for r in rows:
+    for r in runner.status():
+        summary = stage_summary(runner, r["stage"]) if runner.by_name[r["stage"]].per_frame else r["summary"]
         print(
             f"{r['stage']:<10} {r['key']:<12} {r['status']:<8} {r['cached']:>4}/{r['n']:<4} "
-            f"{_human(r['bytes']):>10}  {r['summary']}"
+            f"{_human(r['bytes']):>10}  {summary}"
         )
     return 0
 
 
 def _inspect_stage(runner, stage: str, frame: int | None) -> int:
+    from fluorocal.gather import frame_name
     from fluorocal.stages.errors import InputError
 
     if stage not in runner.by_name:
@@ -212,12 +221,15 @@ def _inspect_stage(runner, stage: str, frame: int | None) -> int:
     per_frame = runner.by_name[stage].per_frame
     units = range(len(runner.units)) if per_frame else [None]
     if frame is not None:
-        if not per_frame or not 0 <= frame < len(runner.units):
-            raise InputError(f"--frame must be in 0..{len(runner.units) - 1} for per-frame stage {stage!r}")
+        if not per_frame:
+            frame_stages = ", ".join(s.name for s in runner.stages if s.per_frame)
+            raise InputError(f"--frame: stage {stage!r} has one artifact per project; --frame is for {frame_stages}")
+        if not 0 <= frame < len(runner.units):
+            raise InputError(f"--frame must be in 0..{len(runner.units) - 1} (the frames of every system, in order)")
         units = [frame]
     for u in units:
         key = runner.keys[(stage, u)]
-        where = runner.units[u].label if u is not None else "project"
+        where = frame_name(runner.units[u], runner.config) if u is not None else "project"
         manifest = runner.cache.manifest(stage, key)
         if manifest is None:
             print(f"{where}: missing (run `fluorocal run` first)")
@@ -296,7 +308,13 @@ def main(argv=None) -> int:
 
     try:
         limit_threads(config_threads(getattr(args, "config", None)))  # before numpy, OpenCV and BLAS load
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's own flush at exit
+        return code
+    except BrokenPipeError:  # `fluorocal inspect ... | head`: the reader has what it wanted
+        with contextlib.suppress(OSError, ValueError):  # no more writes to the pipe, at exit neither
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE, as a shell reports a command that a closed pipe ended
     except CalibError as exc:
         if args.debug:
             raise
