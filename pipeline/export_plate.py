@@ -223,14 +223,14 @@ def _plate_lines(result, pitch_mm: float) -> list[str]:
 
 
 #: arrows per side of a plate map: one hole per cell of this grid, so that each arrow can be seen
-PLATE_MAP_CELLS = 30
+PLATE_MAP_CELLS = 20
 
 
 def plate_map(path: Path, result, system: int, pitch_mm: float) -> Path:
     """The plate's estimated errors as arrows on the plate (mm), one hole per cell, magnified to be seen.
 
-    The longest arrow spans about a cell (:data:`PLATE_MAP_CELLS` per side); the colour bar gives the
-    error's length in mm.
+    An arrow of the 95th percentile's length spans a cell (:data:`PLATE_MAP_CELLS` per side); the colour
+    bar gives the error's length in mm.
     """
     from fluorocal.report import _figure, _save
 
@@ -240,7 +240,7 @@ def plate_map(path: Path, result, system: int, pitch_mm: float) -> Path:
     _, shown = np.unique(np.floor((xy - xy.min(axis=0)) / cell), axis=0, return_index=True)
     xy, err = xy[shown], err[shown]
     length = np.linalg.norm(err, axis=1)
-    gain = 0.9 * cell / max(float(length.max()), 1e-12)
+    gain = cell / max(float(np.percentile(length, 95)), 1e-12)
     plt, fig, (ax,) = _figure(1, width=6.4, height=5.6)
     arrows = ax.quiver(
         xy[:, 0],
@@ -252,7 +252,9 @@ def plate_map(path: Path, result, system: int, pitch_mm: float) -> Path:
         scale_units="xy",
         scale=1 / gain,
         cmap="viridis",
-        width=0.004,
+        width=0.005,
+        headwidth=3,
+        headlength=4,
     )
     fig.colorbar(arrows, ax=ax, label="plate error (mm)", shrink=0.8)
     ax.set_aspect("equal")
