@@ -5,7 +5,7 @@ Commands:
   inspect CONFIG [STAGE]  what each stage produced (cached / stale / missing), overlays;
                           inspect calibration.json: its systems and how the field changes with orientation
   cache clean CONFIG      delete the project's artifact cache
-  undistort INPUT...      undistort frames with a calibration, keeping format and bit depth
+  undistort CALIBRATION INPUT...  undistort frames with a calibration, keeping format and bit depth
   export CALIBRATION      the calibration for OpenCV, DLTdv/XMALab, MayaCam, mrcal or the paper's formats
   evaluate CONFIG         the paper's held-out protocol on a project: schemes x training sizes, table, plots
   simulate OUTDIR         write a synthetic data set with ground truth and a config
@@ -41,7 +41,9 @@ from pathlib import Path
 
 from fluorocal.cli_common import add_out, load_project, positive_int, project_runner
 
-#: optional command modules: pipeline/cmd_<name>.py exposing add_parser(subparsers) and run(args)
+#: optional command modules: pipeline/cmd_<name>.py exposing add_parser(subparsers) and run(args); they share
+#: options and helpers through fluorocal.cli_common (never this module), and get the common options
+#: (--quiet, --debug) from the subparsers' class
 COMMAND_MODULES = ("simulate", "detect", "label", "adjust", "undistort", "export", "evaluate")
 
 log = logging.getLogger("fluorocal")
