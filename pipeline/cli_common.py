@@ -46,10 +46,15 @@ def add_overwrite(parser: argparse.ArgumentParser, what: str) -> None:
     parser.add_argument("--overwrite", action="store_true", help=f"replace {what} (default: refuse before any work)")
 
 
-def add_image_size(parser: argparse.ArgumentParser, help: str, default: tuple[int, int] | None = None) -> None:
-    """``--image-size W H`` in px, each a positive integer."""
+def add_image_size(parser: argparse.ArgumentParser, note: str, default: tuple[int, int] | None = None) -> None:
+    """``--image-size W H`` in px, each a positive integer; ``note`` says what it is for and its default."""
     parser.add_argument(
-        "--image-size", type=positive_int, nargs=2, default=default, metavar=("W", "H"), help=f"{help} in px"
+        "--image-size",
+        type=positive_int,
+        nargs=2,
+        default=default,
+        metavar=("W", "H"),
+        help=f"frame size in px; {note}",
     )
 
 

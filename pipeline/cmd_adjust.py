@@ -47,7 +47,7 @@ def add_parser(subparsers) -> None:
         "--phantom", type=Path, required=True, metavar="CSV", help="phantom CSV id,x,y,z[,diameter][,role] (mm)"
     )
     add_geometry(p, (1100.0, 0.25))
-    add_image_size(p, "frame size (default: 1024 1024)", (1024, 1024))
+    add_image_size(p, "the principal point starts at its centre (default: 1024 1024)", (1024, 1024))
     p.add_argument(
         "--nu", type=float, default=4.0, help="Student-t degrees of freedom; inf for least squares (default 4)"
     )

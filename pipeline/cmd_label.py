@@ -61,7 +61,7 @@ def add_parser(subparsers) -> None:
         help="grid plate hole pitch in mm (default: 0, required with --lattice)",
     )
     add_geometry(p)
-    add_image_size(p, "frame size (the principal point is its centre; default: the centre of the detections)")
+    add_image_size(p, "the principal point is its centre (default: the centre of the detections)")
     p.add_argument("--seeds", type=Path, metavar="CSV", help="seeds id,x,y[,file,frame] (default: none)")
     add_out(p, "folder for labels.csv (required)", required=True)
     add_overwrite(p, "an existing labels.csv")

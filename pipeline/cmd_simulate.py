@@ -89,7 +89,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--systems", type=int, choices=(1, 2), default=1, help="1 = monoplanar, 2 = biplanar (default: 1)")
     p.add_argument("--seed", type=int, default=0, help="random seed; same seed, same bytes (default: 0)")
-    add_image_size(p, "frame size, square (W = H); the detector stays 256 mm wide (default: 1024 1024)", (1024, 1024))
+    add_image_size(p, "square (W = H); the detector stays 256 mm wide (default: 1024 1024)", (1024, 1024))
     p.add_argument(
         "--distortion",
         choices=("none", "mild", "strong"),
