@@ -57,7 +57,13 @@ def _command_modules():
 
 
 class _Parser(argparse.ArgumentParser):
-    """Usage errors in one line like every other refusal; the usage is one ``--help`` away."""
+    """Usage errors in one line like every other refusal; the usage is one ``--help`` away.
+
+    No abbreviations: an option has one spelling (``--orient`` is not ``--orientation``).
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, allow_abbrev=False, **kwargs)
 
     def error(self, message: str):
         self.exit(2, f"fluorocal: error: {message} (see {self.prog} --help)\n")

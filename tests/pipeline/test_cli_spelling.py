@@ -137,3 +137,10 @@ def test_holdout_does_not_swallow_the_config(tmp_path, capsys):
     # `evaluate --holdout odd CONFIG` read CONFIG as a second --holdout value, then missed the config
     assert main(["evaluate", "--holdout", "odd", str(tmp_path / "nope.toml")]) == 2
     assert "nope.toml: config file not found" in capsys.readouterr().err
+
+
+def test_no_option_is_taken_by_an_abbreviation(capsys):
+    # argparse's prefixes would be second spellings (--orient for --orientation, --over for --overwrite)
+    with pytest.raises(SystemExit) as exc:
+        main(["undistort", "c.json", "f.tif", "--system", "A", "--over"])
+    assert exc.value.code == 2 and "unrecognized arguments: --over" in capsys.readouterr().err
