@@ -60,5 +60,5 @@ def _totals(artifacts: list) -> str:
         fitted = sum(int(a.ok.sum()) for a in artifacts)
         return f"{n} frames, {fitted} fitted, {sum(len(a) for a in artifacts) - fitted} failed"
     if isinstance(artifacts[0], Labels):
-        return f"{labelling_line(artifacts)} labelled, {sum(a.n_labelled for a in artifacts)} beads"
+        return f"{labelling_line(artifacts)} labelled, {sum(a.n_labelled for a in artifacts)} detections with an id"
     return f"{n} frames"

@@ -54,7 +54,8 @@ def test_inspect_sums_every_frame_of_every_system(calibrated_project, capsys):
         assert f"system {name}: {len(units)} frames, {accepted} accepted of {found} candidates" in table["detect"]
         labels = [runner.get("label", u) for u in units]
         beads = sum(lab.n_labelled for lab in labels)
-        assert re.search(rf"system {name}: {len(units)}/{len(units)} frames.* labelled, {beads} beads", table["label"])
+        labelled = rf"system {name}: {len(units)}/{len(units)} frames.* labelled, {beads} detections with an id"
+        assert re.search(labelled, table["label"])
 
     assert main(["inspect", str(cfg), "label"]) == 0
     listed = [line.split(":  ")[0] for line in capsys.readouterr().out.splitlines()]
