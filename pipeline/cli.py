@@ -221,7 +221,7 @@ def cmd_inspect(args) -> int:
 
 
 def _inspect_stage(runner, stage: str, frame: int | None) -> int:
-    from fluorocal.gather import frame_name
+    from fluorocal.gather import frame_description
     from fluorocal.stages.errors import InputError
 
     if stage not in runner.by_name:
@@ -237,7 +237,7 @@ def _inspect_stage(runner, stage: str, frame: int | None) -> int:
         units = [frame]
     for u in units:
         key = runner.keys[(stage, u)]
-        where = frame_name(runner.units[u], runner.config) if u is not None else "project"
+        where = frame_description(runner.units[u], runner.config) if u is not None else "project"
         manifest = runner.cache.manifest(stage, key)
         if manifest is None:
             print(f"{where}: missing (run `fluorocal run` first)")

@@ -7,7 +7,7 @@ from fluorocal.stages.artifacts import Observations
 from fluorocal.stages.errors import InputError
 
 
-def frame_name(unit, config) -> str:
+def frame_description(unit, config) -> str:
     """A frame as a user finds it: its system, its file and, in a multi-frame file, its index.
 
     The file is relative to the config, as its frames are given: ``"system A: frames/A/cine.dcm frame 3"``.
@@ -19,8 +19,8 @@ def frame_name(unit, config) -> str:
 
 
 def failed_frames(units, labels, config) -> list[str]:
-    """``"system S: file (reason)"`` of every frame whose labelling failed (:func:`frame_name`)."""
-    return [f"{frame_name(unit, config)} ({lab.reason})" for unit, lab in zip(units, labels) if not lab.ok]
+    """``"system S: file (reason)"`` of every frame whose labelling failed (:func:`frame_description`)."""
+    return [f"{frame_description(unit, config)} ({lab.reason})" for unit, lab in zip(units, labels) if not lab.ok]
 
 
 def labelling_line(labels) -> str:
