@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 
 demo: $(STAMP)
 	rm -rf demo
-	$(BIN)/fluorocal simulate demo/data --frames 8 --systems 2 --seed 7 --image-size 512
+	$(BIN)/fluorocal simulate demo/data --frames 8 --systems 2 --seed 7 --image-size 512 512
 	$(BIN)/fluorocal run demo/data/fluorocal.toml
 	$(BIN)/fluorocal inspect demo/data/fluorocal.toml
 

@@ -1,6 +1,6 @@
 """Hostile and careless input, faults and tampering, run through the command line as a user would (issue 13).
 
-Builds one small simulated biplanar project (``fluorocal simulate --frames 4 --systems 2 --image-size 512``),
+Builds one small simulated biplanar project (``fluorocal simulate --frames 4 --systems 2 --image-size 512 512``),
 runs it once so its cache is warm, and then, per case, copies it into a folder of its own beside a
 ``sibling/`` folder (a user's other work), applies one hostile or careless change and runs the
 ``fluorocal`` command(s) a user would, each in a subprocess. Per case it records:
@@ -364,7 +364,7 @@ def make_base(work: Path) -> Path:
     base = work / "base"
     proj = base / "proj"
     subprocess.run(
-        fluorocal("simulate", proj, "--frames", "4", "--systems", "2", "--image-size", "512", "--seed", "3"),
+        fluorocal("simulate", proj, "--frames", "4", "--systems", "2", "--image-size", "512", "512", "--seed", "3"),
         check=True,
         env=_env(),
         capture_output=True,
@@ -1061,9 +1061,7 @@ def all_cases() -> list[Case]:
         "readonly_undistort_out",
         ("proj",),
         hints=("und", "permission", "writable"),
-        commands=lambda c: [
-            fluorocal("undistort", "--calibration", c.cal, "--system", "A", "--out", c.proj / "und", c.frames("A")[0])
-        ],
+        commands=lambda c: [fluorocal("undistort", c.cal, "--system", "A", "--out", c.proj / "und", c.frames("A")[0])],
     )
 
     # ---- phantom CSV ----
@@ -1356,9 +1354,7 @@ def all_cases() -> list[Case]:
 
     def und(*extra, out="und", system="A"):
         return lambda c: [
-            fluorocal(
-                "undistort", "--calibration", c.cal, "--system", system, "--out", c.proj / out, *extra, c.frames("A")[0]
-            )
+            fluorocal("undistort", c.cal, "--system", system, "--out", c.proj / out, *extra, c.frames("A")[0])
         ]
 
     def on_cal(cmd):
@@ -1512,7 +1508,6 @@ def all_cases() -> list[Case]:
         lambda c: [
             fluorocal(
                 "undistort",
-                "--calibration",
                 c.cal,
                 "--system",
                 "A",
@@ -1537,11 +1532,7 @@ def all_cases() -> list[Case]:
         "undistort_out_is_input_folder",
         U,
         nothing,
-        lambda c: [
-            fluorocal(
-                "undistort", "--calibration", c.cal, "--system", "A", "--out", c.proj / "frames" / "A", c.frames("A")[0]
-            )
-        ],
+        lambda c: [fluorocal("undistort", c.cal, "--system", "A", "--out", c.proj / "frames" / "A", c.frames("A")[0])],
         hints=("frame_000", "exists"),
     )
     add(
@@ -1551,7 +1542,6 @@ def all_cases() -> list[Case]:
         lambda c: [
             fluorocal(
                 "undistort",
-                "--calibration",
                 c.cal,
                 "--system",
                 "A",
@@ -1576,11 +1566,7 @@ def all_cases() -> list[Case]:
         "undistort_input_missing",
         U,
         nothing,
-        lambda c: [
-            fluorocal(
-                "undistort", "--calibration", c.cal, "--system", "A", "--out", c.proj / "und", c.proj / "nope.tif"
-            )
-        ],
+        lambda c: [fluorocal("undistort", c.cal, "--system", "A", "--out", c.proj / "und", c.proj / "nope.tif")],
         hints=("nope.tif",),
         allow=("proj/und",),
     )
@@ -1588,9 +1574,7 @@ def all_cases() -> list[Case]:
         "undistort_input_empty_folder",
         U,
         lambda c: (c.proj / "empty").mkdir(),
-        lambda c: [
-            fluorocal("undistort", "--calibration", c.cal, "--system", "A", "--out", c.proj / "und", c.proj / "empty")
-        ],
+        lambda c: [fluorocal("undistort", c.cal, "--system", "A", "--out", c.proj / "und", c.proj / "empty")],
         hints=("empty",),
         allow=("proj/und", "proj/empty"),
     )
@@ -1598,9 +1582,7 @@ def all_cases() -> list[Case]:
         "undistort_input_binary",
         U,
         _write_bytes("bad.tif", os.urandom(5000)),
-        lambda c: [
-            fluorocal("undistort", "--calibration", c.cal, "--system", "A", "--out", c.proj / "und", c.proj / "bad.tif")
-        ],
+        lambda c: [fluorocal("undistort", c.cal, "--system", "A", "--out", c.proj / "und", c.proj / "bad.tif")],
         hints=("bad.tif",),
         allow=("proj/und",),
     )
@@ -1608,11 +1590,7 @@ def all_cases() -> list[Case]:
         "undistort_input_other_size",
         U,
         _tiff("small.tif", np.full((100, 100), 1000, np.uint16)),
-        lambda c: [
-            fluorocal(
-                "undistort", "--calibration", c.cal, "--system", "A", "--out", c.proj / "und", c.proj / "small.tif"
-            )
-        ],
+        lambda c: [fluorocal("undistort", c.cal, "--system", "A", "--out", c.proj / "und", c.proj / "small.tif")],
         hints=("small.tif", "size"),
         allow=("proj/und",),
     )
@@ -1620,9 +1598,7 @@ def all_cases() -> list[Case]:
         "undistort_input_1x1",
         U,
         _tiff("one.tif", np.full((1, 1), 1000, np.uint16)),
-        lambda c: [
-            fluorocal("undistort", "--calibration", c.cal, "--system", "A", "--out", c.proj / "und", c.proj / "one.tif")
-        ],
+        lambda c: [fluorocal("undistort", c.cal, "--system", "A", "--out", c.proj / "und", c.proj / "one.tif")],
         hints=("one.tif", "size"),
         allow=("proj/und",),
     )
@@ -1664,11 +1640,7 @@ def all_cases() -> list[Case]:
         "undistort_two_frames_folder",
         U,
         nothing,
-        lambda c: [
-            fluorocal(
-                "undistort", "--calibration", c.cal, "--system", "A", "--out", c.proj / "und", c.proj / "frames" / "A"
-            )
-        ],
+        lambda c: [fluorocal("undistort", c.cal, "--system", "A", "--out", c.proj / "und", c.proj / "frames" / "A")],
         expect="ok",
         check=undistorted_ok("proj/und", 4),
         allow=("proj/und",),
@@ -1680,7 +1652,6 @@ def all_cases() -> list[Case]:
         lambda c: [
             fluorocal(
                 "undistort",
-                "--calibration",
                 c.cal,
                 "--system",
                 "A",
@@ -2011,57 +1982,59 @@ def all_cases() -> list[Case]:
 
     # ---- other commands' inputs ----
     CMD = "commands"
-    det = lambda *a: lambda c: [fluorocal("detect", *a, "--out", c.proj / "det.csv", c.frames("A")[0])]  # noqa: E731
+    det = lambda *a: lambda c: [fluorocal("detect", *a, "--out", c.proj / "det", c.frames("A")[0])]  # noqa: E731
     add(
         "detect_ok",
         CMD,
         nothing,
         det(),
         expect="ok",
-        allow=("proj/det.csv",),
-        check=lambda c: None if len((c.proj / "det.csv").read_text().splitlines()) > 50 else "few detections",
+        allow=("proj/det",),
+        check=lambda c: (
+            None if len((c.proj / "det" / "detections.csv").read_text().splitlines()) > 50 else "few detections"
+        ),
     )
     add(
         "detect_missing_file",
         CMD,
         nothing,
-        lambda c: [fluorocal("detect", "--out", c.proj / "det.csv", c.proj / "no.tif")],
+        lambda c: [fluorocal("detect", "--out", c.proj / "det", c.proj / "no.tif")],
         hints=("no.tif",),
-        allow=("proj/det.csv",),
+        allow=("proj/det",),
     )
     add(
         "detect_binary_file",
         CMD,
         _write_bytes("bad.tif", os.urandom(999)),
-        lambda c: [fluorocal("detect", "--out", c.proj / "det.csv", c.proj / "bad.tif")],
+        lambda c: [fluorocal("detect", "--out", c.proj / "det", c.proj / "bad.tif")],
         hints=("bad.tif",),
-        allow=("proj/det.csv",),
+        allow=("proj/det",),
     )
     add(
         "detect_out_is_dir",
         CMD,
-        lambda c: (c.proj / "det.csv").mkdir(),
+        lambda c: (c.proj / "det" / "detections.csv").mkdir(parents=True),
         det(),
-        hints=("det.csv",),
-        allow=("proj/det.csv",),
+        hints=("detections.csv",),
+        allow=("proj/det",),
     )
-    add("detect_diameter_garbage", CMD, nothing, det("--diameter", "a:b"), hints=("diameter",), allow=("proj/det.csv",))
+    add("detect_diameter_garbage", CMD, nothing, det("--diameter", "a:b"), hints=("diameter",), allow=("proj/det",))
     add(
         "detect_diameter_negative",
         CMD,
         nothing,
         det("--diameter", "-5:3"),
         hints=("diameter",),
-        allow=("proj/det.csv",),
+        allow=("proj/det",),
     )
-    add("detect_diameter_nan", CMD, nothing, det("--diameter", "nan:inf"), hints=("diameter",), allow=("proj/det.csv",))
+    add("detect_diameter_nan", CMD, nothing, det("--diameter", "nan:inf"), hints=("diameter",), allow=("proj/det",))
     add(
         "detect_overlay_traversal",
         CMD,
         nothing,
         det("--overlay", "../../sibling_overlay"),
         expect="either",
-        allow=("proj/det.csv", "sibling_overlay"),
+        allow=("proj/det", "sibling_overlay"),
         check=lambda c: None,
         note="--overlay names the user's own folder",
     )
@@ -2069,11 +2042,13 @@ def all_cases() -> list[Case]:
         "detect_1x1",
         CMD,
         _tiff("one.tif", np.full((1, 1), 5, np.uint16)),
-        lambda c: [fluorocal("detect", "--out", c.proj / "det.csv", c.proj / "one.tif")],
+        lambda c: [fluorocal("detect", "--out", c.proj / "det", c.proj / "one.tif")],
         hints=("one.tif",),
-        allow=("proj/det.csv",),
+        allow=("proj/det",),
         expect="either",
-        check=lambda c: None if len((c.proj / "det.csv").read_text().splitlines()) <= 1 else "beads in a 1x1 frame",
+        check=lambda c: (
+            None if len((c.proj / "det" / "detections.csv").read_text().splitlines()) <= 1 else "beads in a 1x1 frame"
+        ),
         note="DEBATABLE: the debugging command reports the frame (no field of view, no candidates), writes no row",
     )
 
@@ -2087,7 +2062,7 @@ def all_cases() -> list[Case]:
                 c.proj / "det.csv",
                 "--phantom",
                 c.proj / "phantom.csv",  # noqa: E731
-                "--sid",
+                "--source-image-distance",
                 "1100",
                 "--pixel-pitch",
                 "0.5",
@@ -2095,7 +2070,7 @@ def all_cases() -> list[Case]:
                 "512",
                 "512",
                 "--out",
-                c.proj / "lab.csv",
+                c.proj / "lab",
                 *a,
             )
         ]
@@ -2118,22 +2093,31 @@ def all_cases() -> list[Case]:
             det_csv(text),
             lab(),
             hints=("det.csv",),
-            allow=("proj/lab.csv",),
+            allow=("proj/lab",),
             expect="either" if documented else "refuse",
-            check=lambda c: None if len((c.proj / "lab.csv").read_text().splitlines()) <= 1 else "labels from nothing",
+            check=lambda c: (
+                None if len((c.proj / "lab" / "labels.csv").read_text().splitlines()) <= 1 else "labels from nothing"
+            ),
             note="DEBATABLE: a non-finite detection is a failed fit by the CSV's definition (README); the frame's "
             "labelling fails with its reason, no label is written"
             if documented
             else "",
         )
-    add("label_sid_nan", CMD, det_csv(head), lab("--sid", "nan"), hints=("sid",), allow=("proj/lab.csv",))
+    add(
+        "label_sid_nan",
+        CMD,
+        det_csv(head),
+        lab("--source-image-distance", "nan"),
+        hints=("source-image-distance",),
+        allow=("proj/lab",),
+    )
     add(
         "label_image_size_negative",
         CMD,
         det_csv(head),
         lab("--image-size", "-1", "-1"),
         hints=("image-size", "image size"),
-        allow=("proj/lab.csv",),
+        allow=("proj/lab",),
     )
     add(
         "label_phantom_metres",
@@ -2141,7 +2125,7 @@ def all_cases() -> list[Case]:
         _chain(det_csv(head), _scale_phantom(0.001)),
         lab(),
         hints=("phantom", "metres"),
-        allow=("proj/lab.csv",),
+        allow=("proj/lab",),
     )
     adj = lambda *a: (  # noqa: E731
         lambda c: [
@@ -2194,7 +2178,14 @@ def all_cases() -> list[Case]:
     )
     add("adjust_nu_nan", CMD, obs(lambda ls: ls), adj("--nu", "nan"), hints=("nu",), allow=("proj/adj",))
     add("adjust_nu_negative", CMD, obs(lambda ls: ls), adj("--nu", "-2"), hints=("nu",), allow=("proj/adj",))
-    add("adjust_sid_inf", CMD, obs(lambda ls: ls), adj("--sid", "inf"), hints=("sid",), allow=("proj/adj",))
+    add(
+        "adjust_sid_inf",
+        CMD,
+        obs(lambda ls: ls),
+        adj("--source-image-distance", "inf"),
+        hints=("source-image-distance",),
+        allow=("proj/adj",),
+    )
     add(
         "adjust_out_is_file",
         CMD,
@@ -2258,7 +2249,7 @@ def all_cases() -> list[Case]:
         nothing,
         lambda c: [fluorocal("simulate", c.proj, "--frames", "2")],
         hints=("simulate", "exists", "force", str("proj")),
-        note="simulate over an existing project refuses without --force",
+        note="simulate over an existing project refuses without --overwrite",
     )
     add(
         "simulate_frames_negative",
@@ -2272,7 +2263,7 @@ def all_cases() -> list[Case]:
         "simulate_image_size_huge",
         CMD,
         nothing,
-        lambda c: [fluorocal("simulate", c.proj / "sim2", "--image-size", "10000000")],
+        lambda c: [fluorocal("simulate", c.proj / "sim2", "--image-size", "10000000", "10000000")],
         hints=("image-size", "image size"),
         allow=("proj/sim2",),
     )
@@ -2375,8 +2366,7 @@ def all_cases() -> list[Case]:
         CC,
         nothing,
         lambda c: (
-            [fluorocal("undistort", "--calibration", c.cal, "--system", "A", "--out", c.proj / "und", c.frames("A")[0])]
-            * 2
+            [fluorocal("undistort", c.cal, "--system", "A", "--out", c.proj / "und", c.frames("A")[0])] * 2
             + [fluorocal("inspect", c.cal, "--out", c.proj / "insp")]
         ),
         expect="either",
@@ -2411,7 +2401,6 @@ def all_cases() -> list[Case]:
         lambda c: [
             fluorocal(
                 "undistort",
-                "--calibration",
                 c.cal,
                 "--system",
                 "A",
@@ -2421,7 +2410,6 @@ def all_cases() -> list[Case]:
             ),
             fluorocal(
                 "undistort",
-                "--calibration",
                 c.cal,
                 "--system",
                 "A",

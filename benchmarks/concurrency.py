@@ -38,7 +38,9 @@ def _fluorocal(*args: str) -> list[str]:
 def make_project(root: Path) -> Path:
     """A small biplanar project (4 + 4 frames of 512 px), as the end-to-end tests use."""
     subprocess.run(
-        _fluorocal("simulate", str(root), "--frames", "4", "--systems", "2", "--image-size", "512", "--seed", "3"),
+        _fluorocal(
+            "simulate", str(root), "--frames", "4", "--systems", "2", "--image-size", "512", "512", "--seed", "3"
+        ),
         check=True,
         env=_env(),
     )

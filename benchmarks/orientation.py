@@ -6,7 +6,8 @@ Target (issue 12): calibrated at three orientations 30° apart, a held-out orien
 Protocol (``tests/pipeline/plate_orientation.py``), on the real ARCADIS grid frames
 (``../shared/data/arcadis/grid_centered_0.dcm``, ``grid_tilt_15/30/45/60.dcm``; their angles given in the
 config, the DICOMs record none) and on a simulated sequence (``fluorocal simulate OUT --phantom grid
---orientations 0:0,0:15,0:30,0:45,0:60 --frames 1 --format dicom``, seed 0, 1024 px):
+--orientation orbit=0,tilt=0 ... --orientation orbit=0,tilt=60`` (tilts 0, 15, 30, 45, 60)
+``--frames 1 --format dicom``, seed 0, 1024 px):
 
 1. every frame is detected, centroided and labelled by the pipeline (``fluorocal run --until label``),
    one lattice numbering across the sequence;
@@ -61,7 +62,16 @@ from tests.pipeline.plate_orientation import (  # noqa: E402
 )
 
 REAL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "arcadis"
-SIM_ARGS = ["--phantom", "grid", "--orientations", "0:0,0:15,0:30,0:45,0:60", "--frames", "1", "--format", "dicom"]
+SIM_ANGLES = [f"orbit=0,tilt={tilt}" for tilt in (0, 15, 30, 45, 60)]
+SIM_ARGS = [
+    "--phantom",
+    "grid",
+    *(w for a in SIM_ANGLES for w in ("--orientation", a)),
+    "--frames",
+    "1",
+    "--format",
+    "dicom",
+]
 
 
 def linear_between(a, b, angles_deg):
@@ -74,17 +84,17 @@ def linear_between(a, b, angles_deg):
 def simulated_project(root: Path) -> Path:
     """The simulated sequence at ``root`` (reused when ``root`` holds the one this simulator writes)."""
     from fluorocal.cli import main
-    from fluorocal.cmd_simulate import parse_orientations
+    from fluorocal.cmd_simulate import orientation_angles
     from fluorocal.stages.simulate import VERSION, SimulateParams
 
     truth_path = root / "truth.json"
-    expected = SimulateParams(phantom="grid", n_frames=1, orientations_deg=parse_orientations(SIM_ARGS[3]))
+    expected = SimulateParams(phantom="grid", n_frames=1, orientations_deg=orientation_angles(SIM_ANGLES))
     if truth_path.is_file():
         truth = json.loads(truth_path.read_text())
         params = json.loads(json.dumps(asdict(expected)))  # as truth.json spells them (tuples as lists)
         if truth.get("simulator_version") == VERSION and truth.get("params") == params:
             return root / "fluorocal.toml"
-    if main(["--quiet", "simulate", str(root), *SIM_ARGS, "--force"]) != 0:
+    if main(["--quiet", "simulate", str(root), *SIM_ARGS, "--overwrite"]) != 0:
         raise SystemExit("fluorocal simulate failed")
     return root / "fluorocal.toml"
 

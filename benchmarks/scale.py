@@ -81,7 +81,7 @@ def make_frames(root: Path, n_frames: int, image_size_px: int) -> Path:
         shutil.rmtree(root, ignore_errors=True)
         subprocess.run(
             [sys.executable, "-m", "fluorocal.cli", "--quiet", "simulate", str(root), "--frames", str(distinct)]
-            + ["--systems", "1", "--image-size", str(image_size_px), "--seed", "5"],
+            + ["--systems", "1", "--image-size", str(image_size_px), str(image_size_px), "--seed", "5"],
             check=True,
         )
         size_file.write_text(str(image_size_px))

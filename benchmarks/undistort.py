@@ -224,7 +224,7 @@ def _run(cmd: list[str], log: Path) -> tuple[float, float, int]:
 
 
 def _fluorocal(cal: Path, src: Path, out: Path) -> list[str]:
-    return [sys.executable, "-m", "fluorocal.cli", "undistort", str(src), "--calibration", str(cal), "--system", "A",
+    return [sys.executable, "-m", "fluorocal.cli", "undistort", str(cal), str(src), "--system", "A",
             "--out", str(out)]  # fmt: skip
 
 

@@ -5,7 +5,7 @@ Commands:
   inspect CONFIG [STAGE]  what each stage produced (cached / stale / missing), overlays;
                           inspect calibration.json: its systems and how the field changes with orientation
   cache clean CONFIG      delete the project's artifact cache
-  undistort INPUT...      undistort frames with a calibration, keeping format and bit depth
+  undistort CALIBRATION INPUT...  undistort frames with a calibration, keeping format and bit depth
   export CALIBRATION      the calibration for OpenCV, DLTdv/XMALab, MayaCam, mrcal or the paper's formats
   evaluate CONFIG         the paper's held-out protocol on a project: schemes x training sizes, table, plots
   simulate OUTDIR         write a synthetic data set with ground truth and a config
@@ -24,20 +24,26 @@ or FLUOROCAL_THREADS says otherwise; the per-frame stages run on every core
 (--jobs, [compute] jobs) or on a Dask cluster (--scheduler).
 
 Exit codes: 0 success, 1 unexpected failure, 2 bad input (file, config key,
-argument), 130 interrupted. Add --debug for a traceback.
+argument), 130 interrupted, 141 output pipe closed (as by `| head`). Add --debug for a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import importlib
 import logging
+import os
 import sys
 import warnings
 from pathlib import Path
 
-#: optional command modules: pipeline/cmd_<name>.py exposing add_parser(subparsers) and run(args)
+from fluorocal.cli_common import add_out, load_project, positive_int, project_runner
+
+#: optional command modules: pipeline/cmd_<name>.py exposing add_parser(subparsers) and run(args); they share
+#: options and helpers through fluorocal.cli_common (never this module), and get the common options
+#: (--quiet, --debug) from the subparsers' class
 COMMAND_MODULES = ("simulate", "detect", "label", "adjust", "undistort", "check", "export", "evaluate")
 
 log = logging.getLogger("fluorocal")
@@ -51,17 +57,51 @@ def _command_modules():
 
 
 class _Parser(argparse.ArgumentParser):
-    """Usage errors in one line like every other refusal; the usage is one ``--help`` away."""
+    """Usage errors in one line like every other refusal; the usage is one ``--help`` away.
+
+    No abbreviations: an option has one spelling (``--orient`` is not ``--orientation``).
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, allow_abbrev=False, **kwargs)
 
     def error(self, message: str):
         self.exit(2, f"fluorocal: error: {message} (see {self.prog} --help)\n")
 
 
+def _add_common(parser: argparse.ArgumentParser, default) -> None:
+    """The options every command takes, before or after the command's name."""
+    parser.add_argument("--debug", action="store_true", default=default, help="show tracebacks and debug logging")
+    parser.add_argument(
+        "-q", "--quiet", action="store_true", default=default, help="no progress bars, warnings and errors only"
+    )
+
+
+class _CommandParser(_Parser):
+    """A command's parser: it takes the common options too (after the command), and its subcommands theirs.
+
+    Their default is suppressed, so that an option given before the command is not reset by the command's parser.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        _add_common(self, argparse.SUPPRESS)
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("fluorocal")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="fluorocal", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars, warnings and errors only")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    parser.add_argument("--version", action="version", version=f"fluorocal {_version()}")
+    _add_common(parser, False)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_CommandParser)
 
     p = sub.add_parser(
         "run",
@@ -108,12 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="with STAGE: write the debug overlay of frame N (0-based, over all systems)",
     )
-    p.add_argument(
-        "--out",
-        type=Path,
-        metavar="DIR",
-        help="with a calibration.json: folder for the orientation plots (default: overlays/ beside the calibration)",
-    )
+    add_out(p, "with a calibration.json: folder for the orientation plots (default: overlays/ beside the calibration)")
     p.set_defaults(func=cmd_inspect)
 
     p = sub.add_parser("cache", help="manage the artifact cache", description="Manage a project's artifact cache.")
@@ -135,51 +170,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def positive_int(text: str) -> int:
-    """An argparse type: a positive integer (``--jobs``, ``--image-size``)."""
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer; got {text!r}")
-    return int(text)
-
-
-def _compute(args, config):
-    """The config's ``[compute]`` with ``--jobs``, ``--scheduler`` or ``FLUOROCAL_SCHEDULER`` over it."""
-    from fluorocal.compute import where_to_run
-
-    return where_to_run(config.compute, getattr(args, "jobs", None), getattr(args, "scheduler", None))
-
-
-def _load(config_path: Path, *, writable: bool = True):
-    from fluorocal.config import load_config
-    from fluorocal.graph import stage_params_classes
-
-    return load_config(config_path, stage_params_allowed=stage_params_classes(), writable=writable)
-
-
-def _runner(args, config=None, **kw):
-    from fluorocal.cache import ArtifactCache
-    from fluorocal.graph import default_stages
-    from fluorocal.run import Runner
-
-    config = _load(args.config) if config is None else config
-    cache = ArtifactCache(config.cache_dir)
-    return Runner(config, default_stages(), cache, progress=not args.quiet, compute=_compute(args, config), **kw)
-
-
 def cmd_run(args) -> int:
     from fluorocal.export import check_outputs, export_outputs
 
-    config = _load(args.config)
+    config = load_project(args.config)
     out_dir = check_outputs(config)  # before any work: names, the output folder, leftovers of a killed run
-    runner = _runner(args, config, force=args.force, until=args.until)
-    runner.run()
+    runner = project_runner(args, config, force=args.force, until=args.until)
+    report = runner.run()
+    if "label" in report.outcomes:
+        from fluorocal.gather import labelling_line
+
+        log.info("label: %s", labelling_line([runner.get("label", u) for u in range(len(runner.units))]))
     written = export_outputs(runner)
     log.info("wrote %d file(s) to %s", len(written), out_dir)
-    report = out_dir / "report.md"
-    if report in written:
-        table = [line for line in report.read_text().splitlines() if line.startswith("|")]
+    report_md = out_dir / "report.md"
+    if report_md in written:
+        table = [line for line in report_md.read_text().splitlines() if line.startswith("|")]
         print("\n".join(table))
-        print(f"report: {report}")
+        print(f"report: {report_md}")
     return 0
 
 
@@ -195,20 +203,25 @@ def cmd_inspect(args) -> int:
         return 0
     if args.out is not None:
         raise InputError("--out applies to a calibration.json; a project's overlays go to its output folder")
-    runner = _runner(args, _load(args.config, writable=args.frame is not None))  # only an overlay is written
-    rows = runner.status()
+    runner = project_runner(
+        args, load_project(args.config, writable=args.frame is not None)
+    )  # only an overlay is written
     if args.stage:
         return _inspect_stage(runner, args.stage, args.frame)
+    from fluorocal.inspect import stage_summary
+
     print(f"{'stage':<10} {'key':<12} {'status':<8} {'entries':>9} {'size':>10}  summary")
-    for r in rows:
+    for r in runner.status():
+        summary = stage_summary(runner, r["stage"]) if runner.by_name[r["stage"]].per_frame else r["summary"]
         print(
             f"{r['stage']:<10} {r['key']:<12} {r['status']:<8} {r['cached']:>4}/{r['n']:<4} "
-            f"{_human(r['bytes']):>10}  {r['summary']}"
+            f"{_human(r['bytes']):>10}  {summary}"
         )
     return 0
 
 
 def _inspect_stage(runner, stage: str, frame: int | None) -> int:
+    from fluorocal.gather import frame_description
     from fluorocal.stages.errors import InputError
 
     if stage not in runner.by_name:
@@ -216,12 +229,15 @@ def _inspect_stage(runner, stage: str, frame: int | None) -> int:
     per_frame = runner.by_name[stage].per_frame
     units = range(len(runner.units)) if per_frame else [None]
     if frame is not None:
-        if not per_frame or not 0 <= frame < len(runner.units):
-            raise InputError(f"--frame must be in 0..{len(runner.units) - 1} for per-frame stage {stage!r}")
+        if not per_frame:
+            frame_stages = ", ".join(s.name for s in runner.stages if s.per_frame)
+            raise InputError(f"--frame: stage {stage!r} has one artifact per project; --frame is for {frame_stages}")
+        if not 0 <= frame < len(runner.units):
+            raise InputError(f"--frame must be in 0..{len(runner.units) - 1} (the frames of every system, in order)")
         units = [frame]
     for u in units:
         key = runner.keys[(stage, u)]
-        where = runner.units[u].label if u is not None else "project"
+        where = frame_description(runner.units[u], runner.config) if u is not None else "project"
         manifest = runner.cache.manifest(stage, key)
         if manifest is None:
             print(f"{where}: missing (run `fluorocal run` first)")
@@ -240,10 +256,10 @@ def _inspect_stage(runner, stage: str, frame: int | None) -> int:
 def cmd_cache_clean(args) -> int:
     from fluorocal.cache import ArtifactCache
 
-    config = _load(args.config)
+    config = load_project(args.config)
     cache = ArtifactCache(config.cache_dir)
     if args.stale:
-        runner = _runner(args)
+        runner = project_runner(args)
         removed = cache.clean(keep={(stage, key) for (stage, _), key in runner.keys.items()})
     else:
         removed = cache.clean()
@@ -300,7 +316,13 @@ def main(argv=None) -> int:
 
     try:
         limit_threads(config_threads(getattr(args, "config", None)))  # before numpy, OpenCV and BLAS load
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's own flush at exit
+        return code
+    except BrokenPipeError:  # `fluorocal inspect ... | head`: the reader has what it wanted
+        with contextlib.suppress(OSError, ValueError):  # no more writes to the pipe, at exit neither
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE, as a shell reports a command that a closed pipe ended
     except CalibError as exc:
         if args.debug:
             raise

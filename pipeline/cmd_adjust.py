@@ -10,8 +10,9 @@ numbered in sorted (file, frame) order; frames of different systems with the
 same exposure are one epoch (a biplanar pair). A phantom CSV
 id,x,y,z (mm) gives the nominal bead coordinates.
 
-Start values: each frame is resected (OpenCV solvePnP) with c = SID / pixel
-pitch and the principal point at the image centre (--image-size).
+Start values: each frame is resected (OpenCV solvePnP) with c =
+--source-image-distance / --pixel-pitch and the principal point at the image
+centre (--image-size).
 
 Outputs in DIR: object_points.csv (id,x,y,z,sx,sy,sz; mm, in the nominal
 frame), observations.csv (the input rows plus system,exposure,residual_x,
@@ -25,7 +26,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from fluorocal.cli import positive_int
+from fluorocal.cli_common import add_geometry, add_image_size, add_out, add_overwrite, refuse_existing
+
+#: what ``--out`` receives
+OUTPUTS = ("object_points.csv", "observations.csv", "orientation.json")
 
 
 def add_parser(subparsers) -> None:
@@ -42,27 +46,16 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--phantom", type=Path, required=True, metavar="CSV", help="phantom CSV id,x,y,z[,diameter][,role] (mm)"
     )
-    p.add_argument(
-        "--sid", type=float, default=1100.0, metavar="MM", help="source-image distance, approximate (default 1100)"
-    )
-    p.add_argument(
-        "--pixel-pitch", type=float, default=0.25, metavar="MM", help="detector pixel pitch, approximate (default 0.25)"
-    )
-    p.add_argument(
-        "--image-size",
-        type=positive_int,
-        nargs=2,
-        default=(1024, 1024),
-        metavar=("W", "H"),
-        help="image size in px (default 1024 1024)",
-    )
+    add_geometry(p, (1100.0, 0.25))
+    add_image_size(p, "the principal point starts at its centre (default: 1024 1024)", (1024, 1024))
     p.add_argument(
         "--nu", type=float, default=4.0, help="Student-t degrees of freedom; inf for least squares (default 4)"
     )
     p.add_argument(
         "--fixed-iop", action="store_true", help="hold (xp, yp, c) at the start values (default: estimate them)"
     )
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory (created)")
+    add_out(p, "output folder (created; required)", required=True)
+    add_overwrite(p, f"existing {', '.join(OUTPUTS)}")
     p.set_defaults(func=run)
 
 
@@ -108,18 +101,20 @@ def run(args) -> int:
     from fluorocal.stages.io import read_phantom
 
     log = logging.getLogger("fluorocal")
-    if not (0 < args.sid < math.inf and 0 < args.pixel_pitch < math.inf):  # NaN and inf fail too
-        raise InputError(f"--sid and --pixel-pitch must be finite and > 0; got {args.sid}, {args.pixel_pitch}")
+    sid, pitch = args.source_image_distance, args.pixel_pitch
+    if not (0 < sid < math.inf and 0 < pitch < math.inf):  # NaN and inf fail too
+        raise InputError(f"--source-image-distance and --pixel-pitch must be finite and > 0; got {sid}, {pitch}")
+    out = Path(args.out)
+    refuse_existing([out / name for name in OUTPUTS], overwrite=args.overwrite)
     phantom = read_phantom(args.phantom)
     obs, rows, corrections = _read_observations(args.observations)
     w, h = args.image_size
-    iop = iop_guess((w, h), args.sid, args.pixel_pitch)
+    iop = iop_guess((w, h), sid, pitch)
     start = initial_orientation(obs, phantom, iop)
     # the flags own the choice of free parameters; the solver keeps its defaults but for ν
     free = FreeParameters(estimate_iop=not args.fixed_iop)
     res = adjust_bundle(obs, phantom, start, corrections, free=free, solver=SolverOptions(nu=args.nu))
 
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     _write_tables(out, obs, rows, res)
     summary = _summary(res)
@@ -140,7 +135,7 @@ def run(args) -> int:
 
         raise EstimationError(
             f"the adjustment of {args.observations} is not usable (σ0 {res.sigma0:.3g}, {res.stop_reason}); "
-            f"its tables are in {out}; check --sid, --pixel-pitch and --image-size against the frames"
+            f"its tables are in {out}; check --source-image-distance, --pixel-pitch and --image-size against the frames"
         )
     return 0
 

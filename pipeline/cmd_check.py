@@ -93,7 +93,8 @@ def run(args) -> int:
     from datetime import datetime
 
     from fluorocal.calibration import Calibration
-    from fluorocal.cmd_undistort import _expand, _orientations_for, parse_orientation
+    from fluorocal.cli_common import parse_orientation
+    from fluorocal.cmd_undistort import expand_inputs, input_orientations
     from fluorocal.stages.errors import InputError
     from fluorocal.stages.io import probe_frames
 
@@ -105,14 +106,14 @@ def run(args) -> int:
     system = _system(cal, args.system, args.calibration)
     plate = plate_setup(cal, Path(args.calibration), system)
     chosen = None if args.orientation is None else parse_orientation(args.orientation)
-    files = _expand(args.frames)
+    files = expand_inputs(args.frames)
     plan = []  # (file, per-frame orientations): every input checked before any frame is measured
     for path in files:
         n_frames, size = probe_frames(path)
         w, h = cal.systems[system].image_size_px
         if tuple(size) != (w, h):
             raise InputError(f"{path}: frame is {size[0]}x{size[1]} px; system {system} was calibrated at {w}x{h}")
-        orientations, _ = _orientations_for(cal, system, path, chosen, n_frames)
+        orientations, _ = input_orientations(cal, system, path, chosen, n_frames)
         for orientation in {_describe(o): o for o in orientations}.values():
             cal.field(system, orientation)  # an unknown orientation, or angles beyond the calibrated: refused here
         plan.append((path, orientations))

@@ -2,7 +2,7 @@
 
 Every frame of every FILE (DICOM, TIFF, PNG or video) goes through the detect
 and centroid stages with default parameters (plus --polarity and --diameter).
-One CSV row per successfully fitted bead:
+One row of --out's detections.csv per successfully fitted bead:
 
     file,frame,x,y,sigma_x,sigma_y,rho,major,minor,angle,fit_rmse,score
 
@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from fluorocal.cli_common import add_out, add_overwrite, refuse_existing
 
 #: the columns written, in order (the table's schema is :data:`fluorocal.stages.io.DETECTIONS`)
 COLUMNS = ["file", "frame", "x", "y", "sigma_x", "sigma_y", "rho", "major", "minor", "angle", "fit_rmse", "score"]
@@ -57,13 +59,8 @@ def add_parser(subparsers) -> None:
         metavar="MIN:MAX",
         help="expected bead diameter range in px (default: estimated per frame)",
     )
-    p.add_argument(
-        "--out",
-        type=Path,
-        required=True,
-        metavar="CSV",
-        help="detections table to write (required; written atomically)",
-    )
+    add_out(p, "folder for detections.csv (required; written atomically)", required=True)
+    add_overwrite(p, "an existing detections.csv")
     p.add_argument(
         "--overlay", type=Path, metavar="DIR", help="also write a PNG overlay per frame into DIR (default: none)"
     )
@@ -86,6 +83,8 @@ def run(args) -> int:
     for path in args.files:
         if not Path(path).is_file():
             raise InputError(f"{path}: no such file")
+    table = args.out / "detections.csv"
+    refuse_existing([table], overwrite=args.overwrite)
     low, high = args.diameter or (0.0, 0.0)
     detect_params = DetectParams(polarity=args.polarity, min_diameter_px=low, max_diameter_px=high)
     centroid_params = CentroidParams()
@@ -113,8 +112,8 @@ def run(args) -> int:
                 candidates.n_accepted,
                 int(beads.ok.sum()),
             )
-    write_table(args.out, DETECTIONS, columns_of(COLUMNS, rows))
-    log.info("%d beads in %d frames of %d files -> %s", len(rows), n_frames, len(args.files), args.out)
+    write_table(table, DETECTIONS, columns_of(COLUMNS, rows))
+    log.info("%d beads in %d frames of %d files -> %s", len(rows), n_frames, len(args.files), table)
     return 0
 
 

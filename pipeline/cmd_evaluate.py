@@ -46,6 +46,8 @@ import logging
 import time
 from pathlib import Path
 
+from fluorocal.cli_common import add_out, load_project, project_runner
+
 log = logging.getLogger("fluorocal")
 
 #: the schemes of stages.learn.SCHEMES and the OpenCV peer (listed here so that --help imports nothing)
@@ -63,11 +65,11 @@ def add_parser(subparsers) -> None:
     p.add_argument("config", type=Path, help="project TOML file")
     p.add_argument(
         "--holdout",
-        nargs="+",
+        action="append",
         metavar="RULE|FILE",
         help="held-out epochs: odd (every other one from the second; the default), even, random:SEED (half, "
-        "drawn with SEED), or frame files of the project (their epochs are held out in every system); for a "
-        "grid plate the frames whose alternate rows are scored (default: every frame)",
+        "drawn with SEED), or a frame file of the project (its epoch is held out in every system; repeat "
+        "--holdout for several); for a grid plate the frames whose alternate rows are scored (default: every frame)",
     )
     p.add_argument(
         "--train-sizes",
@@ -82,7 +84,7 @@ def add_parser(subparsers) -> None:
         "opencv too with --reference); for a grid plate of none, polynomial, plate (default: all three)",
     )
     p.add_argument("--reference", type=Path, metavar="CSV", help="surveyed check points id,x,y,z mm (default: none)")
-    p.add_argument("--out", type=Path, metavar="DIR", help="output folder (default: evaluation/ beside the config)")
+    add_out(p, "output folder (default: evaluation/ beside the config)")
     p.set_defaults(func=run)
 
 
@@ -202,13 +204,12 @@ def _publish(out_dir: Path, config, result, ours: str, notes: list[str], image_s
 
 
 def _project(args):
-    from fluorocal.cli import _load, _runner
     from fluorocal.stages.errors import InputError
 
-    config = _load(args.config)
+    config = load_project(args.config)
     if config.phantom.lattice and args.reference:
         raise InputError("--reference: a grid plate has no check points (its holes are scored on held-out rows)")
-    return config, _runner(args, config, until="label")
+    return config, project_runner(args, config, until="label")
 
 
 def _check_out(args, config) -> Path:
@@ -362,7 +363,7 @@ def _notes(args, config, heldout, scores, ours: str, seconds: float) -> list[str
 
 def _argv(args) -> list[str]:
     """The command's arguments as given (``--holdout`` only when given: a plate's default is every frame)."""
-    out = [str(args.config), *(["--holdout", *args.holdout] if args.holdout else [])]
+    out = [str(args.config), *(word for value in args.holdout or () for word in ("--holdout", value))]
     for flag, value in (("--train-sizes", args.train_sizes), ("--schemes", args.schemes)):
         if value:
             out += [flag, value]

@@ -18,7 +18,8 @@ interior orientation or poses: only opencv exports it (the maps, with the nomina
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
+
+from fluorocal.cli_common import add_calibration, add_out, add_overwrite
 
 #: the formats, as fluorocal.exports.FORMATS has them (listed here so that --help imports nothing)
 FORMAT_NAMES = ("opencv", "dlt", "mayacam", "mrcal", "paper")
@@ -32,10 +33,10 @@ def add_parser(subparsers) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("calibration", type=Path, metavar="CALIBRATION", help="calibration.json written by `fluorocal run`")
+    add_calibration(p)
     p.add_argument("--format", required=True, choices=FORMAT_NAMES, metavar="FORMAT", help=", ".join(FORMAT_NAMES))
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder (new or empty)")
-    p.add_argument("--overwrite", action="store_true", help="write into a non-empty --out (default: refuse)")
+    add_out(p, "output folder (new or empty; required)", required=True)
+    add_overwrite(p, "the files of a non-empty --out")
     p.set_defaults(func=run)
 
 

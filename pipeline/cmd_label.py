@@ -7,7 +7,7 @@ Frames are labelled in sorted (file, frame) order; a frame whose labelling fails
 is reported on stderr and left out of the output.
 
 A 3D phantom needs --phantom (CSV id,x,y,z[,diameter][,role], mm) and the rough
-geometry --sid and --pixel-pitch; the pose comes from the marker beads (role
+geometry --source-image-distance and --pixel-pitch; the pose comes from the marker beads (role
 "marker", larger than the others), from --seeds, or from the previous frame.
 A grid plate needs --lattice and --pitch instead; its ids encode the lattice
 indices, id = (i + 5000) * 10000 + (j + 5000).
@@ -15,7 +15,7 @@ indices, id = (i + 5000) * 10000 + (j + 5000).
 Seeds CSV: id,x,y[,file,frame] (px): a few beads identified by hand. Without
 file/frame columns they apply to the first frame.
 
-Output CSV: file,frame,id,x,y,sigma_x,sigma_y,rho (one row per labelled
+Output, --out's labels.csv: file,frame,id,x,y,sigma_x,sigma_y,rho (one row per labelled
 detection). With --overlay DIR, a PNG per frame (read from the detections'
 file column) with each detection drawn by status: labelled green with its id,
 ambiguous orange, unmatched red, rejected grey.
@@ -27,7 +27,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from fluorocal.cli import positive_int
+from fluorocal.cli_common import add_geometry, add_image_size, add_out, add_overwrite, refuse_existing
 
 log = logging.getLogger(__name__)
 
@@ -60,29 +60,11 @@ def add_parser(subparsers) -> None:
         metavar="MM",
         help="grid plate hole pitch in mm (default: 0, required with --lattice)",
     )
-    p.add_argument(
-        "--sid",
-        type=float,
-        default=0.0,
-        metavar="MM",
-        help="source-image distance in mm, approximate (required for a 3D phantom)",
-    )
-    p.add_argument(
-        "--pixel-pitch",
-        type=float,
-        default=0.0,
-        metavar="MM",
-        help="detector pixel pitch in mm, approximate (required for a 3D phantom)",
-    )
-    p.add_argument(
-        "--image-size",
-        type=positive_int,
-        nargs=2,
-        metavar=("W", "H"),
-        help="frame size in px; the principal point is its centre (default: centre of the detections)",
-    )
+    add_geometry(p)
+    add_image_size(p, "the principal point is its centre (default: the centre of the detections)")
     p.add_argument("--seeds", type=Path, metavar="CSV", help="seeds id,x,y[,file,frame] (default: none)")
-    p.add_argument("--out", type=Path, required=True, metavar="CSV", help="labels CSV to write")
+    add_out(p, "folder for labels.csv (required)", required=True)
+    add_overwrite(p, "an existing labels.csv")
     p.add_argument(
         "--overlay", type=Path, metavar="DIR", help="write a PNG per frame with the ids drawn (default: none)"
     )
@@ -96,6 +78,8 @@ def run(args) -> int:
     from fluorocal.stages.io import LABELS, columns_of, read_frames, read_phantom, write_table
     from fluorocal.stages.label import LabelParams, label_sequence
 
+    table = args.out / "labels.csv"
+    refuse_existing([table], overwrite=args.overwrite)
     frames = _read_detections(args.detections)
     if args.lattice:
         if not args.pitch > 0:
@@ -105,12 +89,12 @@ def run(args) -> int:
         raise InputError("give --phantom CSV (3D phantom) or --lattice and --pitch (grid plate)")
     else:
         phantom = read_phantom(args.phantom)
-        if not (args.sid > 0 and args.pixel_pitch > 0):
-            raise InputError("--sid and --pixel-pitch (mm, > 0) are needed to label a 3D phantom")
+        if not (args.source_image_distance > 0 and args.pixel_pitch > 0):
+            raise InputError("--source-image-distance and --pixel-pitch (mm, > 0) are needed to label a 3D phantom")
     keys = sorted(frames)
     seeds = _read_seeds(args.seeds, keys) if args.seeds else {}
     params = LabelParams(
-        source_image_distance_mm=args.sid,
+        source_image_distance_mm=args.source_image_distance,
         pixel_pitch_mm=args.pixel_pitch,
         image_size_px=tuple(args.image_size or ()),
     )
@@ -138,8 +122,8 @@ def run(args) -> int:
                 continue
             log.info("%s: %s", where, lab.summary())
             rows.extend([f, frame, *r] for r in lab.to_table()[1])
-    write_table(args.out, LABELS, columns_of(COLUMNS, rows))
-    log.info("wrote %d labels from %d of %d frames to %s", len(rows), len(keys) - n_failed, len(keys), args.out)
+    write_table(table, LABELS, columns_of(COLUMNS, rows))
+    log.info("wrote %d labels from %d of %d frames to %s", len(rows), len(keys) - n_failed, len(keys), table)
     return 0
 
 

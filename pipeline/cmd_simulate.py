@@ -3,7 +3,7 @@
 Layout of OUTDIR::
 
     frames/A/frame_000.tif ...   16-bit TIFF holding 12-bit values (0-4095), or frame_000.dcm (DICOM XA,
-                                 BitsStored 12) with --format dicom; with --orientations (grid plate)
+                                 BitsStored 12) with --format dicom; with --orientation (grid plate)
                                  frame_000_centred.dcm, frame_001_tilt15.dcm, ...: exposure, then the
                                  C-arm orientation's name (DICOM PositionerPrimaryAngle = orbit,
                                  PositionerSecondaryAngle = tilt, degrees)
@@ -36,16 +36,16 @@ rotate phantom vectors into the camera frame, ``p = R(q) (P - T)``)::
                          correction_grid: {x_px[nx], y_px[ny], delta_px[ny][nx][2]}:
                              DESIGN's correction Δ on measured (distorted) coordinates,
                              ideal = measured - Δ(measured),
-                         orientations[O] (grid with --orientations only; the distortion above is
+                         orientations[O] (grid with --orientation only; the distortion above is
                              the centred one): {name, orbit_deg, tilt_deg, exposures[] (its
                              exposure indices), field_change[3] (change of the unit earth field in
                              the intensifier's frame), distortion, correction_grid (as above, at
                              this orientation)}}
     exposures[K]        {turntable_angle_rad, turntable_translation_mm[3], lab_from_phantom_q[4]}
-                        (grid with --orientations: the plate's turn about its normal and its
+                        (grid with --orientation: the plate's turn about its normal and its
                         place as if the C-arm stayed centred; its pose to the camera is q, source_mm)
     frames[S*K]         {system: name, exposure: k, q[4], source_mm[3] (pose (q, T) in phantom coordinates),
-                         orientation, orbit_deg, tilt_deg (grid with --orientations only: the
+                         orientation, orbit_deg, tilt_deg (grid with --orientation only: the
                              exposure's orientation's name and C-arm angles, degrees),
                          beads: per bead whose outline meets the field of view (id order):
                            ids[n], ideal_xy_px[n][2] (pinhole projection of the centre),
@@ -58,8 +58,8 @@ rotate phantom vectors into the camera frame, ``p = R(q) (P - T)``)::
                            field_edge[n] (outline within overlap_margin_px of the field rim or image border)}
 
 Frame files are named frame_<exposure>.tif (frame_<exposure>_<orientation>.tif with
---orientations), so sorted names follow the exposures; ``frames`` lists system A's
-exposures first, then B's. With --orientations, fluorocal.toml names each
+--orientation), so sorted names follow the exposures; ``frames`` lists system A's
+exposures first, then B's. With --orientation, fluorocal.toml names each
 orientation's frames and angles in the system's ``orientations`` list.
 """
 
@@ -67,6 +67,8 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from fluorocal.cli_common import add_image_size, add_overwrite, parse_orientation
 
 FORMATS = {"tiff": ".tif", "dicom": ".dcm"}
 
@@ -80,20 +82,14 @@ def add_parser(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
-        "outdir", type=Path, metavar="OUTDIR", help="output directory (must be empty or absent unless --force)"
+        "outdir", type=Path, metavar="OUTDIR", help="output directory (must be empty or absent unless --overwrite)"
     )
     p.add_argument(
         "--frames", type=int, default=12, metavar="N", help="exposures per system, or per orientation (default: 12)"
     )
     p.add_argument("--systems", type=int, choices=(1, 2), default=1, help="1 = monoplanar, 2 = biplanar (default: 1)")
     p.add_argument("--seed", type=int, default=0, help="random seed; same seed, same bytes (default: 0)")
-    p.add_argument(
-        "--image-size",
-        type=int,
-        default=1024,
-        metavar="PX",
-        help="square image side in px; the detector stays 256 mm wide (default: 1024)",
-    )
+    add_image_size(p, "square (W = H); the detector stays 256 mm wide (default: 1024 1024)", (1024, 1024))
     p.add_argument(
         "--distortion",
         choices=("none", "mild", "strong"),
@@ -107,11 +103,13 @@ def add_parser(subparsers) -> None:
         help="cube: 494 steel beads on an acrylic box; grid: perforated hex plate, 1 system only (default: cube)",
     )
     p.add_argument(
-        "--orientations",
-        default="",
-        metavar="ORBIT:TILT,...",
-        help="grid plate only: C-arm orientations in degrees, e.g. 0:0,0:15,0:30,30:0; --frames is then per"
-        " orientation (default: none, every frame centred with the plate moved by hand between frames)",
+        "--orientation",
+        action="append",
+        default=[],
+        metavar="orbit=DEG,tilt=DEG",
+        help="grid plate only: a C-arm orientation to expose at, repeated for each (e.g. --orientation orbit=0,tilt=0"
+        " --orientation orbit=0,tilt=15); --frames is then per orientation (default: none, every frame centred"
+        " with the plate moved by hand between frames)",
     )
     p.add_argument(
         "--plate-error",
@@ -126,9 +124,7 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--noise", type=float, default=1.0, metavar="SCALE", help="noise scale, 0 for noise-free frames (default: 1.0)"
     )
-    p.add_argument(
-        "--force", action="store_true", help="write into a non-empty OUTDIR, replacing earlier frames (default: refuse)"
-    )
+    add_overwrite(p, "the files of a non-empty OUTDIR (earlier frames)")
     p.set_defaults(func=run)
 
 
@@ -143,18 +139,21 @@ def run(args) -> int:
     outdir = Path(args.outdir)
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"OUTDIR {outdir} exists and is not a directory")
-    if outdir.is_dir() and any(outdir.iterdir()) and not args.force:
-        raise InputError(f"OUTDIR {outdir} is not empty; pass --force to write into it")
-    grid_only = {"--orientations": args.orientations, "--plate-error": args.plate_error}
+    if outdir.is_dir() and any(outdir.iterdir()) and not args.overwrite:
+        raise InputError(f"OUTDIR {outdir} is not empty; pass --overwrite to write into it")
+    grid_only = {"--orientation": args.orientation, "--plate-error": args.plate_error}
     for option, value in grid_only.items():
-        if value not in ("", None) and args.phantom != "grid":
+        if value not in ([], None) and args.phantom != "grid":
             raise InputError(f"{option} is for the grid plate; add --phantom grid")
+    width, height = args.image_size
+    if width != height:
+        raise InputError(f"--image-size: simulated frames are square; got {width} {height} (give W = H)")
     by_option = {  # option -> (SimulateParams field, value)
         "--frames": ("n_frames", args.frames),
         "--seed": ("seed", args.seed),
-        "--image-size": ("image_size_px", args.image_size),
+        "--image-size": ("image_size_px", width),
         "--noise": ("noise_scale", args.noise),
-        "--orientations": ("orientations_deg", parse_orientations(args.orientations)),
+        "--orientation": ("orientations_deg", orientation_angles(args.orientation)),
     }
     if args.plate_error is not None:
         by_option["--plate-error"] = ("plate_error_mm", args.plate_error)
@@ -171,36 +170,32 @@ def run(args) -> int:
         total=params.n_exposures * params.n_systems, desc="simulate", unit="frame", disable=True if quiet else None
     ) as bar:
         data = simulate(params, on_frame=lambda s, k: bar.update())
-    written = write_dataset(data, outdir, fmt=args.format, replace=args.force)
+    written = write_dataset(data, outdir, fmt=args.format, replace=args.overwrite)
     log.info("wrote %d files to %s (run: fluorocal run %s)", len(written), outdir, outdir / "fluorocal.toml")
     return 0
 
 
-def parse_orientations(text: str) -> tuple:
-    """``"0:0,0:15,30:0"`` -> ``((0.0, 0.0), (0.0, 15.0), (30.0, 0.0))`` (orbit, tilt) degrees; ``""`` -> ``()``.
+def orientation_angles(values: list[str]) -> tuple:
+    """The repeated ``--orientation orbit=DEG,tilt=DEG`` as ``((orbit, tilt), ...)`` in degrees.
 
     Raises
     ------
     InputError
-        Not comma-separated ``ORBIT:TILT`` pairs of numbers.
+        A value that is not ``orbit=DEG,tilt=DEG`` (a name too: a simulation has no calibrated orientations).
 
     Examples
     --------
-    >>> parse_orientations("0:0, 0:15,-30:7.5")
-    ((0.0, 0.0), (0.0, 15.0), (-30.0, 7.5))
+    >>> orientation_angles(["orbit=0,tilt=0", "orbit=-30, tilt=7.5"])
+    ((0.0, 0.0), (-30.0, 7.5))
     """
     from fluorocal.stages.errors import InputError
 
     pairs = []
-    for item in filter(None, (part.strip() for part in text.split(","))):
-        try:
-            orbit, tilt = (float(v) for v in item.split(":"))
-        except ValueError:
-            raise InputError(
-                f"--orientations: expected ORBIT:TILT pairs in degrees separated by commas (e.g. 0:0,0:15,30:0);"
-                f" got {item!r}"
-            ) from None
-        pairs.append((orbit, tilt))
+    for text in values:
+        angles = parse_orientation(text)
+        if isinstance(angles, str):
+            raise InputError(f"--orientation {text!r}: a simulation needs the angles, orbit=DEG,tilt=DEG")
+        pairs.append((angles["orbit"], angles["tilt"]))
     return tuple(pairs)
 
 
@@ -279,12 +274,12 @@ def _write_text(path: Path, text: str) -> Path:
 def _config_text(data, suffix: str) -> str:
     """The project TOML (DESIGN.md format) for the written data set."""
     p = data.params
-    orientations = ",".join(f"{o:g}:{t:g}" for o, t in p.orientations_deg)
+    orientations = "".join(f" --orientation orbit={o:g},tilt={t:g}" for o, t in p.orientations_deg)
     lines = [
         "# fluorocal project for a simulated data set: fluorocal simulate "
         f"--seed {p.seed} --frames {p.n_frames} --systems {p.n_systems}",
-        f"#   --image-size {p.image_size_px} --distortion {p.distortion} --phantom {p.phantom}"
-        + (f" --orientations {orientations}" if orientations else "")
+        f"#   --image-size {p.image_size_px} {p.image_size_px} --distortion {p.distortion} --phantom {p.phantom}"
+        + orientations
         + ". Ground truth: truth.json.",
         "",
         "[phantom]",

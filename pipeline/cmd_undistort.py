@@ -2,7 +2,7 @@ r"""`fluorocal undistort`: remove a system's learned distortion from clinical or
 
 Each INPUT (DICOM, TIFF, PNG or video; a file of one or many frames, or a
 folder of them) is resampled onto the ideal pinhole image of the calibrated
-system and written to OUTDIR under the same name, in the input's own format,
+system and written to --out under the same name, in the input's own format,
 pixel type (sample type, channels, photometric) and metadata; a file
 whose samples cannot be written back so is refused before anything is
 written. DICOM outputs form a derived series: a new Series
@@ -37,6 +37,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from fluorocal.cli_common import add_calibration, add_out, add_overwrite, parse_orientation
+
 if TYPE_CHECKING:  # imported when run: `fluorocal undistort --help` loads neither OpenCV nor OpenImageIO
     from fluorocal.stages.io import Derivation, StoredFrames
     from fluorocal.stages.undistort import UndistortParams
@@ -50,6 +52,7 @@ def add_parser(subparsers) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    add_calibration(p)
     p.add_argument(
         "inputs",
         nargs="+",
@@ -57,7 +60,6 @@ def add_parser(subparsers) -> None:
         metavar="INPUT",
         help="frame files (single or multi-frame) or folders of them (their frame files, sorted by name)",
     )
-    p.add_argument("--calibration", type=Path, required=True, help="calibration.json written by `fluorocal run`")
     p.add_argument(
         "--system",
         required=True,
@@ -66,18 +68,12 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--orientation",
-        metavar="NAME",
+        metavar="NAME|orbit=DEG,tilt=DEG",
         help="the C-arm orientation of the inputs: a calibrated orientation's name, or orbit=DEG,tilt=DEG to "
         "interpolate between calibrated ones (default: the system's one field, or with several the orientation "
         "named like each input's file stem)",
     )
-    p.add_argument(
-        "--out",
-        type=Path,
-        default=Path("undistorted"),
-        metavar="OUTDIR",
-        help="output directory (default: ./undistorted)",
-    )
+    add_out(p, "output folder (default: ./undistorted)", default=Path("undistorted"))
     p.add_argument(
         "--interpolation",
         choices=("linear", "cubic", "lanczos", "nearest"),
@@ -92,11 +88,7 @@ def add_parser(subparsers) -> None:
         "hole) or outside the frame's collimated area: set to the frame's background, or kept as remapped "
         "(default: background)",
     )
-    p.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace output files that already exist (default: refuse them before any work)",
-    )
+    add_overwrite(p, "output files that already exist")
     p.set_defaults(func=run)
 
 
@@ -111,7 +103,7 @@ def run(args) -> int:
     from tqdm import tqdm
 
     log = logging.getLogger("fluorocal")
-    inputs = _expand(args.inputs)
+    inputs = expand_inputs(args.inputs)
     out_dir = _check_paths(inputs, args.out, overwrite=args.overwrite)  # every input and output before any work
     cal = Calibration.load(args.calibration)
     if args.system not in cal.systems:
@@ -198,7 +190,7 @@ def _job(cal, args, path: Path, out: Path, chosen, made, views: dict) -> _Job:
             f"{path}: frame is {size[0]}x{size[1]} px; "
             f"system {args.system} was calibrated at {system.image_size_px[0]}x{system.image_size_px[1]}"
         )
-    orientations, recorded = _orientations_for(cal, args.system, path, chosen, n_frames)
+    orientations, recorded = input_orientations(cal, args.system, path, chosen, n_frames)
     keys = []
     for i, orientation in enumerate(orientations):
         keys.append(json.dumps(orientation_key(orientation)))
@@ -236,38 +228,7 @@ def _write_all(items) -> None:
         write_stored_like(job.path, frames, job.out, job.n_frames, derivation=job.derivation)
 
 
-def parse_orientation(text: str):
-    """``--orientation``'s value: a name, or ``orbit=DEG,tilt=DEG`` as ``{"orbit": float, "tilt": float}``.
-
-    Raises
-    ------
-    InputError
-        ``key=value`` pairs that are not exactly orbit and tilt, each a number.
-
-    Examples
-    --------
-    >>> parse_orientation("orbit30")
-    'orbit30'
-    >>> parse_orientation("orbit=15, tilt=-7.5")
-    {'orbit': 15.0, 'tilt': -7.5}
-    """
-    from fluorocal.stages.errors import InputError
-
-    if "=" not in text:
-        return text
-    values = {}
-    for part in text.split(","):
-        key, _, value = part.partition("=")
-        try:
-            values[key.strip()] = float(value)
-        except ValueError:
-            raise InputError(f"--orientation {text!r}: {key.strip()} must be a number of degrees") from None
-    if set(values) != {"orbit", "tilt"} or text.count("=") != 2:
-        raise InputError(f"--orientation {text!r}: expected a name, or orbit=DEG,tilt=DEG (both, nothing else)")
-    return values
-
-
-def _orientations_for(cal, system: str, path: Path, chosen, n_frames: int) -> tuple[tuple, bool]:
+def input_orientations(cal, system: str, path: Path, chosen, n_frames: int) -> tuple[tuple, bool]:
     """Each frame's orientation, and whether they are the angles the file records.
 
     ``chosen`` (``--orientation``) for every frame; else, for a system calibrated at orientations with
@@ -309,7 +270,7 @@ def _recorded_angles(path: Path, n_frames: int) -> tuple:
     return angles
 
 
-def _expand(inputs: list[Path]) -> list[Path]:
+def expand_inputs(inputs: list[Path]) -> list[Path]:
     """The input files: each file given, and each folder's frame files (sorted by name; not its sub-folders).
 
     Raises

@@ -192,7 +192,7 @@ def export_calibration(runner, out_dir: Path | None = None) -> list[Path]:
     result = runner.get("learn", None)
     labels = [runner.get("label", u) for u in range(len(runner.units))]
     obs = observations_from_labels(runner.units, labels, runner.config)
-    excluded = failed_frames(runner.units, labels)
+    excluded = failed_frames(runner.units, labels, runner.config)
     if excluded:
         log.warning("%d frame(s) excluded, labelling failed: %s", len(excluded), "; ".join(excluded))
     if runner.config.phantom.lattice:

@@ -140,7 +140,7 @@ def write_plate_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> 
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     of_obs = _orientation_of_obs(result, obs)
-    plots = []
+    plots, embedded_below = [], []  # the orientation plots are embedded with their own table
     for o, name in enumerate(result.orientation_names):
         sel = of_obs == o
         system = result.system_names[result.orientation_system[o]]
@@ -166,12 +166,12 @@ def write_plate_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> 
         if result.plate_estimated[result.hole_system == s].any():
             plots.append(plate_map(inside(out_dir, f"plate_{name}.png"), result, s, runner.config.phantom.pitch_mm))
         change_plots, change_lines = orientation_report(out_dir, system, cal.systems[system].orientations)
-        plots += change_plots
+        embedded_below += change_plots
         lines += ["", *change_lines]
     lines += ["", *(f"![{p.stem}]({p.name})" for p in plots)]
     path = inside(out_dir, "report.md")
     atomic_write(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
-    return plots + [path]
+    return plots + embedded_below + [path]
 
 
 def _orientation_of_obs(result, obs) -> np.ndarray:
@@ -222,27 +222,44 @@ def _plate_lines(result, pitch_mm: float) -> list[str]:
     ]
 
 
+#: arrows per side of a plate map: one hole per cell of this grid, so that each arrow can be seen
+PLATE_MAP_CELLS = 20
+
+
 def plate_map(path: Path, result, system: int, pitch_mm: float) -> Path:
-    """The plate's estimated errors as arrows on the plate (mm), magnified to be seen."""
+    """The plate's estimated errors as arrows on the plate (mm), one hole per cell, magnified to be seen.
+
+    An arrow of the 95th percentile's length spans a cell (:data:`PLATE_MAP_CELLS` per side); the colour
+    bar gives the error's length in mm.
+    """
     from fluorocal.report import _figure, _save
 
     sel = (result.hole_system == system) & result.plate_estimated
     xy, err = result.nominal_mm[sel], result.plate_error_mm[sel]
-    gain = 0.4 * pitch_mm / max(float(np.abs(err).max()), 1e-12)
-    plt, fig, (ax,) = _figure(1, width=6.0, height=5.6)
-    ax.quiver(
+    cell = max(float(np.ptp(xy, axis=0).max()) / PLATE_MAP_CELLS, pitch_mm)
+    _, shown = np.unique(np.floor((xy - xy.min(axis=0)) / cell), axis=0, return_index=True)
+    xy, err = xy[shown], err[shown]
+    length = np.linalg.norm(err, axis=1)
+    gain = cell / max(float(np.percentile(length, 95)), 1e-12)
+    plt, fig, (ax,) = _figure(1, width=6.4, height=5.6)
+    arrows = ax.quiver(
         xy[:, 0],
         xy[:, 1],
         err[:, 0],
         err[:, 1],
-        np.linalg.norm(err, axis=1),
+        length,
         angles="xy",
         scale_units="xy",
         scale=1 / gain,
         cmap="viridis",
+        width=0.005,
+        headwidth=3,
+        headlength=4,
     )
+    fig.colorbar(arrows, ax=ax, label="plate error (mm)", shrink=0.8)
     ax.set_aspect("equal")
     ax.set_xlabel("plate x (mm)")
     ax.set_ylabel("plate y (mm)")
-    ax.set_title(f"plate errors, {result.system_names[system]} (arrows x{gain:.0f}; colour: mm)")
+    name = result.system_names[system]
+    ax.set_title(f"plate errors, system {name}: {len(xy)} of {int(sel.sum())} holes, arrows x{gain:.0f}")
     return _save(plt, fig, path)

@@ -30,3 +30,35 @@ def write_stage_overlay(runner, stage: str, frame: int) -> Path:
     path = inside(inside(runner.config.output_dir, "overlays"), f"{safe_name(stage)}_{system}_{unit.exposure:04d}.png")
     write_png(path, image)
     return path
+
+
+def stage_summary(runner, stage: str) -> str:
+    """One line for a per-frame ``stage`` over every cached frame, system by system ("" when none is cached).
+
+    (A cache entry's own summary is its frame's alone.)
+    """
+    by_system: dict[str, list] = {}
+    for u, unit in enumerate(runner.units):
+        artifact = runner.cache.load(stage, runner.keys[(stage, u)], warn=False)
+        if artifact is not None:
+            by_system.setdefault(runner.config.systems[unit.system].name, []).append(artifact)
+    return "; ".join(f"system {name}: {_totals(artifacts)}" for name, artifacts in by_system.items())
+
+
+def _totals(artifacts: list) -> str:
+    """The counts of one system's artifacts of a per-frame stage, summed over its frames."""
+    from fluorocal.gather import labelling_line
+    from fluorocal.stages.centroid import Centroids
+    from fluorocal.stages.detect import BeadCandidates
+    from fluorocal.stages.label import Labels
+
+    n = len(artifacts)
+    if isinstance(artifacts[0], BeadCandidates):
+        accepted, found = sum(a.n_accepted for a in artifacts), sum(len(a) for a in artifacts)
+        return f"{n} frames, {accepted} accepted of {found} candidates"
+    if isinstance(artifacts[0], Centroids):
+        fitted = sum(int(a.ok.sum()) for a in artifacts)
+        return f"{n} frames, {fitted} fitted, {sum(len(a) for a in artifacts) - fitted} failed"
+    if isinstance(artifacts[0], Labels):
+        return f"{labelling_line(artifacts)} labelled, {sum(a.n_labelled for a in artifacts)} detections with an id"
+    return f"{n} frames"

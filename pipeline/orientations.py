@@ -278,7 +278,8 @@ def _change_maps(path: Path, fields, changes, ref: int) -> Path:
     for ax, i in zip(axes.ravel(), shown):
         d = changes[i].difference_mod_h_px
         im = ax.imshow(np.linalg.norm(d, axis=-1), extent=extent, cmap="magma", vmin=0, vmax=vmax)
-        ax.quiver(xx[sel], yy[sel], d[sel][..., 0], d[sel][..., 1], angles="xy", color="c", scale=vmax * 25)
+        if vmax > 0:  # equal fields (scheme none) leave no arrow to scale
+            ax.quiver(xx[sel], yy[sel], d[sel][..., 0], d[sel][..., 1], angles="xy", color="c", scale=vmax * 25)
         _image_axes(
             ax,
             (first.width_px, first.height_px),

@@ -79,9 +79,16 @@ def field_map(path: Path, field, title: str) -> Path:
     xx, yy = np.meshgrid(field.x_nodes_px, field.y_nodes_px)
     step = max(len(field.x_nodes_px) // 24, 1)
     sel = (slice(None, None, step), slice(None, None, step))
-    ax.quiver(
-        xx[sel], yy[sel], field.delta_px[sel][..., 0], field.delta_px[sel][..., 1], angles="xy", color="c", width=0.003
-    )
+    if field.delta_px.any():  # arrows of a zero field (scheme none) have no length to scale: matplotlib divides by 0
+        ax.quiver(
+            xx[sel],
+            yy[sel],
+            field.delta_px[sel][..., 0],
+            field.delta_px[sel][..., 1],
+            angles="xy",
+            color="c",
+            width=0.003,
+        )
     _image_axes(ax, (field.width_px, field.height_px), title)
     fig.colorbar(im, ax=ax, label="|Δ| (px)", shrink=0.8)
     return _save(plt, fig, path)

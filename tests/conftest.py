@@ -1,5 +1,7 @@
 """Shared test fixtures: the real radiographs in ../shared/data (skipped when absent)."""
 
+import contextlib
+import logging
 from pathlib import Path
 
 import pytest
@@ -20,12 +22,28 @@ def arcadis_dir() -> Path:
 E2E_SIM = {"n_frames": 4, "n_systems": 2, "image_size_px": 512, "seed": 3}
 
 
-@pytest.fixture(scope="session")
-def calibrated_project(tmp_path_factory) -> Path:
-    """A simulated project after one `fluorocal run`: simulated and calibrated once per test session.
+@contextlib.contextmanager
+def logged(level: int = logging.INFO):
+    """The records fluorocal's loggers (and ``py.warnings``) emit at ``level`` or above within the block."""
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler(level)
+    handler.emit = records.append
+    root, ours = logging.getLogger(), logging.getLogger("fluorocal")
+    before = ours.level
+    ours.setLevel(level)
+    root.addHandler(handler)
+    try:
+        yield records
+    finally:
+        root.removeHandler(handler)
+        ours.setLevel(before)
 
-    Modules that change it take a copy (:func:`copy_project`); the cache comes along, so their own runs
-    recompute only what they change.
+
+@pytest.fixture(scope="session")
+def calibrated_run(tmp_path_factory) -> tuple[Path, list[logging.LogRecord]]:
+    """A simulated project after one `fluorocal run`, and the records it logged at INFO or above.
+
+    Simulated and calibrated once per test session; warnings are errors there as everywhere in the suite.
     """
     from fluorocal.cli import main
     from fluorocal.cmd_simulate import write_dataset
@@ -33,8 +51,19 @@ def calibrated_project(tmp_path_factory) -> Path:
 
     root = tmp_path_factory.mktemp("calibrated") / "project"
     write_dataset(simulate(SimulateParams(**E2E_SIM)), root)
-    assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
-    return root
+    with logged() as records:
+        assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
+    return root, records
+
+
+@pytest.fixture(scope="session")
+def calibrated_project(calibrated_run) -> Path:
+    """The project of :func:`calibrated_run`.
+
+    Modules that change it take a copy (:func:`copy_project`); the cache comes along, so their own runs
+    recompute only what they change.
+    """
+    return calibrated_run[0]
 
 
 @pytest.fixture(scope="session")

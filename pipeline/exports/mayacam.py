@@ -40,7 +40,7 @@ UNDISTORTION_NOTE = """\
 The MayaCam files beside this note describe pinhole cameras: they hold for undistorted frames only.
 Undistort the frames with this calibration first, either
 
-  fluorocal undistort --calibration {calibration} --system NAME --out undistorted FRAMES...
+  fluorocal undistort {calibration} FRAMES... --system NAME --out undistorted
 
 or, outside fluorocal, with the OpenCV maps of `fluorocal export {calibration} --format opencv --out DIR`:
 

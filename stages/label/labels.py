@@ -133,7 +133,7 @@ def failed_labels(valid: np.ndarray, iop: np.ndarray, reason: str, pose_source: 
     reason : str
     pose_source : str, optional
     """
-    log.info("labelling failed: %s", reason)
+    log.debug("labelling failed: %s", reason)  # a sequence may label the frame from its neighbours yet
     status = np.where(valid, STATUS_UNMATCHED, STATUS_REJECTED)
     empty = np.empty((0,))
     return Labels(

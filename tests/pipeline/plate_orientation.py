@@ -142,7 +142,7 @@ def labelled_sequence(config_path: Path) -> Sequence:
         runner.get("phantom", None),
         tuple(units[0].size_px),
         tuple((u.system, u.exposure, o.name, o.orbit_deg, o.tilt_deg) for u, o in zip(units, found)),
-        tuple(failed_frames(units, labels)),
+        tuple(failed_frames(units, labels, config)),
     )
 
 

@@ -315,9 +315,9 @@ def test_full_disk_is_one_line_naming_the_file(tmp_path, capsys, monkeypatch):
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(tables, "csv", SimpleNamespace(writer=full_disk))
-    rc, err = _cli(["detect", tmp_path / "f.tif", "--out", tmp_path / "d.csv"], capsys)
+    rc, err = _cli(["detect", tmp_path / "f.tif", "--out", tmp_path], capsys)
     assert rc == 2
-    assert err.startswith(f"fluorocal: error: no space left on device writing {tmp_path / 'd.csv'}")
+    assert err.startswith(f"fluorocal: error: no space left on device writing {tmp_path / 'detections.csv'}")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.tif"]  # nothing half-written
 
 
@@ -376,6 +376,6 @@ def test_a_system_with_no_frame_labelled_is_one_line(tmp_path, capsys):
 @pytest.mark.parametrize("size", [10_000_000, 15])
 def test_simulate_refuses_an_image_size_beyond_memory(tmp_path, capsys, size):
     # benchmarks/attack.py simulate_image_size_huge: --image-size 10000000 died allocating 728 TiB (traceback)
-    rc, err = _cli(["simulate", tmp_path / "sim", "--image-size", size], capsys)
+    rc, err = _cli(["simulate", tmp_path / "sim", "--image-size", size, size], capsys)
     assert rc == 2 and "--image-size: image_size_px must lie in 16..16384" in err
     assert not (tmp_path / "sim").exists() or not any((tmp_path / "sim").iterdir())

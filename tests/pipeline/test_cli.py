@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -54,14 +55,28 @@ def test_inspect_reads_a_project_whose_folders_cannot_be_written(tmp_path, monke
 )
 def test_a_usage_error_is_one_line_naming_the_option(tmp_path, capsys, command):
     with pytest.raises(SystemExit) as exc:
-        main([*command, "--out", str(tmp_path / "l.csv"), "--image-size", "-1", "0"])
+        main([*command, "--out", str(tmp_path / "l"), "--image-size", "-1", "0"])
     err = capsys.readouterr().err.strip()
     assert exc.value.code == 2 and len(err.splitlines()) == 1
     assert err.startswith("fluorocal: error: argument --image-size: expected a positive integer; got '-1'")
-    assert not (tmp_path / "l.csv").exists()
+    assert not (tmp_path / "l").exists()
 
 
 def test_simulate_names_the_option_behind_a_refused_parameter(tmp_path, capsys):
     assert main(["simulate", str(tmp_path / "sim"), "--frames", "-3"]) == 2
     assert capsys.readouterr().err.strip() == "fluorocal: error: --frames: n_frames must be >= 1; got -3"
     assert not (tmp_path / "sim").exists()
+
+
+def test_a_closed_output_pipe_ends_quietly(tmp_path):
+    # `fluorocal inspect ... | head` ended with "error: broken pipe": the reader is gone before anything is written
+    cfg = make_project(tmp_path)
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "fluorocal.cli", "inspect", str(cfg)], stdout=write_end, stderr=subprocess.PIPE
+        )
+    finally:
+        os.close(write_end)
+    assert proc.stderr.decode() == "" and proc.returncode == 141

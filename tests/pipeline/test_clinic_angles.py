@@ -35,7 +35,7 @@ TOL_PX = 0.05
 
 
 def _undistort(*inputs, calibration, out, options=(), system="A"):
-    args = ["--quiet", "undistort", *map(str, inputs), "--calibration", str(calibration), "--system", system]
+    args = ["--quiet", "undistort", str(calibration), *map(str, inputs), "--system", system]
     return main(args + ["--out", str(out), *options])
 
 

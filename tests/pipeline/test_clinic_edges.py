@@ -122,7 +122,7 @@ def test_spine_frame_rim_row_is_not_warped_and_the_series_is_new(centred_calibra
     out = {}
     for name, path, outside in (("rim", source, "keep"), ("rim", source, "background"), ("clean", no_rim, "keep")):
         folder = tmp_path / f"{name}_{outside}"
-        args = ["--quiet", "undistort", str(path), "--calibration", str(centred_calibration), "--system", "arcadis"]
+        args = ["--quiet", "undistort", str(centred_calibration), str(path), "--system", "arcadis"]
         assert main(args + ["--out", str(folder), "--outside", outside]) == 0
         out[name, outside] = pydicom.dcmread(folder / "spine_centered_0.dcm")
     keep, clean = (out[k].pixel_array.astype(int) for k in (("rim", "keep"), ("clean", "keep")))

@@ -42,7 +42,7 @@ def test_adjust_command_writes_outputs(tmp_path):
             str(table),
             "--phantom",
             str(phantom),
-            "--sid",
+            "--source-image-distance",
             "1100",
             "--pixel-pitch",
             "0.25",
@@ -71,9 +71,11 @@ def test_adjust_command_reports_missing_columns(tmp_path, capsys):
     assert "missing id" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("flags", [["--sid", "inf"], ["--pixel-pitch", "nan"]])  # --image-size: test_cli.py
+@pytest.mark.parametrize(
+    "flags", [["--source-image-distance", "inf"], ["--pixel-pitch", "nan"]]
+)  # --image-size: test_cli.py
 def test_adjust_command_refuses_non_finite_start_values(tmp_path, capsys, flags):
-    # benchmarks/attack.py adjust_sid_inf: --sid inf ended in an OpenCV assertion's traceback
+    # benchmarks/attack.py adjust_sid_inf: an infinite source-image distance ended in an OpenCV assertion's traceback
     _, phantom, table = _write_inputs(tmp_path)
     rc = main(["adjust", "--observations", str(table), "--phantom", str(phantom), "--out", str(tmp_path / "o"), *flags])
     err = capsys.readouterr().err
@@ -103,7 +105,7 @@ def test_adjust_command_says_in_one_line_when_the_adjustment_is_not_usable(tmp_p
     monkeypatch.setattr(adjust, "adjust_bundle", lambda *a, **k: dataclasses.replace(real(*a, **k), usable=False))
     _, phantom, table = _write_inputs(tmp_path)
     argv = ["--quiet", "adjust", "--observations", str(table), "--phantom", str(phantom), "--out", str(tmp_path / "o")]
-    rc = main([*argv, "--sid", "1100", "--pixel-pitch", "0.25"])
+    rc = main([*argv, "--source-image-distance", "1100", "--pixel-pitch", "0.25"])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and err.startswith("fluorocal: error: the adjustment of") and "not usable" in err
     assert len(err.splitlines()) == 1 and (tmp_path / "o" / "orientation.json").is_file()

@@ -15,20 +15,24 @@ def test_detect_label_adjust_round_trip(tmp_path):
     sim = tmp_path / "sim"
     # one system, 4 frames of 512 px (0.5 mm pixels, SID 1100 mm): enough beads per frame to label each one
     assert (
-        main(["-q", "simulate", str(sim), "--frames", "4", "--systems", "1", "--seed", "3"] + ["--image-size", "512"])
+        main(
+            ["-q", "simulate", str(sim), "--frames", "4", "--systems", "1", "--seed", "3"]
+            + ["--image-size", "512", "512"]
+        )
         == 0
     )
-    geometry = ["--sid", "1100", "--pixel-pitch", "0.5", "--image-size", "512", "512"]
+    geometry = ["--source-image-distance", "1100", "--pixel-pitch", "0.5", "--image-size", "512", "512"]
     frames = sorted(str(p) for p in (sim / "frames" / "A").glob("*.tif"))
-    assert main(["-q", "detect", *frames, "--out", str(tmp_path / "det.csv")]) == 0
-    label = ["-q", "label", str(tmp_path / "det.csv"), "--phantom", str(sim / "phantom.csv"), *geometry]
-    assert main([*label, "--out", str(tmp_path / "labels.csv")]) == 0
-    adjust = ["-q", "adjust", "--observations", str(tmp_path / "labels.csv"), "--phantom", str(sim / "phantom.csv")]
+    det_csv, labels_csv = tmp_path / "det" / "detections.csv", tmp_path / "lab" / "labels.csv"
+    assert main(["-q", "detect", *frames, "--out", str(tmp_path / "det")]) == 0
+    label = ["-q", "label", str(det_csv), "--phantom", str(sim / "phantom.csv"), *geometry]
+    assert main([*label, "--out", str(tmp_path / "lab")]) == 0
+    adjust = ["-q", "adjust", "--observations", str(labels_csv), "--phantom", str(sim / "phantom.csv")]
     assert main([*adjust, *geometry, "--out", str(tmp_path / "out")]) == 0
 
-    det = read_table(tmp_path / "det.csv", DETECTIONS)
-    labels = read_table(tmp_path / "labels.csv", OBSERVATIONS)
-    assert (tmp_path / "labels.csv").read_text().splitlines()[0] == "file,frame,id,x,y,sigma_x,sigma_y,rho"
+    det = read_table(det_csv, DETECTIONS)
+    labels = read_table(labels_csv, OBSERVATIONS)
+    assert labels_csv.read_text().splitlines()[0] == "file,frame,id,x,y,sigma_x,sigma_y,rho"
     assert set(labels["file"]) == set(frames) and len(labels["id"]) > 4 * 200
     # every label is a detection, its values passed on exactly (both tables write floats in full)
     detected = {
@@ -76,8 +80,8 @@ def test_bad_detections_name_file_line_and_column(tmp_path, capsys, text, messag
         "--pitch",
         "2",
         "--out",
-        str(tmp_path / "l.csv"),
+        str(tmp_path / "l"),
     ]
     assert main(argv) == 2
     assert message in capsys.readouterr().err
-    assert not (tmp_path / "l.csv").exists()
+    assert not (tmp_path / "l").exists()

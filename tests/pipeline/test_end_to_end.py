@@ -211,7 +211,6 @@ def test_undistort_keeps_format_and_depth(project, tmp_path):
             [
                 "--quiet",
                 "undistort",
-                "--calibration",
                 str(project / "out" / "calibration.json"),
                 "--system",
                 "A",
@@ -233,7 +232,6 @@ def test_undistort_unknown_system_is_exit_2(project, tmp_path, capsys):
         main(
             [
                 "undistort",
-                "--calibration",
                 str(project / "out" / "calibration.json"),
                 "--system",
                 "C",

@@ -249,7 +249,15 @@ def test_bad_input_is_refused_in_one_line(project, tmp_path, capsys):
 def test_holdout_files_hold_their_epoch_out_in_every_system(project, tmp_path):
     frames = sorted((project / "frames" / "A").glob("*.tif"))
     out = tmp_path / "o"
-    argv = ["--quiet", "evaluate", str(project / "fluorocal.toml"), "--holdout", str(frames[0]), str(frames[3])]
+    argv = [
+        "--quiet",
+        "evaluate",
+        str(project / "fluorocal.toml"),
+        "--holdout",
+        str(frames[0]),
+        "--holdout",
+        str(frames[3]),
+    ]
     assert main([*argv, "--schemes", "none", "--out", str(out)]) == 0
     rows = _rows(out / "evaluation.csv")
     # 2 of 4 epochs held out by file: 2 train; the default sizes are then (2,)

@@ -130,10 +130,7 @@ def test_opencv_yaml_remap_equals_the_fluorocal_undistort_command(tmp_path):
     source.parent.mkdir()
     assert cv2.imwrite(str(source), frame)  # 16-bit PNG
     assert (
-        main(
-            ["--quiet", "undistort", str(source), "--calibration", str(calibration), "--system", "B"]
-            + ["--out", str(tmp_path / "u")]
-        )
+        main(["--quiet", "undistort", str(calibration), str(source), "--system", "B"] + ["--out", str(tmp_path / "u")])
         == 0
     )
     undistorted = cv2.imread(str(tmp_path / "u" / "frame.png"), cv2.IMREAD_UNCHANGED)

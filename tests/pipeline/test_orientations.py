@@ -360,10 +360,8 @@ def undistort_setup(tmp_path):
 
 def _run_undistort(cal, frame, out, *options):
     # --outside keep: the ramp's dim corner would be taken for outside the collimated area (issue 32's edges)
-    return main(
-        ["--quiet", "undistort", str(frame), "--calibration", str(cal), "--system", "A", "--out", str(out)]
-        + ["--outside", "keep", *options]
-    )
+    args = ["--quiet", "undistort", str(cal), str(frame), "--system", "A", "--out", str(out)]
+    return main(args + ["--outside", "keep", *options])
 
 
 @pytest.mark.parametrize(

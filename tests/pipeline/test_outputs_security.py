@@ -230,9 +230,7 @@ def _write(folder: Path, name: str, text: str) -> Path:
 
 def _undistort(project, cal, out, *inputs):
     frames = inputs or (project / "frames" / "B" / "frame_000.tif",)
-    return main(
-        ["--quiet", "undistort", *map(str, frames), "--calibration", str(cal), "--system", "B", "--out", str(out)]
-    )
+    return main(["--quiet", "undistort", str(cal), *map(str, frames), "--system", "B", "--out", str(out)])
 
 
 def test_undistort_refuses_a_field_beyond_the_image(project, tmp_path, capsys):

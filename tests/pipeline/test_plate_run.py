@@ -124,7 +124,6 @@ def test_real_walkthrough_grid_to_spine(arcadis_dir, tmp_path, capsys):
             [
                 "--quiet",
                 "undistort",
-                "--calibration",
                 str(cal_path),
                 "--system",
                 "arcadis",

@@ -265,7 +265,7 @@ def _dicom(path, frames: np.ndarray, photometric: str, syntax: str) -> pydicom.D
 
 def _undistort(saved, out, *inputs, system="B"):
     # --outside keep: these tests compare with the API's plain remap (edges: tests/pipeline/test_clinic_edges.py)
-    args = ["--quiet", "undistort", *map(str, inputs), "--calibration", str(saved), "--system", system]
+    args = ["--quiet", "undistort", str(saved), *map(str, inputs), "--system", system]
     args += ["--outside", "keep"]
     return main(args + ["--out", str(out)])
 

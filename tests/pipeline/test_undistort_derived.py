@@ -22,7 +22,7 @@ from tests.stages.test_dicom_derived import _source
 
 def _undistort(saved, out, *inputs, system="B", options=()):
     # --outside keep: these tests compare with the API's plain remap (edges: tests/pipeline/test_clinic_edges.py)
-    args = ["--quiet", "undistort", *map(str, inputs), "--calibration", str(saved), "--system", system]
+    args = ["--quiet", "undistort", str(saved), *map(str, inputs), "--system", system]
     args += ["--outside", "keep"]
     return main(args + ["--out", str(out), *options])
 

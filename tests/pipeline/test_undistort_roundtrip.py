@@ -40,7 +40,7 @@ def identity(tmp_path):
 
 def _undistort(calibration, out, *inputs):
     # --outside keep: the round trip is about the samples' type; the edges' background has its own tests
-    args = ["--quiet", "undistort", *map(str, inputs), "--calibration", str(calibration), "--system", "A"]
+    args = ["--quiet", "undistort", str(calibration), *map(str, inputs), "--system", "A"]
     return main(args + ["--outside", "keep", "--out", str(out)])
 
 

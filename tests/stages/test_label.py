@@ -593,7 +593,7 @@ def _label_cli_argv(tmp_path, sim, c, frames, phantom, *, roles: bool) -> list:
         str(tmp_path / "det.csv"),
         "--phantom",
         str(tmp_path / "phantom.csv"),
-        "--sid",
+        "--source-image-distance",
         str(p.source_image_distance_mm),
         "--pixel-pitch",
         str(p.pixel_pitch_mm),
@@ -610,7 +610,7 @@ def test_cli_label(tmp_path, sim):
     c, ids = detections_from_truth(ft, rng)
     argv = _label_cli_argv(tmp_path, sim, c, [("a.tif", 0)], without_roles(sim.phantom), roles=False)
     write_csv(tmp_path / "seeds.csv", ["id", "x", "y"], [[int(s[0]), s[1], s[2]] for s in seeds_from_truth(ft, rng)])
-    argv += ["--seeds", str(tmp_path / "seeds.csv"), "--out", str(tmp_path / "labels.csv")]
+    argv += ["--seeds", str(tmp_path / "seeds.csv"), "--out", str(tmp_path)]
     assert main(argv) == 0
     import csv
 
@@ -631,7 +631,7 @@ def test_cli_label(tmp_path, sim):
                 "--pitch",
                 "2",
                 "--out",
-                str(tmp_path / "x.csv"),
+                str(tmp_path / "x"),
             ]
         )
         == 2
@@ -658,7 +658,7 @@ def test_cli_label_overlay_reads_each_frame_file_once(tmp_path, sim, monkeypatch
 
     real = stages_io.read_frames
     monkeypatch.setattr(stages_io, "read_frames", lambda path, *a, **k: reads.append(path) or real(path, *a, **k))
-    argv += ["--out", str(tmp_path / "labels.csv"), "--overlay", str(tmp_path / "png")]
+    argv += ["--out", str(tmp_path), "--overlay", str(tmp_path / "png")]
     assert main(argv) == 0
     assert sorted(x.name for x in (tmp_path / "png").iterdir()) == ["movie_000_labels.png", "movie_001_labels.png"]
     assert len(reads) == 1

@@ -441,7 +441,10 @@ def test_cmd_simulate_writes_a_readable_dataset(tmp_path):
 
     out = tmp_path / "sim"
     assert (
-        main(["-q", "simulate", str(out), "--frames", "2", "--systems", "2", "--image-size", "128", "--seed", "4"]) == 0
+        main(
+            ["-q", "simulate", str(out), "--frames", "2", "--systems", "2", "--image-size", "128", "128", "--seed", "4"]
+        )
+        == 0
     )
     for name in ("phantom.csv", "reference.csv", "truth.json", "fluorocal.toml", "montage.png"):
         assert (out / name).is_file(), name
@@ -460,9 +463,9 @@ def test_cmd_simulate_writes_a_readable_dataset(tmp_path):
     config = tomllib.loads((out / "fluorocal.toml").read_text())
     assert config["phantom"]["file"] == "phantom.csv" and config["output"]["dir"] == "out"
     assert [s["frames"] for s in config["systems"]] == ["frames/A/*.tif", "frames/B/*.tif"]
-    # refuses a non-empty directory unless --force
-    assert main(["-q", "simulate", str(out), "--frames", "1", "--image-size", "64"]) == 2
-    assert main(["-q", "simulate", str(out), "--frames", "1", "--image-size", "64", "--force"]) == 0
+    # refuses a non-empty directory unless --overwrite
+    assert main(["-q", "simulate", str(out), "--frames", "1", "--image-size", "64", "64"]) == 2
+    assert main(["-q", "simulate", str(out), "--frames", "1", "--image-size", "64", "64", "--overwrite"]) == 0
     assert sorted(p.name for p in (out / "frames" / "A").iterdir()) == ["frame_000.tif"]
 
 
@@ -472,7 +475,22 @@ def test_cmd_simulate_dicom(tmp_path):
 
     out = tmp_path / "dcm"
     assert (
-        main(["-q", "simulate", str(out), "--frames", "1", "--image-size", "64", "--format", "dicom", "--noise", "0"])
+        main(
+            [
+                "-q",
+                "simulate",
+                str(out),
+                "--frames",
+                "1",
+                "--image-size",
+                "64",
+                "64",
+                "--format",
+                "dicom",
+                "--noise",
+                "0",
+            ]
+        )
         == 0
     )
     (frame,) = read_frames(out / "frames" / "A" / "frame_000.dcm")
@@ -487,7 +505,7 @@ def test_cmd_simulate_same_seed_same_files(tmp_path, fmt):
     """Every written file is byte-identical across runs (no timestamps, UIDs derived from the seed)."""
     from fluorocal.cli import main
 
-    args = ["--frames", "1", "--systems", "2", "--image-size", "64", "--format", fmt, "--seed", "9"]
+    args = ["--frames", "1", "--systems", "2", "--image-size", "64", "64", "--format", fmt, "--seed", "9"]
     for name in ("one", "two"):
         assert main(["-q", "simulate", str(tmp_path / name), *args]) == 0
     files = sorted(p.relative_to(tmp_path / "one") for p in (tmp_path / "one").rglob("*") if p.is_file())
@@ -893,7 +911,7 @@ def _assert_same_truth(fresh, stored, where: str) -> None:
 
 
 def test_cmd_simulate_grid_orientations(tmp_path):
-    """`--phantom grid --orientations`: named DICOM frames with the C-arm's angles, orientations in the config, truth.
+    """`--phantom grid --orientation`: named DICOM frames with the C-arm's angles, orientations in the config, truth.
 
     Each orientation's frames are named by it and carry its orbit and tilt
     (PositionerPrimaryAngle, PositionerSecondaryAngle); fluorocal.toml lists
@@ -903,8 +921,10 @@ def test_cmd_simulate_grid_orientations(tmp_path):
     from fluorocal.cli import main
 
     out = tmp_path / "grid"
-    args = ["-q", "simulate", str(out), "--phantom", "grid", "--orientations", "0:0,0:15,30:0", "--frames", "2"]
-    assert main([*args, "--image-size", "128", "--format", "dicom", "--plate-error", "0.03"]) == 0
+    args = ["-q", "simulate", str(out), "--phantom", "grid", "--frames", "2"]
+    for orbit, tilt in ((0, 0), (0, 15), (30, 0)):
+        args += ["--orientation", f"orbit={orbit},tilt={tilt}"]
+    assert main([*args, "--image-size", "128", "128", "--format", "dicom", "--plate-error", "0.03"]) == 0
     names = ["centred", "centred", "tilt15", "tilt15", "orbit30", "orbit30"]
     files = sorted((out / "frames" / "A").iterdir())
     assert [f.name for f in files] == [f"frame_{k:03d}_{n}.dcm" for k, n in enumerate(names)]
@@ -927,6 +947,6 @@ def test_cmd_simulate_grid_orientations(tmp_path):
     assert [f["orientation"] for f in truth["frames"]] == names
     assert [o["exposures"] for o in truth["systems"][0]["orientations"]] == [[0, 1], [2, 3], [4, 5]]
     # the options are the grid plate's
-    assert main(["-q", "simulate", str(tmp_path / "cube"), "--orientations", "0:0"]) == 2
+    assert main(["-q", "simulate", str(tmp_path / "cube"), "--orientation", "orbit=0,tilt=0"]) == 2
     assert main(["-q", "simulate", str(tmp_path / "cube"), "--plate-error", "0.01"]) == 2
-    assert main(["-q", "simulate", str(tmp_path / "bad"), "--phantom", "grid", "--orientations", "0;15"]) == 2
+    assert main(["-q", "simulate", str(tmp_path / "bad"), "--phantom", "grid", "--orientation", "0:15"]) == 2
