@@ -27,7 +27,7 @@ IOP_NOTE = (
 def plate_calibration(runner, result):
     """The :class:`~fluorocal.calibration.Calibration` of a grid plate's :class:`PlateCalibration`."""
     from fluorocal.calibration import Calibration, SystemCalibration
-    from fluorocal.export import fluorocal_version
+    from fluorocal.export_tables import fluorocal_version
     from fluorocal.stages.geometry import iop_guess
     from fluorocal.stages.orientation import OrientationField
 
@@ -56,7 +56,7 @@ def plate_calibration(runner, result):
         "fluorocal_version": fluorocal_version(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "config": str(runner.config.path),
-        "scheme": "plate" if runner.config.scheme != "none" else "none",
+        "scheme": result.scheme,
         "interior_orientation": IOP_NOTE,
         "geometry_estimated": False,
         "statistics": {
@@ -86,7 +86,7 @@ def _rms_mm(error_mm: np.ndarray) -> float:
 
 def export_plate(runner, result, obs, excluded, out_dir: Path) -> list[Path]:
     """Write a grid plate's calibration, layout, observations and report into ``out_dir``."""
-    from fluorocal.export import write_object_points, write_observations
+    from fluorocal.export_tables import write_object_points, write_observations
 
     cal = plate_calibration(runner, result)
     written = cal.save(inside(out_dir, "calibration.json"))
@@ -224,12 +224,12 @@ def _plate_lines(result, pitch_mm: float) -> list[str]:
 
 def plate_map(path: Path, result, system: int, pitch_mm: float) -> Path:
     """The plate's estimated errors as arrows on the plate (mm), magnified to be seen."""
-    from fluorocal.report import _figure, _save
+    from fluorocal.report import new_figure, save_figure
 
     sel = (result.hole_system == system) & result.plate_estimated
     xy, err = result.nominal_mm[sel], result.plate_error_mm[sel]
     gain = 0.4 * pitch_mm / max(float(np.abs(err).max()), 1e-12)
-    plt, fig, (ax,) = _figure(1, width=6.0, height=5.6)
+    plt, fig, (ax,) = new_figure(1, width=6.0, height=5.6)
     ax.quiver(
         xy[:, 0],
         xy[:, 1],
@@ -245,4 +245,4 @@ def plate_map(path: Path, result, system: int, pitch_mm: float) -> Path:
     ax.set_xlabel("plate x (mm)")
     ax.set_ylabel("plate y (mm)")
     ax.set_title(f"plate errors, {result.system_names[system]} (arrows x{gain:.0f}; colour: mm)")
-    return _save(plt, fig, path)
+    return save_figure(plt, fig, path)

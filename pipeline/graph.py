@@ -163,8 +163,8 @@ def _system_appearance(frames: tuple, params):
 
 def _learn_extras(config, units) -> dict:
     from fluorocal.config import params_from_dict
+    from fluorocal.stages.calibrate import CalibrationSetup
     from fluorocal.stages.geometry import iop_guess
-    from fluorocal.stages.learn import CalibrationSetup
 
     sizes, guesses = [], []
     for s, system in enumerate(config.systems):
@@ -239,7 +239,7 @@ REGISTRY = (
     ),
     (
         "learn",
-        "fluorocal.stages.learn",
+        "fluorocal.stages.calibrate",
         "learn_calibration",
         "LearnParams",
         ("label", "phantom"),
