@@ -246,11 +246,12 @@ def _reference(path: Path, runner):
     return ids, xyz
 
 
-def _schemes(text, project_scheme: str, have_reference: bool) -> tuple[list[str], str]:
+def _schemes(text, project_scheme, have_reference: bool) -> tuple[list[str], str]:
     """The schemes to run and fluorocal's own (the project's learned scheme, else the recommended one)."""
     from fluorocal.stages.errors import InputError
+    from fluorocal.stages.learn.params import SCHEMES, Scheme
 
-    ours = project_scheme if project_scheme.startswith("knn") else "knn+iop+smooth"
+    ours = project_scheme if project_scheme.learn_field else Scheme.KNN_IOP_SMOOTH
     if text is None:
         names = ["none", "polynomial", ours] + (["opencv"] if have_reference else [])
     else:
@@ -262,7 +263,7 @@ def _schemes(text, project_scheme: str, have_reference: bool) -> tuple[list[str]
             )
         if "opencv" in names and not have_reference:
             raise InputError("--schemes: opencv needs --reference (OpenCV calibrates against known 3D points)")
-        learned = [n for n in names if n.startswith("knn")]
+        learned = [n for n in names if n in SCHEMES and Scheme(n).learn_field]
         ours = ours if ours in names or not learned else learned[0]
     return names, ours
 

@@ -4,22 +4,34 @@ A stage's artifact depends on its own module and on every project module that
 module imports, directly or not (the learning stage runs the adjustment's
 code). :func:`code_digest` follows the imports statically — it parses the
 source files and never runs them — and hashes the syntax tree of each module
-reached, so any change to what a stage executes changes its key, while a
-change of comments or layout does not. No hand-kept version number can go
-stale.
+reached, so any change to what a stage executes changes its key. What it
+follows is what Python executes: the imports of the module body and of every
+function body (lazy ones included), and the ``__init__`` of every package a
+module reached lives in; an ``if TYPE_CHECKING:`` block is never executed and
+is not followed. Comments, layout and docstrings are not code: changing them
+changes no key. No hand-kept version number can go stale.
+
+The versions of the numerical libraries the code reached imports
+(:data:`LIBRARIES`: NumPy, SciPy, OpenCV, scikit-image) are in the digest too,
+with those of the libraries they are built on: a new SciPy recomputes the
+stages that call SciPy, and only them.
 """
 
 from __future__ import annotations
 
 import ast
 import hashlib
+import importlib
 import importlib.util
 from functools import lru_cache
 from pathlib import Path
 
+#: the libraries whose version is in the digest of the code importing them -> the ones they run in turn
+LIBRARIES = {"numpy": (), "scipy": ("numpy",), "cv2": ("numpy",), "skimage": ("numpy", "scipy")}
+
 
 def code_digest(modules) -> str:
-    """sha256 over the syntax trees of ``modules`` and of every module of the same packages they import.
+    """sha256 over the syntax trees of ``modules``, of every module of the same packages they import, and the versions.
 
     Parameters
     ----------
@@ -30,25 +42,58 @@ def code_digest(modules) -> str:
     Returns
     -------
     str
-        Hex digest; it changes when the code of any module reached changes.
+        Hex digest; it changes when the code of any module reached changes, or the version
+        of one of the :data:`LIBRARIES` that code imports.
+    """
+    seen, libraries = reach(modules)
+    h = hashlib.sha256()
+    for name in sorted(seen):
+        h.update(f"{name}:{seen[name]}\n".encode())
+    for library in sorted(libraries):
+        h.update(f"{library}=={_library_version(library)}\n".encode())
+    return h.hexdigest()
+
+
+def reach(modules) -> tuple[dict[str, str], set[str]]:
+    """The modules ``modules`` execute (name -> digest of its syntax tree) and the :data:`LIBRARIES` they run.
+
+    A package reached only as the parent of a module runs its body alone: its functions' imports are
+    followed once the package itself is imported.
     """
     roots = sorted(set(modules))
     scope = {name.split(".")[0] for name in roots}
     seen: dict[str, str] = {}
-    todo = list(roots)
+    whole: set[str] = set()  # the modules imported (not only run as a parent): every import of theirs followed
+    libraries: set[str] = set()
+    todo = [(name, True) for name in roots]
     while todo:
-        name = todo.pop()
-        if name in seen:
+        name, imported = todo.pop()
+        if name in whole or (name in seen and not imported):
             continue
         source = _module_source(name)
         if source is None:
             continue
-        seen[name], imported = _analyse(name, *source)
-        todo.extend(m for m in imported if m.split(".")[0] in scope and m not in seen)
-    h = hashlib.sha256()
-    for name in sorted(seen):
-        h.update(f"{name}:{seen[name]}\n".encode())
-    return h.hexdigest()
+        seen[name], body, functions = _analyse(name, *source)
+        whole |= {name} if imported else set()
+        for module in body + functions * imported:
+            top = module.split(".")[0]
+            if top in LIBRARIES:
+                libraries |= {top, *LIBRARIES[top]}
+            elif top in scope and module not in whole:
+                todo.append((module, True))
+        todo += [(parent, False) for parent in _parents(name) if parent not in seen]
+    return seen, libraries
+
+
+def _parents(name: str) -> list[str]:
+    """The packages whose ``__init__`` runs before module ``name``: ``a``, ``a.b`` for ``a.b.c``."""
+    parts = name.split(".")
+    return [".".join(parts[:i]) for i in range(1, len(parts))]
+
+
+@lru_cache(maxsize=None)
+def _library_version(name: str) -> str:
+    return importlib.import_module(name).__version__
 
 
 def _module_path(name: str) -> Path | None:
@@ -67,23 +112,61 @@ def _module_source(name: str) -> tuple[Path, str] | None:
 
 
 @lru_cache(maxsize=512)
-def _analyse(name: str, path: Path, text: str) -> tuple[str, tuple[str, ...]]:
-    """The digest of a module's syntax tree and the dotted names of the modules it imports.
+def _analyse(name: str, path: Path, text: str) -> tuple[str, tuple[str, ...], tuple[str, ...]]:
+    """The digest of a module's syntax tree (docstrings left out) and the modules its body and its functions import.
 
     Cached by the source text itself, so the stages' shared modules are parsed once per process and an
-    edited file is parsed anew. Imports anywhere in the body count (function-level ones included).
+    edited file is parsed anew. The imports of an ``if TYPE_CHECKING:`` block are never run and not listed.
     """
     tree = ast.parse(text, filename=str(path))
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    body = _imports(_executed(tree, into_functions=False), package)
+    functions = [m for m in _imports(_executed(tree, into_functions=True), package) if m not in body]
+    _drop_docstrings(tree)
+    return hashlib.sha256(ast.dump(tree).encode()).hexdigest(), tuple(body), tuple(functions)
+
+
+def _imports(nodes, package: str) -> list[str]:
     found = []
-    for node in ast.walk(tree):
+    for node in nodes:
         if isinstance(node, ast.Import):
             found += [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
             base = _absolute(node.module or "", node.level, package)
             # ``from a.b import c``: c may be a submodule of a.b or a name defined in it
             found += [base] + [f"{base}.{alias.name}" for alias in node.names if alias.name != "*"]
-    return hashlib.sha256(ast.dump(tree).encode()).hexdigest(), tuple(found)
+    return found
+
+
+def _executed(tree: ast.AST, *, into_functions: bool):
+    """The nodes of ``tree`` but those of ``if TYPE_CHECKING:`` blocks (``else`` kept), and of functions if asked."""
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        yield node
+        if isinstance(node, ast.If) and _is_type_checking(node.test):
+            todo += node.orelse
+        elif into_functions or not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            todo += ast.iter_child_nodes(node)
+
+
+def _is_type_checking(test: ast.expr) -> bool:
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
+def _drop_docstrings(tree: ast.AST) -> None:
+    """Remove the docstring of the module and of every class and function (a body left empty becomes ``pass``)."""
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
+            first = node.body[0]
+            if (
+                isinstance(first, ast.Expr)
+                and isinstance(first.value, ast.Constant)
+                and isinstance(first.value.value, str)
+            ):
+                node.body = node.body[1:] or [ast.Pass()]
 
 
 def _absolute(module: str, level: int, package: str) -> str:

@@ -23,6 +23,9 @@ from fluorocal.outputs import safe_name
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.orientation import ANGLE_TOL_DEG, check_angle
 
+if typing.TYPE_CHECKING:  # imported when a configuration is made: `fluorocal --help` imports no learning
+    from fluorocal.stages.learn.params import Scheme
+
 
 class ConfigError(InputError):
     """The project configuration is invalid; the message names the key."""
@@ -42,7 +45,7 @@ OWNED_ELSEWHERE = {
 }
 
 
-#: the calibration scheme when ``[calibration] scheme`` is not given
+#: the calibration scheme when ``[calibration] scheme`` is not given (parsed with the rest: ``--help`` imports no stage)
 DEFAULT_SCHEME = "knn+iop+smooth"
 
 
@@ -110,10 +113,6 @@ def schema_default(section: str, name: str):
     return next(k.default for k in SCHEMA if k.section == section and k.name == name)
 
 
-#: the schemes a grid plate accepts: the default (the plate's own solve) and none
-_PLATE_SCHEMES = (DEFAULT_SCHEME, "none")
-
-
 def _reject_owned(section: str, table: dict, path: Path) -> None:
     for key in table:
         if (section, key) in OWNED_ELSEWHERE:
@@ -165,11 +164,16 @@ class Config:
     path: Path
     phantom: PhantomConfig
     systems: tuple[SystemConfig, ...]
-    scheme: str = DEFAULT_SCHEME
+    scheme: Scheme = DEFAULT_SCHEME
     output_dir: Path = Path("out")
     cache_dir: Path = Path(".fluorocal")
     stage_params: dict = field(default_factory=dict)
     compute: ComputeConfig = ComputeConfig()
+
+    def __post_init__(self):
+        from fluorocal.stages.learn.params import Scheme
+
+        object.__setattr__(self, "scheme", Scheme.parse(self.scheme, where="Config.scheme"))
 
     @property
     def root(self) -> Path:
@@ -465,21 +469,7 @@ def load_config(
     if len(set(names)) != len(names):
         raise ConfigError(f"{path.name}: [[systems]] key 'name': names must differ; got {names}")
 
-    calibration = _expect(data.get("calibration", {}), dict, "a table [calibration]", path, "", "calibration")
-    _reject_unknown(calibration, schema_keys("calibration"), path, "[calibration] ")
-    scheme = calibration.get("scheme", schema_default("calibration", "scheme"))
-    from fluorocal.stages.learn import SCHEMES
-
-    if not isinstance(scheme, str) or scheme not in SCHEMES:
-        raise ConfigError(
-            f"{_where(path, '[calibration] ', 'scheme')}: expected one of {', '.join(SCHEMES)}; got {scheme!r}"
-        )
-    if phantom.lattice and scheme not in _PLATE_SCHEMES:
-        raise ConfigError(
-            f"{_where(path, '[calibration] ', 'scheme')}: a grid plate is calibrated by the plate's own solve "
-            f"(a field per orientation and the plate's errors); expected one of {', '.join(_PLATE_SCHEMES)} "
-            f"(none: no correction); got {scheme!r}"
-        )
+    scheme = _scheme(data, path, phantom)
 
     output = _expect(data.get("output", {}), dict, "a table [output]", path, "", "output")
     _reject_unknown(output, schema_keys("output"), path, "[output] ")
@@ -507,6 +497,27 @@ def load_config(
             params_from_dict(cls, table, where=f"{path.name}: [{stage}] ")
             stage_params[stage] = table
     return Config(path, phantom, systems, scheme, out_dir, cache_dir, stage_params, compute)
+
+
+def _scheme(data: dict, path: Path, phantom):
+    """``[calibration] scheme``, parsed once (:class:`~fluorocal.stages.learn.params.Scheme`), for this phantom."""
+    calibration = _expect(data.get("calibration", {}), dict, "a table [calibration]", path, "", "calibration")
+    _reject_unknown(calibration, schema_keys("calibration"), path, "[calibration] ")
+    from fluorocal.stages.learn.params import Scheme
+
+    where = _where(path, "[calibration] ", "scheme")
+    try:
+        scheme = Scheme.parse(calibration.get("scheme", schema_default("calibration", "scheme")), where=where)
+    except InputError as exc:
+        raise ConfigError(str(exc)) from None
+    plate_schemes = (Scheme.KNN_IOP_SMOOTH, Scheme.NONE)  # the plate's own solve, or no correction
+    if phantom.lattice and scheme not in plate_schemes:
+        raise ConfigError(
+            f"{where}: a grid plate is calibrated by the plate's own solve "
+            f"(a field per orientation and the plate's errors); expected one of {', '.join(plate_schemes)} "
+            f"(none: no correction); got {str(scheme)!r}"
+        )
+    return scheme
 
 
 def params_from_dict(cls, table: dict, *, where: str = ""):

@@ -14,8 +14,9 @@ import math
 from pathlib import Path
 
 from fluorocal.outputs import inside, publish, safe_name
-from fluorocal.report import _figure, _save, residual_maps
+from fluorocal.report import new_figure, residual_maps, save_figure
 from fluorocal.stages.io import write_csv
+from fluorocal.stages.learn.params import Scheme
 
 #: the figures compared between fluorocal and its peers (all: lower is better), with their table headings
 FIGURES = {
@@ -88,7 +89,7 @@ def markdown(scores, ours: str, notes: list[str]) -> str:
     """The table (TABLE I's columns where they apply), the improvement of each scheme over ``none``, the peers' wins."""
     key = headline(scores)
     names = figures(scores)
-    base = {s.n_train: getattr(s, key) for s in scores if s.scheme == "none"}
+    base = {s.n_train: getattr(s, key) for s in scores if s.scheme == Scheme.NONE}
     biplanar = any(s.tworay_pairs for s in scores)
     checks = any(math.isfinite(s.out_3d_rigid_mm) for s in scores)
     head = [f"training {size_unit(scores)}", "scheme"]
@@ -111,7 +112,7 @@ def markdown(scores, ours: str, notes: list[str]) -> str:
     previous = None
     for s in scores:
         b = base.get(s.n_train, math.nan)
-        better = 100 * (1 - getattr(s, key) / b) if s.scheme != "none" and math.isfinite(b) and b > 0 else math.nan
+        better = 100 * (1 - getattr(s, key) / b) if s.scheme != Scheme.NONE and math.isfinite(b) and b > 0 else math.nan
         size = str(s.n_train) if s.n_train != previous else ""
         previous = s.n_train
         shown = f"{better:.1f}" if math.isfinite(better) else "N/A"
@@ -154,13 +155,13 @@ def write_plots(folder: Path, scores, ours: str) -> list[Path]:
         ax.set_title(headings[name], fontsize=9)
     if len(schemes) > 1:
         axes[0].legend(fontsize=8)
-    written = [_save(plt, fig, inside(folder, "evaluation_errors.png"))]
+    written = [save_figure(plt, fig, inside(folder, "evaluation_errors.png"))]
     key = headline(scores)
-    base = {s.n_train: getattr(s, key) for s in scores if s.scheme == "none"}
-    if base and set(schemes) - {"none"}:
-        plt, fig, (ax,) = _figure(1, width=5.0, height=3.8)
+    base = {s.n_train: getattr(s, key) for s in scores if s.scheme == Scheme.NONE}
+    if base and set(schemes) - {Scheme.NONE}:
+        plt, fig, (ax,) = new_figure(1, width=5.0, height=3.8)
         for scheme in schemes:
-            rows = [s for s in scores if s.scheme == scheme and s.scheme != "none" and s.n_train in base]
+            rows = [s for s in scores if s.scheme == scheme and s.scheme != Scheme.NONE and s.n_train in base]
             if rows:
                 better = [100 * (1 - getattr(s, key) / base[s.n_train]) for s in rows]
                 ax.plot([s.n_train for s in rows], better, "o-", label=scheme)
@@ -168,7 +169,7 @@ def write_plots(folder: Path, scores, ours: str) -> list[Path]:
         ax.set_ylabel("% improvement over none")
         ax.set_title(headings[key], fontsize=9)
         ax.legend(fontsize=8)
-        written.append(_save(plt, fig, inside(folder, "evaluation_improvement.png")))
+        written.append(save_figure(plt, fig, inside(folder, "evaluation_improvement.png")))
     return written
 
 

@@ -27,7 +27,7 @@ IOP_NOTE = (
 def plate_calibration(runner, result):
     """The :class:`~fluorocal.calibration.Calibration` of a grid plate's :class:`PlateCalibration`."""
     from fluorocal.calibration import Calibration, SystemCalibration
-    from fluorocal.export import fluorocal_version
+    from fluorocal.export_tables import fluorocal_version
     from fluorocal.stages.geometry import iop_guess
     from fluorocal.stages.orientation import OrientationField
 
@@ -56,7 +56,7 @@ def plate_calibration(runner, result):
         "fluorocal_version": fluorocal_version(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "config": str(runner.config.path),
-        "scheme": "plate" if runner.config.scheme != "none" else "none",
+        "scheme": result.scheme,
         "interior_orientation": IOP_NOTE,
         "geometry_estimated": False,
         "statistics": {
@@ -86,7 +86,7 @@ def _rms_mm(error_mm: np.ndarray) -> float:
 
 def export_plate(runner, result, obs, excluded, out_dir: Path) -> list[Path]:
     """Write a grid plate's calibration, layout, observations and report into ``out_dir``."""
-    from fluorocal.export import write_object_points, write_observations
+    from fluorocal.export_tables import write_object_points, write_observations
 
     cal = plate_calibration(runner, result)
     written = cal.save(inside(out_dir, "calibration.json"))
@@ -232,7 +232,7 @@ def plate_map(path: Path, result, system: int, pitch_mm: float) -> Path:
     An arrow of the 95th percentile's length spans a cell (:data:`PLATE_MAP_CELLS` per side); the colour
     bar gives the error's length in mm.
     """
-    from fluorocal.report import _figure, _save
+    from fluorocal.report import new_figure, save_figure
 
     sel = (result.hole_system == system) & result.plate_estimated
     xy, err = result.nominal_mm[sel], result.plate_error_mm[sel]
@@ -241,7 +241,7 @@ def plate_map(path: Path, result, system: int, pitch_mm: float) -> Path:
     xy, err = xy[shown], err[shown]
     length = np.linalg.norm(err, axis=1)
     gain = cell / max(float(np.percentile(length, 95)), 1e-12)
-    plt, fig, (ax,) = _figure(1, width=6.4, height=5.6)
+    plt, fig, (ax,) = new_figure(1, width=6.4, height=5.6)
     arrows = ax.quiver(
         xy[:, 0],
         xy[:, 1],
@@ -262,4 +262,4 @@ def plate_map(path: Path, result, system: int, pitch_mm: float) -> Path:
     ax.set_ylabel("plate y (mm)")
     name = result.system_names[system]
     ax.set_title(f"plate errors, system {name}: {len(xy)} of {int(sel.sum())} holes, arrows x{gain:.0f}")
-    return _save(plt, fig, path)
+    return save_figure(plt, fig, path)

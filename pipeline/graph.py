@@ -3,7 +3,9 @@
 A :class:`Stage` declares its name, its inputs (upstream stages or the
 sources ``frame`` and ``phantom``), its frozen ``Params`` class and its pure
 function; the digest of the code it runs (:mod:`fluorocal.codehash`) goes
-into every key. Per-frame stages run once
+into every key: its function's module and its ``gather`` function's, and all
+they import. The ``context`` and ``extras`` hooks are not in it: what they
+compute is (they fill the parameters, which are hashed). Per-frame stages run once
 per frame; a per-system stage runs once per imaging system on its frames'
 artifacts in exposure order (a sequence) and gives one artifact per frame; a
 gathering stage runs once per project on all frames' outputs of its first
@@ -70,12 +72,18 @@ class Stage:
     context: Callable | None = None
     extras: Callable | None = None
 
+    def code_modules(self) -> tuple[str, ...]:
+        """The modules whose code, with all they import, makes the stage's artifact: its function's and its gather's.
+
+        ``context`` and ``extras`` are left out: their values, not their code, enter the key.
+        """
+        return tuple(f.__module__ for f in (self.func, self.gather) if f is not None)
+
     def code_digest(self) -> str:
-        """Digest of the source of the stage's function and of the pipeline hooks it runs with, and all they import."""
+        """Digest of the code of :meth:`code_modules` and all they import (:func:`fluorocal.codehash.code_digest`)."""
         from fluorocal.codehash import code_digest
 
-        hooks = (self.func, self.gather, self.context, self.extras)
-        return code_digest(f.__module__ for f in hooks if f is not None)
+        return code_digest(self.code_modules())
 
 
 def _label_context(config, unit, units) -> dict:
@@ -155,8 +163,8 @@ def _system_appearance(frames: tuple, params):
 
 def _learn_extras(config, units) -> dict:
     from fluorocal.config import params_from_dict
+    from fluorocal.stages.calibrate import CalibrationSetup
     from fluorocal.stages.geometry import iop_guess
-    from fluorocal.stages.learn import CalibrationSetup
 
     sizes, guesses = [], []
     for s, system in enumerate(config.systems):
@@ -216,13 +224,8 @@ def plate_orientations(config, units) -> tuple:
     return tuple((u.system, u.exposure, o.name, o.orbit_deg, o.tilt_deg) for u, o in zip(units, found))
 
 
-def _gather_observations(units, labels, config):
-    from fluorocal.gather import observations_from_labels
-
-    return observations_from_labels(units, labels, config)
-
-
-#: the project's stages in execution order: (stage name, module, entry function, Params class, inputs, options)
+#: the project's stages in execution order: (stage name, module, entry function, Params class, inputs, options);
+#: a gather function is named ``"module:function"`` (imported with the stages, its module's code in the key)
 REGISTRY = (
     ("detect", "fluorocal.stages.detect", "detect_beads", "DetectParams", ("frame",), {"context": _detect_context}),
     ("centroid", "fluorocal.stages.centroid", "centroid_beads", "CentroidParams", ("frame", "detect"), {}),
@@ -236,11 +239,11 @@ REGISTRY = (
     ),
     (
         "learn",
-        "fluorocal.stages.learn",
+        "fluorocal.stages.calibrate",
         "learn_calibration",
         "LearnParams",
         ("label", "phantom"),
-        {"per_frame": False, "gather": _gather_observations, "extras": _learn_extras},
+        {"per_frame": False, "gather": "fluorocal.gather:observations_from_labels", "extras": _learn_extras},
     ),
 )
 
@@ -256,6 +259,9 @@ def default_stages() -> list[Stage]:
     stages = []
     for name, module, entry, params, inputs, options in REGISTRY:
         mod = importlib.import_module(module)
+        if "gather" in options:
+            where, _, function = options["gather"].partition(":")
+            options = {**options, "gather": getattr(importlib.import_module(where), function)}
         stages.append(Stage(name, getattr(mod, entry), getattr(mod, params), inputs, **options))
     return stages
 

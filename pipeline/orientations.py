@@ -235,9 +235,9 @@ def _deg(angle: float | None) -> str:
 
 def _change_plot(path: Path, system_name: str, fields, changes) -> Path:
     """RMS and largest change per orientation, as is and modulo a homography."""
-    from fluorocal.report import _figure, _save
+    from fluorocal.report import new_figure, save_figure
 
-    plt, fig, (ax,) = _figure(1, width=max(5.0, 0.5 * len(fields) + 2.5), height=3.8)
+    plt, fig, (ax,) = new_figure(1, width=max(5.0, 0.5 * len(fields) + 2.5), height=3.8)
     x = np.arange(len(fields))
     for k, (label, values) in enumerate(
         (
@@ -253,7 +253,7 @@ def _change_plot(path: Path, system_name: str, fields, changes) -> Path:
     ax.set_ylabel("Δ − Δref at the nodes (px)")
     ax.set_title(f"change of the correction with orientation, system {system_name}", fontsize=10)
     ax.legend(fontsize=7)
-    return _save(plt, fig, path)
+    return save_figure(plt, fig, path)
 
 
 def _change_maps(path: Path, fields, changes, ref: int) -> Path:
@@ -262,7 +262,7 @@ def _change_maps(path: Path, fields, changes, ref: int) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from fluorocal.report import _image_axes, _save
+    from fluorocal.report import image_axes, save_figure
 
     shown = [i for i in range(len(fields)) if i != ref][:MAX_MAPS]
     columns = min(len(shown), 4)
@@ -280,7 +280,7 @@ def _change_maps(path: Path, fields, changes, ref: int) -> Path:
         im = ax.imshow(np.linalg.norm(d, axis=-1), extent=extent, cmap="magma", vmin=0, vmax=vmax)
         if vmax > 0:  # equal fields (scheme none) leave no arrow to scale
             ax.quiver(xx[sel], yy[sel], d[sel][..., 0], d[sel][..., 1], angles="xy", color="c", scale=vmax * 25)
-        _image_axes(
+        image_axes(
             ax,
             (first.width_px, first.height_px),
             f"{fields[i].describe()}\nRMS {changes[i].rms_mod_h_px:.3f} px modulo H",
@@ -288,7 +288,7 @@ def _change_maps(path: Path, fields, changes, ref: int) -> Path:
     for ax in axes.ravel()[len(shown) :]:
         ax.set_axis_off()
     fig.colorbar(im, ax=list(axes.ravel()), label=f"|Δ − Δref| modulo H (px), against {fields[ref].name}", shrink=0.8)
-    return _save(plt, fig, path)
+    return save_figure(plt, fig, path)
 
 
 def inspect_calibration(path: Path, out_dir: Path | None = None) -> list[str]:

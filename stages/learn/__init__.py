@@ -37,12 +37,12 @@ Modules, one job each
 - :mod:`.polynomial`: scheme ``polynomial``, the expert method the paper
   compares with (a global model estimated in the adjustment).
 - :mod:`.result`: :class:`IterationRecord`, :class:`LearnResult`.
+
+The learning stage's entry, which calibrates a bead phantom here and a grid plate by
+:mod:`fluorocal.stages.plate`, is :mod:`fluorocal.stages.calibrate` (above both packages).
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from fluorocal.stages.field import CorrectionField, PointwiseField, grid_nodes
 from fluorocal.stages.learn.adjuster import start_orientation
@@ -51,18 +51,15 @@ from fluorocal.stages.learn.joint import fit_grid_jointly
 from fluorocal.stages.learn.knn import CvReport, KnnModel, cross_validate_k, fit_knn_field
 from fluorocal.stages.learn.loop import calibrate
 from fluorocal.stages.learn.nodes import GridSpec
-from fluorocal.stages.learn.order import canonical_order, taken
-from fluorocal.stages.learn.params import PRESETS, SCHEMES, LearnParams
+from fluorocal.stages.learn.params import PRESETS, SCHEMES, LearnParams, Scheme
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
-
-if TYPE_CHECKING:  # the plate's modules import the learning's: imported where used (see learn_calibration)
-    from fluorocal.stages.plate import PlateCalibration
 
 VERSION = 1
 
 __all__ = [
     "VERSION",
     "SCHEMES",
+    "Scheme",
     "PRESETS",
     "LearnParams",
     "GridSpec",
@@ -73,7 +70,6 @@ __all__ = [
     "PointwiseField",
     "IterationRecord",
     "LearnResult",
-    "CalibrationSetup",
     "grid_nodes",
     "cross_validate_k",
     "cross_validate_smoothness",
@@ -81,82 +77,5 @@ __all__ = [
     "fit_grid_field",
     "fit_grid_jointly",
     "calibrate",
-    "learn_calibration",
+    "start_orientation",
 ]
-
-
-@dataclass(frozen=True)
-class CalibrationSetup:
-    """What the pipeline knows of the project and :func:`learn_calibration` needs.
-
-    Attributes
-    ----------
-    scheme : str
-        One of :data:`SCHEMES` (config ``[calibration] scheme``).
-    image_size_px : tuple of (int, int)
-        ``(width, height)`` of each system's frames.
-    iop_guess_px : tuple of (float, float, float)
-        Start values ``(xp, yp, c)`` per system: the image centre and source-image distance / pixel pitch.
-    orientations : tuple of (int, int, str, float or None, float or None)
-        A grid plate's frames: ``(system, exposure, orientation name, orbit_deg, tilt_deg)`` each (a
-        3D phantom's system is one orientation: empty).
-    """
-
-    scheme: str = "knn+iop+smooth"
-    image_size_px: tuple = ()
-    iop_guess_px: tuple = ()
-    orientations: tuple = ()
-
-
-def learn_calibration(
-    observations, phantom, params: LearnParams, *, setup: CalibrationSetup, solver=None, selection=None, plate=None
-) -> LearnResult | PlateCalibration:
-    """Calibrate from labelled observations: start values by resection, then :func:`calibrate`.
-
-    A grid plate is calibrated by :func:`fluorocal.stages.plate.calibrate_plate` instead (a field per
-    orientation, the plate's errors estimated), with ``plate`` its parameters, and the result is a
-    :class:`fluorocal.stages.plate.PlateCalibration`; scheme ``none`` then fits homographies only (no field).
-
-    Parameters
-    ----------
-    observations : Observations
-    phantom : Phantom
-        Nominal (design) bead coordinates.
-    params : LearnParams
-    setup : CalibrationSetup
-        The scheme (which decides, among others, whether the field is smoothed), image sizes and IOP guesses.
-    solver, selection : SolverOptions, DataSelection, optional
-        The adjustment's settings from ``[adjust]`` (the free parameters are the scheme's).
-    plate : PlateParams, optional
-        A grid plate's settings from ``[plate]`` (default ``PlateParams()``).
-
-    Raises
-    ------
-    EstimationError
-        No frame could be resected, or the adjustment failed as a whole.
-    """
-    if phantom.lattice:
-        # imported here: the plate's modules use the learning's grid fits (a cycle at import time otherwise)
-        from fluorocal.stages.plate import PlateParams, calibrate_plate
-
-        return calibrate_plate(
-            observations,
-            phantom,
-            PlateParams() if plate is None else plate,
-            image_size_px=setup.image_size_px,
-            orientations=setup.orientations,
-            learn_fields=setup.scheme != "none",
-            solver=solver,
-        )
-    # the resection too sees the rows in the canonical order that calibrate runs on
-    initial = start_orientation(taken(observations, canonical_order(observations)), phantom, setup.iop_guess_px)
-    return calibrate(
-        observations,
-        phantom,
-        initial,
-        image_size=setup.image_size_px,
-        scheme=setup.scheme,
-        params=params,
-        solver=solver,
-        selection=selection,
-    )

@@ -55,7 +55,7 @@ from fluorocal.stages.learn.knn import fit_knn_field, pool_neighbours, restricte
 from fluorocal.stages.learn.network import systems_network
 from fluorocal.stages.learn.nodes import image_sizes
 from fluorocal.stages.learn.order import canonical_order, taken, unpermuted_result
-from fluorocal.stages.learn.params import LearnParams, scheme_flags
+from fluorocal.stages.learn.params import LearnParams, Scheme
 from fluorocal.stages.learn.polynomial import calibrate_polynomial
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
 from fluorocal.stages.learn.robust import SCREEN_NEIGHBOURS, local_screen, misfit_inliers
@@ -185,20 +185,20 @@ def _calibrate_sorted(observations, phantom, initial, image_size, scheme, params
     """:func:`calibrate` of observations in canonical order."""
     t0 = time.perf_counter()
     params = LearnParams() if params is None else params
-    learn, estimate_iop, smooth = scheme_flags(scheme)
+    scheme = Scheme.parse(scheme)
     sizes = image_sizes(image_size, len(observations.system_names))
     settings = {"solver": solver, "selection": selection}
-    if scheme == "polynomial":
+    if scheme.polynomial:
         fixed = params.polynomial_fixed
         return calibrate_polynomial(observations, phantom, initial, sizes, params.grid, fixed=fixed, **settings)
-    free = FreeParameters(estimate_iop=estimate_iop)
+    free = FreeParameters(estimate_iop=scheme.estimate_iop)
     adjuster = Adjuster(observations, phantom, initial, free=free, fast=params.fast_intermediate, **settings)
-    plan = _plan(params, observations, sizes, adjuster, estimate_iop, smooth)
-    adj = adjuster(np.zeros((len(observations.xy_px), 2)), None, final=not learn)
+    plan = _plan(params, observations, sizes, adjuster, scheme.estimate_iop, scheme.smooth)
+    adj = adjuster(np.zeros((len(observations.xy_px), 2)), None, final=not scheme.learn_field)
     out = adjustment_outcome(adj, observations.sigma_px)
     logger.info("scheme %s: initial adjustment cost %.6g, inlier RMS %.4f px", scheme, out.cost, out.rms_px)
     state = _initial_state(plan, adj, out)
-    if not learn:
+    if not scheme.learn_field:
         return loop_result(plan, scheme, state, True, "scheme 'none' learns nothing", t0, adj.residual_px)
     best = state
     while True:

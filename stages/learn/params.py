@@ -3,14 +3,81 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.learn.grid import DEFAULT_TAU_GRID_PX, DIFFERENCE_STENCILS
 from fluorocal.stages.learn.knn import DEFAULT_K_GRID
 from fluorocal.stages.learn.nodes import GridSpec
 
-#: calibration schemes: the adjustment alone, the paper's four, and the global polynomial model in the adjustment
-SCHEMES = ("none", "knn", "knn+iop", "knn+smooth", "knn+iop+smooth", "polynomial")
+
+class Scheme(StrEnum):
+    """A calibration scheme: the adjustment alone, the paper's four, or the global polynomial model.
+
+    Its text (``[calibration] scheme``) is parsed once, by :meth:`parse`; what the scheme does is read
+    from its properties, never from its spelling. As a ``str`` it is its spelling (logs, artifacts, keys).
+
+    Examples
+    --------
+    >>> s = Scheme.parse("knn+iop")
+    >>> s.learn_field, s.estimate_iop, s.smooth, s.polynomial, s.corrects
+    (True, True, False, False, True)
+    >>> str(Scheme.parse("none")), Scheme.parse("none").corrects
+    ('none', False)
+    """
+
+    NONE = "none"
+    KNN = "knn"
+    KNN_IOP = "knn+iop"
+    KNN_SMOOTH = "knn+smooth"
+    KNN_IOP_SMOOTH = "knn+iop+smooth"
+    POLYNOMIAL = "polynomial"
+
+    @classmethod
+    def parse(cls, text, *, where: str = "scheme") -> Scheme:
+        """The scheme spelled ``text`` (a :class:`Scheme` is returned as it is).
+
+        Raises
+        ------
+        InputError
+            ``text`` is not a scheme's spelling; the message starts with ``where``.
+        """
+        if isinstance(text, str) and text in SCHEMES:
+            return cls(text)
+        raise InputError(f"{where}: expected one of {', '.join(SCHEMES)}; got {text!r}")
+
+    @property
+    def learn_field(self) -> bool:
+        """The kNN loop learns a field (the four ``knn`` schemes)."""
+        return self._parts[0] == "knn"
+
+    @property
+    def estimate_iop(self) -> bool:
+        """The adjustment estimates the interior orientation (all but ``knn`` and ``knn+smooth``)."""
+        return not self.learn_field or "iop" in self._parts
+
+    @property
+    def smooth(self) -> bool:
+        """The learned field is the smoothed (gridded) one (``+smooth``; true where no kNN field is learned)."""
+        return not self.learn_field or "smooth" in self._parts
+
+    @property
+    def polynomial(self) -> bool:
+        """The adjustment estimates the global polynomial model instead of a kNN loop."""
+        return self is Scheme.POLYNOMIAL
+
+    @property
+    def corrects(self) -> bool:
+        """The calibration corrects the image at all (all but ``none``, the adjustment alone)."""
+        return self is not Scheme.NONE
+
+    @property
+    def _parts(self) -> tuple[str, ...]:
+        return tuple(self.value.split("+"))
+
+
+#: the schemes' spellings
+SCHEMES = tuple(s.value for s in Scheme)
 
 #: the values a preset gives the fields left unset (None); explicit values always win
 PRESETS = {
@@ -46,22 +113,6 @@ PRESETS = {
         "fast_intermediate": False,
     },
 }
-
-
-def scheme_flags(scheme: str) -> tuple[bool, bool, bool]:
-    """``(learn, estimate_iop, smooth)`` of a scheme name (``none`` and ``polynomial`` learn no kNN field).
-
-    Examples
-    --------
-    >>> scheme_flags("knn+iop"), scheme_flags("knn+smooth")
-    ((True, True, False), (True, False, True))
-    """
-    if scheme not in SCHEMES:
-        raise InputError(f"scheme must be one of {', '.join(SCHEMES)}; got {scheme!r}")
-    if scheme in ("none", "polynomial"):
-        return False, True, True
-    parts = set(scheme.split("+"))
-    return True, "iop" in parts, "smooth" in parts
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ score), :mod:`.polynomial` (the evaluation's polynomial peer), :mod:`.result` (:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from fluorocal.stages.errors import InputError
@@ -163,7 +163,8 @@ def calibrate_plate(
         estimate = learn_fields and len(np.unique(problem.frame)) > 1
         settings = params.settings(phantom.pitch_mm, estimate, learn_fields=learn_fields, solver=solver)
         parts.append((problem, index, solve_plate(problem, settings)))
-    return stacked(observations, groups, parts, time.perf_counter() - t0, solver.outlier_weight)
+    calibration = stacked(observations, groups, parts, time.perf_counter() - t0, solver.outlier_weight)
+    return replace(calibration, scheme="plate" if learn_fields else "none")
 
 
 __all__ = [

@@ -53,6 +53,8 @@ class PlateCalibration:
     stop_reason : str
     wall_time_s : float
     system_names : tuple of str
+    scheme : str
+        ``"plate"`` (the fields and the plate's errors), or ``"none"`` (homographies of the nominal plate only).
     """
 
     orientation_names: tuple

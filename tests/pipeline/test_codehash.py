@@ -94,3 +94,136 @@ def test_the_learning_stage_digest_covers_the_adjustment(monkeypatch):
     monkeypatch.setattr(codehash, "_module_source", lambda name: reached.append(name) or real(name))
     code_digest(["fluorocal.stages.learn"])
     assert any(name.startswith("fluorocal.stages.adjust") for name in reached), sorted(set(reached))
+
+
+def test_docstrings_do_not_change_the_digest(package):
+    """Docstrings are not code: editing one recomputes nothing (the issue's docstring in learn/params.py)."""
+    helper = package / "_helper.py"
+    before = code_digest([f"{PACKAGE}.second"])
+    helper.write_text('"""Helpers."""\n\n\ndef twice(x):\n    """Twice ``x``."""\n    return 2 * x\n')
+    assert code_digest([f"{PACKAGE}.second"]) == before
+
+
+# --- the project's own stages, on a copy of the package ----------------------------------------------
+
+#: run in a fresh interpreter on the copy: import the stage's modules, then run, in each project module
+#: imported, every import statement of its functions (as calling them would), until nothing new loads.
+#: Python's own import system decides what that executes; the modules and libraries loaded are printed.
+#: A package only loaded as the parent of a module runs its body, not its functions: those of modules
+#: named by an import statement are run.
+ORACLE = """
+import ast, builtins, json, sys, importlib
+named = set(sys.argv[1:])
+real_import = builtins.__import__
+def recording(name, globals=None, locals=None, fromlist=(), level=0):
+    base = importlib.util.resolve_name("." * level + name, (globals or {}).get("__package__")) if level else name
+    named.update([base, *(f"{base}.{item}" for item in fromlist or ())])
+    return real_import(name, globals, locals, fromlist, level)
+builtins.__import__ = recording
+for root in sys.argv[1:]:
+    importlib.import_module(root)
+done = set()
+while True:
+    todo = [n for n in list(sys.modules) if n.split(".")[0] == "fluorocal" and n in named and n not in done]
+    if not todo:
+        break
+    for name in todo:
+        done.add(name)
+        module = sys.modules[name]
+        tree = ast.parse(open(module.__file__, encoding="utf-8").read())
+        for function in ast.walk(tree):
+            if isinstance(function, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for node in ast.walk(function):
+                    if isinstance(node, (ast.Import, ast.ImportFrom)):
+                        code = compile(ast.Module([node], []), module.__file__, "exec")
+                        exec(code, dict(module.__dict__))
+files = {n: m.__file__ for n, m in sys.modules.items() if n.split(".")[0] == "fluorocal"}
+libraries = sorted(set(importlib.import_module("fluorocal.codehash").LIBRARIES) & set(sys.modules))
+print(json.dumps({"files": files, "libraries": libraries}))
+"""
+
+#: run once on the copy: each module in turn gets a line of code appended, and the stages' digests are
+#: compared with the unedited ones; then each library's version is changed in turn
+EDITS = """
+import json, sys, pathlib
+from fluorocal import codehash
+roots, top = json.loads(sys.argv[1]), pathlib.Path(sys.argv[2])
+digests = lambda: {stage: codehash.code_digest(modules) for stage, modules in roots.items()}
+base = digests()
+changed = {}
+for path in sorted(top.rglob("*.py")):
+    text = path.read_text(encoding="utf-8")
+    path.write_text(text + "\\n_CODEHASH_PROBE = 1\\n", encoding="utf-8")
+    now = digests()
+    path.write_text(text, encoding="utf-8")
+    changed[str(path)] = sorted(s for s in roots if now[s] != base[s])
+libraries = {}
+real = codehash._library_version
+for library in codehash.LIBRARIES:
+    codehash._library_version = lambda name, library=library: "0+test" if name == library else real(name)
+    now = digests()
+    libraries[library] = sorted(s for s in roots if now[s] != base[s])
+print(json.dumps({"modules": changed, "libraries": libraries}))
+"""
+
+
+def _python(code: str, root, *args) -> dict:
+    import json
+    import os
+    import subprocess
+
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    done = subprocess.run([sys.executable, "-c", code, *args], cwd=root, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def project_copy(tmp_path_factory):
+    """The package copied (``pipeline/`` as ``fluorocal``, ``stages/`` in it), what each stage runs, the edits."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    import fluorocal
+    from fluorocal.graph import default_stages
+
+    source = Path(fluorocal.__file__).parent
+    root = tmp_path_factory.mktemp("copy")
+    ignore = shutil.ignore_patterns("__pycache__")
+    shutil.copytree(source, root / "fluorocal", ignore=ignore)
+    shutil.copytree(source.parent / "stages", root / "fluorocal" / "stages", ignore=ignore, dirs_exist_ok=True)
+    roots = {stage.name: list(stage.code_modules()) for stage in default_stages()}
+    runs = {stage: _python(ORACLE, root, *modules) for stage, modules in roots.items()}
+    edits = _python(EDITS, root, json.dumps(roots), str(root / "fluorocal"))
+    return root, runs, edits
+
+
+@pytest.mark.slow
+def test_each_module_changes_the_key_of_exactly_the_stages_that_run_it(project_copy):
+    root, runs, edits = project_copy
+    for stage, run in runs.items():  # the copy was run, not the installed package
+        assert all(path.startswith(str(root)) for path in run["files"].values()), stage
+    assert len(edits["modules"]) > 100  # every module of the package, pipeline and stages
+    for path, changed in edits["modules"].items():
+        running = sorted(stage for stage, run in runs.items() if path in run["files"].values())
+        assert changed == running, path
+
+
+@pytest.mark.slow
+def test_the_issue_cases(project_copy):
+    """A kNN learning-loop edit or a parameter docstring of the learning no longer recomputes the detection."""
+    root, _, edits = project_copy
+    stages = root / "fluorocal" / "stages"
+    assert edits["modules"][str(stages / "learn" / "loop.py")] == ["label", "learn"]  # label imports learn.grid
+    assert edits["modules"][str(stages / "detect.py")] == ["centroid", "detect"]  # centroid imports detect's helpers
+    assert edits["modules"][str(root / "fluorocal" / "gather.py")] == ["learn"]
+    assert edits["modules"][str(root / "fluorocal" / "graph.py")] == []  # the hooks' values are in the key
+
+
+@pytest.mark.slow
+def test_a_library_version_changes_the_key_of_exactly_the_stages_that_call_it(project_copy):
+    _, runs, edits = project_copy
+    for library, changed in edits["libraries"].items():
+        assert changed == sorted(stage for stage, run in runs.items() if library in run["libraries"]), library
+    assert edits["libraries"]["scipy"]  # not vacuous: some stage calls SciPy
