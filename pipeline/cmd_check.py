@@ -354,11 +354,11 @@ def draw_trend(record: Path, png: Path) -> Path:
     """The QA record's RMS, P95 and largest residual per check, one line per (system, orientation), and tolerances."""
     import csv
 
-    from fluorocal.report import _figure, _save
+    from fluorocal.report import new_figure, save_figure
 
     with open(record, newline="") as fh:
         rows = list(csv.DictReader(fh))
-    plt, fig, axes = _figure(3, width=4.6, height=3.6)
+    plt, fig, axes = new_figure(3, width=4.6, height=3.6)
     for ax, key in zip(axes, ("rms", "p95", "max")):
         series: dict = {}
         for r in rows:
@@ -369,4 +369,4 @@ def draw_trend(record: Path, png: Path) -> Path:
         ax.set_title(f"{key.upper()} residual (px)", fontsize=9)
         ax.tick_params(axis="x", labelrotation=60, labelsize=6)
     axes[0].legend(fontsize=6)
-    return _save(plt, fig, png)
+    return save_figure(plt, fig, png)

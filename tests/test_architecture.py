@@ -18,14 +18,6 @@ import fluorocal
 PIPELINE = Path(fluorocal.__file__).parent
 STAGES = PIPELINE.parent / "stages"
 
-#: imports that another change removes (issue 29: the cmd modules' shared helpers move from ``cli`` to a
-#: public module of their own); until it lands, the cmd modules' imports of ``cli`` are not judged here
-PENDING = {"fluorocal.cli"}
-
-
-def _is_pending(importer: str, target: str) -> bool:
-    return target in PENDING and importer.startswith("fluorocal.cmd_")
-
 
 def _modules() -> dict[str, Path]:
     found = {}
@@ -82,8 +74,6 @@ def _edges() -> dict[str, set[str]]:
     for name in MODULES:
         targets = set()
         for target, _ in _imports(name):
-            if _is_pending(name, target):
-                continue
             parts = target.split(".")
             packages = {".".join(parts[:i]) for i in range(1, len(parts) + 1)}
             # the importer's own packages are running already: importing from them runs nothing new
@@ -152,7 +142,7 @@ def test_no_private_name_is_imported_from_another_module():
         f"{name}: {target}.{taken}"
         for name in MODULES
         for target, taken in _imports(name)
-        if taken and taken.startswith("_") and not taken.startswith("__") and not _is_pending(name, target)
+        if taken and taken.startswith("_") and not taken.startswith("__")
     ]
     assert borrowed == []
 
