@@ -201,10 +201,8 @@ def _subcommands(parser: argparse.ArgumentParser, prefix: str):
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             for name, sub in action.choices.items():
-                if any(isinstance(a, argparse._SubParsersAction) for a in sub._actions):
-                    yield from _subcommands(sub, f"{prefix} {name}")
-                else:
-                    yield f"{prefix} {name}", sub
+                yield f"{prefix} {name}", sub  # a group of commands (cache) too: it takes the common options
+                yield from _subcommands(sub, f"{prefix} {name}")
 
 
 def _options_table(parser: argparse.ArgumentParser) -> str:

@@ -130,7 +130,11 @@ def test_opencv_yaml_remap_equals_the_fluorocal_undistort_command(tmp_path):
     source.parent.mkdir()
     assert cv2.imwrite(str(source), frame)  # 16-bit PNG
     assert (
-        main(["--quiet", "undistort", str(calibration), str(source), "--system", "B"] + ["--out", str(tmp_path / "u")])
+        # --outside keep: the maps alone, as cv2.remap applies them (the edges' background is the command's own)
+        main(
+            ["--quiet", "undistort", str(calibration), str(source), "--system", "B", "--outside", "keep"]
+            + ["--out", str(tmp_path / "u")]
+        )
         == 0
     )
     undistorted = cv2.imread(str(tmp_path / "u" / "frame.png"), cv2.IMREAD_UNCHANGED)
