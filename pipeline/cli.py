@@ -174,7 +174,9 @@ def cmd_run(args) -> int:
     runner = _runner(args, config, force=args.force, until=args.until)
     runner.run()
     written = export_outputs(runner)
-    log.info("wrote %d file(s) to %s", len(written), out_dir)
+    log.info("wrote %d file(s) to %s", len(written), written[0].parent if written else out_dir)
+    if written and "learn" not in runner.by_name:
+        print(f"partial results (--until {args.until}): {written[0].parent}; the outputs in {out_dir} are unchanged")
     report = out_dir / "report.md"
     if report in written:
         table = [line for line in report.read_text().splitlines() if line.startswith("|")]
@@ -244,9 +246,10 @@ def cmd_cache_clean(args) -> int:
     cache = ArtifactCache(config.cache_dir)
     if args.stale:
         runner = _runner(args)
-        removed = cache.clean(keep={(stage, key) for (stage, _), key in runner.keys.items()})
+        keep = {(stage, key) for (stage, _), key in runner.keys.items()}
+        removed = cache.clean(keep=keep, project=config.path)
     else:
-        removed = cache.clean()
+        removed = cache.clean(project=config.path)  # another project's entries are kept
     log.info("removed %d cache entries from %s", removed, config.cache_dir)
     return 0
 

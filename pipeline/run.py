@@ -313,6 +313,8 @@ class Runner:
 
         self.cache.prepare_root()
         self.cache.sweep()
+        # recorded before any work: a run that fails midway leaves its entries to its own project
+        self.cache.record_use(self.config.path, {(name, key) for (name, _), key in self.keys.items()})
         todo = {}
         for stage in self.stages:
             units = self._stage_units(stage)
@@ -510,17 +512,24 @@ class Runner:
 
     def _keep(self, stage: Stage, unit: int | None, artifact, params, took: float) -> None:
         """Store ``artifact`` (computed in ``took`` s) with its provenance, keep it in memory and count it."""
-        provenance = {
-            "code_digest": self.codes[stage.name],
-            "params": dataclasses.asdict(params),
-            "inputs": list(stage.inputs),
-            "wall_seconds": took,
-        }
-        if unit is not None:
-            provenance["frame"] = {"file": str(self.units[unit].path), "index": self.units[unit].index}
-        self.cache.store(stage.name, self.keys[(stage.name, unit)], artifact, provenance=provenance)
+        provenance = self._provenance(stage, unit, params, took)
+        self._store(stage.name, self.keys[(stage.name, unit)], artifact, provenance)
         self.memory[(stage.name, unit)] = artifact
         self.report.record(stage.name, [unit], "computed")
+
+    def _provenance(self, stage: Stage, unit: int | None, params, took: float) -> dict:
+        provenance = {"code_digest": self.codes[stage.name], "params": dataclasses.asdict(params)}
+        provenance.update(inputs=list(stage.inputs), wall_seconds=took)
+        if unit is not None:
+            provenance["frame"] = {"file": str(self.units[unit].path), "index": self.units[unit].index}
+        return provenance
+
+    def _store(self, name: str, key: str, artifact, provenance: dict) -> None:
+        """Store an entry; a cache that cannot be written (full, read-only) loses the entry, never the result."""
+        try:
+            self.cache.store(name, key, artifact, provenance=provenance)
+        except OSError as exc:  # kept in memory: the run goes on and publishes what it computed
+            log.warning("could not cache %s/%s (%s); kept for this run, recomputed next time", name, key[:12], exc)
 
     def _compute_system(self, stage: Stage, group: list[int]) -> None:
         """Compute a per-system stage on the system of units ``group`` and store each frame's artifact.
@@ -550,15 +559,9 @@ class Runner:
         if len(artifacts) != len(group):
             raise CalibError(f"system {system}: {stage.name} gave {len(artifacts)} artifacts for {len(group)} frames")
         for position, (unit, artifact) in enumerate(zip(group, artifacts)):
-            provenance = {
-                "code_digest": self.codes[stage.name],
-                "params": dataclasses.asdict(params),
-                "inputs": list(stage.inputs),
-                "wall_seconds": took,
-                "frame": {"file": str(self.units[unit].path), "index": self.units[unit].index},
-                "sequence": {"system": system, "position": position, "n_frames": len(group)},
-            }
-            self.cache.store(stage.name, self.keys[(stage.name, unit)], artifact, provenance=provenance)
+            provenance = self._provenance(stage, unit, params, took)
+            provenance["sequence"] = {"system": system, "position": position, "n_frames": len(group)}
+            self._store(stage.name, self.keys[(stage.name, unit)], artifact, provenance)
             self.memory[(stage.name, unit)] = artifact
         self.report.record(stage.name, group, "computed")
         self.report.seconds[stage.name] = self.report.seconds.get(stage.name, 0.0) + took
