@@ -137,7 +137,9 @@ def _reject_unknown(table: dict, allowed: set[str], path: Path, section: str) ->
 
 def _resolve_frames(value, root: Path, path: Path, section: str) -> tuple[Path, ...]:
     if isinstance(value, str):
-        matches = sorted(glob.glob(str(root / value)))
+        # the pattern is the user's, the project's own path is not: `scan[1]/` must not match `scan1/`
+        pattern = value if os.path.isabs(value) else os.path.join(glob.escape(str(root)), value)
+        matches = sorted(glob.glob(pattern))
         if not matches:
             raise ConfigError(f"{_where(path, section, 'frames')}: no file matches {value!r} (relative to {root})")
         folders = [m for m in matches if os.path.isdir(m)]
