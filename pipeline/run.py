@@ -178,10 +178,10 @@ def _check_pairing(config: Config, units: list[FrameUnit]) -> None:
 
 @lru_cache(maxsize=2)
 def _read_file_frames(path: Path, content_sha256: str):
-    """All frames of a file; the content hash keeps an edited file from being served stale."""
-    from fluorocal.stages.io import read_frames
+    """All frames of a file whose content is ``content_sha256`` before and after the read (:mod:`~fluorocal.steady`)."""
+    from fluorocal.steady import read_steady
 
-    return read_frames(path)
+    return read_steady(path, content_sha256)
 
 
 def stage_params(stage: Stage, config: Config, unit: FrameUnit | None, units: list[FrameUnit]):
