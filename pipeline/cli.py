@@ -179,7 +179,7 @@ def cmd_run(args) -> int:
         print(f"partial results (--until {args.until}): {written[0].parent}; the outputs in {out_dir} are unchanged")
     report = out_dir / "report.md"
     if report in written:
-        table = [line for line in report.read_text().splitlines() if line.startswith("|")]
+        table = [line for line in report.read_text(encoding="utf-8").splitlines() if line.startswith("|")]
         print("\n".join(table))
         print(f"report: {report}")
     return 0
@@ -288,7 +288,17 @@ def os_error_message(exc: OSError) -> str:
     return f"{what}: {path}"
 
 
+def _degrade_output() -> None:
+    """Print what the terminal's encoding cannot show as escapes (``Δ`` as a backslash escape under ``LC_ALL=C``)."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.reconfigure(errors="backslashreplace")
+        except (AttributeError, ValueError, OSError):  # not a text stream of the io module: left as it is
+            pass
+
+
 def main(argv=None) -> int:
+    _degrade_output()
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(

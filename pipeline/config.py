@@ -11,6 +11,7 @@ import dataclasses
 import glob
 import math
 import os
+import re
 import stat
 import tomllib
 import types
@@ -44,6 +45,10 @@ OWNED_ELSEWHERE = {
 
 #: the calibration scheme when ``[calibration] scheme`` is not given
 DEFAULT_SCHEME = "knn+iop+smooth"
+#: largest integer a stage's parameter may be (a C int: OpenCV and numpy take them as such)
+MAX_CONFIG_INT = 2**31 - 1
+#: largest magnitude of a stage's float parameter (beyond any px, mm or ratio; inf and 1e400 refused)
+MAX_CONFIG_FLOAT = 1e15
 #: the schemes a grid plate accepts: the default (the plate's own solve) and none
 _PLATE_SCHEMES = (DEFAULT_SCHEME, "none")
 
@@ -363,6 +368,10 @@ def _parse_toml(path: Path) -> dict:
         raise ConfigError(f"{path.name}: not valid TOML ({exc})") from exc
     except RecursionError:
         raise ConfigError(f"{path.name}: not a project file (arrays or tables nested too deeply)") from None
+    except ValueError:  # an integer past Python's digit limit (4300), which tomllib does not name
+        key = re.search(r"([\w.\"'-]+)\s*=\s*[+-]?[0-9_]{1000,}", read_text(path))
+        where = f"key {key.group(1)!r}" if key else "an integer"
+        raise ConfigError(f"{path.name}: {where}: a number of thousands of digits; give a number in range") from None
 
 
 def load_config(
@@ -479,6 +488,15 @@ def params_from_dict(cls, table: dict, *, where: str = ""):
     return built if isinstance(cls, tuple) else built[0]
 
 
+def _int_in_range(value: int, where: str) -> int:
+    """``value`` if it fits a C int (what the libraries take); counts (``n_*``) and seeds also not negative."""
+    lowest = 0 if re.search(r"key '(n_\w+|\w*seed)'", where) else -MAX_CONFIG_INT
+    if not lowest <= value <= MAX_CONFIG_INT:
+        shown = str(value) if len(str(value)) <= 30 else f"{str(value)[:12]}... ({len(str(value))} digits)"
+        raise ConfigError(f"{where}: expected an integer in {lowest}..{MAX_CONFIG_INT}; got {shown}")
+    return value
+
+
 def _coerce(value, hint, where: str):
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
@@ -497,9 +515,11 @@ def _coerce(value, hint, where: str):
             return value
     elif hint is int:
         if isinstance(value, int) and not isinstance(value, bool):
-            return value
+            return _int_in_range(value, where)
     elif hint is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(value) or abs(value) > MAX_CONFIG_FLOAT:
+                raise ConfigError(f"{where}: expected a finite number of size up to {MAX_CONFIG_FLOAT:g}; got {value}")
             return float(value)
     elif hint is str:
         if isinstance(value, str):

@@ -278,7 +278,7 @@ def _swap(out_dir: Path, staging: Path) -> None:
 def _carry_over(old: Path, new: Path) -> None:
     """Move the entries of ``old`` that are not a published output (and not in ``new``) into ``new``."""
     try:
-        published = set(json.loads((old / MANIFEST).read_text())["entries"])
+        published = set(json.loads((old / MANIFEST).read_text(encoding="utf-8"))["entries"])
     except (OSError, ValueError, KeyError, TypeError):
         published = set()  # a folder written before sets were published: keep what the new set does not replace
     for entry in old.iterdir():

@@ -382,7 +382,7 @@ def write_table(path: str | os.PathLike, table: Table, columns: Mapping[str, Seq
     cells = [c.format_all(columns[c.name]) for c in present]
 
     def _write(tmp):
-        with open(tmp, "w", newline="") as fh:
+        with open(tmp, "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
             w.writerow([c.name for c in present])
             w.writerows(zip(*cells))
@@ -411,7 +411,7 @@ def write_csv(path: str | os.PathLike, header: list[str], rows) -> None:
         return f"{v:.6f}" if isinstance(v, (float, np.floating)) else str(v)
 
     def _write(tmp):
-        with open(tmp, "w", newline="") as fh:
+        with open(tmp, "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
             w.writerow(header)
             for row in rows:

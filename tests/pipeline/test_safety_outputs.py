@@ -8,6 +8,9 @@ and cleaning it leaves the first's entries.
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 
 import pytest
 from fluorocal.cache import ArtifactCache
@@ -81,3 +84,18 @@ def test_cache_clean_of_a_project_sharing_the_cache_keeps_the_first_s_entries(pr
         assert main(argv) == 0
         assert {s: cache.keys(s) for s in before} == before
     other.unlink()
+
+
+def test_no_traceback_under_an_ascii_locale(project):
+    """``LC_ALL=C`` without Python's UTF-8 mode, ASCII output: the run prints its table with escapes.
+
+    It died writing report.md and printing its table (``UnicodeEncodeError`` on "Δ"). Every stage is
+    cached: the run republishes the set.
+    """
+    env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONIOENCODING": "ascii"}
+    argv = [sys.executable, "-m", "fluorocal.cli", "run", str(project / "fluorocal.toml")]
+    done = subprocess.run(argv, env=env, capture_output=True, timeout=900, check=False)
+    assert done.returncode == 0, done.stderr.decode("ascii", "replace")
+    assert b"Traceback" not in done.stderr
+    assert b"max \\u0394 where supported" in done.stdout  # the table's header, Δ escaped
+    assert "max Δ where supported" in (project / "out" / "report.md").read_text(encoding="utf-8")
