@@ -169,6 +169,20 @@ def _resolve_frames(value, root: Path, path: Path, section: str) -> tuple[Path, 
     )
 
 
+def _check_own_frames(systems, path: Path) -> None:
+    """Refuse two systems listing one frame file: one detector's frames are not the other's (else: learn fails)."""
+    if len(systems) < 2:
+        return
+    first = {f.resolve(): f for f in systems[0].frames}
+    shared = [f for f in systems[1].frames if f.resolve() in first]
+    if shared:
+        more = f" and {len(shared) - 1} more" if len(shared) > 1 else ""
+        raise ConfigError(
+            f"{path.name}: [[systems]] #2 key 'frames': system {systems[1].name} lists {shared[0]}{more}, "
+            f"a frame of system {systems[0].name}; give each system its own detector's frames"
+        )
+
+
 def _check_regular(files, path: Path, section: str) -> None:
     """Refuse a frame that is a device or a pipe (``/dev/zero`` is read, and hashed, forever)."""
     for f in files:
@@ -413,6 +427,7 @@ def load_config(
     names = [s.name for s in systems]
     if len(set(names)) != len(names):
         raise ConfigError(f"{path.name}: [[systems]] key 'name': names must differ; got {names}")
+    _check_own_frames(systems, path)
 
     calibration = _expect(data.get("calibration", {}), dict, "a table [calibration]", path, "", "calibration")
     _reject_unknown(calibration, {"scheme"}, path, "[calibration] ")

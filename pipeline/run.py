@@ -129,6 +129,10 @@ def frame_units(config: Config) -> list[FrameUnit]:
                 units.append(FrameUnit(s, exposure, Path(path), i, key, digest, size))
                 exposure += 1
     _check_pairing(config, units)
+    first = {u.file_sha256 for u in units if u.system == 0}
+    twin = next((u for u in units if u.system and u.file_sha256 in first), None)
+    if twin is not None:  # the same content: the adjustment's normal equations turn singular, found only at learn
+        raise InputError(f"{twin.path}: holds a frame of system {config.systems[0].name}; give each system its own")
     return units
 
 
@@ -313,7 +317,6 @@ class Runner:
 
         self.cache.prepare_root()
         self.cache.sweep()
-        # recorded before any work: a run that fails midway leaves its entries to its own project
         self.cache.record_use(self.config.path, {(name, key) for (name, _), key in self.keys.items()})
         todo = {}
         for stage in self.stages:
@@ -518,11 +521,9 @@ class Runner:
         self.report.record(stage.name, [unit], "computed")
 
     def _provenance(self, stage: Stage, unit: int | None, params, took: float) -> dict:
-        provenance = {"code_digest": self.codes[stage.name], "params": dataclasses.asdict(params)}
-        provenance.update(inputs=list(stage.inputs), wall_seconds=took)
-        if unit is not None:
-            provenance["frame"] = {"file": str(self.units[unit].path), "index": self.units[unit].index}
-        return provenance
+        frame = {} if unit is None else {"frame": {"file": str(self.units[unit].path), "index": self.units[unit].index}}
+        code, inputs, p = self.codes[stage.name], list(stage.inputs), dataclasses.asdict(params)
+        return {"code_digest": code, "params": p, "inputs": inputs, "wall_seconds": took, **frame}
 
     def _store(self, name: str, key: str, artifact, provenance: dict) -> None:
         """Store an entry; a cache that cannot be written (full, read-only) loses the entry, never the result."""
