@@ -2423,7 +2423,108 @@ def all_cases() -> list[Case]:
         runner=full_disk(300),
         hints=("space", "too large"),
     )
+    issue28_cases(add, nothing)
     return K
+
+
+# ---- issue 28: outputs that survive every option, files that prove what they are, any locale ----
+
+
+def _with_env(**extra):
+    """Run the commands one by one with ``extra`` in the environment (a locale, FLUOROCAL_THREADS)."""
+
+    def runner(c: Ctx, commands):
+        env = {**_env(), **extra}
+        done = [
+            subprocess.run(a, cwd=c.proj, env=env, capture_output=True, text=True, errors="replace") for a in commands
+        ]
+        return [(p.returncode, p.stdout + p.stderr) for p in done]
+
+    return runner
+
+
+def _published_kept(c: Ctx) -> str | None:
+    """``--until``: the published set (calibration, fields, report) is the clean run's; the partial tables beside."""
+    missing = [n for n in ("calibration.json", "report.md", "field_A.npz") if not (c.proj / "out" / n).is_file()]
+    if missing:
+        return f"--until deleted {', '.join(missing)}"
+    if not (c.proj / "out" / "until-label" / "label.csv").is_file():
+        return "no partial label.csv in out/until-label"
+    return same_as_clean(c)
+
+
+def _other_project(out: str, extra: str = ""):
+    def f(c: Ctx) -> None:
+        text = c.cfg.read_text().replace('dir = "out"', f'dir = "{out}"')
+        (c.proj / "other.toml").write_text(text + extra)
+
+    return f
+
+
+def _cache_kept(c: Ctx) -> str | None:
+    learn = list((c.proj / ".fluorocal" / "learn").glob("*/manifest.json"))
+    return None if learn else "cache clean of another project removed this project's learn entry"
+
+
+def _scale_field(factor: float):
+    def f(c: Ctx) -> None:
+        p = c.proj / "out" / "field_A.npz"
+        with np.load(p) as z:
+            arrays = {k: z[k] for k in z.files}
+        arrays["x_nodes_px"] = arrays["x_nodes_px"] * factor
+        arrays["y_nodes_px"] = arrays["y_nodes_px"] * factor
+        np.savez(p, **arrays)
+
+    return f
+
+
+def _cal_edit(change):
+    def f(c: Ctx) -> None:
+        doc = json.loads(c.cal.read_text())
+        change(doc)
+        c.cal.write_text(json.dumps(doc))
+
+    return f
+
+
+def issue28_cases(add, nothing) -> None:
+    """The classes of issue 28, each case as a careless user or a hostile file would try it."""
+    K = "issue28"
+    run = lambda *a: lambda c: [fluorocal("run", c.cfg, *a)]  # noqa: E731
+    add("until_keeps_published", K, nothing, run("--until", "label"), expect="ok", check=_published_kept)
+    add("second_project_same_out", K, _other_project("out"), lambda c: [fluorocal("run", c.proj / "other.toml")],
+        hints=("another project",))  # fmt: skip
+    add("shared_cache_clean", K, _other_project("out2", "\n[detect]\nmin_snr = 7.5\n"),
+        lambda c: [fluorocal("cache", "clean", "--stale", c.proj / "other.toml"),
+                   fluorocal("cache", "clean", c.proj / "other.toml")],
+        expect="ok", check=_cache_kept)  # fmt: skip
+    undistort = lambda c: [fluorocal("undistort", "--calibration", c.cal, "--system", "A",  # noqa: E731
+                                     "--out", c.proj / "und", c.frames("A")[0])]  # fmt: skip
+    for factor in (2.0, 0.5):
+        add(f"field_nodes_x{factor:g}", K, _scale_field(factor), undistort, hints=("field_A.npz",))
+    export = lambda c: [fluorocal("export", c.cal, "--format", "dlt", "--out", c.proj / "exp")]  # noqa: E731
+    for name, q in (("rop_q_nan", [float("nan"), 0, 0, 0]), ("rop_q_zero", [0, 0, 0, 0]), ("rop_q_three", [1, 0, 0])):
+        add(name, K, _cal_edit(lambda d, q=q: d["systems"][1]["rop"].update(q_cam_from_ref=q)), export,
+            hints=("q_cam_from_ref",))  # fmt: skip
+    add("exposure_source_nan", K, _cal_edit(lambda d: d["exposures"][0].update(source_mm=[0, float("nan"), 0])),
+        export, hints=("source_mm",))  # fmt: skip
+    seven = ["999", "1", "2", "3", "4", "", "x"]  # under the six columns id,x,y,z,diameter,role
+    add("phantom_row_extra_value", K, lambda c: _write_rows(c, _phantom_rows(c) + [seven]),
+        hints=("phantom.csv",))  # fmt: skip
+    upper = lambda c: _write_rows(c, [(rs := _phantom_rows(c))[0]] + [[*r[:5], r[5].upper()] for r in rs[1:]])  # noqa: E731
+    add("phantom_role_upper", K, upper,
+        expect="ok")  # fmt: skip
+    add("system_b_given_a_frames", K, _cfg_edit('frames = "frames/B/*.tif"', 'frames = "frames/A/*.tif"'),
+        hints=("frames",))  # fmt: skip
+    for name, text, key in (("n_arcs_1e21", "[centroid]\nn_arcs = " + str(10**21), "n_arcs"),
+                            ("seed_negative", "[learn]\nseed = -1", "seed"),
+                            ("int_5000_digits", "[learn]\nseed = " + "9" * 5000, "seed"),
+                            ("float_1e400", "[detect]\nmin_snr = 1e400", "min_snr")):  # fmt: skip
+        add(name, K, _cfg_append(text), hints=(key,))
+    add("threads_env_huge", K, nothing, runner=_with_env(FLUOROCAL_THREADS="99999999999999999999"),
+        hints=("FLUOROCAL_THREADS",))  # fmt: skip
+    ascii_locale = {"LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONIOENCODING": "ascii"}
+    add("locale_c_ascii_run", K, nothing, run("--force", "learn"), expect="ok", runner=_with_env(**ascii_locale))
 
 
 def _one_of_two_ok(c: Ctx, commands):

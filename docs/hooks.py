@@ -1,7 +1,7 @@
 """MkDocs hook: pages generated from the code at build time.
 
 A page holding ``<!-- fluorocal:config-reference -->`` gets the project file's keys, read from
-the config loader's own schema (``fluorocal.config.SCHEMA``) and the stage tables' ``Params``
+the config loader's own schema (``fluorocal.config_schema.SCHEMA``) and the stage tables' ``Params``
 dataclasses (``fluorocal.graph.stage_params_classes``); ``<!-- fluorocal:cli-reference -->`` gets
 every command and option, walked from ``fluorocal.cli.build_parser()``. Nothing here is kept by
 hand, so a key or an option added to the code appears in the documentation.
@@ -106,7 +106,8 @@ def _code(value) -> str:
 
 def config_reference() -> str:
     """The project file's keys as Markdown: one heading and one table per TOML table."""
-    from fluorocal.config import OWNED_ELSEWHERE, SCHEMA
+    from fluorocal.config import OWNED_ELSEWHERE
+    from fluorocal.config_schema import SCHEMA
     from fluorocal.graph import stage_params_classes
 
     out = []

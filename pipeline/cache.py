@@ -28,6 +28,11 @@ first is accepted. :meth:`ArtifactCache.sweep` removes temporaries no live
 writer holds. The cache folder carries a marker (:data:`MARKER`), and
 :meth:`ArtifactCache.clean` deletes only what the cache writes, in a folder
 with that marker.
+
+Projects may share a cache. Each run records the entries its project uses
+(:meth:`ArtifactCache.record_use`, ``.projects/<hash of the config path>.json``);
+``clean(project=...)`` removes only entries no other project records, and an
+entry no project records only when no other project uses the cache.
 """
 
 from __future__ import annotations
@@ -70,6 +75,8 @@ FORMAT_VERSION = 2
 MARKER = ".fluorocal-cache"
 MARKER_CONTENT = {"format": "fluorocal-cache", "version": FORMAT_VERSION}
 LOCKS = ".locks"
+#: the folder of the records of which entries each project uses
+PROJECTS = ".projects"
 
 _STAGE = re.compile(r"[a-z][a-z0-9_]*")
 _KEY = re.compile(r"[0-9a-f]{64}")
@@ -361,11 +368,13 @@ class ArtifactCache:
             log.info("removed %d leftover temporar%s from %s", removed, "y" if removed == 1 else "ies", self.root)
         return removed
 
-    def clean(self, *, keep: set[tuple[str, str]] | None = None) -> int:
+    def clean(self, *, keep: set[tuple[str, str]] | None = None, project: str | os.PathLike | None = None) -> int:
         """Delete every entry (or every one not in ``keep``) and leftover temporaries; return the count.
 
         Only what the cache writes is deleted: ``<stage>/<key>`` entries, ``.tmp-*``
         temporaries and lock files; the folder itself only if nothing else is left in it.
+        With ``project`` (its config path), entries another project's record lists are kept,
+        and so are entries no record lists (and live temporaries) when another project uses the cache.
 
         Raises
         ------
@@ -375,17 +384,69 @@ class ArtifactCache:
         if not self.root.exists():
             return 0
         self._check_marker()
-        removed = 0
+        uses = self._uses()
+        own = uses.pop(self._project_id(project), set()) if project is not None else set()
+        others = set().union(*uses.values()) if project is not None else set()
+        shared = bool(uses) and project is not None
+        removed, deleted = 0, set()
         for stage_dir, entry in self._own_children():
-            if keep is not None and _KEY.fullmatch(entry.name) and (stage_dir.name, entry.name) in keep:
+            slot = (stage_dir.name, entry.name)
+            if _TMP.fullmatch(entry.name) and shared:
+                continue  # left to the lock-aware sweep below: another project's writer may hold it
+            if _KEY.fullmatch(entry.name) and (
+                (keep is not None and slot in keep) or slot in others or (shared and slot not in own)
+            ):
                 continue
             trash = Path(tempfile.mkdtemp(prefix=f".tmp-{'0' * 64}-", dir=stage_dir))
             os.replace(entry, trash)  # readers see the entry or none
             shutil.rmtree(trash, ignore_errors=True)
             removed += 1
-        if keep is None:
+            deleted.add(slot)
+        if shared:
+            removed += self.sweep()
+        if project is not None:
+            self._write_use(project, own - deleted)
+        if keep is None and not uses:
             self._remove_skeleton()
         return removed
+
+    # --- which project uses which entries ----------------------------------------------------------
+
+    def record_use(self, project: str | os.PathLike, entries) -> None:
+        """Add ``entries`` ((stage, key) pairs) to those ``project`` (its config path) is recorded to use."""
+        with self.lock("projects", self._project_id(project)):
+            self._write_use(project, self._uses().get(self._project_id(project), set()) | set(entries))
+
+    def _write_use(self, project, entries: set[tuple[str, str]]) -> None:
+        folder = self.root / PROJECTS
+        path = folder / f"{self._project_id(project)}.json"
+        if not entries:
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+            return
+        folder.mkdir(exist_ok=True)
+        config = os.path.relpath(Path(project).resolve(), self.root.resolve())
+        record = {"config": config, "entries": sorted(f"{s}/{k}" for s, k in entries)}
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=folder)
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(record, fh)
+        os.replace(tmp, path)
+
+    def _project_id(self, project: str | os.PathLike) -> str:
+        """A project's record name: the sha256 of its config's path relative to the cache (moved along with it)."""
+        return hashlib.sha256(os.path.relpath(Path(project).resolve(), self.root.resolve()).encode()).hexdigest()
+
+    def _uses(self) -> dict[str, set[tuple[str, str]]]:
+        """Per recorded project (its id): the entries it uses. An unreadable record uses nothing it can show."""
+        folder = self.root / PROJECTS
+        uses = {}
+        for path in sorted(folder.glob("*.json")) if folder.is_dir() and not folder.is_symlink() else ():
+            try:
+                entries = json.loads(path.read_text(encoding="utf-8"))["entries"]
+                uses[path.stem] = {tuple(e.split("/", 1)) for e in entries if isinstance(e, str) and "/" in e}
+            except (OSError, ValueError, KeyError, TypeError):
+                uses[path.stem] = set()  # still a project using the cache: its entries are not taken as orphans
+        return uses
 
     def _check_marker(self) -> None:
         try:
@@ -418,6 +479,9 @@ class ArtifactCache:
             with contextlib.suppress(OSError):
                 locks.rmdir()
         for stage_dir in self.root.iterdir():
+            if stage_dir.name == PROJECTS and stage_dir.is_dir() and not stage_dir.is_symlink():
+                with contextlib.suppress(OSError):  # a record left: a project still uses the cache
+                    stage_dir.rmdir()
             if _STAGE.fullmatch(stage_dir.name) and stage_dir.is_dir() and not stage_dir.is_symlink():
                 with contextlib.suppress(OSError):  # not empty: something else lives there
                     stage_dir.rmdir()
@@ -489,7 +553,7 @@ def _older_format(raw: bytes) -> bool:
 def _only_cache_files(root: Path) -> bool:
     """Whether ``root`` holds only what a cache (of this or the previous format) writes."""
     for child in root.iterdir():
-        if (child.name == LOCKS and child.is_dir()) or (child.name == MARKER and child.is_file()):
+        if (child.name in (LOCKS, PROJECTS) and child.is_dir()) or (child.name == MARKER and child.is_file()):
             continue
         if child.is_symlink() or not child.is_dir() or not _STAGE.fullmatch(child.name):
             return False

@@ -29,12 +29,18 @@ from pathlib import Path
 
 import numpy as np
 from fluorocal.calibration_doc import (
+    DOCUMENT_SHA256,
     FIELD_ARRAYS,
     MAX_IMAGE_SIDE_PX,
+    angle,
+    check_document_sha256,
     checked_name,
+    document_sha256,
     field_file,
     image_size,
-    read_field,
+    quaternion,
+    read_checked_field,
+    vector,
 )
 from fluorocal.maps import cached_maps, orientation_key
 from fluorocal.outputs import inside, safe_name
@@ -121,22 +127,22 @@ def _system_from_doc(s: dict, path: Path) -> "SystemCalibration":
     def field_of(entry) -> CorrectionField:
         name = entry["file"]
         if name not in read:
-            read[name] = read_field(field_file(path, name), w, h)
+            read[name] = read_checked_field(path, entry, w, h)
         return read[name]
 
-    checked_name(s["name"], path, "system name")
-    iop = np.array([s["iop_px"]["xp"], s["iop_px"]["yp"], s["iop_px"]["c"]], dtype=float)
-    if not (np.isfinite(iop).all() and iop[2] > 0):
+    name = checked_name(s["name"], path, "system name")
+    iop = vector([s["iop_px"][k] for k in ("xp", "yp", "c")], 3, f"system {name}: iop_px", path)
+    if not iop[2] > 0:
         raise ArtifactError(f"{path}: system {s['name']}: iop_px must be finite with c > 0; got {iop.tolist()}")
     orientations = tuple(_orientation_from_doc(o, path, field_of) for o in s.get("orientations", []))
     field = field_of(s["field"]) if "field" in s or not orientations else None
     return SystemCalibration(
-        s["name"],
+        name,
         (w, h),
         iop,
-        np.array([np.nan if v is None else v for v in s.get("iop_std_px", [0.0, 0.0, 0.0])], dtype=float),
-        np.array(s["rop"]["q_cam_from_ref"], dtype=float),
-        np.array(s["rop"]["source_in_ref_camera_mm"], dtype=float),
+        vector(s.get("iop_std_px", [0.0, 0.0, 0.0]), 3, f"system {name}: iop_std_px", path, nulls=True),
+        quaternion(s["rop"]["q_cam_from_ref"], f"system {name}: rop q_cam_from_ref", path),
+        vector(s["rop"]["source_in_ref_camera_mm"], 3, f"system {name}: rop source_in_ref_camera_mm", path),
         field,
         orientations,
     )
@@ -144,7 +150,16 @@ def _system_from_doc(s: dict, path: Path) -> "SystemCalibration":
 
 def _orientation_from_doc(o: dict, path: Path, field_of) -> OrientationField:
     name = checked_name(o["name"], path, "orientation name")
-    return OrientationField(name, o.get("orbit_deg"), o.get("tilt_deg"), field_of(o["field"]))
+    orbit, tilt = (angle(o.get(k), f"orientation {name}: {k}", path) for k in ("orbit_deg", "tilt_deg"))
+    return OrientationField(name, orbit, tilt, field_of(o["field"]))
+
+
+def _exposure_from_doc(e: dict, path: Path) -> tuple[int, tuple[np.ndarray, np.ndarray]]:
+    if isinstance(e["exposure"], bool) or not isinstance(e["exposure"], int):
+        raise ArtifactError(f"{path}: an exposure's number must be an integer; got {e['exposure']!r}")
+    where = f"exposure {e['exposure']}"
+    q = quaternion(e["q_cam_from_obj"], f"{where}: q_cam_from_obj", path)
+    return e["exposure"], (q, vector(e["source_mm"], 3, f"{where}: source_mm", path))
 
 
 def _content_sha256(path: Path, raw: bytes, doc: dict) -> str:
@@ -160,11 +175,12 @@ def _content_sha256(path: Path, raw: bytes, doc: dict) -> str:
     return digest.hexdigest()
 
 
-def _field_entry(field: CorrectionField, file_name: str) -> dict:
-    """A field's entry in ``calibration.json``: its file and a summary over the supported nodes."""
+def _field_entry(field: CorrectionField, file: Path) -> dict:
+    """A field's entry in ``calibration.json``: its (written) file, its SHA-256, a summary over the supported nodes."""
     magnitude = np.linalg.norm(field.delta_px, axis=-1)[field.support] if field.support.any() else np.zeros(1)
     return {
-        "file": file_name,
+        "file": file.name,
+        "sha256": hashlib.sha256(file.read_bytes()).hexdigest(),
         "grid_nodes": [len(field.x_nodes_px), len(field.y_nodes_px)],
         "max_correction_px": float(magnitude.max()),
         "rms_correction_px": float(np.sqrt(np.mean(magnitude**2))),
@@ -230,10 +246,7 @@ class Calibration:
             )
         try:
             systems = [_system_from_doc(s, path) for s in doc["systems"]]
-            exposures = {
-                int(e["exposure"]): (np.array(e["q_cam_from_obj"]), np.array(e["source_mm"]))
-                for e in doc.get("exposures", [])
-            }
+            exposures = dict(_exposure_from_doc(e, path) for e in doc.get("exposures", []))
         except (KeyError, TypeError, ValueError, OSError) as exc:
             if isinstance(exc, ArtifactError):
                 raise
@@ -241,7 +254,8 @@ class Calibration:
         names = [s.name for s in systems]
         if len(set(names)) != len(names):
             raise ArtifactError(f"{path}: malformed calibration (system names must differ; got {names})")
-        meta = {k: v for k, v in doc.items() if k not in ("systems", "exposures")}
+        check_document_sha256(doc, path)
+        meta = {k: v for k, v in doc.items() if k not in ("systems", "exposures", DOCUMENT_SHA256)}
         cal = cls(systems, exposures, meta)
         cal.path, cal._content_sha256 = path, _content_sha256(path, raw, doc)
         return cal
@@ -268,7 +282,7 @@ class Calibration:
                 file = inside(path.parent, file_name)
                 atomic_write(file, lambda tmp, f=field: np.savez(tmp, **{k: getattr(f, k) for k in FIELD_ARRAYS}))
                 written.append(file)
-                entries.append(_field_entry(field, file_name))
+                entries.append(_field_entry(field, file))
             doc_s = {
                 "name": name,
                 "image_size_px": list(s.image_size_px),
@@ -289,14 +303,15 @@ class Calibration:
         doc = {
             "schema": SCHEMA,
             "schema_version": SCHEMA_VERSION,
-            **{k: v for k, v in self.meta.items() if k not in ("schema", "schema_version")},
+            **{k: v for k, v in self.meta.items() if k not in ("schema", "schema_version", DOCUMENT_SHA256)},
             "systems": systems,
             "exposures": [
                 {"exposure": e, "q_cam_from_obj": q.tolist(), "source_mm": t.tolist()}
                 for e, (q, t) in sorted(self.exposures.items())
             ],
         }
-        atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=1)))
+        doc[DOCUMENT_SHA256] = document_sha256(doc)
+        atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=1), encoding="utf-8"))
         return written + [path]
 
     @property

@@ -1,10 +1,15 @@
-"""The parts of a ``calibration.json`` read and checked one by one: names, image sizes, field files.
+"""The parts of a ``calibration.json`` read and checked one by one: names, image sizes, numbers, field files.
 
-Every refusal is an :class:`~fluorocal.stages.errors.ArtifactError` naming the calibration's file.
+Each field entry records its file's SHA-256 (a field file that does not match is refused) and the
+document its own (:func:`document_sha256`). Every refusal is an
+:class:`~fluorocal.stages.errors.ArtifactError` naming the calibration's file.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
+import logging
 import zipfile
 import zlib
 from pathlib import Path
@@ -19,6 +24,10 @@ FIELD_ARRAYS = ("x_nodes_px", "y_nodes_px", "delta_px", "sigma_px", "support")
 
 #: largest image side a calibration may give, px (DICOM's Rows and Columns are 16-bit)
 MAX_IMAGE_SIDE_PX = 65535
+#: the key of the document's own SHA-256 (:func:`document_sha256`)
+DOCUMENT_SHA256 = "document_sha256"
+
+log = logging.getLogger(__name__)
 
 
 def image_size(value, path: Path) -> tuple[int, int]:
@@ -63,3 +72,74 @@ def checked_name(name, path: Path, what: str) -> str:
         return safe_name(name, what=what)
     except InputError as exc:
         raise ArtifactError(f"{path}: {exc}") from None
+
+
+def read_checked_field(path: Path, entry, w: int, h: int) -> CorrectionField:
+    """The field an entry of ``calibration.json`` names, refused unless its SHA-256 is the one recorded.
+
+    Files written before the hash was recorded (no ``sha256`` in the entry) are read as they are.
+    """
+    file = field_file(path, entry["file"])
+    expected = entry.get("sha256")
+    if expected is not None:
+        try:
+            actual = hashlib.sha256(file.read_bytes()).hexdigest()
+        except OSError as exc:
+            raise ArtifactError(f"{file}: cannot read field file ({exc.strerror or exc})") from exc
+        if actual != expected:
+            raise ArtifactError(
+                f"{file}: field file does not match {path.name} (sha256 {actual[:12]}..., recorded "
+                f"{str(expected)[:12]}...): it was changed or belongs to another calibration; "
+                "use the field files written with this calibration"
+            )
+    return read_field(file, w, h)
+
+
+def vector(value, n: int, what: str, path: Path, *, nulls: bool = False) -> np.ndarray:
+    """``value`` as ``n`` finite floats (``None`` read as NaN where ``nulls``), else ArtifactError naming ``what``."""
+    ok = isinstance(value, list) and len(value) == n
+    ok = ok and all((v is None and nulls) or (isinstance(v, (int, float)) and not isinstance(v, bool)) for v in value)
+    array = np.array([np.nan if v is None else v for v in value], dtype=float) if ok else None
+    if array is None or not (np.isfinite(array) | (nulls & np.isnan(array))).all():
+        raise ArtifactError(f"{path}: {what} must be {n} finite numbers; got {_shown(value)}")
+    return array
+
+
+def quaternion(value, what: str, path: Path) -> np.ndarray:
+    """``value`` as a unit quaternion ``(w, x, y, z)`` (norm within 1e-6 of 1), else ArtifactError naming ``what``."""
+    q = vector(value, 4, what, path)
+    if abs(np.linalg.norm(q) - 1.0) > 1e-6:  # saved from a normalised solve: off by rounding (~1e-16) only
+        raise ArtifactError(f"{path}: {what} must be a unit quaternion (w, x, y, z); got norm {np.linalg.norm(q):.6g}")
+    return q
+
+
+def angle(value, what: str, path: Path) -> float | None:
+    """An orientation angle: ``None`` or a finite number of degrees."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+        raise ArtifactError(f"{path}: {what} must be a finite number of degrees or null; got {_shown(value)}")
+    return float(value)
+
+
+def document_sha256(doc: dict) -> str:
+    """SHA-256 of a calibration document's canonical JSON, without its own ``document_sha256``."""
+    body = {k: v for k, v in doc.items() if k != DOCUMENT_SHA256}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def check_document_sha256(doc: dict, path: Path) -> bool:
+    """Whether the document is as written (True also when no hash was recorded); warn in the log if not.
+
+    An edited calibration is still read (its values are checked one by one); the log says it was edited.
+    """
+    recorded = doc.get(DOCUMENT_SHA256)
+    if recorded is None or recorded == document_sha256(doc):
+        return True
+    log.warning("%s was edited after fluorocal wrote it (its content no longer matches %s)", path, DOCUMENT_SHA256)
+    return False
+
+
+def _shown(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."

@@ -182,10 +182,12 @@ def cmd_run(args) -> int:
 
         log.info("label: %s", labelling_line([runner.get("label", u) for u in range(len(runner.units))]))
     written = export_outputs(runner)
-    log.info("wrote %d file(s) to %s", len(written), out_dir)
+    log.info("wrote %d file(s) to %s", len(written), written[0].parent if written else out_dir)
+    if written and "learn" not in runner.by_name:
+        print(f"partial results (--until {args.until}): {written[0].parent}; the outputs in {out_dir} are unchanged")
     report_md = out_dir / "report.md"
     if report_md in written:
-        table = [line for line in report_md.read_text().splitlines() if line.startswith("|")]
+        table = [line for line in report_md.read_text(encoding="utf-8").splitlines() if line.startswith("|")]
         print("\n".join(table))
         print(f"report: {report_md}")
     return 0
@@ -260,9 +262,10 @@ def cmd_cache_clean(args) -> int:
     cache = ArtifactCache(config.cache_dir)
     if args.stale:
         runner = project_runner(args)
-        removed = cache.clean(keep={(stage, key) for (stage, _), key in runner.keys.items()})
+        keep = {(stage, key) for (stage, _), key in runner.keys.items()}
+        removed = cache.clean(keep=keep, project=config.path)
     else:
-        removed = cache.clean()
+        removed = cache.clean(project=config.path)  # another project's entries are kept
     log.info("removed %d cache entries from %s", removed, config.cache_dir)
     return 0
 
@@ -301,7 +304,17 @@ def os_error_message(exc: OSError) -> str:
     return f"{what}: {path}"
 
 
+def _degrade_output() -> None:
+    """Print what the terminal's encoding cannot show as escapes (``Δ`` as a backslash escape under ``LC_ALL=C``)."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.reconfigure(errors="backslashreplace")
+        except (AttributeError, ValueError, OSError):  # not a text stream of the io module: left as it is
+            pass
+
+
 def main(argv=None) -> int:
+    _degrade_output()
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(

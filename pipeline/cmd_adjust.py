@@ -191,7 +191,7 @@ def _write_json(path: Path, data: dict) -> None:
     from fluorocal.stages.io import atomic_write
 
     def _write(tmp):
-        with open(tmp, "w") as fh:
+        with open(tmp, "w", encoding="utf-8") as fh:
             json.dump(data, fh, indent=1)
 
     atomic_write(path, _write)

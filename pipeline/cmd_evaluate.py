@@ -197,7 +197,8 @@ def _publish(out_dir: Path, config, result, ours: str, notes: list[str], image_s
     names = tuple(s.name for s in config.systems)
     written = publish_evaluation(out_dir, result, ours, notes, systems=names, image_size_px=image_size_px)
     md = next(p for p in written if p.name == "evaluation.md")
-    print("\n".join(line for line in md.read_text().splitlines() if line.startswith(("|", "- ", "No peer"))))
+    lines = md.read_text(encoding="utf-8").splitlines()
+    print("\n".join(line for line in lines if line.startswith(("|", "- ", "No peer"))))
     key = headline(result.scores)
     print(f"headline figure: {key}; wall {time.perf_counter() - t0:.1f} s; wrote {len(written)} file(s) to {out_dir}")
     return 0

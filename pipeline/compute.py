@@ -43,6 +43,8 @@ THREAD_VARS = (
 )
 #: the user's override of ``[compute] threads``
 THREADS_ENV = "FLUOROCAL_THREADS"
+#: most threads or worker processes a setting may ask for (OpenCV takes a C int; no machine has more cores)
+MAX_COUNT = 4096
 #: the address schemes of a Dask scheduler fluorocal connects to
 SCHEDULER_SCHEMES = ("tcp", "tls")
 #: the user's own Dask scheduler, used when ``--scheduler`` and ``--jobs`` are not given
@@ -88,6 +90,9 @@ def _key(file_name: str, key: str) -> str:
 def _positive_int(value, file_name: str, key: str, what: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise InputError(f"{_key(file_name, key)}: expected {what}; got {value!r}")
+    if value > MAX_COUNT:
+        shown = str(value) if len(str(value)) <= 30 else f"{str(value)[:12]}... ({len(str(value))} digits)"
+        raise InputError(f"{_key(file_name, key)}: expected {what}, at most {MAX_COUNT}; got {shown}")
     return value
 
 
@@ -192,7 +197,10 @@ def limit_threads(threads: int | None = None) -> int:
     if override is not None:
         threads = _count(override)
         if threads is None:
-            raise InputError(f"environment variable {THREADS_ENV}: expected a positive integer; got {override!r}")
+            shown = override if len(override) <= 30 else override[:12] + "..."
+            raise InputError(
+                f"environment variable {THREADS_ENV}: expected a positive integer, at most {MAX_COUNT}; got {shown!r}"
+            )
     threads = threads or 1
     for var in THREAD_VARS:
         os.environ.setdefault(var, str(threads))
@@ -204,6 +212,6 @@ def limit_threads(threads: int | None = None) -> int:
 def _count(text: str) -> int | None:
     """``text`` as a positive integer (ASCII digits only), else None."""
     text = text.strip()
-    if not (text.isascii() and text.isdigit()) or int(text) < 1:
+    if not (text.isascii() and text.isdigit()) or len(text) > 6 or not 1 <= int(text) <= MAX_COUNT:
         return None
     return int(text)

@@ -11,6 +11,7 @@ import dataclasses
 import glob
 import math
 import os
+import re
 import stat
 import tomllib
 import types
@@ -19,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fluorocal.compute import ComputeConfig, compute_from_table
+from fluorocal.config_schema import DEFAULT_SCHEME, SCHEMA, schema_default, schema_keys
 from fluorocal.outputs import safe_name
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.orientation import ANGLE_TOL_DEG, check_angle
@@ -45,72 +47,10 @@ OWNED_ELSEWHERE = {
 }
 
 
-#: the calibration scheme when ``[calibration] scheme`` is not given (parsed with the rest: ``--help`` imports no stage)
-DEFAULT_SCHEME = "knn+iop+smooth"
-
-
-@dataclass(frozen=True)
-class Key:
-    """One key of the project file: its table, TOML type, default and meaning.
-
-    The loader accepts exactly the keys of :data:`SCHEMA` in each table (the stage tables take
-    their ``Params`` fields), and the documentation's config reference is generated from it.
-    """
-
-    section: str
-    name: str
-    type: str
-    default: object = None
-    help: str = ""
-    required: bool = False
-
-
-#: every key of the project file outside the stage tables; ``section`` "systems.orientations" is an
-#: element of a system's ``orientations`` list
-SCHEMA = (
-    Key("phantom", "file", "string (path)", None, "phantom CSV `id,x,y,z[,diameter][,role]` in mm (design values)"),
-    Key("phantom", "lattice", "string", None, 'a perforated grid plate instead: `"hex"` or `"square"`'),
-    Key("phantom", "pitch", "number (mm)", None, "with `lattice`: distance between neighbouring holes (scale only)"),
-    Key("systems", "name", "string", None, "1-64 letters, digits, `-`, `_`, `.`; names differ", required=True),
-    Key("systems", "frames", "string or list", None, "a glob or a list of frame files", required=True),
-    Key("systems", "source_image_distance", "number (mm)", None, "approximate, 100-5000 mm", required=True),
-    Key("systems", "pixel_pitch", "number (mm)", None, "at the detector, approximate, 0.01-5 mm", required=True),
-    Key("systems", "seeds", "string (path)", None, "CSV `id,x,y[,file,frame]` (px): seeds for frames without markers"),
-    Key("systems", "orientations", "list of tables", None, "the frames grouped by C-arm orientation (below)"),
-    Key("systems.orientations", "name", "string", None, "1-64 letters, digits, `-`, `_`, `.`", required=True),
-    Key("systems.orientations", "frames", "string or list", None, "a glob or a list: the system's own frames"),
-    Key("systems.orientations", "orbit", "number (degrees)", None, "C-arm orbit angle; with `tilt`, within 180"),
-    Key("systems.orientations", "tilt", "number (degrees)", None, "C-arm tilt angle; with `orbit`, within 180"),
-    Key(
-        "calibration", "scheme", "string", DEFAULT_SCHEME, "knn, knn+iop, knn+smooth, knn+iop+smooth, none, polynomial"
-    ),
-    Key("output", "dir", "string (path)", "out", "folder of the published outputs"),
-    Key("cache", "dir", "string (path)", ".fluorocal", "folder of the artifact cache"),
-    Key("compute", "jobs", "integer", None, "worker processes for the per-frame stages (none: every core; 1: serial)"),
-    Key("compute", "threads", "integer", 1, "BLAS/OpenMP/OpenCV threads per process"),
-)
-
-
-def schema_keys(section: str) -> set[str]:
-    """The keys :data:`SCHEMA` allows in ``section`` (``"phantom"``, ``"systems.orientations"``, ...).
-
-    Examples
-    --------
-    >>> sorted(schema_keys("phantom"))
-    ['file', 'lattice', 'pitch']
-    """
-    return {k.name for k in SCHEMA if k.section == section}
-
-
-def schema_default(section: str, name: str):
-    """The default of key ``name`` of ``section`` in :data:`SCHEMA`.
-
-    Examples
-    --------
-    >>> schema_default("output", "dir")
-    'out'
-    """
-    return next(k.default for k in SCHEMA if k.section == section and k.name == name)
+#: largest integer a stage's parameter may be (a C int: OpenCV and numpy take them as such)
+MAX_CONFIG_INT = 2**31 - 1
+#: largest magnitude of a stage's float parameter (beyond any px, mm or ratio; inf and 1e400 refused)
+MAX_CONFIG_FLOAT = 1e15
 
 
 def _reject_owned(section: str, table: dict, path: Path) -> None:
@@ -207,7 +147,9 @@ def _reject_unknown(table: dict, allowed: set[str], path: Path, section: str) ->
 
 def _resolve_frames(value, root: Path, path: Path, section: str) -> tuple[Path, ...]:
     if isinstance(value, str):
-        matches = sorted(glob.glob(str(root / value)))
+        # the pattern is the user's, the project's own path is not: `scan[1]/` must not match `scan1/`
+        pattern = value if os.path.isabs(value) else os.path.join(glob.escape(str(root)), value)
+        matches = sorted(glob.glob(pattern))
         if not matches:
             raise ConfigError(f"{_where(path, section, 'frames')}: no file matches {value!r} (relative to {root})")
         folders = [m for m in matches if os.path.isdir(m)]
@@ -230,6 +172,20 @@ def _resolve_frames(value, root: Path, path: Path, section: str) -> tuple[Path, 
     raise ConfigError(
         f"{_where(path, section, 'frames')}: expected a glob string or a non-empty list of files; got {value!r}"
     )
+
+
+def _check_own_frames(systems, path: Path) -> None:
+    """Refuse two systems listing one frame file: one detector's frames are not the other's (else: learn fails)."""
+    if len(systems) < 2:
+        return
+    first = {f.resolve(): f for f in systems[0].frames}
+    shared = [f for f in systems[1].frames if f.resolve() in first]
+    if shared:
+        more = f" and {len(shared) - 1} more" if len(shared) > 1 else ""
+        raise ConfigError(
+            f"{path.name}: [[systems]] #2 key 'frames': system {systems[1].name} lists {shared[0]}{more}, "
+            f"a frame of system {systems[0].name}; give each system its own detector's frames"
+        )
 
 
 def _check_regular(files, path: Path, section: str) -> None:
@@ -429,6 +385,10 @@ def _parse_toml(path: Path) -> dict:
         raise ConfigError(f"{path.name}: not valid TOML ({exc})") from exc
     except RecursionError:
         raise ConfigError(f"{path.name}: not a project file (arrays or tables nested too deeply)") from None
+    except ValueError:  # an integer past Python's digit limit (4300), which tomllib does not name
+        key = re.search(r"([\w.\"'-]+)\s*=\s*[+-]?[0-9_]{1000,}", read_text(path))
+        where = f"key {key.group(1)!r}" if key else "an integer"
+        raise ConfigError(f"{path.name}: {where}: a number of thousands of digits; give a number in range") from None
 
 
 def load_config(
@@ -468,6 +428,7 @@ def load_config(
     names = [s.name for s in systems]
     if len(set(names)) != len(names):
         raise ConfigError(f"{path.name}: [[systems]] key 'name': names must differ; got {names}")
+    _check_own_frames(systems, path)
 
     scheme = _scheme(data, path, phantom)
 
@@ -554,6 +515,15 @@ def params_from_dict(cls, table: dict, *, where: str = ""):
     return built if isinstance(cls, tuple) else built[0]
 
 
+def _int_in_range(value: int, where: str) -> int:
+    """``value`` if it fits a C int (what the libraries take); counts (``n_*``) and seeds also not negative."""
+    lowest = 0 if re.search(r"key '(n_\w+|\w*seed)'", where) else -MAX_CONFIG_INT
+    if not lowest <= value <= MAX_CONFIG_INT:
+        shown = str(value) if len(str(value)) <= 30 else f"{str(value)[:12]}... ({len(str(value))} digits)"
+        raise ConfigError(f"{where}: expected an integer in {lowest}..{MAX_CONFIG_INT}; got {shown}")
+    return value
+
+
 def _coerce(value, hint, where: str):
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
@@ -572,9 +542,11 @@ def _coerce(value, hint, where: str):
             return value
     elif hint is int:
         if isinstance(value, int) and not isinstance(value, bool):
-            return value
+            return _int_in_range(value, where)
     elif hint is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(value) or abs(value) > MAX_CONFIG_FLOAT:
+                raise ConfigError(f"{where}: expected a finite number of size up to {MAX_CONFIG_FLOAT:g}; got {value}")
             return float(value)
     elif hint is str:
         if isinstance(value, str):

@@ -192,7 +192,7 @@ def publish_evaluation(out_dir: Path, evaluation, ours: str, notes: list[str], *
 
     def write(staging: Path) -> list[Path]:
         md = inside(staging, "evaluation.md")
-        md.write_text(markdown(scores, ours, notes))
+        md.write_text(markdown(scores, ours, notes), encoding="utf-8")
         maps = write_residual_maps(staging, evaluation.residuals, systems, image_size_px, size_unit(scores))
         return [
             write_csv_table(inside(staging, "evaluation.csv"), scores),

@@ -60,7 +60,8 @@ def check_outputs(config, out_dir=None) -> Path:
         keep_out += [(f"frame {f} of system {system.name}", f) for f in system.frames]
         if system.seeds is not None:
             keep_out.append((f"the seeds of system {system.name}", system.seeds))
-    out_dir = check_output_dir(config.output_dir if out_dir is None else out_dir, keep_out=keep_out)
+    owner = config.path if out_dir is None else None  # the run's own folder: refused if another project's
+    out_dir = check_output_dir(config.output_dir if out_dir is None else out_dir, keep_out=keep_out, owner=owner)
     sweep(out_dir)
     return out_dir
 
@@ -68,16 +69,26 @@ def check_outputs(config, out_dir=None) -> Path:
 def export_outputs(runner) -> list[Path]:
     """Publish every output the run's stages support as one set; return the paths written.
 
-    A run with nothing to write (``--until`` an early stage) leaves the output folder as it is.
+    A run stopped before ``learn`` (``--until``) never replaces the published set (its calibration, fields
+    and report): it publishes its tables as their own set in :func:`partial_dir`, inside the output folder,
+    where later runs carry them over. With nothing to write, the output folder is left as it is.
     """
+    partial = "learn" not in runner.by_name
 
     def write(staging: Path) -> list[Path]:
         written = _stage_tables(runner, staging)
-        if "learn" in runner.by_name:
+        if not partial:
             written += export_calibration(runner, staging)
         return written
 
-    return publish(runner.config.output_dir, write)
+    target = partial_dir(runner) if partial else runner.config.output_dir
+    return publish(target, write, owner=runner.config.path)
+
+
+def partial_dir(runner) -> Path:
+    """Where a run stopped early publishes its tables: ``<output dir>/until-<last stage>``."""
+    last = safe_name(runner.stages[-1].name, what="stage name") if runner.stages else "nothing"
+    return inside(runner.config.output_dir, f"until-{last}")
 
 
 def _stage_tables(runner, out_dir: Path | None = None) -> list[Path]:
@@ -284,5 +295,5 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
     ]
     lines += [f"![{p.stem}]({p.name})" for p in plots]
     path = inside(out_dir, "report.md")
-    atomic_write(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
+    atomic_write(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n", encoding="utf-8"))
     return plots + [path]

@@ -170,7 +170,7 @@ def write_plate_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> 
         lines += ["", *change_lines]
     lines += ["", *(f"![{p.stem}]({p.name})" for p in plots)]
     path = inside(out_dir, "report.md")
-    atomic_write(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
+    atomic_write(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n", encoding="utf-8"))
     return plots + embedded_below + [path]
 
 

@@ -13,6 +13,10 @@ run puts back). Entries of the output folder that are not part of a published
 set (``overlays/`` of ``fluorocal inspect``, files a user put there) are
 carried over into the new set. Folders left by a killed run, and only those
 named as this module names them, are swept at the start of the next publish.
+
+A published set names the project that wrote it (its config, in :data:`MANIFEST`):
+:func:`check_output_dir` refuses a folder another project published into, so two
+configs sharing one ``[output] dir`` never replace each other's calibration.
 """
 
 from __future__ import annotations
@@ -94,7 +98,9 @@ def inside(folder: str | os.PathLike, name: str) -> Path:
 # --- publishing a set -------------------------------------------------------------------------
 
 
-def check_output_dir(out_dir: str | os.PathLike, *, keep_out: list[tuple[str, Path]]) -> Path:
+def check_output_dir(
+    out_dir: str | os.PathLike, *, keep_out: list[tuple[str, Path]], owner: str | os.PathLike | None = None
+) -> Path:
     """Check before any work that ``out_dir`` can hold a published set; return it resolved.
 
     Parameters
@@ -104,11 +110,14 @@ def check_output_dir(out_dir: str | os.PathLike, *, keep_out: list[tuple[str, Pa
     keep_out : list of (str, Path)
         What must not lie inside it, with what it is (``[("the config", path), ...]``):
         the folder is swapped as a whole, so it must not hold the project's inputs or cache.
+    owner : path, optional
+        The config of the project about to publish there: a set another project published is refused.
 
     Raises
     ------
     InputError
-        ``out_dir`` is a file, holds one of ``keep_out``, or its parent is not a writable folder.
+        ``out_dir`` is a file, holds one of ``keep_out``, holds another project's set, or its parent
+        is not a writable folder.
     """
     out_dir = Path(out_dir).resolve()
     if out_dir.exists() and not out_dir.is_dir():
@@ -123,10 +132,38 @@ def check_output_dir(out_dir: str | os.PathLike, *, keep_out: list[tuple[str, Pa
     parent = next((p for p in out_dir.parents if p.exists()), None)
     if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
         raise InputError(f"cannot write the output folder {out_dir}: {parent} is not a writable folder")
+    previous = published_by(out_dir)
+    if owner is not None and previous is not None and previous != owner_name(out_dir, owner):
+        raise InputError(
+            f"output folder {out_dir} holds the outputs of another project ({os.path.normpath(out_dir / previous)}); "
+            "give this project an [output] dir of its own"
+        )
     return out_dir
 
 
-def publish(out_dir: str | os.PathLike, write: Callable[[Path], list[Path]]) -> list[Path]:
+def owner_name(out_dir: str | os.PathLike, config: str | os.PathLike) -> str:
+    """The config's path relative to the output folder: what names a set's project, moved along with it.
+
+    Examples
+    --------
+    >>> owner_name("/p/out", "/p/fluorocal.toml")
+    '../fluorocal.toml'
+    """
+    return os.path.relpath(Path(config).resolve(), Path(out_dir).resolve())
+
+
+def published_by(out_dir: str | os.PathLike) -> str | None:
+    """The config (relative to ``out_dir``) of the project whose set it holds (None: no set, or no owner)."""
+    try:
+        project = json.loads((Path(out_dir) / MANIFEST).read_text(encoding="utf-8")).get("project")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return project if isinstance(project, str) else None
+
+
+def publish(
+    out_dir: str | os.PathLike, write: Callable[[Path], list[Path]], *, owner: str | os.PathLike | None = None
+) -> list[Path]:
     """Call ``write(staging)`` to write a set of outputs, then swap the set in as ``out_dir``.
 
     Parameters
@@ -136,6 +173,8 @@ def publish(out_dir: str | os.PathLike, write: Callable[[Path], list[Path]]) -> 
     write : callable
         Writes the set into the folder it is given (with :func:`inside`) and
         returns the paths written there.
+    owner : path, optional
+        The config of the project publishing the set, recorded in its :data:`MANIFEST`.
 
     Returns
     -------
@@ -155,7 +194,8 @@ def publish(out_dir: str | os.PathLike, write: Callable[[Path], list[Path]]) -> 
             shutil.rmtree(staging)
             return []
         names = sorted({p.relative_to(staging).parts[0] for p in written})
-        (staging / MANIFEST).write_text(json.dumps({"entries": names}, indent=1))
+        record = {"entries": names, "project": None if owner is None else owner_name(out_dir, owner)}
+        (staging / MANIFEST).write_text(json.dumps(record, indent=1), encoding="utf-8")
         with _publishing(out_dir):  # runs finishing at once swap their sets in one after the other
             _swap(out_dir, staging)
     except BaseException:
@@ -238,7 +278,7 @@ def _swap(out_dir: Path, staging: Path) -> None:
 def _carry_over(old: Path, new: Path) -> None:
     """Move the entries of ``old`` that are not a published output (and not in ``new``) into ``new``."""
     try:
-        published = set(json.loads((old / MANIFEST).read_text())["entries"])
+        published = set(json.loads((old / MANIFEST).read_text(encoding="utf-8"))["entries"])
     except (OSError, ValueError, KeyError, TypeError):
         published = set()  # a folder written before sets were published: keep what the new set does not replace
     for entry in old.iterdir():

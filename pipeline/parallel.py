@@ -29,7 +29,6 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from functools import lru_cache
-from pathlib import Path
 
 from fluorocal.artifact_codec import artifact_types, encode
 from fluorocal.compute import ComputeConfig, limit_threads
@@ -120,8 +119,7 @@ def run_task(task: FrameTask) -> list[FrameResult]:
         The file cannot be read here, or its content differs from the planned one (another
         machine's copy). A stage's :class:`CalibError` is re-raised naming the frame and stage.
     """
-    from fluorocal.cache import file_sha256
-    from fluorocal.stages.io import read_frames
+    from fluorocal.steady import read_steady
 
     where = f"{task.path} on {socket.gethostname()}"
     if task.on_cluster:
@@ -129,9 +127,8 @@ def run_task(task: FrameTask) -> list[FrameResult]:
         limit_threads(task.threads)
         _keep_freed_memory()
     try:
-        if task.on_cluster and file_sha256(task.path) != task.file_sha256:
-            raise InputError(f"{where}: content differs from the project's file; workers must see the same frames")
-        frames = read_frames(Path(task.path), [job.index for job in task.frames])  # a multi-frame file: these only
+        # a multi-frame file: these only; another machine's copy or a file being replaced is refused
+        frames = read_steady(task.path, task.file_sha256, [job.index for job in task.frames])
     except OSError as exc:
         raise InputError(f"{where}: cannot read ({exc.strerror or exc}); workers must see the frames' paths") from None
     return [_run_frame(job, frame) for job, frame in zip(task.frames, frames)]

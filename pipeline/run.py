@@ -129,6 +129,10 @@ def frame_units(config: Config) -> list[FrameUnit]:
                 units.append(FrameUnit(s, exposure, Path(path), i, key, digest, size))
                 exposure += 1
     _check_pairing(config, units)
+    first = {u.file_sha256 for u in units if u.system == 0}
+    twin = next((u for u in units if u.system and u.file_sha256 in first), None)
+    if twin is not None:  # the same content: the adjustment's normal equations turn singular, found only at learn
+        raise InputError(f"{twin.path}: holds a frame of system {config.systems[0].name}; give each system its own")
     return units
 
 
@@ -178,10 +182,10 @@ def _check_pairing(config: Config, units: list[FrameUnit]) -> None:
 
 @lru_cache(maxsize=2)
 def _read_file_frames(path: Path, content_sha256: str):
-    """All frames of a file; the content hash keeps an edited file from being served stale."""
-    from fluorocal.stages.io import read_frames
+    """All frames of a file whose content is ``content_sha256`` before and after the read (:mod:`~fluorocal.steady`)."""
+    from fluorocal.steady import read_steady
 
-    return read_frames(path)
+    return read_steady(path, content_sha256)
 
 
 def stage_params(stage: Stage, config: Config, unit: FrameUnit | None, units: list[FrameUnit]):
@@ -313,6 +317,7 @@ class Runner:
 
         self.cache.prepare_root()
         self.cache.sweep()
+        self.cache.record_use(self.config.path, {(name, key) for (name, _), key in self.keys.items()})
         todo = {}
         for stage in self.stages:
             units = self._stage_units(stage)
@@ -510,17 +515,22 @@ class Runner:
 
     def _keep(self, stage: Stage, unit: int | None, artifact, params, took: float) -> None:
         """Store ``artifact`` (computed in ``took`` s) with its provenance, keep it in memory and count it."""
-        provenance = {
-            "code_digest": self.codes[stage.name],
-            "params": dataclasses.asdict(params),
-            "inputs": list(stage.inputs),
-            "wall_seconds": took,
-        }
-        if unit is not None:
-            provenance["frame"] = {"file": str(self.units[unit].path), "index": self.units[unit].index}
-        self.cache.store(stage.name, self.keys[(stage.name, unit)], artifact, provenance=provenance)
+        provenance = self._provenance(stage, unit, params, took)
+        self._store(stage.name, self.keys[(stage.name, unit)], artifact, provenance)
         self.memory[(stage.name, unit)] = artifact
         self.report.record(stage.name, [unit], "computed")
+
+    def _provenance(self, stage: Stage, unit: int | None, params, took: float) -> dict:
+        frame = {} if unit is None else {"frame": {"file": str(self.units[unit].path), "index": self.units[unit].index}}
+        code, inputs, p = self.codes[stage.name], list(stage.inputs), dataclasses.asdict(params)
+        return {"code_digest": code, "params": p, "inputs": inputs, "wall_seconds": took, **frame}
+
+    def _store(self, name: str, key: str, artifact, provenance: dict) -> None:
+        """Store an entry; a cache that cannot be written (full, read-only) loses the entry, never the result."""
+        try:
+            self.cache.store(name, key, artifact, provenance=provenance)
+        except OSError as exc:  # kept in memory: the run goes on and publishes what it computed
+            log.warning("could not cache %s/%s (%s); kept for this run, recomputed next time", name, key[:12], exc)
 
     def _compute_system(self, stage: Stage, group: list[int]) -> None:
         """Compute a per-system stage on the system of units ``group`` and store each frame's artifact.
@@ -550,15 +560,9 @@ class Runner:
         if len(artifacts) != len(group):
             raise CalibError(f"system {system}: {stage.name} gave {len(artifacts)} artifacts for {len(group)} frames")
         for position, (unit, artifact) in enumerate(zip(group, artifacts)):
-            provenance = {
-                "code_digest": self.codes[stage.name],
-                "params": dataclasses.asdict(params),
-                "inputs": list(stage.inputs),
-                "wall_seconds": took,
-                "frame": {"file": str(self.units[unit].path), "index": self.units[unit].index},
-                "sequence": {"system": system, "position": position, "n_frames": len(group)},
-            }
-            self.cache.store(stage.name, self.keys[(stage.name, unit)], artifact, provenance=provenance)
+            provenance = self._provenance(stage, unit, params, took)
+            provenance["sequence"] = {"system": system, "position": position, "n_frames": len(group)}
+            self._store(stage.name, self.keys[(stage.name, unit)], artifact, provenance)
             self.memory[(stage.name, unit)] = artifact
         self.report.record(stage.name, group, "computed")
         self.report.seconds[stage.name] = self.report.seconds.get(stage.name, 0.0) + took

@@ -26,6 +26,7 @@ _NUMPY_DTYPE = {int: np.int64, float: np.float64, bool: np.bool_, str: np.str_}
 _FALSE = ("0", "false", "no")
 #: most beads a phantom file may hold: real phantoms have hundreds to a few thousand
 MAX_PHANTOM_BEADS = 100_000
+_LINE = "\0line"  # the record's line, kept beside the columns while reading
 #: a phantom smaller than this (mm) on every axis, or with beads closer than this, was not written in mm
 _MIN_PHANTOM_EXTENT_MM = 1.0
 #: bead diameters below this (mm) cannot be imaged: a diameter in metres
@@ -55,6 +56,8 @@ class Column:
         Float columns: decimals written; ``None`` writes the shortest text that reads back the same float64.
     aliases : tuple of str
         Older header names accepted on reading.
+    choices : tuple of str
+        Text columns: the values allowed besides the empty cell, matched in any case and read in lower case.
     """
 
     name: str
@@ -64,11 +67,16 @@ class Column:
     default: object = None
     digits: int | None = None
     aliases: tuple[str, ...] = ()
+    choices: tuple[str, ...] = ()
 
     def parse(self, text: str):
         """The value of one cell (stripped text); ``ValueError`` when it is not of the column's type."""
         if self.dtype is bool:
             return text.lower() not in _FALSE
+        if self.choices:
+            if text.lower() not in self.choices:
+                raise ValueError(f"{text!r} is not one of {self.choices}")
+            return text.lower()
         value = self.dtype(text)
         if self.dtype is int and not -(2**63) <= value < 2**63:
             raise ValueError(f"{text} does not fit in 64 bits")
@@ -147,7 +155,7 @@ PHANTOM = Table(
         _f("y", "mm", digits=6),
         _f("z", "mm", digits=6),
         _opt("diameter", float, math.nan, "mm", digits=6),
-        _opt("role", str, ""),
+        _opt("role", str, "", choices=("marker",)),
     ),
 )
 #: manual seeds of the labelling (rows without a file belong to the first frame)
@@ -227,6 +235,17 @@ def _header_map(path: Path, table: Table, header: list[str]) -> dict[str, str]:
     return found
 
 
+def _check_header(path: Path, table: Table, header: list[str], line_no: int) -> None:
+    """Refuse a header naming a column twice (also under its two names, ``dx`` and ``delta_x``)."""
+    seen: dict[str, str] = {}
+    for name in header:
+        column = next((c.name for c in table.columns if name in (c.name, *c.aliases)), name)
+        if name and column in seen:
+            also = "" if seen[column] == name else f" (as {seen[column]!r} and {name!r})"
+            raise InputError(f"{path}:{line_no}: column {column} appears twice in the header{also}; keep one")
+        seen[column] = name
+
+
 def _parse_cell(path: Path, line_no: int, column: Column, text: str):
     if not text:
         if column.required or column.default is None:  # a column without a default has a value in every row
@@ -236,10 +255,14 @@ def _parse_cell(path: Path, line_no: int, column: Column, text: str):
         return column.parse(text)
     except ValueError:
         kind = "an integer" if column.dtype is int else "a number"
+        if column.choices:
+            kind = " or ".join(repr(c) for c in column.choices) + " (in any case) or empty"
         raise InputError(f"{path}:{line_no}: not {kind} in column {column.name}: {text!r}") from None
 
 
-def read_table(path: str | os.PathLike, table: Table, *, max_rows: int | None = None) -> dict[str, np.ndarray]:
+def read_table(
+    path: str | os.PathLike, table: Table, *, max_rows: int | None = None, lines: bool = False
+) -> dict[str, np.ndarray]:
     r"""Read a CSV file by its schema: one array per column.
 
     Parameters
@@ -250,6 +273,9 @@ def read_table(path: str | os.PathLike, table: Table, *, max_rows: int | None = 
         Its schema.
     max_rows : int, optional
         Refuse a file with more records than this (read no further).
+    lines : bool
+        Also return each record's line in the file (blank lines counted) as ``"line"``,
+        for messages about a record found wrong after reading.
 
     Returns
     -------
@@ -261,8 +287,9 @@ def read_table(path: str | os.PathLike, table: Table, *, max_rows: int | None = 
     ------
     InputError
         The file is missing, a folder, unreadable or not UTF-8 text (a byte-order mark is allowed),
-        has more than ``max_rows`` records, lacks a required column, or has a cell that is empty
-        in a required column or not of its column's type (naming file, line and column).
+        has more than ``max_rows`` records, lacks a required column or names one twice, has a row
+        with more or fewer values than the header, or has a cell that is empty in a required column
+        or not of its column's type (naming file, line and column).
 
     Examples
     --------
@@ -286,8 +313,9 @@ def read_table(path: str | os.PathLike, table: Table, *, max_rows: int | None = 
         raise InputError(f"{path}: not a readable CSV file ({exc})") from None
     except OSError as exc:
         raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    n_rows = len(next(iter(values.values()), []))
-    out = {}
+    line = values.pop(_LINE)
+    n_rows = len(line)
+    out = {"line": np.array(line, dtype=np.int64)} if lines else {}
     for c in table.columns:
         if c.name in values:
             out[c.name] = np.array(values[c.name], dtype=_NUMPY_DTYPE[c.dtype])
@@ -301,13 +329,23 @@ def _read_rows(path: Path, table: Table, max_rows: int | None) -> dict[str, list
     with open(path, newline="", encoding="utf-8-sig") as fh:  # utf-8-sig: a spreadsheet's byte-order mark
         reader = csv.DictReader(fh)
         header = [h.strip() for h in (reader.fieldnames or [])]
+        _check_header(path, table, header, reader.line_num)
         found = _header_map(path, table, header)
         present = [table.column(n) for n in found]
         values: dict[str, list] = {c.name: [] for c in present}
-        for line_no, row in enumerate(reader, start=2):
-            if max_rows is not None and line_no - 1 > max_rows:
+        values[_LINE] = []
+        for n_rows, row in enumerate(reader, start=1):
+            line_no = reader.line_num  # the file's own line: blank lines (skipped) counted
+            if max_rows is not None and n_rows > max_rows:
                 raise InputError(f"{path}: more than {max_rows} {table.name} rows; is this the right file?")
+            n_values = len(header) + len(row.get(None, ())) - sum(v is None for v in row.values())
+            if n_values != len(header):  # a cell too many or too few shifts every column after it
+                raise InputError(
+                    f"{path}:{line_no}: {n_values} values in a row under a header of {len(header)} columns "
+                    f"({','.join(header)}); give every row one value per column (empty for none)"
+                )
             row = {k.strip(): (v.strip() if isinstance(v, str) else "") for k, v in row.items() if k is not None}
+            values[_LINE].append(line_no)
             for c in present:
                 values[c.name].append(_parse_cell(path, line_no, c, row.get(found[c.name], "")))
     return values
@@ -344,7 +382,7 @@ def write_table(path: str | os.PathLike, table: Table, columns: Mapping[str, Seq
     cells = [c.format_all(columns[c.name]) for c in present]
 
     def _write(tmp):
-        with open(tmp, "w", newline="") as fh:
+        with open(tmp, "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
             w.writerow([c.name for c in present])
             w.writerows(zip(*cells))
@@ -373,7 +411,7 @@ def write_csv(path: str | os.PathLike, header: list[str], rows) -> None:
         return f"{v:.6f}" if isinstance(v, (float, np.floating)) else str(v)
 
     def _write(tmp):
-        with open(tmp, "w", newline="") as fh:
+        with open(tmp, "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
             w.writerow(header)
             for row in rows:
@@ -398,16 +436,17 @@ def read_phantom(path: str | os.PathLike, *, lattice: str = "", pitch_mm: float 
     """
     from fluorocal.stages.artifacts import MIN_PHANTOM_BEADS, Phantom
 
-    t = read_table(path, PHANTOM, max_rows=MAX_PHANTOM_BEADS)
+    t = read_table(path, PHANTOM, max_rows=MAX_PHANTOM_BEADS, lines=True)
     if not len(t["id"]):
         raise InputError(f"{path}: phantom CSV has no beads")
     xyz = np.stack([t["x"], t["y"], t["z"]], axis=1)
-    check_finite(path, {"x": t["x"], "y": t["y"], "z": t["z"]})
+    check_finite(path, {"x": t["x"], "y": t["y"], "z": t["z"]}, lines=t["line"])
     diameter = t["diameter"]
     bad = ~np.isnan(diameter) & ~(np.isfinite(diameter) & (diameter > 0))
     if bad.any():
         i = int(np.argmax(bad))
-        raise InputError(f"{path}:{i + 2}: diameter must be a positive number of mm (or empty); got {diameter[i]}")
+        line = t["line"][i]
+        raise InputError(f"{path}:{line}: diameter must be a positive number of mm (or empty); got {diameter[i]}")
     check_phantom_units(path, xyz, diameter)
     if not lattice and len(t["id"]) < MIN_PHANTOM_BEADS:
         raise InputError(f"{path}: a bead phantom needs at least {MIN_PHANTOM_BEADS} beads; got {len(t['id'])}")
@@ -427,8 +466,8 @@ def read_seeds(path: str | os.PathLike) -> dict:
     InputError
         Missing file or column, or a value that is not a number, naming the line.
     """
-    t = read_table(path, SEEDS)
-    check_finite(path, {"x": t["x"], "y": t["y"]})
+    t = read_table(path, SEEDS, lines=True)
+    check_finite(path, {"x": t["x"], "y": t["y"]}, lines=t["line"])
     seeds: dict = {}
     for i, x, y, file, frame in zip(t["id"], t["x"], t["y"], t["file"], t["frame"]):
         key = (Path(file).name, int(frame)) if file else ("", 0)
@@ -436,13 +475,14 @@ def read_seeds(path: str | os.PathLike) -> dict:
     return {k: tuple(v) for k, v in seeds.items()}
 
 
-def check_finite(path, columns: dict[str, np.ndarray]) -> None:
-    """Refuse NaN or infinite cells, naming the first one's line and column."""
+def check_finite(path, columns: dict[str, np.ndarray], *, lines=None) -> None:
+    """Refuse NaN or infinite cells, naming the first one's line (``lines``: each row's, else row + 2) and column."""
     for name, values in columns.items():
         bad = ~np.isfinite(values)
         if bad.any():
             i = int(np.argmax(bad))
-            raise InputError(f"{path}:{i + 2}: column {name} must be a finite number; got {values[i]}")
+            line = i + 2 if lines is None else lines[i]
+            raise InputError(f"{path}:{line}: column {name} must be a finite number; got {values[i]}")
 
 
 def check_phantom_units(path, xyz_mm: np.ndarray, diameter_mm: np.ndarray) -> None:

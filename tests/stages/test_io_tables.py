@@ -74,7 +74,10 @@ def test_older_header_names_are_read(tmp_path):
     "text, message",
     [
         ("file,frame,x,y\n", r"d.csv: detections CSV needs columns file,frame,x,y,sigma_x.*; missing sigma_x,"),
-        ("file,frame,x,y,sigma_x,sigma_y,rho,major,minor\na,0,1,2,3,4,5,6\n", r"d.csv:2: empty cell in column minor"),
+        (
+            "file,frame,x,y,sigma_x,sigma_y,rho,major,minor\na,0,1,2,3,4,5,6\n",
+            r"d.csv:2: 8 values in a row under a header of 9 columns",
+        ),
         (
             "file,frame,x,y,sigma_x,sigma_y,rho,major,minor\na,0,1,2,3,4,5,6,7\na,1.5,1,2,3,4,5,6,7\n",
             r"d.csv:3: not an integer in column frame: '1.5'",

@@ -1,0 +1,34 @@
+"""System B given system A's frames is refused before any work (issue 28), not at learn ("singular")."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+from fluorocal.config import ConfigError, load_config
+from fluorocal.run import frame_units
+from fluorocal.stages.errors import InputError
+
+from tests.pipeline.toy import make_two_system_project
+
+
+def test_system_b_listing_a_s_frame_files_is_refused_at_load(tmp_path):
+    cfg = make_two_system_project(tmp_path / "p")
+    cfg.write_text(cfg.read_text().replace('frames = "frames/B/*.tif"', 'frames = "frames/A/*.tif"'))
+    with pytest.raises(
+        ConfigError, match=r"\[\[systems\]\] #2 key 'frames': system B lists .*frames/A/f0.tif and 2 more"
+    ):
+        load_config(cfg)
+
+
+def test_system_b_given_copies_of_a_s_frames_is_refused_before_any_stage(tmp_path):
+    root = tmp_path / "p"
+    cfg = make_two_system_project(root)
+    shutil.copy(root / "frames" / "A" / "f1.tif", root / "frames" / "B" / "f1.tif")  # one copy among B's own
+    with pytest.raises(InputError, match=r"frames/B/f1.tif: holds a frame of system A; give each system its own"):
+        frame_units(load_config(cfg))
+
+
+def test_systems_with_frames_of_their_own_load(tmp_path):
+    units = frame_units(load_config(make_two_system_project(tmp_path / "p")))
+    assert [u.system for u in units] == [0, 0, 0, 1, 1, 1]
