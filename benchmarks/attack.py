@@ -2498,7 +2498,7 @@ def issue28_cases(add, nothing) -> None:
         lambda c: [fluorocal("cache", "clean", "--stale", c.proj / "other.toml"),
                    fluorocal("cache", "clean", c.proj / "other.toml")],
         expect="ok", check=_cache_kept)  # fmt: skip
-    undistort = lambda c: [fluorocal("undistort", "--calibration", c.cal, "--system", "A",  # noqa: E731
+    undistort = lambda c: [fluorocal("undistort", c.cal, "--system", "A",  # noqa: E731
                                      "--out", c.proj / "und", c.frames("A")[0])]  # fmt: skip
     for factor in (2.0, 0.5):
         add(f"field_nodes_x{factor:g}", K, _scale_field(factor), undistort, hints=("field_A.npz",))

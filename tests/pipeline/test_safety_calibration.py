@@ -60,7 +60,7 @@ def test_a_field_file_that_does_not_match_is_refused_by_load_undistort_and_expor
         Calibration.load(cal_path)
     frame = tmp_path / "frame.tif"
     write_still(frame, np.full((H, W), 1000, np.uint16))
-    undistort = ["-q", "undistort", str(frame), "--calibration", str(cal_path), "--system", "B"]
+    undistort = ["-q", "undistort", str(cal_path), str(frame), "--system", "B"]
     for argv in (
         [*undistort, "--out", str(tmp_path / "u")],
         ["-q", "export", str(cal_path), "--format", "opencv", "--out", str(tmp_path / "x")],
