@@ -1,4 +1,7 @@
-"""Shared test fixtures: the real radiographs in ../shared/data (skipped when absent)."""
+"""Shared test fixtures: the real radiographs and the simulated projects built once per session.
+
+The real radiographs live in ../shared/data (skipped when absent); a test that reads them is a `make check` test.
+"""
 
 from pathlib import Path
 
@@ -18,39 +21,62 @@ def arcadis_dir() -> Path:
 
 #: the small biplanar project the end-to-end modules share (4 + 4 frames of 512 px)
 E2E_SIM = {"n_frames": 4, "n_systems": 2, "image_size_px": 512, "seed": 3}
+#: the grid plate moved by hand between three 1024² frames at one orientation
+GRID_SIM = {"phantom": "grid", "n_frames": 3, "seed": 4}
+
+
+def built_once(tmp_path_factory, worker_id: str, name: str, build) -> Path:
+    """``root / "project"`` made by ``build(root / "project")`` once per test session, however many workers run.
+
+    Under pytest-xdist the workers' temporary folders share a parent that is new for each session; the first
+    worker to take the lock builds the project there, the others wait and reuse it (the recipe of the
+    pytest-xdist documentation). A build that failed leaves no marker, so the next worker tries again.
+    """
+    if worker_id == "master":  # no xdist: this process is the whole session
+        project = tmp_path_factory.mktemp(name) / "project"
+        build(project)
+        return project
+    from filelock import FileLock
+
+    root = tmp_path_factory.getbasetemp().parent / name
+    with FileLock(f"{root}.lock"):
+        if not (root / ".complete").is_file():
+            import shutil
+
+            shutil.rmtree(root, ignore_errors=True)
+            build(root / "project")
+            (root / ".complete").touch()
+    return root / "project"
+
+
+def _calibrate(root: Path, sim: dict) -> None:
+    """Simulate ``sim`` into ``root`` and run the whole pipeline on it."""
+    from fluorocal.cli import main
+    from fluorocal.cmd_simulate import write_dataset
+    from fluorocal.stages.simulate import SimulateParams, simulate
+
+    write_dataset(simulate(SimulateParams(**sim)), root)
+    assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
 
 
 @pytest.fixture(scope="session")
-def calibrated_project(tmp_path_factory) -> Path:
+def calibrated_project(tmp_path_factory, worker_id) -> Path:
     """A simulated project after one `fluorocal run`: simulated and calibrated once per test session.
 
     Modules that change it take a copy (:func:`copy_project`); the cache comes along, so their own runs
-    recompute only what they change.
+    recompute only what they change. Shared by every xdist worker (:func:`built_once`): never write into it.
     """
-    from fluorocal.cli import main
-    from fluorocal.cmd_simulate import write_dataset
-    from fluorocal.stages.simulate import SimulateParams, simulate
-
-    root = tmp_path_factory.mktemp("calibrated") / "project"
-    write_dataset(simulate(SimulateParams(**E2E_SIM)), root)
-    assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
-    return root
+    return built_once(tmp_path_factory, worker_id, "calibrated", lambda root: _calibrate(root, E2E_SIM))
 
 
 @pytest.fixture(scope="session")
-def simulated_grid(tmp_path_factory) -> Path:
+def simulated_grid(tmp_path_factory, worker_id) -> Path:
     """A simulated plate moved by hand between three 1024² frames at one C-arm orientation, calibrated once.
 
     (A 512 px frame cannot resolve the holes.) Modules that change it take a copy (:func:`copy_project`).
+    Shared by every xdist worker (:func:`built_once`): never write into it.
     """
-    from fluorocal.cli import main
-    from fluorocal.cmd_simulate import write_dataset
-    from fluorocal.stages.simulate import SimulateParams, simulate
-
-    root = tmp_path_factory.mktemp("grid") / "project"
-    write_dataset(simulate(SimulateParams(phantom="grid", n_frames=3, seed=4)), root)
-    assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
-    return root
+    return built_once(tmp_path_factory, worker_id, "grid", lambda root: _calibrate(root, GRID_SIM))
 
 
 def copy_project(source: Path, destination: Path) -> Path:
@@ -59,3 +85,10 @@ def copy_project(source: Path, destination: Path) -> Path:
 
     shutil.copytree(source, destination, symlinks=True)
     return destination
+
+
+def pytest_collection_modifyitems(items):
+    """Every test that reads the real radiographs (../shared/data) is one of `make check`'s long checks."""
+    for item in items:
+        if "arcadis_dir" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.check)

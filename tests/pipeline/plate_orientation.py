@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tests.helpers import rms_length, rms_modulo_homography
+
 #: the orientations of the sequences: name -> (orbit, tilt), degrees
 ANGLES_DEG = {"centred": (0, 0), "tilt15": (0, 15), "tilt30": (0, 30), "tilt45": (0, 45), "tilt60": (0, 60)}
 #: calibrated at three orientations 30° apart; held out: the two in between
@@ -166,19 +168,6 @@ def calibrate(seq: Sequence, names, params=None):
     return cal, fields
 
 
-def rms_length(residual_px: np.ndarray) -> float:
-    """RMS of the residuals' lengths, px."""
-    return float(np.sqrt(np.mean(np.sum(residual_px**2, axis=1))))
-
-
-def homography_residual(layout_mm: np.ndarray, corrected_px: np.ndarray) -> np.ndarray:
-    """``corrected - H(layout)`` ``(N, 2)`` px with ``H`` the least-squares homography (plate mm -> image px)."""
-    import cv2
-
-    H, _ = cv2.findHomography(layout_mm, corrected_px, 0)
-    return corrected_px - cv2.perspectiveTransform(layout_mm[None].astype(np.float64), H)[0]
-
-
 @dataclass(frozen=True)
 class HeldOutFrame:
     """A held-out frame's scored holes: their measured centres and their self-calibrated plate positions."""
@@ -196,7 +185,7 @@ class HeldOutFrame:
     def rms_px(self, field=None) -> float:
         """RMS residual length per hole after correcting by ``field`` (None: no correction), px."""
         corrected = self.xy_px if field is None else field.undistort_points(self.xy_px)
-        return rms_length(homography_residual(self.layout_mm, corrected))
+        return rms_modulo_homography(self.layout_mm, corrected)
 
 
 def held_out_frame(seq: Sequence, cal, fields, name: str) -> HeldOutFrame:

@@ -159,12 +159,12 @@ def test_a_task_on_a_multi_frame_file_computes_its_own_frames(project, tmp_path)
     from fluorocal.stages.detect import DetectParams, detect_beads
     from fluorocal.stages.io import read_frames, write_dicom
 
-    from tests.stages.test_io_formats import _dataset
+    from tests.helpers import xa_dataset
 
     singles = sorted((project / "frames").rglob("*.tif"))[:3]
     stored = np.stack([read_frames(p)[0].image.astype(np.uint16) for p in singles])
     multi = tmp_path / "three.dcm"
-    write_dicom(multi, _dataset(*stored.shape[1:], bits_stored=16), stored)
+    write_dicom(multi, xa_dataset(*stored.shape[1:], bits_stored=16), stored)
     stage = next(s for s in default_stages() if s.name == "detect")
     params = DetectParams(polarity="dark", min_diameter_px=4.0, max_diameter_px=30.0)
     jobs = tuple(parallel.FrameJob(u, i, f"frame {i}", (parallel.Step(stage, params),)) for u, i in ((0, 2), (1, 0)))
