@@ -20,7 +20,7 @@ from fluorocal.stages.learn.joint import SystemStep, fit_grid_jointly, fit_grids
 from fluorocal.stages.learn.network import linearised_network, systems_network
 from fluorocal.stages.learn.nodes import GridSpec
 
-from tests.stages.test_uncertainty import simulated_set
+from tests.stages.ba_synthetic import simulated_set
 
 SIZE, SPACING = 256, 32.0
 GRID = GridSpec(spacing_px=SPACING)

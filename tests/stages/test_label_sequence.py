@@ -13,7 +13,7 @@ from fluorocal.stages.label import LabelParams, label_sequence
 from fluorocal.stages.label.symmetry import phantom_symmetries, turn_angle
 from fluorocal.stages.simulate import SimulateParams, simulate
 
-from tests.stages.test_label import detections_from_truth, make_centroids
+from tests.stages.label_truth import detections_from_truth, make_centroids
 
 AMBIGUOUS = "ambiguous: two poses explain the frame about equally well"
 

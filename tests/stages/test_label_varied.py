@@ -15,7 +15,7 @@ from fluorocal.stages.label.motion import OrientationPrior, predict
 from fluorocal.stages.simulate import SimulateParams, simulate
 from scipy.spatial.transform import Rotation
 
-from tests.stages.test_label import detections_from_truth, params_of, seeds_from_truth, unambiguous_ids
+from tests.stages.label_truth import detections_from_truth, params_of, seeds_from_truth, unambiguous_ids
 
 #: the motion of issue 12: the turntable's axis wobbling by up to 5 deg, shifts of up to +-20 mm
 WOBBLY = dict(turntable_wobble_deg=5.0, turntable_translation_mm=20.0, turntable_step_deg=10.0)
@@ -160,7 +160,7 @@ def test_a_labelling_one_row_off_gives_way_to_the_truth():
     from fluorocal.stages.label.iterate import iterate
     from fluorocal.stages.label.rivals import _slip_poses, settle
 
-    from tests.stages.test_label import without_roles
+    from tests.stages.label_truth import without_roles
 
     # a view 30 deg off a wall's, where slips explain the detections almost as well as the truth (at most
     # views the phantom's ends rule slips out at once); one of them was acceptable on its own evidence until
