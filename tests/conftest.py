@@ -3,6 +3,7 @@
 The real radiographs live in ../shared/data (skipped when absent); a test that reads them is a `make check` test.
 """
 
+import os
 from pathlib import Path
 
 import pytest
@@ -25,14 +26,14 @@ E2E_SIM = {"n_frames": 4, "n_systems": 2, "image_size_px": 512, "seed": 3}
 GRID_SIM = {"phantom": "grid", "n_frames": 3, "seed": 4}
 
 
-def built_once(tmp_path_factory, worker_id: str, name: str, build) -> Path:
+def built_once(tmp_path_factory, name: str, build) -> Path:
     """``root / "project"`` made by ``build(root / "project")`` once per test session, however many workers run.
 
     Under pytest-xdist the workers' temporary folders share a parent that is new for each session; the first
     worker to take the lock builds the project there, the others wait and reuse it (the recipe of the
     pytest-xdist documentation). A build that failed leaves no marker, so the next worker tries again.
     """
-    if worker_id == "master":  # no xdist: this process is the whole session
+    if not os.environ.get("PYTEST_XDIST_WORKER"):  # no xdist: this process is the whole session
         project = tmp_path_factory.mktemp(name) / "project"
         build(project)
         return project
@@ -60,23 +61,23 @@ def _calibrate(root: Path, sim: dict) -> None:
 
 
 @pytest.fixture(scope="session")
-def calibrated_project(tmp_path_factory, worker_id) -> Path:
+def calibrated_project(tmp_path_factory) -> Path:
     """A simulated project after one `fluorocal run`: simulated and calibrated once per test session.
 
     Modules that change it take a copy (:func:`copy_project`); the cache comes along, so their own runs
     recompute only what they change. Shared by every xdist worker (:func:`built_once`): never write into it.
     """
-    return built_once(tmp_path_factory, worker_id, "calibrated", lambda root: _calibrate(root, E2E_SIM))
+    return built_once(tmp_path_factory, "calibrated", lambda root: _calibrate(root, E2E_SIM))
 
 
 @pytest.fixture(scope="session")
-def simulated_grid(tmp_path_factory, worker_id) -> Path:
+def simulated_grid(tmp_path_factory) -> Path:
     """A simulated plate moved by hand between three 1024² frames at one C-arm orientation, calibrated once.
 
     (A 512 px frame cannot resolve the holes.) Modules that change it take a copy (:func:`copy_project`).
     Shared by every xdist worker (:func:`built_once`): never write into it.
     """
-    return built_once(tmp_path_factory, worker_id, "grid", lambda root: _calibrate(root, GRID_SIM))
+    return built_once(tmp_path_factory, "grid", lambda root: _calibrate(root, GRID_SIM))
 
 
 def copy_project(source: Path, destination: Path) -> Path:

@@ -122,7 +122,9 @@ WITH_EXAMPLES = [name for name in MODULES if _examples(name)]
 
 def test_every_stage_module_is_collected():
     assert {"fluorocal.stages.adjust", "fluorocal.stages.learn", "fluorocal.calibration"} <= set(MODULES)
-    assert {"fluorocal.stages.detect", "fluorocal.stages.centroid", "fluorocal.stages.orientation"} <= set(WITH_EXAMPLES)
+    assert {"fluorocal.stages.detect", "fluorocal.stages.centroid", "fluorocal.stages.orientation"} <= set(
+        WITH_EXAMPLES
+    )
 
 
 def test_the_modules_without_examples_are_the_listed_ones():
