@@ -52,6 +52,7 @@ def test_cube_symmetries_are_measured_from_its_beads():
         assert fraction == pytest.approx(1.0 if np.linalg.norm(t) < 1 else 0.947, abs=0.01)
 
 
+@pytest.mark.check  # three 1024 px sequences, each searched for shifts (about a minute of CPU in all)
 @pytest.mark.parametrize("seed", [0, 3, 11])
 def test_large_turn_with_hidden_markers_is_never_mislabelled(seed):
     """Three exposures: the turntable steps by 160 degrees, and frame 1 shows no marker.
@@ -74,6 +75,7 @@ def test_large_turn_with_hidden_markers_is_never_mislabelled(seed):
         assert labs[i].ok and np.array_equal(dets[i][1][labs[i].det_index], labs[i].bead_id)
 
 
+@pytest.mark.check  # eight 1024 px frames; make test has the same case through `fluorocal run` at 512 px
 def test_small_turn_with_hidden_markers_is_labelled_from_the_neighbour():
     """Eight exposures (15 degree step to frame 1): the frame without markers is labelled right from frame 0."""
     sim = simulate(SimulateParams(n_frames=8, seed=3), render=False)

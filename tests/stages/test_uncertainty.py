@@ -176,6 +176,7 @@ def test_convention_truth_reproduces_the_projections_and_has_no_gauge_component(
     np.testing.assert_allclose(adj.iop_px[0], iop, atol=1e-4)
 
 
+@pytest.mark.check  # three full calibrations; make test checks the stated sigma against the dense inverse
 def test_stated_sigma_covers_the_actual_error_over_seeds():
     """Coverage against repeated simulations (benchmarks/uncertainty.py at a smaller setting).
 
