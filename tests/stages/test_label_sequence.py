@@ -75,7 +75,6 @@ def test_large_turn_with_hidden_markers_is_never_mislabelled(seed):
         assert labs[i].ok and np.array_equal(dets[i][1][labs[i].det_index], labs[i].bead_id)
 
 
-@pytest.mark.check  # eight 1024 px frames; make test has the same case through `fluorocal run` at 512 px
 def test_small_turn_with_hidden_markers_is_labelled_from_the_neighbour():
     """Eight exposures (15 degree step to frame 1): the frame without markers is labelled right from frame 0."""
     sim = simulate(SimulateParams(n_frames=8, seed=3), render=False)
@@ -88,6 +87,7 @@ def test_small_turn_with_hidden_markers_is_labelled_from_the_neighbour():
     assert lab.n_labelled >= 0.8 * len(ids)
 
 
+@pytest.mark.check  # the prior search over a 1024 px frame; make test refuses a periodic patch's prior (test_label)
 def test_uniform_phantom_a_quarter_turn_from_the_prior_is_never_mislabelled():
     """Beads all of one size, the prior pose a quarter turn away: the frame fails (or is right).
 

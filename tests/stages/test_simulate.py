@@ -828,6 +828,7 @@ def test_real_grid_frames_fall_in_the_stated_ranges(arcadis_dir, name):
     _assert_in_ranges(_grid_frame_figures(read_frames(arcadis_dir / f"{name}.dcm")[0].image))
 
 
+@pytest.mark.check  # a full 1024² grid render, set against the real frames' ranges (whose own test is a check)
 def test_default_grid_frame_falls_in_the_real_frames_ranges():
     """A default grid frame (1024², strong distortion, centred C-arm) looks like the real ones (GRID_FRAME_RANGES)."""
     data = simulate(SimulateParams(phantom="grid", n_frames=1, orientations_deg=((0, 0),)))
