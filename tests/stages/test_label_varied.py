@@ -38,6 +38,7 @@ def check_sequence(labs, dets, fts, *, min_fraction: float):
     assert correct >= min_fraction * eligible, (correct, eligible)
 
 
+@pytest.mark.check  # eight wobbling frames; make test labels random markers in the regressions below
 def test_three_random_markers_on_a_wobbling_turntable():
     """Three markers at random, wobble +-5 deg, shifts +-20 mm, 10 deg steps, markers hidden in half the frames.
 
@@ -119,7 +120,7 @@ def test_a_frame_alone_whose_markers_give_a_pose_9_deg_off_is_searched_around_it
     assert np.isin(clean, lab.bead_id).mean() >= 0.99  # the issue's target
 
 
-@pytest.mark.slow
+@pytest.mark.check  # rendered frames through detect; make test has the same rule on truth detections (above)
 def test_a_marker_pose_a_few_degrees_off_on_the_last_frame_gives_way_to_its_neighbours():
     """Rendered frames 4 and 5 of benchmarks/label_varied.py's first configuration (seven exposures, seed 100).
 
