@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint docs bench fixtures clean
+.PHONY: demo test check lint docs bench fixtures clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -19,9 +19,18 @@ demo: $(STAMP)
 	$(BIN)/fluorocal inspect demo/data/fluorocal.toml
 
 # one test process per core (pytest-xdist), each with one BLAS/OpenMP thread: the suite's numerics are small,
-# and oversubscribed threads cost more than they give
+# and oversubscribed threads cost more than they give. --dist loadscope keeps a module's tests on one worker,
+# so each module fixture is built once; the session fixtures are shared by the workers (tests/conftest.py).
+# ARGS: more pytest options, e.g. `make test ARGS=--durations=15`
+PYTEST := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope
+
+# every feature, on small data (<= 3 min): the tests marked `check` are left to `make check`
 test: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto
+	$(PYTEST) -m "not check" $(ARGS)
+
+# the long checks: accuracy on larger simulated sets, the real radiographs (../shared/data), the attack battery
+check: $(STAMP)
+	$(PYTEST) -m check $(ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

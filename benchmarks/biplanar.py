@@ -43,10 +43,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fluorocal.stages.evaluate import biplanar_errors, biplanar_pairs, ideal_points, summarise  # noqa: E402
-from fluorocal.stages.geometry import matrix_to_quat, quat_multiply, quat_to_matrix  # noqa: E402
+from fluorocal.stages.geometry import quat_multiply  # noqa: E402
 from fluorocal.stages.learn import LearnParams, calibrate  # noqa: E402
 
 from benchmarks.learn import METHODS, NOISE_PX, RECOMMENDED, simulated_sets  # noqa: E402
+from tests.stages.ba_synthetic import true_rig  # noqa: E402
 
 #: the recommended setting (row of ``benchmarks/learn.py``)
 DEFAULT_SCHEMES = ("none", RECOMMENDED)
@@ -57,17 +58,6 @@ PAPER = (
     "kNN + IOP + smoothing 0.31-0.32 mm, 46.2-53.8 % (47.2 % with 75 pairs)"
 )
 TARGET_PERCENT = 47.0
-
-
-def true_rig(acq) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The simulator's IOP ``(S, 3)`` px, ROP rotations ``(S, 4)`` and sources in A's camera frame ``(S, 3)`` mm.
-
-    The rig is rigid (``stages.simulate.make_acquisition``), so epoch 0 gives the ROP.
-    """
-    R0 = quat_to_matrix(acq.q[0, 0])
-    rop_q = np.array([matrix_to_quat(quat_to_matrix(acq.q[s, 0]) @ R0.T) for s in range(len(acq.systems))])
-    rop_source = np.array([R0 @ (acq.source_mm[s, 0] - acq.source_mm[0, 0]) for s in range(len(acq.systems))])
-    return np.array([s.iop_px for s in acq.systems]), rop_q, rop_source
 
 
 def learned_ideal(res, obs) -> np.ndarray:

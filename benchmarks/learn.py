@@ -36,20 +36,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluorocal.stages import simulate as sim  # noqa: E402
 from fluorocal.stages.adjust import FreeParameters, Orientation, adjust_bundle  # noqa: E402
 from fluorocal.stages.artifacts import Observations  # noqa: E402
-from fluorocal.stages.geometry import (
-    matrix_to_quat,
-    quat_multiply,
-    quat_normalize,
-    quat_to_matrix,
-    rotvec_to_quat,
-    similarity_fit,
-)  # noqa: E402
+from fluorocal.stages.geometry import similarity_fit  # noqa: E402
 from fluorocal.stages.learn import LearnParams, calibrate  # noqa: E402
 
-NOISE_PX = 0.05
+# the simulated observation sets are the tests' too: one definition, in the tests' helpers
+from tests.stages.ba_synthetic import NOISE_PX, simulated_sets, truth_observations  # noqa: E402, F401
+from tests.stages.ba_synthetic import rough_start as _initial  # noqa: E402, F401
 
 #: the paper's loop as written (learn from the adjustment's inliers, no gauge, every solve in full)
 PLAIN = {"preset": "paper"}
@@ -99,55 +93,6 @@ METHODS = {
     "ours defaults with full intermediate solves": ("knn+iop+smooth", {**OURS, "fast_intermediate": False}),
     "ours defaults with inlier training": ("knn+iop+smooth", {**OURS, "training": "inliers"}),
 }
-
-
-def simulated_sets(n_train: int, n_systems: int, size: int, seed: int):
-    """Training and held-out observation sets, the nominal phantom, initial orientations and the truth."""
-    p = sim.SimulateParams(
-        n_frames=2 * n_train, n_systems=n_systems, seed=seed, image_size_px=size, distortion="strong"
-    )
-    data = sim.simulate(p, render=False)
-    acq = data.truth.acquisition
-    rng = np.random.default_rng([seed, 7])
-    sets = []
-    for part in (0, 1):
-        # the paper's uniform split: even exposures train, odd ones are held out
-        obs = truth_observations(data, rng, lambda f, part=part: f.exposure % 2 == part, lambda e: e // 2)
-        sets.append((obs, _initial(acq, np.arange(part, p.n_frames, 2), size, rng)))
-    return sets, data.phantom, data.truth.true_xyz_mm, acq, p
-
-
-def truth_observations(data, rng, use=lambda frame: True, epoch=lambda exposure: exposure) -> Observations:
-    """Observations of the simulator's frames where ``use(frame)``: true outline centres + ``NOISE_PX`` noise.
-
-    Beads near another's outline or the field's rim are left out (labelling would not keep them
-    reliably); ``epoch(exposure)`` numbers the epochs.
-    """
-    frames = [f for per_system in data.truth.frames for f in per_system if use(f)]
-    keep = [~(f.overlap | f.field_edge) for f in frames]
-    system = np.concatenate([np.full(k.sum(), f.system) for f, k in zip(frames, keep)])
-    exposure = np.concatenate([np.full(k.sum(), epoch(f.exposure)) for f, k in zip(frames, keep)])
-    ids = np.concatenate([f.ids[k] for f, k in zip(frames, keep)])
-    xy = np.concatenate([f.outline_xy_px[k] for f, k in zip(frames, keep)])
-    xy = xy + rng.normal(0, NOISE_PX, xy.shape)
-    sigma = np.tile([NOISE_PX, NOISE_PX, 0.0], (len(xy), 1))
-    return Observations(system, exposure, ids, xy, sigma, system_names=data.system_names)
-
-
-def _initial(acq, epochs, size, rng) -> Orientation:
-    """Rough start values, as labelling would give: poses within ~0.6 deg and 5 mm, IOP from the nominal geometry."""
-    n = len(epochs)
-    dq = np.array([rotvec_to_quat(v) for v in rng.normal(0, 0.01, (n, 3))])
-    q = quat_normalize(quat_multiply(dq, acq.q[0, epochs]))
-    src = acq.source_mm[0, epochs] + rng.normal(0, 5, (n, 3))
-    iop = np.array([[(size - 1) / 2, (size - 1) / 2, s.iop_px[2] * 1.01] for s in acq.systems])
-    rop_q = np.tile([1.0, 0, 0, 0], (len(acq.systems), 1))
-    rop_t = np.zeros((len(acq.systems), 3))
-    R0 = quat_to_matrix(acq.q[0, 0])
-    for s in range(1, len(acq.systems)):
-        rop_q[s] = matrix_to_quat(quat_to_matrix(acq.q[s, 0]) @ R0.T)
-        rop_t[s] = R0 @ (acq.source_mm[s, 0] - acq.source_mm[0, 0])
-    return Orientation(iop, np.arange(n), q, src, rop_q, rop_t, tuple(s.name for s in acq.systems))
 
 
 def held_out(test_obs, test_init, nominal, true_xyz, corrections, iop_px):

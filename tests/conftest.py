@@ -1,7 +1,12 @@
-"""Shared test fixtures: the real radiographs in ../shared/data (skipped when absent)."""
+"""Shared test fixtures: the real radiographs and the simulated projects built once per session.
+
+The real radiographs live in ../shared/data (skipped when absent); a test that reads them is a `make check` test.
+"""
 
 import contextlib
+import json
 import logging
+import os
 from pathlib import Path
 
 import pytest
@@ -20,6 +25,32 @@ def arcadis_dir() -> Path:
 
 #: the small biplanar project the end-to-end modules share (4 + 4 frames of 512 px)
 E2E_SIM = {"n_frames": 4, "n_systems": 2, "image_size_px": 512, "seed": 3}
+#: the grid plate moved by hand between three 1024² frames at one orientation
+GRID_SIM = {"phantom": "grid", "n_frames": 3, "seed": 4}
+
+
+def built_once(tmp_path_factory, name: str, build) -> Path:
+    """``root / "project"`` made by ``build(root / "project")`` once per test session, however many workers run.
+
+    Under pytest-xdist the workers' temporary folders share a parent that is new for each session; the first
+    worker to take the lock builds the project there, the others wait and reuse it (the recipe of the
+    pytest-xdist documentation). A build that failed leaves no marker, so the next worker tries again.
+    """
+    if not os.environ.get("PYTEST_XDIST_WORKER"):  # no xdist: this process is the whole session
+        project = tmp_path_factory.mktemp(name) / "project"
+        build(project)
+        return project
+    from filelock import FileLock
+
+    root = tmp_path_factory.getbasetemp().parent / name
+    with FileLock(f"{root}.lock"):
+        if not (root / ".complete").is_file():
+            import shutil
+
+            shutil.rmtree(root, ignore_errors=True)
+            build(root / "project")
+            (root / ".complete").touch()
+    return root / "project"
 
 
 @contextlib.contextmanager
@@ -39,30 +70,38 @@ def logged(level: int = logging.INFO):
         ours.setLevel(before)
 
 
-@pytest.fixture(scope="session")
-def calibrated_run(tmp_path_factory) -> tuple[Path, list[logging.LogRecord]]:
-    """A simulated project after one `fluorocal run`, and the records it logged at INFO or above.
+def _calibrate(root: Path, sim: dict) -> None:
+    """Simulate ``sim`` into ``root`` and run the whole pipeline on it; what the run logged goes to ``run_log.json``.
 
-    Simulated and calibrated once per test session; warnings are errors there as everywhere in the suite.
+    The log sits beside ``root`` (one file per build, whichever worker built it).
     """
     from fluorocal.cli import main
     from fluorocal.cmd_simulate import write_dataset
     from fluorocal.stages.simulate import SimulateParams, simulate
 
-    root = tmp_path_factory.mktemp("calibrated") / "project"
-    write_dataset(simulate(SimulateParams(**E2E_SIM)), root)
+    write_dataset(simulate(SimulateParams(**sim)), root)
     with logged() as records:
         assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
-    return root, records
+    rows = [{"levelno": r.levelno, "levelname": r.levelname, "name": r.name, "msg": r.getMessage()} for r in records]
+    (root.parent / "run_log.json").write_text(json.dumps(rows), encoding="utf-8")
+
+
+@pytest.fixture(scope="session")
+def calibrated_run(tmp_path_factory) -> tuple[Path, list[logging.LogRecord]]:
+    """A simulated project after one `fluorocal run`, and the records it logged at INFO or above.
+
+    Simulated and calibrated once per test session (:func:`built_once`); warnings are errors there as everywhere
+    in the suite. Modules that change the project take a copy (:func:`copy_project`); the cache comes along, so
+    their own runs recompute only what they change. Shared by every xdist worker: never write into it.
+    """
+    project = built_once(tmp_path_factory, "calibrated", lambda root: _calibrate(root, E2E_SIM))
+    rows = json.loads((project.parent / "run_log.json").read_text(encoding="utf-8"))
+    return project, [logging.makeLogRecord(row) for row in rows]
 
 
 @pytest.fixture(scope="session")
 def calibrated_project(calibrated_run) -> Path:
-    """The project of :func:`calibrated_run`.
-
-    Modules that change it take a copy (:func:`copy_project`); the cache comes along, so their own runs
-    recompute only what they change.
-    """
+    """The project of :func:`calibrated_run`."""
     return calibrated_run[0]
 
 
@@ -71,15 +110,9 @@ def simulated_grid(tmp_path_factory) -> Path:
     """A simulated plate moved by hand between three 1024² frames at one C-arm orientation, calibrated once.
 
     (A 512 px frame cannot resolve the holes.) Modules that change it take a copy (:func:`copy_project`).
+    Shared by every xdist worker (:func:`built_once`): never write into it.
     """
-    from fluorocal.cli import main
-    from fluorocal.cmd_simulate import write_dataset
-    from fluorocal.stages.simulate import SimulateParams, simulate
-
-    root = tmp_path_factory.mktemp("grid") / "project"
-    write_dataset(simulate(SimulateParams(phantom="grid", n_frames=3, seed=4)), root)
-    assert main(["--quiet", "run", str(root / "fluorocal.toml")]) == 0
-    return root
+    return built_once(tmp_path_factory, "grid", lambda root: _calibrate(root, GRID_SIM))
 
 
 def copy_project(source: Path, destination: Path) -> Path:
@@ -88,3 +121,10 @@ def copy_project(source: Path, destination: Path) -> Path:
 
     shutil.copytree(source, destination, symlinks=True)
     return destination
+
+
+def pytest_collection_modifyitems(items):
+    """Every test that reads the real radiographs (../shared/data) is one of `make check`'s long checks."""
+    for item in items:
+        if "arcadis_dir" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.check)

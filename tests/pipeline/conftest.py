@@ -3,28 +3,14 @@
 from __future__ import annotations
 
 import pytest
-from fluorocal.stages.field import CorrectionField
+
+from tests.pipeline.synthetic_calibration import synthetic_calibration
 
 
 @pytest.fixture()
 def saved(tmp_path):
-    """The synthetic calibration of ``test_undistort_api`` saved in its own folder; its path."""
-    from tests.pipeline.test_undistort_api import _calibration  # here: that module imports this one
-
+    """The synthetic calibration (:func:`synthetic_calibration`) saved in its own folder; its path."""
     path = tmp_path / "cal" / "calibration.json"
     path.parent.mkdir()
-    _calibration().save(path)
+    synthetic_calibration().save(path)
     return path
-
-
-def count_map_computations(monkeypatch) -> list:
-    """The calls of :meth:`CorrectionField.remap_maps` from now on (the maps computed, not read from the cache)."""
-    calls = []
-    original = CorrectionField.remap_maps
-
-    def counted(self, *args):
-        calls.append(args)
-        return original(self, *args)
-
-    monkeypatch.setattr(CorrectionField, "remap_maps", counted)
-    return calls

@@ -31,11 +31,41 @@ from pathlib import Path
 
 import numpy as np
 
+from tests.helpers import rms_length, rms_modulo_homography
+
 #: the orientations of the sequences: name -> (orbit, tilt), degrees
 ANGLES_DEG = {"centred": (0, 0), "tilt15": (0, 15), "tilt30": (0, 30), "tilt45": (0, 45), "tilt60": (0, 60)}
 #: calibrated at three orientations 30° apart; held out: the two in between
 CALIBRATED = ("centred", "tilt30", "tilt60")
 HELD_OUT = ("tilt15", "tilt45")
+#: the real ARCADIS grid frames, one per orientation: name -> (file, orbit, tilt)
+REAL_ORIENTATIONS = {
+    "centred": ("grid_centered_0.dcm", 0, 0),
+    "orbit30": ("grid_orbit_30.dcm", 30, 0),
+    "tilt15": ("grid_tilt_15.dcm", 0, 15),
+    "tilt30": ("grid_tilt_30.dcm", 0, 30),
+    "tilt45": ("grid_tilt_45.dcm", 0, 45),
+    "tilt60": ("grid_tilt_60.dcm", 0, 60),
+}
+
+
+def real_grid_config(folder: Path, arcadis: Path, names) -> Path:
+    """A project on the real grid frames of the named orientations (the DICOMs record no angles: given here)."""
+    groups = ",\n".join(
+        f'  {{name = "{n}", frames = ["{arcadis / REAL_ORIENTATIONS[n][0]}"], orbit = {REAL_ORIENTATIONS[n][1]}, '
+        f"tilt = {REAL_ORIENTATIONS[n][2]}}}"
+        for n in names
+    )
+    frames = ", ".join(f'"{arcadis / REAL_ORIENTATIONS[n][0]}"' for n in names)
+    text = (
+        '[phantom]\nlattice = "hex"\npitch = 3.3\n\n[[systems]]\nname = "arcadis"\n'
+        f"frames = [{frames}]\nsource_image_distance = 1000\npixel_pitch = 0.21\norientations = [\n{groups}\n]\n"
+    )
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "fluorocal.toml").write_text(text)
+    return folder / "fluorocal.toml"
+
+
 #: the real ARCADIS frame of each orientation (in ../shared/data/arcadis)
 REAL_FRAMES = {
     "centred": "grid_centered_0.dcm",
@@ -166,19 +196,6 @@ def calibrate(seq: Sequence, names, params=None):
     return cal, fields
 
 
-def rms_length(residual_px: np.ndarray) -> float:
-    """RMS of the residuals' lengths, px."""
-    return float(np.sqrt(np.mean(np.sum(residual_px**2, axis=1))))
-
-
-def homography_residual(layout_mm: np.ndarray, corrected_px: np.ndarray) -> np.ndarray:
-    """``corrected - H(layout)`` ``(N, 2)`` px with ``H`` the least-squares homography (plate mm -> image px)."""
-    import cv2
-
-    H, _ = cv2.findHomography(layout_mm, corrected_px, 0)
-    return corrected_px - cv2.perspectiveTransform(layout_mm[None].astype(np.float64), H)[0]
-
-
 @dataclass(frozen=True)
 class HeldOutFrame:
     """A held-out frame's scored holes: their measured centres and their self-calibrated plate positions."""
@@ -196,7 +213,7 @@ class HeldOutFrame:
     def rms_px(self, field=None) -> float:
         """RMS residual length per hole after correcting by ``field`` (None: no correction), px."""
         corrected = self.xy_px if field is None else field.undistort_points(self.xy_px)
-        return rms_length(homography_residual(self.layout_mm, corrected))
+        return rms_modulo_homography(self.layout_mm, corrected)
 
 
 def held_out_frame(seq: Sequence, cal, fields, name: str) -> HeldOutFrame:

@@ -2,8 +2,8 @@
 
 - the split and the training subsets (exact, analytic);
 - the figures on simulated observations (true outline centres + 0.05 px noise, as
-  ``benchmarks/learn.py``): the learned field's out-of-sample errors well below no calibration's on
-  strong distortion, every figure against the true bead centres;
+  ``benchmarks/learn.py``, from ``tests/stages/ba_synthetic.py``): the learned field's out-of-sample errors
+  well below no calibration's on strong distortion, every figure against the true bead centres;
 - the command on the session's calibrated project (its labelling from the cache, never redone):
   the CSV, the table and the plots hold every scheme x size, and bad input is refused in one line.
 """
@@ -34,8 +34,8 @@ from fluorocal.stages.evaluate import (
 from fluorocal.stages.evaluate.metrics import select, with_xy
 from fluorocal.stages.geometry import iop_guess, quat_to_matrix, rotvec_to_quat
 
-from benchmarks.learn import truth_observations
 from tests.conftest import copy_project
+from tests.stages.ba_synthetic import truth_observations
 
 # --- split -------------------------------------------------------------------------------------------------
 

@@ -17,7 +17,7 @@ from fluorocal.cli import main
 from scipy.spatial import cKDTree
 
 from tests.conftest import copy_project
-from tests.pipeline.test_plate_run import REAL_ORIENTATIONS, real_grid_config
+from tests.pipeline.plate_orientation import REAL_ORIENTATIONS, real_grid_config
 
 
 def _rows(path) -> dict:

@@ -12,7 +12,7 @@ from fluorocal import codehash
 from fluorocal.calibration import Calibration
 from fluorocal.maps import map_key, maps_code_digest, maps_folder
 
-from tests.pipeline.conftest import count_map_computations
+from tests.pipeline.synthetic_calibration import count_map_computations
 
 
 @pytest.fixture()

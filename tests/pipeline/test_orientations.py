@@ -24,6 +24,7 @@ from fluorocal.stages.io import read_frames, write_dicom, write_still
 from fluorocal.stages.io.dicom import positioner_angles_deg
 from fluorocal.stages.orientation import OrientationField, interpolate_field
 
+from tests.helpers import xa_dataset
 from tests.pipeline.toy import make_project
 
 # --- config ----------------------------------------------------------------------------------------
@@ -97,20 +98,7 @@ def test_orientation_errors_name_the_key(tmp_path, groups, match):
 
 def _dicom(path, *, angles=None, n_frames: int = 1, motion: str = "STATIC", empty_tags: bool = False):
     """A small XA DICOM of 32 x 32 px, with the C-arm angles as tags when given."""
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, XRayAngiographicImageStorage, generate_uid
-
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = XRayAngiographicImageStorage
-    meta.MediaStorageSOPInstanceUID = uid = generate_uid(entropy_srcs=[str(path)])
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = XRayAngiographicImageStorage, uid, "XA"
-    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
-    ds.Rows, ds.Columns = 32, 32
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
-    ds.PositionerMotion = motion
+    ds = xa_dataset(32, 32, PositionerMotion=motion)
     if angles is not None:
         ds.PositionerPrimaryAngle, ds.PositionerSecondaryAngle = angles
     elif empty_tags:  # as the real ARCADIS frames hold them: present, without a value

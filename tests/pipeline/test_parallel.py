@@ -1,9 +1,9 @@
 """The per-frame stages on a process pool and on a Dask cluster write what a serial run writes, byte for byte.
 
 One small simulated biplanar project (4 + 4 frames of 512 px, as the end-to-end tests use) with three
-configs that differ only in their cache and output folders: a serial run (``--jobs 1``) is the
-reference; runs through the pool and a loopback ``LocalCluster`` must give the same cache keys and,
-per entry, the same files (arrays, tables) and the same artifact structure, for detect and centroid
+configs that differ only in their cache and output folders: the serial run of the session's
+``calibrated_project`` is the reference; runs through the pool and a loopback ``LocalCluster`` must give the
+same cache keys and, per entry, the same files (arrays, tables) and the same artifact structure, for detect and centroid
 (computed by the workers) and for label (computed in the main process from what the workers returned).
 The runs stop after label: everything downstream reads only labels.
 """
@@ -18,43 +18,48 @@ import pytest
 from fluorocal import parallel
 from fluorocal.cache import file_sha256
 from fluorocal.cli import main
-from fluorocal.cmd_simulate import write_dataset
 from fluorocal.compute import ComputeConfig
 from fluorocal.graph import Stage, default_stages
-from fluorocal.stages.simulate import SimulateParams, simulate
 
-from tests.conftest import E2E_SIM
+from tests.conftest import E2E_SIM, copy_project
 
 STAGES = ("detect", "centroid", "label")
 
 
 @pytest.fixture(scope="module")
-def project(tmp_path_factory):
-    """The project folder and the serial run's cache."""
-    root = tmp_path_factory.mktemp("parallel") / "project"
-    write_dataset(simulate(SimulateParams(**E2E_SIM)), root)
+def project(calibrated_project, tmp_path_factory):
+    """A copy of the session's calibrated project, whose cache (``.fluorocal``) is the serial run's.
+
+    Its 8 frames are fewer than ``MIN_POOL_FRAMES``, so `fluorocal run` computed them in its own process.
+    """
+    assert 2 * E2E_SIM["n_frames"] < parallel.MIN_POOL_FRAMES
+    root = copy_project(calibrated_project, tmp_path_factory.mktemp("parallel") / "project")
     text = (root / "fluorocal.toml").read_text()
-    for name in ("serial", "pool", "cluster"):
+    for name in ("pool", "cluster"):
         (root / f"{name}.toml").write_text(
             text.replace('dir = "out"', f'dir = "out_{name}"') + f'\n[cache]\ndir = ".cache_{name}"\n'
         )
-    assert main(["--quiet", "run", str(root / "serial.toml"), "--jobs", "1", "--until", "label"]) == 0
     return root
 
 
-def _entries(cache) -> dict:
-    """(stage, key) -> (the files' bytes, the artifact's structure) of every entry of STAGES."""
+def _entries(cache, folder) -> dict:
+    """(stage, key) -> (the files' bytes, the artifact's structure) of every entry of STAGES.
+
+    The structure names each frame by its path: the project's ``folder`` in it is written ``<project>``.
+    """
     out = {}
     for stage in STAGES:
         for entry in sorted((cache / stage).iterdir()):
             manifest = json.loads((entry / "manifest.json").read_text())
             files = {name: (entry / name).read_bytes() for name in manifest["files"]}
-            out[(stage, entry.name)] = (files, manifest["artifact"])
+            tree = json.loads(json.dumps(manifest["artifact"]).replace(str(folder), "<project>"))
+            out[(stage, entry.name)] = (files, tree)
     return out
 
 
-def _same_as_serial(project, name) -> None:
-    serial, other = _entries(project / ".cache_serial"), _entries(project / f".cache_{name}")
+def _same_as_serial(project, name, calibrated_project) -> None:
+    serial = _entries(project / ".fluorocal", calibrated_project)  # computed in calibrated_project, then copied
+    other = _entries(project / f".cache_{name}", project)
     assert sorted(other) == sorted(serial)  # the same keys: the same stages, parameters, code and inputs
     # 8 frames: detect + centroid + label
     assert len(serial) == 3 * 2 * E2E_SIM["n_frames"]
@@ -63,15 +68,15 @@ def _same_as_serial(project, name) -> None:
         assert other[slot][1] == tree, slot
 
 
-def test_pool_run_equals_serial_run(project, monkeypatch, caplog):
+def test_pool_run_equals_serial_run(project, calibrated_project, monkeypatch, caplog):
     monkeypatch.setattr(parallel, "MIN_POOL_FRAMES", 1)  # 8 frames: below the threshold that would keep it serial
     with caplog.at_level(logging.INFO, logger="fluorocal"):
         assert main(["run", str(project / "pool.toml"), "--jobs", "2", "--until", "label"]) == 0
     assert "detect, centroid: 8 frames on 2 local processes" in caplog.text  # the pool did run them
-    _same_as_serial(project, "pool")
+    _same_as_serial(project, "pool", calibrated_project)
 
 
-def test_cluster_run_equals_serial_run(project, caplog):
+def test_cluster_run_equals_serial_run(project, calibrated_project, caplog):
     distributed = pytest.importorskip("distributed", reason="Dask is the test extra's: pip install -e '.[test]'")
     with distributed.LocalCluster(
         processes=True, n_workers=2, threads_per_worker=1, host="127.0.0.1", dashboard_address=None
@@ -80,7 +85,7 @@ def test_cluster_run_equals_serial_run(project, caplog):
         with caplog.at_level(logging.INFO, logger="fluorocal"):
             assert main(["run", str(project / "cluster.toml"), "--scheduler", address, "--until", "label"]) == 0
     assert f"detect, centroid: 8 frames on {address}" in caplog.text
-    _same_as_serial(project, "cluster")
+    _same_as_serial(project, "cluster", calibrated_project)
 
 
 def test_small_projects_stay_serial(project, caplog):
@@ -159,12 +164,12 @@ def test_a_task_on_a_multi_frame_file_computes_its_own_frames(project, tmp_path)
     from fluorocal.stages.detect import DetectParams, detect_beads
     from fluorocal.stages.io import read_frames, write_dicom
 
-    from tests.stages.test_io_formats import _dataset
+    from tests.helpers import xa_dataset
 
     singles = sorted((project / "frames").rglob("*.tif"))[:3]
     stored = np.stack([read_frames(p)[0].image.astype(np.uint16) for p in singles])
     multi = tmp_path / "three.dcm"
-    write_dicom(multi, _dataset(*stored.shape[1:], bits_stored=16), stored)
+    write_dicom(multi, xa_dataset(*stored.shape[1:], bits_stored=16), stored)
     stage = next(s for s in default_stages() if s.name == "detect")
     params = DetectParams(polarity="dark", min_diameter_px=4.0, max_diameter_px=30.0)
     jobs = tuple(parallel.FrameJob(u, i, f"frame {i}", (parallel.Step(stage, params),)) for u, i in ((0, 2), (1, 0)))

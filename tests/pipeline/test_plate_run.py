@@ -16,33 +16,8 @@ import pytest
 from fluorocal import Calibration
 from fluorocal.cli import main
 
+from tests.pipeline.plate_orientation import REAL_ORIENTATIONS, real_grid_config
 from tests.stages.plate_truth import field_error_px, truth_field
-
-REAL_ORIENTATIONS = {
-    "centred": ("grid_centered_0.dcm", 0, 0),
-    "orbit30": ("grid_orbit_30.dcm", 30, 0),
-    "tilt15": ("grid_tilt_15.dcm", 0, 15),
-    "tilt30": ("grid_tilt_30.dcm", 0, 30),
-    "tilt45": ("grid_tilt_45.dcm", 0, 45),
-    "tilt60": ("grid_tilt_60.dcm", 0, 60),
-}
-
-
-def real_grid_config(folder: Path, arcadis: Path, names) -> Path:
-    """A project on the real grid frames of the named orientations (the DICOMs record no angles: given here)."""
-    groups = ",\n".join(
-        f'  {{name = "{n}", frames = ["{arcadis / REAL_ORIENTATIONS[n][0]}"], orbit = {REAL_ORIENTATIONS[n][1]}, '
-        f"tilt = {REAL_ORIENTATIONS[n][2]}}}"
-        for n in names
-    )
-    frames = ", ".join(f'"{arcadis / REAL_ORIENTATIONS[n][0]}"' for n in names)
-    text = (
-        '[phantom]\nlattice = "hex"\npitch = 3.3\n\n[[systems]]\nname = "arcadis"\n'
-        f"frames = [{frames}]\nsource_image_distance = 1000\npixel_pitch = 0.21\norientations = [\n{groups}\n]\n"
-    )
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "fluorocal.toml").write_text(text)
-    return folder / "fluorocal.toml"
 
 
 def test_simulated_grid_outputs(simulated_grid):

@@ -15,49 +15,27 @@ import cv2
 import numpy as np
 import pydicom
 import pytest
-from fluorocal.calibration import Calibration, SystemCalibration
+from fluorocal.calibration import Calibration
 from fluorocal.cli import main
 from fluorocal.maps import MapCacheWarning, maps_folder
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError, ShapeError
-from fluorocal.stages.field import CorrectionField, grid_nodes
 from fluorocal.stages.io import read_frames, write_frames_like
 from fluorocal.stages.io.pixels import to_source_dtype
-from fluorocal.stages.orientation import OrientationField
 from fluorocal.stages.undistort import UndistortParams, undistort_frame
 from fluorocal.streaming import stream
 
-from tests.pipeline.conftest import count_map_computations
+from tests.helpers import save_dicom
+from tests.pipeline.synthetic_calibration import (
+    H,
+    W,
+    count_map_computations,
+    smooth_field,
+    synthetic_calibration,
+    textured_frame,
+)
 
-W, H = 96, 64
-
-
-def _field(scale: float) -> CorrectionField:
-    x, y = grid_nodes(W, H, 16.0)
-    yy, xx = np.meshgrid(y, x, indexing="ij")
-    r2 = ((xx - W / 2) ** 2 + (yy - H / 2) ** 2) / (W / 2) ** 2
-    delta = scale * np.stack([(xx - W / 2) * r2, (yy - H / 2) * r2], axis=-1) / 10  # up to ~scale px
-    ones = np.ones(xx.shape)
-    return CorrectionField(x, y, delta, 0.01 * ones, ones.astype(bool), W, H)
-
-
-def _calibration() -> Calibration:
-    orientations = (
-        OrientationField("o0", 0.0, 0.0, _field(2.0)),
-        OrientationField("o30", 30.0, 0.0, _field(-2.0)),
-    )
-    iop = np.array([W / 2, H / 2, 1000.0])
-    a = SystemCalibration("A", (W, H), iop, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros(3), None, orientations)
-    b = SystemCalibration("B", (W, H), iop, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros(3), _field(1.5))
-    return Calibration([a, b], {}, {"scheme": "test"})
-
-
-def _frame(seed=0) -> np.ndarray:
-    """A 12-bit frame with smooth structure and noise, as uint16."""
-    yy, xx = np.mgrid[0:H, 0:W]
-    noise = np.random.default_rng(seed).normal(0, 30, (H, W))
-    return np.clip(2000 + 1500 * np.sin(xx / 6.0) * np.cos(yy / 8.0) + noise, 0, 4095).astype(np.uint16)
-
+SC = "SecondaryCaptureImageStorage"  # the DICOMs streamed here: secondary captures
 
 # --- remap_maps and undistort_image -------------------------------------------------------------------
 
@@ -80,7 +58,7 @@ def test_maps_are_the_fields_distortion_of_each_pixel_centre(saved):
 @pytest.mark.parametrize("interpolation", ["linear", "nearest", "cubic"])
 def test_undistort_image_equals_remap_with_the_maps_and_the_old_path(saved, interpolation):
     cal = Calibration.load(saved)
-    frame = _frame()
+    frame = textured_frame()
     out = cal.undistort_image("A", frame, orientation="o30", interpolation=interpolation)
     assert out.dtype == np.uint16 and out.shape == frame.shape
     map_x, map_y = cal.remap_maps("A", orientation="o30")
@@ -98,7 +76,7 @@ def test_undistort_image_equals_remap_with_the_maps_and_the_old_path(saved, inte
 
 def test_undistort_image_keeps_the_orientation_semantics(saved):
     cal = Calibration.load(saved)
-    frame = _frame()
+    frame = textured_frame()
     # orbit 15 is halfway between o0 (+2 scale) and o30 (-2 scale): the field is 0, the maps the identity grid
     halfway = cal.undistort_image("A", frame, orientation={"orbit": 15, "tilt": 0})
     np.testing.assert_array_equal(halfway, frame)
@@ -143,12 +121,12 @@ def test_maps_are_computed_once_and_read_back_from_the_cache(saved, monkeypatch)
 def test_a_changed_calibration_never_meets_its_old_maps(saved, monkeypatch):
     calls = count_map_computations(monkeypatch)
     Calibration.load(saved).remap_maps("B")
-    cal = _calibration()
-    cal.systems["B"] = dataclasses.replace(cal.systems["B"], field=_field(0.5))
+    cal = synthetic_calibration()
+    cal.systems["B"] = dataclasses.replace(cal.systems["B"], field=smooth_field(0.5))
     cal.save(saved)  # same file names, other field: another content hash
     new_x, _ = Calibration.load(saved).remap_maps("B")
     assert len(calls) == 2
-    expected_x, _ = _field(0.5).remap_maps()
+    expected_x, _ = smooth_field(0.5).remap_maps()
     np.testing.assert_array_equal(new_x, expected_x)
 
 
@@ -178,16 +156,16 @@ def test_a_cache_that_cannot_be_written_costs_only_the_cache(saved):
     maps_folder(saved).write_text("a file where the folder would be")
     with pytest.warns(MapCacheWarning, match="cannot cache the undistortion maps"):
         map_x, _ = Calibration.load(saved).remap_maps("B")
-    np.testing.assert_array_equal(map_x, _field(1.5).remap_maps()[0])
+    np.testing.assert_array_equal(map_x, smooth_field(1.5).remap_maps()[0])
 
 
 def test_a_calibration_in_memory_caches_in_memory_only(tmp_path, monkeypatch):
     calls = count_map_computations(monkeypatch)
-    cal = _calibration()
+    cal = synthetic_calibration()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         cal.remap_maps("B")
-        cal.undistort_image("B", _frame())
+        cal.undistort_image("B", textured_frame())
     assert len(calls) == 1 and not list(tmp_path.iterdir())
 
 
@@ -245,24 +223,6 @@ def test_stream_raises_the_first_failure_and_stops_every_step(where):
 # --- fluorocal undistort: streamed output equals frame by frame ------------------------------------------
 
 
-def _dicom(path, frames: np.ndarray, photometric: str, syntax: str) -> pydicom.Dataset:
-    """A 12-bit multi-frame XA-like DICOM of ``frames`` (F, H, W) uint16, saved to ``path``."""
-    from pydicom import uid
-    from pydicom.dataset import FileMetaDataset
-
-    ds = pydicom.Dataset()
-    ds.file_meta = FileMetaDataset()
-    ds.file_meta.TransferSyntaxUID = getattr(uid, syntax)
-    ds.file_meta.MediaStorageSOPClassUID = ds.SOPClassUID = uid.SecondaryCaptureImageStorage
-    ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID = uid.generate_uid()
-    ds.Modality, ds.PatientID, ds.PhotometricInterpretation = "XA", "P1", photometric
-    ds.Rows, ds.Columns, ds.NumberOfFrames, ds.SamplesPerPixel = H, W, len(frames), 1
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
-    ds.PixelData = frames.tobytes()
-    ds.save_as(path, enforce_file_format=True)
-    return ds
-
-
 def _undistort(saved, out, *inputs, system="B"):
     # --outside keep: these tests compare with the API's plain remap (edges: tests/pipeline/test_clinic_edges.py)
     args = ["--quiet", "undistort", str(saved), *map(str, inputs), "--system", system]
@@ -273,7 +233,7 @@ def _undistort(saved, out, *inputs, system="B"):
 def test_streamed_folder_equals_frame_by_frame(saved, tmp_path):
     folder = tmp_path / "frames"
     folder.mkdir()
-    frames = [_frame(seed) for seed in range(5)]
+    frames = [textured_frame(seed) for seed in range(5)]
     for i, f in enumerate(frames):
         cv2.imwrite(str(folder / f"f{i}.tif"), f)
     (folder / "notes.txt").write_text("not a frame")
@@ -293,7 +253,9 @@ def test_streamed_multiframe_dicom_equals_frame_by_frame(saved, tmp_path, photom
     from pydicom import uid
 
     src = tmp_path / "run.dcm"
-    ds = _dicom(src, np.stack([_frame(seed) for seed in range(3)]), photometric, syntax)
+    ds = save_dicom(
+        src, np.stack([textured_frame(seed) for seed in range(3)]), photometric=photometric, syntax=syntax, sop_class=SC
+    )
     assert _undistort(saved, tmp_path / "u", src) == 0
     out = pydicom.dcmread(tmp_path / "u" / "run.dcm")
     assert out.SOPInstanceUID != ds.SOPInstanceUID and out.PatientID == "P1" and out.NumberOfFrames == 3
@@ -312,7 +274,7 @@ def test_streamed_multiframe_dicom_equals_frame_by_frame(saved, tmp_path, photom
 
 
 def test_maps_computed_in_blocks_of_rows_equal_one_inversion_of_every_pixel():
-    field = _field(2.0)
+    field = smooth_field(2.0)
     # 2048 px wide: 32 rows per block of 65536 points, so 70 rows are three blocks, the last one short
     map_x, map_y = field.remap_maps(2048, 70)
     yy, xx = np.mgrid[0:70, 0:2048]
@@ -324,7 +286,7 @@ def test_maps_computed_in_blocks_of_rows_equal_one_inversion_of_every_pixel():
 
 
 def test_streamed_multipage_tiff_equals_frame_by_frame(saved, tmp_path):
-    frames = [_frame(seed) for seed in range(3)]
+    frames = [textured_frame(seed) for seed in range(3)]
     src = tmp_path / "pages.tif"
     assert cv2.imwritemulti(str(src), frames)
     assert _undistort(saved, tmp_path / "u", src) == 0
@@ -338,8 +300,8 @@ def test_streamed_multipage_tiff_equals_frame_by_frame(saved, tmp_path):
 def test_a_frame_of_the_wrong_size_writes_nothing(saved, tmp_path, capsys):
     folder = tmp_path / "frames"
     folder.mkdir()
-    cv2.imwrite(str(folder / "a.tif"), _frame())
-    cv2.imwrite(str(folder / "b.tif"), _frame()[:, :-1])
+    cv2.imwrite(str(folder / "a.tif"), textured_frame())
+    cv2.imwrite(str(folder / "b.tif"), textured_frame()[:, :-1])
     assert _undistort(saved, tmp_path / "u", folder) == 2
     assert "b.tif: frame is 95x64 px; system B was calibrated at 96x64" in capsys.readouterr().err
     assert not (tmp_path / "u").exists()
@@ -351,9 +313,9 @@ def test_a_stream_short_of_frames_leaves_no_file(tmp_path, suffix):
 
     src = tmp_path / f"src{suffix}"
     if suffix == ".tif":
-        assert cv2.imwritemulti(str(src), [_frame(0), _frame(1)])
+        assert cv2.imwritemulti(str(src), [textured_frame(0), textured_frame(1)])
     else:
-        _dicom(src, np.stack([_frame(0), _frame(1)]), "MONOCHROME2", "ExplicitVRLittleEndian")
+        save_dicom(src, np.stack([textured_frame(0), textured_frame(1)]), sop_class=SC)
     with pytest.raises(InputError, match=r"expected 2 frame\(s\).*got 1"):
-        write_stored_like(src, iter([_frame(0)]), tmp_path / f"out{suffix}", 2)
+        write_stored_like(src, iter([textured_frame(0)]), tmp_path / f"out{suffix}", 2)
     assert sorted(p.name for p in tmp_path.iterdir()) == [f"src{suffix}"]  # no output, no temporary file

@@ -16,8 +16,8 @@ from fluorocal.calibration import Calibration
 from fluorocal.cli import main
 from pydicom import uid
 
-from tests.pipeline.test_undistort_api import _frame
-from tests.stages.test_dicom_derived import _source
+from tests.helpers import save_dicom
+from tests.pipeline.synthetic_calibration import textured_frame
 
 
 def _undistort(saved, out, *inputs, system="B", options=()):
@@ -34,16 +34,16 @@ def two_series(tmp_path):
     folder.mkdir()
     series_1, series_2, study = uid.generate_uid(), uid.generate_uid(), uid.generate_uid()
     spec = [
-        ("s1_a.dcm", series_1, [_frame(0), _frame(1)]),
-        ("s1_b.dcm", series_1, [_frame(2)]),
-        ("s2_a.dcm", series_2, [_frame(3)]),
+        ("s1_a.dcm", series_1, [textured_frame(0), textured_frame(1)]),
+        ("s1_b.dcm", series_1, [textured_frame(2)]),
+        ("s2_a.dcm", series_2, [textured_frame(3)]),
     ]
     sources = {}
     for name, series, frames in spec:
-        sources[name] = _source(
+        sources[name] = save_dicom(
             folder / name, np.stack(frames), SeriesInstanceUID=series, StudyInstanceUID=study, Rows=64, Columns=96
         )
-    cv2.imwrite(str(folder / "still.tif"), _frame(4))
+    cv2.imwrite(str(folder / "still.tif"), textured_frame(4))
     return folder, sources
 
 
@@ -74,11 +74,11 @@ def test_one_new_series_per_source_series_and_run(saved, tmp_path, two_series):
     pixels = out["s1_a.dcm"].pixel_array
     assert pixels.shape == (2, 64, 96) and out["s1_a.dcm"].NumberOfFrames == 2
     for i, seed in enumerate((0, 1)):
-        np.testing.assert_array_equal(pixels[i], cal.undistort_image("B", _frame(seed)))
-    np.testing.assert_array_equal(out["s2_a.dcm"].pixel_array, cal.undistort_image("B", _frame(3)))
+        np.testing.assert_array_equal(pixels[i], cal.undistort_image("B", textured_frame(seed)))
+    np.testing.assert_array_equal(out["s2_a.dcm"].pixel_array, cal.undistort_image("B", textured_frame(3)))
     # the TIFF beside them is written as before
     np.testing.assert_array_equal(
-        cv2.imread(str(tmp_path / "u" / "still.tif"), cv2.IMREAD_UNCHANGED), cal.undistort_image("B", _frame(4))
+        cv2.imread(str(tmp_path / "u" / "still.tif"), cv2.IMREAD_UNCHANGED), cal.undistort_image("B", textured_frame(4))
     )
     # another run of the same sources: another series
     assert _undistort(saved, tmp_path / "v", folder / "s1_a.dcm") == 0
@@ -98,7 +98,7 @@ def test_one_new_series_per_source_series_and_run(saved, tmp_path, two_series):
 )
 def test_the_description_names_the_orientation(saved, tmp_path, options, where):
     src = tmp_path / "one.dcm"
-    _source(src, _frame(0)[None], Rows=64, Columns=96)
+    save_dicom(src, textured_frame(0)[None], Rows=64, Columns=96)
     assert _undistort(saved, tmp_path / "u", src, system="A", options=options + ["--interpolation", "cubic"]) == 0
     assert pydicom.dcmread(tmp_path / "u" / "one.dcm").DerivationDescription.endswith(where)
 
@@ -126,7 +126,7 @@ def test_an_existing_output_is_refused_before_anything_is_written(saved, tmp_pat
 
 
 def test_a_folder_in_the_place_of_an_output_is_refused_even_with_overwrite(saved, tmp_path, capsys):
-    cv2.imwrite(str(tmp_path / "a.tif"), _frame(0))
+    cv2.imwrite(str(tmp_path / "a.tif"), textured_frame(0))
     (tmp_path / "u" / "a.tif").mkdir(parents=True)
     assert _undistort(saved, tmp_path / "u", tmp_path / "a.tif", options=["--overwrite"]) == 2
     assert "a.tif: is a folder, where the undistorted a.tif would go" in capsys.readouterr().err
@@ -136,8 +136,8 @@ def test_a_folder_in_the_place_of_an_output_is_refused_even_with_overwrite(saved
 def test_a_dicom_that_cannot_be_referenced_is_refused_before_anything_is_written(saved, tmp_path, capsys):
     folder = tmp_path / "frames"
     folder.mkdir()
-    cv2.imwrite(str(folder / "a.tif"), _frame(0))
-    ds = _source(folder / "b.dcm", _frame(1)[None], Rows=64, Columns=96)
+    cv2.imwrite(str(folder / "a.tif"), textured_frame(0))
+    ds = save_dicom(folder / "b.dcm", textured_frame(1)[None], Rows=64, Columns=96)
     del ds.SOPInstanceUID, ds.file_meta.MediaStorageSOPInstanceUID
     ds.preamble = b"\0" * 128
     ds.save_as(folder / "b.dcm", enforce_file_format=False)

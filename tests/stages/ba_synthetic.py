@@ -19,9 +19,19 @@ from dataclasses import dataclass
 import numpy as np
 from fluorocal.stages.adjust import Orientation
 from fluorocal.stages.artifacts import Observations
-from fluorocal.stages.geometry import project, quat_multiply, quat_to_matrix, rotvec_to_quat
+from fluorocal.stages.geometry import (
+    matrix_to_quat,
+    project,
+    quat_multiply,
+    quat_normalize,
+    quat_to_matrix,
+    rotvec_to_quat,
+)
+from fluorocal.stages.simulate import SimulateParams, simulate
 
 IMAGE_PX = 1024
+#: the centroid noise of :func:`simulated_set`'s noisy observations, px
+NOISE_PX = 0.05
 
 
 @dataclass(frozen=True)
@@ -266,3 +276,89 @@ def pycolmap_reconstruction(syn: Synthetic, xy_px: np.ndarray):
         for n, k in enumerate(sel):
             rec.add_observation(point_ids[int(obs.bead_id[k])], pycolmap.TrackElement(j + 1, n))
     return rec
+
+
+def simulated_set(seed: int, n_train: int, size: int):
+    """Training observations (noisy and exact), held-out ones with their true ideal points, start values, truth."""
+    data = simulate(
+        SimulateParams(n_frames=2 * n_train, n_systems=1, seed=seed, image_size_px=size, distortion="strong"),
+        render=False,
+    )
+    rng = np.random.default_rng([seed, 3])
+    sets = []
+    for part in (0, 1):
+        frames = [f for f in data.truth.frames[0] if f.exposure % 2 == part]
+        keep = [f.visible for f in frames]
+        exposure = np.concatenate([np.full(k.sum(), f.exposure // 2) for f, k in zip(frames, keep)])
+        ids = np.concatenate([f.ids[k] for f, k in zip(frames, keep)])
+        exact = np.concatenate([f.distorted_xy_px[k] for f, k in zip(frames, keep)])
+        ideal = np.concatenate([f.ideal_xy_px[k] for f, k in zip(frames, keep)])
+        sigma = np.tile([NOISE_PX, NOISE_PX, 0.0], (len(exact), 1))
+        noisy = exact + rng.normal(0, NOISE_PX, exact.shape)
+        system = np.zeros(len(exact), np.int64)
+        sets.append([Observations(system, exposure, ids, v, sigma) for v in (noisy, exact)] + [ideal])
+    acq = data.truth.acquisition
+    true_sys = acq.systems[0]
+    epochs = np.arange(0, 2 * n_train, 2)
+    # start values: the true poses, the IOP 1 % and the image centre off (as from the nominal geometry)
+    iop0 = np.array([[(size - 1) / 2, (size - 1) / 2, true_sys.iop_px[2] * 1.01]])
+    initial = Orientation(iop0, np.arange(n_train), acq.q[0, epochs], acq.source_mm[0, epochs], system_names=("A",))
+    return sets, initial, data.phantom, true_sys
+
+
+def simulated_sets(n_train: int, n_systems: int, size: int, seed: int):
+    """Training and held-out observation sets, the nominal phantom, initial orientations and the truth."""
+    p = SimulateParams(n_frames=2 * n_train, n_systems=n_systems, seed=seed, image_size_px=size, distortion="strong")
+    data = simulate(p, render=False)
+    acq = data.truth.acquisition
+    rng = np.random.default_rng([seed, 7])
+    sets = []
+    for part in (0, 1):
+        # the paper's uniform split: even exposures train, odd ones are held out
+        obs = truth_observations(data, rng, lambda f, part=part: f.exposure % 2 == part, lambda e: e // 2)
+        sets.append((obs, rough_start(acq, np.arange(part, p.n_frames, 2), size, rng)))
+    return sets, data.phantom, data.truth.true_xyz_mm, acq, p
+
+
+def truth_observations(data, rng, use=lambda frame: True, epoch=lambda exposure: exposure) -> Observations:
+    """Observations of the simulator's frames where ``use(frame)``: true outline centres + ``NOISE_PX`` noise.
+
+    Beads near another's outline or the field's rim are left out (labelling would not keep them
+    reliably); ``epoch(exposure)`` numbers the epochs.
+    """
+    frames = [f for per_system in data.truth.frames for f in per_system if use(f)]
+    keep = [~(f.overlap | f.field_edge) for f in frames]
+    system = np.concatenate([np.full(k.sum(), f.system) for f, k in zip(frames, keep)])
+    exposure = np.concatenate([np.full(k.sum(), epoch(f.exposure)) for f, k in zip(frames, keep)])
+    ids = np.concatenate([f.ids[k] for f, k in zip(frames, keep)])
+    xy = np.concatenate([f.outline_xy_px[k] for f, k in zip(frames, keep)])
+    xy = xy + rng.normal(0, NOISE_PX, xy.shape)
+    sigma = np.tile([NOISE_PX, NOISE_PX, 0.0], (len(xy), 1))
+    return Observations(system, exposure, ids, xy, sigma, system_names=data.system_names)
+
+
+def rough_start(acq, epochs, size, rng) -> Orientation:
+    """Rough start values, as labelling would give: poses within ~0.6 deg and 5 mm, IOP from the nominal geometry."""
+    n = len(epochs)
+    dq = np.array([rotvec_to_quat(v) for v in rng.normal(0, 0.01, (n, 3))])
+    q = quat_normalize(quat_multiply(dq, acq.q[0, epochs]))
+    src = acq.source_mm[0, epochs] + rng.normal(0, 5, (n, 3))
+    iop = np.array([[(size - 1) / 2, (size - 1) / 2, s.iop_px[2] * 1.01] for s in acq.systems])
+    rop_q = np.tile([1.0, 0, 0, 0], (len(acq.systems), 1))
+    rop_t = np.zeros((len(acq.systems), 3))
+    R0 = quat_to_matrix(acq.q[0, 0])
+    for s in range(1, len(acq.systems)):
+        rop_q[s] = matrix_to_quat(quat_to_matrix(acq.q[s, 0]) @ R0.T)
+        rop_t[s] = R0 @ (acq.source_mm[s, 0] - acq.source_mm[0, 0])
+    return Orientation(iop, np.arange(n), q, src, rop_q, rop_t, tuple(s.name for s in acq.systems))
+
+
+def true_rig(acq) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The simulator's IOP ``(S, 3)`` px, ROP rotations ``(S, 4)`` and sources in A's camera frame ``(S, 3)`` mm.
+
+    The rig is rigid (``stages.simulate.make_acquisition``), so epoch 0 gives the ROP.
+    """
+    R0 = quat_to_matrix(acq.q[0, 0])
+    rop_q = np.array([matrix_to_quat(quat_to_matrix(acq.q[s, 0]) @ R0.T) for s in range(len(acq.systems))])
+    rop_source = np.array([R0 @ (acq.source_mm[s, 0] - acq.source_mm[0, 0]) for s in range(len(acq.systems))])
+    return np.array([s.iop_px for s in acq.systems]), rop_q, rop_source

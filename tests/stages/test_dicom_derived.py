@@ -13,35 +13,12 @@ import pytest
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io import Derivation, read_frames, series_of, write_frames_like, write_still, write_stored_like
 from pydicom import uid
-from pydicom.dataset import FileMetaDataset
 from pydicom.sr._cid_dict import cid_concepts
 from pydicom.sr.codedict import codes
 
+from tests.helpers import save_dicom
+
 H, W = 24, 32
-
-
-def _source(path, frames: np.ndarray, **tags) -> pydicom.Dataset:
-    """A 12-bit XA DICOM of ``frames`` (F, H, W) uint16 in series ``tags['SeriesInstanceUID']`` (or a new one)."""
-    ds = pydicom.Dataset()
-    ds.file_meta = FileMetaDataset()
-    ds.file_meta.TransferSyntaxUID = uid.ExplicitVRLittleEndian
-    ds.file_meta.MediaStorageSOPClassUID = ds.SOPClassUID = uid.XRayAngiographicImageStorage
-    ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID = uid.generate_uid()
-    ds.StudyInstanceUID, ds.SeriesInstanceUID = uid.generate_uid(), uid.generate_uid()
-    ds.Modality, ds.PatientID, ds.PhotometricInterpretation = "XA", "P1", "MONOCHROME2"
-    ds.ImageType, ds.SeriesDescription = ["ORIGINAL", "PRIMARY", "SINGLE PLANE"], "Spine AP"
-    ds.Rows, ds.Columns, ds.SamplesPerPixel = H, W, 1
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
-    if len(frames) > 1:
-        ds.NumberOfFrames = len(frames)
-    for tag, value in tags.items():
-        if value is None:
-            delattr(ds, tag)
-        else:
-            setattr(ds, tag, value)
-    ds.PixelData = np.ascontiguousarray(frames, dtype="<u2").tobytes()
-    ds.save_as(path, enforce_file_format=True)
-    return ds
 
 
 def _frames(n: int) -> np.ndarray:
@@ -55,7 +32,7 @@ def _code(item) -> tuple[str, str, str]:
 @pytest.mark.parametrize("n_frames", [1, 3])
 def test_a_derived_instance_carries_every_attribute_of_a_derived_series(tmp_path, n_frames):
     source = tmp_path / "src.dcm"
-    original = _source(source, _frames(n_frames))
+    original = save_dicom(source, _frames(n_frames))
     derivation = Derivation("geometric distortion corrected with calibration.json", "1.2.826.0.1.3680043.8.498.42")
     pixels = _frames(n_frames)[:, ::-1, ::-1].copy()  # stands for the undistorted frames: any change of content
     write_stored_like(source, iter(pixels), tmp_path / "out.dcm", n_frames, derivation=derivation)
@@ -106,7 +83,7 @@ def test_image_type_and_series_description_of_odd_sources(
     tmp_path, image_type, description, expected_type, expected_description
 ):
     source = tmp_path / "src.dcm"
-    _source(source, _frames(1), ImageType=image_type, SeriesDescription=description)
+    save_dicom(source, _frames(1), ImageType=image_type, SeriesDescription=description)
     (frame,) = read_frames(source)
     write_frames_like(source, [frame], tmp_path / "out.dcm")
     out = pydicom.dcmread(tmp_path / "out.dcm")
@@ -117,7 +94,7 @@ def test_image_type_and_series_description_of_odd_sources(
 
 def test_without_a_derivation_each_file_is_its_own_new_series(tmp_path):
     source = tmp_path / "src.dcm"
-    original = _source(source, _frames(1))
+    original = save_dicom(source, _frames(1))
     (frame,) = read_frames(source)
     write_frames_like(source, [frame], tmp_path / "a.dcm")
     write_frames_like(source, [frame], tmp_path / "b.dcm")
@@ -129,7 +106,7 @@ def test_without_a_derivation_each_file_is_its_own_new_series(tmp_path):
 
 def test_a_rescaled_source_takes_the_general_path_and_is_derived_too(tmp_path):
     source = tmp_path / "src.dcm"
-    original = _source(source, _frames(1), RescaleSlope=2, RescaleIntercept=-100)
+    original = save_dicom(source, _frames(1), RescaleSlope=2, RescaleIntercept=-100)
     (frame,) = read_frames(source)
     write_frames_like(source, [frame], tmp_path / "out.dcm", derivation=Derivation("d", "1.2.3.4"))
     out = pydicom.dcmread(tmp_path / "out.dcm")
@@ -139,15 +116,15 @@ def test_a_rescaled_source_takes_the_general_path_and_is_derived_too(tmp_path):
 
 
 def test_series_of_names_the_series_and_refuses_what_cannot_be_referenced(tmp_path):
-    original = _source(tmp_path / "a.dcm", _frames(1))
+    original = save_dicom(tmp_path / "a.dcm", _frames(1))
     assert series_of(tmp_path / "a.dcm") == original.SeriesInstanceUID
-    _source(tmp_path / "no_series.dcm", _frames(1), SeriesInstanceUID=None)
-    _source(tmp_path / "no_series_2.dcm", _frames(1), SeriesInstanceUID=None)
+    save_dicom(tmp_path / "no_series.dcm", _frames(1), SeriesInstanceUID=None)
+    save_dicom(tmp_path / "no_series_2.dcm", _frames(1), SeriesInstanceUID=None)
     # a file without a series joins no other file's series
     assert series_of(tmp_path / "no_series.dcm") != series_of(tmp_path / "no_series_2.dcm")
     write_still(tmp_path / "a.tif", _frames(1)[0])
     assert series_of(tmp_path / "a.tif") is None
-    ds = _source(tmp_path / "bare.dcm", _frames(1))
+    ds = save_dicom(tmp_path / "bare.dcm", _frames(1))
     del ds.SOPInstanceUID, ds.file_meta.MediaStorageSOPInstanceUID  # neither the data set nor its file meta has one
     ds.preamble = b"\0" * 128
     ds.save_as(tmp_path / "bare.dcm", enforce_file_format=False)

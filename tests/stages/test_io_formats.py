@@ -21,24 +21,7 @@ from fluorocal.stages.io import (
 from fluorocal.stages.io.atomic import PNG_SIGNATURE
 from fluorocal.stages.io.frames import DICOM, STILL, VIDEO
 
-
-def _dataset(rows: int, cols: int, *, bits_stored: int = 12):
-    """A minimal monochrome XA data set (no pixel data yet)."""
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, XRayAngiographicImageStorage, generate_uid
-
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = XRayAngiographicImageStorage
-    meta.MediaStorageSOPInstanceUID = uid = generate_uid(entropy_srcs=["test"])
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = XRayAngiographicImageStorage, uid, "XA"
-    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
-    ds.Rows, ds.Columns = rows, cols
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, bits_stored, bits_stored - 1, 0
-    ds.ImagerPixelSpacing = [0.25, 0.25]
-    return ds
+from tests.helpers import xa_dataset
 
 
 def test_registry_is_a_tuple_of_entries_in_code():
@@ -48,21 +31,21 @@ def test_registry_is_a_tuple_of_entries_in_code():
 
 def test_write_dicom_single_and_multi_frame(tmp_path):
     pixels = (np.arange(3 * 20 * 16).reshape(3, 20, 16) % 4096).astype(np.uint16)
-    write_dicom(tmp_path / "one.dcm", _dataset(20, 16), pixels[0])
-    write_dicom(tmp_path / "three.dcm", _dataset(20, 16), pixels)
+    write_dicom(tmp_path / "one.dcm", xa_dataset(20, 16), pixels[0])
+    write_dicom(tmp_path / "three.dcm", xa_dataset(20, 16), pixels)
     assert probe_frames(tmp_path / "one.dcm") == (1, (16, 20))
     assert probe_frames(tmp_path / "three.dcm") == (3, (16, 20))
     frames = read_frames(tmp_path / "three.dcm")
     assert [f.bit_depth for f in frames] == [12] * 3 and frames[0].metadata["ImagerPixelSpacing"] == [0.25, 0.25]
     np.testing.assert_array_equal(np.stack([f.image for f in frames]), pixels.astype(np.float32))
     with pytest.raises(InputError, match=r"bad.dcm: pixels must have shape \(\[F,\] 20, 16\); got \(16, 20\)"):
-        write_dicom(tmp_path / "bad.dcm", _dataset(20, 16), pixels[0].T)
+        write_dicom(tmp_path / "bad.dcm", xa_dataset(20, 16), pixels[0].T)
     assert not (tmp_path / "bad.dcm").exists()
 
 
 def test_content_decides_before_the_suffix(tmp_path):
     img = (np.arange(12 * 10).reshape(12, 10) * 7).astype(np.uint16)
-    write_dicom(tmp_path / "really_dicom.tif", _dataset(12, 10, bits_stored=16), img)
+    write_dicom(tmp_path / "really_dicom.tif", xa_dataset(12, 10, bits_stored=16), img)
     write_still(tmp_path / "really_tiff.dcm", img, file_format="tiff")
     assert frame_format(tmp_path / "really_dicom.tif") is DICOM
     assert frame_format(tmp_path / "really_tiff.dcm") is STILL
@@ -164,7 +147,7 @@ def _multi_frame_files(tmp_path) -> dict:
     import OpenImageIO as oiio
 
     pixels = np.stack([(np.arange(24 * 32).reshape(24, 32) * (k + 1)) % 250 for k in range(4)]).astype(np.uint16)
-    write_dicom(tmp_path / "m.dcm", _dataset(24, 32), pixels)
+    write_dicom(tmp_path / "m.dcm", xa_dataset(24, 32), pixels)
     spec = oiio.ImageSpec(32, 24, 1, "uint16")
     out = oiio.ImageOutput.create(str(tmp_path / "m.tif"))
     assert out.open(str(tmp_path / "m.tif"), [spec] * 4)

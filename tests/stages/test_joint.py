@@ -20,7 +20,7 @@ from fluorocal.stages.learn.joint import SystemStep, fit_grid_jointly, fit_grids
 from fluorocal.stages.learn.network import linearised_network, systems_network
 from fluorocal.stages.learn.nodes import GridSpec
 
-from tests.stages.test_uncertainty import simulated_set
+from tests.stages.ba_synthetic import simulated_set
 
 SIZE, SPACING = 256, 32.0
 GRID = GridSpec(spacing_px=SPACING)
@@ -168,7 +168,7 @@ def test_orientation_inverse_is_the_dense_normal_matrix_inverse(linearised):
 @pytest.fixture(scope="module")
 def biplanar_linearised():
     """A 512 px, 6 + 6-exposure biplanar set adjusted with the true corrections held, and its two systems' rows."""
-    from benchmarks.learn import simulated_sets
+    from tests.stages.ba_synthetic import simulated_sets
 
     (train, _), phantom, _, acq, _ = simulated_sets(6, 2, BI_SIZE, 0)
     obs, initial = train

@@ -19,7 +19,7 @@ from fluorocal.stages.label.rivals import _EVIDENCE_MARGIN, evidence, model_evid
 from fluorocal.stages.simulate import SimulateParams, simulate
 from scipy.spatial.transform import Rotation
 
-from tests.stages.test_label import detections_from_truth, params_of
+from tests.stages.label_truth import detections_from_truth, params_of
 
 
 def _labelled(**detection_options):

@@ -13,7 +13,7 @@ from fluorocal.stages.label import LabelParams, label_sequence
 from fluorocal.stages.label.symmetry import phantom_symmetries, turn_angle
 from fluorocal.stages.simulate import SimulateParams, simulate
 
-from tests.stages.test_label import detections_from_truth, make_centroids
+from tests.stages.label_truth import detections_from_truth, make_centroids
 
 AMBIGUOUS = "ambiguous: two poses explain the frame about equally well"
 
@@ -52,6 +52,7 @@ def test_cube_symmetries_are_measured_from_its_beads():
         assert fraction == pytest.approx(1.0 if np.linalg.norm(t) < 1 else 0.947, abs=0.01)
 
 
+@pytest.mark.check  # three 1024 px sequences, each searched for shifts (about a minute of CPU in all)
 @pytest.mark.parametrize("seed", [0, 3, 11])
 def test_large_turn_with_hidden_markers_is_never_mislabelled(seed):
     """Three exposures: the turntable steps by 160 degrees, and frame 1 shows no marker.
@@ -86,6 +87,7 @@ def test_small_turn_with_hidden_markers_is_labelled_from_the_neighbour():
     assert lab.n_labelled >= 0.8 * len(ids)
 
 
+@pytest.mark.check  # the prior search over a 1024 px frame; make test refuses a periodic patch's prior (test_label)
 def test_uniform_phantom_a_quarter_turn_from_the_prior_is_never_mislabelled():
     """Beads all of one size, the prior pose a quarter turn away: the frame fails (or is right).
 

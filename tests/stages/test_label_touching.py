@@ -16,7 +16,7 @@ from fluorocal.stages.label.assign import ambiguous, told_apart
 from fluorocal.stages.simulate import SimulateParams, simulate
 from scipy.spatial import cKDTree
 
-from tests.stages.test_label import detections_from_truth, make_centroids, params_of, unambiguous_ids
+from tests.stages.label_truth import detections_from_truth, make_centroids, params_of, unambiguous_ids
 
 # --------------------------------------------------------------------------------------------
 # told_apart on hand-built pairs (20 px beads)

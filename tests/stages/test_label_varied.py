@@ -15,7 +15,7 @@ from fluorocal.stages.label.motion import OrientationPrior, predict
 from fluorocal.stages.simulate import SimulateParams, simulate
 from scipy.spatial.transform import Rotation
 
-from tests.stages.test_label import detections_from_truth, params_of, seeds_from_truth, unambiguous_ids
+from tests.stages.label_truth import detections_from_truth, params_of, seeds_from_truth, unambiguous_ids
 
 #: the motion of issue 12: the turntable's axis wobbling by up to 5 deg, shifts of up to +-20 mm
 WOBBLY = dict(turntable_wobble_deg=5.0, turntable_translation_mm=20.0, turntable_step_deg=10.0)
@@ -38,6 +38,7 @@ def check_sequence(labs, dets, fts, *, min_fraction: float):
     assert correct >= min_fraction * eligible, (correct, eligible)
 
 
+@pytest.mark.check  # eight wobbling frames; make test labels random markers in the regressions below
 def test_three_random_markers_on_a_wobbling_turntable():
     """Three markers at random, wobble +-5 deg, shifts +-20 mm, 10 deg steps, markers hidden in half the frames.
 
@@ -119,7 +120,7 @@ def test_a_frame_alone_whose_markers_give_a_pose_9_deg_off_is_searched_around_it
     assert np.isin(clean, lab.bead_id).mean() >= 0.99  # the issue's target
 
 
-@pytest.mark.slow
+@pytest.mark.check  # rendered frames through detect; make test has the same rule on truth detections (above)
 def test_a_marker_pose_a_few_degrees_off_on_the_last_frame_gives_way_to_its_neighbours():
     """Rendered frames 4 and 5 of benchmarks/label_varied.py's first configuration (seven exposures, seed 100).
 
@@ -160,7 +161,7 @@ def test_a_labelling_one_row_off_gives_way_to_the_truth():
     from fluorocal.stages.label.iterate import iterate
     from fluorocal.stages.label.rivals import _slip_poses, settle
 
-    from tests.stages.test_label import without_roles
+    from tests.stages.label_truth import without_roles
 
     # a view 30 deg off a wall's, where slips explain the detections almost as well as the truth (at most
     # views the phantom's ends rule slips out at once); one of them was acceptable on its own evidence until

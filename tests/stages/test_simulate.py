@@ -25,6 +25,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
+from tests.helpers import rms_modulo_homography
+
 # ---------------------------------------------------------------- fixtures
 
 
@@ -565,20 +567,6 @@ def test_plate_error_is_a_parameter_and_the_cube_keeps_its_fabrication_error():
 # ---------------------------------------------------------------- C-arm orientations
 
 
-def _homography_rms(src: np.ndarray, dst: np.ndarray) -> float:
-    """RMS (px) of ``dst`` about the best homography of ``src`` (least squares in px, DLT start)."""
-    import cv2
-    from scipy.optimize import least_squares
-
-    H, _ = cv2.findHomography(src, dst, 0)
-
-    def residual(h):
-        return (cv2.perspectiveTransform(src[None], np.append(h, 1.0).reshape(3, 3))[0] - dst).ravel()
-
-    fit = least_squares(residual, (H / H[2, 2]).ravel()[:8], x_scale="jac")
-    return float(np.sqrt(np.mean(np.sum(residual(fit.x).reshape(-1, 2) ** 2, axis=1))))
-
-
 def _transfer_rms(truth: dict) -> dict:
     """Per orientation: what the centred orientation's true correction leaves, modulo a homography (px).
 
@@ -597,7 +585,9 @@ def _transfer_rms(truth: dict) -> dict:
     inside = np.hypot(gx - centre[0], gy - centre[1]) < truth["fov"]["radius_px"]
     corrected = (measured - np.array(grid["delta_px"]))[inside]
     return {
-        name: _homography_rms((measured - np.array(o["correction_grid"]["delta_px"]))[inside], corrected)
+        name: rms_modulo_homography(
+            (measured - np.array(o["correction_grid"]["delta_px"]))[inside], corrected, refine=True
+        )
         for name, o in by_name.items()
     }
 
@@ -856,6 +846,7 @@ def test_real_grid_frames_fall_in_the_stated_ranges(arcadis_dir, name):
     _assert_in_ranges(_grid_frame_figures(read_frames(arcadis_dir / f"{name}.dcm")[0].image))
 
 
+@pytest.mark.check  # a full 1024² grid render, set against the real frames' ranges (whose own test is a check)
 def test_default_grid_frame_falls_in_the_real_frames_ranges():
     """A default grid frame (1024², strong distortion, centred C-arm) looks like the real ones (GRID_FRAME_RANGES)."""
     data = simulate(SimulateParams(phantom="grid", n_frames=1, orientations_deg=((0, 0),)))

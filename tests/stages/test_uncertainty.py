@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fluorocal.stages.adjust import FreeParameters, Orientation, adjust_bundle, index_of, nominal_coordinates
+from fluorocal.stages.adjust import FreeParameters, adjust_bundle, index_of, nominal_coordinates
 from fluorocal.stages.artifacts import Observations
 from fluorocal.stages.field import CorrectionField, bilinear_design
 from fluorocal.stages.geometry import quat_to_matrix
@@ -17,38 +17,9 @@ from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import difference_operator
 from fluorocal.stages.learn.network import camera_jacobians
 from fluorocal.stages.learn.uncertainty import _network, _symmetric_inverse, convention_truth, joint_uncertainty
-from fluorocal.stages.simulate import SimulateParams, simulate
 from scipy.linalg import ldl
 
-NOISE_PX = 0.05
-
-
-def simulated_set(seed: int, n_train: int, size: int):
-    """Training observations (noisy and exact), held-out ones with their true ideal points, start values, truth."""
-    data = simulate(
-        SimulateParams(n_frames=2 * n_train, n_systems=1, seed=seed, image_size_px=size, distortion="strong"),
-        render=False,
-    )
-    rng = np.random.default_rng([seed, 3])
-    sets = []
-    for part in (0, 1):
-        frames = [f for f in data.truth.frames[0] if f.exposure % 2 == part]
-        keep = [f.visible for f in frames]
-        exposure = np.concatenate([np.full(k.sum(), f.exposure // 2) for f, k in zip(frames, keep)])
-        ids = np.concatenate([f.ids[k] for f, k in zip(frames, keep)])
-        exact = np.concatenate([f.distorted_xy_px[k] for f, k in zip(frames, keep)])
-        ideal = np.concatenate([f.ideal_xy_px[k] for f, k in zip(frames, keep)])
-        sigma = np.tile([NOISE_PX, NOISE_PX, 0.0], (len(exact), 1))
-        noisy = exact + rng.normal(0, NOISE_PX, exact.shape)
-        system = np.zeros(len(exact), np.int64)
-        sets.append([Observations(system, exposure, ids, v, sigma) for v in (noisy, exact)] + [ideal])
-    acq = data.truth.acquisition
-    true_sys = acq.systems[0]
-    epochs = np.arange(0, 2 * n_train, 2)
-    # start values: the true poses, the IOP 1 % and the image centre off (as from the nominal geometry)
-    iop0 = np.array([[(size - 1) / 2, (size - 1) / 2, true_sys.iop_px[2] * 1.01]])
-    initial = Orientation(iop0, np.arange(n_train), acq.q[0, epochs], acq.source_mm[0, epochs], system_names=("A",))
-    return sets, initial, data.phantom, true_sys
+from tests.stages.ba_synthetic import simulated_set
 
 
 @pytest.fixture(scope="module")
@@ -205,6 +176,7 @@ def test_convention_truth_reproduces_the_projections_and_has_no_gauge_component(
     np.testing.assert_allclose(adj.iop_px[0], iop, atol=1e-4)
 
 
+@pytest.mark.check  # three full calibrations; make test checks the stated sigma against the dense inverse
 def test_stated_sigma_covers_the_actual_error_over_seeds():
     """Coverage against repeated simulations (benchmarks/uncertainty.py at a smaller setting).
 
