@@ -53,12 +53,19 @@ def label_sequence(
     if bad:
         raise InputError(f"seeds_by_frame names frames {bad} outside 0..{n - 1}")
     base = replace(params, seeds=())
+    alone = {} if phantom.lattice else {"search_around": False}
     out = []
     for i in range(n):
         seeds = tuple(tuple(s) for s in seeds_by_frame.get(i, ()))
-        out.append(label_frame(centroids_seq[i], phantom, replace(base, seeds=seeds) if seeds else base))
+        # a marker labelling that leaves much of its frame unexplained is weighed against its neighbours (below),
+        # not first searched around its own pose as a frame alone is: that search costs seconds, and its result
+        # would be weighed against the neighbours all the same
+        out.append(label_frame(centroids_seq[i], phantom, replace(base, seeds=seeds) if seeds else base, **alone))
     if phantom.lattice:  # one numbering of the plate's holes across the frames
         return number_lattice_sequence(out, phantom.lattice, phantom.pitch_mm)
+    if sum(lab.ok for lab in out) < 2:
+        # no neighbour to weigh such a labelling against before it serves its neighbours: searched around, as alone
+        out = [label_frame(centroids_seq[i], phantom, base) if _doubtful(lab) else lab for i, lab in enumerate(out)]
     own_reason = [lab.reason for lab in out]
     c_assumed = float(iop_guess((1, 1), params.source_image_distance_mm, params.pixel_pitch_mm)[2])
     tried: dict[int, tuple] = {}  # frame -> the labelled neighbours it was last tried from
@@ -125,6 +132,11 @@ def _from_neighbours(
     )
 
 
+def _doubtful(lab: Labels) -> bool:
+    """True for a frame labelled from its own markers whose labelling leaves much of it unexplained."""
+    return lab.ok and lab.pose_source == "markers" and not lab.explains_most
+
+
 def _suspect(labelled: dict, rotations: dict, checked: set, motion) -> tuple[int, str] | None:
     """A labelled frame, not ``checked`` yet, to weigh against its neighbours, and why; None if there is none.
 
@@ -137,7 +149,7 @@ def _suspect(labelled: dict, rotations: dict, checked: set, motion) -> tuple[int
     if len(labelled) < 2:
         return None
     for i, lab in labelled.items():
-        if i not in checked and lab.pose_source == "markers" and not lab.explains_most:
+        if i not in checked and _doubtful(lab):
             return i, "its labelling from its markers leaves much of the frame unexplained, and from its neighbours"
     worst, worst_d = None, _SUSPECT_SIGMAS
     for i, R in rotations.items():
