@@ -112,9 +112,10 @@ class Tally:
             self.correct += int(np.isin(eligible, lab.bead_id[truth == lab.bead_id]).sum())
 
     def merge(self, other: "Tally") -> None:
+        slowest = max(self.slowest, other.slowest)
         for name in self.__dataclass_fields__:
             setattr(self, name, getattr(self, name) + getattr(other, name))
-        self.slowest = max(self.slowest, other.slowest)
+        self.slowest = slowest
 
     def row(self, name: str) -> str:
         pct = 100.0 * self.correct / max(self.eligible, 1)
