@@ -40,6 +40,7 @@ def label_cube(
     from_markers: bool = True,
     pool: bool = False,
     reference: Labels | None = None,
+    search_around: bool = True,
 ) -> Labels:
     """Label one frame of a 3D phantom from seeds, else from the markers and then from ``prior_pose``.
 
@@ -49,7 +50,9 @@ def label_cube(
     ``from_markers=False`` skips the markers (they failed before); ``pool=True`` weighs the markers'
     labellings together with those found from the prior (a frame whose markers gave a pose far from its
     neighbours'). ``reference`` (a labelled frame of the same system) lends its camera to the search:
-    its principal distance and the distortion seen on its beads (:func:`_camera_of`).
+    its principal distance and the distortion seen on its beads (:func:`_camera_of`). ``search_around=False``
+    keeps a marker labelling that leaves much of the frame unexplained as it is, without searching the poses
+    around it (:func:`_searched_around`): a sequence weighs it against its neighbours instead.
     """
     frame, det = make_cube_frame(det, phantom, params, iop)
     if frame is None:
@@ -67,7 +70,7 @@ def label_cube(
             found, why = _label_from_poses(frame, poses, scores)
             if found and not (pool and prior_pose is not None):
                 best, why = settle(frame, found)
-                if best is not None and not explains_most(frame, best):
+                if search_around and best is not None and not explains_most(frame, best):
                     best, why = _searched_around(frame, best, found)
         if best is not None or prior_pose is None:
             return _finish(frame, best, why, "markers")

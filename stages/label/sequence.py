@@ -25,7 +25,9 @@ def label_sequence(
     First every frame is labelled alone: from its seeds (``seeds_by_frame[i]``, ``(id, x_px, y_px)``
     triples) or its markers. A frame labelled from its markers whose labelling leaves much of it
     unexplained, or whose pose lies far from its neighbours', is weighed against the labellings found near
-    its neighbours' orientation (:func:`_suspect`). Then each frame that failed is labelled from its labelled
+    its neighbours' orientation (:func:`_suspect`); the former is not first searched around its own pose, as
+    a frame alone is (:func:`~fluorocal.stages.label.cube.label_cube`), unless fewer than two frames are
+    labelled alone. Then each frame that failed is labelled from its labelled
     neighbours, those nearest a labelled frame first, and each frame so labelled serves its own neighbours in turn:
     the orientation is predicted between the nearest labelled frames on either side (or from one side
     and the sequence's mean motion per frame), and rotations about it are searched with the position
@@ -53,12 +55,16 @@ def label_sequence(
     if bad:
         raise InputError(f"seeds_by_frame names frames {bad} outside 0..{n - 1}")
     base = replace(params, seeds=())
+    alone = {} if phantom.lattice else {"search_around": False}
     out = []
     for i in range(n):
         seeds = tuple(tuple(s) for s in seeds_by_frame.get(i, ()))
-        out.append(label_frame(centroids_seq[i], phantom, replace(base, seeds=seeds) if seeds else base))
+        # a doubtful marker labelling is weighed against the neighbours below, not first searched around (seconds)
+        out.append(label_frame(centroids_seq[i], phantom, replace(base, seeds=seeds) if seeds else base, **alone))
     if phantom.lattice:  # one numbering of the plate's holes across the frames
         return number_lattice_sequence(out, phantom.lattice, phantom.pitch_mm)
+    if sum(lab.ok for lab in out) < 2:  # no neighbour to weigh it against before it serves them: as alone
+        out = [label_frame(centroids_seq[i], phantom, base) if _doubtful(lab) else lab for i, lab in enumerate(out)]
     own_reason = [lab.reason for lab in out]
     c_assumed = float(iop_guess((1, 1), params.source_image_distance_mm, params.pixel_pitch_mm)[2])
     tried: dict[int, tuple] = {}  # frame -> the labelled neighbours it was last tried from
@@ -125,6 +131,11 @@ def _from_neighbours(
     )
 
 
+def _doubtful(lab: Labels) -> bool:
+    """True for a frame labelled from its own markers whose labelling leaves much of it unexplained."""
+    return lab.ok and lab.pose_source == "markers" and not lab.explains_most
+
+
 def _suspect(labelled: dict, rotations: dict, checked: set, motion) -> tuple[int, str] | None:
     """A labelled frame, not ``checked`` yet, to weigh against its neighbours, and why; None if there is none.
 
@@ -137,7 +148,7 @@ def _suspect(labelled: dict, rotations: dict, checked: set, motion) -> tuple[int
     if len(labelled) < 2:
         return None
     for i, lab in labelled.items():
-        if i not in checked and lab.pose_source == "markers" and not lab.explains_most:
+        if i not in checked and _doubtful(lab):
             return i, "its labelling from its markers leaves much of the frame unexplained, and from its neighbours"
     worst, worst_d = None, _SUSPECT_SIGMAS
     for i, R in rotations.items():
