@@ -199,7 +199,7 @@ def project_copy(tmp_path_factory):
     return root, runs, edits
 
 
-@pytest.mark.slow
+@pytest.mark.check  # every module in turn, in a copy of the package: make test keeps the issue's own cases
 def test_each_module_changes_the_key_of_exactly_the_stages_that_run_it(project_copy):
     root, runs, edits = project_copy
     for stage, run in runs.items():  # the copy was run, not the installed package
@@ -221,7 +221,7 @@ def test_the_issue_cases(project_copy):
     assert edits["modules"][str(root / "fluorocal" / "graph.py")] == []  # the hooks' values are in the key
 
 
-@pytest.mark.slow
+@pytest.mark.check  # every module in turn, in a copy of the package: make test keeps the issue's own cases
 def test_a_library_version_changes_the_key_of_exactly_the_stages_that_call_it(project_copy):
     _, runs, edits = project_copy
     for library, changed in edits["libraries"].items():
