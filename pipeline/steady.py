@@ -22,6 +22,25 @@ def read_steady(path: str | Path, planned_sha256: str, indices=None) -> list:
     InputError
         The file's content differs from the planned one before or after the read (it was replaced or is
         being written); nothing read from it is returned, so nothing of it is cached.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import numpy as np
+    >>> from fluorocal.cache import file_sha256
+    >>> from fluorocal.stages.io.still import write_still
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     path = Path(d) / "f.tif"
+    ...     write_still(path, np.full((4, 6), 1000, np.uint16))
+    ...     planned = file_sha256(path)
+    ...     (frame,) = read_steady(path, planned)
+    ...     write_still(path, np.full((4, 6), 7, np.uint16))  # replaced after the run was planned
+    ...     try:
+    ...         read_steady(path, planned)
+    ...     except InputError as exc:
+    ...         refused = "changed before fluorocal read it" in str(exc)
+    >>> frame.image.shape, refused
+    ((4, 6), True)
     """
     from fluorocal.cache import file_sha256
     from fluorocal.stages import io

@@ -208,6 +208,8 @@ def test_undistort_keeps_format_and_depth(project, tmp_path):
                 str(project / "out" / "calibration.json"),
                 "--system",
                 "A",
+                "--outside",
+                "keep",  # the maps alone: the edges' background has its own tests (test_clinic_edges.py)
                 "--out",
                 str(tmp_path),
                 str(frame),

@@ -133,7 +133,8 @@ def test_a_killed_pool_worker_is_one_clear_error(project):
     import os
 
     die = Stage("die", os._exit, int, inputs=())  # called as os._exit(params): the worker process ends at once
-    task = parallel.FrameTask(str(_frame_file(project)), "", (parallel.FrameJob(0, 0, "f", (parallel.Step(die, 3),)),))
+    frame = _frame_file(project)  # its hash as planned: the worker reads it steadily, then dies
+    task = parallel.FrameTask(str(frame), file_sha256(frame), (parallel.FrameJob(0, 0, "f", (parallel.Step(die, 3),)),))
     with pytest.raises(parallel.WorkerLost, match="a worker process died .* run again"):
         list(parallel.run_tasks([task], ComputeConfig(jobs=1)))
 

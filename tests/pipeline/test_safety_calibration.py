@@ -18,13 +18,13 @@ from fluorocal.cli import main
 from fluorocal.stages.errors import ArtifactError
 from fluorocal.stages.io import write_still
 
-from tests.pipeline.test_undistort_api import H, W, _calibration
+from tests.pipeline.synthetic_calibration import H, W, synthetic_calibration
 
 
 @pytest.fixture()
 def cal_path(tmp_path):
     """The synthetic two-system calibration of test_undistort_api with one exposure's pose, saved."""
-    cal = _calibration()
+    cal = synthetic_calibration()
     cal = Calibration(list(cal.systems.values()), {0: (np.array([1.0, 0, 0, 0]), np.array([0, 0, -1000.0]))}, {})
     path = tmp_path / "cal" / "calibration.json"
     path.parent.mkdir()

@@ -18,15 +18,15 @@ from fluorocal.calibration import Calibration, SystemCalibration
 from fluorocal.cli import main
 from pydicom import uid
 
-from tests.pipeline.test_undistort_api import H, W, _field
-from tests.stages.test_dicom_derived import _source
+from tests.helpers import save_dicom
+from tests.pipeline.synthetic_calibration import H, W, smooth_field
 
 
 @pytest.fixture()
 def identity(tmp_path):
     """A calibration of one system at W x H whose correction field is zero everywhere; its path."""
     iop = np.array([W / 2, H / 2, 1000.0])
-    system = SystemCalibration("A", (W, H), iop, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros(3), _field(0.0))
+    system = SystemCalibration("A", (W, H), iop, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros(3), smooth_field(0.0))
     cal = Calibration([system], {}, {"scheme": "test"})
     map_x, map_y = cal.remap_maps("A")
     yy, xx = np.mgrid[0:H, 0:W]
@@ -180,7 +180,7 @@ def test_a_jpeg_keeps_its_channels_within_its_codec_loss(identity, tmp_path):
 def _dicom(path, samples, *, transfer=uid.ExplicitVRLittleEndian, **tags):
     """A DICOM of ``samples`` (H, W) as stored (int16: signed), in ``transfer`` syntax, with ``tags``."""
     signed = samples.dtype.kind == "i"
-    ds = _source(path, np.zeros((1, H, W), np.uint16), PixelRepresentation=int(signed), Rows=H, Columns=W, **tags)
+    ds = save_dicom(path, np.zeros((1, H, W), np.uint16), PixelRepresentation=int(signed), Rows=H, Columns=W, **tags)
     ds.file_meta.TransferSyntaxUID = transfer
     order = ">" if transfer == uid.ExplicitVRBigEndian else "<"
     ds.PixelData = samples.astype(order + samples.dtype.str[1:]).tobytes()
@@ -230,7 +230,7 @@ def test_a_dicom_comes_back_with_its_stored_values_and_representation(identity, 
 
 def test_colour_dicom_is_refused(identity, tmp_path, capsys):
     source = tmp_path / "rgb.dcm"
-    ds = _source(source, np.zeros((1, H, W), np.uint16), Rows=H, Columns=W)
+    ds = save_dicom(source, np.zeros((1, H, W), np.uint16), Rows=H, Columns=W)
     ds.PhotometricInterpretation, ds.SamplesPerPixel, ds.PlanarConfiguration = "RGB", 3, 0
     ds.BitsAllocated, ds.BitsStored, ds.HighBit = 8, 8, 7
     ds.PixelData = np.zeros((H, W, 3), np.uint8).tobytes()

@@ -121,3 +121,16 @@ def seeds_from_truth(ft, rng, n=6, click_noise_px=1.0):
     pos = {t: k for k, t in enumerate(ft.ids)}
     pick = clear[np.linspace(0, len(clear) - 1, n).astype(int)]
     return tuple((float(i), *(ft.outline_xy_px[pos[i]] + rng.normal(scale=click_noise_px, size=2))) for i in pick)
+
+
+#: the first configuration of benchmarks/label_varied.py: six markers at random, 9 deg steps, markers hidden in
+#: one frame in ten
+VARIED = dict(
+    marker_layout="random",
+    n_markers=6,
+    turntable_step_deg=9.0,
+    turntable_wobble_deg=5.0,
+    turntable_translation_mm=20.0,
+    turntable_height_mm=15.0,
+    hidden_marker_fraction=0.1,
+)

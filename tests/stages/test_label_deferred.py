@@ -15,8 +15,7 @@ import pytest
 from fluorocal.stages.label import label_sequence
 from fluorocal.stages.simulate import SimulateParams, simulate
 
-from tests.stages.test_label import detections_from_truth, params_of, unambiguous_ids
-from tests.stages.test_label_varied import VARIED
+from tests.stages.label_truth import VARIED, detections_from_truth, params_of, unambiguous_ids
 
 
 @pytest.fixture(scope="module")

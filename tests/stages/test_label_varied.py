@@ -15,7 +15,7 @@ from fluorocal.stages.label.motion import OrientationPrior, predict
 from fluorocal.stages.simulate import SimulateParams, simulate
 from scipy.spatial.transform import Rotation
 
-from tests.stages.label_truth import detections_from_truth, params_of, seeds_from_truth, unambiguous_ids
+from tests.stages.label_truth import VARIED, detections_from_truth, params_of, seeds_from_truth, unambiguous_ids
 
 #: the motion of issue 12: the turntable's axis wobbling by up to 5 deg, shifts of up to +-20 mm
 WOBBLY = dict(turntable_wobble_deg=5.0, turntable_translation_mm=20.0, turntable_step_deg=10.0)
@@ -66,19 +66,6 @@ def test_no_markers_seeds_on_the_first_frame_of_a_wobbling_sequence():
     labs = label_sequence([c for c, _ in dets], sim.phantom, params_of(sp), {0: seeds_from_truth(fts[0], rng)})
     assert [lab.pose_source for lab in labs] == ["seeds"] + ["prior"] * 5
     check_sequence(labs, dets, fts, min_fraction=0.99)  # the issue's target, as above
-
-
-#: the first configuration of benchmarks/label_varied.py: six markers at random, 9 deg steps, markers hidden in
-#: one frame in ten
-VARIED = dict(
-    marker_layout="random",
-    n_markers=6,
-    turntable_step_deg=9.0,
-    turntable_wobble_deg=5.0,
-    turntable_translation_mm=20.0,
-    turntable_height_mm=15.0,
-    hidden_marker_fraction=0.1,
-)
 
 
 def test_a_wrong_labelling_from_the_last_frames_markers_gives_way_to_its_neighbour():
