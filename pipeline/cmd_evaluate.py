@@ -195,7 +195,9 @@ def _publish(out_dir: Path, config, result, ours: str, notes: list[str], image_s
     from fluorocal.evaluation import headline, publish_evaluation
 
     names = tuple(s.name for s in config.systems)
-    written = publish_evaluation(out_dir, result, ours, notes, systems=names, image_size_px=image_size_px)
+    written = publish_evaluation(
+        out_dir, result, ours, notes, systems=names, image_size_px=image_size_px, owner=config.path
+    )
     md = next(p for p in written if p.name == "evaluation.md")
     lines = md.read_text(encoding="utf-8").splitlines()
     print("\n".join(line for line in lines if line.startswith(("|", "- ", "No peer"))))

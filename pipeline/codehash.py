@@ -12,7 +12,8 @@ is not followed. Comments, layout and docstrings are not code: changing them
 changes no key. No hand-kept version number can go stale.
 
 The versions of the numerical libraries the code reached imports
-(:data:`LIBRARIES`: NumPy, SciPy, OpenCV, scikit-image) are in the digest too,
+(:data:`LIBRARIES`: NumPy, SciPy, OpenCV, scikit-image and the frame decoders
+OpenImageIO, pydicom, tifffile) are in the digest too,
 with those of the libraries they are built on: a new SciPy recomputes the
 stages that call SciPy, and only them.
 """
@@ -27,7 +28,16 @@ from functools import lru_cache
 from pathlib import Path
 
 #: the libraries whose version is in the digest of the code importing them -> the ones they run in turn
-LIBRARIES = {"numpy": (), "scipy": ("numpy",), "cv2": ("numpy",), "skimage": ("numpy", "scipy")}
+LIBRARIES = {
+    "numpy": (),
+    "scipy": ("numpy",),
+    "cv2": ("numpy",),
+    "skimage": ("numpy", "scipy"),
+    # the frame decoders: a new release may decode the same file to other pixels
+    "OpenImageIO": ("numpy",),
+    "pydicom": ("numpy",),
+    "tifffile": ("numpy",),
+}
 
 
 def code_digest(modules) -> str:

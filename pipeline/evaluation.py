@@ -186,8 +186,10 @@ def write_residual_maps(folder: Path, residuals, system_names, image_size_px, un
     return written
 
 
-def publish_evaluation(out_dir: Path, evaluation, ours: str, notes: list[str], *, systems, image_size_px) -> list[Path]:
-    """Write the CSV, the Markdown table and the plots into ``out_dir`` as one set; return the paths."""
+def publish_evaluation(
+    out_dir: Path, evaluation, ours: str, notes: list[str], *, systems, image_size_px, owner
+) -> list[Path]:
+    """Write the CSV, the Markdown table and the plots into ``out_dir`` as one set, of project ``owner``."""
     scores = evaluation.scores
 
     def write(staging: Path) -> list[Path]:
@@ -201,4 +203,4 @@ def publish_evaluation(out_dir: Path, evaluation, ours: str, notes: list[str], *
             *maps,
         ]
 
-    return publish(out_dir, write)
+    return publish(out_dir, write, owner=owner)

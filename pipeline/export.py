@@ -60,8 +60,8 @@ def check_outputs(config, out_dir=None) -> Path:
         keep_out += [(f"frame {f} of system {system.name}", f) for f in system.frames]
         if system.seeds is not None:
             keep_out.append((f"the seeds of system {system.name}", system.seeds))
-    owner = config.path if out_dir is None else None  # the run's own folder: refused if another project's
-    out_dir = check_output_dir(config.output_dir if out_dir is None else out_dir, keep_out=keep_out, owner=owner)
+    # the run's folder or another command's (evaluate): refused if another project published there
+    out_dir = check_output_dir(config.output_dir if out_dir is None else out_dir, keep_out=keep_out, owner=config.path)
     sweep(out_dir)
     return out_dir
 

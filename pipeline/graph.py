@@ -73,11 +73,14 @@ class Stage:
     extras: Callable | None = None
 
     def code_modules(self) -> tuple[str, ...]:
-        """The modules whose code, with all they import, makes the stage's artifact: its function's and its gather's.
+        """The modules whose code, with all they import, makes the stage's artifact.
 
-        ``context`` and ``extras`` are left out: their values, not their code, enter the key.
+        Its function's and its gather's, and the readers that turn its sources (:data:`SOURCE_CODE`: a frame
+        file, the phantom CSV) into its inputs, whose keys hash only the files' bytes. ``context`` and
+        ``extras`` are left out: their values, not their code, enter the key.
         """
-        return tuple(f.__module__ for f in (self.func, self.gather) if f is not None)
+        own = tuple(f.__module__ for f in (self.func, self.gather) if f is not None)
+        return own + tuple(m for i in self.inputs for m in SOURCE_CODE.get(i, ()))
 
     def code_digest(self) -> str:
         """Digest of the code of :meth:`code_modules` and all they import (:func:`fluorocal.codehash.code_digest`)."""
@@ -223,6 +226,10 @@ def plate_orientations(config, units) -> tuple:
     found = frame_orientations(config, units)
     return tuple((u.system, u.exposure, o.name, o.orbit_deg, o.tilt_deg) for u, o in zip(units, found))
 
+
+#: the modules that read a source input (keyed by its file's bytes alone) into what a stage takes: their code is
+#: in the key of every stage taking that input
+SOURCE_CODE = {"frame": ("fluorocal.stages.io.frames",), "phantom": ("fluorocal.stages.io.tables",)}
 
 #: the project's stages in execution order: (stage name, module, entry function, Params class, inputs, options);
 #: a gather function is named ``"module:function"`` (imported with the stages, its module's code in the key)

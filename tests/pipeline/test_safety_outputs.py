@@ -58,6 +58,20 @@ def test_a_second_project_is_refused_the_first_s_output_folder(project, capsys):
     other.unlink()
 
 
+def test_evaluate_is_refused_another_project_s_output_folder(project, capsys):
+    """``evaluate --out`` into a folder that another project published: refused before any work (found in review)."""
+    out = project / "out"
+    other = project / "other_eval.toml"
+    text = (project / "fluorocal.toml").read_text()
+    assert 'dir = "out"' in text
+    other.write_text(text.replace('dir = "out"', 'dir = "out_other"'))  # its own [output] dir
+    before = _snapshot(out)
+    assert main(["--quiet", "evaluate", str(other), "--out", str(out)]) == 2
+    assert "holds the outputs of another project" in capsys.readouterr().err
+    assert _snapshot(out) == before
+    other.unlink()
+
+
 def test_publish_records_its_owner_and_refuses_another(tmp_path):
     from fluorocal.outputs import check_output_dir
     from fluorocal.stages.errors import InputError
