@@ -247,7 +247,7 @@ class Calibration:
         try:
             systems = [_system_from_doc(s, path) for s in doc["systems"]]
             exposures = dict(_exposure_from_doc(e, path) for e in doc.get("exposures", []))
-        except (KeyError, TypeError, ValueError, OSError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError, OSError) as exc:  # OverflowError: an integer of 10**400
             if isinstance(exc, ArtifactError):
                 raise
             raise ArtifactError(f"{path}: malformed calibration ({type(exc).__name__}: {exc})") from exc

@@ -128,6 +128,14 @@ def _where(path: Path, section: str, key: str) -> str:
     return f"{path.name}: {section}key '{key}'"
 
 
+def _as_float(value: int | float) -> float:
+    """``value`` as a float; an integer beyond a float's range (TOML allows 10**400) as infinity, refused as such."""
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf if value > 0 else -math.inf
+
+
 def _expect(value, kind, what: str, path: Path, section: str, key: str):
     ok = isinstance(value, kind) and not (kind in ((int, float), float) and isinstance(value, bool))
     if not ok:
@@ -213,7 +221,7 @@ def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
     )
     if lattice not in ("hex", "square"):
         raise ConfigError(f'{_where(path, section, "lattice")}: expected "hex" or "square"; got {lattice!r}')
-    pitch = float(_expect(table.get("pitch"), (int, float), "a positive number (mm)", path, section, "pitch"))
+    pitch = _as_float(_expect(table.get("pitch"), (int, float), "a positive number (mm)", path, section, "pitch"))
     if not (math.isfinite(pitch) and pitch > 0):
         raise ConfigError(f"{_where(path, section, 'pitch')}: expected a positive number (mm); got {pitch}")
     if pitch < 1.0:  # grid plates' pitches are millimetres; a smaller number is a unit slip
@@ -242,7 +250,7 @@ def _system(table: dict, i: int, root: Path, path: Path) -> SystemConfig:
     numbers = {}
     for key, low, high in SYSTEM_RANGES_MM:
         expected = f"a positive number (mm) in {low:g}..{high:g} mm"
-        v = float(_expect(table.get(key), (int, float), expected, path, section, key))
+        v = _as_float(_expect(table.get(key), (int, float), expected, path, section, key))
         if not (math.isfinite(v) and low <= v <= high):
             raise ConfigError(f"{_where(path, section, key)}: expected {expected}; got {v:g}")
         numbers[key] = v
@@ -545,9 +553,11 @@ def _coerce(value, hint, where: str):
             return _int_in_range(value, where)
     elif hint is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            if not math.isfinite(value) or abs(value) > MAX_CONFIG_FLOAT:
-                raise ConfigError(f"{where}: expected a finite number of size up to {MAX_CONFIG_FLOAT:g}; got {value}")
-            return float(value)
+            number = _as_float(value)
+            if not math.isfinite(number) or abs(number) > MAX_CONFIG_FLOAT:
+                shown = value if abs(number) < math.inf else "an integer beyond a float's range"
+                raise ConfigError(f"{where}: expected a finite number of size up to {MAX_CONFIG_FLOAT:g}; got {shown}")
+            return number
     elif hint is str:
         if isinstance(value, str):
             return value
