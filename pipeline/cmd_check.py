@@ -70,7 +70,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--system", metavar="NAME", help="the system the frames come from (default: the only one)")
     p.add_argument(
         "--orientation",
-        metavar="NAME",
+        metavar="NAME|orbit=DEG,tilt=DEG",
         help="check against this orientation (a name, or orbit=DEG,tilt=DEG) instead of each frame's own "
         "(default: the angles each frame records, else the orientation named like the file)",
     )
@@ -199,8 +199,10 @@ def plate_setup(cal, calibration: Path, system: str) -> PlateSetup:
     from fluorocal.stages.label.lattice import lattice_index
 
     if cal.meta.get("scheme") != "plate":
-        raise InputError(f"{calibration}: not a grid-plate calibration (scheme {cal.meta.get('scheme')!r}); "
-                         "fluorocal check needs the plate's self-calibrated layout")  # fmt: skip
+        raise InputError(
+            f"{calibration}: not a grid-plate calibration (scheme {cal.meta.get('scheme')!r}); "
+            "fluorocal check needs the plate's self-calibrated layout"
+        )
     config_path = Path(str(cal.meta.get("config", "")))
     try:
         config = load_config(config_path, writable=False)
@@ -212,7 +214,9 @@ def plate_setup(cal, calibration: Path, system: str) -> PlateSetup:
             f"{layout_path}: missing; the plate's layout is written beside the calibration by fluorocal run"
         )
     table = read_table(layout_path, OBJECT_POINTS)
-    geometry = next(s for s in config.systems if s.name == system)
+    geometry = next((s for s in config.systems if s.name == system), None)
+    if geometry is None:
+        raise InputError(f"{config_path}: has no system {system!r}, which {calibration} was calibrated with")
     return PlateSetup(
         config.phantom.lattice,
         config.phantom.pitch_mm,
@@ -343,7 +347,7 @@ def append_record(path: Path, rows: list) -> None:
 
     old = []
     if path.exists():
-        with open(path, newline="") as fh:
+        with open(path, newline="", encoding="utf-8") as fh:
             old = list(csv.reader(fh))
         if old and old[0] != RECORD_COLUMNS:
             raise InputError(f"{path}: not a fluorocal QA record (columns {old[0][:4]}...); choose another --record")
@@ -356,7 +360,7 @@ def draw_trend(record: Path, png: Path) -> Path:
 
     from fluorocal.report import new_figure, save_figure
 
-    with open(record, newline="") as fh:
+    with open(record, newline="", encoding="utf-8") as fh:
         rows = list(csv.DictReader(fh))
     plt, fig, axes = new_figure(3, width=4.6, height=3.6)
     for ax, key in zip(axes, ("rms", "p95", "max")):

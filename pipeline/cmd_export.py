@@ -11,7 +11,7 @@ FORMAT is one of:
            to the field, the fit error stated in the file
   paper    the paper's text files: .iop, .eop, .xyz and .pho (image frame x = column, y = -row)
 
-docs/exports.md, gives each format's frame and units. A grid plate's calibration has no
+docs/exports.md gives each format's frame and units. A grid plate's calibration has no
 interior orientation or poses: only opencv exports it (the maps, with the nominal camera matrix).
 """
 

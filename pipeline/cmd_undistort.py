@@ -70,8 +70,8 @@ def add_parser(subparsers) -> None:
         "--orientation",
         metavar="NAME|orbit=DEG,tilt=DEG",
         help="the C-arm orientation of the inputs: a calibrated orientation's name, or orbit=DEG,tilt=DEG to "
-        "interpolate between calibrated ones (default: the system's one field, or with several the orientation "
-        "named like each input's file stem)",
+        "interpolate between calibrated ones (default: the C-arm angles each frame records, else the system's one "
+        "field, or with several the orientation named like each input's file stem)",
     )
     add_out(p, "output folder (default: ./undistorted)", default=Path("undistorted"))
     p.add_argument(

@@ -144,7 +144,7 @@ def calibration_from_result(runner, result):
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "config": str(runner.config.path),
         "scheme": result.scheme,
-        "conventions": "README.md#conventions: px with the top-left pixel centre at (0, 0), x right, y down; "
+        "conventions": "docs/concepts.md#conventions: px with the top-left pixel centre at (0, 0), x right, y down; "
         "ideal = measured - Δ(measured); q (w, x, y, z) rotates object vectors into the camera frame",
         "uncertainty": uncertainty_note(result),
         "statistics": {
@@ -168,12 +168,12 @@ def uncertainty_note(result) -> str:
     """What ``iop_std_px`` and the fields' ``sigma_px`` of a calibration mean (docs/uncertainties.md)."""
     if result.uncertainty is not None:
         return (
-            "README.md#uncertainties: iop_px under the field gauge (the field has no least-squares principal-point "
+            "docs/uncertainties.md: iop_px under the field gauge (the field has no least-squares principal-point "
             "shift, scaling or camera rotation at the training observations); iop_std_px and the fields' sigma_px "
             "over the joint problem (IOP, poses, points and field estimated together)"
         )
     return (
-        "README.md#uncertainties: iop_std_px is the adjustment's, conditional on the field (too small: a free "
+        "docs/uncertainties.md: iop_std_px is the adjustment's, conditional on the field (too small: a free "
         "field trades against the principal point and c); the fields' sigma_px the regression's own"
     )
 
@@ -290,7 +290,7 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
         f"{st['n_unused']} observation(s) not estimable; {st['iterations']} iteration(s) of the alternation, "
         f"{'converged' if st['converged'] else 'not converged'} ({st['stop_reason']}), {st['wall_time_s']:.1f} s.",
         "",
-        f"IOP ± σ and the field's σ: {cal.meta.get('uncertainty', 'see README.md#uncertainties')}.",
+        f"IOP ± σ and the field's σ: {cal.meta.get('uncertainty', 'see docs/uncertainties.md')}.",
         "",
     ]
     lines += [f"![{p.stem}]({p.name})" for p in plots]
