@@ -117,7 +117,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="STAGE",
         help="recompute STAGE and everything downstream (repeatable)",
     )
-    p.add_argument("--until", metavar="STAGE", help="stop after STAGE (default: run all stages)")
+    p.add_argument(
+        "--until",
+        metavar="STAGE",
+        help="stop after STAGE; its tables go to <output dir>/until-STAGE/, the published outputs stay "
+        "(default: run all stages)",
+    )
     where = p.add_mutually_exclusive_group()
     where.add_argument(
         "--jobs",
