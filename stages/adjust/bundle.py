@@ -127,7 +127,7 @@ def _solve_determined(observations, nominal, initial, corrections_px, **settings
         weak = _beads_without_inliers(prepared, solved, solver.outlier_weight, selection.min_exposures_per_bead)
         if not weak.any() or attempt == MAX_RESELECTIONS:
             return prepared, solved
-        log.info(
+        log.debug(  # the report counts what was left out; a normal run stays quiet
             "%d bead(s) left with inliers in fewer than %d epochs (a gross error among too few observations): "
             "solving again without them",
             int(weak.sum()),

@@ -428,7 +428,7 @@ def _solve_reduced(parts, matvec, rhs, max_cg_iterations: int, cg_tolerance: flo
     pre = LinearOperator((start, start), matvec=precondition, dtype=np.float64)
     v, info = cg(op, rhs, x0=x0, rtol=cg_tolerance, maxiter=max_cg_iterations, M=pre)
     if info > 0:
-        logger.info("joint field step: CG stopped after %d iterations short of its tolerance", info)
+        logger.debug("joint field step: CG stopped after %d iterations short of its tolerance", info)
     return v
 
 

@@ -196,7 +196,7 @@ def _calibrate_sorted(observations, phantom, initial, image_size, scheme, params
     plan = _plan(params, observations, sizes, adjuster, scheme.estimate_iop, scheme.smooth)
     adj = adjuster(np.zeros((len(observations.xy_px), 2)), None, final=not scheme.learn_field)
     out = adjustment_outcome(adj, observations.sigma_px)
-    logger.info("scheme %s: initial adjustment cost %.6g, inlier RMS %.4f px", scheme, out.cost, out.rms_px)
+    logger.debug("scheme %s: initial adjustment cost %.6g, inlier RMS %.4f px", scheme, out.cost, out.rms_px)
     state = _initial_state(plan, adj, out)
     if not scheme.learn_field:
         return loop_result(plan, scheme, state, True, "scheme 'none' learns nothing", t0, adj.residual_px)
@@ -212,7 +212,7 @@ def _calibrate_sorted(observations, phantom, initial, image_size, scheme, params
             break
     if not converged:
         _warn_capped(reason)
-    logger.info("scheme %s: stopped at iteration %d, the best iterate kept: iteration %d (adjustment cost %.6g)",
+    logger.debug("scheme %s: stopped at iteration %d, the best iterate kept: iteration %d (adjustment cost %.6g)",
                 scheme, state.iteration, best.iteration, best.out.cost)  # fmt: skip
     reason = f"{reason}; stopped at iteration {state.iteration}, kept iteration {best.iteration}, the best"
     state = replace(best, history=state.history)
@@ -283,7 +283,7 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     ks = tuple(int(m.k_prev or 0) if phase == "knn" else 0 for m in memory)
     record = IterationRecord(iteration, phase, out.cost, fit_cost, total, ks, out.rms_px, step, step_sigma)
     history = state.history + (record,)
-    logger.info(
+    logger.debug(
         "iteration %d (%s): cost %.6g + %.6g = %.6g, RMS %.4f px, step %.4f px (%.2f sigma), k %s",
         iteration,
         phase,
@@ -491,7 +491,7 @@ def _smoothness(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memor
                                    orders=params.smoothness_orders, n_folds=params.smoothness_folds, seed=params.seed,
                                    base_px=state.grids[s].delta_px, cost_cap=cost_cap)  # fmt: skip
     name = plan.observations.system_names[s]
-    logger.info("system %s: gridded refinement, smoothness order %d, tau %.3g px (CV)", name, cv.order, cv.tau_px)
+    logger.debug("system %s: gridded refinement, smoothness order %d, tau %.3g px (CV)", name, cv.order, cv.tau_px)
     return replace(mem, cv=cv, tau_px=cv.tau_px)
 
 

@@ -525,7 +525,7 @@ def test_bead_left_with_one_inlier_ray_is_dropped(mono, mono_result, bead_at, ca
     label on a bead seen twice put it 270 mm off and stopped the learning loop).
     """
     sub, bead, rows = _two_rays_one_gross(mono, bead_at, np.array([9.0, -12.0]))
-    with caplog.at_level(logging.INFO, logger="fluorocal.stages.adjust"):
+    with caplog.at_level(logging.DEBUG, logger="fluorocal.stages.adjust"):
         res = adjust_bundle(sub, (mono.ids, mono.nominal_mm), mono.initial)
     # every bead reported is where it truly is: the clean solve's worst is 0.016 mm, the sliding point's 4-5 mm
     truth = mono.xyz_true_mm[np.searchsorted(mono.ids, res.bead_id)]
@@ -540,7 +540,7 @@ def test_bead_left_with_one_inlier_ray_is_dropped(mono, mono_result, bead_at, ca
 def test_bead_with_two_good_rays_is_kept(mono, caplog):
     """The same bead with both rays good stays: only a bead its inliers no longer determine is dropped."""
     sub, bead, rows = _two_rays_one_gross(mono, 5, np.zeros(2))
-    with caplog.at_level(logging.INFO, logger="fluorocal.stages.adjust"):
+    with caplog.at_level(logging.DEBUG, logger="fluorocal.stages.adjust"):
         res = adjust_bundle(sub, (mono.ids, mono.nominal_mm), mono.initial)
     assert "left with inliers" not in caplog.text
     assert bead in res.bead_id and res.used[rows].all() and res.inlier[rows].all()
