@@ -28,7 +28,7 @@ PYTEST := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/pyth
 test: $(STAMP)
 	$(PYTEST) -m "not check" $(ARGS)
 
-# the long checks: accuracy on larger simulated sets, the real radiographs (../shared/data), the attack battery
+# the long checks: accuracy on larger simulated sets, long labelling sequences, the real radiographs (../shared/data)
 check: $(STAMP)
 	$(PYTEST) -m check $(ARGS)
 
