@@ -249,24 +249,31 @@ def remap_stored(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, params
 def collimated_area(image: np.ndarray, black: float = 0.0, fraction: float = 0.1) -> np.ndarray:
     """Where a frame is exposed: the intensifier's disc (or the collimator's opening), as a ``(H, W)`` bool mask.
 
-    The pixels brighter than ``black`` by more than ``fraction`` of the 99th percentile brightness, their
-    largest 8-connected region, and that region's convex hull (dark anatomy or beads inside stay in). A frame
-    with no such pixel is exposed everywhere (nothing is taken for outside).
+    Brightness is measured from ``black`` (the type's darkest value, which sets the direction: MinIsWhite frames
+    are bright towards it) and counted from the frame's own dark level (its 1st percentile: a signed frame whose
+    outside sits far above the type's minimum is not taken as exposed everywhere). The pixels brighter than that
+    level by more than ``fraction`` of the way to the 99th percentile, their largest 8-connected region, and that
+    region's convex hull (dark anatomy or beads inside stay in). A frame with no such pixel is exposed everywhere
+    (nothing is taken for outside).
 
     Examples
     --------
     >>> img = np.zeros((5, 7), np.uint16); img[1:4, 2:6] = 1000
     >>> collimated_area(img).astype(int)[2]
     array([0, 0, 1, 1, 1, 1, 0])
+    >>> signed = np.zeros((5, 7), np.int16); signed[1:4, 2:6] = 1500  # outside at 0, the type's black -32768
+    >>> collimated_area(signed, black=-32768).astype(int)[2]
+    array([0, 0, 1, 1, 1, 1, 0])
     """
     import cv2
 
     brightness = np.abs(np.asarray(image, dtype=np.float32) - np.float32(black))
     sample = brightness[::4, ::4] if brightness.size > 1 << 16 else brightness  # every 16th pixel is plenty
-    level = fraction * float(np.percentile(sample, 99))
+    dark, bright99 = (float(v) for v in np.percentile(sample, [1, 99]))
+    level = dark + fraction * (bright99 - dark)
     bright = (brightness > level).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(bright, connectivity=8)
-    if not level > 0 or n < 2:
+    if not bright99 > dark or n < 2:
         return np.ones(brightness.shape, bool)
     largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
     contours, _ = cv2.findContours((labels == largest).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
