@@ -164,10 +164,11 @@ class _Job:
         out = remap_stored(frame, *maps, self.params)
         if frame.ndim == 2:
             return clear_outside(frame, out, *maps, self.params, supported)
-        # each channel as remap_stored resamples it: its own collimated area and background
-        n_channels = out.shape[2]
-        cleared = [clear_outside(frame[..., c], out[..., c], *maps, self.params, supported) for c in range(n_channels)]
-        return np.stack(cleared, axis=-1)
+        # each colour channel as remap_stored resamples it: its own collimated area and background; an alpha
+        # channel (the last of grey+alpha and RGBA) is no intensity and stays as remapped
+        n_colour = out.shape[2] - (out.shape[2] in (2, 4))
+        cleared = [clear_outside(frame[..., c], out[..., c], *maps, self.params, supported) for c in range(n_colour)]
+        return np.stack(cleared + [out[..., c] for c in range(n_colour, out.shape[2])], axis=-1)
 
 
 def _job(cal, args, path: Path, out: Path, chosen, made, views: dict) -> _Job:

@@ -292,3 +292,26 @@ def test_a_bitmap_is_refused(identity, tmp_path, capsys):
     source = tmp_path / "bits.pbm"
     source.write_bytes(b"P4\n%d %d\n" % (W, H) + bytes(W // 8 * H))
     _assert_refused(identity, tmp_path, capsys, source, "a bitmap (PBM) cannot be written back")
+
+
+def test_the_edges_background_leaves_an_alpha_channel_as_remapped(identity, tmp_path):
+    """With the default ``--outside background``, colour channels are cleared outside the disc, alpha is not.
+
+    A bright disc on black with an opaque alpha: a zero field gives every sample back inside the disc, black
+    outside it, and the alpha (no intensity: it has no disc) exactly (found in review: it was cleared to 0).
+    """
+    yy, xx = np.mgrid[0:H, 0:W]
+    disc = (xx - W / 2) ** 2 + (yy - H / 2) ** 2 < (0.4 * H) ** 2
+    frame = np.zeros((H, W, 4), np.uint16)
+    frame[..., :3] = np.where(disc, 40000, 0)[..., None]
+    frame[..., 3] = 65535
+    source = tmp_path / "rgba.png"
+    assert cv2.imwrite(str(source), frame)
+    args = ["--quiet", "undistort", str(identity), str(source), "--system", "A", "--out", str(tmp_path / "u")]
+    assert main(args) == 0
+    back = _oiio_samples(tmp_path / "u" / "rgba.png")
+    np.testing.assert_array_equal(back[..., 3], frame[..., 3])
+    # inside the disc, beyond the linear kernel's reach (1 px) of its rim, every colour sample comes back
+    inner = (xx - W / 2) ** 2 + (yy - H / 2) ** 2 < (0.4 * H - 2) ** 2
+    np.testing.assert_array_equal(back[..., :3][inner], frame[..., :3][inner])
+    assert back[..., :3][~disc].max() == 0
