@@ -115,6 +115,29 @@ def simulated_grid(tmp_path_factory) -> Path:
     return built_once(tmp_path_factory, "grid", lambda root: _calibrate(root, GRID_SIM))
 
 
+def _calibrated_arcadis(arcadis_dir, tmp_path_factory, name: str) -> Path:
+    """``fixtures/arcadis/<name>.toml`` run on the real frames from a copy of the config; its calibration.json."""
+    from fluorocal.cli import main
+
+    root = tmp_path_factory.mktemp(name)
+    text = (ROOT / "fixtures" / "arcadis" / f"{name}.toml").read_text()
+    (root / f"{name}.toml").write_text(text.replace("../../../shared/data/arcadis", str(Path(arcadis_dir).resolve())))
+    assert main(["--quiet", "run", str(root / f"{name}.toml")]) == 0
+    return root / f"out-{name}" / "calibration.json"
+
+
+@pytest.fixture(scope="session")
+def arcadis_calibration(arcadis_dir, tmp_path_factory) -> Path:
+    """The real ARCADIS grid plate calibrated at its six orientations (fixtures/arcadis/orientations.toml)."""
+    return _calibrated_arcadis(arcadis_dir, tmp_path_factory, "orientations")
+
+
+@pytest.fixture(scope="session")
+def centred_calibration(arcadis_dir, tmp_path_factory) -> Path:
+    """The real ARCADIS grid plate calibrated at the centred orientation (fixtures/arcadis/centred.toml)."""
+    return _calibrated_arcadis(arcadis_dir, tmp_path_factory, "centred")
+
+
 def copy_project(source: Path, destination: Path) -> Path:
     """A copy of a project folder (frames, config, cache and outputs) at ``destination``."""
     import shutil

@@ -164,17 +164,6 @@ def test_the_calibration_groups_frames_by_their_recorded_angles_within_the_read_
 REAL = {"grid_orbit_30.dcm": (30.0, 0.0), "grid_tilt_45.dcm": (0.0, 45.0), "spine_centered_0.dcm": (15.0, 0.0)}
 
 
-@pytest.fixture(scope="module")
-def arcadis_calibration(arcadis_dir, tmp_path_factory):
-    """The real ARCADIS grid plate calibrated at its six orientations (fixtures/arcadis/orientations.toml)."""
-    root = tmp_path_factory.mktemp("orientations")
-    config = Path(__file__).parents[2] / "fixtures" / "arcadis" / "orientations.toml"
-    text = config.read_text().replace("../../../shared/data/arcadis", str(Path(arcadis_dir).resolve()))
-    (root / "orientations.toml").write_text(text)
-    assert main(["--quiet", "run", str(root / "orientations.toml")]) == 0
-    return root / "out-orientations" / "calibration.json"
-
-
 @pytest.mark.slow
 def test_real_frames_with_recorded_angles_equal_the_explicit_orientation(arcadis_calibration, arcadis_dir, tmp_path):
     folder = tmp_path / "with_angles"  # copies in the test's own folder: the shared data stay untouched

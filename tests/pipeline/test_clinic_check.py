@@ -17,7 +17,6 @@ from fluorocal.cli import main
 from fluorocal.cmd_check import RECORD_COLUMNS, TOLERANCES_PX, append_record
 from fluorocal.stages.errors import InputError
 
-from tests.pipeline.test_clinic_angles import arcadis_calibration  # noqa: F401 (a fixture)
 from tests.pipeline.test_orientations import _orientation_calibration
 
 #: the six real grid frames and the angles written into their copies (fixtures/arcadis/orientations.toml's)
@@ -71,7 +70,7 @@ def test_the_defaults_are_stated_in_the_help(capsys):
 
 
 @pytest.mark.slow
-def test_real_frames_pass_at_their_orientation_and_fail_at_the_wrong_one(arcadis_calibration, arcadis_dir, tmp_path):  # noqa: F811
+def test_real_frames_pass_at_their_orientation_and_fail_at_the_wrong_one(arcadis_calibration, arcadis_dir, tmp_path):
     folder = tmp_path / "later"  # copies with the C-arm angles written in: the shared data stay untouched
     folder.mkdir()
     for name, (orbit, tilt) in GRID.items():
@@ -95,7 +94,7 @@ def test_real_frames_pass_at_their_orientation_and_fail_at_the_wrong_one(arcadis
 
 
 @pytest.mark.slow
-def test_a_frame_of_another_c_arm_fails_with_its_reason(arcadis_calibration, tmp_path):  # noqa: F811
+def test_a_frame_of_another_c_arm_fails_with_its_reason(arcadis_calibration, tmp_path):
     from fluorocal.cmd_simulate import write_dataset
     from fluorocal.stages.simulate import SimulateParams, simulate
 

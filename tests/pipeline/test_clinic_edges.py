@@ -95,17 +95,6 @@ def test_outside_is_checked():
 # --- the real spine frame ---------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def centred_calibration(arcadis_dir, tmp_path_factory):
-    """The real ARCADIS grid plate calibrated at the centred orientation (fixtures/arcadis/centred.toml)."""
-    root = tmp_path_factory.mktemp("centred")
-    config = Path(__file__).parents[2] / "fixtures" / "arcadis" / "centred.toml"
-    text = config.read_text().replace("../../../shared/data/arcadis", str(Path(arcadis_dir).resolve()))
-    (root / "centred.toml").write_text(text)
-    assert main(["--quiet", "run", str(root / "centred.toml")]) == 0
-    return root / "out-centred" / "calibration.json"
-
-
 @pytest.mark.slow
 def test_spine_frame_rim_row_is_not_warped_and_the_series_is_new(centred_calibration, arcadis_dir, tmp_path):
     source = Path(arcadis_dir) / "spine_centered_0.dcm"
