@@ -21,8 +21,10 @@ demo: $(STAMP)
 # one test process per core (pytest-xdist), each with one BLAS/OpenMP thread: the suite's numerics are small,
 # and oversubscribed threads cost more than they give. --dist loadscope keeps a module's tests on one worker,
 # so each module fixture is built once; the session fixtures are shared by the workers (tests/conftest.py).
+# Bytecode is cached under .venv/pycache (an environment's PYTHONDONTWRITEBYTECODE would make every worker
+# and every CLI subprocess compile the sources and rewrite the test modules' asserts again).
 # ARGS: more pytest options, e.g. `make test ARGS=--durations=15`
-PYTEST := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope
+PYTEST := PYTHONDONTWRITEBYTECODE= PYTHONPYCACHEPREFIX=$(abspath $(VENV))/pycache OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope
 
 # every feature, on small data (<= 3 min): the tests marked `check` are left to `make check`
 test: $(STAMP)

@@ -1,8 +1,8 @@
 """Helpers shared by the test modules: one DICOM builder and one "error modulo a homography".
 
 Test modules import helpers from here (or from the other helper modules of tests/: ``toy``, ``ba_synthetic``,
-``_synthetic``, ``plate_synthetic``, ``plate_truth``, ``label_truth``), never from another test module or from
-``benchmarks/``.
+``_synthetic``, ``orientation_toys``, ``plate_synthetic``, ``plate_truth``, ``label_truth``), never from another
+test module or from ``benchmarks/``.
 """
 
 from __future__ import annotations

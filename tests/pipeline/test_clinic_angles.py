@@ -23,7 +23,7 @@ from fluorocal.stages.io import read_frames
 from fluorocal.stages.io.dicom import frame_angles_deg
 from fluorocal.stages.orientation import OrientationField
 
-from tests.pipeline.test_orientations import _dicom
+from tests.pipeline.orientation_toys import angled_dicom
 from tests.stages.plate_truth import truth_field
 
 SIZE = 256
@@ -146,7 +146,7 @@ def test_a_frame_beyond_the_calibrated_angles_is_refused_naming_it_and_the_range
 def test_the_calibration_groups_frames_by_their_recorded_angles_within_the_read_out_tolerance(tmp_path):
     frames = tmp_path / "frames"
     for name, angles in {"a": (30, 0), "b": (30.04, 0), "c": (30.1, 0), "d": None}.items():
-        _dicom(frames / f"{name}.dcm", angles=angles)
+        angled_dicom(frames / f"{name}.dcm", angles=angles)
     (tmp_path / "phantom.csv").write_text("id,x,y,z\n1,0,0,0\n2,10,0,0\n3,0,10,0\n4,0,0,10\n")
     (tmp_path / "project.toml").write_text(
         '[phantom]\nfile = "phantom.csv"\n\n[[systems]]\nname = "A"\nframes = "frames/*.dcm"\n'

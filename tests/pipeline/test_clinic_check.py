@@ -17,7 +17,7 @@ from fluorocal.cli import main
 from fluorocal.cmd_check import RECORD_COLUMNS, TOLERANCES_PX, append_record
 from fluorocal.stages.errors import InputError
 
-from tests.pipeline.test_orientations import _orientation_calibration
+from tests.pipeline.orientation_toys import orientation_calibration
 
 #: the six real grid frames and the angles written into their copies (fixtures/arcadis/orientations.toml's)
 GRID = {
@@ -54,7 +54,7 @@ def test_the_record_is_appended_and_a_foreign_csv_refused(tmp_path):
 def test_a_calibration_without_a_plate_is_bad_input(tmp_path, capsys):
     calibration = tmp_path / "cal" / "calibration.json"
     calibration.parent.mkdir()
-    _orientation_calibration().save(calibration)
+    orientation_calibration().save(calibration)
     frame = tmp_path / "f.tif"
     frame.write_bytes(b"")
     assert _check(calibration, frame, record=tmp_path / "qa.csv", options=["--system", "A"]) == 2

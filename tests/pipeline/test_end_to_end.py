@@ -254,8 +254,12 @@ def test_a_frame_without_beads_is_excluded_with_a_warning(project, tmp_path, cap
     from fluorocal.stages.io import write_still
 
     root = tmp_path / "p"
-    # the cache comes along (keys are content hashes): only the new frame, its labels and the learning recompute
+    # the cache comes along (keys are content hashes): only the new frame, its labels and the adjustment recompute
+    # (scheme "none": the exclusion is the point here, the learned field is tested above)
     shutil.copytree(project, root, ignore=shutil.ignore_patterns("out"))
+    config = root / "fluorocal.toml"
+    config.write_text(config.read_text().replace('scheme = "knn+iop+smooth"', 'scheme = "none"'))
+    assert 'scheme = "none"' in config.read_text()
     write_still(root / "frames" / "B" / "frame_002.tif", np.full((512, 512), 1500, np.uint16))  # open field, no phantom
     with caplog.at_level(logging.WARNING):
         assert main(["run", str(root / "fluorocal.toml")]) == 0

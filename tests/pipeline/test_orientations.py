@@ -13,18 +13,17 @@ import re
 import numpy as np
 import pydicom
 import pytest
-from fluorocal.calibration import Calibration, SystemCalibration
+from fluorocal.calibration import Calibration
 from fluorocal.cli import main
 from fluorocal.config import ConfigError, OrientationConfig, load_config
 from fluorocal.orientations import default_orientation_name, frame_orientations, orientation_report
 from fluorocal.run import frame_units
 from fluorocal.stages.errors import ArtifactError, InputError
-from fluorocal.stages.field import CorrectionField
-from fluorocal.stages.io import read_frames, write_dicom, write_still
+from fluorocal.stages.io import read_frames, write_still
 from fluorocal.stages.io.dicom import positioner_angles_deg
 from fluorocal.stages.orientation import OrientationField, interpolate_field
 
-from tests.helpers import xa_dataset
+from tests.pipeline.orientation_toys import H, W, angled_dicom, constant_field, orientation_calibration, toy_system
 from tests.pipeline.toy import make_project
 
 # --- config ----------------------------------------------------------------------------------------
@@ -96,29 +95,17 @@ def test_orientation_errors_name_the_key(tmp_path, groups, match):
 # --- DICOM angles ----------------------------------------------------------------------------------
 
 
-def _dicom(path, *, angles=None, n_frames: int = 1, motion: str = "STATIC", empty_tags: bool = False):
-    """A small XA DICOM of 32 x 32 px, with the C-arm angles as tags when given."""
-    ds = xa_dataset(32, 32, PositionerMotion=motion)
-    if angles is not None:
-        ds.PositionerPrimaryAngle, ds.PositionerSecondaryAngle = angles
-    elif empty_tags:  # as the real ARCADIS frames hold them: present, without a value
-        ds.PositionerPrimaryAngle, ds.PositionerSecondaryAngle = None, None
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_dicom(path, ds, np.full((n_frames, 32, 32), 1000, np.uint16))
-    return path
-
-
 def test_positioner_angles_are_read_from_the_header(tmp_path):
-    assert positioner_angles_deg(_dicom(tmp_path / "a.dcm", angles=(30.5, -15))) == (30.5, -15.0)
-    assert positioner_angles_deg(_dicom(tmp_path / "none.dcm")) == (None, None)
-    assert positioner_angles_deg(_dicom(tmp_path / "empty.dcm", empty_tags=True)) == (None, None)
+    assert positioner_angles_deg(angled_dicom(tmp_path / "a.dcm", angles=(30.5, -15))) == (30.5, -15.0)
+    assert positioner_angles_deg(angled_dicom(tmp_path / "none.dcm")) == (None, None)
+    assert positioner_angles_deg(angled_dicom(tmp_path / "empty.dcm", empty_tags=True)) == (None, None)
     # the positioner moved during a cine: the file's angles are not every frame's
-    assert positioner_angles_deg(_dicom(tmp_path / "c.dcm", angles=(10, 0), n_frames=3, motion="DYNAMIC")) == (
+    assert positioner_angles_deg(angled_dicom(tmp_path / "c.dcm", angles=(10, 0), n_frames=3, motion="DYNAMIC")) == (
         None,
         None,
     )
     with pytest.raises(InputError, match=r"bad.dcm: PositionerPrimaryAngle must be an angle in -180..180"):
-        positioner_angles_deg(_dicom(tmp_path / "bad.dcm", angles=(200, 0)))
+        positioner_angles_deg(angled_dicom(tmp_path / "bad.dcm", angles=(200, 0)))
 
 
 def test_the_real_frames_record_no_angles(arcadis_dir):
@@ -134,9 +121,9 @@ def test_the_real_frames_record_no_angles(arcadis_dir):
 
 def _dicom_project(root, extra: str = ""):
     frames = root / "frames"
-    _dicom(frames / "a.dcm", angles=(30, 0))
-    _dicom(frames / "b.dcm")
-    _dicom(frames / "c.dcm", angles=(0, 15), n_frames=3)
+    angled_dicom(frames / "a.dcm", angles=(30, 0))
+    angled_dicom(frames / "b.dcm")
+    angled_dicom(frames / "c.dcm", angles=(0, 15), n_frames=3)
     (root / "phantom.csv").write_text("id,x,y,z\n1,0,0,0\n2,10,0,0\n3,0,10,0\n4,0,0,10\n")
     cfg = root / "project.toml"
     cfg.write_text(
@@ -199,32 +186,9 @@ def test_default_names_are_safe_file_names():
 
 # --- the calibration file --------------------------------------------------------------------------
 
-W, H = 64, 48
-
-
-def _field(dx: float, dy: float) -> CorrectionField:
-    return CorrectionField.constant(W, H, (dx, dy), spacing_px=16.0)
-
-
-def _system(name="A", orientations=(), field=None) -> SystemCalibration:
-    return SystemCalibration(
-        name, (W, H), np.array([32.0, 24.0, 1000.0]), np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros(3),
-        field, tuple(orientations),
-    )  # fmt: skip
-
-
-def _orientation_calibration() -> Calibration:
-    """System A at three orientations (integer shifts, so undistortion moves pixels exactly), B with one field."""
-    a = [
-        OrientationField("o0", 0.0, 0.0, _field(2.0, 0.0)),
-        OrientationField("o30", 30.0, 0.0, _field(0.0, 2.0)),
-        OrientationField("named", None, None, _field(-2.0, 0.0)),
-    ]
-    return Calibration([_system("A", a), _system("B", field=_field(0.5, 0.5))], {}, {"scheme": "test"})
-
 
 def test_save_and_load_several_orientations(tmp_path):
-    cal = _orientation_calibration()
+    cal = orientation_calibration()
     written = cal.save(tmp_path / "calibration.json")
     assert sorted(p.name for p in written) == [
         "calibration.json",
@@ -252,7 +216,7 @@ def test_save_and_load_several_orientations(tmp_path):
 
 
 def test_one_named_orientation_keeps_the_systems_one_field_file(tmp_path):
-    cal = Calibration([_system("A", [OrientationField("centred", 0.0, 0.0, _field(1.0, 0.0))])], {}, {})
+    cal = Calibration([toy_system("A", [OrientationField("centred", 0.0, 0.0, constant_field(1.0, 0.0))])], {}, {})
     cal.save(tmp_path / "calibration.json")
     (a,) = json.loads((tmp_path / "calibration.json").read_text())["systems"]
     assert a["field"]["file"] == a["orientations"][0]["field"]["file"] == "field_A.npz"
@@ -262,7 +226,7 @@ def test_one_named_orientation_keeps_the_systems_one_field_file(tmp_path):
 
 def test_a_version_1_file_still_loads(tmp_path):
     """Version 1 had one ``field`` per system and no ``orientations``."""
-    cal = Calibration([_system("A", field=_field(1.0, -1.0))], {}, {})
+    cal = Calibration([toy_system("A", field=constant_field(1.0, -1.0))], {}, {})
     cal.save(tmp_path / "calibration.json")
     doc = json.loads((tmp_path / "calibration.json").read_text())
     doc["schema_version"] = 1
@@ -278,16 +242,22 @@ def test_a_version_1_file_still_loads(tmp_path):
 
 
 def test_field_file_names_that_would_clash_are_refused(tmp_path):
-    a = [OrientationField("b_c", None, None, _field(0, 0)), OrientationField("d", None, None, _field(0, 0))]
-    ab = [OrientationField("c", None, None, _field(0, 0)), OrientationField("e", None, None, _field(0, 0))]
-    cal = Calibration([_system("A", a), _system("A_b", ab)], {}, {})
+    a = [
+        OrientationField("b_c", None, None, constant_field(0, 0)),
+        OrientationField("d", None, None, constant_field(0, 0)),
+    ]
+    ab = [
+        OrientationField("c", None, None, constant_field(0, 0)),
+        OrientationField("e", None, None, constant_field(0, 0)),
+    ]
+    cal = Calibration([toy_system("A", a), toy_system("A_b", ab)], {}, {})
     with pytest.raises(InputError, match="two fields would both be written as field_A_b_c.npz"):
         cal.save(tmp_path / "calibration.json")
     assert not list(tmp_path.iterdir())
 
 
 def test_orientation_names_in_the_file_are_checked(tmp_path):
-    _orientation_calibration().save(tmp_path / "calibration.json")
+    orientation_calibration().save(tmp_path / "calibration.json")
     doc = json.loads((tmp_path / "calibration.json").read_text())
     doc["systems"][0]["orientations"][0]["name"] = "../o0"
     (tmp_path / "calibration.json").write_text(json.dumps(doc))
@@ -296,7 +266,7 @@ def test_orientation_names_in_the_file_are_checked(tmp_path):
 
 
 def test_the_api_chooses_by_name_interpolates_by_angles_and_lists_names():
-    cal = _orientation_calibration()
+    cal = orientation_calibration()
     xy = np.array([[10.0, 20.0], [40.0, 5.0]])
     np.testing.assert_allclose(cal.undistort_points("A", xy, "o30"), xy - [0.0, 2.0])
     np.testing.assert_allclose(cal.undistort_points("A", xy, orientation="named"), xy + [2.0, 0.0])
@@ -320,12 +290,15 @@ def test_the_api_chooses_by_name_interpolates_by_angles_and_lists_names():
 
 def test_a_system_takes_a_field_or_orientations():
     with pytest.raises(InputError, match="give its field or its orientations; got neither"):
-        _system("A")
-    o = [OrientationField("x", None, None, _field(0, 0)), OrientationField("y", None, None, _field(0, 0))]
+        toy_system("A")
+    o = [
+        OrientationField("x", None, None, constant_field(0, 0)),
+        OrientationField("y", None, None, constant_field(0, 0)),
+    ]
     with pytest.raises(InputError, match="not both"):
-        _system("A", o, _field(0, 0))
+        toy_system("A", o, constant_field(0, 0))
     with pytest.raises(InputError, match="orientation names must differ"):
-        _system("A", [o[0], o[0]])
+        toy_system("A", [o[0], o[0]])
 
 
 # --- fluorocal undistort --orientation ---------------------------------------------------------------
@@ -336,7 +309,7 @@ def undistort_setup(tmp_path):
     """A saved calibration and a ramp frame whose value tells where each pixel came from (10 x + 1000 y)."""
     cal = tmp_path / "cal" / "calibration.json"
     cal.parent.mkdir()
-    _orientation_calibration().save(cal)
+    orientation_calibration().save(cal)
     yy, xx = np.mgrid[0:H, 0:W]
     ramp = (10 * xx + 1000 * yy).astype(np.uint16)
     frames = tmp_path / "frames"
@@ -402,8 +375,8 @@ def test_orientation_report_figures(tmp_path):
     translation, so nothing remains modulo a homography.
     """
     fields = [
-        OrientationField("tilt30", 0.0, 30.0, _field(0.3, 0.4)),
-        OrientationField("centred", 0.0, 0.0, _field(0.0, 0.0)),
+        OrientationField("tilt30", 0.0, 30.0, constant_field(0.3, 0.4)),
+        OrientationField("centred", 0.0, 0.0, constant_field(0.0, 0.0)),
     ]
     paths, lines = orientation_report(tmp_path, "A", fields)
     assert [p.name for p in paths] == ["orientations_A.png", "orientation_maps_A.png"]
