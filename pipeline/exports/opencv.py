@@ -18,8 +18,8 @@ exactly, so the remap equals ``fluorocal undistort``::
 almost nothing, while its low bytes are rounding noise; interleaved in each float, the noise spoils the
 compression of the rest. ``benchmarks/exports.py`` prints each file's size beside that of the same maps as
 float32 matrices (half of it for a real 1024² calibration). Fixed-point maps (``cv2.convertMaps``) would be
-smaller still but are not exact: OpenCV 5 remaps float32 maps without rounding them to its 1/32 px table,
-and the results differ (``benchmarks/undistort.py``).
+smaller still but are not exact: OpenCV 5 remaps uint8, uint16 and float32 frames through float32 maps
+without rounding them to its 1/32 px table, and the results differ (``benchmarks/undistort.py``).
 """
 
 from __future__ import annotations
