@@ -7,13 +7,17 @@ Usage::
 
 Exports the calibration with ``--format opencv`` and ``--format dlt`` into a temporary folder, then
 
-- reads each OpenCV YAML back with ``cv2.FileStorage``, remaps a synthetic 12-bit frame of the
-  calibrated size with ``cv2.remap`` and prints the RMS difference (DN) from
-  ``Calibration.undistort_image`` (what ``fluorocal undistort`` uses);
+- times the OpenCV export twice, in this process (CPU and wall seconds, the whole export and per
+  file): first from a copy of the calibration with no maps cached beside it (the maps are computed,
+  as on a first export), then again (the maps read from that cache);
+- prints each OpenCV file's size (bytes, as ``du -b``), reads it back with ``cv2.FileStorage``,
+  remaps a synthetic 12-bit frame of the calibrated size with ``cv2.remap`` and prints the largest
+  difference (DN) from ``Calibration.undistort_image`` (what ``fluorocal undistort`` uses);
 - reads each DLT file back and prints, per system and training exposure, the RMS (px per coordinate)
   of the DLT's reprojection of 1000 held-out points (uniform in the object points' bounding box)
   against fluorocal's own model through the undistorted coordinates, and the reprojection RMS of the
-  DLT and of the model against the undistorted inlier observations.
+  DLT and of the model against the undistorted inlier observations (a grid plate's calibration has
+  no DLT: skipped).
 """
 
 from __future__ import annotations
@@ -22,15 +26,19 @@ import argparse
 import contextlib
 import csv
 import io
+import shutil
 import tempfile
+import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 from fluorocal.calibration import Calibration
 from fluorocal.cli import main
+from fluorocal.exports.common import has_geometry
 from fluorocal.exports.dlt import from_dlt_frame
 from fluorocal.exports.dlt import project as dlt_project
+from fluorocal.exports.opencv import read_maps
 
 
 def _frame(width: int, height: int) -> np.ndarray:
@@ -44,18 +52,55 @@ def _rms(a) -> float:
     return float(np.sqrt(np.mean(np.asarray(a, dtype=float) ** 2)))
 
 
+def _export(calibration: Path, fmt: str, out: Path) -> tuple[float, float]:
+    """Export ``calibration`` as ``fmt`` into ``out``; the CPU and wall seconds it took in this process."""
+    cpu, wall = time.process_time(), time.perf_counter()
+    with contextlib.redirect_stdout(io.StringIO()):  # the export's own list of files
+        code = main(["--quiet", "export", str(calibration), "--format", fmt, "--out", str(out)])
+    if code != 0:
+        raise SystemExit(f"fluorocal export --format {fmt} failed")
+    return time.process_time() - cpu, time.perf_counter() - wall
+
+
+def opencv_timed(calibration: Path, tmp: Path) -> Path:
+    """The OpenCV export timed without and with the maps cached, from a copy of the calibration's folder."""
+    copy = tmp / "calibration"
+    shutil.copytree(calibration.parent, copy, ignore=shutil.ignore_patterns("*.maps", "*.png", "report.md"))
+    print(f"opencv export, OpenCV {cv2.__version__}:")
+    for run, what in (("first", "maps computed"), ("second", "maps cached")):
+        cpu, wall = _export(copy / calibration.name, "opencv", tmp / run)
+        n = len(list((tmp / run).glob("opencv_*.yml.gz")))
+        print(
+            f"  {run} export ({what}): {n} files in {cpu:.2f} s CPU, {wall:.2f} s wall; "
+            f"per file {cpu / n:.2f} s CPU, {wall / n:.2f} s wall"
+        )
+    return tmp / "second"
+
+
+def _float_maps_bytes(map_x, map_y, folder: Path) -> int:
+    """The size of the maps written as float32 FileStorage matrices (base64, gzip), for comparison."""
+    path = folder.parent / "float32.yml.gz"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML | cv2.FILE_STORAGE_BASE64)
+    fs.write("map_x", map_x)
+    fs.write("map_y", map_y)
+    fs.release()
+    return path.stat().st_size
+
+
 def opencv_figures(cal: Calibration, folder: Path) -> None:
     for path in sorted(folder.glob("opencv_*.yml.gz")):
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         system, orientation = fs.getNode("system").string(), fs.getNode("orientation").string() or None
-        map_x, map_y = fs.getNode("map_x").mat(), fs.getNode("map_y").mat()
         fs.release()
+        map_x, map_y = read_maps(path)
         frame = _frame(*cal.systems[system].image_size_px)
         remapped = cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         reference = cal.undistort_image(system, frame, orientation=orientation)
         print(
-            f"opencv {path.name}: {frame.shape[1]}x{frame.shape[0]} frame, cv2.FileStorage + cv2.remap vs "
-            f"undistort_image: RMS {_rms(remapped.astype(float) - reference):.6f} DN"
+            f"opencv {path.name}: {path.stat().st_size} bytes ({_float_maps_bytes(map_x, map_y, folder)} as float32 "
+            f"matrices); {frame.shape[1]}x{frame.shape[0]} frame, "
+            f"cv2.FileStorage + cv2.remap vs undistort_image: largest difference "
+            f"{np.abs(remapped.astype(float) - reference).max():g} DN"
         )
 
 
@@ -91,12 +136,11 @@ def dlt_figures(cal: Calibration, folder: Path) -> None:
 def measure(calibration: Path) -> None:
     cal = Calibration.load(calibration)
     with tempfile.TemporaryDirectory() as tmp:
-        for fmt in ("opencv", "dlt"):
-            with contextlib.redirect_stdout(io.StringIO()):  # the export's own list of files
-                code = main(["--quiet", "export", str(calibration), "--format", fmt, "--out", f"{tmp}/{fmt}"])
-            if code != 0:
-                raise SystemExit(f"fluorocal export --format {fmt} failed")
-        opencv_figures(cal, Path(tmp) / "opencv")
+        opencv_figures(cal, opencv_timed(calibration.resolve(), Path(tmp)))
+        if not has_geometry(cal):
+            print("dlt: none (a grid plate's calibration has no interior orientation or poses)")
+            return
+        _export(calibration, "dlt", Path(tmp) / "dlt")
         dlt_figures(cal, Path(tmp) / "dlt")
 
 

@@ -3,7 +3,7 @@
 FORMAT is one of:
 
   opencv   OpenCV FileStorage YAML per system (and orientation): camera matrix, image size and the
-           float32 undistortion maps for cv2.remap
+           float32 undistortion maps for cv2.remap, exact, as byte planes (the file says how to join them)
   dlt      the 11 DLT coefficients per training exposure, one column per system (XMALab, DLTdv),
            on undistorted coordinates, with their reprojection RMS (dlt_rms.csv)
   mayacam  XMALab / Autoscoper MayaCam 2.0 camera files per system and training exposure

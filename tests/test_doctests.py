@@ -41,7 +41,6 @@ WITHOUT_EXAMPLES = {
     "fluorocal.exports.dlt",
     "fluorocal.exports.mayacam",
     "fluorocal.exports.mrcal",
-    "fluorocal.exports.opencv",
     "fluorocal.gather",
     "fluorocal.graph",
     "fluorocal.inspect",

@@ -45,7 +45,10 @@ Undistort the frames with this calibration first, either
 or, outside fluorocal, with the OpenCV maps of `fluorocal export {calibration} --format opencv --out DIR`:
 
   fs = cv2.FileStorage("DIR/opencv_NAME.yml.gz", cv2.FILE_STORAGE_READ)
-  undistorted = cv2.remap(frame, fs.getNode("map_x").mat(), fs.getNode("map_y").mat(), cv2.INTER_LINEAR)
+  h = int(fs.getNode("image_height").real())
+  planes = [fs.getNode(f"map_{{a}}_bytes").mat().reshape(4, h, -1) for a in "xy"]  # the maps' byte planes
+  map_x, map_y = (np.ascontiguousarray(p.transpose(1, 2, 0)).view("<f4")[..., 0] for p in planes)
+  undistorted = cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR)
 
 and load the undistorted frames in XMALab (no undistortion grid) or Autoscoper.
 """

@@ -97,6 +97,24 @@ def _object_points(out):
 # --- opencv ---------------------------------------------------------------------------------------
 
 
+def _maps_as_documented(fs) -> tuple[np.ndarray, np.ndarray]:
+    """``map_x, map_y`` joined from their byte planes by docs/exports.md's lines (no fluorocal code)."""
+    h, w = int(fs.getNode("image_height").real()), int(fs.getNode("image_width").real())
+    assert all(fs.getNode(f"map_{a}_bytes").mat().dtype == np.uint8 for a in "xy")
+    assert all(fs.getNode(f"map_{a}_bytes").mat().shape == (4 * h, w) for a in "xy")
+    # docs/exports.md, as it is there:
+    planes = [fs.getNode(f"map_{a}_bytes").mat().reshape(4, h, -1) for a in "xy"]
+    map_x, map_y = (np.ascontiguousarray(p.transpose(1, 2, 0)).view("<f4")[..., 0] for p in planes)
+    return map_x, map_y
+
+
+def _frames_of_every_type(frame_u16) -> list[np.ndarray]:
+    """The frame as each sample type ``Calibration.undistort_image`` takes (uint8, uint16, int16, float32, float64)."""
+    signed = (frame_u16.astype(np.int32) - 2048).astype(np.int16)
+    scaled = frame_u16.astype(np.float64) / 4095
+    return [(frame_u16 >> 4).astype(np.uint8), frame_u16, signed, scaled.astype(np.float32), scaled]
+
+
 def test_opencv_yaml_read_back_and_remapped_equals_fluorocal_undistort(tmp_path):
     calibration = _save_1024(tmp_path / "cal", geometry=True)
     assert _export(calibration, "opencv", tmp_path / "x") == 0
@@ -106,18 +124,21 @@ def test_opencv_yaml_read_back_and_remapped_equals_fluorocal_undistort(tmp_path)
     assert names == ["opencv_A_o0.yml.gz", "opencv_A_o30.yml.gz", "opencv_B.yml.gz"]
     for name, system, orientation in [("opencv_A_o30.yml.gz", "A", "o30"), ("opencv_B.yml.gz", "B", None)]:
         fs = cv2.FileStorage(str(tmp_path / "x" / name), cv2.FILE_STORAGE_READ)
-        map_x, map_y, K = fs.getNode("map_x").mat(), fs.getNode("map_y").mat(), fs.getNode("camera_matrix").mat()
+        map_x, map_y = _maps_as_documented(fs)
+        K = fs.getNode("camera_matrix").mat()
         size = (int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real()))
         nominal = int(fs.getNode("camera_matrix_nominal").real())
+        encoding = fs.getNode("map_encoding").string()
         fs.release()
         assert map_x.dtype == np.float32 and map_x.shape == (SIDE, SIDE) and size == (SIDE, SIDE) and nominal == 0
+        assert "byte planes" in encoding and "cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR)" in encoding
         np.testing.assert_array_equal(K, [[4000.0, 0, 500.0], [0, 4000.0, 530.0], [0, 0, 1]])
-        remapped = cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        reference = cal.undistort_image(system, frame, orientation=orientation)
-        # the issue's target: within 0.01 DN RMS of fluorocal's undistortion on a 1024² frame (FileStorage keeps
-        # a float32's 9 significant digits, so the maps, and with them the frames, come back exactly)
-        rms_dn = float(np.sqrt(np.mean((remapped.astype(float) - reference.astype(float)) ** 2)))
-        assert rms_dn <= 0.01
+        # the maps come back bit for bit, so the remap is fluorocal's own for every type it resamples: 0 DN
+        maps = Calibration.load(calibration).remap_maps(system, orientation=orientation)
+        np.testing.assert_array_equal(np.stack([map_x, map_y]).view(np.int32), np.stack(maps).view(np.int32))
+        for image in _frames_of_every_type(frame):
+            remapped = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            np.testing.assert_array_equal(remapped, cal.undistort_image(system, image, orientation=orientation))
         # the maps do undistort: the field moves pixels by up to a few px (not an identity export)
         assert np.abs(map_x - np.arange(SIDE)).max() > 1.0
 
@@ -139,12 +160,12 @@ def test_opencv_yaml_remap_equals_the_fluorocal_undistort_command(tmp_path):
     )
     undistorted = cv2.imread(str(tmp_path / "u" / "frame.png"), cv2.IMREAD_UNCHANGED)
     fs = cv2.FileStorage(str(tmp_path / "x" / "opencv_B.yml.gz"), cv2.FILE_STORAGE_READ)
-    map_x, map_y = fs.getNode("map_x").mat(), fs.getNode("map_y").mat()
+    map_x, map_y = _maps_as_documented(fs)
     fs.release()
     remapped = cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     assert undistorted.dtype == np.uint16 and undistorted.shape == (SIDE, SIDE)
-    # the issue's target, against the command itself: 0.01 DN RMS on a 1024² frame
-    assert float(np.sqrt(np.mean((remapped.astype(float) - undistorted) ** 2))) <= 0.01
+    # the issue's target, against the command itself: equal to 0 DN
+    np.testing.assert_array_equal(remapped, undistorted)
 
 
 def test_opencv_exports_a_grid_plate_with_the_camera_matrix_flagged_nominal(tmp_path):
@@ -152,7 +173,7 @@ def test_opencv_exports_a_grid_plate_with_the_camera_matrix_flagged_nominal(tmp_
     assert _export(calibration, "opencv", tmp_path / "x") == 0
     fs = cv2.FileStorage(str(tmp_path / "x" / "opencv_B.yml.gz"), cv2.FILE_STORAGE_READ)
     assert int(fs.getNode("camera_matrix_nominal").real()) == 1
-    map_x = fs.getNode("map_x").mat()
+    map_x, _ = _maps_as_documented(fs)
     fs.release()
     np.testing.assert_array_equal(map_x, Calibration.load(calibration).remap_maps("B")[0])
 
