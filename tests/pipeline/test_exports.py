@@ -115,15 +115,23 @@ def _frames_of_every_type(frame_u16) -> list[np.ndarray]:
     return [(frame_u16 >> 4).astype(np.uint8), frame_u16, signed, scaled.astype(np.float32), scaled]
 
 
-def test_opencv_yaml_read_back_and_remapped_equals_fluorocal_undistort(tmp_path):
-    calibration = _save_1024(tmp_path / "cal", geometry=True)
-    assert _export(calibration, "opencv", tmp_path / "x") == 0
+@pytest.fixture(scope="module")
+def opencv_export(tmp_path_factory):
+    """A 1024² calibration of two systems (A at two orientations) and its OpenCV export, once: ``(json, folder)``."""
+    root = tmp_path_factory.mktemp("opencv")
+    calibration = _save_1024(root / "cal", geometry=True)
+    assert _export(calibration, "opencv", root / "x") == 0
+    return calibration, root / "x"
+
+
+def test_opencv_yaml_read_back_and_remapped_equals_fluorocal_undistort(opencv_export):
+    calibration, x = opencv_export
     cal = Calibration.load(calibration)
     frame = _frame_1024()
-    names = sorted(p.name for p in (tmp_path / "x").iterdir())
+    names = sorted(p.name for p in x.iterdir())
     assert names == ["opencv_A_o0.yml.gz", "opencv_A_o30.yml.gz", "opencv_B.yml.gz"]
     for name, system, orientation in [("opencv_A_o30.yml.gz", "A", "o30"), ("opencv_B.yml.gz", "B", None)]:
-        fs = cv2.FileStorage(str(tmp_path / "x" / name), cv2.FILE_STORAGE_READ)
+        fs = cv2.FileStorage(str(x / name), cv2.FILE_STORAGE_READ)
         map_x, map_y = _maps_as_documented(fs)
         K = fs.getNode("camera_matrix").mat()
         size = (int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real()))
@@ -143,9 +151,8 @@ def test_opencv_yaml_read_back_and_remapped_equals_fluorocal_undistort(tmp_path)
         assert np.abs(map_x - np.arange(SIDE)).max() > 1.0
 
 
-def test_opencv_yaml_remap_equals_the_fluorocal_undistort_command(tmp_path):
-    calibration = _save_1024(tmp_path / "cal", geometry=True)
-    assert _export(calibration, "opencv", tmp_path / "x") == 0
+def test_opencv_yaml_remap_equals_the_fluorocal_undistort_command(opencv_export, tmp_path):
+    calibration, x = opencv_export
     frame = _frame_1024(seed=3)
     source = tmp_path / "frames" / "frame.png"
     source.parent.mkdir()
@@ -159,7 +166,7 @@ def test_opencv_yaml_remap_equals_the_fluorocal_undistort_command(tmp_path):
         == 0
     )
     undistorted = cv2.imread(str(tmp_path / "u" / "frame.png"), cv2.IMREAD_UNCHANGED)
-    fs = cv2.FileStorage(str(tmp_path / "x" / "opencv_B.yml.gz"), cv2.FILE_STORAGE_READ)
+    fs = cv2.FileStorage(str(x / "opencv_B.yml.gz"), cv2.FILE_STORAGE_READ)
     map_x, map_y = _maps_as_documented(fs)
     fs.release()
     remapped = cv2.remap(frame, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
