@@ -12,6 +12,7 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
+from fluorocal.stages.io.names import native_name
 from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored, checked_indices
 
 NAME = "still image (OpenImageIO)"
@@ -114,7 +115,7 @@ def _hints():
 def _open(path: Path):
     import OpenImageIO as oiio
 
-    inp = oiio.ImageInput.open(str(path), _hints())
+    inp = oiio.ImageInput.open(native_name(path), _hints())
     if inp is None:
         raise InputError(f"{path}: cannot read as an image ({oiio.geterror()})")
     return inp
@@ -281,14 +282,16 @@ def write_still(
         raise InputError(f"write_still: unsupported dtype {image.dtype} for {path}")
 
     def _write(tmp):
-        out = oiio.ImageOutput.create(file_format or tmp)
+        out = oiio.ImageOutput.create(file_format or native_name(tmp))
         if out is None:
             raise InputError(f"{path}: no writer for this format ({oiio.geterror()})")
         spec = oiio.ImageSpec(image.shape[1], image.shape[0], 1, fmt)
         for name, value in (attributes or {}).items():
             spec.attribute(name, value)
         # OIIO misreads a 2-D array's strides: pass (H, W, 1)
-        if not out.open(tmp, spec) or not out.write_image(image.reshape(image.shape[0], image.shape[1], 1)):
+        if not out.open(native_name(tmp), spec) or not out.write_image(
+            image.reshape(image.shape[0], image.shape[1], 1)
+        ):
             raise InputError(f"{path}: write failed ({out.geterror()})")
         out.close()
 
@@ -318,7 +321,7 @@ def _iter_stored(path: Path, layout: _Layout, by_opencv: bool):
     import cv2
 
     if by_opencv:
-        frame = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        frame = cv2.imread(native_name(path), cv2.IMREAD_UNCHANGED)
         if frame is None:
             raise InputError(f"{path}: OpenCV cannot decode this image")
         yield frame
@@ -415,7 +418,7 @@ def _write_subimages(tmp: str, frames, layout: _Layout, out_path: Path) -> None:
             spec.attribute("compression", "lzw")
         mode = "Create" if count == 0 else "AppendSubimage"
         pixels = np.ascontiguousarray(frame).reshape(layout.size_px[1], layout.size_px[0], layout.n_channels)
-        if not out.open(tmp, spec, mode) or not out.write_image(pixels):
+        if not out.open(native_name(tmp), spec, mode) or not out.write_image(pixels):
             raise InputError(f"{out_path}: write failed ({out.geterror()})")
         count += 1
     out.close()

@@ -9,6 +9,7 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
+from fluorocal.stages.io.names import native_name
 from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored, checked_indices
 
 NAME = "video (OpenCV)"
@@ -29,7 +30,7 @@ def sniff_content(head: bytes) -> bool:
 def _open(path: Path):
     import cv2
 
-    cap = cv2.VideoCapture(str(path))
+    cap = cv2.VideoCapture(native_name(path))
     if not cap.isOpened():
         raise InputError(f"{path}: cannot open as a video")
     return cap
@@ -183,7 +184,7 @@ def write_stored(
         cap.release()
 
     def _write(tmp):
-        writer = cv2.VideoWriter(tmp, fourcc, fps, size, isColor=False)
+        writer = cv2.VideoWriter(native_name(tmp), fourcc, fps, size, isColor=False)
         if not writer.isOpened():
             raise InputError(f"{out_path}: cannot open a video writer for this codec")
         count = 0

@@ -9,6 +9,10 @@ raw PGM bytes, OpenCV), and otherwise with OpenImageIO asked for the samples as 
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import cv2
 import numpy as np
 import pydicom
@@ -350,3 +354,40 @@ def test_the_edges_background_leaves_an_alpha_channel_as_remapped(identity, tmp_
     inner = (xx - W / 2) ** 2 + (yy - H / 2) ** 2 < (0.4 * H - 2) ** 2
     np.testing.assert_array_equal(back[..., :3][inner], frame[..., :3][inner])
     assert back[..., :3][~disc].max() == 0
+
+
+# --- file names under an ASCII locale -------------------------------------------------------------------
+
+#: a C locale and ASCII output, as on a bare server or in a container (no UTF-8 mode)
+ASCII_LOCALE = {"LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONIOENCODING": "ascii"}
+
+
+def _undistort_in_c_locale(calibration, out, source: bytes):
+    """Run the CLI in a subprocess under :data:`ASCII_LOCALE` on the file named by ``source`` (raw bytes)."""
+    args = [os.fsencode(a) for a in (sys.executable, "-m", "fluorocal.cli", "--quiet", "undistort", calibration)]
+    args += [source, b"--system", b"A", b"--outside", b"keep", b"--out", os.fsencode(out)]
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("LC_", "LANG"))} | ASCII_LOCALE
+    return subprocess.run(args, env=env, capture_output=True)
+
+
+def test_a_non_ascii_file_name_is_read_and_written_under_the_c_locale(identity, tmp_path):
+    # Python decodes the name with surrogates there; OpenImageIO refused them (a TypeError, exit 2)
+    samples = _ramp(np.uint16)
+    name = "fr\u00e4me_\u0394.tif".encode()  # UTF-8 bytes, as a UTF-8 system names it
+    tifffile.imwrite(tmp_path / os.fsdecode(name), samples)
+    done = _undistort_in_c_locale(identity, tmp_path / "out", os.fsencode(tmp_path / os.fsdecode(name)))
+    assert done.returncode == 0, done.stderr
+    assert b"Traceback" not in done.stderr
+    np.testing.assert_array_equal(_oiio_samples(tmp_path / "out" / os.fsdecode(name)), samples)
+
+
+def test_a_file_name_that_is_not_utf8_is_refused_in_one_ascii_line(identity, tmp_path):
+    source = tmp_path / os.fsdecode(b"fr\xe4me.tif")  # Latin-1, which the libraries cannot open by name
+    tifffile.imwrite(source, _ramp(np.uint16))
+    done = _undistort_in_c_locale(identity, tmp_path / "out", os.fsencode(source))
+    assert done.returncode == 2 and done.stdout == b""
+    err = done.stderr.decode("ascii").strip()  # ASCII: the name's byte as an escape
+    assert err.splitlines() == [err], err
+    assert err.startswith("fluorocal: error: ") and "fr\\xe4me.tif: file name is not UTF-8" in err, err
+    assert "rename the file" in err
+    assert not (tmp_path / "out").exists()
