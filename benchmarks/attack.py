@@ -2525,6 +2525,34 @@ def issue28_cases(add, nothing) -> None:
         hints=("FLUOROCAL_THREADS",))  # fmt: skip
     ascii_locale = {"LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONIOENCODING": "ascii"}
     add("locale_c_ascii_run", K, nothing, run("--force", "learn"), expect="ok", runner=_with_env(**ascii_locale))
+    und = lambda name: lambda c: [fluorocal("undistort", c.cal, "--system", "A", "--out", c.proj / "und",  # noqa: E731
+                                            c.proj / "frames" / name)]  # fmt: skip
+    for name in ("lossy.jpg", "mjpeg.avi"):  # re-encoded lossily: refused (a frame comes back exactly or not at all)
+        add(f"undistort_{name.replace('.', '_')}", K, _frame_copy(name), und(name), hints=(name,))
+    greek = "fr\u00e4me_\u0394.tif"  # read and written under the C locale (OpenImageIO refused the name)
+    add("undistort_non_ascii_name_c_locale", K, _frame_copy(greek), und(greek), expect="ok",
+        check=undistorted_ok("proj/und", 1), allow=("proj/und",), runner=_with_env(**ascii_locale))  # fmt: skip
+
+
+def _frame_copy(name: str):
+    """Frame A's first, as ``frames/NAME``: an 8-bit JPEG, a 2-frame MJPEG AVI, or the TIFF itself (other names)."""
+
+    def f(c: Ctx) -> None:
+        import cv2
+
+        source, target = c.frames("A")[0], c.proj / "frames" / name
+        eight = (_read_frame(source) >> 4).astype(np.uint8)
+        if name.endswith(".jpg"):
+            cv2.imwrite(str(target), eight, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        elif name.endswith(".avi"):
+            writer = cv2.VideoWriter(str(target), cv2.VideoWriter_fourcc(*"MJPG"), 10, eight.shape[::-1], False)
+            for _ in range(2):
+                writer.write(eight)
+            writer.release()
+        else:
+            shutil.copyfile(source, target)
+
+    return f
 
 
 def _one_of_two_ok(c: Ctx, commands):

@@ -14,7 +14,7 @@ corners, on a 32 px grid) and synthetic 12-bit frames stored as 16-bit TIFF (smo
    ``cv2.remap`` with the maps from a ``.npy``, ``cv2.imwrite``: TIFF with LZW), interleaved, medians; with
    each process's peak memory (``ru_maxrss`` from ``os.wait4`` in a small launcher process: see :func:`_run`).
 4. Memory against count: ``fluorocal undistort`` of ``--frames``/10 and ``--frames`` frames (a folder of
-   links to 10 distinct frames; outputs deleted after each run): peak memory of each; and of one MJPG AVI
+   links to 10 distinct frames; outputs deleted after each run): peak memory of each; and of one FFV1 AVI
    of ``--video-frames``/4 and ``--video-frames`` 8-bit frames (video streamed like a multi-page file).
 
 Usage: ``python benchmarks/undistort.py [--frames 10000] [--video-frames 1000] [--rounds 5] [--keep DIR]``.
@@ -294,7 +294,7 @@ def video_memory_against_count(root: Path, cal: Path, frames: list[np.ndarray], 
 
     for n in (n_large // 4, n_large):
         src, out = root / f"video_{n}.avi", root / f"video_out_{n}"
-        writer = cv2.VideoWriter(str(src), cv2.VideoWriter_fourcc(*"MJPG"), 25, (SIZE, SIZE), isColor=False)
+        writer = cv2.VideoWriter(str(src), cv2.VideoWriter_fourcc(*"FFV1"), 25, (SIZE, SIZE), isColor=False)
         for i in range(n):
             writer.write((frames[i % len(frames)] >> 4).astype(np.uint8))
         writer.release()

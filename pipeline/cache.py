@@ -55,6 +55,7 @@ from pathlib import Path
 import numpy as np
 from fluorocal.artifact_codec import UntrustedData, artifact_types, decode, encode, named_types
 from fluorocal.stages.errors import InputError
+from fluorocal.steady import file_sha256
 
 try:
     import fcntl
@@ -115,15 +116,6 @@ def artifact_key(stage: str, code: str, params, input_keys: list[str]) -> str:
     """sha256 of ``{stage, code digest, params, input keys}`` in canonical JSON."""
     payload = canonical_json({"stage": stage, "code": code, "params": params, "inputs": list(input_keys)})
     return hashlib.sha256(payload.encode()).hexdigest()
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    """Content hash of a file, read in 1 MiB blocks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _summary(artifact) -> str:

@@ -157,11 +157,15 @@ def _detect_context(config, unit, units) -> dict:
 
 @lru_cache(maxsize=8)
 def _system_appearance(frames: tuple, params):
-    """The estimate on ``(path, content sha256, index)`` frames (the sha keys the memo to the content)."""
-    from fluorocal.stages.detect import estimate_appearance
-    from fluorocal.stages.io import read_frames
+    """The estimate on ``(path, content sha256, index)`` frames, each read only while its content is that sha.
 
-    return estimate_appearance((read_frames(path, [index])[0] for path, _, index in frames), params)
+    The sha keys the memo to the content, and :func:`~fluorocal.steady.read_steady` refuses a file that
+    changed since the run was planned or while it is read, as every frame read of a run does.
+    """
+    from fluorocal.stages.detect import estimate_appearance
+    from fluorocal.steady import read_steady
+
+    return estimate_appearance((read_steady(path, sha, [index])[0] for path, sha, index in frames), params)
 
 
 def _learn_extras(config, units) -> dict:

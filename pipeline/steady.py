@@ -9,9 +9,20 @@ decoding it and refuses the frames unless both hashes are the planned one.
 
 from __future__ import annotations
 
+import hashlib
+import os
 from pathlib import Path
 
 from fluorocal.stages.errors import InputError
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """Content hash of a file, read in 1 MiB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def read_steady(path: str | Path, planned_sha256: str, indices=None) -> list:
@@ -27,7 +38,6 @@ def read_steady(path: str | Path, planned_sha256: str, indices=None) -> list:
     --------
     >>> import tempfile
     >>> import numpy as np
-    >>> from fluorocal.cache import file_sha256
     >>> from fluorocal.stages.io.still import write_still
     >>> with tempfile.TemporaryDirectory() as d:
     ...     path = Path(d) / "f.tif"
@@ -42,7 +52,6 @@ def read_steady(path: str | Path, planned_sha256: str, indices=None) -> list:
     >>> frame.image.shape, refused
     ((4, 6), True)
     """
-    from fluorocal.cache import file_sha256
     from fluorocal.stages import io
 
     _check(path, file_sha256(path), planned_sha256, "before")

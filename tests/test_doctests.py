@@ -64,8 +64,6 @@ WITHOUT_EXAMPLES = {
     "fluorocal.stages.adjust.solver",
     "fluorocal.stages.artifacts",
     "fluorocal.stages.evaluate.protocol",
-    "fluorocal.stages.io.still",
-    "fluorocal.stages.io.video",
     "fluorocal.stages.label.assign",
     "fluorocal.stages.label.correction",
     "fluorocal.stages.label.cube",

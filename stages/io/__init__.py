@@ -6,6 +6,7 @@
   and :mod:`~fluorocal.stages.io.still`.
 - :mod:`~fluorocal.stages.io.tables`: one schema per CSV table, :func:`read_table` and :func:`write_table`.
 - :mod:`~fluorocal.stages.io.atomic`: :func:`atomic_write` and the one PNG writer :func:`write_png`.
+- :mod:`~fluorocal.stages.io.names`: file names as OpenImageIO and OpenCV open them, under any locale.
 """
 
 from fluorocal.stages.io.atomic import atomic_write, write_png

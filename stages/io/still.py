@@ -12,6 +12,7 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
+from fluorocal.stages.io.names import native_name
 from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored, checked_indices
 
 NAME = "still image (OpenImageIO)"
@@ -21,6 +22,10 @@ COMMON_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".bmp", ".exr", "...")
 _MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+", b"\x89PNG", b"\xff\xd8\xff", b"BM", b"v/1\x01")
 _MAGIC_JP2 = b"\x00\x00\x00\x0cjP  "
 _OIIO_DTYPE = {np.dtype(np.uint8): "uint8", np.dtype(np.uint16): "uint16", np.dtype(np.float32): "float"}
+#: OpenImageIO's names of the formats whose frames are written back sample for sample (the round trip tests
+#: prove each); JPEG and the other lossy codecs cannot be, and OpenImageIO's writers of the rest change the
+#: sample type or channels of some (EXR: uint8 as half, FITS: uint16 as int16, GIF and ICO: RGBA)
+_EXACT_FORMATS = ("tiff", "png", "pnm")
 #: OpenImageIO's names of the lossless formats OpenCV decodes as it does and encodes fast, with OpenCV's suffix
 _CV2_SUFFIX = {"tiff": ".tiff", "png": ".png"}
 
@@ -110,7 +115,7 @@ def _hints():
 def _open(path: Path):
     import OpenImageIO as oiio
 
-    inp = oiio.ImageInput.open(str(path), _hints())
+    inp = oiio.ImageInput.open(native_name(path), _hints())
     if inp is None:
         raise InputError(f"{path}: cannot read as an image ({oiio.geterror()})")
     return inp
@@ -146,13 +151,6 @@ def _layout(path: Path) -> _Layout:
     container = _TYPES[type_name].itemsize * 8
     maxval = _pnm_maxval(path) if format_name == "pnm" else None
     bits = int(maxval).bit_length() if maxval else first.get_int_attribute("oiio:BitsPerSample", container) or container
-    refusal = None
-    if type_name == "half":
-        refusal = "half-float samples cannot be written back as stored (OpenImageIO writes them as float)"
-    elif format_name == "pnm" and not maxval:
-        refusal = "a bitmap (PBM) cannot be written back as stored"
-    elif maxval is None and _TYPES[type_name].kind == "u" and bits < container:
-        refusal = f"{bits}-bit samples in {container}-bit words cannot be written back as stored"
     return _Layout(
         format_name,
         len(specs),
@@ -163,8 +161,36 @@ def _layout(path: Path) -> _Layout:
         first.get_int_attribute("tiff:PhotometricInterpretation", 1) == 0,
         first.alpha_channel,
         maxval,
-        refusal,
+        _refusal(format_name, type_name, maxval, int(bits)),
     )
+
+
+def _refusal(format_name: str, type_name: str, maxval: int | None, bits: int) -> str | None:
+    """Why frames of this format and sample type cannot be written back as they came, and what to do; None: they can.
+
+    Examples
+    --------
+    >>> _refusal("jpeg", "uint8", None, 8)
+    'JPEG is lossy: its frames cannot be written back as they came; convert it to a lossless format (TIFF or PNG) first'
+    >>> _refusal("tiff", "uint16", None, 16) is None
+    True
+    """
+    if format_name not in _EXACT_FORMATS:
+        what = (
+            "JPEG is lossy" if format_name == "jpeg" else f"{format_name or 'this format'} is not written back exactly"
+        )
+        advice = "convert it to a lossless format (TIFF or PNG) first"
+        return f"{what}: its frames cannot be written back as they came; {advice}"
+    container = _TYPES[type_name].itemsize * 8
+    if type_name == "half":
+        why = "half-float samples cannot be written back as stored (OpenImageIO writes them as float)"
+    elif format_name == "pnm" and not maxval:
+        why = "a bitmap (PBM) cannot be written back as stored"
+    elif maxval is None and _TYPES[type_name].kind == "u" and bits < container:
+        why = f"{bits}-bit samples in {container}-bit words cannot be written back as stored"
+    else:
+        return None
+    return why + "; convert it to 8- or 16-bit samples first"
 
 
 def _pnm_maxval(path: Path) -> int | None:
@@ -181,7 +207,7 @@ def _writable_layout(path: Path) -> _Layout:
     """:func:`_layout`, refusing in one line a file whose frames cannot be written back as stored."""
     layout = _layout(path)
     if layout.refusal is not None:
-        raise InputError(f"{path}: {layout.refusal}; convert it to 8- or 16-bit samples first")
+        raise InputError(f"{path}: {layout.refusal}")
     return layout
 
 
@@ -256,14 +282,16 @@ def write_still(
         raise InputError(f"write_still: unsupported dtype {image.dtype} for {path}")
 
     def _write(tmp):
-        out = oiio.ImageOutput.create(file_format or tmp)
+        out = oiio.ImageOutput.create(file_format or native_name(tmp))
         if out is None:
             raise InputError(f"{path}: no writer for this format ({oiio.geterror()})")
         spec = oiio.ImageSpec(image.shape[1], image.shape[0], 1, fmt)
         for name, value in (attributes or {}).items():
             spec.attribute(name, value)
         # OIIO misreads a 2-D array's strides: pass (H, W, 1)
-        if not out.open(tmp, spec) or not out.write_image(image.reshape(image.shape[0], image.shape[1], 1)):
+        if not out.open(native_name(tmp), spec) or not out.write_image(
+            image.reshape(image.shape[0], image.shape[1], 1)
+        ):
             raise InputError(f"{path}: write failed ({out.geterror()})")
         out.close()
 
@@ -293,7 +321,7 @@ def _iter_stored(path: Path, layout: _Layout, by_opencv: bool):
     import cv2
 
     if by_opencv:
-        frame = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        frame = cv2.imread(native_name(path), cv2.IMREAD_UNCHANGED)
         if frame is None:
             raise InputError(f"{path}: OpenCV cannot decode this image")
         yield frame
@@ -313,9 +341,9 @@ def write_stored(
 
     One grey 8- or 16-bit frame of TIFF or PNG: encoded by OpenCV (TIFF with LZW, PNG with zlib at
     OpenCV's level), the only path as fast as ``cv2.imwrite`` (OpenImageIO's default zip TIFF is ~5x
-    slower). PGM/PPM: written here, binary, with the source's maxval. Others: OpenImageIO (TIFF with
-    LZW, JPEG at quality 100), one subimage at a time, alpha unassociated; a MinIsWhite TIFF's
-    pages are marked MinIsWhite again.
+    slower). PGM/PPM: written here, binary, with the source's maxval. Others (TIFF and PNG): OpenImageIO
+    (TIFF with LZW), one subimage at a time, alpha unassociated; a MinIsWhite TIFF's pages are marked
+    MinIsWhite again. Other formats (JPEG and the rest) are refused: :data:`_EXACT_FORMATS`.
 
     Raises
     ------
@@ -386,12 +414,11 @@ def _write_subimages(tmp: str, frames, layout: _Layout, out_path: Path) -> None:
         spec = oiio.ImageSpec(layout.size_px[0], layout.size_px[1], layout.n_channels, layout.type_name)
         spec.alpha_channel = layout.alpha_channel
         spec.attribute("oiio:UnassociatedAlpha", 1)
-        compression = {"tiff": "lzw", "jpeg": "jpeg:100"}.get(layout.format_name)
-        if compression is not None:
-            spec.attribute("compression", compression)
+        if layout.format_name == "tiff":
+            spec.attribute("compression", "lzw")
         mode = "Create" if count == 0 else "AppendSubimage"
         pixels = np.ascontiguousarray(frame).reshape(layout.size_px[1], layout.size_px[0], layout.n_channels)
-        if not out.open(tmp, spec, mode) or not out.write_image(pixels):
+        if not out.open(native_name(tmp), spec, mode) or not out.write_image(pixels):
             raise InputError(f"{out_path}: write failed ({out.geterror()})")
         count += 1
     out.close()

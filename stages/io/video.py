@@ -9,6 +9,7 @@ import numpy as np
 from fluorocal.stages.artifacts import Radiograph
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io.atomic import atomic_write
+from fluorocal.stages.io.names import native_name
 from fluorocal.stages.io.pixels import Derivation, StoredFrames, check_stored, checked_indices
 
 NAME = "video (OpenCV)"
@@ -29,7 +30,7 @@ def sniff_content(head: bytes) -> bool:
 def _open(path: Path):
     import cv2
 
-    cap = cv2.VideoCapture(str(path))
+    cap = cv2.VideoCapture(native_name(path))
     if not cap.isOpened():
         raise InputError(f"{path}: cannot open as a video")
     return cap
@@ -95,8 +96,65 @@ def read(path: Path, indices: list[int] | None = None) -> list[Radiograph]:
     return [kept[i] for i in wanted]
 
 
+#: the codecs (FourCC as OpenCV reports it; 0: uncompressed) whose 8-bit grey frames OpenCV writes back sample
+#: for sample, by test; the others (MJPEG, MPEG-4, H.264, and HuffYUV through OpenCV's colour conversion) do not
+_EXACT_CODECS = {"ffv1": "FFV1", "mpng": "PNG", "\\x00" * 4: "uncompressed"}
+
+
+def _fourcc(cap) -> int:
+    import cv2
+
+    return int(cap.get(cv2.CAP_PROP_FOURCC)) & 0xFFFFFFFF
+
+
+def _as_text(code: int) -> str:
+    r"""A FourCC as text, its unprintable bytes escaped.
+
+    Examples
+    --------
+    >>> _as_text(0x47504A4D), _as_text(0x18424752)
+    ('MJPG', 'RGB\\x18')
+    """
+    return "".join(
+        c if c.isprintable() and c.isascii() else f"\\x{ord(c):02x}"
+        for c in code.to_bytes(4, "little").decode("latin-1")
+    )
+
+
+def _check_exact(path: Path, cap) -> None:
+    """Refuse, in one line, a video whose frames cannot be written back exactly: a lossy codec or colour pixels.
+
+    Raises
+    ------
+    InputError
+        The codec is not one of :data:`_EXACT_CODECS`, or the pixels are not 8-bit grey (they would be
+        written back in grey), naming the file and what to do.
+    """
+    import cv2
+
+    codec, pixels = _as_text(_fourcc(cap)), _as_text(int(cap.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT)) & 0xFFFFFFFF)
+    if codec.lower() in _EXACT_CODECS and pixels == "Y800":
+        return
+    raise InputError(
+        f"{path}: video (codec {codec}, pixels {pixels}) cannot be written back exactly: only 8-bit grey FFV1, "
+        "PNG or uncompressed video can; convert it to a multi-page TIFF or to such a video first "
+        "(e.g. ffmpeg -i IN -c:v ffv1 -pix_fmt gray OUT.avi)"
+    )
+
+
 def open_stored(path: Path) -> StoredFrames:
-    """The frames in 8-bit grey as decoded, one at a time (the count and size by a first pass, :func:`probe`)."""
+    """The frames in 8-bit grey as decoded, one at a time (the count and size by a first pass, :func:`probe`).
+
+    Raises
+    ------
+    InputError
+        A video whose frames cannot be written back exactly (:func:`_check_exact`).
+    """
+    cap = _open(path)
+    try:
+        _check_exact(path, cap)
+    finally:
+        cap.release()
     n_frames, size = probe(path)
     frames = (check_stored(path, f, np.uint8, size, i) for i, f in enumerate(_grey_frames(path)))
     return StoredFrames(n_frames, size, np.dtype(np.uint8), 0.0, frames)
@@ -107,24 +165,26 @@ def write_stored(
 ) -> None:
     """The source's container, codec (FourCC) and frame rate, 8-bit grey frames written as they come.
 
-    ``derivation`` is not recorded. The codec is the source's, lossy or not: a video is the one
-    frame format whose pixels are not written back exactly.
+    ``derivation`` is not recorded. Only a source whose frames are written back exactly is accepted.
 
     Raises
     ------
     InputError
-        No writer for the codec, or a frame count other than ``n_frames``.
+        A source :func:`_check_exact` refuses, no writer for the codec, or a frame count other than ``n_frames``.
     """
     import cv2
 
     cap = _open(source)
-    fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
-    fourcc = int(cap.get(cv2.CAP_PROP_FOURCC)) or cv2.VideoWriter_fourcc(*"MJPG")
-    size = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
-    cap.release()
+    try:
+        _check_exact(source, cap)
+        fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
+        fourcc = _fourcc(cap)  # 0: uncompressed, as the source
+        size = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+    finally:
+        cap.release()
 
     def _write(tmp):
-        writer = cv2.VideoWriter(tmp, fourcc, fps, size, isColor=False)
+        writer = cv2.VideoWriter(native_name(tmp), fourcc, fps, size, isColor=False)
         if not writer.isOpened():
             raise InputError(f"{out_path}: cannot open a video writer for this codec")
         count = 0

@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fluorocal.cache import ArtifactCache
+from fluorocal import graph
+from fluorocal.cache import ArtifactCache, file_sha256
 from fluorocal.config import load_config
 from fluorocal.run import Runner, _read_file_frames
 from fluorocal.stages import io
+from fluorocal.stages.detect import DetectParams, estimate_appearance
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io import write_still
 
@@ -58,3 +60,30 @@ def test_a_frame_replaced_while_the_run_reads_it_is_refused_and_not_cached(tmp_p
     again.run()
     assert again.keys[("mean", 1)] == victim_key
     assert float(again.get("mean", 1).value[0]) == 200.0  # f1.tif's own mean, not the replacement's 900
+
+
+def test_the_bead_appearance_estimate_reads_only_a_file_that_holds_still(tmp_path, monkeypatch):
+    # the appearance of a system's first frames goes into every frame's detect key: read like every other frame
+    graph._system_appearance.cache_clear()
+    path = tmp_path / "f.tif"
+    frame = np.full((64, 64), 3000, np.uint16)
+    frame[20:30, 20:30] = 500  # a dark bead-like blob
+    write_still(path, frame)
+    planned = file_sha256(path)
+    expected = estimate_appearance(io.read_frames(path), DetectParams())
+    assert graph._system_appearance(((path, planned, 0),), DetectParams()) == expected
+    graph._system_appearance.cache_clear()
+    write_still(path, np.full((64, 64), 900, np.uint16))  # replaced after the run was planned
+    with pytest.raises(InputError, match=r"f.tif: changed before fluorocal read it"):
+        graph._system_appearance(((path, planned, 0),), DetectParams())
+    write_still(path, frame)
+    read = io.read_frames
+
+    def replacing_reader(path, indices=None):
+        frames = read(path, indices)
+        write_still(path, np.full((64, 64), 900, np.uint16))  # lands while the reader decodes the file
+        return frames
+
+    monkeypatch.setattr(io, "read_frames", replacing_reader)
+    with pytest.raises(InputError, match=r"f.tif: changed while fluorocal read it"):
+        graph._system_appearance(((path, planned, 0),), DetectParams())

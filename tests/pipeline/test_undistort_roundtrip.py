@@ -9,6 +9,10 @@ raw PGM bytes, OpenCV), and otherwise with OpenImageIO asked for the samples as 
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import cv2
 import numpy as np
 import pydicom
@@ -161,17 +165,17 @@ def test_a_pgm_keeps_its_maxval_and_stored_values(identity, tmp_path, maxval):
     np.testing.assert_array_equal(np.frombuffer(data[len(header) :], word).reshape(H, W), samples)
 
 
-def test_a_jpeg_keeps_its_channels_within_its_codec_loss(identity, tmp_path):
-    # JPEG is lossy: re-encoding (at quality 100) cannot give every sample back; the type and channels
-    # must, and a smooth image within a few DN (quality 100 quantises every DCT coefficient by 1)
-    yy, xx = np.mgrid[0:H, 0:W]
-    rgb = np.stack([xx * 2, yy * 3, 255 - xx - yy], axis=-1).clip(0, 255).astype(np.uint8)
+def test_a_jpeg_is_refused_as_lossy(identity, tmp_path, capsys):
+    # re-encoding a JPEG (at any quality) cannot give its samples back: refused, with what to do
     source = tmp_path / "in.jpg"
-    cv2.imwrite(str(source), rgb, [cv2.IMWRITE_JPEG_QUALITY, 100])
-    assert _undistort(identity, tmp_path / "out", source) == 0
-    back, stored = cv2.imread(str(tmp_path / "out" / "in.jpg")), cv2.imread(str(source))
-    assert back.shape == stored.shape == (H, W, 3) and back.dtype == np.uint8
-    assert np.abs(back.astype(int) - stored).max() <= 3
+    cv2.imwrite(str(source), _ramp(np.uint8, 3), [cv2.IMWRITE_JPEG_QUALITY, 100])
+    _assert_refused(
+        identity,
+        tmp_path,
+        capsys,
+        source,
+        "JPEG is lossy: its frames cannot be written back as they came; convert it to a lossless format (TIFF or PNG)",
+    )
 
 
 # --- DICOM --------------------------------------------------------------------------------------------
@@ -262,6 +266,41 @@ def test_a_lossless_video_comes_back_frame_for_frame(identity, tmp_path):
         np.testing.assert_array_equal(again, frame)
 
 
+def _video(path, fourcc, frames, *, colour=False):
+    writer = cv2.VideoWriter(str(path), fourcc, 10, (W, H), isColor=colour)
+    assert writer.isOpened()
+    for frame in frames:
+        writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR) if colour else frame)
+    writer.release()
+
+
+def test_an_uncompressed_video_comes_back_uncompressed_frame_for_frame(identity, tmp_path):
+    # an uncompressed source (FourCC 0) was written back as MJPEG (lossy) before
+    frames = [_ramp(np.uint8, seed=k) for k in range(3)]
+    source = tmp_path / "raw.avi"
+    _video(source, 0, frames)
+    assert _undistort(identity, tmp_path / "out", source) == 0
+    cap = cv2.VideoCapture(str(tmp_path / "out" / "raw.avi"))
+    assert int(cap.get(cv2.CAP_PROP_FOURCC)) == 0
+    back = [cv2.cvtColor(cap.read()[1], cv2.COLOR_BGR2GRAY) for _ in frames]
+    assert not cap.read()[0]
+    cap.release()
+    for frame, again in zip(frames, back):
+        np.testing.assert_array_equal(again, frame)
+
+
+@pytest.mark.parametrize(
+    ("name", "fourcc", "colour"),
+    [("mjpeg.avi", "MJPG", False), ("mpeg4.mp4", "mp4v", False), ("colour_ffv1.avi", "FFV1", True)],
+)
+def test_a_lossy_or_colour_video_is_refused(identity, tmp_path, capsys, name, fourcc, colour):
+    # a lossy codec cannot give the frames back; a colour video would come back grey
+    source = tmp_path / name
+    _video(source, cv2.VideoWriter_fourcc(*fourcc), [_ramp(np.uint8, seed=k) for k in range(2)], colour=colour)
+    why = "cannot be written back exactly: only 8-bit grey FFV1, PNG or uncompressed video can; convert it to"
+    _assert_refused(identity, tmp_path, capsys, source, why)
+
+
 # --- refusals -----------------------------------------------------------------------------------------
 
 
@@ -315,3 +354,40 @@ def test_the_edges_background_leaves_an_alpha_channel_as_remapped(identity, tmp_
     inner = (xx - W / 2) ** 2 + (yy - H / 2) ** 2 < (0.4 * H - 2) ** 2
     np.testing.assert_array_equal(back[..., :3][inner], frame[..., :3][inner])
     assert back[..., :3][~disc].max() == 0
+
+
+# --- file names under an ASCII locale -------------------------------------------------------------------
+
+#: a C locale and ASCII output, as on a bare server or in a container (no UTF-8 mode)
+ASCII_LOCALE = {"LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONIOENCODING": "ascii"}
+
+
+def _undistort_in_c_locale(calibration, out, source: bytes):
+    """Run the CLI in a subprocess under :data:`ASCII_LOCALE` on the file named by ``source`` (raw bytes)."""
+    args = [os.fsencode(a) for a in (sys.executable, "-m", "fluorocal.cli", "--quiet", "undistort", calibration)]
+    args += [source, b"--system", b"A", b"--outside", b"keep", b"--out", os.fsencode(out)]
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("LC_", "LANG"))} | ASCII_LOCALE
+    return subprocess.run(args, env=env, capture_output=True)
+
+
+def test_a_non_ascii_file_name_is_read_and_written_under_the_c_locale(identity, tmp_path):
+    # Python decodes the name with surrogates there; OpenImageIO refused them (a TypeError, exit 2)
+    samples = _ramp(np.uint16)
+    name = "fr\u00e4me_\u0394.tif".encode()  # UTF-8 bytes, as a UTF-8 system names it
+    tifffile.imwrite(tmp_path / os.fsdecode(name), samples)
+    done = _undistort_in_c_locale(identity, tmp_path / "out", os.fsencode(tmp_path / os.fsdecode(name)))
+    assert done.returncode == 0, done.stderr
+    assert b"Traceback" not in done.stderr
+    np.testing.assert_array_equal(_oiio_samples(tmp_path / "out" / os.fsdecode(name)), samples)
+
+
+def test_a_file_name_that_is_not_utf8_is_refused_in_one_ascii_line(identity, tmp_path):
+    source = tmp_path / os.fsdecode(b"fr\xe4me.tif")  # Latin-1, which the libraries cannot open by name
+    tifffile.imwrite(source, _ramp(np.uint16))
+    done = _undistort_in_c_locale(identity, tmp_path / "out", os.fsencode(source))
+    assert done.returncode == 2 and done.stdout == b""
+    err = done.stderr.decode("ascii").strip()  # ASCII: the name's byte as an escape
+    assert err.splitlines() == [err], err
+    assert err.startswith("fluorocal: error: ") and "fr\\xe4me.tif: file name is not UTF-8" in err, err
+    assert "rename the file" in err
+    assert not (tmp_path / "out").exists()
