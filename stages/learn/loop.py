@@ -247,7 +247,7 @@ def _plan(params: LearnParams, observations, sizes, adjuster: Adjuster, estimate
     # Anderson and the gridded refinement combine gridded fields: the unsmoothed schemes run without them
     refine = params.refine if smooth else "none"
     acceleration = "none" if params.acceleration == "anderson" and not smooth else params.acceleration
-    respond = "orientation" if params.orientation_response == "yes" else "points"
+    respond = "orientation" if params.orientation_response else "points"
     return _Plan(params, observations, rows, sizes, adjuster, estimate_iop, smooth, refine, acceleration, respond)
 
 

@@ -86,7 +86,7 @@ PRESETS = {
     "recommended": {
         "acceleration": "anderson",
         "refine": "grid+points",
-        "orientation_response": "yes",
+        "orientation_response": True,
         "affine_datum": True,
         "smoothness_orders": (2, 3, 4),
         "max_iterations": 3,
@@ -101,7 +101,7 @@ PRESETS = {
     "paper": {
         "acceleration": "none",
         "refine": "none",
-        "orientation_response": "no",
+        "orientation_response": False,
         "affine_datum": False,
         "smoothness_orders": (2,),
         "max_iterations": 30,
@@ -209,10 +209,10 @@ class LearnParams:
         and every object point (:func:`~fluorocal.stages.learn.joint.fit_grids_jointly`:
         a Gauss-Newton step of the joint problem, so the alternation converges
         in a few steps). The unsmoothed schemes run without a refinement.
-    orientation_response : str *(preset)*
-        With ``refine="grid+points"``, what the fields' step is estimated jointly with: ``"yes"``
+    orientation_response : bool *(preset)*
+        With ``refine="grid+points"``, what the fields' step is estimated jointly with: true
         (recommended): the IOP, every pose (each epoch's reference pose and each further system's ROP)
-        and every object point (a Gauss-Newton step of the joint problem); ``"no"``: the object points
+        and every object point (a Gauss-Newton step of the joint problem); false: the object points
         alone, the IOP and the poses held. Either way every system's field is solved in the same step,
         the beads the systems share tying them (:func:`~fluorocal.stages.learn.joint.fit_grids_jointly`).
         With one system the
@@ -343,7 +343,7 @@ class LearnParams:
     relaxation: float = 1.5
     anderson_depth: int = 10
     refine: str | None = None
-    orientation_response: str | None = None
+    orientation_response: bool | None = None
     tau_grid_px: tuple = DEFAULT_TAU_GRID_PX
     smoothness_folds: int = 5
     smoothness_orders: tuple[int, ...] | None = None
@@ -377,8 +377,8 @@ class LearnParams:
             raise InputError(f"acceleration must be 'none', 'overrelax' or 'anderson'; got {self.acceleration!r}")
         if self.refine not in ("none", "grid", "grid+points"):
             raise InputError(f"refine must be 'none', 'grid' or 'grid+points'; got {self.refine!r}")
-        if self.orientation_response not in ("yes", "no"):
-            raise InputError(f"orientation_response must be 'yes' or 'no'; got {self.orientation_response!r}")
+        if not isinstance(self.orientation_response, bool):
+            raise InputError(f"orientation_response must be true or false; got {self.orientation_response!r}")
         if self.affine_datum and self.refine != "grid+points":
             raise InputError(
                 f"affine_datum needs refine='grid+points' (it constrains the point shifts); got refine={self.refine!r}"
