@@ -1,6 +1,6 @@
 """The undistortion maps of a calibration, computed once and cached beside it.
 
-:meth:`fluorocal.Calibration.remap_maps` costs seconds per call at 1024² px (the field is
+:meth:`fluorocal.Calibration.remap_maps` costs about a second per call at 1024² px (the field is
 inverted at every pixel), so each map pair is stored on disk, in a folder beside the
 calibration named like it (``calibration.json`` -> ``calibration.maps/``):
 
