@@ -177,17 +177,39 @@ def neighbours(i: int, rotations: dict) -> tuple:
 
 
 def _predicted_rotation(i: int, nb: tuple, rotations: dict, step: np.ndarray | None):
-    """``(R, nearest labelled frame, motion known)``: interpolated between both sides, else moved on by ``step``."""
-    from scipy.spatial.transform import Rotation, Slerp
+    """``(R, nearest labelled frame, motion known)``: interpolated between both sides, else moved on by ``step``.
+
+    Between both sides the turn from one to the other is taken the way ``step`` goes (:func:`_unwrapped`): a
+    turn of more than half a circle across a gap (e.g. three 90 deg steps) is otherwise taken the short way
+    back, and the frames between are predicted turned the wrong way.
+    """
+    from scipy.spatial.transform import Rotation
 
     a, b = nb
     near = a if b is None or (a is not None and i - a <= b - i) else b
     if a is not None and b is not None:
-        rot = Slerp([a, b], Rotation.from_matrix([rotations[a], rotations[b]]))([i])[0]
-        return rot.as_matrix(), near, True
+        turn = Rotation.from_matrix(rotations[b] @ rotations[a].T).as_rotvec()
+        if step is not None:
+            turn = _unwrapped(turn, step * (b - a))
+        return Rotation.from_rotvec(turn * (i - a) / (b - a)).as_matrix() @ rotations[a], near, True
     if step is None:
         return rotations[near], near, False
     return Rotation.from_rotvec(step * (i - near)).as_matrix() @ rotations[near], near, True
+
+
+def _unwrapped(turn: np.ndarray, guess: np.ndarray) -> np.ndarray:
+    """The rotation vector of the same rotation as ``turn`` (angle in [0, pi]) nearest ``guess``: whole turns added.
+
+    A rotation by ``theta`` about ``u`` is also one by ``theta + 2 pi k``; over several frames of a large step
+    the turn made is the one the step predicts, which the rotation alone cannot tell.
+    """
+    theta = float(np.linalg.norm(turn))
+    norm = float(np.linalg.norm(guess))
+    if norm == 0.0:
+        return turn
+    u = turn / theta if theta > 1e-12 else guess / norm
+    k = np.rint((float(guess @ u) - theta) / (2 * np.pi))
+    return u * (theta + 2 * np.pi * k)
 
 
 def _turns(rotations: dict):
@@ -208,38 +230,51 @@ def _turns(rotations: dict):
     return turn
 
 
-def _mean_step(rotations: dict, turn=None) -> np.ndarray | None:
+def _mean_step(rotations: dict, turn=None, guess: np.ndarray | None = None) -> np.ndarray | None:
     """The median rotation per frame (rotation vector, camera frame) between labelled frames a few frames apart.
 
-    ``turn``: :func:`_turns` of ``rotations`` or of a set holding them (default: made here).
+    ``turn``: :func:`_turns` of ``rotations`` or of a set holding them (default: made here). The turn between
+    frames more than one apart is taken the way ``guess`` (a step) goes, by default the median step between
+    consecutive frames (:func:`_unwrapped`): three 90 deg steps make a turn of 270 deg, not one of -90 deg.
     """
     turn = turn or _turns(rotations)
     frames = sorted(rotations)
-    steps = [turn(j, k) / (k - j) for j, k in zip(frames, frames[1:]) if k - j <= _MAX_MOTION_GAP]
+    pairs = [(j, k) for j, k in zip(frames, frames[1:]) if k - j <= _MAX_MOTION_GAP]
+    if guess is None:
+        consecutive = [turn(j, k) for j, k in pairs if k - j == 1]
+        guess = np.median(consecutive, axis=0) if consecutive else None
+    steps = [(turn(j, k) if guess is None else _unwrapped(turn(j, k), guess * (k - j))) / (k - j) for j, k in pairs]
     return np.median(steps, axis=0) if steps else None
 
 
 def _prediction_sigmas(rotations: dict, axis: np.ndarray, both_sides: bool, turn=None) -> tuple[float, float]:
     """1-sigma errors (rad) of the prediction about ``axis`` and across it, measured on the labelled frames.
 
-    Each labelled frame with labelled frames near it (on both sides, or before it, as the prediction
-    will be made) is predicted from them; the robust standard deviations of the misses about the axis
+    Each labelled frame with labelled frames near it is predicted from them as the prediction will be
+    made: between both sides, or from one side (each side it has: a frame before the sequence's first
+    labelled one is predicted from after it); the robust standard deviations of the misses about the axis
     (1.4826 x the median absolute turn) and across it (per component: the median tilt / 1.1774, the
     median of a 2D normal's length in its sigmas), floored at ``_MIN_SIGMA_DEG``. ``_DEFAULT_SIGMA_DEG``
-    until ``_MIN_RESIDUALS`` frames show them. ``turn``: :func:`_turns` of ``rotations`` (default: made here).
+    until ``_MIN_RESIDUALS`` predictions show them. ``turn``: :func:`_turns` of ``rotations`` (default: made
+    here). The turns across gaps go the way of the step of all ``rotations`` (:func:`_mean_step`).
     """
     from scipy.spatial.transform import Rotation
 
     turn = turn or _turns(rotations)
+    guess = _mean_step(rotations, turn)
     misses = []
     for j in rotations:
         others = {k: R for k, R in rotations.items() if k != j and abs(k - j) <= _MAX_MOTION_GAP}
-        nb = neighbours(j, others)
-        if (both_sides and None in nb) or nb[0] is None:
-            continue
-        R, _, known = _predicted_rotation(j, nb if both_sides else (nb[0], None), others, _mean_step(others, turn))
-        if known:
-            misses.append(Rotation.from_matrix(rotations[j] @ R.T).as_rotvec())
+        a, b = neighbours(j, others)
+        if both_sides:
+            ways = [] if a is None or b is None else [(a, b)]
+        else:
+            ways = [w for w in ((a, None), (None, b)) if w != (None, None)]
+        step = _mean_step(others, turn, guess) if ways else None
+        for way in ways:
+            R, _, known = _predicted_rotation(j, way, others, step)
+            if known:
+                misses.append(Rotation.from_matrix(rotations[j] @ R.T).as_rotvec())
     if len(misses) < _MIN_RESIDUALS:
         return np.radians(_DEFAULT_SIGMA_DEG), np.radians(_DEFAULT_SIGMA_DEG)
     misses = np.asarray(misses)

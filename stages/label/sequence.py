@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import replace
 
 from fluorocal.stages.artifacts import Phantom
@@ -12,6 +13,8 @@ from fluorocal.stages.label.labels import Labels
 from fluorocal.stages.label.lattice_sequence import number_lattice_sequence
 from fluorocal.stages.label.motion import Motion, neighbours, predict
 from fluorocal.stages.label.params import LabelParams
+
+log = logging.getLogger(__name__)
 
 # a frame whose orientation lies this many standard deviations from its neighbours' prediction is checked
 _SUSPECT_SIGMAS = 6.0
@@ -80,6 +83,7 @@ def label_sequence(
             # weighed against the labellings found near its neighbours' orientation (before it serves as a
             # neighbour itself)
             i, why = suspect
+            log.debug("frame %d is weighed against its neighbours' labellings: %s", i, why)
             checked.add(i)
             others = {j: lab for j, lab in labelled.items() if j != i}
             lab = _from_neighbours(centroids_seq[i], phantom, base, i, others, motion, pool=True)
@@ -157,4 +161,4 @@ def _suspect(labelled: dict, rotations: dict, checked: set, motion) -> tuple[int
         predicted = predict(i, rotations, motion)
         if predicted is not None and predicted[0].distance(R) > worst_d:
             worst, worst_d = i, predicted[0].distance(R)
-    return None if worst is None else (worst, "its pose is far from its neighbours'")
+    return None if worst is None else (worst, f"its pose is {worst_d:.1f} sigmas from its neighbours' prediction")
