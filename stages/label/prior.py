@@ -27,7 +27,6 @@ from fluorocal.stages.label.votes import (
     rays_of,
     shift_peaks,
     shift_starts,
-    shift_strength,
     shift_strengths,
     shift_votes,
 )
@@ -348,7 +347,8 @@ def _turn_starts(search: "_Search", R0: np.ndarray, p_centre: np.ndarray, axis: 
     thin = (
         rays[np.linspace(0, len(rays) - 1, _N_TURN_DETECTIONS).astype(int)] if len(rays) > _N_TURN_DETECTIONS else rays
     )
-    scan = np.array([shift_strength(frame, *turned(a), thin) for a in np.arange(n_steps) * step])
+    R, T = (np.array(x) for x in zip(*(turned(a) for a in np.arange(n_steps) * step)))
+    scan = shift_strengths(frame, R, T, thin)
     local = np.flatnonzero((scan >= np.roll(scan, 1)) & (scan >= np.roll(scan, -1)))
     refined = []
     for k in local[np.argsort(-scan[local], kind="stable")][:_N_TURN_CANDIDATES]:

@@ -53,7 +53,9 @@ def shift_starts(frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarra
         rays[np.linspace(0, len(rays) - 1, N_DEPTH_DETECTIONS).astype(int)] if len(rays) > N_DEPTH_DETECTIONS else rays
     )
     steps = depth_steps(frame, depth)
-    best_dz = steps[int(np.argmax([shift_strength(frame, R, T - dz * R[2], thin) for dz in steps]))]
+    best_dz = steps[
+        int(np.argmax(shift_strengths(frame, np.repeat(R[None], len(steps), 0), T - steps[:, None] * R[2], thin)))
+    ]
     return shift_peaks(frame, R, T - best_dz * R[2], rays, n_keep or N_PEAKS)
 
 
@@ -81,7 +83,9 @@ def shift_votes(
         return None
     z, a, lo, shape, bin_mm = _vote_grids(frame, p_cam[None], rays, bin_gates)
     shape = tuple(int(n) for n in shape[0])
-    ix, iy = _pair_bins(rays, z[0], a[0], lo[0])
+    buf = np.empty((len(rays), len(p_cam)))
+    ix, iy = np.empty_like(buf, np.int64), np.empty_like(buf, np.int64)
+    _pair_bins(rays, z[0], a[0], lo[0], ix, iy, buf)
     # the histogram with box // 2 empty bins before and box - 1 - box // 2 after each axis (for the box sums)
     before = box // 2
     full = (shape[0] + box - 1, shape[1] + box - 1)
@@ -136,15 +140,21 @@ def _strengths(frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarray)
         if p.shape[1] < 4 or not len(rays) or not len(ks):
             continue
         z, a, lo, shape, _ = _vote_grids(frame, p, rays, 1.0)
+        # one empty bin after each axis (the 2 x 2 sums starting at every bin); small grids count in int32
+        n_bins = (shape[:, 0] + 1) * (shape[:, 1] + 1)
+        buf = np.empty((len(rays), p.shape[1]))
+        dtype = np.int32 if n_bins.max() < 2**31 else np.int64
+        ix, iy = np.empty_like(buf, dtype), np.empty_like(buf, dtype)
         for i, k in enumerate(ks):
-            ix, iy = _pair_bins(rays, z[i], a[i], lo[i])
-            # one empty bin after each axis: the 2 x 2 sums starting at every bin
-            full = (int(shape[i, 0]) + 1, int(shape[i, 1]) + 1)
-            ix *= full[1]
+            _pair_bins(rays, z[i], a[i], lo[i], ix, iy, buf)
+            width = int(shape[i, 1]) + 1
+            ix *= width
             ix += iy
-            hist = np.bincount(ix.ravel(), minlength=full[0] * full[1]).reshape(full)
-            rows = hist[:-1] + hist[1:]
-            out[k] = (rows[:, :-1] + rows[:, 1:]).max()
+            hist = np.bincount(ix.ravel(), minlength=int(n_bins[i]))
+            # the sums over 2 rows, then 2 columns, of the flattened histogram: a sum that wraps from the empty
+            # last column to the next row's first is part of one that does not (it cannot be the largest)
+            rows = hist[:-width] + hist[width:]
+            out[k] = (rows[:-1] + rows[1:]).max()
     return out
 
 
@@ -179,16 +189,18 @@ def _vote_grids(frame: CubeFrame, p_cam: np.ndarray, rays: np.ndarray, bin_gates
     return z, a, lo, shape, bin_mm
 
 
-def _pair_bins(rays: np.ndarray, z: np.ndarray, a: np.ndarray, lo: np.ndarray) -> list:
-    """The bins ``[ix, iy]`` ((D, B) int64 each) of every pair's vote in one pose (:func:`_vote_grids`)."""
-    out = []
-    for c in (0, 1):
+def _pair_bins(rays: np.ndarray, z: np.ndarray, a: np.ndarray, lo: np.ndarray, ix, iy, buf) -> None:
+    """Write the bins of every pair's vote in one pose (:func:`_vote_grids`) to ``ix`` and ``iy``.
+
+    ``ix``, ``iy`` : (D, B) integer ndarrays; ``buf`` : (D, B) float64 ndarray, overwritten.
+    """
+    for c, out in ((0, ix), (1, iy)):
         # shape (D, B): the shift (bins) that moves bead b onto detection d's ray, at b's depth
-        f = rays[:, c : c + 1] * z
-        f -= a[c]
-        f -= lo[c]
-        out.append(f.astype(np.int64))
-    return out
+        np.multiply(rays[:, c : c + 1], z, out=buf)
+        buf -= a[c]
+        buf -= lo[c]
+        # truncated: floored, as buf >= 0
+        np.copyto(out, buf, casting="unsafe")
 
 
 def shift_peaks(frame: CubeFrame, R: np.ndarray, T: np.ndarray, rays: np.ndarray, n_keep: int) -> list:
