@@ -13,6 +13,7 @@ labelling near the prediction, turns about the sequence's turntable axis over th
 from __future__ import annotations
 
 import functools
+import itertools
 
 import numpy as np
 from fluorocal.stages.label.cube_frame import CubeFrame, coarse_evidence, with_camera
@@ -26,7 +27,7 @@ from fluorocal.stages.label.votes import (
     rays_of,
     shift_peaks,
     shift_starts,
-    shift_strength,
+    shift_strengths,
     shift_votes,
 )
 
@@ -250,13 +251,15 @@ def _ball_starts(search: "_Search", prior: OrientationPrior, p_centre: np.ndarra
 
     # the grid's points by their steps from the prediction: the regions share them, and their scores
     cells = [tuple(c) for c in np.rint(vecs / step).astype(int).tolist()]
-    # shape (G, L): strength of each rotation at each depth
-    strength = np.array(
-        [
-            [search.memo(("strength", cells[k], dz), shift_strength, frame, *pose(k, dz), thin) for dz in depths]
-            for k in range(len(vecs))
-        ]
-    )
+    grid = list(itertools.product(range(len(vecs)), depths))
+
+    def strengths(indices):
+        R, T = (np.array(x) for x in zip(*(pose(*grid[i]) for i in indices)))
+        return shift_strengths(frame, R, T, thin).tolist()
+
+    # shape (G, L): strength of each rotation at each depth (those not scored yet, in one pass)
+    strength = np.array(search.memo_all([("strength", cells[k], dz) for k, dz in grid], strengths))
+    strength = strength.reshape(len(vecs), len(depths))
     best = strength.max(1)
     kept: list[int] = []
     for k in np.argsort(-best, kind="stable"):
@@ -344,7 +347,8 @@ def _turn_starts(search: "_Search", R0: np.ndarray, p_centre: np.ndarray, axis: 
     thin = (
         rays[np.linspace(0, len(rays) - 1, _N_TURN_DETECTIONS).astype(int)] if len(rays) > _N_TURN_DETECTIONS else rays
     )
-    scan = np.array([shift_strength(frame, *turned(a), thin) for a in np.arange(n_steps) * step])
+    R, T = (np.array(x) for x in zip(*(turned(a) for a in np.arange(n_steps) * step)))
+    scan = shift_strengths(frame, R, T, thin)
     local = np.flatnonzero((scan >= np.roll(scan, 1)) & (scan >= np.roll(scan, -1)))
     refined = []
     for k in local[np.argsort(-scan[local], kind="stable")][:_N_TURN_CANDIDATES]:
@@ -393,6 +397,13 @@ class _Search:
         if key not in self._memo:
             self._memo[key] = compute(*args)
         return self._memo[key]
+
+    def memo_all(self, keys: list, compute) -> list:
+        """The values of ``keys``, those not computed yet by one call ``compute(indices)`` (indices in ``keys``)."""
+        missing = [i for i, key in enumerate(keys) if key not in self._memo]
+        if missing:
+            self._memo.update(zip((keys[i] for i in missing), compute(missing)))
+        return [self._memo[key] for key in keys]
 
     def polish(self, R: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pose ``(R, T)`` refined on the detections nearest its beads (under the camera, or the pinhole)."""
