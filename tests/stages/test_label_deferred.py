@@ -45,6 +45,8 @@ def test_a_sequence_of_the_one_doubtful_frame_searches_around_it(frames_16_to_18
     check_right(lab, dets[1], fts[1])
 
 
+# a doubtful frame giving way to its one neighbour: test_label_varied's last-frame case (make test)
+@pytest.mark.check
 def test_a_doubtful_frame_between_two_labelled_ones_is_weighed_against_them(frames_16_to_18):
     """Between frames 16 and 18, frame 17 is weighed against their prediction, not kept 9 deg off: all three right."""
     phantom, params, dets, fts = frames_16_to_18
