@@ -138,6 +138,24 @@ def centred_calibration(arcadis_dir, tmp_path_factory) -> Path:
     return _calibrated_arcadis(arcadis_dir, tmp_path_factory, "centred")
 
 
+#: the session projects that :func:`built_once` shares, in the order the workers start them
+SHARED_PROJECTS = ("calibrated_run", "simulated_grid", "arcadis_calibration", "centred_calibration")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _start_a_shared_project(request):
+    """Under xdist, each worker first builds another of the session's shared projects that its tests use.
+
+    Otherwise the workers' first tests tend to ask for the same project, and all but one wait for it while the
+    next project waits its turn; started side by side, each is ready (or nearly) when the others ask for it.
+    """
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    used = [name for name in SHARED_PROJECTS if any(name in item.fixturenames for item in request.session.items)]
+    if worker.startswith("gw") and used:
+        with contextlib.suppress(pytest.skip.Exception):  # the real radiographs absent: their tests skip themselves
+            request.getfixturevalue(used[int(worker[2:]) % len(used)])
+
+
 def copy_project(source: Path, destination: Path) -> Path:
     """A copy of a project folder (frames, config, cache and outputs) at ``destination``."""
     import shutil

@@ -196,6 +196,7 @@ def test_two_or_fewer_markers(sim, params):
     assert n_ok[2] == 2  # two markers are enough on the default cube
 
 
+@pytest.mark.check  # a hand-built phantom searched in full; make test: test_ambiguous_beads_are_left_out
 def test_hand_built_overlapping_pair_is_ambiguous():
     """A small 3D phantom where two beads project onto each other: both are excluded, the rest labelled."""
     rng = np.random.default_rng(3)
