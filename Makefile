@@ -24,7 +24,7 @@ demo: $(STAMP)
 # Bytecode is cached under .venv/pycache (an environment's PYTHONDONTWRITEBYTECODE would make every worker
 # and every CLI subprocess compile the sources and rewrite the test modules' asserts again).
 # ARGS: more pytest options, e.g. `make test ARGS=--durations=15`
-PYTEST := PYTHONDONTWRITEBYTECODE= PYTHONPYCACHEPREFIX=$(abspath $(VENV))/pycache OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope
+PYTEST := PYTHONDONTWRITEBYTECODE= PYTHONPYCACHEPREFIX="$(abspath $(VENV))/pycache" OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope
 
 # every feature, on small data (<= 3 min): the tests marked `check` are left to `make check`
 test: $(STAMP)
@@ -51,4 +51,4 @@ fixtures: $(STAMP)
 	$(BIN)/python fixtures/make_fixtures.py
 
 clean:
-	rm -rf demo .fluorocal build site *.egg-info
+	rm -rf demo .fluorocal build site *.egg-info $(VENV)/pycache

@@ -337,7 +337,9 @@ def test_sequence_propagates_seeds(sim, params):
         assert lab.ok and np.array_equal(ids0[lab.det_index], lab.bead_id)
 
 
-@pytest.mark.check  # eight 1024 px frames, shift and turn search; make test: test_label_varied's seeded sequence
+# eight 1024 px frames, shift and turn search. make test: the seeded sequences above and test_label_varied's (one
+# frame from the seeded one); the turns across frames: test_label_sequence's quarter-turn motion
+@pytest.mark.check
 def test_sequence_seeded_on_one_frame_follows_turns_and_jumps():
     """The paper's manual seeding: seeds on the first frame only, no markers, a turntable sequence.
 

@@ -93,9 +93,13 @@ def test_full_vote_is_the_definitions(scene, bin_gates, box):
     """Every output of the full vote (histogram, box sums, grid origin, bin size) equals the definition's."""
     frame, R_true, T_true, rays = scene
     R, T = _poses(frame, R_true, T_true, np.random.default_rng(11), 24)
-    for r, t in zip(R, T):
+    voted = 0
+    for r, t in zip(R, T, strict=True):
         got = shift_votes(frame, r, t, rays, bin_gates=bin_gates, box=box)
         want = _reference_votes(frame, r, t, rays, bin_gates, box)
         assert (got is None) == (want is None)
         if want is not None:
-            assert all(np.array_equal(g, w) for g, w in zip(got, want))
+            voted += 1
+            assert len(got) == len(want) == 4
+            assert all(np.array_equal(g, w) for g, w in zip(got, want, strict=True))
+    assert voted >= len(R) // 2  # not vacuous: most poses put beads in front of the source
