@@ -171,16 +171,17 @@ def _refusal(format_name: str, type_name: str, maxval: int | None, bits: int) ->
     Examples
     --------
     >>> _refusal("jpeg", "uint8", None, 8)
-    'JPEG is lossy: its frames cannot be written back as they came; convert it to a lossless format (TIFF or PNG) first'
+    'JPEG is lossy: its frames cannot be written back as they came; convert it to TIFF or PNG first'
     >>> _refusal("tiff", "uint16", None, 16) is None
     True
     """
     if format_name not in _EXACT_FORMATS:
         what = (
-            "JPEG is lossy" if format_name == "jpeg" else f"{format_name or 'this format'} is not written back exactly"
+            "JPEG is lossy: its frames cannot be written back as they came"
+            if format_name == "jpeg"
+            else (f"{format_name or 'this format'}: fluorocal writes frames back exactly only as TIFF, PNG or PGM/PPM")
         )
-        advice = "convert it to a lossless format (TIFF or PNG) first"
-        return f"{what}: its frames cannot be written back as they came; {advice}"
+        return f"{what}; convert it to TIFF or PNG first"
     container = _TYPES[type_name].itemsize * 8
     if type_name == "half":
         why = "half-float samples cannot be written back as stored (OpenImageIO writes them as float)"

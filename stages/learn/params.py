@@ -378,7 +378,9 @@ class LearnParams:
         if self.refine not in ("none", "grid", "grid+points"):
             raise InputError(f"refine must be 'none', 'grid' or 'grid+points'; got {self.refine!r}")
         if not isinstance(self.orientation_response, bool):
-            raise InputError(f"orientation_response must be true or false; got {self.orientation_response!r}")
+            raise InputError(
+                f"orientation_response must be true or false (unquoted); got {self.orientation_response!r}"
+            )
         if self.affine_datum and self.refine != "grid+points":
             raise InputError(
                 f"affine_datum needs refine='grid+points' (it constrains the point shifts); got refine={self.refine!r}"

@@ -174,7 +174,7 @@ def test_a_jpeg_is_refused_as_lossy(identity, tmp_path, capsys):
         tmp_path,
         capsys,
         source,
-        "JPEG is lossy: its frames cannot be written back as they came; convert it to a lossless format (TIFF or PNG)",
+        "JPEG is lossy: its frames cannot be written back as they came; convert it to TIFF or PNG first",
     )
 
 
