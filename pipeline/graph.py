@@ -160,12 +160,17 @@ def _system_appearance(frames: tuple, params):
     """The estimate on ``(path, content sha256, index)`` frames, each read only while its content is that sha.
 
     The sha keys the memo to the content, and :func:`~fluorocal.steady.read_steady` refuses a file that
-    changed since the run was planned or while it is read, as every frame read of a run does.
+    changed since the run was planned or while it is read, as every frame read of a run does. A file's
+    frames in a row are read (and hashed) together.
     """
+    from itertools import groupby
+
     from fluorocal.stages.detect import estimate_appearance
     from fluorocal.steady import read_steady
 
-    return estimate_appearance((read_steady(path, sha, [index])[0] for path, sha, index in frames), params)
+    runs = groupby(frames, key=lambda f: f[:2])
+    read = (read_steady(path, sha, [f[2] for f in run]) for (path, sha), run in runs)
+    return estimate_appearance((frame for file_frames in read for frame in file_frames), params)
 
 
 def _learn_extras(config, units) -> dict:

@@ -19,6 +19,7 @@ calibration stays light.
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass, replace
 
@@ -336,12 +337,14 @@ class CorrectionField(_FieldOps):
     def distort_points(self, xy_ideal_px: np.ndarray) -> np.ndarray:
         """Measured coordinates ``(N, 2)`` px whose undistortion is ``xy_ideal_px`` ``(N, 2)`` px (Newton's method)."""
         u = _as_points("xy_ideal_px", xy_ideal_px)
-        return np.ascontiguousarray(_newton(self._interpolate, np.ascontiguousarray(u.T)).T)
+        return np.ascontiguousarray(_newton(self._interpolator(), np.ascontiguousarray(u.T)).T)
 
-    def _interpolate(self, x_px, y_px, *, gradient=False):
-        """``Δ`` (and ``dΔ/dx``, ``dΔ/dy``) ``(2, M)`` at measured ``(x_px, y_px)`` ``(M,)``."""
-        planes = _node_planes(self.delta_px)
-        return _bilinear_planes(self.x_nodes_px, self.y_nodes_px, planes, x_px, y_px, gradient=gradient)
+    def _interpolator(self):
+        """``interpolate(x_px, y_px, gradient=...)``: ``Δ`` (and ``dΔ/dx``, ``dΔ/dy``) ``(2, M)`` at ``(M,)`` points.
+
+        The node planes are laid out once, for every Newton step that interpolates.
+        """
+        return functools.partial(_bilinear_planes, self.x_nodes_px, self.y_nodes_px, _node_planes(self.delta_px))
 
     def support_at(self, xy_px: np.ndarray) -> np.ndarray:
         """True ``(N,)`` where all four surrounding nodes are supported."""
@@ -384,9 +387,10 @@ class CorrectionField(_FieldOps):
         map_x = np.empty((height_px, width_px), np.float32)
         map_y = np.empty((height_px, width_px), np.float32)
         rows = max(1, _MAP_BLOCK_POINTS // max(width_px, 1))  # a block of rows at a time: bounded memory
+        interpolate = self._interpolator()
         for top in range(0, height_px, rows):
             yy, xx = np.mgrid[top : min(top + rows, height_px), 0:width_px].astype(np.float64)
-            src = _newton(self._interpolate, np.stack([xx.ravel(), yy.ravel()]))
+            src = _newton(interpolate, np.stack([xx.ravel(), yy.ravel()]))
             map_x[top : top + rows] = src[0].reshape(xx.shape)
             map_y[top : top + rows] = src[1].reshape(xx.shape)
         return map_x, map_y

@@ -134,7 +134,7 @@ def test_an_unconverged_inversion_gives_the_same_points_and_warning(simulated_fi
     want, n_left = _reference_distort(simulated_field, xy, max_iter=1)
     assert n_left > 0  # one step leaves most points short of 1e-9 px
     with caplog.at_level(logging.WARNING, logger="fluorocal.stages.field"):
-        got = field_module._newton(simulated_field._interpolate, np.ascontiguousarray(xy.T), max_iter=1)
+        got = field_module._newton(simulated_field._interpolator(), np.ascontiguousarray(xy.T), max_iter=1)
     np.testing.assert_array_equal(_bits(got.T), _bits(want))
     assert f"distort_points: {n_left} of 3000 points not converged" in caplog.text
 
