@@ -21,10 +21,11 @@ demo: $(STAMP)
 # one test process per core (pytest-xdist), each with one BLAS/OpenMP thread: the suite's numerics are small,
 # and oversubscribed threads cost more than they give. --dist loadscope keeps a module's tests on one worker,
 # so each module fixture is built once; the session fixtures are shared by the workers (tests/conftest.py).
-# Bytecode is cached under .venv/pycache (an environment's PYTHONDONTWRITEBYTECODE would make every worker
-# and every CLI subprocess compile the sources and rewrite the test modules' asserts again).
+# Bytecode is written beside the sources as usual (an environment's PYTHONDONTWRITEBYTECODE would make every
+# worker and every CLI subprocess compile the sources and rewrite the test modules' asserts again); the
+# libraries' bytecode compiled at installation is used from the first run.
 # ARGS: more pytest options, e.g. `make test ARGS=--durations=15`
-PYTEST := PYTHONDONTWRITEBYTECODE= PYTHONPYCACHEPREFIX="$(abspath $(VENV))/pycache" OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope
+PYTEST := PYTHONDONTWRITEBYTECODE= OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope
 
 # every feature, on small data (<= 3 min): the tests marked `check` are left to `make check`
 test: $(STAMP)
@@ -51,4 +52,5 @@ fixtures: $(STAMP)
 	$(BIN)/python fixtures/make_fixtures.py
 
 clean:
-	rm -rf demo .fluorocal build site *.egg-info $(VENV)/pycache
+	rm -rf demo .fluorocal build site *.egg-info
+	find pipeline stages tests benchmarks fixtures -name __pycache__ -type d -prune -exec rm -rf {} +
