@@ -179,9 +179,11 @@ def neighbours(i: int, rotations: dict) -> tuple:
 def _predicted_rotation(i: int, nb: tuple, rotations: dict, step: np.ndarray | None):
     """``(R, nearest labelled frame, motion known)``: interpolated between both sides, else moved on by ``step``.
 
-    Between both sides the turn from one to the other is taken the way ``step`` goes (:func:`_unwrapped`): a
+    Between both sides the turn from one to the other is taken the way ``step`` goes (:func:`_lifted`): a
     turn of more than half a circle across a gap (e.g. three 90 deg steps) is otherwise taken the short way
-    back, and the frames between are predicted turned the wrong way.
+    back, and the frames between are predicted turned the wrong way. A frame a fraction ``s`` of the way is
+    turned by ``s`` of the rest, then by ``s`` of the whole turns (about the step's axis): at ``s = 1`` the
+    whole turns vanish and the prediction is the far side's rotation.
     """
     from scipy.spatial.transform import Rotation
 
@@ -189,9 +191,10 @@ def _predicted_rotation(i: int, nb: tuple, rotations: dict, step: np.ndarray | N
     near = a if b is None or (a is not None and i - a <= b - i) else b
     if a is not None and b is not None:
         turn = Rotation.from_matrix(rotations[b] @ rotations[a].T).as_rotvec()
-        if step is not None:
-            turn = _unwrapped(turn, step * (b - a))
-        return Rotation.from_rotvec(turn * (i - a) / (b - a)).as_matrix() @ rotations[a], near, True
+        whole, rest = _lifted(turn, step * (b - a)) if step is not None else (np.zeros(3), turn)
+        s = (i - a) / (b - a)
+        R = Rotation.from_rotvec(rest * s).as_matrix() @ rotations[a]
+        return (Rotation.from_rotvec(whole * s).as_matrix() @ R if whole.any() else R), near, True
     if step is None:
         return rotations[near], near, False
     return Rotation.from_rotvec(step * (i - near)).as_matrix() @ rotations[near], near, True
@@ -210,6 +213,23 @@ def _unwrapped(turn: np.ndarray, guess: np.ndarray) -> np.ndarray:
     u = turn / theta if theta > 1e-12 else guess / norm
     k = np.rint((float(guess @ u) - theta) / (2 * np.pi))
     return u * (theta + 2 * np.pi * k)
+
+
+def _lifted(turn: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(whole, rest)``: ``turn`` taken the way ``guess`` goes, as whole turns about ``guess``'s axis and the rest.
+
+    ``whole`` is the whole turns of ``guess`` (rotation vector of angle ``2 pi n``, n the nearest integer to
+    ``|guess| / 2 pi``; zero when n is 0), ``rest`` the rotation vector of ``turn`` nearest ``guess - whole``
+    (:func:`_unwrapped`). Across a gap whose turn is near whole turns, ``turn`` is near the identity and its
+    axis is noise: the whole turns are then taken about the step's axis, not about that of ``turn``. Without
+    whole turns this is :func:`_unwrapped` itself.
+    """
+    norm = float(np.linalg.norm(guess))
+    n = np.rint(norm / (2 * np.pi))
+    if n == 0:
+        return np.zeros(3), _unwrapped(turn, guess)
+    whole = guess * (2 * np.pi * n / norm)
+    return whole, _unwrapped(turn, guess - whole)
 
 
 def _turns(rotations: dict):
@@ -235,7 +255,8 @@ def _mean_step(rotations: dict, turn=None, guess: np.ndarray | None = None) -> n
 
     ``turn``: :func:`_turns` of ``rotations`` or of a set holding them (default: made here). The turn between
     frames more than one apart is taken the way ``guess`` (a step) goes, by default the median step between
-    consecutive frames (:func:`_unwrapped`): three 90 deg steps make a turn of 270 deg, not one of -90 deg.
+    consecutive frames (:func:`_lifted`): three 90 deg steps make a turn of 270 deg, not one of -90 deg, and
+    three 120 deg steps a whole turn about the step's axis, not about the noise of a near-identity rotation.
     """
     turn = turn or _turns(rotations)
     frames = sorted(rotations)
@@ -243,7 +264,7 @@ def _mean_step(rotations: dict, turn=None, guess: np.ndarray | None = None) -> n
     if guess is None:
         consecutive = [turn(j, k) for j, k in pairs if k - j == 1]
         guess = np.median(consecutive, axis=0) if consecutive else None
-    steps = [(turn(j, k) if guess is None else _unwrapped(turn(j, k), guess * (k - j))) / (k - j) for j, k in pairs]
+    steps = [(turn(j, k) if guess is None else sum(_lifted(turn(j, k), guess * (k - j)))) / (k - j) for j, k in pairs]
     return np.median(steps, axis=0) if steps else None
 
 
