@@ -77,11 +77,12 @@ def _hole_chords(rays: tuple, centre_cam: tuple, radius_mm, c_px: float, *, axis
     """
     dn = _dot3(rays, axis_cam)
     cn = _dot3(centre_cam, axis_cam)
-    d_perp = tuple(r - dn * n for r, n in zip(rays, axis_cam))
-    c_perp = tuple(c - cn * n for c, n in zip(centre_cam, axis_cam))
-    A = _dot3(d_perp, d_perp)
-    B = _dot3(d_perp, c_perp)
-    disc = B * B - A * (_dot3(c_perp, c_perp) - radius_mm**2)
+    # the rays' and centres' parts across the axis enter only through their dot products (no vectors of their own:
+    # these are arrays of a ray per pixel and sub-sample)
+    A = np.maximum(_dot3(rays, rays) - dn * dn, 0.0)
+    B = _dot3(rays, centre_cam) - dn * cn
+    cc = _dot3(centre_cam, centre_cam) - cn * cn
+    disc = B * B - A * (cc - radius_mm**2)
     root = np.sqrt(np.maximum(disc, 0.0))
     safe_A = np.maximum(A, 1e-30)
     # ray parameter interval inside the (infinite) cylinder, and inside the plate
@@ -90,7 +91,8 @@ def _hole_chords(rays: tuple, centre_cam: tuple, radius_mm, c_px: float, *, axis
     p1, p2 = (cn - thickness_mm / 2) / dn, (cn + thickness_mm / 2) / dn
     length = np.maximum(np.minimum(c_hi, np.maximum(p1, p2)) - np.maximum(c_lo, np.minimum(p1, p2)), 0.0)
     s_mid = cn / dn
-    dist_mid = np.sqrt(_dot3(*[tuple(s_mid * d - c for d, c in zip(d_perp, c_perp))] * 2))
+    # distance from the hole's axis where the ray crosses the plate's mid-plane: |s_mid d_perp - c_perp|
+    dist_mid = np.sqrt(np.maximum(s_mid * (s_mid * A - 2 * B) + cc, 0.0))
     px_per_mm = c_px / s_mid
     slant_px = thickness_mm / 2 * np.sqrt(A) / np.abs(dn) * px_per_mm
     return length, np.maximum(np.abs(dist_mid - radius_mm) * px_per_mm - slant_px, 0.0)

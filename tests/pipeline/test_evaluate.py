@@ -181,23 +181,27 @@ def _rows(path):
         return list(csv.DictReader(fh))
 
 
+# from 2 epochs knn+iop's three kNN steps stop short of convergence: warned, as it should be, and beside the point here
+@pytest.mark.filterwarnings("ignore::fluorocal.stages.errors.NotConvergedWarning")
 def test_command_writes_every_scheme_and_size_without_labelling_again(project, caplog, capsys):
     caplog.set_level(logging.INFO, logger="fluorocal.run")  # the runner's report: what it computed, what was cached
     out = project / "eval_out"
     argv = ["evaluate", str(project / "fluorocal.toml"), "--train-sizes", "2", "--out", str(out)]
-    argv += ["--schemes", "none,polynomial,knn+iop+smooth", "--reference", str(project / "reference.csv")]
+    # knn+iop: the command's plumbing is what is tested here (the default scheme's scores are the stage's tests
+    # above); from 2 epochs the gridded refinement would run to its cap, ~15 s
+    argv += ["--schemes", "none,polynomial,knn+iop", "--reference", str(project / "reference.csv")]
     assert main(argv) == 0
     # every frame's labels come from the project's cache (`fluorocal run` filled it): none is labelled again
     assert "label: 0 computed, 8 cached" in caplog.text
     rows = _rows(out / "evaluation.csv")
-    assert {(r["scheme"], r["n_train"]) for r in rows} == {(s, "2") for s in ("none", "polynomial", "knn+iop+smooth")}
+    assert {(r["scheme"], r["n_train"]) for r in rows} == {(s, "2") for s in ("none", "polynomial", "knn+iop")}
     for r in rows:
         assert int(r["n_heldout"]) == 2  # 4 epochs, odd ones held out: exactly 2 and 2
         assert float(r["tworay_mean_mm"]) > 0 and r["tworay_reference"] == "check points"
         assert float(r["out_3d_rigid_mm"]) > 0 and float(r["out_rms_px"]) > 0
     md = (out / "evaluation.md").read_text()
     table = [line for line in md.splitlines() if line.startswith("| ")]
-    assert [re.split(r"\s*\|\s*", line)[2] for line in table[1:]] == ["none", "polynomial", "knn+iop+smooth"]
+    assert [re.split(r"\s*\|\s*", line)[2] for line in table[1:]] == ["none", "polynomial", "knn+iop"]
     # the table always says whether a peer won anywhere: one line per win, or that none did
     wins = [line for line in md.splitlines() if line.startswith("- peer ")]
     assert bool(wins) != ("No peer beats" in md)  # the wins listed, or that there were none: never both, never neither
