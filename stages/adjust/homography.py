@@ -196,7 +196,7 @@ def fit_homographies(
         step = np.linalg.solve(H + (mu[:, None] * diag)[:, :, None] * np.eye(8), b[:, :, None])[:, :, 0]
         step[done] = 0.0
         trial = h + step
-        new_cost, _ = frames.cost(trial, scale2, nu)
+        new_cost, new_s = frames.cost(trial, scale2, nu)
         predicted = 0.5 * ((b * step).sum(1) + mu * (diag * step * step).sum(1)) / scale2
         actual = cost - new_cost
         ok = np.isfinite(new_cost) & (actual > 0) & (predicted > 0) & ~done
@@ -204,7 +204,9 @@ def fit_homographies(
         h = np.where(ok[:, None], trial, h)
         mu = np.where(ok, np.maximum(mu * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3), 1e-12), mu * 4.0)
         cost_prev = cost.copy()
-        cost, s = frames.cost(h, scale2, nu)
+        # the cost at the new h: per frame the trial's or the last one's (a frame's cost is its observations' alone)
+        cost = np.where(ok, new_cost, cost)
+        s = np.where(ok[frames.seg], new_s, s)
         if estimate_scale:
             scale2 = ml_scales(s, frames.seg, frames.counts, nu, scale2)
             cost, s = frames.cost(h, scale2, nu)
