@@ -44,7 +44,7 @@ from fluorocal.stages.adjust.robust import t_weights
 from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
-from fluorocal.stages.learn.nodes import GridSpec
+from fluorocal.stages.learn.nodes import GridSpec, node_coordinates
 from fluorocal.stages.plate.homography import Normaliser, homography_modes
 
 log = logging.getLogger(__name__)
@@ -214,6 +214,7 @@ def solve_plate(problem: PlateProblem, settings: SolveSettings) -> PlateSolution
     error_std_mm = np.zeros(len(problem.nominal_mm))
     base = CorrectionField.constant(*problem.image_size, spacing_px=settings.grid.spacing_px)
     devs = _zero_deviations(problem, settings)
+    supports = _supports(problem, settings)
     fields = _combined(base, devs)
     smoothness = (settings.start_smoothness, settings.start_smoothness)
     converged = settings.max_iterations == 0
@@ -229,8 +230,10 @@ def solve_plate(problem: PlateProblem, settings: SolveSettings) -> PlateSolution
         target, var = _targets(problem, fit, error_mm)
         if iteration == _CV_ITERATION:  # chosen once the plate's errors are mostly out of the residuals
             smoothness = _smoothness(problem, target, var, base, devs, settings)
-        base = _base_field(problem, target - _at(problem, devs), var, settings, smoothness[0], devs)
-        devs = _deviations(problem, target - base.correction_at(problem.xy_px), var, settings, smoothness[1], base)
+        base = _base_field(problem, target - _at(problem, devs), var, settings, smoothness[0], devs, supports)
+        devs = _deviations(
+            problem, target - base.correction_at(problem.xy_px), var, settings, smoothness[1], base, supports
+        )
         new_fields = _combined(base, devs)
         new_error, new_std = _plate_errors(problem, new_fields, fit, estimated, settings.plate_sigma_mm, plate_norm)
         moved = _largest_change_px(problem, fields, new_fields, error_mm, new_error, fit.H)
@@ -418,18 +421,40 @@ def _smoothness(problem, target, var, base, devs, settings: SolveSettings) -> tu
     return chosen_base, cv(problem.xy_px, target - base.correction_at(problem.xy_px), var, _deviation_grid(settings))
 
 
-def _base_field(problem, target, var, settings: SolveSettings, smoothness, devs) -> CorrectionField:
+def _supports(problem: PlateProblem, settings: SolveSettings) -> tuple:
+    """The support masks of the base field's nodes (every centre) and of each orientation's deviation (its centres).
+
+    The centres do not move in the alternation: the masks are found once, not at every field fit.
+    """
+    base = settings.grid.support_mask(problem.xy_px, node_coordinates(*settings.grid.nodes(problem.image_size)))
+    if problem.n_orientations == 1:
+        return base, ()  # no deviation is fitted
+    grid = _deviation_grid(settings)
+    nodes = node_coordinates(*grid.nodes(problem.image_size))
+    return base, tuple(
+        grid.support_mask(problem.xy_px[problem.orientation == o], nodes) for o in range(problem.n_orientations)
+    )
+
+
+def _base_field(problem, target, var, settings: SolveSettings, smoothness, devs, supports) -> CorrectionField:
     """The field common to every orientation, fitted to all frames, less its homography (the datum)."""
     order, tau = smoothness
     field = fit_grid_field(
-        problem.xy_px, target, var, image_size=problem.image_size, tau_px=tau, grid=settings.grid, order=order
+        problem.xy_px,
+        target,
+        var,
+        image_size=problem.image_size,
+        tau_px=tau,
+        grid=settings.grid,
+        order=order,
+        support=supports[0],
     )
     mean_dev = np.mean([dev.delta_px for dev in devs], axis=0)
     rest = devs[0].with_delta(mean_dev).correction_at  # the orientations' mean deviation
     return _without_homography(field, problem.xy_px, rest)
 
 
-def _deviations(problem, target, var, settings: SolveSettings, smoothness, base: CorrectionField) -> tuple:
+def _deviations(problem, target, var, settings: SolveSettings, smoothness, base: CorrectionField, supports) -> tuple:
     """Each orientation's smooth deviation from the base field, less its homography; zero with one orientation."""
     if problem.n_orientations == 1:
         return _zero_deviations(problem, settings)
@@ -446,6 +471,7 @@ def _deviations(problem, target, var, settings: SolveSettings, smoothness, base:
             tau_px=tau,
             grid=grid,
             order=order,
+            support=supports[1][o],
         )
         out.append(_without_homography(field, problem.xy_px[sel], base.correction_at))
     return tuple(out)
