@@ -201,7 +201,7 @@ class _SizeBars:
 
         if done == 0:
             self.bar = tqdm(
-                total=total, desc=f"evaluate, {size} frames", unit="frame", leave=False, disable=not self.shown
+                total=total, desc=f"evaluate, training size {size}", unit="frame", leave=False, disable=not self.shown
             )
             return
         self.bar.update(1)
