@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import time
 from pathlib import Path
 
@@ -137,7 +138,8 @@ def _run_plate(args, config, runner, out_dir: Path) -> int:
     )
     log.info("evaluate (grid plate): sizes %s frames; schemes %s", ",".join(map(str, sizes)), ",".join(schemes))
     t0 = time.perf_counter()
-    result = evaluate_plate(obs, sizes, schemes, setup, scored=scored, progress=_progress)
+    bars = _SizeBars(runner.progress and sys.stderr.isatty())
+    result = evaluate_plate(obs, sizes, schemes, setup, scored=scored, progress=_progress, step=bars)
     held = "every frame" if args.holdout is None else f"the frames of --holdout {' '.join(args.holdout)}"
     notes = [
         f"Project `{config.path.name}` (grid plate): {held} scored on alternate lattice rows, each row parity "
@@ -182,6 +184,29 @@ def _plate_sizes(text, counts: list[int]) -> tuple[int, ...]:
     if text is None:
         return check_train_sizes(default_train_sizes(n, minimum=1), n, 1, why=why)
     return check_train_sizes(_parsed_sizes(text), n, 1, why=why)
+
+
+class _SizeBars:
+    """A progress bar for each training size of a plate's evaluation (its scored frames' fits), on stderr.
+
+    Shown on a terminal unless ``--quiet``, as the stages' bars are; closed before the size's scores are logged.
+    """
+
+    def __init__(self, shown: bool):
+        self.shown = shown
+        self.bar = None
+
+    def __call__(self, size: int, done: int, total: int) -> None:
+        from tqdm import tqdm
+
+        if done == 0:
+            self.bar = tqdm(
+                total=total, desc=f"evaluate, training size {size}", unit="frame", leave=False, disable=not self.shown
+            )
+            return
+        self.bar.update(1)
+        if done == total:
+            self.bar.close()
 
 
 def _progress(score) -> None:

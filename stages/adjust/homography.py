@@ -69,20 +69,25 @@ def _project(h: np.ndarray, plate_n: np.ndarray, seg: np.ndarray) -> tuple[np.nd
 
 
 def _jacobian(h, plate_n, seg, linv_n) -> tuple[np.ndarray, np.ndarray]:
-    """Whitened ``∂e/∂h`` (N, 2, 8) of ``e = L^-1 (ideal - projection)`` and the projection."""
+    """Whitened ``∂e/∂h`` (N, 2, 8) of ``e = L^-1 (ideal - projection)`` and the projection.
+
+    ``∂f/∂h`` has rows ``(X, Y, 1, 0, 0, 0, -u X, -u Y) / d`` and ``(0, 0, 0, X, Y, 1, -v X, -v Y) / d``;
+    ``L^-1`` (lower triangular) is applied to their non-zero blocks only.
+    """
     f, d = _project(h, plate_n, seg)
     X, Y = plate_n[:, 0] / d, plate_n[:, 1] / d
-    zero = np.zeros_like(X)
-    one_d = 1.0 / d
     u, v = f[:, 0], f[:, 1]
-    dfdh = np.stack(
-        [
-            np.stack([X, Y, one_d, zero, zero, zero, -u * X, -u * Y], -1),
-            np.stack([zero, zero, zero, X, Y, one_d, -v * X, -v * Y], -1),
-        ],
-        1,
-    )
-    return -whiten(linv_n, dfdh), f
+    row0 = np.column_stack([X, Y, 1.0 / d])  # columns 0-2 of the x row, 3-5 of the y row
+    l11, l21, l22 = (-linv_n[:, i, None] for i in range(3))
+    J = np.empty((len(X), 2, 8))
+    J[:, 0, :3] = l11 * row0
+    J[:, 0, 3:6] = 0.0
+    J[:, 1, :3] = l21 * row0
+    J[:, 1, 3:6] = l22 * row0
+    ux, vx = np.column_stack([-u * X, -u * Y]), np.column_stack([-v * X, -v * Y])
+    J[:, 0, 6:] = l11 * ux
+    J[:, 1, 6:] = l21 * ux + l22 * vx
+    return J, f
 
 
 @dataclass(frozen=True)
@@ -115,9 +120,14 @@ class _Frames:
         J, f = _jacobian(h, self.plate_n, self.seg, self.linv_n)
         e = whiten(self.linv_n, self.image_n - f)
         w = t_weights((e * e).sum(1), nu, scale2[self.seg])
-        Jw = J * np.sqrt(w)[:, None, None]
-        H = np.add.reduceat(np.matmul(Jw.transpose(0, 2, 1), Jw), self.starts, axis=0)
-        b = -np.add.reduceat(np.einsum("nki,nk->ni", Jw, e * np.sqrt(w)[:, None]), self.starts, axis=0)
+        root = np.sqrt(w)
+        Jw = (J * root[:, None, None]).reshape(-1, 8)  # two rows per observation
+        ew = (e * root[:, None]).ravel()
+        H = np.empty((len(self.starts), 8, 8))
+        b = np.empty((len(self.starts), 8))
+        for k, (lo, hi) in enumerate(zip(2 * self.starts, 2 * np.r_[self.starts[1:], len(e)])):
+            H[k] = Jw[lo:hi].T @ Jw[lo:hi]
+            b[k] = -(ew[lo:hi] @ Jw[lo:hi])
         return H, b, J, f, e, w
 
 
@@ -186,7 +196,7 @@ def fit_homographies(
         step = np.linalg.solve(H + (mu[:, None] * diag)[:, :, None] * np.eye(8), b[:, :, None])[:, :, 0]
         step[done] = 0.0
         trial = h + step
-        new_cost, _ = frames.cost(trial, scale2, nu)
+        new_cost, new_s = frames.cost(trial, scale2, nu)
         predicted = 0.5 * ((b * step).sum(1) + mu * (diag * step * step).sum(1)) / scale2
         actual = cost - new_cost
         ok = np.isfinite(new_cost) & (actual > 0) & (predicted > 0) & ~done
@@ -194,7 +204,9 @@ def fit_homographies(
         h = np.where(ok[:, None], trial, h)
         mu = np.where(ok, np.maximum(mu * np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3), 1e-12), mu * 4.0)
         cost_prev = cost.copy()
-        cost, s = frames.cost(h, scale2, nu)
+        # the cost at the new h: per frame the trial's or the last one's (a frame's cost is its observations' alone)
+        cost = np.where(ok, new_cost, cost)
+        s = np.where(ok[frames.seg], new_s, s)
         if estimate_scale:
             scale2 = ml_scales(s, frames.seg, frames.counts, nu, scale2)
             cost, s = frames.cost(h, scale2, nu)
@@ -222,7 +234,10 @@ def _frame_fit(frames: _Frames, h, scale2, nu, iterations, done, history) -> Fra
     H_px /= H_px[:, 2:3, 2:3]
     H, _, J, f, e, w = frames.weighted_normal(h, scale2, nu)
     Q = np.linalg.inv(H)
-    hat = np.einsum("nai,nij,nbj->nab", J, Q[frames.seg], J)
+    JQ = np.empty_like(J)
+    for k, (lo, hi) in enumerate(zip(frames.starts, np.r_[frames.starts[1:], len(J)])):
+        JQ[lo:hi] = J[lo:hi] @ Q[k]
+    hat = np.einsum("nai,nbi->nab", JQ, J)
     return FrameFit(
         H=H_px,
         scale2=scale2,

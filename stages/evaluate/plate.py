@@ -59,12 +59,23 @@ def plate_fits(setup: PlateSetup) -> dict:
     from fluorocal.stages.plate.holdout import solved
     from fluorocal.stages.plate.polynomial import fit_polynomial
 
-    pitch = setup.phantom.pitch_mm
     return {
-        "plate": solved(setup.plate.settings(pitch, True, solver=setup.solver)),
-        "none": solved(setup.plate.settings(pitch, False, learn_fields=False, solver=setup.solver)),
+        "plate": solved(setup.plate.settings(setup.phantom.pitch_mm, True, solver=setup.solver)),
+        "none": uncorrected,
         "polynomial": fit_polynomial,
     }
+
+
+def uncorrected(train, frame: int):
+    """Scheme ``none``: the centres as measured, the plate nominal.
+
+    Its homography of the nominal plate per frame is the one the scoring fits
+    (:func:`fluorocal.stages.plate.holdout.holdout_scores`): a solve of it here would
+    change nothing scored (a frame that admits no homography fails scheme ``plate`` first).
+    """
+    from fluorocal.stages.plate.holdout import PlateFit
+
+    return PlateFit(np.array, np.zeros_like(train.nominal_mm))
 
 
 def plate_frames(observations, setup: PlateSetup) -> list:
@@ -95,7 +106,19 @@ def training_frames(n_frames: int, frame: int, size: int) -> np.ndarray:
     return np.sort(np.append(chosen, frame))
 
 
-def evaluate_plate(observations, sizes, schemes, setup: PlateSetup, *, scored=None, progress=None) -> Evaluation:
+def _frame_scores(system, frame: int, size: int, fits: dict) -> dict:
+    """Scheme -> the :class:`HoldoutScore` of ``frame`` of ``system`` (as :func:`plate_frames` gives it) at ``size``."""
+    from fluorocal.stages.plate.holdout import holdout_scores
+
+    problem, _, row = system
+    sub, back = problem.of_frames(training_frames(problem.n_frames, frame, size))
+    held = holdout_scores(sub, fits, row, layout=PLATE_SCHEMES[0], frames=[int(np.searchsorted(back, frame))])
+    return {name: dataclasses.replace(score, frame=back[score.frame]) for name, score in held.items()}
+
+
+def evaluate_plate(
+    observations, sizes, schemes, setup: PlateSetup, *, scored=None, progress=None, step=None
+) -> Evaluation:
     """The protocol of the module docstring on a plate's labelled holes.
 
     Parameters
@@ -111,6 +134,9 @@ def evaluate_plate(observations, sizes, schemes, setup: PlateSetup, *, scored=No
         Exposures whose frames are scored (default every frame).
     progress : callable, optional
         Called with each :class:`Score` as it is computed.
+    step : callable, optional
+        Called as ``step(size, done, total)`` when a training size starts (``done = 0``) and after each of its
+        ``total`` scored frames' fits (every scheme on both row parities), before that size's scores.
 
     Returns
     -------
@@ -123,7 +149,7 @@ def evaluate_plate(observations, sizes, schemes, setup: PlateSetup, *, scored=No
     InputError
         An unknown scheme, a size outside a system's frames, or no frame to score.
     """
-    from fluorocal.stages.plate.holdout import HoldoutScore, holdout_scores
+    from fluorocal.stages.plate.holdout import HoldoutScore
 
     unknown = [s for s in schemes if s not in PLATE_SCHEMES]
     if unknown:
@@ -134,19 +160,21 @@ def evaluate_plate(observations, sizes, schemes, setup: PlateSetup, *, scored=No
     if not any(chosen):
         raise InputError("no frame of the plate is to be scored")
     scores, residuals = [], []
+    todo = [(s, f) for s, frames in enumerate(chosen) for f in frames]
     for size in sizes:
         parts = {name: [] for name in fits}
-        for s, ((problem, exposures, row), frames) in enumerate(zip(systems, chosen)):
-            for f in frames:
-                sub, back = problem.of_frames(training_frames(problem.n_frames, f, size))
-                local = int(np.searchsorted(back, f))
-                try:
-                    held = holdout_scores(sub, fits, row, layout=PLATE_SCHEMES[0], frames=[local])
-                except EstimationError as exc:
-                    where = f"system {observations.system_names[s]}, exposure {exposures[f]}"
-                    raise EstimationError(f"{where} (training size {size}): {exc}") from None
-                for name, score in held.items():
-                    parts[name].append((s, dataclasses.replace(score, frame=back[score.frame])))
+        if step is not None:
+            step(size, 0, len(todo))
+        for done, (s, f) in enumerate(todo, 1):
+            try:
+                held = _frame_scores(systems[s], f, size, fits)
+            except EstimationError as exc:
+                where = f"system {observations.system_names[s]}, exposure {systems[s][1][f]}"
+                raise EstimationError(f"{where} (training size {size}): {exc}") from None
+            for name, score in held.items():
+                parts[name].append((s, score))
+            if step is not None:
+                step(size, done, len(todo))
         for name in schemes:
             pooled = HoldoutScore.concatenate(p for _, p in parts[name])
             system = np.concatenate([np.full(len(p.frame), s) for s, p in parts[name]])
@@ -167,4 +195,12 @@ def evaluate_plate(observations, sizes, schemes, setup: PlateSetup, *, scored=No
     return Evaluation(tuple(scores), tuple(residuals))
 
 
-__all__ = ["PLATE_SCHEMES", "PlateSetup", "evaluate_plate", "plate_fits", "plate_frames", "training_frames"]
+__all__ = [
+    "PLATE_SCHEMES",
+    "PlateSetup",
+    "evaluate_plate",
+    "plate_fits",
+    "plate_frames",
+    "training_frames",
+    "uncorrected",
+]

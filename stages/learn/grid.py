@@ -315,6 +315,7 @@ def fit_grid_field(
     cv_rms_px: float | None = None,
     base: CorrectionField | None = None,
     order: int = 2,
+    support: np.ndarray | None = None,
 ) -> CorrectionField:
     """Fit the node values of a bilinear grid to the residuals directly (weighted least squares).
 
@@ -343,6 +344,9 @@ def fit_grid_field(
     order : int
         Order of the difference prior (default 2, the thin-plate energy; see
         ``LearnParams.smoothness_orders``).
+    support : (H_g * W_g,) bool ndarray, optional
+        ``grid.support_mask`` of ``xy_px`` at the nodes, when the caller fits the same points again
+        (default: computed).
 
     Returns
     -------
@@ -364,13 +368,14 @@ def fit_grid_field(
     )
     if cv_rms_px is None:
         cv_rms_px = float(np.sqrt(np.mean((r - A @ v) ** 2)))
-    return grid_result(xn, yn, v, A, xy, cv_rms_px, grid, (width, height))
+    return grid_result(xn, yn, v, A, xy, cv_rms_px, grid, (width, height), support)
 
 
-def grid_result(xn, yn, values, A, xy, cv_rms_px, grid: GridSpec, image_size) -> CorrectionField:
+def grid_result(xn, yn, values, A, xy, cv_rms_px, grid: GridSpec, image_size, support=None) -> CorrectionField:
     """A least-squares grid field with node uncertainty ``cv_rms / sqrt(n_eff)`` and support mask.
 
-    ``n_eff`` is the bilinear weight the observations put on the node.
+    ``n_eff`` is the bilinear weight the observations put on the node; ``support`` (default: computed) is
+    ``grid.support_mask`` of ``xy`` at the nodes.
     """
     n_eff = np.asarray(A.sum(axis=0)).ravel()
     sigma = cv_rms_px / np.sqrt(np.maximum(n_eff, 1e-3))
@@ -380,7 +385,7 @@ def grid_result(xn, yn, values, A, xy, cv_rms_px, grid: GridSpec, image_size) ->
         yn,
         values.reshape(shape + (2,)),
         sigma.reshape(shape),
-        grid.support_mask(xy, node_coordinates(xn, yn)).reshape(shape),
+        (grid.support_mask(xy, node_coordinates(xn, yn)) if support is None else support).reshape(shape),
         *image_size,
     )
 

@@ -44,7 +44,7 @@ from fluorocal.stages.adjust.robust import t_weights
 from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
-from fluorocal.stages.learn.nodes import GridSpec
+from fluorocal.stages.learn.nodes import GridSpec, node_coordinates
 from fluorocal.stages.plate.homography import Normaliser, homography_modes
 
 log = logging.getLogger(__name__)
@@ -214,32 +214,37 @@ def solve_plate(problem: PlateProblem, settings: SolveSettings) -> PlateSolution
     error_std_mm = np.zeros(len(problem.nominal_mm))
     base = CorrectionField.constant(*problem.image_size, spacing_px=settings.grid.spacing_px)
     devs = _zero_deviations(problem, settings)
+    supports = _supports(problem, settings)
     fields = _combined(base, devs)
+    corrected = _corrected(problem, fields)  # the centres corrected by ``fields``, found once per state
     smoothness = (settings.start_smoothness, settings.start_smoothness)
     converged = settings.max_iterations == 0
     stop = "no field: homographies only" if converged else f"{settings.max_iterations} iterations"
     iteration = 0
     initial = None
-    best = None  # (change, iteration, fields, error_mm, error_std_mm): the state nearest a fixed point
+    best = None  # (change, iteration, fields, corrected, error_mm, error_std_mm): the state nearest a fixed point
     for iteration in range(1, settings.max_iterations + 1):
-        fit = _homographies(problem, fields, error_mm, settings.solver)
+        fit = _homographies(problem, corrected, error_mm, settings.solver)
         if iteration == 1:
             initial = problem.xy_px - _apply(fit.H[problem.frame], problem.nominal_mm[problem.hole])
             estimated &= _moved_holes(problem, fit.H)
         target, var = _targets(problem, fit, error_mm)
         if iteration == _CV_ITERATION:  # chosen once the plate's errors are mostly out of the residuals
             smoothness = _smoothness(problem, target, var, base, devs, settings)
-        base = _base_field(problem, target - _at(problem, devs), var, settings, smoothness[0], devs)
-        devs = _deviations(problem, target - base.correction_at(problem.xy_px), var, settings, smoothness[1], base)
+        base = _base_field(problem, target - _at(problem, devs), var, settings, smoothness[0], devs, supports)
+        devs = _deviations(
+            problem, target - base.correction_at(problem.xy_px), var, settings, smoothness[1], base, supports
+        )
         new_fields = _combined(base, devs)
-        new_error, new_std = _plate_errors(problem, new_fields, fit, estimated, settings.plate_sigma_mm, plate_norm)
-        moved = _largest_change_px(problem, fields, new_fields, error_mm, new_error, fit.H)
-        fields, error_mm, error_std_mm = new_fields, new_error, new_std
+        new_corrected = _corrected(problem, new_fields)
+        new_error, new_std = _plate_errors(problem, new_corrected, fit, estimated, settings.plate_sigma_mm, plate_norm)
+        moved = _largest_change_px(problem, corrected, new_corrected, error_mm, new_error, fit.H)
+        fields, corrected, error_mm, error_std_mm = new_fields, new_corrected, new_error, new_std
         log.debug("plate iteration %d: largest change %.2e px", iteration, moved)
         if iteration <= _CV_ITERATION:
             continue
         if best is None or moved < best[0]:
-            best = (moved, iteration, fields, error_mm, error_std_mm)
+            best = (moved, iteration, fields, corrected, error_mm, error_std_mm)
         if moved < settings.tolerance_px:
             converged = True
             stop = f"converged in {iteration} iterations (change {moved:.1e} px)"
@@ -252,13 +257,13 @@ def solve_plate(problem: PlateProblem, settings: SolveSettings) -> PlateSolution
                 if best[1] < iteration
                 else f"{iteration} iterations, still moving (change {moved:.1e} px)"
             )
-            _, iteration, fields, error_mm, error_std_mm = best
+            _, iteration, fields, corrected, error_mm, error_std_mm = best
             break
-    fit = _homographies(problem, fields, error_mm, settings.solver)
+    fit = _homographies(problem, corrected, error_mm, settings.solver)
     if initial is None:
         initial = problem.xy_px - _apply(fit.H[problem.frame], problem.nominal_mm[problem.hole])
     layout = problem.nominal_mm[problem.hole] + error_mm[problem.hole]
-    residual = _corrected(problem, fields) - _apply(fit.H[problem.frame], layout)
+    residual = corrected - _apply(fit.H[problem.frame], layout)
     return PlateSolution(
         fields,
         error_mm,
@@ -319,27 +324,27 @@ class _Fit:
     weight: np.ndarray  # (N,)
 
 
-def _homographies(problem: PlateProblem, fields, error_mm, solver) -> _Fit:
+def _homographies(problem: PlateProblem, corrected, error_mm, solver) -> _Fit:
     """The frames' homographies, their Student-t weights recomputed under one scale pooled over the frames.
 
     The fit estimates a scale per frame; fed back through the plate's errors, a frame that fits a
     little better draws every hole's error to itself, fits better still, and its scale shrinks toward
     zero. One pooled scale keeps the frames on an equal footing.
     """
-    fit = _frame_homographies(problem, fields, error_mm, solver)
+    fit = _frame_homographies(problem, corrected, error_mm, solver)
     counts = np.bincount(problem.frame, minlength=problem.n_frames)
     scale2 = float(np.sum(fit.scale2 * counts) / counts.sum())
     weight = t_weights(fit.s, float(solver.nu), scale2)
     return _Fit(fit.H, scale2, weight)
 
 
-def _frame_homographies(problem: PlateProblem, fields, error_mm, solver):
+def _frame_homographies(problem: PlateProblem, corrected, error_mm, solver):
     starts = np.flatnonzero(np.r_[True, problem.frame[1:] != problem.frame[:-1]])
     if len(starts) != problem.n_frames:
         raise EstimationError(f"{problem.n_frames - len(starts)} frame(s) of the plate have no observation")
     return fit_homographies(
         problem.nominal_mm[problem.hole] + error_mm[problem.hole],
-        _corrected(problem, fields),
+        corrected,
         problem.sigma_px,
         starts,
         nu=float(solver.nu),
@@ -418,18 +423,40 @@ def _smoothness(problem, target, var, base, devs, settings: SolveSettings) -> tu
     return chosen_base, cv(problem.xy_px, target - base.correction_at(problem.xy_px), var, _deviation_grid(settings))
 
 
-def _base_field(problem, target, var, settings: SolveSettings, smoothness, devs) -> CorrectionField:
+def _supports(problem: PlateProblem, settings: SolveSettings) -> tuple:
+    """The support masks of the base field's nodes (every centre) and of each orientation's deviation (its centres).
+
+    The centres do not move in the alternation: the masks are found once, not at every field fit.
+    """
+    base = settings.grid.support_mask(problem.xy_px, node_coordinates(*settings.grid.nodes(problem.image_size)))
+    if problem.n_orientations == 1:
+        return base, ()  # no deviation is fitted
+    grid = _deviation_grid(settings)
+    nodes = node_coordinates(*grid.nodes(problem.image_size))
+    return base, tuple(
+        grid.support_mask(problem.xy_px[problem.orientation == o], nodes) for o in range(problem.n_orientations)
+    )
+
+
+def _base_field(problem, target, var, settings: SolveSettings, smoothness, devs, supports) -> CorrectionField:
     """The field common to every orientation, fitted to all frames, less its homography (the datum)."""
     order, tau = smoothness
     field = fit_grid_field(
-        problem.xy_px, target, var, image_size=problem.image_size, tau_px=tau, grid=settings.grid, order=order
+        problem.xy_px,
+        target,
+        var,
+        image_size=problem.image_size,
+        tau_px=tau,
+        grid=settings.grid,
+        order=order,
+        support=supports[0],
     )
     mean_dev = np.mean([dev.delta_px for dev in devs], axis=0)
     rest = devs[0].with_delta(mean_dev).correction_at  # the orientations' mean deviation
     return _without_homography(field, problem.xy_px, rest)
 
 
-def _deviations(problem, target, var, settings: SolveSettings, smoothness, base: CorrectionField) -> tuple:
+def _deviations(problem, target, var, settings: SolveSettings, smoothness, base: CorrectionField, supports) -> tuple:
     """Each orientation's smooth deviation from the base field, less its homography; zero with one orientation."""
     if problem.n_orientations == 1:
         return _zero_deviations(problem, settings)
@@ -446,6 +473,7 @@ def _deviations(problem, target, var, settings: SolveSettings, smoothness, base:
             tau_px=tau,
             grid=grid,
             order=order,
+            support=supports[1][o],
         )
         out.append(_without_homography(field, problem.xy_px[sel], base.correction_at))
     return tuple(out)
@@ -469,7 +497,7 @@ def _without_homography(field: CorrectionField, xy_px: np.ndarray, rest) -> Corr
     return field.with_delta(field.delta_px - at_nodes.reshape(field.delta_px.shape))
 
 
-def _plate_errors(problem, fields, fit, estimated, plate_sigma_mm, plate_norm) -> tuple[np.ndarray, np.ndarray]:
+def _plate_errors(problem, corrected, fit, estimated, plate_sigma_mm, plate_norm) -> tuple[np.ndarray, np.ndarray]:
     """Per hole, the shrunk mean offset of its corrected centres mapped back onto the plate, less a homography.
 
     Returns the errors ``(K, 2)`` mm and their standard uncertainty per component ``(K,)`` mm.
@@ -478,7 +506,7 @@ def _plate_errors(problem, fields, fit, estimated, plate_sigma_mm, plate_norm) -
     error = np.zeros((n_holes, 2))
     if not estimated.any():
         return error, np.zeros(n_holes)
-    on_plate = _apply(np.linalg.inv(fit.H)[problem.frame], _corrected(problem, fields))
+    on_plate = _apply(np.linalg.inv(fit.H)[problem.frame], corrected)
     offset = on_plate - problem.nominal_mm[problem.hole]
     # the centre's variance in plate mm: px variance over the frame's scale (px per mm)² (the homography's local scale)
     px_per_mm = np.sqrt(np.abs(np.linalg.det(fit.H[:, :2, :2])))[problem.frame]
@@ -494,9 +522,9 @@ def _plate_errors(problem, fields, fit, estimated, plate_sigma_mm, plate_norm) -
     return error, np.where(estimated, 1.0 / np.sqrt(total_w + 1.0 / plate_sigma_mm**2), 0.0)
 
 
-def _largest_change_px(problem, fields, new_fields, error_mm, new_error, H) -> float:
+def _largest_change_px(problem, corrected, new_corrected, error_mm, new_error, H) -> float:
     """RMS change of the corrections at the centres or of the plate errors seen in the image, the larger (px)."""
-    change = _corrected(problem, fields) - _corrected(problem, new_fields)
+    change = corrected - new_corrected
     px_per_mm = float(np.sqrt(np.abs(np.linalg.det(H[:, :2, :2]))).mean())
     plate = (new_error - error_mm) * px_per_mm
     return max(float(np.sqrt(np.mean(change**2))), float(np.sqrt(np.mean(plate**2))))

@@ -14,6 +14,7 @@ import json
 import numpy as np
 import pytest
 from fluorocal.cli import main
+from fluorocal.cmd_evaluate import _SizeBars
 from scipy.spatial import cKDTree
 
 from tests.conftest import copy_project
@@ -32,8 +33,11 @@ def evaluated(simulated_grid, tmp_path_factory):
     frame = sorted((project / "frames" / "A").glob("*.tif"))[0]
     out = project / "evaluation"
     argv = ["--quiet", "evaluate", str(project / "fluorocal.toml"), "--train-sizes", "1,3", "--holdout", str(frame)]
-    assert main([*argv, "--out", str(out)]) == 0
-    return project, frame, out
+    steps = []
+    with pytest.MonkeyPatch.context() as mp:  # what each training size's progress bar is told
+        mp.setattr(_SizeBars, "__call__", lambda self, *step: steps.append(step))
+        assert main([*argv, "--out", str(out)]) == 0
+    return project, frame, out, steps
 
 
 def _centroid_error_px(project, frame) -> tuple[float, int, float]:
@@ -55,7 +59,7 @@ def _centroid_error_px(project, frame) -> tuple[float, int, float]:
 
 
 def test_simulated_plate_scored_against_truth(evaluated):
-    project, frame, out = evaluated
+    project, frame, out, _ = evaluated
     rows = _rows(out / "evaluation.csv")
     assert set(rows) == {(s, n) for s in ("none", "polynomial", "plate") for n in (1, 3)}
     centroid_px, n_holes, px_per_mm = _centroid_error_px(project, frame)
@@ -78,6 +82,12 @@ def test_simulated_plate_scored_against_truth(evaluated):
     assert "No peer beats plate" in md and not [line for line in md.splitlines() if line.startswith("- peer ")]
     for name in ("evaluation_errors.png", "evaluation_improvement.png", "evaluation_residuals_A.png"):
         assert (out / name).stat().st_size > 1000
+
+
+def test_a_progress_bar_per_training_size(evaluated):
+    """Each size's bar opens before its fits (0 of 1 scored frame) and reaches its end, the sizes in turn."""
+    *_, steps = evaluated
+    assert steps == [(1, 0, 1), (1, 1, 1), (3, 0, 1), (3, 1, 1)]
 
 
 def _error(argv, capsys) -> str:

@@ -15,11 +15,11 @@ import pytest
 from fluorocal.stages.adjust import polynomial
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.errors import EstimationError, InputError
-from fluorocal.stages.evaluate.plate import PlateSetup, plate_fits, training_frames
+from fluorocal.stages.evaluate.plate import PlateSetup, plate_fits, training_frames, uncorrected
 from fluorocal.stages.geometry import homography_fit
 from fluorocal.stages.label.lattice import lattice_index, lattice_xyz_mm
 from fluorocal.stages.plate import PlateParams
-from fluorocal.stages.plate.holdout import holdout_scores, holdout_splits
+from fluorocal.stages.plate.holdout import holdout_scores, holdout_splits, solved
 from fluorocal.stages.plate.polynomial import fit_polynomial
 from fluorocal.stages.plate.solve import PlateProblem
 
@@ -87,6 +87,17 @@ def test_heldout_scores_against_truth(plate):
     assert rms(none.residual_px) > 2 * rms(poly.residual_px) > 4 * rms(ours.residual_px)
     # the in-sample figure (the scored frame's other rows) is no worse than the held-out one for fluorocal
     assert rms(ours.in_sample_residual_px) <= rms(ours.residual_px) * 1.05
+
+
+def test_none_is_what_a_solve_without_fields_gives(plate):
+    """Scheme none fits nothing: its correction and plate are the solve's with no field (its homographies unused)."""
+    problem, _, _ = plate
+    train = problem.subset(~((problem.frame == 0) & (problem.hole % 2 == 0)))  # a split's training holes
+    without = solved(PlateParams().settings(PITCH_MM, False, learn_fields=False))(train, 0)
+    fit = uncorrected(train, 0)
+    np.testing.assert_array_equal(fit.correct(problem.xy_px), without.correct(problem.xy_px))
+    np.testing.assert_array_equal(fit.correct(problem.xy_px), problem.xy_px)  # the identity, bit for bit
+    np.testing.assert_array_equal(fit.plate_error_mm, without.plate_error_mm)
 
 
 def _polynomial_problem():
