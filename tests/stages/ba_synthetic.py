@@ -337,12 +337,12 @@ def truth_observations(data, rng, use=lambda frame: True, epoch=lambda exposure:
     return Observations(system, exposure, ids, xy, sigma, system_names=data.system_names)
 
 
-def rough_start(acq, epochs, size, rng) -> Orientation:
-    """Rough start values, as labelling would give: poses within ~0.6 deg and 5 mm, IOP from the nominal geometry."""
+def rough_start(acq, epochs, size, rng, source_sigma_mm: float = 5.0) -> Orientation:
+    """Rough start values, as labelling would give: poses within ~0.6 deg and ``source_sigma_mm``, IOP nominal."""
     n = len(epochs)
     dq = np.array([rotvec_to_quat(v) for v in rng.normal(0, 0.01, (n, 3))])
     q = quat_normalize(quat_multiply(dq, acq.q[0, epochs]))
-    src = acq.source_mm[0, epochs] + rng.normal(0, 5, (n, 3))
+    src = acq.source_mm[0, epochs] + rng.normal(0, source_sigma_mm, (n, 3))
     iop = np.array([[(size - 1) / 2, (size - 1) / 2, s.iop_px[2] * 1.01] for s in acq.systems])
     rop_q = np.tile([1.0, 0, 0, 0], (len(acq.systems), 1))
     rop_t = np.zeros((len(acq.systems), 3))

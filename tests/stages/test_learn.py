@@ -24,6 +24,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tests.helpers import rms_modulo_homography
+from tests.stages.ba_synthetic import NOISE_PX, rough_start, truth_observations
 
 # most tests here cap the loop's iterations to stay fast; the warning itself is tested below
 pytestmark = pytest.mark.filterwarnings("ignore::fluorocal.stages.errors.NotConvergedWarning")
@@ -464,7 +465,6 @@ def test_add_accumulates_on_the_same_grid():
 # ---------------------------------------------------------------------------------------------
 
 E2E_SIZE = 512
-E2E_NOISE_PX = 0.05
 
 #: the loop's defaults before the recommended preset became the default (the measurements below were made with them)
 PLAIN = dict(acceleration="none", refine="none", smoothness_orders=(2,), max_iterations=30, step_tolerance=0.0)
@@ -472,31 +472,15 @@ PLAIN = dict(acceleration="none", refine="none", smoothness_orders=(2,), max_ite
 
 @pytest.fixture(scope="module")
 def simulated():
-    """Simulator geometry: true distorted outline centres + 0.05 px noise, 14 exposures, 512 px, strong distortion."""
-    from fluorocal.stages.adjust import Orientation
-    from fluorocal.stages.artifacts import Observations
-    from fluorocal.stages.geometry import quat_multiply, quat_normalize, rotvec_to_quat
+    """Simulator geometry: true outline centres + NOISE_PX (0.05 px) noise, 14 exposures, 512 px, strong distortion."""
     from fluorocal.stages.simulate import SimulateParams, simulate
 
     params = SimulateParams(n_frames=14, image_size_px=E2E_SIZE, distortion="strong", seed=3)
     data = simulate(params, render=False)
-    frames = data.truth.frames[0]
-    keep = [~(f.overlap | f.field_edge) for f in frames]
     rng = np.random.default_rng(11)
-    xy = np.concatenate([f.outline_xy_px[k] for f, k in zip(frames, keep)])
-    obs = Observations(
-        np.zeros(len(xy)),
-        np.concatenate([np.full(k.sum(), f.exposure) for f, k in zip(frames, keep)]),
-        np.concatenate([f.ids[k] for f, k in zip(frames, keep)]),
-        xy + rng.normal(0, E2E_NOISE_PX, xy.shape),
-        np.tile([E2E_NOISE_PX, E2E_NOISE_PX, 0.0], (len(xy), 1)),
-    )
+    obs = truth_observations(data, rng)
     acq = data.truth.acquisition
-    n = params.n_frames
-    # start values as labelling would give them: poses within ~0.6 deg and 3 mm, IOP from the nominal geometry
-    q = quat_normalize(quat_multiply(np.array([rotvec_to_quat(v) for v in rng.normal(0, 0.01, (n, 3))]), acq.q[0]))
-    iop = [[(E2E_SIZE - 1) / 2, (E2E_SIZE - 1) / 2, acq.systems[0].iop_px[2] * 1.01]]
-    initial = Orientation(iop, np.arange(n), q, acq.source_mm[0] + rng.normal(0, 3, (n, 3)))
+    initial = rough_start(acq, np.arange(params.n_frames), E2E_SIZE, rng, source_sigma_mm=3.0)
     return obs, data.phantom, initial, acq.systems[0].distortion, params.fov_radius_px
 
 
@@ -570,7 +554,7 @@ def test_joint_grid_refinement_gets_closer_to_the_truth(simulated, orders):
     # deformation of the free phantom nearly mimics (14 exposures determine them weakly)
     assert after < 0.4 * before, (before, after)
     # in sample the residuals reach the noise: 0.05 px times sqrt(redundancy ~0.8)
-    assert res.history[-1].rms_px < 1.5 * E2E_NOISE_PX
+    assert res.history[-1].rms_px < 1.5 * NOISE_PX
 
 
 @pytest.mark.slow

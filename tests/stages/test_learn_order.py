@@ -8,8 +8,10 @@ from fluorocal.stages.artifacts import Observations
 from fluorocal.stages.learn import LearnParams, calibrate
 from fluorocal.stages.learn.order import canonical_order, taken
 
-#: a small simulated set: 8 exposures of 384 px, the simulator's strong distortion, 0.05 px centring noise
-SIZE, NOISE_PX, N_FRAMES = 384, 0.05, 8
+from tests.stages.ba_synthetic import rough_start, truth_observations
+
+#: a small simulated set: 8 exposures of 384 px, the simulator's strong distortion, NOISE_PX (0.05 px) centring noise
+SIZE, N_FRAMES = 384, 8
 
 
 @pytest.fixture(scope="module")
@@ -18,29 +20,14 @@ def small_set():
 
     Its calibration with the default parameters, and the loop's plan and states it decided on (recorded).
     """
-    from fluorocal.stages.adjust import Orientation
-    from fluorocal.stages.geometry import quat_multiply, quat_normalize, rotvec_to_quat
     from fluorocal.stages.learn import loop
     from fluorocal.stages.simulate import SimulateParams, simulate
 
     params = SimulateParams(n_frames=N_FRAMES, image_size_px=SIZE, distortion="strong", seed=5)
     data = simulate(params, render=False)
-    frames = data.truth.frames[0]
-    keep = [~(f.overlap | f.field_edge) for f in frames]
     rng = np.random.default_rng(7)
-    xy = np.concatenate([f.outline_xy_px[k] for f, k in zip(frames, keep)])
-    obs = Observations(
-        np.zeros(len(xy)),
-        np.concatenate([np.full(k.sum(), f.exposure) for f, k in zip(frames, keep)]),
-        np.concatenate([f.ids[k] for f, k in zip(frames, keep)]),
-        xy + rng.normal(0, NOISE_PX, xy.shape),
-        np.tile([NOISE_PX, NOISE_PX, 0.0], (len(xy), 1)),
-    )
-    acq = data.truth.acquisition
-    q = np.array([rotvec_to_quat(v) for v in rng.normal(0, 0.01, (N_FRAMES, 3))])
-    q = quat_normalize(quat_multiply(q, acq.q[0]))
-    iop = [[(SIZE - 1) / 2, (SIZE - 1) / 2, acq.systems[0].iop_px[2] * 1.01]]
-    initial = Orientation(iop, np.arange(N_FRAMES), q, acq.source_mm[0] + rng.normal(0, 3, (N_FRAMES, 3)))
+    obs = truth_observations(data, rng)
+    initial = rough_start(data.truth.acquisition, np.arange(N_FRAMES), SIZE, rng, source_sigma_mm=3.0)
     seen, decide = {"states": []}, loop._decide
 
     def recording(plan, state):
