@@ -51,10 +51,28 @@ MIN_HOLES = 100
 MIN_CORRELATION, MIN_MARGIN = 0.3, 0.1
 #: the QA record's columns
 RECORD_COLUMNS = [
-    "checked_at", "calibration", "calibration_sha256", "system", "file", "frame", "orientation", "orbit_deg",
-    "tilt_deg", "n_holes", "rms_px", "p95_px", "max_px", "rms_mm", "p95_mm", "max_mm", "tol_rms_px",
-    "tol_p95_px", "tol_max_px", "result", "reason",
-]  # fmt: skip
+    "checked_at",
+    "calibration",
+    "calibration_sha256",
+    "system",
+    "file",
+    "frame",
+    "orientation",
+    "orbit_deg",
+    "tilt_deg",
+    "n_holes",
+    "rms_px",
+    "p95_px",
+    "max_px",
+    "rms_mm",
+    "p95_mm",
+    "max_mm",
+    "tol_rms_px",
+    "tol_p95_px",
+    "tol_max_px",
+    "result",
+    "reason",
+]
 
 
 def add_parser(subparsers) -> None:
@@ -330,12 +348,28 @@ def _row(now, calibration, cal, system, path, index, orientation, result, plate,
     tilt = angles.get("tilt", getattr(found, "tilt_deg", None))
     mm = plate.pixel_pitch_mm
     return [
-        now, Path(calibration).name, (cal.content_sha256 or "")[:16], system, Path(path).name, index,
-        _describe(orientation) or "the one field", "" if orbit is None else orbit, "" if tilt is None else tilt,
-        result.n_holes, result.rms_px, result.p95_px, result.max_px, result.rms_px * mm, result.p95_px * mm,
-        result.max_px * mm, tolerances["rms"], tolerances["p95"], tolerances["max"],
-        "pass" if result.passed else "fail", result.reason,
-    ]  # fmt: skip
+        now,
+        Path(calibration).name,
+        (cal.content_sha256 or "")[:16],
+        system,
+        Path(path).name,
+        index,
+        _describe(orientation) or "the one field",
+        "" if orbit is None else orbit,
+        "" if tilt is None else tilt,
+        result.n_holes,
+        result.rms_px,
+        result.p95_px,
+        result.max_px,
+        result.rms_px * mm,
+        result.p95_px * mm,
+        result.max_px * mm,
+        tolerances["rms"],
+        tolerances["p95"],
+        tolerances["max"],
+        "pass" if result.passed else "fail",
+        result.reason,
+    ]
 
 
 def append_record(path: Path, rows: list) -> None:

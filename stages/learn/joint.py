@@ -232,8 +232,9 @@ def _reduced_system(parts, network: Network, estimate_iop: bool, respond: str):
     # the gauge is held only where the orientation, which could carry it, responds
     G = None
     if respond == "orientation":
-        G = dense_block_diag(*(np.sqrt(k) * g for g, k in (_gauge_penalty(p.A, p.xy, p.w, p.iop_px, estimate_iop)
-                                                            for p in parts)))  # fmt: skip
+        G = dense_block_diag(
+            *(np.sqrt(k) * g for g, k in (_gauge_penalty(p.A, p.xy, p.w, p.iop_px, estimate_iop) for p in parts))
+        )
 
     def matvec(v):
         reduced = Nvv @ v - Nvt @ solve_theta(Ntv @ v)

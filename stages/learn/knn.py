@@ -275,8 +275,14 @@ def _fill_neighbour_cache(cache: dict, xy: np.ndarray, folds: list, seed: int, k
     if rows is None:  # xy is not drawn from the pool
         table, rows = _NeighbourTable.build(xy, k_max, n_folds, len(xy)), np.arange(len(xy))
     cache.clear()
-    cache.update(xy=xy.copy(), n_folds=n_folds, seed=seed, k=k_max, table=table,
-                 idx=table.fold_neighbours(xy, rows, folds, k_max))  # fmt: skip
+    cache.update(
+        xy=xy.copy(),
+        n_folds=n_folds,
+        seed=seed,
+        k=k_max,
+        table=table,
+        idx=table.fold_neighbours(xy, rows, folds, k_max),
+    )
 
 
 @dataclass(frozen=True)
@@ -465,21 +471,32 @@ def fit_knn_field(
     width, height = (int(s) for s in image_size)
     if cv is None:
         cv = cross_validate_k(
-            xy, r, var, k_grid=k_grid, n_folds=n_folds, seed=seed, neighbour_cache=neighbour_cache,
-            neighbour_pool_px=neighbour_pool_px, cost_cap=cost_cap,
-        )  # fmt: skip
+            xy,
+            r,
+            var,
+            k_grid=k_grid,
+            n_folds=n_folds,
+            seed=seed,
+            neighbour_cache=neighbour_cache,
+            neighbour_pool_px=neighbour_pool_px,
+            cost_cap=cost_cap,
+        )
         logger.debug("kNN cross-validation over %d points:\n%s", len(xy), cv.table())
     model = KnnModel(xy, r, 1.0 / var, cv.k)
     if not smooth:
         return model, cv
-    xn, yn = grid.nodes((width, height))
+    return _gridded(model, cv.cv_rms_px, grid, (width, height)), cv
+
+
+def _gridded(model: KnnModel, cv_rms_px: float, grid: GridSpec, size: tuple[int, int]) -> CorrectionField:
+    """The kNN prediction at the nodes of ``grid`` over an image of ``size``, with its uncertainty and support."""
+    xn, yn = grid.nodes(size)
     nodes = node_coordinates(xn, yn)
     _, idx = model.neighbours(nodes)
     delta = model.mean_over(idx).reshape(len(yn), len(xn), 2)
-    sigma, support = node_statistics(model, nodes, cv.cv_rms_px, grid, idx=idx)
-    return CorrectionField(
-        xn, yn, delta, sigma.reshape(delta.shape[:2]), support.reshape(delta.shape[:2]), width, height
-    ), cv
+    sigma, support = node_statistics(model, nodes, cv_rms_px, grid, idx=idx)
+    shape = delta.shape[:2]
+    return CorrectionField(xn, yn, delta, sigma.reshape(shape), support.reshape(shape), *size)
 
 
 def restricted_k_grid(k_grid: tuple, k_prev: int | None, span: int = 3) -> tuple:

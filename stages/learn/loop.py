@@ -59,7 +59,7 @@ from fluorocal.stages.learn.params import LearnParams, Scheme
 from fluorocal.stages.learn.polynomial import calibrate_polynomial
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
 from fluorocal.stages.learn.robust import SCREEN_NEIGHBOURS, local_screen, misfit_inliers
-from fluorocal.stages.learn.stopping import decide, previous_total
+from fluorocal.stages.learn.stopping import cost_raised, decide, field_step_sigma
 
 logger = logging.getLogger(__name__)
 
@@ -212,8 +212,13 @@ def _calibrate_sorted(observations, phantom, initial, image_size, scheme, params
             break
     if not converged:
         _warn_capped(reason)
-    logger.debug("scheme %s: stopped at iteration %d, the best iterate kept: iteration %d (adjustment cost %.6g)",
-                scheme, state.iteration, best.iteration, best.out.cost)  # fmt: skip
+    logger.debug(
+        "scheme %s: stopped at iteration %d, the best iterate kept: iteration %d (adjustment cost %.6g)",
+        scheme,
+        state.iteration,
+        best.iteration,
+        best.out.cost,
+    )
     reason = f"{reason}; stopped at iteration {state.iteration}, kept iteration {best.iteration}, the best"
     state = replace(best, history=state.history)
     if params.fast_intermediate:
@@ -279,7 +284,7 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     out = adjustment_outcome(adj, plan.observations.sigma_px)
     total = out.cost + fit_cost
     step = float(np.max(np.abs(corrections - state.corrections))) if len(corrections) else 0.0
-    step_sigma = _field_step_sigma(state.grids, grids) if plan.smooth else float("nan")
+    step_sigma = field_step_sigma(state.grids, grids) if plan.smooth else float("nan")
     ks = tuple(int(m.k_prev or 0) if phase == "knn" else 0 for m in memory)
     record = IterationRecord(iteration, phase, out.cost, fit_cost, total, ks, out.rms_px, step, step_sigma)
     history = state.history + (record,)
@@ -295,7 +300,7 @@ def _iterate(plan: _Plan, state: _State) -> _State:
         step_sigma,
         ks,
     )
-    if plan.acceleration == "anderson" and _raised(history):
+    if plan.acceleration == "anderson" and cost_raised(history):
         anderson = anderson.restarted()
     return _State(
         iteration,
@@ -315,36 +320,17 @@ def _iterate(plan: _Plan, state: _State) -> _State:
     )
 
 
-def _raised(history: tuple) -> bool:
-    """Whether the last step raised the cost, the refinement's adjustment cost, the kNN phase's combined one.
-
-    The refinement's in-sample regression cost wanders by tens of percent from step to step (see
-    :mod:`fluorocal.stages.learn.stopping`): read in the combined cost, it restarted Anderson's history
-    every other step.
-    """
-    if previous_total(history) is None:
-        return False
-    last, prev = history[-1], history[-2]
-    if last.phase == "grid":
-        return last.cost_adjust > prev.cost_adjust
-    return last.cost_total > prev.cost_total
-
-
-def _field_step_sigma(before: tuple, after: tuple) -> float:
-    """Largest change of a gridded field at a node supported after the step, in units of that node's sigma."""
-    worst = 0.0
-    for old, new in zip(before, after):
-        change = np.linalg.norm(new.delta_px - old.delta_px, axis=-1)[new.support]
-        if change.size:
-            worst = max(worst, float(np.max(change / np.maximum(new.sigma_px[new.support], 1e-12))))
-    return worst
-
-
 def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
     """``(action, converged, reason)``: ``"continue"``, ``"refine"`` (start the refinement) or ``"stop"``."""
     in_phase = state.iteration - state.phase_start + 1
-    action, converged, reason = decide(plan.params, state.history, n_obs=len(plan.xy), iterations_in_phase=in_phase,
-                                       refine=plan.refine, stall_tolerance=plan.params.stall_tolerance)  # fmt: skip
+    action, converged, reason = decide(
+        plan.params,
+        state.history,
+        n_obs=len(plan.xy),
+        iterations_in_phase=in_phase,
+        refine=plan.refine,
+        stall_tolerance=plan.params.stall_tolerance,
+    )
     if action == "continue":
         return action, converged, reason
     if state.phase == "knn" and plan.refine != "none":
@@ -433,8 +419,9 @@ def _screened(plan: _Plan, state: _State, s: int):
         return sel, sel, None
     # the kNN's neighbour table of the system's observations, once its first cross-validation built it
     near = pool_neighbours(state.memory[s].neighbour_cache, plan.xy[sel], SCREEN_NEIGHBOURS)
-    screen = local_screen(plan.xy[sel], out.residuals_px[sel], out.residual_var_px2[sel], chi2=params.screen_chi2,
-                          neighbours=near)  # fmt: skip
+    screen = local_screen(
+        plan.xy[sel], out.residuals_px[sel], out.residual_var_px2[sel], chi2=params.screen_chi2, neighbours=near
+    )
     return sel, _enough(sel, screen.keep, params.n_folds), screen.cost_cap
 
 
@@ -467,9 +454,15 @@ def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refi
         return model, mem
     k_grid = restricted_k_grid(params.k_grid, mem.k_prev)
     model, cv = fit_knn_field(
-        plan.xy[sel], r, var, k_grid=k_grid, neighbour_cache=mem.neighbour_cache,
-        neighbour_pool_px=plan.xy[plan.rows[s]], cost_cap=cost_cap, **knn
-    )  # fmt: skip
+        plan.xy[sel],
+        r,
+        var,
+        k_grid=k_grid,
+        neighbour_cache=mem.neighbour_cache,
+        neighbour_pool_px=plan.xy[plan.rows[s]],
+        cost_cap=cost_cap,
+        **knn,
+    )
     return model, replace(mem, cv=cv, k_prev=cv.k)
 
 
@@ -486,10 +479,19 @@ def _smoothness(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memor
     if mem.tau_px is not None:
         return mem
     params, out = plan.params, state.out
-    cv = cross_validate_smoothness(plan.xy[sel], out.residuals_px[sel], out.residual_var_px2[sel],
-                                   image_size=plan.sizes[s], grid=params.grid, tau_grid_px=params.tau_grid_px,
-                                   orders=params.smoothness_orders, n_folds=params.smoothness_folds, seed=params.seed,
-                                   base_px=state.grids[s].delta_px, cost_cap=cost_cap)  # fmt: skip
+    cv = cross_validate_smoothness(
+        plan.xy[sel],
+        out.residuals_px[sel],
+        out.residual_var_px2[sel],
+        image_size=plan.sizes[s],
+        grid=params.grid,
+        tau_grid_px=params.tau_grid_px,
+        orders=params.smoothness_orders,
+        n_folds=params.smoothness_folds,
+        seed=params.seed,
+        base_px=state.grids[s].delta_px,
+        cost_cap=cost_cap,
+    )
     name = plan.observations.system_names[s]
     logger.debug("system %s: gridded refinement, smoothness order %d, tau %.3g px (CV)", name, cv.order, cv.tau_px)
     return replace(mem, cv=cv, tau_px=cv.tau_px)
@@ -509,11 +511,30 @@ def _fit_jointly(plan: _Plan, state: _State, sels: list, memory: tuple, start=No
         w_obs = t_weight / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
         r = state.out.residuals_px[sel]
         base, origin = state.grids[s], None if start is None else start[s].delta_px
-        steps.append(SystemStep(plan.xy[sel], r, w_obs, adj.iop_px[s], plan.sizes[s], mem.tau_px, base,
-                                mem.cv.cv_rms_px, mem.cv.order, origin))  # fmt: skip
+        steps.append(
+            SystemStep(
+                plan.xy[sel],
+                r,
+                w_obs,
+                adj.iop_px[s],
+                plan.sizes[s],
+                mem.tau_px,
+                base,
+                mem.cv.cv_rms_px,
+                mem.cv.order,
+                origin,
+            )
+        )
     cg = dict(max_cg_iterations=LOOP_CG_ITERATIONS, cg_tolerance=LOOP_CG_TOLERANCE[state.respond])
-    return fit_grids_jointly(steps, network, estimate_iop=plan.estimate_iop, grid=params.grid, respond=state.respond,
-                             with_response=True, **cg)  # fmt: skip
+    return fit_grids_jointly(
+        steps,
+        network,
+        estimate_iop=plan.estimate_iop,
+        grid=params.grid,
+        respond=state.respond,
+        with_response=True,
+        **cg,
+    )
 
 
 # ---------------------------------------------------------------------------------------------

@@ -172,8 +172,12 @@ def systems_network(adj, observations, rows_by_system, systems, shape_nominal_mm
     rop_col = pose_col + 6 * m
     point_col = rop_col + 6 * (n_sys - 1)
     values = [J_iop, J_psi, J_src, J_pt, J_rot, J_src_ref]
-    cols = [3 * s_of[:, None] + np.arange(3), pose_col + 6 * e_of[:, None] + np.arange(6),
-            point_col + 3 * b_of[:, None] + np.arange(3), rop_col + 6 * (s_of[:, None] - 1) + np.arange(6)]  # fmt: skip
+    cols = [
+        3 * s_of[:, None] + np.arange(3),
+        pose_col + 6 * e_of[:, None] + np.arange(6),
+        point_col + 3 * b_of[:, None] + np.arange(3),
+        rop_col + 6 * (s_of[:, None] - 1) + np.arange(6),
+    ]
     J = _sparse_jacobian(values, cols, s_of > 0, point_col + 3 * nb)
     datum = similarity_modes(R_ref, T_ref, P_b, J.shape[1], pose_col, point_col, (rop_col, b_rop[1:]))
     affine = gap = None

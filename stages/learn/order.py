@@ -38,8 +38,9 @@ def canonical_order(observations: Observations) -> np.ndarray:
 def taken(observations: Observations, order: np.ndarray) -> Observations:
     """The observations' rows in ``order``."""
     o = observations
-    return Observations(o.system[order], o.exposure[order], o.bead_id[order], o.xy_px[order], o.sigma_px[order],
-                        o.system_names)  # fmt: skip
+    return Observations(
+        o.system[order], o.exposure[order], o.bead_id[order], o.xy_px[order], o.sigma_px[order], o.system_names
+    )
 
 
 def _restored(array, inverse: np.ndarray):

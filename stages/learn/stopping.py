@@ -15,6 +15,8 @@ iteration cap.
 
 from __future__ import annotations
 
+import numpy as np
+
 
 def decide(
     params, history: tuple, *, n_obs: int, iterations_in_phase: int, refine: str, stall_tolerance: float
@@ -95,4 +97,29 @@ def previous_total(history: tuple) -> float | None:
     return history[-2].cost_total if len(history) > 2 and history[-2].phase == history[-1].phase else None
 
 
-__all__ = ["decide", "previous_total"]
+def cost_raised(history: tuple) -> bool:
+    """Whether the last step raised the cost, the refinement's adjustment cost, the kNN phase's combined one.
+
+    The refinement's in-sample regression cost wanders by tens of percent from step to step (see
+    the module's docstring): read in the combined cost, it restarted Anderson's history
+    every other step.
+    """
+    if previous_total(history) is None:
+        return False
+    last, prev = history[-1], history[-2]
+    if last.phase == "grid":
+        return last.cost_adjust > prev.cost_adjust
+    return last.cost_total > prev.cost_total
+
+
+def field_step_sigma(before: tuple, after: tuple) -> float:
+    """Largest change of a gridded field at a node supported after the step, in units of that node's sigma."""
+    worst = 0.0
+    for old, new in zip(before, after):
+        change = np.linalg.norm(new.delta_px - old.delta_px, axis=-1)[new.support]
+        if change.size:
+            worst = max(worst, float(np.max(change / np.maximum(new.sigma_px[new.support], 1e-12))))
+    return worst
+
+
+__all__ = ["cost_raised", "decide", "field_step_sigma", "previous_total"]

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 from fluorocal.stages.learn.anderson import Anderson, anderson_step
-from fluorocal.stages.learn.loop import _raised
 from fluorocal.stages.learn.result import IterationRecord
+from fluorocal.stages.learn.stopping import cost_raised
 
 
 def _slow_linear_map(n=6, seed=3):
@@ -51,11 +51,11 @@ def test_the_refinement_restarts_on_its_adjustment_cost_the_knn_phase_on_the_com
     start = (_record(0, "adjust", 100.0, 0.0),)
     # the refinement: the combined cost rose through the in-sample regression cost, the adjustment's fell
     grid = start + (_record(1, "grid", 90.0, 10.0), _record(2, "grid", 80.0, 40.0))
-    assert not _raised(grid)
-    assert _raised(grid + (_record(3, "grid", 81.0, 1.0),))
+    assert not cost_raised(grid)
+    assert cost_raised(grid + (_record(3, "grid", 81.0, 1.0),))
     # the kNN phase reads the combined cost
     knn = start + (_record(1, "knn", 90.0, 10.0), _record(2, "knn", 80.0, 40.0))
-    assert _raised(knn)
+    assert cost_raised(knn)
     # the first step of a phase has nothing to compare with
-    assert not _raised(start + (_record(1, "knn", 120.0, 0.0),))
-    assert not _raised(knn + (_record(3, "grid", 200.0, 0.0),))
+    assert not cost_raised(start + (_record(1, "knn", 120.0, 0.0),))
+    assert not cost_raised(knn + (_record(3, "grid", 200.0, 0.0),))
