@@ -32,6 +32,9 @@ from fluorocal.stages.simulate import SimulateParams, simulate
 IMAGE_PX = 1024
 #: the centroid noise of :func:`simulated_set`'s noisy observations, px
 NOISE_PX = 0.05
+#: the adjustment tests' two standard problems (test_adjust.py, test_adjust_model.py): one system, and two
+MONO = dict(n_beads=200, n_exposures=14, seed=1)
+BIPLANAR = dict(n_beads=160, n_exposures=10, n_systems=2, seed=2)
 
 
 @dataclass(frozen=True)
@@ -167,6 +170,18 @@ def _observed(truth: Orientation, xyz, ids, noise_px, visible_fraction, rng) -> 
         system_names=truth.system_names,
     )
     return obs, ideal
+
+
+def with_xy(obs: Observations, xy: np.ndarray, bead_id=None) -> Observations:
+    """``obs`` with the coordinates ``xy`` (and the ids ``bead_id`` if given)."""
+    return Observations(
+        obs.system, obs.exposure, obs.bead_id if bead_id is None else bead_id, xy, obs.sigma_px, obs.system_names
+    )
+
+
+def rms(a) -> float:
+    """Root mean square of all the entries of ``a``."""
+    return float(np.sqrt(np.mean(np.square(a))))
 
 
 def aligned_error_mm(estimate_mm: np.ndarray, truth_mm: np.ndarray) -> np.ndarray:
