@@ -35,10 +35,12 @@ test: $(STAMP)
 check: $(STAMP)
 	$(PYTEST) -m check $(ARGS)
 
+# the structure limits hold for tests/ and benchmarks/ too; benchmarks/attack.py (the attack battery, its
+# all_cases one table of cases) is being split in its own task (issue 29) and is until then the one file left out
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/python .ci/limits.py pipeline stages
+	$(BIN)/python .ci/limits.py pipeline stages tests benchmarks --exclude benchmarks/attack.py
 
 # the documentation site (docs/, mkdocs.yml) built strictly: a broken link or reference fails
 docs: $(STAMP)

@@ -61,7 +61,13 @@ import numpy as np  # noqa: E402
 from fluorocal.stages.adjust import adjust_bundle  # noqa: E402
 from fluorocal.stages.artifacts import Observations  # noqa: E402
 
-from tests.stages.ba_synthetic import ScipyProblem, aligned_error_mm, make_problem, pycolmap_reconstruction  # noqa: E402
+from tests.stages.ba_synthetic import (  # noqa: E402
+    ScipyProblem,
+    aligned_error_mm,
+    make_problem,
+    pycolmap_reconstruction,
+    rms,
+)
 
 PAPER_S_PER_ITERATION = 42.1  # the paper's C++ at 75 images (section VI)
 NOISE_PX = 0.05
@@ -90,20 +96,14 @@ def timed(fn, repeat: int = 1):
     return best
 
 
-def rms(a) -> float:
-    return float(np.sqrt(np.mean(np.square(a))))
-
-
 def side_by_side(skip_scipy: bool) -> None:
     syn, obs, bad = corrupted(400, 75, 0.75)
     print(
         f"Part 1: 75 exposures, {len(syn.ids)} beads, {len(obs)} observations ({len(obs) / 75:.0f} per exposure), "
         f"{bad.mean() * 100:.1f} % outliers, noise {NOISE_PX} px, BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}"
     )
-    rows = []
     res, wall, cpu = timed(lambda: adjust_bundle(obs, (syn.ids, syn.nominal_mm), syn.initial), repeat=3)
-    ours, ours_cpu = wall, cpu
-    rows.append(
+    rows = [
         (
             "fluorocal adjust_bundle (t, ν=4)",
             wall,
@@ -112,83 +112,12 @@ def side_by_side(skip_scipy: bool) -> None:
             rms(aligned_error_mm(res.xyz_mm, syn.xyz_true_mm)),
             f"{(~res.inlier[bad]).mean() * 100:.0f} % of outliers flagged",
         )
-    )
-
+    ]
     if not skip_scipy:
-        from scipy.optimize import least_squares
-
-        ref = ScipyProblem(_with(syn, obs))
-        sparsity = ref.sparsity()
-        for loss in ("cauchy", "linear"):
-            sol, wall, cpu = timed(
-                lambda loss=loss: least_squares(
-                    ref.residuals,
-                    ref.x0(),
-                    jac_sparsity=sparsity,
-                    method="trf",
-                    loss=loss,
-                    f_scale=2.0,
-                    x_scale="jac",
-                    max_nfev=100,
-                )
-            )
-            P = ref.unpack(sol.x)[0]
-            rows.append(
-                (
-                    f"scipy least_squares trf {loss}",
-                    wall,
-                    cpu,
-                    sol.nfev,
-                    rms(aligned_error_mm(P, syn.xyz_true_mm)),
-                    f"status {sol.status}: {sol.message[:40]}",
-                )
-            )
-    try:
-        import pycolmap
-    except ImportError:
-        pycolmap = None
-        rows.append(
-            ("pycolmap (not importable)", math.nan, math.nan, 0, math.nan, "pip install pycolmap to compare (optional)")
-        )
-    if pycolmap is not None:
-        pycolmap.logging.minloglevel = 2  # errors only: no per-run banner
-        for threads in (1, -1):
-
-            def run(threads=threads):
-                rec = pycolmap_reconstruction(syn, obs.xy_px)
-                opts = pycolmap.BundleAdjustmentOptions()
-                opts.print_summary = False
-                opts.refine_principal_point = True
-                opts.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-                opts.ceres.loss_function_scale = 2 * NOISE_PX
-                opts.ceres.solver_options.num_threads = threads
-                with _stderr_silenced():  # COLMAP logs each run from C++ whatever minloglevel says
-                    t, c = time.perf_counter(), time.process_time()
-                    pycolmap.bundle_adjustment(rec, opts)
-                    ba = time.perf_counter() - t, time.process_time() - c
-                return rec, *ba
-
-            (rec, ba_s, ba_cpu), wall, cpu = timed(run, repeat=3)
-            X = np.array([rec.point3D(i + 1).xyz for i in range(len(syn.ids))])
-            rows.append(
-                (
-                    f"pycolmap {pycolmap.__version__} BA, {'1 thread' if threads == 1 else 'all threads'}",
-                    ba_s,
-                    ba_cpu,
-                    0,
-                    rms(aligned_error_mm(X, syn.xyz_true_mm)),
-                    f"+{wall - ba_s:.2f} s to build the reconstruction (not counted)",
-                )
-            )
-
-    print(
-        f"{'solver':44s} {'wall s':>8s} {'cpu s':>7s} {'iter/nfev':>9s} {'3D rms mm':>10s} "
-        f"{'wall/ours':>9s} {'cpu/ours':>8s}  note"
-    )
-    for name, wall, cpu, it, err, note in rows:
-        print(
-            f"{name:44s} {wall:8.3f} {cpu:7.3f} {it:9d} {err:10.4f} {wall / ours:8.1f}x {cpu / ours_cpu:7.1f}x  {note}"
-        )
+        rows += scipy_rows(syn, obs)
+    rows += pycolmap_rows(syn, obs)
+    print_table(rows)
+    ours, ours_cpu = wall, cpu  # fluorocal's solve: the reference of every ratio
     print(
         f"paper's C++: {PAPER_S_PER_ITERATION} s per iteration (about 30 iterations): "
         f"ours {ours:.3f} s for the whole solve = "
@@ -197,6 +126,94 @@ def side_by_side(skip_scipy: bool) -> None:
         f"{ours / res.iterations * 1000:.0f} ms per iteration here "
         f"(wall; {ours_cpu / res.iterations * 1000:.0f} ms cpu)"
     )
+
+
+def scipy_rows(syn, obs) -> list[tuple]:
+    """Rows of ``scipy.optimize.least_squares`` (trf, sparse 2-point Jacobian), Cauchy loss and no loss."""
+    from scipy.optimize import least_squares
+
+    ref = ScipyProblem(_with(syn, obs))
+    sparsity = ref.sparsity()
+    rows = []
+    for loss in ("cauchy", "linear"):
+        sol, wall, cpu = timed(
+            lambda loss=loss: least_squares(
+                ref.residuals,
+                ref.x0(),
+                jac_sparsity=sparsity,
+                method="trf",
+                loss=loss,
+                f_scale=2.0,
+                x_scale="jac",
+                max_nfev=100,
+            )
+        )
+        P = ref.unpack(sol.x)[0]
+        rows.append(
+            (
+                f"scipy least_squares trf {loss}",
+                wall,
+                cpu,
+                sol.nfev,
+                rms(aligned_error_mm(P, syn.xyz_true_mm)),
+                f"status {sol.status}: {sol.message[:40]}",
+            )
+        )
+    return rows
+
+
+def pycolmap_rows(syn, obs) -> list[tuple]:
+    """Rows of pycolmap's bundle adjustment (Ceres, Cauchy loss at 2σ), one thread and all; a note if not importable."""
+    try:
+        import pycolmap
+    except ImportError:
+        return [
+            ("pycolmap (not importable)", math.nan, math.nan, 0, math.nan, "pip install pycolmap to compare (optional)")
+        ]
+    pycolmap.logging.minloglevel = 2  # errors only: no per-run banner
+    rows = []
+    for threads in (1, -1):
+
+        def run(threads=threads):
+            rec = pycolmap_reconstruction(syn, obs.xy_px)
+            opts = pycolmap.BundleAdjustmentOptions()
+            opts.print_summary = False
+            opts.refine_principal_point = True
+            opts.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+            opts.ceres.loss_function_scale = 2 * NOISE_PX
+            opts.ceres.solver_options.num_threads = threads
+            with _stderr_silenced():  # COLMAP logs each run from C++ whatever minloglevel says
+                t, c = time.perf_counter(), time.process_time()
+                pycolmap.bundle_adjustment(rec, opts)
+                ba = time.perf_counter() - t, time.process_time() - c
+            return rec, *ba
+
+        (rec, ba_s, ba_cpu), wall, cpu = timed(run, repeat=3)
+        X = np.array([rec.point3D(i + 1).xyz for i in range(len(syn.ids))])
+        rows.append(
+            (
+                f"pycolmap {pycolmap.__version__} BA, {'1 thread' if threads == 1 else 'all threads'}",
+                ba_s,
+                ba_cpu,
+                0,
+                rms(aligned_error_mm(X, syn.xyz_true_mm)),
+                f"+{wall - ba_s:.2f} s to build the reconstruction (not counted)",
+            )
+        )
+    return rows
+
+
+def print_table(rows) -> None:
+    """The side-by-side table; the first row (ours) is the reference of the ratios."""
+    _, ours, ours_cpu, *_ = rows[0]
+    print(
+        f"{'solver':44s} {'wall s':>8s} {'cpu s':>7s} {'iter/nfev':>9s} {'3D rms mm':>10s} "
+        f"{'wall/ours':>9s} {'cpu/ours':>8s}  note"
+    )
+    for name, wall, cpu, it, err, note in rows:
+        print(
+            f"{name:44s} {wall:8.3f} {cpu:7.3f} {it:9d} {err:10.4f} {wall / ours:8.1f}x {cpu / ours_cpu:7.1f}x  {note}"
+        )
 
 
 @contextlib.contextmanager

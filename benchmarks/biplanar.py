@@ -91,22 +91,7 @@ def rig_error(iop_px, rop_q, rop_source_mm, acq) -> tuple[float, float, float, f
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=75, help="training (and held-out) epochs (default 75)")
-    ap.add_argument("--size", type=int, default=1024, help="image side px (default 1024)")
-    ap.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
-    ap.add_argument(
-        "--schemes",
-        default=",".join(DEFAULT_SCHEMES),
-        help=f"comma-separated methods of benchmarks/learn.py (default: {','.join(DEFAULT_SCHEMES)})",
-    )
-    ap.add_argument(
-        "--iterations",
-        type=int,
-        default=20,
-        help="iteration cap of the paper's schemes (default 20, as benchmarks/learn.py)",
-    )
-    ap.add_argument("-v", "--verbose", action="store_true", help="log the alternation")
+    ap = _parser()
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(name)s: %(message)s")
     logging.getLogger("fluorocal.stages.adjust").setLevel(logging.ERROR)
@@ -154,6 +139,31 @@ def main(argv=None) -> None:
             flush=True,
         )
 
+    print_tables(rows)
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=75, help="training (and held-out) epochs (default 75)")
+    ap.add_argument("--size", type=int, default=1024, help="image side px (default 1024)")
+    ap.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    ap.add_argument(
+        "--schemes",
+        default=",".join(DEFAULT_SCHEMES),
+        help=f"comma-separated methods of benchmarks/learn.py (default: {','.join(DEFAULT_SCHEMES)})",
+    )
+    ap.add_argument(
+        "--iterations",
+        type=int,
+        default=20,
+        help="iteration cap of the paper's schemes (default 20, as benchmarks/learn.py)",
+    )
+    ap.add_argument("-v", "--verbose", action="store_true", help="log the alternation")
+    return ap
+
+
+def print_tables(rows) -> None:
+    """The out-of-sample table (improvements over the "none" row) and the calibrated rig against the truth."""
     base = next((r[1] for r in rows if r[0] == "none"), None)
     print()
     print(

@@ -90,6 +90,45 @@ HEADER = (
 
 
 def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    t0 = time.perf_counter()
+    sp = SimulateParams(n_frames=args.frames, n_systems=2, seed=args.seed)
+    data = simulate(sp, render=False)
+    print(
+        f"simulated {args.frames} x 2 frames (geometry only) in {time.perf_counter() - t0:.1f} s; "
+        f"phantom {data.phantom.n_beads} beads, {int((data.phantom.role == 'marker').sum())} markers; "
+        f"distortion {sp.distortion}"
+    )
+    params = LabelParams(
+        source_image_distance_mm=sp.source_image_distance_mm,
+        pixel_pitch_mm=sp.pixel_pitch_mm,
+        image_size_px=(sp.image_size_px,) * 2,
+    )
+
+    rng = np.random.default_rng(args.seed + 1)
+    frames = []  # (system, FrameTruth, centroids, true ids)
+    for s, per_system in enumerate(data.truth.frames):
+        for ft in per_system:
+            c, ids = detections_from_truth(ft, rng, merged_keep=args.merged_keep)
+            frames.append((s, ft, c, ids))
+    modes = _three_modes(frames, data.phantom, params, rng)
+
+    print()
+    print(HEADER)
+    for tally in modes:
+        print(tally.row())
+    for tally in modes:
+        for reason, n in sorted(tally.reasons.items(), key=lambda kv: -kv[1]):
+            print(f"  {tally.name}: {n} frames failed: {reason}")
+
+    if args.rendered:
+        _rendered_check(sp, args.rendered, params)
+    _print_targets(modes)
+    print(f"total {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=150, help="exposures per system (default: 150)")
     ap.add_argument(
@@ -105,34 +144,16 @@ def main(argv=None) -> int:
         default=0.2,
         help="fraction of merged blobs that pass detection (default: 0.2; stages/detect.py rejects most as 'merged')",
     )
-    args = ap.parse_args(argv)
+    return ap
 
-    t0 = time.perf_counter()
-    sp = SimulateParams(n_frames=args.frames, n_systems=2, seed=args.seed)
-    data = simulate(sp, render=False)
-    print(
-        f"simulated {args.frames} x 2 frames (geometry only) in {time.perf_counter() - t0:.1f} s; "
-        f"phantom {data.phantom.n_beads} beads, {int((data.phantom.role == 'marker').sum())} markers; "
-        f"distortion {sp.distortion}"
-    )
-    params = LabelParams(
-        source_image_distance_mm=sp.source_image_distance_mm,
-        pixel_pitch_mm=sp.pixel_pitch_mm,
-        image_size_px=(sp.image_size_px,) * 2,
-    )
-    no_markers = without_roles(data.phantom)
 
-    rng = np.random.default_rng(args.seed + 1)
-    frames = []  # (system, FrameTruth, centroids, true ids)
-    for s, per_system in enumerate(data.truth.frames):
-        for ft in per_system:
-            c, ids = detections_from_truth(ft, rng, merged_keep=args.merged_keep)
-            frames.append((s, ft, c, ids))
-
+def _three_modes(frames, phantom, params: LabelParams, rng) -> tuple[Tally, Tally, Tally]:
+    """The frames labelled by their markers, by 6 seeds each (no markers), and chained from seeds on frame 0."""
+    no_markers = without_roles(phantom)
     markers = Tally("markers only")
     for _, ft, c, ids in frames:
         t = time.process_time()
-        lab = label_beads(c, data.phantom, params)
+        lab = label_beads(c, phantom, params)
         markers.add(lab, ids, ft, time.process_time() - t)
 
     seeded = Tally("seeds (6 per frame), no markers")
@@ -150,19 +171,10 @@ def main(argv=None) -> int:
         dt = (time.process_time() - t) / len(sel)
         for (_, ft, _, ids), lab in zip(sel, labs):
             chained.add(lab, ids, ft, dt)
+    return markers, seeded, chained
 
-    print()
-    print(HEADER)
-    for tally in (markers, seeded, chained):
-        print(tally.row())
-    for tally in (markers, seeded, chained):
-        for reason, n in sorted(tally.reasons.items(), key=lambda kv: -kv[1]):
-            print(f"  {tally.name}: {n} frames failed: {reason}")
 
-    if args.rendered:
-        _rendered_check(sp, args.rendered, params)
-
-    modes = (markers, seeded, chained)
+def _print_targets(modes) -> None:
     ok_label = all(100.0 * m.correct / max(m.eligible, 1) >= 99.0 for m in modes)
     ok_wrong = all(100.0 * m.wrong / max(m.labelled, 1) <= 0.05 for m in modes)
     slow = [m.name for m in modes if not m.frames / m.seconds >= 20.0]
@@ -172,8 +184,6 @@ def main(argv=None) -> int:
         f"{'met' if ok_wrong else 'NOT met'}; "
         f">= 20 frames/s: {'met' if not slow else 'NOT met (' + ', '.join(slow) + ')'}"
     )
-    print(f"total {time.perf_counter() - t0:.1f} s")
-    return 0
 
 
 def _rendered_check(sp: SimulateParams, n_frames: int, params: LabelParams) -> None:

@@ -51,14 +51,17 @@ import logging
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[0]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluorocal.stages.artifacts import Observations  # noqa: E402
+from fluorocal.stages.adjust import Orientation  # noqa: E402
+from fluorocal.stages.artifacts import Observations, Phantom  # noqa: E402
 from fluorocal.stages.learn import LearnParams, calibrate  # noqa: E402
+from fluorocal.stages.simulate import ImageDistortion  # noqa: E402
 from learn import _modulo_homography, _one_system, _system_orientation, field_error_px, held_out, simulated_sets  # noqa: E402
 
 GROSS_FRACTION, GROSS_PX = 0.05, (3.0, 15.0)
@@ -137,14 +140,23 @@ def field_difference(field, clean_field, size: int, fov_radius_px: float) -> tup
     return raw, float(np.sqrt(np.mean(mod**2)))
 
 
+class Setup(NamedTuple):
+    """One system's training and held-out observations with their start values, and the truth to score against."""
+
+    train: Observations
+    test: Observations
+    init_train: Orientation
+    init_test: Orientation
+    nominal: Phantom
+    true_xyz: np.ndarray
+    distortion: ImageDistortion
+    fov_radius_px: float
+    size: int
+    seed: int
+
+
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=40, help="training (and held-out) exposures (default 40)")
-    ap.add_argument("--size", type=int, default=1024, help="image side px (default 1024)")
-    ap.add_argument("--seed", type=int, default=0, help="simulation and contamination seed (default 0)")
-    ap.add_argument("--sets", default=",".join(SETS), help=f"comma-separated sets (default: {','.join(SETS)})")
-    ap.add_argument("-v", "--verbose", action="store_true", help="log the alternation")
-    args = ap.parse_args(argv)
+    args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(name)s: %(message)s")
     logging.getLogger("fluorocal.stages.adjust").setLevel(logging.ERROR)
     kinds = [k.strip() for k in args.sets.split(",") if k.strip()]
@@ -153,68 +165,96 @@ def main(argv=None) -> None:
     (train, test), nominal, true_xyz, acq, p = simulated_sets(args.frames, 1, args.size, args.seed)
     tr, te = _one_system(train[0], train[0].system == 0), _one_system(test[0], test[0].system == 0)
     init_tr, init_te = _system_orientation(train[1], acq, 0), _system_orientation(test[1], acq, 0)
-    system = acq.systems[0]
+    setup = Setup(
+        tr, te, init_tr, init_te, nominal, true_xyz, acq.systems[0].distortion, p.fov_radius_px, args.size, args.seed
+    )
     print(
         f"seed {args.seed}: {len(tr)} training + {len(te)} held-out observations ({args.frames} + {args.frames} "
         f"exposures, {args.size} px), recommended preset"
     )
     rows, clean = [], None
     for kind in kinds:
-        rng = np.random.default_rng([args.seed, 13, SETS.index(kind)])
-        obs, untouched = contaminate(tr, kind, p.fov_radius_px, args.size, rng)
-        te_c, _ = contaminate(te, kind, p.fov_radius_px, args.size, rng)
-        t = time.perf_counter()
-        res = calibrate(obs, nominal, init_tr, image_size=(args.size, args.size), params=LearnParams())
-        wall = time.perf_counter() - t
-        field, adj = res.fields[0], res.adjustment
-        e3 = held_out(te, init_te, nominal, true_xyz, field.correction_at(te.xy_px), adj.iop_px)[0]
-        e3c = held_out(te_c, init_te, nominal, true_xyz, field.correction_at(te_c.xy_px), adj.iop_px)[0]
-        if clean is not None:
-            # the reference on contaminated held-out data: the clean run's calibration on the same data
-            e3c_ref = held_out(te_c, init_te, nominal, true_xyz, clean[0].correction_at(te_c.xy_px), clean[1][None])[0]
-        truth = field_error_px(field.correction_at, field.support_at, system.distortion, args.size, p.fov_radius_px)
-        ok = untouched & adj.used
-        rms = float(np.sqrt(np.mean(adj.residual_px[ok] ** 2)))
-        flagged = float(np.mean(~adj.inlier[~untouched])) if (~untouched).any() else float("nan")
-        # observations the final adjustment flags, yet the field learned from (contaminated ones, and all)
-        pulled = (
-            int(np.sum(res.trained & ~adj.inlier & ~untouched)),
-            int(np.sum(res.trained & ~adj.inlier & adj.used)),
-        )
-        pp_sigma = float(np.hypot(*adj.iop_std_px[0, :2]))
-        if clean is None:
-            clean = (field, adj.iop_px[0], e3)
-            e3c_ref = e3c
-        diff = field_difference(field, clean[0], args.size, p.fov_radius_px)
-        dpp = float(np.hypot(*(adj.iop_px[0, :2] - clean[1][:2])))
-        dc = float(adj.iop_px[0, 2] - clean[1][2])
-        at_test = _modulo_homography(field.correction_at, system.distortion, te.xy_px, np.ones(len(te), bool))[0]
-        rows.append(
-            (
-                kind,
-                len(obs),
-                diff,
-                truth,
-                at_test,
-                e3,
-                e3 / clean[2],
-                e3c,
-                e3c / e3c_ref,
-                rms,
-                flagged,
-                pulled,
-                dpp,
-                dpp / pp_sigma,
-                dc,
-                len(res.history) - 1,
-                wall,
-            )
-        )
-        print(
-            f"  {kind}: field vs clean {diff[0]:.4f} px (mod H {diff[1]:.4f}), 3D {e3:.4f} mm ({e3 / clean[2]:.3f}x), "
-            f"RMS {rms:.4f} px, pp shift {dpp:.2f} px, {len(res.history) - 1} it, {wall:.1f} s",
-            flush=True,
-        )
+        row, clean = one_set(kind, setup, clean)
+        rows.append(row)
+    print_table(rows)
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=40, help="training (and held-out) exposures (default 40)")
+    ap.add_argument("--size", type=int, default=1024, help="image side px (default 1024)")
+    ap.add_argument("--seed", type=int, default=0, help="simulation and contamination seed (default 0)")
+    ap.add_argument("--sets", default=",".join(SETS), help=f"comma-separated sets (default: {','.join(SETS)})")
+    ap.add_argument("-v", "--verbose", action="store_true", help="log the alternation")
+    return ap
+
+
+def one_set(kind: str, setup: Setup, clean) -> tuple[tuple, tuple]:
+    """Calibrate on the training set contaminated by ``kind`` and score it; its table row and the clean reference.
+
+    ``clean`` is ``(field, IOP, out-of-sample 3D error)`` of the clean run, None for the clean run itself (the first).
+    """
+    s = setup
+    rng = np.random.default_rng([s.seed, 13, SETS.index(kind)])
+    obs, untouched = contaminate(s.train, kind, s.fov_radius_px, s.size, rng)
+    te_c, _ = contaminate(s.test, kind, s.fov_radius_px, s.size, rng)
+    t = time.perf_counter()
+    res = calibrate(obs, s.nominal, s.init_train, image_size=(s.size, s.size), params=LearnParams())
+    wall = time.perf_counter() - t
+    field, adj = res.fields[0], res.adjustment
+    e3 = held_out(s.test, s.init_test, s.nominal, s.true_xyz, field.correction_at(s.test.xy_px), adj.iop_px)[0]
+    e3c = held_out(te_c, s.init_test, s.nominal, s.true_xyz, field.correction_at(te_c.xy_px), adj.iop_px)[0]
+    if clean is not None:
+        # the reference on contaminated held-out data: the clean run's calibration on the same data
+        e3c_ref = held_out(
+            te_c, s.init_test, s.nominal, s.true_xyz, clean[0].correction_at(te_c.xy_px), clean[1][None]
+        )[0]
+    truth = field_error_px(field.correction_at, field.support_at, s.distortion, s.size, s.fov_radius_px)
+    ok = untouched & adj.used
+    rms = float(np.sqrt(np.mean(adj.residual_px[ok] ** 2)))
+    flagged = float(np.mean(~adj.inlier[~untouched])) if (~untouched).any() else float("nan")
+    # observations the final adjustment flags, yet the field learned from (contaminated ones, and all)
+    pulled = (
+        int(np.sum(res.trained & ~adj.inlier & ~untouched)),
+        int(np.sum(res.trained & ~adj.inlier & adj.used)),
+    )
+    pp_sigma = float(np.hypot(*adj.iop_std_px[0, :2]))
+    if clean is None:
+        clean = (field, adj.iop_px[0], e3)
+        e3c_ref = e3c
+    diff = field_difference(field, clean[0], s.size, s.fov_radius_px)
+    dpp = float(np.hypot(*(adj.iop_px[0, :2] - clean[1][:2])))
+    dc = float(adj.iop_px[0, 2] - clean[1][2])
+    at_test = _modulo_homography(field.correction_at, s.distortion, s.test.xy_px, np.ones(len(s.test), bool))[0]
+    print(
+        f"  {kind}: field vs clean {diff[0]:.4f} px (mod H {diff[1]:.4f}), 3D {e3:.4f} mm ({e3 / clean[2]:.3f}x), "
+        f"RMS {rms:.4f} px, pp shift {dpp:.2f} px, {len(res.history) - 1} it, {wall:.1f} s",
+        flush=True,
+    )
+    row = (
+        kind,
+        len(obs),
+        diff,
+        truth,
+        at_test,
+        e3,
+        e3 / clean[2],
+        e3c,
+        e3c / e3c_ref,
+        rms,
+        flagged,
+        pulled,
+        dpp,
+        dpp / pp_sigma,
+        dc,
+        len(res.history) - 1,
+        wall,
+    )
+    return row, clean
+
+
+def print_table(rows) -> None:
+    """The sets' table and the verdict on the targets."""
     print()
     print(
         "| set | obs | field vs clean (px) | same mod H (px) | field err. mod H, covered / inner 80 % (px) "

@@ -68,6 +68,28 @@ def render_beads(
     (H, W) ndarray of ``dtype``, DN
     """
     height, width = shape
+    coverage = _coverage(shape, centres_xy, radii_px, axis_ratio, angle_rad, supersample)
+    yy, xx = np.mgrid[0:height, 0:width]
+    rr2 = ((xx - (width - 1) / 2) ** 2 + (yy - (height - 1) / 2) ** 2) / (
+        ((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2
+    )
+    field = background_dn * (1 - vignetting * rr2)
+    sign = -1.0 if polarity == "dark" else 1.0
+    image = field * (1 + sign * contrast * coverage)
+    if field_radius_px > 0:
+        image = image * (rr2 * (((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2) <= field_radius_px**2)
+    if blur_sigma_px > 0:
+        image = ndimage.gaussian_filter(image, blur_sigma_px, mode="nearest")
+    if noise_dn > 0:
+        image = image + np.random.default_rng(seed).normal(0.0, noise_dn, shape)
+    if np.dtype(dtype) == np.uint16:
+        return np.clip(np.round(image), 0, 4095).astype(np.uint16)
+    return image.astype(dtype)
+
+
+def _coverage(shape, centres_xy, radii_px, axis_ratio: float, angle_rad: float, supersample: int) -> np.ndarray:
+    """(H, W) float64: the fraction of each pixel the beads' outlines cover (overlaps: the larger fraction)."""
+    height, width = shape
     centres_xy = np.asarray(centres_xy, dtype=np.float64).reshape(-1, 2)
     radii = np.broadcast_to(np.asarray(radii_px, dtype=np.float64), (len(centres_xy),))
     coverage = np.zeros(shape, np.float64)
@@ -85,22 +107,7 @@ def render_beads(
         inside = (along / radius) ** 2 + (across / (radius * axis_ratio)) ** 2 <= 1
         cover = inside.reshape(y1 - y0, supersample, x1 - x0, supersample).mean(axis=(1, 3))
         coverage[y0:y1, x0:x1] = np.maximum(coverage[y0:y1, x0:x1], cover)
-    yy, xx = np.mgrid[0:height, 0:width]
-    rr2 = ((xx - (width - 1) / 2) ** 2 + (yy - (height - 1) / 2) ** 2) / (
-        ((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2
-    )
-    field = background_dn * (1 - vignetting * rr2)
-    sign = -1.0 if polarity == "dark" else 1.0
-    image = field * (1 + sign * contrast * coverage)
-    if field_radius_px > 0:
-        image = image * (rr2 * (((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2) <= field_radius_px**2)
-    if blur_sigma_px > 0:
-        image = ndimage.gaussian_filter(image, blur_sigma_px, mode="nearest")
-    if noise_dn > 0:
-        image = image + np.random.default_rng(seed).normal(0.0, noise_dn, shape)
-    if np.dtype(dtype) == np.uint16:
-        return np.clip(np.round(image), 0, 4095).astype(np.uint16)
-    return image.astype(dtype)
+    return coverage
 
 
 def bead_grid(shape: tuple[int, int], pitch_px: float, margin_px: float, *, seed: int = 0) -> np.ndarray:

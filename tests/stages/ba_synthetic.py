@@ -32,6 +32,9 @@ from fluorocal.stages.simulate import SimulateParams, simulate
 IMAGE_PX = 1024
 #: the centroid noise of :func:`simulated_set`'s noisy observations, px
 NOISE_PX = 0.05
+#: the adjustment tests' two standard problems (test_adjust.py, test_adjust_model.py): one system, and two
+MONO = dict(n_beads=200, n_exposures=14, seed=1)
+BIPLANAR = dict(n_beads=160, n_exposures=10, n_systems=2, seed=2)
 
 
 @dataclass(frozen=True)
@@ -82,6 +85,17 @@ def make_problem(
     rng = np.random.default_rng(seed)
     xyz = cube_phantom(n_beads, rng)
     ids = np.arange(100, 100 + n_beads, dtype=np.int64)
+    q, src = _turntable_ring(n_exposures, tilt_deg, distance_mm, rng)
+    rig = _rig(n_systems, iop_px, rop_deg, distance_mm)
+    truth = _orientation(q, src, *rig)
+    obs, ideal = _observed(truth, xyz, ids, noise_px, visible_fraction, rng)
+    initial = _orientation(*_perturbed(q, src, *rig, start_error, rng))
+    nominal = xyz + rng.normal(0, nominal_error_mm, xyz.shape)
+    return Synthetic(obs, ids, xyz, nominal, truth, initial, ideal)
+
+
+def _turntable_ring(n_exposures, tilt_deg, distance_mm, rng) -> tuple[np.ndarray, np.ndarray]:
+    """Poses ``(q_cam_from_obj (M, 4), source_mm (M, 3))``: a turntable ring, tilted and shifted a few mm."""
     angles = np.linspace(0, 2 * np.pi, n_exposures, endpoint=False) + rng.uniform(-0.05, 0.05, n_exposures)
     tilts = np.deg2rad(tilt_deg) * np.sin(np.arange(n_exposures) * 2.4 + 0.3)
     q = np.array([quat_multiply(_rot_quat([t, 0, 0]), _rot_quat([0, a, 0])) for t, a in zip(tilts, angles)])
@@ -93,7 +107,11 @@ def make_problem(
         ]
     )
     R = quat_to_matrix(q)
-    src = -np.einsum("mji,mj->mi", R, offset)
+    return q, -np.einsum("mji,mj->mi", R, offset)
+
+
+def _rig(n_systems, iop_px, rop_deg, distance_mm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(iop_px, rop_q, rop_source_mm)`` per system: system B ``rop_deg`` around the vertical, its IOP a little off."""
     iop = np.tile(np.asarray(iop_px, dtype=np.float64), (n_systems, 1))
     rop_q = np.tile([1.0, 0, 0, 0], (n_systems, 1))
     rop_t = np.zeros((n_systems, 3))
@@ -103,21 +121,41 @@ def make_problem(
         Rr = quat_to_matrix(rop_q[s])
         centre = np.array([0.0, 0.0, distance_mm])
         rop_t[s] = centre - Rr.T @ (centre + [3.0, -2.0, 40.0])
-    truth = Orientation(
+    return iop, rop_q, rop_t
+
+
+def _orientation(q, src, iop, rop_q, rop_t) -> Orientation:
+    return Orientation(
         iop_px=iop,
-        exposure=np.arange(n_exposures),
+        exposure=np.arange(len(q)),
         q_cam_from_obj=q,
         source_mm=src,
         rop_q=rop_q,
         rop_source_mm=rop_t,
-        system_names=tuple("AB"[:n_systems]),
+        system_names=tuple("AB"[: len(iop)]),
     )
+
+
+def _perturbed(q, src, iop, rop_q, rop_t, f: float, rng) -> tuple[np.ndarray, ...]:
+    """The start values: rotations ~0.005 f rad, sources ~3 f mm off, the IOP by a fixed offset times f."""
+    n_systems = len(iop)
+    q0 = np.array([quat_multiply(_rot_quat(rng.normal(0, f * 0.005, 3)), qq) for qq in q])
+    src0 = src + rng.normal(0, f * 3.0, src.shape)
+    rop_q0 = np.array(
+        [quat_multiply(_rot_quat(rng.normal(0, f * 0.005, 3)), qq) if s else qq for s, qq in enumerate(rop_q)]
+    )
+    rop_t0 = rop_t + (np.arange(n_systems) > 0)[:, None] * rng.normal(0, f * 3.0, (n_systems, 3))
+    return q0, src0, iop + f * np.array([8.0, -6.0, -60.0]), rop_q0, rop_t0
+
+
+def _observed(truth: Orientation, xyz, ids, noise_px, visible_fraction, rng) -> tuple[Observations, np.ndarray]:
+    """Every bead projected inside the image (a ``visible_fraction`` of them) plus noise; and the noise-free points."""
     rows = []
-    for s in range(n_systems):
+    for s in range(len(truth.iop_px)):
         qs, Ts = truth.poses(s)
-        for j in range(n_exposures):
-            xy = project(xyz, qs[j], Ts[j], iop[s])
-            inside = np.all((xy > 5) & (xy < IMAGE_PX - 6), axis=1) & (rng.random(n_beads) < visible_fraction)
+        for j in range(len(truth.exposure)):
+            xy = project(xyz, qs[j], Ts[j], truth.iop_px[s])
+            inside = np.all((xy > 5) & (xy < IMAGE_PX - 6), axis=1) & (rng.random(len(ids)) < visible_fraction)
             k = np.flatnonzero(inside)
             rows.append((np.full(len(k), s), np.full(len(k), j), ids[k], xy[k]))
     system, exposure, bead, ideal = (np.concatenate(c) for c in zip(*rows))
@@ -129,23 +167,21 @@ def make_problem(
         bead_id=bead,
         xy_px=xy,
         sigma_px=np.tile([noise_px, noise_px, 0.0], (n, 1)),
-        system_names=tuple("AB"[:n_systems]),
-    )
-    f = start_error
-    q0 = np.array([quat_multiply(_rot_quat(rng.normal(0, f * 0.005, 3)), qq) for qq in q])
-    initial = Orientation(
-        iop_px=iop + f * np.array([8.0, -6.0, -60.0]),
-        exposure=truth.exposure,
-        q_cam_from_obj=q0,
-        source_mm=src + rng.normal(0, f * 3.0, src.shape),
-        rop_q=np.array(
-            [quat_multiply(_rot_quat(rng.normal(0, f * 0.005, 3)), qq) if s else qq for s, qq in enumerate(rop_q)]
-        ),
-        rop_source_mm=rop_t + (np.arange(n_systems) > 0)[:, None] * rng.normal(0, f * 3.0, (n_systems, 3)),
         system_names=truth.system_names,
     )
-    nominal = xyz + rng.normal(0, nominal_error_mm, xyz.shape)
-    return Synthetic(obs, ids, xyz, nominal, truth, initial, ideal)
+    return obs, ideal
+
+
+def with_xy(obs: Observations, xy: np.ndarray, bead_id=None) -> Observations:
+    """``obs`` with the coordinates ``xy`` (and the ids ``bead_id`` if given)."""
+    return Observations(
+        obs.system, obs.exposure, obs.bead_id if bead_id is None else bead_id, xy, obs.sigma_px, obs.system_names
+    )
+
+
+def rms(a) -> float:
+    """Root mean square of all the entries of ``a``."""
+    return float(np.sqrt(np.mean(np.square(a))))
 
 
 def aligned_error_mm(estimate_mm: np.ndarray, truth_mm: np.ndarray) -> np.ndarray:

@@ -1,8 +1,9 @@
-"""Tests of the robust bundle adjustment (the package stages/adjust/).
+"""Tests of the robust bundle adjustment (the package stages/adjust/): the solve, its statistics, its input.
 
 Synthetic problems come from tests/stages/ba_synthetic.py: beads on four faces
 of a 120 mm cube, a tilted turntable ring of exposures at ~950 mm from the
 source, c = 4400 px, 1024² images, 0.05 px Gaussian noise unless stated.
+The model itself (residuals, Jacobians, the polynomial additional parameters): test_adjust_model.py.
 """
 
 from __future__ import annotations
@@ -20,17 +21,16 @@ from fluorocal.stages.adjust import (
     Orientation,
     SolverOptions,
     adjust_bundle,
-    polynomial,
 )
 from fluorocal.stages.adjust.bundle import prepare
-from fluorocal.stages.adjust.collinearity import State, linearize, residuals
-from fluorocal.stages.adjust.problem import apply_step, build_problem, datum_directions
+from fluorocal.stages.adjust.collinearity import State, residuals
+from fluorocal.stages.adjust.problem import apply_step, datum_directions
 from fluorocal.stages.adjust.robust import t_cost
 from fluorocal.stages.artifacts import Observations, Phantom
 from fluorocal.stages.errors import EstimationError, InputError, ShapeError
 from fluorocal.stages.geometry import quat_to_matrix, similarity_fit
 
-from tests.stages.ba_synthetic import ScipyProblem, aligned_error_mm, make_problem
+from tests.stages.ba_synthetic import BIPLANAR, MONO, ScipyProblem, aligned_error_mm, make_problem, rms, with_xy
 
 NOISE_PX = 0.05
 
@@ -39,19 +39,9 @@ def _solve(syn, **options) -> Adjustment:
     return adjust_bundle(syn.observations, (syn.ids, syn.nominal_mm), syn.initial, **options)
 
 
-def _with_xy(obs: Observations, xy: np.ndarray, bead_id=None) -> Observations:
-    return Observations(
-        obs.system, obs.exposure, obs.bead_id if bead_id is None else bead_id, xy, obs.sigma_px, obs.system_names
-    )
-
-
-def _rms(a) -> float:
-    return float(np.sqrt(np.mean(np.square(a))))
-
-
 @pytest.fixture(scope="module")
 def mono():
-    return make_problem(n_beads=200, n_exposures=14, seed=1)
+    return make_problem(**MONO)
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +51,7 @@ def mono_result(mono):
 
 @pytest.fixture(scope="module")
 def biplanar():
-    return make_problem(n_beads=160, n_exposures=10, n_systems=2, seed=2)
+    return make_problem(**BIPLANAR)
 
 
 # --------------------------------------------------------------------------- shape / smoke
@@ -94,128 +84,6 @@ def test_orientation_poses_compose_rop(biplanar):
     np.testing.assert_allclose(p_got, p_expected, atol=1e-9)
 
 
-# --------------------------------------------------------------------------- residuals and Jacobians
-
-
-def _tiny_problem(sigma, correction):
-    """One bead at (10, -20, 0) mm seen from a source at (0, 0, -1000) mm, identity rotation, c = 4400 px."""
-    problem, _ = build_problem(
-        np.array([0]),
-        np.array([0]),
-        np.array([0]),
-        np.array([[557.0, 423.5]]) - correction,
-        np.array([sigma]),
-        np.array([[10.0, -20.0, 0.0]]),
-        1,
-        1,
-        np.array([True]),
-        "points",
-    )
-    state = State(
-        np.array([[10.0, -20.0, 0.0]]),
-        np.array([[1.0, 0, 0, 0]]),
-        np.array([[0.0, 0, -1000]]),
-        np.array([[512.0, 512.0, 4400.0]]),
-        np.array([[1.0, 0, 0, 0]]),
-        np.zeros((1, 3)),
-    )
-    return problem, state
-
-
-def test_residuals_at_hand_computed_point():
-    # p_cam = (10, -20, 1000): projection (512 + 4400 * 0.01, 512 - 4400 * 0.02) = (556, 424);
-    # ideal = (557, 423.5) - Δ(0.5, 0.25) = (556.5, 423.25); residual (0.5, -0.75) px
-    problem, state = _tiny_problem([0.1, 0.2, 0.0], np.array([[0.5, 0.25]]))
-    r, e = residuals(state, problem)
-    np.testing.assert_array_equal(r, [[0.5, -0.75]])
-    np.testing.assert_allclose(e, [[5.0, -3.75]], rtol=1e-15)
-    # correlated: e2 = (r2 - ρ σy/σx r1) / (σy sqrt(1 - ρ²)) = (-0.75 - 0.5) / (0.2 * sqrt(0.75))
-    problem, state = _tiny_problem([0.1, 0.2, 0.5], np.array([[0.5, 0.25]]))
-    r, e = residuals(state, problem)
-    np.testing.assert_allclose(e, [[5.0, -1.25 / (0.2 * math.sqrt(0.75))]], rtol=1e-14)
-    C = np.array([[0.01, 0.5 * 0.1 * 0.2], [0.5 * 0.1 * 0.2, 0.04]])
-    assert (e**2).sum() == pytest.approx(float(r[0] @ np.linalg.solve(C, r[0])), rel=1e-13)
-
-
-def test_residuals_match_geometry_project(biplanar):
-    """The adjustment's model reproduces stages/geometry.project through Orientation.poses for both systems."""
-    prep = prepare(biplanar.observations, (biplanar.ids, biplanar.xyz_true_mm), biplanar.truth)
-    state = State(
-        biplanar.xyz_true_mm.copy(),
-        *(
-            np.array(a)
-            for a in (
-                biplanar.truth.q_cam_from_obj,
-                biplanar.truth.source_mm,
-                biplanar.truth.iop_px,
-                biplanar.truth.rop_q,
-                biplanar.truth.rop_source_mm,
-            )
-        ),
-    )
-    r, _ = residuals(state, prep.problem)
-    noise = biplanar.observations.xy_px - biplanar.ideal_px
-    np.testing.assert_allclose(r, noise[prep.used][prep.perm], atol=1e-9)
-
-
-@pytest.mark.parametrize("eliminate", ["points", "poses"])
-def test_analytic_jacobian_matches_central_differences(biplanar, eliminate):
-    """Every Jacobian block against central differences through the local parametrisation.
-
-    Step h = 1e-6 in each parameter's unit (mm, rad, px): the truncation error is
-    O(h² |e'''|) ~ 1e-8 and the rounding error eps |e| / h ~ 1e-16 * 1e3 / 1e-6 = 1e-7
-    (|e| up to ~1e3 whitened at the perturbed start), against entries up to ~1e5
-    (4400 px/rad / 0.05 px): a tolerance of 1e-6 relative to the largest entry
-    plus 1e-5 absolute leaves margin while catching any sign or index error.
-    """
-    sigma = biplanar.observations.sigma_px.copy()
-    sigma[:, 1] *= 1.5
-    sigma[:, 2] = 0.3
-    obs = Observations(
-        biplanar.observations.system,
-        biplanar.observations.exposure,
-        biplanar.observations.bead_id,
-        biplanar.observations.xy_px,
-        sigma,
-        biplanar.observations.system_names,
-    )
-    prep = prepare(obs, (biplanar.ids, biplanar.nominal_mm), biplanar.initial, solver=SolverOptions(schur=eliminate))
-    problem, state = prep.problem, prep.state
-    e0, J_point, J_pose, J_glob = linearize(state, problem)
-    h = 1e-6
-
-    def fd(d_points, d_poses, d_glob):
-        ep = residuals(apply_step(state, problem, d_points, d_poses, d_glob), problem)[1]
-        em = residuals(apply_step(state, problem, -d_points, -d_poses, -d_glob), problem)[1]
-        return (ep - em) / (2 * h)
-
-    zp, zc, zg = np.zeros((problem.n_points, 3)), np.zeros((problem.n_poses, 6)), np.zeros(problem.n_globals)
-    checks = []
-    for i, k in [(0, 0), (7, 1), (33, 2)]:
-        d = zp.copy()
-        d[i, k] = h
-        sel = problem.point_idx == i
-        checks.append((fd(d, zc, zg)[sel], J_point[sel, :, k]))
-    for j in (0, 5):
-        for k in range(6):
-            d = zc.copy()
-            d[j, k] = h
-            sel = problem.pose_idx == j
-            checks.append((fd(zp, d, zg)[sel], J_pose[sel, :, k]))
-    for s in range(2):
-        for k, col in enumerate(problem.gcol[s]):
-            if col < 0:
-                continue
-            d = zg.copy()
-            d[col] = h
-            sel = problem.sys_idx == s
-            checks.append((fd(zp, zc, d)[sel], J_glob[sel, :, k]))
-    assert len(checks) == 3 + 12 + 3 + 9
-    for numeric, analytic in checks:
-        scale = np.abs(analytic).max()
-        np.testing.assert_allclose(analytic, numeric, rtol=0, atol=1e-6 * scale + 1e-5)
-
-
 # --------------------------------------------------------------------------- ground truth
 
 
@@ -224,7 +92,7 @@ def test_clean_solve_matches_own_covariance(mono, mono_result):
     res = mono_result
     err = aligned_error_mm(res.xyz_mm, mono.xyz_true_mm)
     predicted = math.sqrt(np.einsum("nii->n", res.xyz_cov_mm2).mean())
-    assert _rms(err) == pytest.approx(predicted, rel=0.10)
+    assert rms(err) == pytest.approx(predicted, rel=0.10)
     assert np.all(np.abs(res.iop_px - mono.truth.iop_px) <= 3 * res.iop_std_px)
     assert res.sigma0 == pytest.approx(1.0, rel=0.05)  # sigma_px is the true noise
     assert (~res.inlier).mean() < 0.002  # Gaussian data: outliers only by chance (r² > 26 at ν = 4)
@@ -239,7 +107,7 @@ def test_biplanar_recovers_rop(biplanar):
     R_err = quat_to_matrix(res.rop_q[1]) @ quat_to_matrix(truth.rop_q[1]).T
     angle_err = np.array([R_err[2, 1] - R_err[1, 2], R_err[0, 2] - R_err[2, 0], R_err[1, 0] - R_err[0, 1]]) / 2
     assert np.all(np.abs(angle_err) <= 3 * res.rop_std[1, :3])
-    assert _rms(aligned_error_mm(res.xyz_mm, biplanar.xyz_true_mm)) < 0.01
+    assert rms(aligned_error_mm(res.xyz_mm, biplanar.xyz_true_mm)) < 0.01
     assert res.n_parameters == 3 * len(biplanar.ids) + 6 * 10 + 2 * 3 + 6
 
 
@@ -282,11 +150,11 @@ def test_outliers_and_swapped_labels_are_flagged(mono, mono_result):
                 bead[a], bead[b] = bead[b], bead[a]
                 swapped += [a, b]
     corrupted = np.r_[gross, swapped]
-    res = adjust_bundle(_with_xy(obs, xy, bead), (mono.ids, mono.nominal_mm), mono.initial)
+    res = adjust_bundle(with_xy(obs, xy, bead), (mono.ids, mono.nominal_mm), mono.initial)
     assert res.usable
     assert (~res.inlier[corrupted]).mean() >= 0.95
-    clean_err = _rms(aligned_error_mm(mono_result.xyz_mm, mono.xyz_true_mm))
-    assert _rms(aligned_error_mm(res.xyz_mm, mono.xyz_true_mm)) <= 1.10 * clean_err
+    clean_err = rms(aligned_error_mm(mono_result.xyz_mm, mono.xyz_true_mm))
+    assert rms(aligned_error_mm(res.xyz_mm, mono.xyz_true_mm)) <= 1.10 * clean_err
     assert np.all(np.abs(res.iop_px - mono_result.iop_px) <= 1.0 * mono_result.iop_std_px)
     assert (~res.inlier).sum() <= len(corrupted) * 1.05 + 5  # few clean observations lost
 
@@ -393,7 +261,7 @@ def test_covariance_matches_monte_carlo():
     iops, pts, pts_pred, iop_pred = [], [], [], []
     for _ in range(40):
         xy = syn.ideal_px + rng.normal(0, NOISE_PX, syn.ideal_px.shape)
-        res = adjust_bundle(_with_xy(syn.observations, xy), (syn.ids, syn.nominal_mm), syn.initial)
+        res = adjust_bundle(with_xy(syn.observations, xy), (syn.ids, syn.nominal_mm), syn.initial)
         iops.append(res.iop_px[0])
         iop_pred.append(res.iop_cov_px2[0])
         pts.append(res.xyz_mm.ravel())
@@ -563,7 +431,7 @@ def test_estimate_nu_on_heavy_tails():
     n = len(syn.ideal_px)
     t_noise = NOISE_PX * rng.standard_normal((n, 2)) / np.sqrt(rng.chisquare(3, n) / 3)[:, None]
     heavy = adjust_bundle(
-        _with_xy(syn.observations, syn.ideal_px + t_noise),
+        with_xy(syn.observations, syn.ideal_px + t_noise),
         (syn.ids, syn.nominal_mm),
         syn.initial,
         solver=SolverOptions(estimate_nu=True),
@@ -611,17 +479,17 @@ def test_plate_homographies_recover_truth_and_flag_outliers():
     xy = obs.xy_px.copy()
     bad = rng.choice(len(xy), len(xy) // 20, replace=False)
     xy[bad] += rng.uniform(5, 50, (len(bad), 2)) * rng.choice([-1, 1], (len(bad), 2))
-    res = adjust_plate(_with_xy(obs, xy), nominal)
+    res = adjust_plate(with_xy(obs, xy), nominal)
     assert res.usable and res.homography.shape == (4, 3, 3)
     np.testing.assert_allclose(res.homography, H_true, rtol=1e-3, atol=1e-6)
     assert (~res.inlier[bad]).mean() >= 0.99
     clean = np.setdiff1d(np.arange(len(xy)), bad)
-    assert _rms(res.residual_px[clean]) == pytest.approx(NOISE_PX, rel=0.1)
+    assert rms(res.residual_px[clean]) == pytest.approx(NOISE_PX, rel=0.1)
     assert res.dof == 2 * len(xy) - 8 * 4
     assert res.redundancy.sum() == pytest.approx(res.dof, rel=1e-9)
     assert res.sigma0 == pytest.approx(1.0, rel=0.1)
     # Δ enters as ideal = measured - Δ: shifting observations and corrections together changes nothing
-    shifted = adjust_plate(_with_xy(obs, xy + 3.0), nominal, np.full((len(xy), 2), 3.0))
+    shifted = adjust_plate(with_xy(obs, xy + 3.0), nominal, np.full((len(xy), 2), 3.0))
     np.testing.assert_allclose(shifted.homography, res.homography, rtol=1e-9, atol=1e-12)
 
 
@@ -662,148 +530,7 @@ def test_skipping_the_covariance_keeps_the_estimate(mono, mono_result):
     np.testing.assert_array_equal(fast.inlier, mono_result.inlier)
 
 
-# --------------------------------------------------------------------------- additional parameters (polynomial)
-
-#: a polynomial distortion in px at the reference radius 700 px (k1, k2, k3, p1, p2, b1, b2): a few px radial,
-#: sub-px decentring and affinity, as in image intensifiers after the S-distortion
-AP_TRUE = np.array([4.0, -1.0, 0.3, 0.6, -0.4, 0.5, 0.3])
-AP_RADIUS_PX = 700.0
-
-
-def _polynomially_distorted(syn, ap=AP_TRUE, radius_px=AP_RADIUS_PX):
-    """``syn``'s observations distorted by the polynomial model at the true principal point (same noise).
-
-    Returns the observations and the true correction at them (``ideal = measured - Δ``).
-    """
-    obs = syn.observations
-    pp = syn.truth.iop_px[obs.system, :2]
-    measured = syn.ideal_px.copy()
-    for _ in range(50):  # m = ideal + Δ(m): a contraction, |∂Δ/∂m| ~ 0.03
-        measured = syn.ideal_px + polynomial.correction_at(measured, pp, radius_px, np.tile(ap, (len(obs), 1)))
-    measured += obs.xy_px - syn.ideal_px
-    return _with_xy(obs, measured), polynomial.correction_at(measured, pp, radius_px, np.tile(ap, (len(obs), 1)))
-
-
-def test_polynomial_model_at_hand_computed_points():
-    pp = np.array([500.0, 400.0])
-    # u = 0.6, v = 0.8 (ρ = 1): each coefficient's term by hand
-    xy = np.array([[560.0, 480.0]])
-    expected = {
-        "k1": (0.6, 0.8),
-        "k2": (0.6, 0.8),
-        "k3": (0.6, 0.8),
-        "p1": (1 + 2 * 0.36, 2 * 0.48),
-        "p2": (2 * 0.48, 1 + 2 * 0.64),
-        "b1": (0.6, 0.0),
-        "b2": (0.8, 0.0),
-    }
-    for i, name in enumerate(polynomial.AP_NAMES):
-        ap = np.zeros(7)
-        ap[i] = 1.0
-        np.testing.assert_allclose(polynomial.correction_at(xy, pp, 100.0, ap), [expected[name]], rtol=1e-14)
-    # another reference radius describes the same field with rescaled coefficients
-    ap = AP_TRUE
-    other = polynomial.rescaled(ap, 700.0, 350.0)
-    pts = np.random.default_rng(0).uniform(0, 1000, (50, 2))
-    np.testing.assert_allclose(
-        polynomial.correction_at(pts, pp, 350.0, other), polynomial.correction_at(pts, pp, 700.0, ap), rtol=1e-12
-    )
-
-
-@pytest.mark.parametrize("eliminate", ["points", "poses"])
-def test_ap_jacobian_matches_central_differences(biplanar, eliminate):
-    """The AP columns and the principal point's (which the AP model depends on) against central differences.
-
-    At the perturbed start with nonzero APs on both systems (|e| up to ~2e3 whitened). Step
-    h = 1e-4 px: the residuals are linear in the APs and a polynomial of small curvature in
-    (xp, yp, c), so truncation is negligible, and the rounding error eps |e| / h ~
-    2e-16 * 2e3 / 1e-4 = 4e-9 stays far below 1e-6 of the smallest column (c: ~2 per px;
-    measured worst 1e-8 relative).
-    """
-    from dataclasses import replace
-
-    obs, _ = _polynomially_distorted(biplanar)
-    prep = prepare(
-        obs,
-        (biplanar.ids, biplanar.nominal_mm),
-        biplanar.initial,
-        None,
-        free=FreeParameters(additional_parameters="polynomial", fixed_additional_parameters=()),
-        solver=SolverOptions(schur=eliminate),
-    )
-    problem = prep.problem
-    assert problem.gcol.shape == (2, 16) and problem.n_globals == 2 * 3 + 6 + 2 * 7  # IOP, ROP of B, APs
-    state = replace(prep.state, ap_px=np.array([AP_TRUE, -0.5 * AP_TRUE[::-1]]))
-    _, _, _, J_glob = linearize(state, problem)
-    zp, zc = np.zeros((problem.n_points, 3)), np.zeros((problem.n_poses, 6))
-    h = 1e-4
-    worst = 0.0
-    for s in range(2):
-        sel = problem.sys_idx == s
-        for k, col in enumerate(problem.gcol[s]):
-            if col < 0:
-                continue
-            d = np.zeros(problem.n_globals)
-            d[col] = h
-            ep = residuals(apply_step(state, problem, zp, zc, d), problem)[1]
-            em = residuals(apply_step(state, problem, zp, zc, -d), problem)[1]
-            numeric = ((ep - em) / (2 * h))[sel]
-            analytic = J_glob[sel, :, k]
-            worst = max(worst, float(np.abs(analytic - numeric).max() / np.abs(analytic).max()))
-    assert worst < 1e-6, worst
-
-
-def test_polynomial_distortion_is_recovered_by_the_adjustment(mono):
-    """Observations distorted exactly by the AP model (+ 0.05 px noise): the coefficients come back within 3σ.
-
-    The 3D error is compared with the same solve handed the true correction
-    (the physical limit): the 7 extra parameters, partly correlated with the
-    IOP and the free network, may cost some accuracy but not more than 1.8x
-    (measured 0.0104 vs 0.0067 mm; without the APs 0.043 mm).
-    """
-    obs, true_corr = _polynomially_distorted(mono)
-    nominal = (mono.ids, mono.nominal_mm)
-    # all seven: the tilted cube at 950 mm determines the affinity too
-    res = adjust_bundle(
-        obs,
-        nominal,
-        mono.initial,
-        free=FreeParameters(additional_parameters="polynomial", fixed_additional_parameters=()),
-    )
-    assert res.usable and res.additional_parameters == "polynomial"
-    r0 = res.ap_radius_px[0]
-    assert r0 == pytest.approx(polynomial.reference_radius(obs.xy_px))
-    truth = polynomial.rescaled(AP_TRUE, AP_RADIUS_PX, r0)
-    z = (res.ap_px[0] - truth) / res.ap_std_px[0]
-    assert np.all(np.abs(z) < 3), z
-    assert np.all(np.abs(res.iop_px - mono.truth.iop_px) <= 3 * res.iop_std_px)
-    np.testing.assert_allclose(res.ap_std_px[0], np.sqrt(np.diag(res.ap_cov_px2[0])))
-    # the residuals are the noise: 0.05 px times sqrt(redundancy)
-    assert _rms(res.residual_px[res.inlier]) < 1.05 * NOISE_PX
-    err = _rms(aligned_error_mm(res.xyz_mm, mono.xyz_true_mm))
-    oracle = _rms(aligned_error_mm(adjust_bundle(obs, nominal, mono.initial, true_corr).xyz_mm, mono.xyz_true_mm))
-    plain = _rms(aligned_error_mm(adjust_bundle(obs, nominal, mono.initial).xyz_mm, mono.xyz_true_mm))
-    assert err < 1.8 * oracle and err < 0.4 * plain, (err, oracle, plain)
-    assert err == pytest.approx(math.sqrt(np.einsum("nii->n", res.xyz_cov_mm2).mean()), rel=0.25)
-    # the reported model is the one the residuals were computed with: r = (xy - Δ_AP(xy)) - projection
-    from fluorocal.stages.geometry import project
-
-    point = np.searchsorted(res.bead_id, obs.bead_id)
-    projected = np.empty_like(obs.xy_px)
-    for j, ep in enumerate(res.exposure):
-        sel = obs.exposure == ep
-        projected[sel] = project(res.xyz_mm[point[sel]], res.q_cam_from_obj[j], res.source_mm[j], res.iop_px[0])
-    np.testing.assert_allclose(
-        obs.xy_px - res.polynomial_correction(0, obs.xy_px) - projected, res.residual_px, atol=1e-9
-    )
-    # the estimated correction at the observations is the true one up to what the orientation absorbs
-    # (a principal-point shift, a scale, a common rotation: a homography); measured 0.001 px mod H of 0.4 px RMS
-    import cv2
-
-    ideal = obs.xy_px - res.polynomial_correction(0, obs.xy_px)
-    H, _ = cv2.findHomography(ideal, obs.xy_px - true_corr, 0)
-    assert _rms(cv2.perspectiveTransform(ideal[None], H)[0] - (obs.xy_px - true_corr)) < 0.01 * _rms(true_corr)
-    assert res.n_parameters == 3 * len(mono.ids) + 6 * len(mono.initial.exposure) + 3 + 7
+# --------------------------------------------------------------------------- additional parameters: off by default
 
 
 def test_without_additional_parameters_they_are_reported_zero(mono_result):
