@@ -52,8 +52,9 @@ BANDS = (0.0, 0.2, 0.4, 0.6, 0.8)
 
 def error_3d_mm(test_obs, init: Orientation, nominal, true_xyz, corrections, iop_px, estimate_iop: bool) -> float:
     """The held-out exposures adjusted with ``corrections`` (IOP held at ``iop_px`` or free): RMS 3D error mm."""
-    start = Orientation(iop_px, init.exposure, init.q_cam_from_obj, init.source_mm, init.rop_q, init.rop_source_mm,
-                        init.system_names)  # fmt: skip
+    start = Orientation(
+        iop_px, init.exposure, init.q_cam_from_obj, init.source_mm, init.rop_q, init.rop_source_mm, init.system_names
+    )
     adj = adjust_bundle(test_obs, nominal, start, corrections, free=FreeParameters(estimate_iop=estimate_iop))
     truth = true_xyz[np.searchsorted(nominal.ids, adj.bead_id)]
     scale, R, t = similarity_fit(adj.xyz_mm, truth)
@@ -110,12 +111,23 @@ def one_system(train, test, s: int, acq, nominal, true_xyz, args, p, seed: int) 
     ours = error_3d_mm(te, init_te, nominal, true_xyz, field.correction_at(te.xy_px), res.adjustment.iop_px, False)
     true_corr = te.xy_px - system.distortion.undistort_points(te.xy_px)
     oracle = error_3d_mm(te, init_te, nominal, true_xyz, true_corr, init_te.iop_px, True)
-    ferr = bench.field_error_px(field.correction_at, res.fields[0].support_at, system.distortion, args.size,
-                                p.fov_radius_px)  # fmt: skip
+    ferr = bench.field_error_px(
+        field.correction_at, res.fields[0].support_at, system.distortion, args.size, p.fov_radius_px
+    )
     bands = error_by_radius(res, system.distortion, args.size, p.fov_radius_px)
     kept = res.stop_reason.split("kept iteration ")[-1].split(",")[0]
-    return dict(name=system.name, res=res, cpu=cpu, diffs=diffs, ours=ours, oracle=oracle, ferr=ferr, bands=bands,
-                iterations=len(res.history) - 1, kept=kept)  # fmt: skip
+    return dict(
+        name=system.name,
+        res=res,
+        cpu=cpu,
+        diffs=diffs,
+        ours=ours,
+        oracle=oracle,
+        ferr=ferr,
+        bands=bands,
+        iterations=len(res.history) - 1,
+        kept=kept,
+    )
 
 
 def two_ray(test, results, acq, nominal, true_xyz) -> tuple[float, float]:
@@ -152,14 +164,18 @@ def main(argv=None) -> None:
             print(f"seed {seed} system {r['name']}: field error by radius (of the FOV's): {bands}", flush=True)
         biplanar.append((seed, *two_ray(test, results, acq, nominal, true_xyz)))
     print(f"\n{args.frames} + {args.frames} exposures per system, {args.size} px, noise {args.noise} px")
-    print("| seed | system | order: field / IOP px, points mm (max diff) | 3D ours mm | 3D oracle mm | ratio "
-          "| field err mod H px (covered / inner 80 %) | iterations (kept) | learn CPU s |")  # fmt: skip
+    print(
+        "| seed | system | order: field / IOP px, points mm (max diff) | 3D ours mm | 3D oracle mm | ratio "
+        "| field err mod H px (covered / inner 80 %) | iterations (kept) | learn CPU s |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for seed, r in table:
         d = r["diffs"]
-        print(f"| {seed} | {r['name']} | {d[0]:.1e} / {d[1]:.1e}, {d[2]:.1e} | {r['ours']:.5f} | {r['oracle']:.5f} | "
-              f"{r['ours'] / r['oracle']:.2f}x | {r['ferr'][0]:.4f} / {r['ferr'][1]:.4f} | {r['iterations']} "
-              f"({r['kept']}) | {r['cpu']:.1f} |")  # fmt: skip
+        print(
+            f"| {seed} | {r['name']} | {d[0]:.1e} / {d[1]:.1e}, {d[2]:.1e} | {r['ours']:.5f} | {r['oracle']:.5f} | "
+            f"{r['ours'] / r['oracle']:.2f}x | {r['ferr'][0]:.4f} / {r['ferr'][1]:.4f} | {r['iterations']} "
+            f"({r['kept']}) | {r['cpu']:.1f} |"
+        )
     print("\nbiplanar two-ray intersection (held-out, both systems adjusted together):")
     for seed, ours, oracle in biplanar:
         print(f"  seed {seed}: ours {ours:.5f} mm, oracle {oracle:.5f} mm, ratio {ours / oracle:.2f}x (target 1.1x)")

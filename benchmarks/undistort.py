@@ -197,7 +197,7 @@ def writers(folder: Path, frames: list[np.ndarray], rounds: int) -> None:
         ("PNG", "cv2.imwrite", lambda f: cv2.imwrite(str(folder / "c.png"), f)),
         ("DICOM", "fluorocal write_stored_like", ours("dcm")),
         ("DICOM", "pydicom dcmread + save_as", lambda f: pydicom_plain(f, folder / "p.dcm")),
-    ]  # fmt: skip
+    ]
     times = {(fmt, name): [] for fmt, name, _ in cases}
     for r in range(rounds):
         for fmt, name, fn in cases if r % 2 == 0 else reversed(cases):
@@ -224,8 +224,7 @@ def _run(cmd: list[str], log: Path) -> tuple[float, float, int]:
 
 
 def _fluorocal(cal: Path, src: Path, out: Path) -> list[str]:
-    return [sys.executable, "-m", "fluorocal.cli", "undistort", str(cal), str(src), "--system", "A",
-            "--out", str(out)]  # fmt: skip
+    return [sys.executable, "-m", "fluorocal.cli", "undistort", str(cal), str(src), "--system", "A", "--out", str(out)]
 
 
 def end_to_end(root: Path, cal: Path, frames: list[np.ndarray], rounds: int, n: int = 100) -> None:

@@ -62,9 +62,15 @@ def rotational(tmp_path_factory):
     fields = {o["name"]: truth_field(o["correction_grid"], SIZE, SIZE) for o in truth["systems"][0]["orientations"]}
     orientations = [OrientationField(n, 0.0, t, fields[n]) for n, t in CALIBRATED.items()]
     system = SystemCalibration(
-        "A", (SIZE, SIZE), np.array([128.0, 128.0, 4000.0]), np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros(3),
-        None, tuple(orientations),
-    )  # fmt: skip
+        "A",
+        (SIZE, SIZE),
+        np.array([128.0, 128.0, 4000.0]),
+        np.zeros(3),
+        np.array([1.0, 0, 0, 0]),
+        np.zeros(3),
+        None,
+        tuple(orientations),
+    )
     calibration = root / "cal" / "calibration.json"
     calibration.parent.mkdir()
     Calibration([system], {}, {"scheme": "truth", "geometry_estimated": False}).save(calibration)

@@ -38,7 +38,7 @@ NUMBERS = {
     "float -inf": ("", "[detect]\nmin_snr = -inf", r"\[detect\] key 'min_snr': expected a finite number"),
     "threads 10**20": ("", "[compute]\nthreads = " + str(10**20), r"\[compute\] key 'threads': .* at most 4096"),
     "jobs 10**17": ("", "[compute]\njobs = " + str(10**17), r"\[compute\] key 'jobs': .* at most 4096"),
-}  # fmt: skip
+}
 
 
 @pytest.mark.parametrize("case", list(NUMBERS))

@@ -70,16 +70,29 @@ def test_one_step_splits_a_field_from_the_orientations_change(linearised):
     r = (A @ truth.delta_px.reshape(-1, 2)) + (net.J @ d_theta).reshape(2, -1).T
     w = np.full((len(rows), 2), 1 / 0.05**2)
     step = fit_grid_jointly(
-        xy, r, w, net, iop_px=adj.iop_px[0], estimate_iop=True, image_size=(SIZE, SIZE), tau_px=0.1,
-        base=zero, cv_rms_px=0.05, grid=GRID, order=4, cg_tolerance=1e-12, max_cg_iterations=2000,
-    )  # fmt: skip
+        xy,
+        r,
+        w,
+        net,
+        iop_px=adj.iop_px[0],
+        estimate_iop=True,
+        image_size=(SIZE, SIZE),
+        tau_px=0.1,
+        base=zero,
+        cv_rms_px=0.05,
+        grid=GRID,
+        order=4,
+        cg_tolerance=1e-12,
+        max_cg_iterations=2000,
+    )
     q = rng.uniform(16, SIZE - 16, (400, 2))
     # exact up to the conjugate gradients' tolerance, the rounding of a ~1e10-conditioned solve and what is left of
     # the gauge mismatch above: 1e-5 px, against 1e-3 px for one gauge removal and ~0.1 px for the field alone
     np.testing.assert_allclose(step.correction_at(q), truth.correction_at(q), atol=1e-5)
     # the field alone (the orientation held) cannot tell them apart: it absorbs part of J dθ
-    alone = fit_grid_field(xy, r, np.full((len(rows), 2), 0.05**2), image_size=(SIZE, SIZE), tau_px=0.1, order=4,
-                           grid=GRID)  # fmt: skip
+    alone = fit_grid_field(
+        xy, r, np.full((len(rows), 2), 0.05**2), image_size=(SIZE, SIZE), tau_px=0.1, order=4, grid=GRID
+    )
     assert np.abs(alone.correction_at(q) - truth.correction_at(q)).max() > 0.05
 
 
@@ -107,9 +120,22 @@ def test_points_alone_respond_when_the_orientation_is_held(linearised):
     r = (A @ truth.delta_px.reshape(-1, 2)) + (net.J @ d_theta).reshape(2, -1).T
     w = np.full((len(rows), 2), 1 / 0.05**2)
     step = fit_grid_jointly(
-        xy, r, w, net, iop_px=adj.iop_px[0], estimate_iop=True, image_size=(SIZE, SIZE), tau_px=0.1,
-        base=zero, cv_rms_px=0.05, grid=GRID, order=4, cg_tolerance=1e-12, max_cg_iterations=2000, respond="points",
-    )  # fmt: skip
+        xy,
+        r,
+        w,
+        net,
+        iop_px=adj.iop_px[0],
+        estimate_iop=True,
+        image_size=(SIZE, SIZE),
+        tau_px=0.1,
+        base=zero,
+        cv_rms_px=0.05,
+        grid=GRID,
+        order=4,
+        cg_tolerance=1e-12,
+        max_cg_iterations=2000,
+        respond="points",
+    )
     q = np.random.default_rng(5).uniform(16, SIZE - 16, (400, 2))
     # exact up to the solve's tolerance and rounding (as above, without the gauge removals' remainder): 1e-6 px
     np.testing.assert_allclose(step.correction_at(q), truth.correction_at(q), atol=1e-6)
@@ -219,8 +245,9 @@ def test_one_step_splits_two_systems_fields_from_the_whole_orientations_change(b
         w = np.full((len(sel), 2), 1 / 0.05**2)
         steps.append(SystemStep(xy, r, w, adj.iop_px[s], (BI_SIZE, BI_SIZE), 0.1, zero, 0.05, order=4))
         truths.append(truth)
-    fields = fit_grids_jointly(steps, net, estimate_iop=True, grid=BI_GRID, cg_tolerance=1e-12,
-                               max_cg_iterations=4000, respond=respond)  # fmt: skip
+    fields = fit_grids_jointly(
+        steps, net, estimate_iop=True, grid=BI_GRID, cg_tolerance=1e-12, max_cg_iterations=4000, respond=respond
+    )
     q = np.random.default_rng(8).uniform(32, BI_SIZE - 32, (400, 2))
     # as the one-system tests: exact up to the solve's tolerance, its rounding and (with the orientation
     # responding) what is left of the gauge mismatch, against ~1 px of field and of the orientation's change
@@ -230,8 +257,9 @@ def test_one_step_splits_two_systems_fields_from_the_whole_orientations_change(b
         np.testing.assert_allclose(field.correction_at(q), truth.correction_at(q), atol=atol)
         # the field alone (the orientation held) cannot tell them apart
         var = np.full(step.weights.shape, 0.05**2)
-        alone = fit_grid_field(step.xy_px, step.residuals_px, var, image_size=step.image_size, tau_px=0.1, order=4,
-                               grid=BI_GRID)  # fmt: skip
+        alone = fit_grid_field(
+            step.xy_px, step.residuals_px, var, image_size=step.image_size, tau_px=0.1, order=4, grid=BI_GRID
+        )
         assert np.abs(alone.correction_at(q) - truth.correction_at(q)).max() > 100 * atol
 
 
@@ -262,8 +290,14 @@ def _moved(adj, obs, rows, net, d_theta):
     rop_q, rop_src = ori.rop_q.copy(), ori.rop_source_mm.copy()
     rop_q[1:] = quat_multiply(rotvec_to_quat(rop[:, :3]), rop_q[1:])
     rop_src[1:] += rop[:, 3:]
-    moved = replace(ori, iop_px=ori.iop_px + d_theta[:6].reshape(2, 3), q_cam_from_obj=q, source_mm=src,
-                    rop_q=rop_q, rop_source_mm=rop_src)  # fmt: skip
+    moved = replace(
+        ori,
+        iop_px=ori.iop_px + d_theta[:6].reshape(2, 3),
+        q_cam_from_obj=q,
+        source_mm=src,
+        rop_q=rop_q,
+        rop_source_mm=rop_src,
+    )
     xyz = adj.xyz_mm.copy()
     xyz[net.beads] += d_theta[net.point_col :].reshape(-1, 3)
     return moved, xyz

@@ -327,8 +327,16 @@ def test_cv_neighbour_pool_serves_other_inliers_with_the_folds_own_neighbours():
     cache = {}
     for n_folds, k_grid in [(10, (1, 4, 16, 64)), (10, (4, 16)), (2, (4, 16, 64))]:
         sel = np.sort(rng.choice(len(pool), 2900, replace=False))
-        cached = cross_validate_k(pool[sel], r[sel], var[sel], k_grid=k_grid, n_folds=n_folds, seed=0,
-                                  neighbour_cache=cache, neighbour_pool_px=pool)  # fmt: skip
+        cached = cross_validate_k(
+            pool[sel],
+            r[sel],
+            var[sel],
+            k_grid=k_grid,
+            n_folds=n_folds,
+            seed=0,
+            neighbour_cache=cache,
+            neighbour_pool_px=pool,
+        )
         fresh = cross_validate_k(pool[sel], r[sel], var[sel], k_grid=k_grid, n_folds=n_folds, seed=0)
         np.testing.assert_allclose(cached.cv_cost, fresh.cv_cost, rtol=1e-12)
         folds = np.array_split(np.random.default_rng(0).permutation(len(sel)), n_folds)

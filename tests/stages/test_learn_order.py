@@ -48,8 +48,9 @@ def _reordered(obs: Observations, rng) -> np.ndarray:
 
 
 def test_canonical_order_sorts_by_system_exposure_bead():
-    obs = Observations([1, 0, 0, 0], [0, 3, 1, 1], [2, 1, 7, 4], np.arange(8.0).reshape(4, 2), np.ones((4, 3)),
-                       ("A", "B"))  # fmt: skip
+    obs = Observations(
+        [1, 0, 0, 0], [0, 3, 1, 1], [2, 1, 7, 4], np.arange(8.0).reshape(4, 2), np.ones((4, 3)), ("A", "B")
+    )
     order = canonical_order(obs)
     assert order.tolist() == [3, 2, 1, 0]
     sorted_obs = taken(obs, order)

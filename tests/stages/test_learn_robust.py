@@ -170,8 +170,16 @@ def test_pool_neighbours_of_a_subset_thinned_in_one_half_equal_a_kd_tree(monkeyp
     pool = rng.uniform(0, 200, (3000, 2))
     r = rng.normal(0, 0.05, pool.shape)
     cache = {}
-    cross_validate_k(pool, r, np.full(pool.shape, 0.05**2), k_grid=(4, 64), n_folds=10, seed=0,
-                     neighbour_cache=cache, neighbour_pool_px=pool)  # fmt: skip
+    cross_validate_k(
+        pool,
+        r,
+        np.full(pool.shape, 0.05**2),
+        k_grid=(4, 64),
+        n_folds=10,
+        seed=0,
+        neighbour_cache=cache,
+        neighbour_pool_px=pool,
+    )
     i = np.arange(len(pool))
     keep = (pool[:, 0] > 100) | ((pool[:, 0] > 20) & (i % 3 == 0)) | (i % 15 == 0)
     sel = np.flatnonzero(keep)

@@ -51,9 +51,12 @@ def test_an_unknown_role_is_refused_naming_its_line(tmp_path):
 
 @pytest.mark.parametrize(
     "bad, message",
-    [("8,5,five,5", "not a number in column y: 'five'"), ("8,5,nan,5", "column y must be a finite number"),
-     ("8,5,5,5,-1", "diameter must be a positive number")],
-)  # fmt: skip
+    [
+        ("8,5,five,5", "not a number in column y: 'five'"),
+        ("8,5,nan,5", "column y must be a finite number"),
+        ("8,5,5,5,-1", "diameter must be a positive number"),
+    ],
+)
 def test_errors_after_blank_lines_name_the_file_s_own_line(tmp_path, bad, message):
     header = "id,x,y,z,diameter\n" if bad.count(",") == 4 else "id,x,y,z\n"
     rows = CUBE if header == "id,x,y,z\n" else "".join(r + ",\n" for r in CUBE.splitlines())
