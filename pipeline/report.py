@@ -24,8 +24,9 @@ LEFT_IN = 1.0
 BOTTOM_IN = 0.55
 #: room above the panels: a margin, and a line per line of the panels' titles, inches
 TOP_IN, TITLE_LINE_IN = 0.12, 0.2
-#: room right of the panels without a colour bar, between panels (a y axis' labels), and for a colour bar, inches
-RIGHT_IN, GAP_IN, COLORBAR_IN = 0.2, 1.1, 1.0
+#: room right of the panels without a colour bar (half the last x tick label), between panels (a y axis' labels)
+#: and for a colour bar, inches
+RIGHT_IN, GAP_IN, COLORBAR_IN = 0.35, 1.1, 1.0
 
 
 def rms_px(residual_px: np.ndarray) -> float:
