@@ -95,10 +95,10 @@ def text_height_in(labels, *, fontsize: float, rotation: float = 90.0) -> float:
     from matplotlib.backends.backend_agg import RendererAgg
     from matplotlib.font_manager import FontProperties
 
-    renderer, font = RendererAgg(1, 1, 72), FontProperties(size=fontsize)  # at 72 dpi a point is a pixel
+    renderer, font = RendererAgg(1, 1, DPI), FontProperties(size=fontsize)  # at the PNGs' dpi: glyphs are hinted
     sizes = [renderer.get_text_width_height_descent(str(s), font, ismath=False)[:2] for s in labels]
     a = np.deg2rad(rotation)
-    return max((abs(w * np.sin(a)) + abs(h * np.cos(a)) for w, h in sizes), default=0.0) / 72
+    return max((abs(w * np.sin(a)) + abs(h * np.cos(a)) for w, h in sizes), default=0.0) / DPI
 
 
 def save_figure(fig, path: Path) -> Path:
