@@ -392,11 +392,12 @@ def draw_trend(record: Path, png: Path) -> Path:
     """The QA record's RMS, P95 and largest residual per check, one line per (system, orientation), and tolerances."""
     import csv
 
-    from fluorocal.report import new_figure, save_figure
+    from fluorocal.report import new_figure, save_figure, text_height_in
 
     with open(record, newline="", encoding="utf-8") as fh:
         rows = list(csv.DictReader(fh))
-    plt, fig, axes = new_figure(3, width=4.6, height=3.6)
+    bottom_in = text_height_in({r["checked_at"] for r in rows}, fontsize=6, rotation=60) + 0.15  # rotated dates
+    fig, axes = new_figure(3, width=4.6, height=3.6, bottom_in=bottom_in)
     for ax, key in zip(axes, ("rms", "p95", "max")):
         series: dict = {}
         for r in rows:
@@ -407,4 +408,4 @@ def draw_trend(record: Path, png: Path) -> Path:
         ax.set_title(f"{key.upper()} residual (px)", fontsize=9)
         ax.tick_params(axis="x", labelrotation=60, labelsize=6)
     axes[0].legend(fontsize=6)
-    return save_figure(plt, fig, png)
+    return save_figure(fig, png)

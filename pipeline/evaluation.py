@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import textwrap
 from pathlib import Path
 
 from fluorocal.outputs import inside, publish, safe_name
@@ -135,31 +136,21 @@ def write_plots(folder: Path, scores, ours: str) -> list[Path]:
     headings = figures(scores)
     names = [n for n in headings if any(math.isfinite(getattr(s, n)) for s in scores)]
     schemes = list(dict.fromkeys(s.scheme for s in scores))
-    import matplotlib
-
-    matplotlib.use("Agg")  # as fluorocal.report's figures: no display
-    import matplotlib.pyplot as plt
-
-    n_cols = min(3, len(names))
-    n_rows = -(-len(names) // n_cols)
-    fig, grid = plt.subplots(n_rows, n_cols, figsize=(4.2 * n_cols, 3.6 * n_rows), squeeze=False, layout="constrained")
-    axes = grid.ravel()
-    for ax in axes[len(names) :]:
-        ax.set_visible(False)
+    fig, axes = new_figure(len(names), width=4.2, height=3.6, n_cols=min(3, len(names)), title_lines=2)
     for ax, name in zip(axes, names):
         for scheme in schemes:
             rows = [s for s in scores if s.scheme == scheme]
             ax.plot([s.n_train for s in rows], [getattr(s, name) for s in rows], "o-", label=scheme)
         ax.set_yscale("log")
         ax.set_xlabel(f"training {size_unit(scores)}")
-        ax.set_title(headings[name], fontsize=9)
+        ax.set_title(textwrap.fill(headings[name], 36), fontsize=9)  # wider than its panel on one line
     if len(schemes) > 1:
         axes[0].legend(fontsize=8)
-    written = [save_figure(plt, fig, inside(folder, "evaluation_errors.png"))]
+    written = [save_figure(fig, inside(folder, "evaluation_errors.png"))]
     key = headline(scores)
     base = {s.n_train: getattr(s, key) for s in scores if s.scheme == Scheme.NONE}
     if base and set(schemes) - {Scheme.NONE}:
-        plt, fig, (ax,) = new_figure(1, width=5.0, height=3.8)
+        fig, (ax,) = new_figure(1, width=5.0, height=3.8)
         for scheme in schemes:
             rows = [s for s in scores if s.scheme == scheme and s.scheme != Scheme.NONE and s.n_train in base]
             if rows:
@@ -169,7 +160,7 @@ def write_plots(folder: Path, scores, ours: str) -> list[Path]:
         ax.set_ylabel("% improvement over none")
         ax.set_title(headings[key], fontsize=9)
         ax.legend(fontsize=8)
-        written.append(save_figure(plt, fig, inside(folder, "evaluation_improvement.png")))
+        written.append(save_figure(fig, inside(folder, "evaluation_improvement.png")))
     return written
 
 

@@ -232,7 +232,7 @@ def plate_map(path: Path, result, system: int, pitch_mm: float) -> Path:
     An arrow of the 95th percentile's length spans a cell (:data:`PLATE_MAP_CELLS` per side); the colour
     bar gives the error's length in mm.
     """
-    from fluorocal.report import new_figure, save_figure
+    from fluorocal.report import add_colorbar, new_figure, save_figure
 
     sel = (result.hole_system == system) & result.plate_estimated
     xy, err = result.nominal_mm[sel], result.plate_error_mm[sel]
@@ -241,7 +241,7 @@ def plate_map(path: Path, result, system: int, pitch_mm: float) -> Path:
     xy, err = xy[shown], err[shown]
     length = np.linalg.norm(err, axis=1)
     gain = cell / max(float(np.percentile(length, 95)), 1e-12)
-    plt, fig, (ax,) = new_figure(1, width=6.4, height=5.6)
+    fig, (ax,) = new_figure(1, width=6.4, height=5.6, colorbar=True)
     arrows = ax.quiver(
         xy[:, 0],
         xy[:, 1],
@@ -256,10 +256,10 @@ def plate_map(path: Path, result, system: int, pitch_mm: float) -> Path:
         headwidth=3,
         headlength=4,
     )
-    fig.colorbar(arrows, ax=ax, label="plate error (mm)", shrink=0.8)
     ax.set_aspect("equal")
     ax.set_xlabel("plate x (mm)")
     ax.set_ylabel("plate y (mm)")
     name = result.system_names[system]
     ax.set_title(f"plate errors, system {name}: {len(xy)} of {int(sel.sum())} holes, arrows x{gain:.0f}")
-    return save_figure(plt, fig, path)
+    add_colorbar(fig, arrows, [ax], "plate error (mm)")
+    return save_figure(fig, path)

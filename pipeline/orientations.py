@@ -235,9 +235,11 @@ def _deg(angle: float | None) -> str:
 
 def _change_plot(path: Path, system_name: str, fields, changes) -> Path:
     """RMS and largest change per orientation, as is and modulo a homography."""
-    from fluorocal.report import new_figure, save_figure
+    from fluorocal.report import new_figure, save_figure, text_height_in
 
-    plt, fig, (ax,) = new_figure(1, width=max(5.0, 0.5 * len(fields) + 2.5), height=3.8)
+    names = [o.describe() for o in fields]
+    bottom_in = text_height_in(names, fontsize=7, rotation=60) + 0.15  # the names, rotated, below their ticks
+    fig, (ax,) = new_figure(1, width=max(5.0, 0.5 * len(fields) + 2.5), height=3.8, bottom_in=bottom_in)
     x = np.arange(len(fields))
     for k, (label, values) in enumerate(
         (
@@ -249,25 +251,19 @@ def _change_plot(path: Path, system_name: str, fields, changes) -> Path:
     ):
         ax.bar(x + (k - 1.5) * 0.2, values, 0.2, label=label)
     ax.set_xticks(x)
-    ax.set_xticklabels([o.describe() for o in fields], rotation=60, ha="right", fontsize=7)
+    ax.set_xticklabels(names, rotation=60, ha="right", fontsize=7)
     ax.set_ylabel("Δ − Δref at the nodes (px)")
     ax.set_title(f"change of the correction with orientation, system {system_name}", fontsize=10)
     ax.legend(fontsize=7)
-    return save_figure(plt, fig, path)
+    return save_figure(fig, path)
 
 
 def _change_maps(path: Path, fields, changes, ref: int) -> Path:
     """Arrow maps of each orientation's difference from the reference modulo a homography, one scale for all."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from fluorocal.report import image_axes, save_figure
+    from fluorocal.report import add_colorbar, image_axes, new_figure, save_figure
 
     shown = [i for i in range(len(fields)) if i != ref][:MAX_MAPS]
-    columns = min(len(shown), 4)
-    rows = math.ceil(len(shown) / columns)
-    fig, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 4.0 * rows), squeeze=False, layout="constrained")
+    fig, axes = new_figure(len(shown), width=4.2, height=4.0, n_cols=min(len(shown), 4), title_lines=2, colorbar=True)
     first = fields[ref].field
     xx, yy = np.meshgrid(first.x_nodes_px, first.y_nodes_px)
     extent = (first.x_nodes_px[0], first.x_nodes_px[-1], first.y_nodes_px[-1], first.y_nodes_px[0])
@@ -275,7 +271,7 @@ def _change_maps(path: Path, fields, changes, ref: int) -> Path:
     vmax = vmax if np.isfinite(vmax) and vmax > 0 else 1.0
     step = max(len(first.x_nodes_px) // 24, 1)
     sel = (slice(None, None, step), slice(None, None, step))
-    for ax, i in zip(axes.ravel(), shown):
+    for ax, i in zip(axes, shown):
         d = changes[i].difference_mod_h_px
         im = ax.imshow(np.linalg.norm(d, axis=-1), extent=extent, cmap="magma", vmin=0, vmax=vmax)
         if vmax > 0:  # equal fields (scheme none) leave no arrow to scale
@@ -285,10 +281,8 @@ def _change_maps(path: Path, fields, changes, ref: int) -> Path:
             (first.width_px, first.height_px),
             f"{fields[i].describe()}\nRMS {changes[i].rms_mod_h_px:.3f} px modulo H",
         )
-    for ax in axes.ravel()[len(shown) :]:
-        ax.set_axis_off()
-    fig.colorbar(im, ax=list(axes.ravel()), label=f"|Δ − Δref| modulo H (px), against {fields[ref].name}", shrink=0.8)
-    return save_figure(plt, fig, path)
+    add_colorbar(fig, im, axes, f"|Δ − Δref| modulo H (px), against {fields[ref].name}")
+    return save_figure(fig, path)
 
 
 def inspect_calibration(path: Path, out_dir: Path | None = None) -> list[str]:
