@@ -199,7 +199,7 @@ def fit_homographies(
     scale2 = np.ones(n_frames)
     cost, s, bad = frames.cost(h, scale2, nu)
     if estimate_scale:
-        scale2 = ml_scales(s, frames.seg, frames.counts, nu, scale2)
+        scale2 = ml_scales(s, frames.counts, nu, scale2)
         cost = frames.cost_of(s, bad, scale2, nu)
     history = [float(cost.sum())]
     mu = np.full(n_frames, 1e-4)
@@ -225,7 +225,7 @@ def fit_homographies(
         s = np.where(ok[frames.seg], new_s, s)
         bad &= ~ok  # an accepted trial's cost is finite: none of its points maps through the horizon
         if estimate_scale:
-            scale2 = ml_scales(s, frames.seg, frames.counts, nu, scale2)
+            scale2 = ml_scales(s, frames.counts, nu, scale2)
             cost = frames.cost_of(s, bad, scale2, nu)  # the residuals at h are s: only the scale changed
         change = cost_prev - cost
         done |= (ok & (change <= function_tolerance)) | (~ok & (np.abs(actual) <= function_tolerance)) | (mu > 1e12)
