@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages.adjust.collinearity import whiten, whitening
+from fluorocal.stages.adjust.collinearity import whitening
 from fluorocal.stages.adjust.robust import ml_scales, t_rho, t_weights
 from fluorocal.stages.errors import EstimationError
 
@@ -59,44 +59,45 @@ def _initial(plate_n: np.ndarray, image_n: np.ndarray, starts: np.ndarray) -> np
     return h
 
 
-def _project(h: np.ndarray, plate_n: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    hs = h[seg]
-    X, Y = plate_n[:, 0], plate_n[:, 1]
-    d = hs[:, 6] * X + hs[:, 7] * Y + 1.0
-    u = (hs[:, 0] * X + hs[:, 1] * Y + hs[:, 2]) / d
-    v = (hs[:, 3] * X + hs[:, 4] * Y + hs[:, 5]) / d
-    return np.column_stack([u, v]), d
+def _project(h: np.ndarray, plate_t: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Projections ``u, v`` (N,) of the plate points ``plate_t`` (2, N) and their denominators ``d`` (N,)."""
+    hs = np.repeat(h.T, counts, axis=1)  # (8, N): each observation's frame's h, one contiguous row per entry
+    X, Y = plate_t
+    d = hs[6] * X + hs[7] * Y + 1.0
+    u = (hs[0] * X + hs[1] * Y + hs[2]) / d
+    v = (hs[3] * X + hs[4] * Y + hs[5]) / d
+    return u, v, d
 
 
-def _jacobian(h, plate_n, seg, linv_n) -> tuple[np.ndarray, np.ndarray]:
-    """Whitened ``∂e/∂h`` (N, 2, 8) of ``e = L^-1 (ideal - projection)`` and the projection.
+def _jacobian_rows(u, v, d, plate_t, linv_t) -> np.ndarray:
+    """Whitened ``∂e/∂h`` as rows ``(16, N)`` (x then y component, 8 entries each) of ``e = L^-1 (ideal - projection)``.
 
     ``∂f/∂h`` has rows ``(X, Y, 1, 0, 0, 0, -u X, -u Y) / d`` and ``(0, 0, 0, X, Y, 1, -v X, -v Y) / d``;
     ``L^-1`` (lower triangular) is applied to their non-zero blocks only.
     """
-    f, d = _project(h, plate_n, seg)
-    X, Y = plate_n[:, 0] / d, plate_n[:, 1] / d
-    u, v = f[:, 0], f[:, 1]
-    row0 = np.column_stack([X, Y, 1.0 / d])  # columns 0-2 of the x row, 3-5 of the y row
-    l11, l21, l22 = (-linv_n[:, i, None] for i in range(3))
-    J = np.empty((len(X), 2, 8))
-    J[:, 0, :3] = l11 * row0
-    J[:, 0, 3:6] = 0.0
-    J[:, 1, :3] = l21 * row0
-    J[:, 1, 3:6] = l22 * row0
-    ux, vx = np.column_stack([-u * X, -u * Y]), np.column_stack([-v * X, -v * Y])
-    J[:, 0, 6:] = l11 * ux
-    J[:, 1, 6:] = l21 * ux + l22 * vx
-    return J, f
+    X, Y, one = plate_t[0] / d, plate_t[1] / d, 1.0 / d
+    l11, l21, l22 = -linv_t
+    ux, uy, vx, vy = -u * X, -u * Y, -v * X, -v * Y
+    rows = np.zeros((16, len(d)))
+    rows[0], rows[1], rows[2], rows[6], rows[7] = l11 * X, l11 * Y, l11 * one, l11 * ux, l11 * uy
+    rows[8], rows[9], rows[10] = l21 * X, l21 * Y, l21 * one
+    rows[11], rows[12], rows[13] = l22 * X, l22 * Y, l22 * one
+    rows[14], rows[15] = l21 * ux + l22 * vx, l21 * uy + l22 * vy
+    return rows
 
 
 @dataclass(frozen=True)
 class _Frames:
-    """Observations sorted by frame, in each frame's normalised plate and image coordinates."""
+    """Observations sorted by frame, in each frame's normalised plate and image coordinates.
+
+    The per-observation arrays are also held transposed (``_t``, one contiguous row per coordinate).
+    """
 
     plate_n: np.ndarray  # (N, 2)
     image_n: np.ndarray  # (N, 2)
-    linv_n: np.ndarray  # (N, 3) whitening in normalised image units
+    plate_t: np.ndarray  # (2, N)
+    image_t: np.ndarray  # (2, N)
+    linv_t: np.ndarray  # (3, N) whitening in normalised image units
     seg: np.ndarray  # (N,) frame of each observation
     counts: np.ndarray  # (F,) observations per frame
     starts: np.ndarray  # (F,) first observation of each frame
@@ -105,30 +106,41 @@ class _Frames:
     image_centre: np.ndarray  # (F, 2) px
     image_scale: np.ndarray  # (F,) 1/px
 
-    def cost(self, h: np.ndarray, scale2: np.ndarray, nu: float) -> tuple[np.ndarray, np.ndarray]:
-        """Per-frame cost (F,) (inf where a point maps through the horizon) and per-observation s (N,)."""
-        n_frames = len(self.starts)
-        f, d = _project(h, self.plate_n, self.seg)
-        bad = np.bincount(self.seg, d <= 0, n_frames) > 0
-        e = whiten(self.linv_n, self.image_n - f)
-        s = (e * e).sum(1)
-        per = np.bincount(self.seg, t_rho(s, nu, scale2[self.seg]), n_frames) + self.counts * np.log(scale2)
-        return np.where(bad, np.inf, per), s
+    def whitened(self, u, v) -> tuple[np.ndarray, np.ndarray]:
+        """The whitened residuals ``e = L^-1 (ideal - (u, v))``, as two rows ``(N,)``."""
+        rx, ry = self.image_t[0] - u, self.image_t[1] - v
+        l11, l21, l22 = self.linv_t
+        return l11 * rx, l21 * rx + l22 * ry
+
+    def cost(self, h: np.ndarray, scale2: np.ndarray, nu: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per-frame cost (F,) (inf where a point maps through the horizon), per-observation s (N,), that flag (F,)."""
+        u, v, d = _project(h, self.plate_t, self.counts)
+        bad = np.bincount(self.seg, d <= 0, len(self.starts)) > 0
+        e0, e1 = self.whitened(u, v)
+        s = e0 * e0 + e1 * e1
+        return self.cost_of(s, bad, scale2, nu), s, bad
+
+    def cost_of(self, s: np.ndarray, bad: np.ndarray, scale2: np.ndarray, nu: float) -> np.ndarray:
+        """Per-frame cost (F,) of the squared residuals ``s`` (N,), inf where ``bad`` (F,)."""
+        rho = t_rho(s, nu, np.repeat(scale2, self.counts))
+        per = np.bincount(self.seg, rho, len(self.starts)) + self.counts * np.log(scale2)
+        return np.where(bad, np.inf, per)
 
     def weighted_normal(self, h: np.ndarray, scale2: np.ndarray, nu: float):
-        """``H = Σ w J^T J`` (F, 8, 8), ``b = -Σ w J^T e`` (F, 8) per frame; J (N, 2, 8), f, e (N, 2), w (N,)."""
-        J, f = _jacobian(h, self.plate_n, self.seg, self.linv_n)
-        e = whiten(self.linv_n, self.image_n - f)
-        w = t_weights((e * e).sum(1), nu, scale2[self.seg])
+        """``H = Σ w J^T J`` (F, 8, 8), ``b = -Σ w J^T e`` (F, 8) per frame; J as rows (16, N), u, v, e0, e1, w (N,)."""
+        u, v, d = _project(h, self.plate_t, self.counts)
+        rows = _jacobian_rows(u, v, d, self.plate_t, self.linv_t)
+        e0, e1 = self.whitened(u, v)
+        w = t_weights(e0 * e0 + e1 * e1, nu, np.repeat(scale2, self.counts))
         root = np.sqrt(w)
-        Jw = (J * root[:, None, None]).reshape(-1, 8)  # two rows per observation
-        ew = (e * root[:, None]).ravel()
+        Jw = np.ascontiguousarray((rows * root).T).reshape(-1, 8)  # two rows per observation
+        ew = np.column_stack([e0 * root, e1 * root]).ravel()
         H = np.empty((len(self.starts), 8, 8))
         b = np.empty((len(self.starts), 8))
-        for k, (lo, hi) in enumerate(zip(2 * self.starts, 2 * np.r_[self.starts[1:], len(e)])):
+        for k, (lo, hi) in enumerate(zip(2 * self.starts, 2 * np.r_[self.starts[1:], len(w)])):
             H[k] = Jw[lo:hi].T @ Jw[lo:hi]
             b[k] = -(ew[lo:hi] @ Jw[lo:hi])
-        return H, b, J, f, e, w
+        return H, b, rows, (u, v), (e0, e1), w
 
 
 def _normalised(plate_mm, image_px, sigma_px, frame_starts) -> _Frames:
@@ -141,10 +153,14 @@ def _normalised(plate_mm, image_px, sigma_px, frame_starts) -> _Frames:
     ic, is_ = _normaliser(image_px, frame_starts)
     # whitening in normalised image units: σ scales by the frame's image scale
     sig_n = sigma_px * np.column_stack([is_[seg], is_[seg], np.ones(len(seg))])
+    plate_n = (plate_mm - pc[seg]) * ps[seg, None]
+    image_n = (image_px - ic[seg]) * is_[seg, None]
     return _Frames(
-        plate_n=(plate_mm - pc[seg]) * ps[seg, None],
-        image_n=(image_px - ic[seg]) * is_[seg, None],
-        linv_n=whitening(sig_n),
+        plate_n=plate_n,
+        image_n=image_n,
+        plate_t=np.ascontiguousarray(plate_n.T),
+        image_t=np.ascontiguousarray(image_n.T),
+        linv_t=np.ascontiguousarray(whitening(sig_n).T),
         seg=seg,
         counts=counts,
         starts=np.asarray(frame_starts),
@@ -181,10 +197,10 @@ def fit_homographies(
     n_frames = len(frame_starts)
     h = _initial(frames.plate_n, frames.image_n, frame_starts)
     scale2 = np.ones(n_frames)
-    cost, s = frames.cost(h, scale2, nu)
+    cost, s, bad = frames.cost(h, scale2, nu)
     if estimate_scale:
-        scale2 = ml_scales(s, frames.seg, frames.counts, nu, scale2)
-        cost, s = frames.cost(h, scale2, nu)
+        scale2 = ml_scales(s, frames.counts, nu, scale2)
+        cost = frames.cost_of(s, bad, scale2, nu)
     history = [float(cost.sum())]
     mu = np.full(n_frames, 1e-4)
     done = np.zeros(n_frames, bool)
@@ -196,7 +212,7 @@ def fit_homographies(
         step = np.linalg.solve(H + (mu[:, None] * diag)[:, :, None] * np.eye(8), b[:, :, None])[:, :, 0]
         step[done] = 0.0
         trial = h + step
-        new_cost, new_s = frames.cost(trial, scale2, nu)
+        new_cost, new_s, _ = frames.cost(trial, scale2, nu)
         predicted = 0.5 * ((b * step).sum(1) + mu * (diag * step * step).sum(1)) / scale2
         actual = cost - new_cost
         ok = np.isfinite(new_cost) & (actual > 0) & (predicted > 0) & ~done
@@ -207,9 +223,10 @@ def fit_homographies(
         # the cost at the new h: per frame the trial's or the last one's (a frame's cost is its observations' alone)
         cost = np.where(ok, new_cost, cost)
         s = np.where(ok[frames.seg], new_s, s)
+        bad &= ~ok  # an accepted trial's cost is finite: none of its points maps through the horizon
         if estimate_scale:
-            scale2 = ml_scales(s, frames.seg, frames.counts, nu, scale2)
-            cost, s = frames.cost(h, scale2, nu)
+            scale2 = ml_scales(s, frames.counts, nu, scale2)
+            cost = frames.cost_of(s, bad, scale2, nu)  # the residuals at h are s: only the scale changed
         change = cost_prev - cost
         done |= (ok & (change <= function_tolerance)) | (~ok & (np.abs(actual) <= function_tolerance)) | (mu > 1e12)
         history.append(float(cost.sum()))
@@ -232,7 +249,8 @@ def _frame_fit(frames: _Frames, h, scale2, nu, iterations, done, history) -> Fra
     T_img_inv[:, 2, 2] = 1
     H_px = T_img_inv @ Hn @ T_plate
     H_px /= H_px[:, 2:3, 2:3]
-    H, _, J, f, e, w = frames.weighted_normal(h, scale2, nu)
+    H, _, rows, (u, v), (e0, e1), w = frames.weighted_normal(h, scale2, nu)
+    J = np.ascontiguousarray(rows.T).reshape(-1, 2, 8)
     Q = np.linalg.inv(H)
     JQ = np.empty_like(J)
     for k, (lo, hi) in enumerate(zip(frames.starts, np.r_[frames.starts[1:], len(J)])):
@@ -241,8 +259,8 @@ def _frame_fit(frames: _Frames, h, scale2, nu, iterations, done, history) -> Fra
     return FrameFit(
         H=H_px,
         scale2=scale2,
-        residual_px=(frames.image_n - f) / is_[frames.seg, None],
-        s=(e * e).sum(1),
+        residual_px=(frames.image_n - np.column_stack([u, v])) / is_[frames.seg, None],
+        s=e0 * e0 + e1 * e1,
         weight=w,
         hat=hat,
         iterations=iterations,

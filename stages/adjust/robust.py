@@ -60,16 +60,15 @@ def ml_scale(s: np.ndarray, nu: float, scale2: float, *, iterations: int = 100, 
     return scale2
 
 
-def ml_scales(
-    s: np.ndarray, seg: np.ndarray, counts: np.ndarray, nu: float, scale2: np.ndarray, *, iterations: int = 100
-) -> np.ndarray:
+def ml_scales(s: np.ndarray, counts: np.ndarray, nu: float, scale2: np.ndarray, *, iterations: int = 100) -> np.ndarray:
     """Per-group ML variance factors ``(G,)``: :func:`ml_scale`'s fixed point in every group at once.
 
-    ``seg`` ``(N,)`` gives each observation's group and ``counts`` ``(G,)`` the
-    group sizes; iterates until every group has converged.
+    ``s`` ``(N,)`` is sorted by group and ``counts`` ``(G,)`` gives the group
+    sizes; iterates until every group has converged.
     """
+    seg = np.repeat(np.arange(len(counts)), counts)
     for _ in range(iterations):
-        w = t_weights(s, nu, scale2[seg])
+        w = t_weights(s, nu, np.repeat(scale2, counts))
         new = np.maximum(np.bincount(seg, w * s, len(counts)) / (2.0 * counts), 1e-300)
         if np.all(np.abs(new - scale2) <= 1e-10 * new):
             return new

@@ -487,12 +487,13 @@ def _without_homography(field: CorrectionField, xy_px: np.ndarray, rest) -> Corr
     correction). At the measured points instead, a distortion of many pixels would leave part of the
     gauge free, and the alternation would drift along it into the plate's errors.
     """
-    ideal = xy_px - field.correction_at(xy_px) - rest(xy_px)
+    at = field.correction_at(xy_px)
+    ideal = xy_px - at - rest(xy_px)
     nodes = field.nodes_px
     ideal_nodes = nodes - field.correction_at(nodes) - rest(nodes)
     norm = Normaliser.of(ideal)
     B = homography_modes(norm.forward(ideal)).reshape(-1, 8)
-    coef, *_ = np.linalg.lstsq(B, field.correction_at(xy_px).ravel(), rcond=None)
+    coef, *_ = np.linalg.lstsq(B, at.ravel(), rcond=None)
     at_nodes = homography_modes(norm.forward(ideal_nodes)).reshape(-1, 8) @ coef
     return field.with_delta(field.delta_px - at_nodes.reshape(field.delta_px.shape))
 
