@@ -130,10 +130,11 @@ def _sparse_factor(M):
 
 
 def _banded_factor(ab: np.ndarray) -> BandedCholesky:
+    """The banded Cholesky factor of the band ``ab``, factored in place (the callers' bands are their own)."""
     from scipy.linalg import cholesky_banded
 
     try:
-        return BandedCholesky(cholesky_banded(ab, lower=False, check_finite=False))
+        return BandedCholesky(cholesky_banded(ab, overwrite_ab=True, lower=False, check_finite=False))
     except np.linalg.LinAlgError as exc:
         raise _singular(exc) from None
 
