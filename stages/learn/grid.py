@@ -77,27 +77,70 @@ def factor_spd(M):
     Raises :class:`~fluorocal.stages.errors.EstimationError` when ``M`` is singular or (banded) not positive
     definite.
     """
-    from scipy.linalg import cholesky_banded
+    if M.shape[0] > BANDED_MAX_NODES:
+        return _sparse_factor(M)
+    return _banded_factor(upper_band(M))
+
+
+def factor_sum(terms, ridge: float):
+    """:func:`factor_spd` of ``terms[0] + terms[1] + ... + ridge I``, each term sparse or its :func:`upper_band`.
+
+    In band form each term is laid out once (a cross-validation's data part serves every candidate prior, a
+    prior every fold) and the sum taken entry by entry in the sparse sum's order: the same matrix, to the
+    last bit, without building the sparse sum and laying it out at every factorisation.
+    """
+    from scipy.sparse import diags, issparse
+
+    n = terms[0].shape[-1]
+    if n > BANDED_MAX_NODES:
+        return _sparse_factor(sum(terms[1:], terms[0]) + diags(np.full(n, ridge)))
+    bands = [upper_band(t) if issparse(t) else t for t in terms]
+    ab = np.zeros((max(len(b) for b in bands), n))
+    for b in bands:
+        ab[len(ab) - len(b) :] += b
+    ab[-1] += ridge
+    # an upper diagonal the terms cancel exactly is out of the band, as out of a sparse sum's pattern
+    while len(ab) > 1 and not ab[0].any():
+        ab = ab[1:]
+    return _banded_factor(ab)
+
+
+def upper_band(M) -> np.ndarray:
+    """A sparse symmetric ``M``'s upper triangle in LAPACK's upper band storage ``(bandwidth + 1, n)``."""
+    # duplicates summed in CSR (the band below takes one entry per position): it sorts each row's few entries,
+    # where COO's would sort them all (a sparse product's rows are unsorted): several times faster
+    csr = M.tocsr(copy=True)
+    csr.sum_duplicates()
+    coo = csr.tocoo()
+    upper = (coo.col >= coo.row) & (coo.data != 0)
+    row, col = coo.row[upper], coo.col[upper]
+    band = int(np.max(col - row, initial=0))
+    ab = np.zeros((band + 1, M.shape[0]))
+    ab[band + row - col, col] = coo.data[upper]
+    return ab
+
+
+def _sparse_factor(M):
     from scipy.sparse.linalg import splu
 
     try:
-        if M.shape[0] > BANDED_MAX_NODES:
-            return splu(M.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        # duplicates summed in CSR (the band below takes one entry per position): it sorts each row's few entries,
-        # where COO's would sort them all (a sparse product's rows are unsorted): several times faster
-        csr = M.tocsr(copy=True)
-        csr.sum_duplicates()
-        coo = csr.tocoo()
-        upper = coo.col >= coo.row
-        row, col = coo.row[upper], coo.col[upper]
-        band = int(np.max(col - row, initial=0))
-        ab = np.zeros((band + 1, M.shape[0]))
-        ab[band + row - col, col] = coo.data[upper]
-        return BandedCholesky(cholesky_banded(ab, lower=False, check_finite=False))
-    except (np.linalg.LinAlgError, RuntimeError) as exc:
-        raise EstimationError(
-            f"the field's normal equations are singular ({exc}): too few observations for its nodes"
-        ) from None
+        return splu(M.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    except RuntimeError as exc:
+        raise _singular(exc) from None
+
+
+def _banded_factor(ab: np.ndarray) -> BandedCholesky:
+    """The banded Cholesky factor of the band ``ab``, factored in place (the callers' bands are their own)."""
+    from scipy.linalg import cholesky_banded
+
+    try:
+        return BandedCholesky(cholesky_banded(ab, overwrite_ab=True, lower=False, check_finite=False))
+    except np.linalg.LinAlgError as exc:
+        raise _singular(exc) from None
+
+
+def _singular(exc) -> EstimationError:
+    return EstimationError(f"the field's normal equations are singular ({exc}): too few observations for its nodes")
 
 
 def _grid_solve(A, DtD, w, r, tau_px, base=None):
@@ -123,18 +166,47 @@ def grid_normal(A, w, r):
 
 def solve_normal(normal, DtD, tau_px, base=None):
     """Solve the normal equations of :func:`_grid_normal` with the prior ``DtD / τ²`` on ``base + v``."""
-    from scipy.sparse import diags
+    return _solve_regularised(normal, _Prior.of(DtD, tau_px, normal[1].shape[0]), base)
 
+
+@dataclass(frozen=True)
+class _Prior:
+    """The prior's ``D^T D / τ²`` (sparse) and the term :func:`factor_sum` adds (its band, up to the band's limit)."""
+
+    reg: object
+    term: object
+
+    @classmethod
+    def of(cls, DtD, tau_px: float, n: int) -> "_Prior":
+        reg = DtD / tau_px**2
+        return cls(reg, prior_term(reg, n))
+
+
+def prior_term(reg, n: int):
+    """The prior ``reg`` as :func:`factor_sum` takes it for ``n`` unknowns: its band, up to the band's limit."""
+    return reg if n > BANDED_MAX_NODES else upper_band(reg)
+
+
+def _in_band_form(normal):
+    """``normal`` (:func:`grid_normal`'s) with its data matrices laid out in band form, once for every prior."""
     N, b, w_max = normal
-    reg = DtD / tau_px**2
+    if b.shape[0] > BANDED_MAX_NODES:
+        return normal
+    first = upper_band(N[0])
+    return [first, first if N[1] is N[0] else upper_band(N[1])], b, w_max
+
+
+def _solve_regularised(normal, prior: _Prior, base=None):
+    """:func:`solve_normal` with the prior laid out (:class:`_Prior`); ``normal``'s matrices sparse or in band form."""
+    N, b, w_max = normal
     # a tiny ridge keeps nodes far from all data (fixed only through the prior's null space) determined
-    ridge = diags(np.full(b.shape[0], 1e-10 * max(w_max, 1.0)))
+    ridge = 1e-10 * max(w_max, 1.0)
     out = np.empty(b.shape)
     lu = None
     for c in range(2):
         if lu is None or N[c] is not N[0]:
-            lu = factor_spd(N[c] + reg + ridge)
-        rhs = b[:, c] if base is None else b[:, c] - reg @ base[:, c]
+            lu = factor_sum((N[c], prior.term), ridge)
+        rhs = b[:, c] if base is None else b[:, c] - prior.reg @ base[:, c]
         out[:, c] = lu.solve(rhs)
     return out
 
@@ -235,7 +307,7 @@ def cross_validate_smoothness(
     folds = _folds(n, n_folds, seed, groups)
     # the data part of each fold's normal equations, shared by every candidate
     normals = [
-        grid_normal(A[train], w[train], r[train])
+        _in_band_form(grid_normal(A[train], w[train], r[train]))
         for train in (np.setdiff1d(np.arange(n), test, assume_unique=True) for test in folds)
     ]
     tests = [(A[test], w[test], r[test]) for test in folds]
@@ -272,8 +344,9 @@ def _out_of_fold(normals, tests, DtD, tau_px, base, cost_cap):
     """
     cost = sq = 0.0
     n = n_sq = 0
+    prior = _Prior.of(DtD, tau_px, normals[0][1].shape[0])
     for normal, (A_test, w_test, r_test) in zip(normals, tests):
-        err = r_test - A_test @ solve_normal(normal, DtD, tau_px, base)
+        err = r_test - A_test @ _solve_regularised(normal, prior, base)
         n += len(err)
         if cost_cap is None:
             cost += float(np.sum(w_test * err**2))
@@ -395,7 +468,11 @@ __all__ = [
     "GridCvReport",
     "cross_validate_smoothness",
     "difference_operator",
+    "factor_spd",
+    "factor_sum",
     "fit_grid_field",
     "grid_result",
     "prior_normal",
+    "prior_term",
+    "upper_band",
 ]

@@ -24,7 +24,7 @@ import numpy as np
 from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.field import CorrectionField, bilinear_design
 from fluorocal.stages.learn.gauge import gauge_basis
-from fluorocal.stages.learn.grid import factor_spd, grid_result, prior_normal
+from fluorocal.stages.learn.grid import factor_sum, grid_result, prior_normal, prior_term
 from fluorocal.stages.learn.network import Network
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec
 from scipy.linalg import block_diag as dense_block_diag
@@ -190,6 +190,9 @@ class _FieldPart:
     Nvv: object  # (2 n_nodes, 2 n_nodes) sparse
     bv: np.ndarray
     AtW: list
+    data: list  # per component, (n_nodes, n_nodes) sparse: A^T W_c A
+    prior: object  # the prior's D^T D / τ² as factor_sum takes it
+    ridge: float
 
     @property
     def n_nodes(self) -> int:
@@ -202,8 +205,9 @@ def _field_part(step: SystemStep, grid: GridSpec) -> _FieldPart:
     xn, yn = grid.nodes(size)
     A = bilinear_design(xn, yn, xy)
     reg = prior_normal(len(yn), len(xn), int(step.order)) / step.tau_px**2
-    Nvv, bv, AtW = _field_normal(A, w, r, reg, step.base.delta_px.reshape(-1, 2))
-    return _FieldPart(xn, yn, A, xy, w, r, np.asarray(step.iop_px, dtype=np.float64), size, Nvv, bv, AtW)
+    Nvv, bv, AtW, data, ridge = _field_normal(A, w, r, reg, step.base.delta_px.reshape(-1, 2))
+    iop = np.asarray(step.iop_px, dtype=np.float64)
+    return _FieldPart(xn, yn, A, xy, w, r, iop, size, Nvv, bv, AtW, data, prior_term(reg, A.shape[1]), ridge)
 
 
 def _node_vector(values) -> np.ndarray:
@@ -247,16 +251,17 @@ def _reduced_system(parts, network: Network, estimate_iop: bool, respond: str):
 
 
 def _field_normal(A, w, r, reg, base_v):
-    """The field's block of the joint normal equations, its right-hand side and ``A^T W`` per component.
+    """The field's block of the joint normal equations, its right-hand side, ``A^T W`` and ``A^T W A`` per component.
 
-    ``reg`` is the prior's ``D^T D / τ²``; a tiny ridge keeps nodes far from all data determined.
+    And the ridge: ``reg`` is the prior's ``D^T D / τ²``; a tiny ridge keeps nodes far from all data determined.
     """
     n_nodes = A.shape[1]
     ridge = 1e-10 * max(float(w.max()), 1.0)
     AtW = [A.T.multiply(w[:, c]).tocsr() for c in range(2)]
-    Nvv = block_diag([AtW[0] @ A + reg, AtW[1] @ A + reg], format="csc") + diags(np.full(2 * n_nodes, ridge))
+    data = [AtW[c] @ A for c in range(2)]
+    Nvv = block_diag([data[0] + reg, data[1] + reg], format="csc") + diags(np.full(2 * n_nodes, ridge))
     bv = np.concatenate([AtW[c] @ r[:, c] - reg @ base_v[:, c] for c in range(2)])
-    return Nvv, bv, AtW
+    return Nvv, bv, AtW, data, ridge
 
 
 def _orientation_inverse(J, w, r, network: Network, held: slice):
@@ -413,12 +418,13 @@ def _gauge_penalty(A, xy, w, iop_px, with_iop: bool):
 
 def _solve_reduced(parts, matvec, rhs, max_cg_iterations: int, cg_tolerance: float, x0=None):
     """The stacked node values of the reduced system, by CG preconditioned with each field block's factor."""
-    # the preconditioner, block by block: one factorisation per system when both components weigh alike
+    # the preconditioner, block by block: one factorisation per system when both components weigh alike; each
+    # block of Nvv factored from its terms (the same sum, without laying out Nvv's block)
     blocks, start = [], 0
     for p in parts:
         n = p.n_nodes
-        comps = [p.Nvv[:n, :n]] if np.array_equal(p.w[:, 0], p.w[:, 1]) else [p.Nvv[:n, :n], p.Nvv[n:, n:]]
-        lus = [factor_spd(blk) for blk in comps]
+        comps = p.data[:1] if np.array_equal(p.w[:, 0], p.w[:, 1]) else p.data
+        lus = [factor_sum((data, p.prior), p.ridge) for data in comps]
         blocks += [(slice(start, start + n), lus[0]), (slice(start + n, start + 2 * n), lus[-1])]
         start += 2 * n
 

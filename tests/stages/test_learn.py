@@ -218,6 +218,32 @@ def test_factor_spd_solves_the_grid_normal_matrix(n_side):
     np.testing.assert_allclose(factor_spd(M).solve(b[:, 0]), exact[:, 0], atol=1e-7 * np.abs(exact).max())
 
 
+@pytest.mark.parametrize("n_side", [30, 101])
+def test_factor_sum_is_the_factor_of_the_sparse_sum(n_side):
+    # the data part and the prior laid out in band form apart and summed there are the sparse sum's matrix to the
+    # last bit (each entry the same additions in the same order), so the banded factors are identical; beyond
+    # BANDED_MAX_NODES the terms are summed sparse, and the solve is checked against a direct one
+    from fluorocal.stages.field import bilinear_design
+    from fluorocal.stages.learn.grid import difference_operator, factor_spd, factor_sum, prior_term
+    from scipy.sparse import diags
+    from scipy.sparse.linalg import spsolve
+
+    rng = np.random.default_rng(17)
+    nodes = np.arange(n_side) * 16.0 - 0.5
+    A = bilinear_design(nodes, nodes, rng.uniform(0, nodes[-1], (4 * n_side**2, 2)))
+    data = (A.T.multiply(rng.uniform(0.5, 2.0, A.shape[0])) @ A).tocsr()
+    D = difference_operator(n_side, n_side, 4)
+    reg = (D.T @ D).tocsr() / 0.3**2
+    ridge = 1e-6
+    summed = data + reg + diags(np.full(n_side**2, ridge))
+    b = rng.normal(size=n_side**2)
+    split = factor_sum((data, prior_term(reg, n_side**2)), ridge)
+    if n_side == 30:
+        np.testing.assert_array_equal(split.factor, factor_spd(summed).factor)
+    exact = spsolve(summed.tocsc(), b)
+    np.testing.assert_allclose(split.solve(b), exact, atol=1e-7 * np.abs(exact).max())
+
+
 def test_factor_spd_sums_duplicate_entries_and_refuses_a_singular_matrix():
     # a matrix given with an entry split in two (COO duplicates) is their sum; [[2+2, 1], [1, 2]] x = [1, 0]
     from fluorocal.stages.errors import EstimationError
