@@ -146,12 +146,14 @@ def test_learned_field_beats_no_calibration_out_of_sample(biplanar_scores):
     none, ours = scores["none"], scores["knn+iop+smooth"]
     assert ours.n_train == 8 and ours.n_heldout == len(held) == 8
     # strong distortion (~15 px at the field edge) left unmodelled costs ~0.4 mm in two-ray intersection
-    # (benchmarks/biplanar.py: 0.41 mm); the learned field, even from 8 epochs, removes most of it: half is
-    # a wide margin (the 75-epoch benchmark reaches 0.014 mm)
-    assert ours.tworay_mean_mm < 0.5 * none.tworay_mean_mm
-    assert ours.out_3d_rigid_mm < 0.5 * none.out_3d_rigid_mm
+    # (benchmarks/biplanar.py: 0.41 mm); the learned field, even from 8 epochs, removes most of it (the 75-epoch
+    # benchmark reaches 0.014 mm). Measured 0.032 against 0.46 mm (0.070x) two-ray, 0.057 against 0.45 mm
+    # (0.127x) 3D rigid; bounds about 1.7x
+    assert ours.tworay_mean_mm < 0.12 * none.tworay_mean_mm
+    assert ours.out_3d_rigid_mm < 0.22 * none.out_3d_rigid_mm
     # out-of-sample reprojection: the noise is 0.05 px; unmodelled distortion leaves several tenths of a pixel
-    assert ours.out_rms_px < 0.5 * none.out_rms_px
+    # (measured 0.052 against 0.47 px, 0.111x)
+    assert ours.out_rms_px < 0.2 * none.out_rms_px
     # the similarity fit has one more parameter than the rigid one: never a larger RMS
     assert ours.out_3d_similarity_mm <= ours.out_3d_rigid_mm + 1e-12
     # every pair both systems saw at a held-out epoch is intersected, for every scheme alike
@@ -163,8 +165,10 @@ def test_opencv_peer_is_scored_on_the_same_frames(biplanar_scores):
     scores, _, pairs, _ = biplanar_scores
     cv = scores["opencv"]
     assert cv.tworay_pairs == pairs
-    # OpenCV's 14-coefficient model fits the simulator's smooth radial distortion too: better than none
-    assert math.isfinite(cv.tworay_mean_mm) and cv.tworay_mean_mm < scores["none"].tworay_mean_mm
+    # OpenCV's 14-coefficient model fits the simulator's smooth radial distortion too: better than none (measured
+    # 0.143 against 0.46 mm, 0.31x), but not as well as the learned field (0.032 mm, 0.22x OpenCV's)
+    assert math.isfinite(cv.tworay_mean_mm) and cv.tworay_mean_mm < 0.5 * scores["none"].tworay_mean_mm
+    assert scores["knn+iop+smooth"].tworay_mean_mm < 0.4 * cv.tworay_mean_mm
 
 
 # --- the command -----------------------------------------------------------------------------------------

@@ -88,13 +88,13 @@ def test_orientation_poses_compose_rop(biplanar):
 
 
 def test_clean_solve_matches_own_covariance(mono, mono_result):
-    """0.05 px noise: the 3D error after a similarity to the truth is within 10 % of the predicted RMS; IOP in 3σ."""
+    """0.05 px noise: the 3D error after a similarity to the truth is within 1 % of the predicted RMS; IOP in 3σ."""
     res = mono_result
     err = aligned_error_mm(res.xyz_mm, mono.xyz_true_mm)
     predicted = math.sqrt(np.einsum("nii->n", res.xyz_cov_mm2).mean())
-    assert rms(err) == pytest.approx(predicted, rel=0.10)
+    assert rms(err) == pytest.approx(predicted, rel=0.01)  # measured 0.49 % (0.00670 against 0.00673 mm)
     assert np.all(np.abs(res.iop_px - mono.truth.iop_px) <= 3 * res.iop_std_px)
-    assert res.sigma0 == pytest.approx(1.0, rel=0.05)  # sigma_px is the true noise
+    assert res.sigma0 == pytest.approx(1.0, rel=6e-4)  # sigma_px is the true noise; measured 1.00032
     assert (~res.inlier).mean() < 0.002  # Gaussian data: outliers only by chance (r² > 26 at ν = 4)
 
 
@@ -107,12 +107,16 @@ def test_biplanar_recovers_rop(biplanar):
     R_err = quat_to_matrix(res.rop_q[1]) @ quat_to_matrix(truth.rop_q[1]).T
     angle_err = np.array([R_err[2, 1] - R_err[1, 2], R_err[0, 2] - R_err[2, 0], R_err[1, 0] - R_err[0, 1]]) / 2
     assert np.all(np.abs(angle_err) <= 3 * res.rop_std[1, :3])
-    assert rms(aligned_error_mm(res.xyz_mm, biplanar.xyz_true_mm)) < 0.01
+    assert rms(aligned_error_mm(res.xyz_mm, biplanar.xyz_true_mm)) < 0.01  # measured 0.0061 mm
     assert res.n_parameters == 3 * len(biplanar.ids) + 6 * 10 + 2 * 3 + 6
 
 
 def test_least_squares_matches_scipy():
-    """ν = inf gives the least-squares optimum: the same answer as scipy.optimize.least_squares to 1e-6 relative."""
+    """ν = inf gives the least-squares optimum: the same answer as scipy.optimize.least_squares.
+
+    Measured (relative to the largest value): points 9.3e-11, IOP 1.3e-8, sources 2.4e-11, rotations 1.5e-9,
+    datum rows 3.3e-8 mm; bounds about 2x.
+    """
     from scipy.optimize import least_squares
 
     syn = make_problem(n_beads=40, n_exposures=6, seed=4)
@@ -122,11 +126,11 @@ def test_least_squares_matches_scipy():
         ref.residuals, ref.x0(), jac="3-point", method="trf", x_scale="jac", ftol=1e-15, xtol=1e-15, gtol=1e-15
     )
     P, R, T, iop, _, _ = ref.unpack(sol.x)
-    assert np.abs(ref.residuals(sol.x)[-7:]).max() < 1e-6  # the datum rows (mm) hold: they act only on the gauge
-    np.testing.assert_allclose(res.xyz_mm, P, rtol=0, atol=1e-6 * np.abs(P).max())
-    np.testing.assert_allclose(res.iop_px, iop, rtol=1e-6)
-    np.testing.assert_allclose(res.source_mm, T, rtol=0, atol=1e-6 * np.abs(T).max())
-    np.testing.assert_allclose(quat_to_matrix(res.q_cam_from_obj), R, atol=1e-6)
+    assert np.abs(ref.residuals(sol.x)[-7:]).max() < 7e-8  # the datum rows (mm) hold: they act only on the gauge
+    np.testing.assert_allclose(res.xyz_mm, P, rtol=0, atol=2e-10 * np.abs(P).max())
+    np.testing.assert_allclose(res.iop_px, iop, rtol=2.5e-8)
+    np.testing.assert_allclose(res.source_mm, T, rtol=0, atol=5e-11 * np.abs(T).max())
+    np.testing.assert_allclose(quat_to_matrix(res.q_cam_from_obj), R, atol=3e-9)
 
 
 def test_outliers_and_swapped_labels_are_flagged(mono, mono_result):
@@ -250,11 +254,11 @@ def test_perturbing_any_parameter_increases_cost(n_systems):
 def test_covariance_matches_monte_carlo():
     """Predicted covariance vs 40 noisy repetitions (ν = 4 on Gaussian data, so the sandwich factor matters).
 
-    With 40 runs a variance is known to about ±22 % (1σ, sqrt(2/39)): the IOP
-    eigenvalue ratios must lie within about 2σ of 1 and the major axis of the
-    (xp, yp) ellipse within 15 degrees (it is elongated 5:1, so its angle is
-    well determined). The 3n = 180 point coordinates average the trace to a
-    few %, so it gets ±20 %.
+    With 40 runs a variance is known to about ±22 % (1σ, sqrt(2/39)). On this seed
+    the IOP eigenvalue ratios are 0.89-1.13 (bound 0.8-1.25), the major axis of the
+    (xp, yp) ellipse is 0.48 degrees off (bound 1; it is elongated 5:1, so its angle
+    is well determined) and the trace ratio of the 3n = 180 point coordinates is
+    1.085 (bound 0.85-1.17).
     """
     syn = make_problem(n_beads=60, n_exposures=8, seed=3)
     rng = np.random.default_rng(5)
@@ -270,13 +274,13 @@ def test_covariance_matches_monte_carlo():
     pred = np.mean(iop_pred, axis=0)
     w_emp, v_emp = np.linalg.eigh(emp)
     w_pred, v_pred = np.linalg.eigh(pred)
-    assert np.all((w_emp / w_pred > 0.55) & (w_emp / w_pred < 1.6)), w_emp / w_pred
+    assert np.all((w_emp / w_pred > 0.8) & (w_emp / w_pred < 1.25)), w_emp / w_pred
     e_emp, ax_emp = np.linalg.eigh(emp[:2, :2])
     e_pred, ax_pred = np.linalg.eigh(pred[:2, :2])
     cos = abs(float(ax_emp[:, 1] @ ax_pred[:, 1]))
-    assert np.degrees(np.arccos(min(cos, 1.0))) < 15
+    assert np.degrees(np.arccos(min(cos, 1.0))) < 1
     trace_ratio = np.array(pts).var(0, ddof=1).sum() / np.mean(pts_pred)
-    assert 0.8 < trace_ratio < 1.2, trace_ratio
+    assert 0.85 < trace_ratio < 1.17, trace_ratio
 
 
 # --------------------------------------------------------------------------- errors and degenerate input
@@ -395,9 +399,10 @@ def test_bead_left_with_one_inlier_ray_is_dropped(mono, mono_result, bead_at, ca
     sub, bead, rows = _two_rays_one_gross(mono, bead_at, np.array([9.0, -12.0]))
     with caplog.at_level(logging.DEBUG, logger="fluorocal.stages.adjust"):
         res = adjust_bundle(sub, (mono.ids, mono.nominal_mm), mono.initial)
-    # every bead reported is where it truly is: the clean solve's worst is 0.016 mm, the sliding point's 4-5 mm
+    # every bead reported is where it truly is: the clean solve's worst is 0.016 mm (measured here too), the sliding
+    # point's 4-5 mm
     truth = mono.xyz_true_mm[np.searchsorted(mono.ids, res.bead_id)]
-    assert aligned_error_mm(res.xyz_mm, truth).max() < 0.1
+    assert aligned_error_mm(res.xyz_mm, truth).max() < 0.03
     assert bead not in res.bead_id and not res.used[rows].any() and res.used.sum() == len(sub) - 2
     assert "1 bead(s) left with inliers in fewer than 2 epochs" in caplog.text
     assert res.usable and np.all(np.isfinite(res.xyz_std_mm)) and np.all(np.isfinite(res.iop_std_px))
@@ -484,10 +489,10 @@ def test_plate_homographies_recover_truth_and_flag_outliers():
     np.testing.assert_allclose(res.homography, H_true, rtol=1e-3, atol=1e-6)
     assert (~res.inlier[bad]).mean() >= 0.99
     clean = np.setdiff1d(np.arange(len(xy)), bad)
-    assert rms(res.residual_px[clean]) == pytest.approx(NOISE_PX, rel=0.1)
+    assert rms(res.residual_px[clean]) == pytest.approx(NOISE_PX, rel=0.007)  # measured 0.04982 px
     assert res.dof == 2 * len(xy) - 8 * 4
     assert res.redundancy.sum() == pytest.approx(res.dof, rel=1e-9)
-    assert res.sigma0 == pytest.approx(1.0, rel=0.1)
+    assert res.sigma0 == pytest.approx(1.0, rel=0.0025)  # measured 0.99867
     # Δ enters as ideal = measured - Δ: shifting observations and corrections together changes nothing
     shifted = adjust_plate(with_xy(obs, xy + 3.0), nominal, np.full((len(xy), 2), 3.0))
     np.testing.assert_allclose(shifted.homography, res.homography, rtol=1e-9, atol=1e-12)

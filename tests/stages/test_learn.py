@@ -106,19 +106,20 @@ def test_constant_field_recovered_exactly(smooth):
 def test_smooth_field_recovered_within_noise_bound():
     # 20000 points over 256x192 px: the field varies little over a kNN neighbourhood, so
     # the error is dominated by the averaged noise sigma/sqrt(k), plus the interpolation and
-    # neighbourhood bias that the CV trades against it. Bound: 3 sigma/sqrt(k) RMS, interior only.
+    # neighbourhood bias that the CV trades against it. Measured 0.0174 px = 0.98 sigma/sqrt(k), k = 32
+    # (seed 3); bound 1.7 sigma/sqrt(k) RMS, interior only.
     rng = np.random.default_rng(3)
     sigma = 0.1
     xy, r, var = sample(rng, 20000, sigma)
     field, cv = fit_knn_field(xy, r, var, image_size=(W, H))
     q = rng.uniform([16, 16], [W - 16, H - 16], (4000, 2))
     rms = np.sqrt(np.mean((field.correction_at(q) - smooth_field(q)) ** 2))
-    assert rms < 3 * sigma / np.sqrt(cv.k), (rms, cv.k)
+    assert rms < 1.7 * sigma / np.sqrt(cv.k), (rms, cv.k)
     # the out-of-fold RMS is the noise (the model's own error is small beside it)
     assert sigma <= cv.cv_rms_px < 1.1 * sigma
-    # the per-node uncertainty is of the size of the actual error (within a factor 3)
+    # the per-node uncertainty is of the size of the actual error (measured 1.05x; within a factor 2)
     interior = field.sigma_px[2:-2, 2:-2]
-    assert rms / 3 < np.median(interior) < 3 * rms
+    assert rms / 2 < np.median(interior) < 2 * rms
 
 
 def test_cv_picks_larger_k_for_noisier_data():
@@ -167,8 +168,10 @@ def test_mask_false_far_from_data():
 
 
 def test_gridded_least_squares_recovers_the_field_without_kNN_blur():
-    # 20000 points, 17 x 13 nodes: ~90 observations per node, so the node noise is about
-    # sigma / sqrt(90 / 4) (each point spreads over 4 nodes); bound 3x that, interior only
+    # 20000 points, 17 x 13 nodes: ~90 observations per node, so the unsmoothed node noise is about
+    # sigma / sqrt(90 / 4) = 0.021 px (each point spreads over 4 nodes); the prior smooths below it:
+    # measured 0.0082 px (seed 9), 0.39x that noise and 0.45x the kNN field's error; bound 0.7x
+    # of each (interior only)
     rng = np.random.default_rng(9)
     sigma = 0.1
     xy, r, var = sample(rng, 20000, sigma)
@@ -176,9 +179,9 @@ def test_gridded_least_squares_recovers_the_field_without_kNN_blur():
     field = fit_grid_field(xy, r, var, image_size=(W, H), tau_px=cv.tau_px, cv_rms_px=cv.cv_rms_px)
     q = rng.uniform([16, 16], [W - 16, H - 16], (4000, 2))
     rms = np.sqrt(np.mean((field.correction_at(q) - smooth_field(q)) ** 2))
-    assert rms < 3 * sigma / np.sqrt(20000 / field.delta_px[..., 0].size / 4), rms
+    assert rms < 0.7 * sigma / np.sqrt(20000 / field.delta_px[..., 0].size / 4), rms
     knn, _ = fit_knn_field(xy, r, var, image_size=(W, H))
-    assert rms < np.sqrt(np.mean((knn.correction_at(q) - smooth_field(q)) ** 2))
+    assert rms < 0.7 * np.sqrt(np.mean((knn.correction_at(q) - smooth_field(q)) ** 2))
 
 
 @pytest.mark.parametrize("order", [1, 2, 3, 4])
@@ -280,7 +283,8 @@ def test_cv_chooses_a_higher_prior_order_for_a_strong_smooth_field():
 
     Bound: the CV's choice among orders 2-4 is at least 15 % closer to the truth (RMS,
     interior) than the CV's best thin-plate fit (about 23 % on this seed); both within
-    3x the unsmoothed node noise sigma / sqrt(n / n_nodes / 4).
+    0.75x the unsmoothed node noise sigma / sqrt(n / n_nodes / 4) = 0.066 px (measured 0.031 px
+    thin-plate, 0.024 px order 4).
     """
     rng = np.random.default_rng(11)
     sigma = 0.1
@@ -297,7 +301,7 @@ def test_cv_chooses_a_higher_prior_order_for_a_strong_smooth_field():
         assert set(cv.order_grid.tolist()) == set(orders)
         field = fit_grid_field(xy, r, var, image_size=(W, H), tau_px=cv.tau_px, cv_rms_px=cv.cv_rms_px, order=cv.order)
         rms[orders] = (cv.order, np.sqrt(np.mean((field.correction_at(q) - strong(q)) ** 2)))
-        assert rms[orders][1] < 3 * sigma / np.sqrt(len(xy) / field.delta_px[..., 0].size / 4)
+        assert rms[orders][1] < 0.75 * sigma / np.sqrt(len(xy) / field.delta_px[..., 0].size / 4)
     assert rms[(2, 3, 4)][0] > 2
     assert rms[(2, 3, 4)][1] < 0.85 * rms[(2,)][1], rms
 
@@ -433,7 +437,8 @@ def test_distort_undistort_round_trip(points):
     field = _bumpy_grid_field()
     ideal = np.array(points)
     back = field.undistort_points(field.distort_points(ideal))
-    assert np.max(np.abs(back - ideal)) < 1e-3
+    # measured at most 2.8e-14 px over 2e5 random points; bound: the Newton step tolerance, 1e-9 px
+    assert np.max(np.abs(back - ideal)) < 1e-9
 
 
 def test_round_trip_pointwise_field():
@@ -471,7 +476,8 @@ def test_remap_maps_are_distort_points_of_pixel_centres():
             map_y[centres[:, 1].astype(int), centres[:, 0].astype(int)],
         ]
     )
-    np.testing.assert_allclose(got, src, atol=1e-4)  # float32 storage of ~100 px values
+    # float32 storage of values below 64 px: half a unit in the last place, 1.9e-6 (measured 1.6e-6)
+    np.testing.assert_allclose(got, src, atol=np.spacing(np.float32(32.0)))
 
 
 def test_constant_extension_outside_the_grid():
@@ -506,12 +512,13 @@ def test_gauge_removes_what_the_orientation_reproduces_and_keeps_the_rest():
     gauge = (gauge_basis(nodes, iop, True) @ coef).reshape(-1, 2)
     field = CorrectionField.constant(W, H).with_delta(gauge.reshape(CorrectionField.constant(W, H).delta_px.shape))
     fixed = gauge_fixed(field, xy, iop, with_iop=True)
-    assert np.abs(fixed.correction_at(xy)).max() < 1e-3 * np.abs(field.correction_at(xy)).max()
+    assert np.abs(fixed.correction_at(xy)).max() < 8e-5 * np.abs(field.correction_at(xy)).max()  # measured 4.4e-5
     # with the IOP held, a scaling (a principal distance error) stays in the field: no rotation of
     # the poses reproduces it (a shift does: a common pan or tilt of every pose)
     scale = field.with_delta((0.004 * (nodes - iop[:2])).reshape(field.delta_px.shape))
     kept = gauge_fixed(scale, xy, iop, with_iop=False).correction_at(xy)
-    # (only its mean over the observations goes, a shift: they are not centred on the principal point)
+    # (only its mean over the observations goes, a shift: they are not centred on the principal point;
+    # measured 0.079)
     assert np.sqrt(np.mean((kept - scale.correction_at(xy)) ** 2)) < 0.1 * np.sqrt(
         np.mean(scale.correction_at(xy) ** 2)
     )
@@ -519,5 +526,6 @@ def test_gauge_removes_what_the_orientation_reproduces_and_keeps_the_rest():
     radial = field.with_delta(smooth_field(nodes).reshape(field.delta_px.shape))
     once = gauge_fixed(radial, xy, iop, with_iop=True)
     twice = gauge_fixed(once, xy, iop, with_iop=True)
-    np.testing.assert_allclose(twice.delta_px, once.delta_px, atol=1e-3)  # bilinear vs quadratic basis
-    assert np.sqrt(np.mean(once.correction_at(xy) ** 2)) > 0.3
+    # bilinear vs quadratic basis: measured 3.8e-4 px
+    np.testing.assert_allclose(twice.delta_px, once.delta_px, atol=7e-4)
+    assert np.sqrt(np.mean(once.correction_at(xy) ** 2)) > 0.3  # measured 0.316

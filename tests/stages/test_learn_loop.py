@@ -80,13 +80,13 @@ def test_alternation_learns_the_field_and_lowers_the_cost(simulated):
     cost_adjust = [h.cost_adjust for h in hist]
     assert all(b < a for a, b in zip(cost_adjust, cost_adjust[1:])), cost_adjust
     assert hist[-1].cost_total < hist[0].cost_total
-    # the inlier residual RMS falls from the uncorrected value towards the noise (0.05 px)
-    assert hist[-1].rms_px < 0.5 * hist[0].rms_px
+    # the inlier residual RMS falls from the uncorrected value towards the noise (0.05 px); measured 0.23x
+    assert hist[-1].rms_px < 0.4 * hist[0].rms_px
     # the field approaches the truth modulo a homography, where the observations cover the image
     field = res.fields[0]
     before, after = _field_errors_without_and_with(field, distortion, fov_radius_px)
     # six plain iterations of the paper's loop recover only part of the field: the loop converges
-    # slowly (issue 7: still improving after 60 iterations); measured here 0.55 -> 0.31 px
+    # slowly (issue 7: still improving after 60 iterations); measured here 0.54 -> 0.26 px (0.48x)
     assert after < 0.7 * before, (before, after)
     assert res.corrections_px.shape == (len(obs), 2)
     np.testing.assert_allclose(res.corrections_px, field.correction_at(obs.xy_px), atol=1e-12)
@@ -112,10 +112,10 @@ def test_joint_grid_refinement_gets_closer_to_the_truth(simulated, orders):
     assert res.cv[0].order in orders
     field = res.fields[0]
     before, after = _field_errors_without_and_with(field, distortion, fov_radius_px)
-    # measured 0.55 -> 0.16 px with 3 + 6 iterations; the residual error sits in components a
-    # deformation of the free phantom nearly mimics (14 exposures determine them weakly)
-    assert after < 0.4 * before, (before, after)
-    # in sample the residuals reach the noise: 0.05 px times sqrt(redundancy ~0.8)
+    # measured 0.55 -> 0.059 px (0.108x; orders 2-4: 0.058 px, 0.106x) with 3 + 4 iterations; the residual error
+    # sits in components a deformation of the free phantom nearly mimics (14 exposures determine them weakly)
+    assert after < 0.2 * before, (before, after)
+    # in sample the residuals reach the noise: 0.05 px times sqrt(redundancy ~0.8) (measured 0.80x, 0.84x)
     assert res.history[-1].rms_px < 1.5 * NOISE_PX
 
 
@@ -182,10 +182,10 @@ def test_field_tolerance_stops_before_the_cap_as_accurate_as_running_to_it(simul
     assert not any(a and b for a, b in zip(settled[:-2], settled[1:-1]))
     before, after = _field_errors_without_and_with(stopped.fields[0], distortion, fov_radius_px)
     _, after_cap = _field_errors_without_and_with(capped.fields[0], distortion, fov_radius_px)
-    # the truth: the refinement's field is recovered to well below the uncorrected error (as the joint refinement
-    # test, 0.55 -> 0.16 px), and stopping early costs at most 0.01 px against the 15 iterations (the field's
-    # own node uncertainty here is ~0.05 px / sqrt(n_eff ~ 2), so a half-sigma step is ~0.02 px at a node)
-    assert after < 0.4 * before, (before, after)
+    # the truth: the refinement's field is recovered to well below the uncorrected error (measured 0.55 -> 0.058 px,
+    # 0.106x), and stopping early costs at most 0.01 px against the 15 iterations (the field's own node
+    # uncertainty here is ~0.05 px / sqrt(n_eff ~ 2), so a half-sigma step is ~0.02 px at a node; measured 2e-6 px)
+    assert after < 0.2 * before, (before, after)
     assert after < after_cap + 0.01, (after, after_cap)
     with pytest.raises(InputError, match="field_tolerance"):
         LearnParams(field_tolerance=-0.1)
@@ -264,7 +264,7 @@ def test_scheme_none_and_unsmoothed_knn(simulated):
     # the over-relaxed steps are stored scaled, so the stored field reproduces the corrections used
     np.testing.assert_allclose(knn.corrections_px, knn.field(0).correction_at(obs.xy_px), atol=1e-9)
     assert knn.fields[0].support.any() and not knn.fields[0].support.all()
-    assert knn.history[-1].rms_px < knn.history[0].rms_px
+    assert knn.history[-1].rms_px < 0.5 * knn.history[0].rms_px  # measured 0.30x
 
 
 def test_unknown_scheme_is_an_input_error(simulated):
@@ -386,9 +386,9 @@ def test_polynomial_scheme_fits_a_smooth_radial_distortion():
     field = res.field(0)
     grid_error = field.undistort_points(xy) - (xy - adj.polynomial_correction(0, xy))
     assert np.abs(grid_error).max() < 0.01 and np.sqrt(np.mean(grid_error**2)) < 0.004
-    # against the truth, modulo the homography the orientation absorbs: measured 0.0030 px of 2.4 px RMS
+    # against the truth, modulo the homography the orientation absorbs: measured 0.0031 px of 2.4 px RMS
     learned, truth = field.undistort_points(xy), undistort(xy)
-    assert rms_modulo_homography(learned, truth) < 0.01
+    assert rms_modulo_homography(learned, truth) < 0.005
     # the node uncertainty is the coefficients' propagated: ~0 at the principal point, largest in the unobserved corners
     assert np.all(np.isfinite(field.sigma_px)) and field.sigma_px.min() > 0 and field.support.any()
     centre = field.sigma_px[field.sigma_px.shape[0] // 2, field.sigma_px.shape[1] // 2]

@@ -36,7 +36,8 @@ def test_local_screen_catches_gross_errors_and_keeps_a_strong_smooth_field():
     # every gross error is >= 3 px = 60 sigma off its neighbours' median: all caught
     assert not screen.keep[rows].any()
     # the field's curvature over 16 neighbours (~10 px) is far below the screen's ~20 sigma: clean ones stay
-    assert screen.keep[clean].mean() > 0.995
+    # (measured: all 2850 kept)
+    assert screen.keep[clean].mean() > 0.999
 
 
 def test_bounded_cv_cost_chooses_k_as_on_clean_data():
@@ -116,18 +117,18 @@ def test_gross_errors_leave_the_learned_field_as_on_clean_data(small_set):
     H, _ = cv2.findHomography(a, b, 0)
     diff = np.linalg.norm(cv2.perspectiveTransform(a[None], H)[0] - b, axis=1)
     # modulo a homography: 14 exposures fix the principal point only to ~3 px (its std), and the loop's
-    # path through that weak direction differs between the runs. Measured 0.018 px (seed 3: 0.031 px);
-    # before the loop was made robust 0.17 px (0.29 px). What is left is the clean field's own noise
-    # (node sigma ~0.1 px) seen through the 5 % of observations dropped with the gross errors
-    # (0.1 x sqrt(0.05) ~ 0.02 px) and the loop's different path; 0.08 px is 2.5 times the worst measured.
-    assert np.sqrt(np.mean(diff**2)) < 0.08
+    # path through that weak direction differs between the runs. Measured 0.0080 px (earlier 0.018 px;
+    # seed 3: 0.031 px); before the loop was made robust 0.17 px (0.29 px). What is left is the clean field's
+    # own noise (node sigma ~0.1 px) seen through the 5 % of observations dropped with the gross errors
+    # (0.1 x sqrt(0.05) ~ 0.02 px) and the loop's different path; bound 1.9x the measured.
+    assert np.sqrt(np.mean(diff**2)) < 0.015
     res, adj = runs[1], runs[1].adjustment
     contaminated = np.zeros(len(bad_obs), bool)
     contaminated[rows] = True
     # no gross error the final adjustment flags was learned from (the few it accepts sit on beads
-    # with too few observations to tell: measured 3 of 157)
+    # with too few observations to tell: measured 0 of 157, earlier 3)
     assert not np.any(res.trained & ~adj.inlier & contaminated)
-    assert np.sum(res.trained & contaminated) <= 0.05 * len(rows)
+    assert np.sum(res.trained & contaminated) <= 0.02 * len(rows)
 
 
 def test_local_screen_from_the_pool_neighbour_table_equals_its_own_kd_tree():
