@@ -55,4 +55,4 @@ fixtures: $(STAMP)
 
 clean:
 	rm -rf demo .fluorocal build site *.egg-info
-	find pipeline stages tests benchmarks fixtures -name __pycache__ -type d -prune -exec rm -rf {} +
+	find . -path ./$(VENV) -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +

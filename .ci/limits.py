@@ -34,7 +34,7 @@ def main(argv: list[str]) -> int:
         "dirs", nargs="*", default=["pipeline", "stages"], help="folders to check (default: pipeline stages)"
     )
     parser.add_argument("--exclude", action="append", default=[], metavar="FILE", help="a file to leave out")
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)
     missing = [f for f in args.exclude if not Path(f).is_file()]
     if missing:
         parser.error(f"--exclude {missing[0]}: no such file (drop the exclusion if the file is gone)")

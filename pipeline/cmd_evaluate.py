@@ -139,7 +139,10 @@ def _run_plate(args, config, runner, out_dir: Path) -> int:
     log.info("evaluate (grid plate): sizes %s frames; schemes %s", ",".join(map(str, sizes)), ",".join(schemes))
     t0 = time.perf_counter()
     bars = _SizeBars(runner.progress and sys.stderr.isatty())
-    result = evaluate_plate(obs, sizes, schemes, setup, scored=scored, progress=_progress, step=bars)
+    try:
+        result = evaluate_plate(obs, sizes, schemes, setup, scored=scored, progress=_progress, step=bars)
+    finally:
+        bars.close()
     held = "every frame" if args.holdout is None else f"the frames of --holdout {' '.join(args.holdout)}"
     notes = [
         f"Project `{config.path.name}` (grid plate): {held} scored on alternate lattice rows, each row parity "
@@ -206,7 +209,13 @@ class _SizeBars:
             return
         self.bar.update(1)
         if done == total:
+            self.close()
+
+    def close(self) -> None:
+        """Close the open bar, if any (at the end of a size, or when the evaluation stops with an error)."""
+        if self.bar is not None:
             self.bar.close()
+            self.bar = None
 
 
 def _progress(score) -> None:

@@ -133,17 +133,23 @@ def write_csv_table(path: Path, scores) -> Path:
 
 def write_plots(folder: Path, scores, ours: str) -> list[Path]:
     """Each applicable figure against the training size (a line per scheme), and the improvement over ``none``."""
+    from matplotlib.ticker import FixedLocator, MaxNLocator
+
     headings = figures(scores)
     names = [n for n in headings if any(math.isfinite(getattr(s, n)) for s in scores)]
     schemes = list(dict.fromkeys(s.scheme for s in scores))
-    sizes = sorted({s.n_train for s in scores})  # the ticks: a training size is a whole number
+    sizes = sorted({s.n_train for s in scores})
+
+    def size_ticks():  # a training size is a whole number: each size a tick, or whole numbers where they crowd
+        return FixedLocator(sizes) if len(sizes) <= 8 else MaxNLocator(integer=True)
+
     fig, axes = new_figure(len(names), width=4.2, height=3.6, n_cols=min(3, len(names)), title_lines=2)
     for ax, name in zip(axes, names):
         for scheme in schemes:
             rows = [s for s in scores if s.scheme == scheme]
             ax.plot([s.n_train for s in rows], [getattr(s, name) for s in rows], "o-", label=scheme)
         ax.set_yscale("log")
-        ax.set_xticks(sizes)
+        ax.xaxis.set_major_locator(size_ticks())
         ax.set_xlabel(f"training {size_unit(scores)}")
         ax.set_title(textwrap.fill(headings[name], 36), fontsize=9)  # wider than its panel on one line
     if len(schemes) > 1:
@@ -158,7 +164,7 @@ def write_plots(folder: Path, scores, ours: str) -> list[Path]:
             if rows:
                 better = [100 * (1 - getattr(s, key) / base[s.n_train]) for s in rows]
                 ax.plot([s.n_train for s in rows], better, "o-", label=scheme)
-        ax.set_xticks(sizes)
+        ax.xaxis.set_major_locator(size_ticks())
         ax.set_xlabel(f"training {size_unit(scores)}")
         ax.set_ylabel("% improvement over none")
         ax.set_title(headings[key], fontsize=9)

@@ -239,7 +239,7 @@ def _change_plot(path: Path, system_name: str, fields, changes) -> Path:
 
     names = [o.describe() for o in fields]
     bottom_in = text_height_in(names, fontsize=7, rotation=60) + 0.15  # the names, rotated, below their ticks
-    fig, (ax,) = new_figure(1, width=max(5.0, 0.5 * len(fields) + 2.5), height=3.8, bottom_in=bottom_in)
+    fig, (ax,) = new_figure(1, width=max(5.0, 0.5 * len(fields) + 2.5), height=3.8, bottom_in=bottom_in, title_lines=2)
     x = np.arange(len(fields))
     for k, (label, values) in enumerate(
         (
@@ -253,7 +253,7 @@ def _change_plot(path: Path, system_name: str, fields, changes) -> Path:
     ax.set_xticks(x)
     ax.set_xticklabels(names, rotation=60, ha="right", fontsize=7)
     ax.set_ylabel("Δ − Δref at the nodes (px)")
-    ax.set_title(f"change of the correction with orientation, system {system_name}", fontsize=10)
+    ax.set_title(f"change of the correction with orientation\nsystem {system_name}", fontsize=10)
     ax.legend(fontsize=7)
     return save_figure(fig, path)
 

@@ -26,7 +26,7 @@ BOTTOM_IN = 0.55
 TOP_IN, TITLE_LINE_IN = 0.12, 0.2
 #: room right of the panels without a colour bar (half the last x tick label), between panels (a y axis' labels)
 #: and for a colour bar, inches
-RIGHT_IN, GAP_IN, COLORBAR_IN = 0.35, 1.1, 1.0
+RIGHT_IN, GAP_IN, COLORBAR_IN = 0.35, 1.1, 1.3
 
 
 def rms_px(residual_px: np.ndarray) -> float:
@@ -48,13 +48,14 @@ def new_figure(
 
     ``title_lines`` lines of title above each panel, a colour bar's room on the right when ``colorbar``
     (:func:`add_colorbar`), ``bottom_in`` inches below the panels (more for rotated tick labels:
-    :func:`text_height_in`). The figure is matplotlib's own (no pyplot: no global state, nothing to close).
+    :func:`text_height_in`: the figure grows by the extra room, the panels keep their height). The figure is
+    matplotlib's own (no pyplot: no global state, nothing to close).
     """
     from matplotlib.figure import Figure
 
     n_cols = n_cols or n_panels
     n_rows = -(-n_panels // n_cols)
-    fig_w, fig_h = width * n_cols, height * n_rows
+    fig_w, fig_h = width * n_cols, (height + max(0.0, bottom_in - BOTTOM_IN)) * n_rows
     top_in = TOP_IN + TITLE_LINE_IN * title_lines
     left, right = LEFT_IN, COLORBAR_IN if colorbar else RIGHT_IN
     panel_w = (fig_w - left - right - GAP_IN * (n_cols - 1)) / n_cols

@@ -185,7 +185,8 @@ def _rows(path):
         return list(csv.DictReader(fh))
 
 
-# from 2 epochs knn+iop's three kNN steps stop short of convergence: warned, as it should be, and beside the point here
+# from 2 epochs knn+iop's three kNN steps stop short of convergence: warned (the CLI logs warnings itself, so
+# pytest.warns cannot see it), and beside the point here
 @pytest.mark.filterwarnings("ignore::fluorocal.stages.errors.NotConvergedWarning")
 def test_command_writes_every_scheme_and_size_without_labelling_again(project, caplog, capsys):
     caplog.set_level(logging.INFO, logger="fluorocal.run")  # the runner's report: what it computed, what was cached

@@ -131,3 +131,18 @@ def test_made_by_line_of_a_plate_without_holdout():
     args = Namespace(config=Path("plate.toml"), holdout=None, train_sizes="1,3", schemes=None, reference=None)
     assert _argv(args) == ["plate.toml", "--train-sizes", "1,3"]
     assert _argv(Namespace(**{**vars(args), "holdout": ["odd"]}))[1:3] == ["--holdout", "odd"]
+
+
+def test_size_bars_draw_only_when_shown_and_close_on_an_error(capsys):
+    from fluorocal.cmd_evaluate import _SizeBars
+
+    hidden = _SizeBars(False)
+    hidden(1, 0, 2), hidden(1, 1, 2)
+    hidden.close()  # an evaluation stopped half-way: the open bar closed, nothing drawn
+    assert hidden.bar is None and capsys.readouterr().err == ""
+    shown = _SizeBars(True)
+    shown(3, 0, 2), shown(3, 1, 2)
+    assert "evaluate, training size 3" in capsys.readouterr().err
+    shown.close()
+    assert shown.bar is None
+    shown.close()  # closing again is harmless

@@ -85,3 +85,16 @@ def test_plots_of_a_zero_field_raise_no_warning(tmp_path, several):
     else:
         paths = [field_map(tmp_path / "field.png", zero, "zero")]
     assert all(p.read_bytes().startswith(b"\x89PNG") for p in paths)
+
+
+def test_long_rotated_tick_labels_add_room_below_the_panels_not_take_it_from_them():
+    """Frames named by a 64-character DICOM UID: the figure grows; the panel keeps its height."""
+    from fluorocal.report import BOTTOM_IN, new_figure, text_height_in
+
+    names = ["1.2.826.0.1.3680043.8.498.12345678901234567890123456789012345678901"]
+    bottom_in = text_height_in(names, fontsize=7) + 0.15
+    fig, (ax,) = new_figure(1, height=4.6, bottom_in=bottom_in)
+    panel_h_in = ax.get_position().height * fig.get_figheight()
+    _, (plain,) = new_figure(1, height=4.6)
+    assert bottom_in > 2 * BOTTOM_IN
+    assert abs(panel_h_in - plain.get_position().height * 4.6) < 1e-9
