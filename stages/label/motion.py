@@ -264,7 +264,8 @@ def _mean_step(rotations: dict, turn=None, guess: np.ndarray | None = None) -> n
     if guess is None:
         consecutive = [turn(j, k) for j, k in pairs if k - j == 1]
         guess = np.median(consecutive, axis=0) if consecutive else None
-    steps = [(turn(j, k) if guess is None else sum(_lifted(turn(j, k), guess * (k - j)))) / (k - j) for j, k in pairs]
+    lifted = [turn(j, k) if guess is None else np.add(*_lifted(turn(j, k), guess * (k - j))) for j, k in pairs]
+    steps = [t / (k - j) for t, (j, k) in zip(lifted, pairs)]
     return np.median(steps, axis=0) if steps else None
 
 

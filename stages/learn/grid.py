@@ -49,7 +49,7 @@ def difference_operator(n_y: int, n_x: int, order: int):
     ).tocsr()
 
 
-#: largest matrix (nodes) factored in band form by :func:`factor_spd`: LAPACK's banded Cholesky factors the
+#: largest matrix (nodes) factored in band form by :func:`factor_sum`: LAPACK's banded Cholesky factors the
 #: default 65 x 65 grid (1024 px at 16 px) 2-3x faster than SuperLU and solves 1.5x faster; at 129 x 129 nodes its
 #: solves (work ``n x bandwidth``) fell behind SuperLU's, which the conjugate gradients call far more often
 BANDED_MAX_NODES = 10_000
@@ -77,9 +77,7 @@ def factor_spd(M):
     Raises :class:`~fluorocal.stages.errors.EstimationError` when ``M`` is singular or (banded) not positive
     definite.
     """
-    if M.shape[0] > BANDED_MAX_NODES:
-        return _sparse_factor(M)
-    return _banded_factor(upper_band(M))
+    return factor_sum((M,), 0.0)
 
 
 def factor_sum(terms, ridge: float):
@@ -130,11 +128,11 @@ def _sparse_factor(M):
 
 
 def _banded_factor(ab: np.ndarray) -> BandedCholesky:
-    """The banded Cholesky factor of the band ``ab``, factored in place (the callers' bands are their own)."""
+    """The banded Cholesky factor of the band ``ab``."""
     from scipy.linalg import cholesky_banded
 
     try:
-        return BandedCholesky(cholesky_banded(ab, overwrite_ab=True, lower=False, check_finite=False))
+        return BandedCholesky(cholesky_banded(ab, lower=False, check_finite=False))
     except np.linalg.LinAlgError as exc:
         raise _singular(exc) from None
 

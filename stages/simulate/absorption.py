@@ -71,7 +71,7 @@ def _sphere_chords(rays: tuple, centre_cam: tuple, radius_mm: np.ndarray, c_px: 
 def _hole_chords(rays: tuple, centre_cam: tuple, radius_mm, c_px: float, *, axis_cam: np.ndarray, thickness_mm: float):
     """Lengths (mm) of unit rays inside cylindrical holes through a plate, and the px distance to the outline.
 
-    The holes' axis is ``axis_cam`` (the plate normal, camera frame); the plate
+    The holes' axis is ``axis_cam`` (the plate normal, a unit vector, camera frame); the plate
     spans ``±thickness_mm / 2`` about each centre along it. ``rays`` and
     ``centre_cam`` are triples of broadcastable component arrays.
     """
