@@ -55,21 +55,10 @@ def cubic_case(linearised):
     return xy, linearised_network(adj, obs, rows, 0), zero, A, truth
 
 
-def test_one_step_splits_a_field_from_the_orientations_change(linearised):
-    # noise-free residuals = a (gauge-free) cubic field + the projection of a random change of every pose and
-    # bead; the linearised joint problem's solution is exactly that field: one step recovers it
-    adj, _, rows, _ = linearised
-    xy, net, zero, A, truth = cubic_case(linearised)
-    # gauge-free at the observations: the gauge fields interpolated from the nodes differ from the exact ones at
-    # second order, so one removal leaves a ~1e-3 px component; each further one shrinks it by as much again
-    for _ in range(4):
-        truth = gauge_fixed(truth, xy, adj.iop_px[0], True)
-    rng = np.random.default_rng(3)
-    d_theta = rng.normal(0, 1e-3, net.J.shape[1])  # rad, mm and px: a change of ~1 px in the image
-    d_theta[3 : net.point_col] *= 0.1  # poses: a milliradian moves the image by ~4 px at c ~ 4000 px
-    r = (A @ truth.delta_px.reshape(-1, 2)) + (net.J @ d_theta).reshape(2, -1).T
-    w = np.full((len(rows), 2), 1 / 0.05**2)
-    step = fit_grid_jointly(
+def cubic_step(adj, xy, net, zero, r, **options):
+    """One joint step from ``zero`` on :func:`cubic_case`'s set, the residuals ``r`` at 0.05 px, solved to 1e-12."""
+    w = np.full((len(xy), 2), 1 / 0.05**2)
+    return fit_grid_jointly(
         xy,
         r,
         w,
@@ -84,7 +73,24 @@ def test_one_step_splits_a_field_from_the_orientations_change(linearised):
         order=4,
         cg_tolerance=1e-12,
         max_cg_iterations=2000,
+        **options,
     )
+
+
+def test_one_step_splits_a_field_from_the_orientations_change(linearised):
+    # noise-free residuals = a (gauge-free) cubic field + the projection of a random change of every pose and
+    # bead; the linearised joint problem's solution is exactly that field: one step recovers it
+    adj, _, rows, _ = linearised
+    xy, net, zero, A, truth = cubic_case(linearised)
+    # gauge-free at the observations: the gauge fields interpolated from the nodes differ from the exact ones at
+    # second order, so one removal leaves a ~1e-3 px component; each further one shrinks it by as much again
+    for _ in range(4):
+        truth = gauge_fixed(truth, xy, adj.iop_px[0], True)
+    rng = np.random.default_rng(3)
+    d_theta = rng.normal(0, 1e-3, net.J.shape[1])  # rad, mm and px: a change of ~1 px in the image
+    d_theta[3 : net.point_col] *= 0.1  # poses: a milliradian moves the image by ~4 px at c ~ 4000 px
+    r = (A @ truth.delta_px.reshape(-1, 2)) + (net.J @ d_theta).reshape(2, -1).T
+    step = cubic_step(adj, xy, net, zero, r)
     q = rng.uniform(16, SIZE - 16, (400, 2))
     # exact up to the conjugate gradients' tolerance, the rounding of a ~1e10-conditioned solve and what is left of
     # the gauge mismatch above: 1e-5 px (measured 6.1e-6), against 1e-3 px for one gauge removal and ~0.1 px for the
@@ -119,24 +125,7 @@ def test_points_alone_respond_when_the_orientation_is_held(linearised):
     d_theta = np.zeros(net.J.shape[1])
     d_theta[net.point_col :] = np.random.default_rng(4).normal(0, 1e-3, net.J.shape[1] - net.point_col)
     r = (A @ truth.delta_px.reshape(-1, 2)) + (net.J @ d_theta).reshape(2, -1).T
-    w = np.full((len(rows), 2), 1 / 0.05**2)
-    step = fit_grid_jointly(
-        xy,
-        r,
-        w,
-        net,
-        iop_px=adj.iop_px[0],
-        estimate_iop=True,
-        image_size=(SIZE, SIZE),
-        tau_px=0.1,
-        base=zero,
-        cv_rms_px=0.05,
-        grid=GRID,
-        order=4,
-        cg_tolerance=1e-12,
-        max_cg_iterations=2000,
-        respond="points",
-    )
+    step = cubic_step(adj, xy, net, zero, r, respond="points")
     q = np.random.default_rng(5).uniform(16, SIZE - 16, (400, 2))
     # exact up to the solve's tolerance and rounding (as above, without the gauge removals' remainder): measured
     # 9.4e-9 px, bound 2e-8 px
