@@ -110,6 +110,30 @@ def _subsample_offsets(n: int) -> np.ndarray:
     return np.column_stack([(i + 0.5) / n - 0.5, ((i * generator) / n + 0.5 / n) % 1.0 - 0.5])
 
 
+#: (feature, pixel) pairs per chunk of the chord evaluations: a few MB of temporaries each, not a GB at once
+_CHUNK = 1 << 15
+
+
+def _chunks(n: int):
+    return (slice(a, min(a + _CHUNK, n)) for a in range(0, n, _CHUNK))
+
+
+def _feature_pixels(centre_px: np.ndarray, half_px: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The (pixel, feature) pairs ``(P,)`` of each feature's box of half side ``half_px`` about ``centre_px``."""
+    pix_list, feat_list = [], []
+    for h in np.unique(half_px):
+        sel = np.flatnonzero(half_px == h)
+        off = np.arange(-h, h + 1)
+        # shape (n_sel, 2h+1, 2h+1)
+        cx = np.rint(centre_px[sel, 0]).astype(np.int64)[:, None, None] + off[None, None, :]
+        cy = np.rint(centre_px[sel, 1]).astype(np.int64)[:, None, None] + off[None, :, None]
+        cx, cy = np.broadcast_arrays(cx, cy)
+        ok = (cx >= 0) & (cx < size) & (cy >= 0) & (cy < size)
+        pix_list.append((cy * size + cx)[ok])
+        feat_list.append(np.broadcast_to(sel[:, None, None], ok.shape)[ok])
+    return np.concatenate(pix_list), np.concatenate(feat_list)
+
+
 def feature_line_integrals(params, raster: SystemRaster, system: SystemTruth, q, source_mm, xyz_mm, diameter_mm):
     """Per-pixel μ·length of the beads (holes) and supersampled transmission on their edges.
 
@@ -143,34 +167,34 @@ def feature_line_integrals(params, raster: SystemRaster, system: SystemTruth, q,
     # box around each feature's distorted centre: radius in px with 10 % for distortion and obliquity, + 2 px
     centre_px = system.distortion.distort_points(project(xyz_mm, q, source_mm, iop))
     half_px = np.ceil(c_px * radius / np.linalg.norm(centre_cam, axis=1) * 1.1 + 2).astype(np.int64)
-    pix_list, feat_list = [], []
-    for h in np.unique(half_px):
-        sel = np.flatnonzero(half_px == h)
-        off = np.arange(-h, h + 1)
-        # shape (n_sel, 2h+1, 2h+1)
-        cx = np.rint(centre_px[sel, 0]).astype(np.int64)[:, None, None] + off[None, None, :]
-        cy = np.rint(centre_px[sel, 1]).astype(np.int64)[:, None, None] + off[None, :, None]
-        cx, cy = np.broadcast_arrays(cx, cy)
-        ok = (cx >= 0) & (cx < size) & (cy >= 0) & (cy < size)
-        pix_list.append((cy * size + cx)[ok])
-        feat_list.append(np.broadcast_to(sel[:, None, None], ok.shape)[ok])
-    pix = np.concatenate(pix_list)
-    feat = np.concatenate(feat_list)
-    rays = tuple(r[pix].astype(np.float64) for r in raster.rays)
+    pix, feat = _feature_pixels(centre_px, half_px, size)
     # contiguous per-component gathers (a transposed (M, 3) gather would be strided and slow)
-    centres = tuple(np.ascontiguousarray(centre_cam[:, j])[feat] for j in range(3))
-    chord, edge_px = chords(rays, centres, radius[feat])
+    centre_parts = tuple(np.ascontiguousarray(centre_cam[:, j]) for j in range(3))
+    chord, edge_px = np.empty(len(pix)), np.empty(len(pix))
+    for part in _chunks(len(pix)):
+        rays = tuple(r[pix[part]].astype(np.float64) for r in raster.rays)
+        chord[part], edge_px[part] = chords(rays, tuple(c[feat[part]] for c in centre_parts), radius[feat[part]])
     line = np.bincount(pix, weights=delta_mu[feat] * chord, minlength=size * size)
 
     # pixels within a pixel of any outline: integrate the transmission over sub-samples
-    edge_idx = np.unique(pix[edge_px < 1.0])
     is_edge = np.zeros(size * size, dtype=bool)
-    is_edge[edge_idx] = True
+    is_edge[pix[edge_px < 1.0]] = True
+    edge_idx = np.flatnonzero(is_edge)
     # pairs more than a pixel outside their feature contribute nothing to any sub-sample
-    in_edge = is_edge[pix] & ((chord > 0) | (edge_px < 1.0))
-    rows = np.searchsorted(edge_idx, pix[in_edge])
+    in_edge = np.flatnonzero(is_edge[pix] & ((chord > 0) | (edge_px < 1.0)))
+    edge_line = np.zeros(len(edge_idx) * params.supersample)
+    for part in _chunks(len(in_edge)):
+        pairs = in_edge[part]
+        rows = np.searchsorted(edge_idx, pix[pairs])
+        weights = _subsample_line(params, raster, iop, pix[pairs], feat[pairs], centre_parts, radius, delta_mu, chords)
+        # np.add.at adds in the pairs' order, as one bincount over all of them would
+        np.add.at(edge_line, (rows[:, None] * params.supersample + np.arange(params.supersample)).ravel(), weights)
+    return line, edge_idx, edge_line.reshape(len(edge_idx), params.supersample)
+
+
+def _subsample_line(params, raster: SystemRaster, iop, pair_pix, f, centre_parts, radius, delta_mu, chords):
+    """Δμ · chord ``(P * S,)`` at the S sub-samples of each (pixel, feature) pair, pair by pair."""
     offsets = _subsample_offsets(params.supersample)
-    pair_pix = pix[in_edge]
     # ray slopes (x - xp) / c of each pair's pixel centre and their derivatives by the pixel offset
     slope = (raster.ideal_xy.reshape(-1, 2)[pair_pix] - iop[:2]) / iop[2]
     d_slope = local_jacobian(raster.ideal_xy, pair_pix) / iop[2]
@@ -178,10 +202,6 @@ def feature_line_integrals(params, raster: SystemRaster, system: SystemTruth, q,
     u = slope[:, 0, None] + d_slope[:, 0, 0, None] * offsets[:, 0] + d_slope[:, 0, 1, None] * offsets[:, 1]
     v = slope[:, 1, None] + d_slope[:, 1, 0, None] * offsets[:, 0] + d_slope[:, 1, 1, None] * offsets[:, 1]
     inv_norm = 1.0 / np.sqrt(u * u + v * v + 1.0)
-    f = feat[in_edge]
-    in_centres = tuple(c_j[in_edge][:, None] for c_j in centres)
+    in_centres = tuple(c[f][:, None] for c in centre_parts)
     sub_chord, _ = chords((u * inv_norm, v * inv_norm, inv_norm), in_centres, radius[f][:, None])
-    n_sub = len(offsets)
-    flat = (rows[:, None] * n_sub + np.arange(n_sub)).ravel()
-    edge_line = np.bincount(flat, weights=(delta_mu[f][:, None] * sub_chord).ravel(), minlength=len(edge_idx) * n_sub)
-    return line, edge_idx, edge_line.reshape(len(edge_idx), n_sub)
+    return (delta_mu[f][:, None] * sub_chord).ravel()

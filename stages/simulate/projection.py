@@ -160,14 +160,19 @@ def _sphere_outline_circles(centre_cam: np.ndarray, radius_mm: np.ndarray):
 
 
 def _polygon_centroid_area(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Area centroids ``(N, 2)`` and areas ``(N,)`` of closed polygons ``(N, M, 2)`` (shoelace)."""
-    x, y = points[..., 0], points[..., 1]
+    """Area centroids ``(N, 2)`` and areas ``(N,)`` of closed polygons ``(N, M, 2)`` (shoelace).
+
+    Taken about each polygon's first vertex: in image coordinates (hundreds of px) the shoelace's products of a
+    few-px polygon cancel to ~1e-9 px.
+    """
+    origin = points[:, 0, :]
+    x, y = points[..., 0] - origin[:, 0, None], points[..., 1] - origin[:, 1, None]
     x1, y1 = np.roll(x, -1, axis=-1), np.roll(y, -1, axis=-1)
     cross = x * y1 - x1 * y
     area = cross.sum(-1) / 2
     cx = ((x + x1) * cross).sum(-1) / (6 * area)
     cy = ((y + y1) * cross).sum(-1) / (6 * area)
-    return np.column_stack([cx, cy]), np.abs(area)
+    return origin + np.column_stack([cx, cy]), np.abs(area)
 
 
 @dataclass(frozen=True, eq=False)
@@ -196,8 +201,8 @@ def _project_outlines(
         circles = _sphere_outline_circles(centre_cam, radius)
     centre, axes = _circle_ellipse(*circles, iop)
     t = np.linspace(0, 2 * np.pi, N_OUTLINE, endpoint=False)
-    # shape (N, N_OUTLINE, 2)
-    ring = centre[:, None, :] + np.einsum("nij,mj->nmi", axes, np.column_stack([np.cos(t), np.sin(t)]))
+    # shape (N, N_OUTLINE, 2): centre + L (cos t, sin t), by broadcasting (einsum's loop over so short a sum is slow)
+    ring = centre[:, None, :] + axes[:, None, :, 0] * np.cos(t)[:, None] + axes[:, None, :, 1] * np.sin(t)[:, None]
     ring_d = distortion.distort_points(ring)
     outline_xy, area = _polygon_centroid_area(ring_d)
     radius_max = np.max(np.linalg.norm(ring_d - outline_xy[:, None, :], axis=-1), axis=1)
