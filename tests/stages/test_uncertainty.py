@@ -18,6 +18,7 @@ from fluorocal.stages.learn.grid import difference_operator
 from fluorocal.stages.learn.network import camera_jacobians
 from fluorocal.stages.learn.uncertainty import _network, _symmetric_inverse, convention_truth, joint_uncertainty
 from scipy.linalg import ldl
+from scipy.sparse import diags
 
 from tests.stages.ba_synthetic import simulated_set
 
@@ -98,10 +99,12 @@ def dense_joint(net, xy, field, tau, order, iop, hold_affine: bool):
     D = difference_operator(len(field.y_nodes_px), len(field.x_nodes_px), order).toarray()
     P = np.kron(np.eye(2), D.T @ D) / tau**2 + 1e-10 * max(net.w.max(), 1.0) * np.eye(2 * n_nodes)
     J, n = net.J.toarray(), len(net.w_xy)
-    W = np.diag(net.w) + np.diag(net.w_xy, n) + np.diag(net.w_xy, -n)  # x rows then y rows
+    W = diags([net.w, net.w_xy, net.w_xy], [0, n, -n])  # x rows then y rows (sparse: only its products are dense)
     n_t = J.shape[1]
-    H_tt = J.T @ W @ J + float(np.mean(np.diag(J.T @ W @ J))) * net.datum @ net.datum.T
-    H = np.block([[H_tt, J.T @ W @ A2], [A2.T @ W @ J, A2.T @ W @ A2 + P]])
+    JtWJ = J.T @ (W @ J)
+    H_tt = JtWJ + float(np.mean(np.diag(JtWJ))) * net.datum @ net.datum.T
+    JtWA = J.T @ (W @ A2)
+    H = np.block([[H_tt, JtWA], [JtWA.T, A2.T @ (W @ A2) + P]])
     B = gauge_basis(xy, iop, True)
     rows = [np.concatenate([np.zeros((B.shape[2], n_t)), B[:, 0, :].T @ A, B[:, 1, :].T @ A], axis=1)]
     if hold_affine:
@@ -124,8 +127,9 @@ def fast_and_dense(fixture, field, tau, order, hold_affine):
     got = joint_uncertainty(adj, obs, rows, 0, field, tau_px=tau, order=order, shape_nominal_mm=shape)
     net = _network(adj, obs, rows, 0, nominal_shape)
     xy, iop = obs.xy_px[rows], adj.iop_px[0]
-    cov_t, _ = dense_joint(net, xy, field, tau, order, iop, hold_affine=False)
-    _, cov_v = dense_joint(net, xy, field, tau, order, iop, hold_affine=hold_affine)
+    cov_t, cov_v = dense_joint(net, xy, field, tau, order, iop, hold_affine=False)
+    if hold_affine:
+        _, cov_v = dense_joint(net, xy, field, tau, order, iop, hold_affine=True)
     return got, cov_t, cov_v, net
 
 
