@@ -26,8 +26,9 @@ def arcadis_dir() -> Path:
 
 #: the small biplanar project the end-to-end modules share (4 + 4 frames of 512 px)
 E2E_SIM = {"n_frames": 4, "n_systems": 2, "image_size_px": 512, "seed": 3}
-#: the grid plate moved by hand between three 1024² frames at one orientation
-GRID_SIM = {"phantom": "grid", "n_frames": 3, "seed": 4}
+#: the grid plate moved by hand between three frames at one orientation: the 1024-px default's pixel pitch, holes
+#: and look on half the detector (512², a quarter of the holes)
+GRID_SIM = {"phantom": "grid", "n_frames": 3, "seed": 4, "image_size_px": 512, "detector_size_mm": 128.0}
 
 
 def built_once(tmp_path_factory, name: str, build) -> Path:
@@ -110,9 +111,9 @@ def calibrated_project(calibrated_run) -> Path:
 
 @pytest.fixture(scope="session")
 def simulated_grid(tmp_path_factory) -> Path:
-    """A simulated plate moved by hand between three 1024² frames at one C-arm orientation, calibrated once.
+    """A simulated plate moved by hand between three frames (:data:`GRID_SIM`) at one C-arm orientation, calibrated once.
 
-    (A 512 px frame cannot resolve the holes.) Modules that change it take a copy (:func:`copy_project`).
+    Modules that change it take a copy (:func:`copy_project`).
     Shared by every xdist worker (:func:`built_once`): never write into it.
     """
     return built_once(tmp_path_factory, "grid", lambda root: _calibrate(root, GRID_SIM))
