@@ -111,7 +111,7 @@ def calibrated_project(calibrated_run) -> Path:
 
 @pytest.fixture(scope="session")
 def simulated_grid(tmp_path_factory) -> Path:
-    """A simulated plate moved by hand between three frames (:data:`GRID_SIM`) at one C-arm orientation, calibrated once.
+    """A simulated plate moved by hand between three frames (:data:`GRID_SIM`) at one orientation, calibrated once.
 
     Modules that change it take a copy (:func:`copy_project`).
     Shared by every xdist worker (:func:`built_once`): never write into it.

@@ -54,6 +54,9 @@ _BASIN_DEG = 1.0
 # a labelling whose evidence falls short of the usable detections by at most this fraction explains most of
 # the frame (a right one misses dropouts, spurious and merged blobs: 1-9 % of them)
 _MOST_DEFICIT = 0.1
+# beads whose projections lie within this many times their mean diameter merge into one blob, or into a shape
+# the detector refuses (those within _ambiguity_bead_diameters_ of each other are ambiguous already)
+_MERGE_BEAD_DIAMETERS = 1.5
 # polished poses whose sources lie closer than this (mm; the source is ~1 m away, so 0.5 deg moves it
 # ~9 mm) lead to the labelling already found
 _SAME_SOURCE_MM = 5.0
@@ -106,7 +109,7 @@ def evidence(
     clear = ~ambiguous(pred, app, p.ambiguity_bead_diameters)
     d_pred, j = frame.det_tree.query(pred)
     found = d_pred <= gate
-    missing = int(np.sum(clear & ~found & inside_hull(frame, pred, app)))
+    missing = int(np.sum(_missing(frame, pred, app, clear, found)))
     pairs = clear & found
     sizes = size_evidence(sub, R, T, vis[pairs], j[pairs])
     off = 0 if sizes is None else sizes[1]
@@ -126,14 +129,37 @@ def stands_alone(frame: CubeFrame, model: dict, prior: OrientationPrior) -> bool
     return top and prior.distance(model["R"]) < _PRIOR_MARGIN
 
 
+def _missing(frame: CubeFrame, pred: np.ndarray, app: np.ndarray, clear: np.ndarray, found: np.ndarray) -> np.ndarray:
+    """The beads :func:`evidence` counts missing: predicted ``clear`` of others, not ``found``, amid the detections."""
+    return clear & ~found & inside_hull(frame, pred, app)
+
+
+def _merged_missing(frame: CubeFrame, model: dict) -> int:
+    """How many of the beads :func:`evidence` counts missing under ``model`` lie within ``_MERGE_BEAD_DIAMETERS``.
+
+    That is, within that many of their mean diameter of another predicted bead.
+    """
+    p = frame.params
+    vis, ideal, diam = visible(replace(frame, iop=model["iop"]), model["R"], model["T"])
+    if len(vis) < 2:
+        return 0
+    pred, app = model["corr"].distort_points(ideal[vis]), diam[vis]
+    found = frame.det_tree.query(pred)[0] <= p.final_gate_bead_diameters * app
+    missing = _missing(frame, pred, app, ~ambiguous(pred, app, p.ambiguity_bead_diameters), found)
+    return int(np.sum(missing & ambiguous(pred, app, _MERGE_BEAD_DIAMETERS)))
+
+
 def explains_most(frame: CubeFrame, model: dict) -> bool:
     """True if ``model``'s evidence comes within ``_MOST_DEFICIT`` of the usable detections of the most possible.
 
     A labelling found from a wrong start may still pass :func:`~fluorocal.stages.label.iterate.acceptable`
     with its polynomial correction bent to fit (its depth and camera then wrong); one that explains the
-    frame this well has the phantom's magnification, hence its depth, right.
+    frame this well has the phantom's magnification, hence its depth, right. Beads that nearly touch another
+    (:func:`_merged_missing`) are not held against it: near a face-on view of the phantom its near and far
+    walls' beads pair up so, and the detector sees each pair as one blob or none, whatever the labelling.
     """
-    return model_evidence(frame, model) >= (1.0 - _MOST_DEFICIT) * len(frame.det_xy)
+    deficit = len(frame.det_xy) - model_evidence(frame, model) - _merged_missing(frame, model)
+    return deficit <= _MOST_DEFICIT * len(frame.det_xy)
 
 
 def settle(
