@@ -52,10 +52,12 @@ _MAX_EXPANSIONS = 4
 _EXPAND_MARGINS = 8.0
 _BASIN_DEG = 1.0
 # a labelling whose evidence falls short of the usable detections by at most this fraction explains most of
-# the frame (a right one misses dropouts, spurious and merged blobs: 1-9 % of them)
+# the frame (a right one misses dropouts and spurious blobs: 1-9 % of them), not counting as many again of its
+# missing beads that nearly touch another (explains_most)
 _MOST_DEFICIT = 0.1
-# beads whose projections lie within this many times their mean diameter merge into one blob, or into a shape
-# the detector refuses (those within _ambiguity_bead_diameters_ of each other are ambiguous already)
+# beads whose projections lie within this many times their mean diameter may merge into one blob, or into a shape
+# the detector refuses (those within LabelParams.ambiguity_bead_diameters are ambiguous already); measured on a
+# rendered face-on frame: the undetected beads lie 1.02-1.25 diameters from another
 _MERGE_BEAD_DIAMETERS = 1.5
 # polished poses whose sources lie closer than this (mm; the source is ~1 m away, so 0.5 deg moves it
 # ~9 mm) lead to the labelling already found
@@ -93,12 +95,9 @@ def evidence(
     R = model["R"] if R is None else R
     T = model["T"] if T is None else T
     sub = replace(frame, iop=model["iop"])
-    vis, ideal, diam = visible(sub, R, T)
+    vis, pred, app = _predicted(sub, model, R, T)
     if len(vis) < 2:
         return -float(len(frame.det_xy))
-    pred = model["corr"].distort_points(ideal[vis])
-    # the pinhole's diameters: the correction's local magnification changes them by a few % only
-    app = diam[vis]
     gate = p.final_gate_bead_diameters * app
     from scipy.spatial import cKDTree
 
@@ -129,37 +128,47 @@ def stands_alone(frame: CubeFrame, model: dict, prior: OrientationPrior) -> bool
     return top and prior.distance(model["R"]) < _PRIOR_MARGIN
 
 
+def _predicted(frame: CubeFrame, model: dict, R: np.ndarray, T: np.ndarray):
+    """The beads visible at pose ``(R, T)`` under ``model``'s camera (``frame`` with its ``iop``).
+
+    Returns their indices, predicted centres ``(V, 2)`` px and pinhole diameters ``(V,)`` px (the correction's
+    local magnification changes them by a few % only).
+    """
+    vis, ideal, diam = visible(frame, R, T)
+    return vis, model["corr"].distort_points(ideal[vis]), diam[vis]
+
+
 def _missing(frame: CubeFrame, pred: np.ndarray, app: np.ndarray, clear: np.ndarray, found: np.ndarray) -> np.ndarray:
     """The beads :func:`evidence` counts missing: predicted ``clear`` of others, not ``found``, amid the detections."""
     return clear & ~found & inside_hull(frame, pred, app)
 
 
 def _merged_missing(frame: CubeFrame, model: dict) -> int:
-    """How many of the beads :func:`evidence` counts missing under ``model`` lie within ``_MERGE_BEAD_DIAMETERS``.
-
-    That is, within that many of their mean diameter of another predicted bead.
-    """
+    """How many beads :func:`evidence` counts missing under ``model`` lie within ``_MERGE_BEAD_DIAMETERS`` of others."""
     p = frame.params
-    vis, ideal, diam = visible(replace(frame, iop=model["iop"]), model["R"], model["T"])
+    vis, pred, app = _predicted(replace(frame, iop=model["iop"]), model, model["R"], model["T"])
     if len(vis) < 2:
         return 0
-    pred, app = model["corr"].distort_points(ideal[vis]), diam[vis]
     found = frame.det_tree.query(pred)[0] <= p.final_gate_bead_diameters * app
     missing = _missing(frame, pred, app, ~ambiguous(pred, app, p.ambiguity_bead_diameters), found)
     return int(np.sum(missing & ambiguous(pred, app, _MERGE_BEAD_DIAMETERS)))
 
 
 def explains_most(frame: CubeFrame, model: dict) -> bool:
-    """True if ``model``'s evidence comes within ``_MOST_DEFICIT`` of the usable detections of the most possible.
+    """True if ``model``'s evidence, less its missing beads that nearly touch another, comes near the most possible.
 
-    A labelling found from a wrong start may still pass :func:`~fluorocal.stages.label.iterate.acceptable`
-    with its polynomial correction bent to fit (its depth and camera then wrong); one that explains the
-    frame this well has the phantom's magnification, hence its depth, right. Beads that nearly touch another
-    (:func:`_merged_missing`) are not held against it: near a face-on view of the phantom its near and far
-    walls' beads pair up so, and the detector sees each pair as one blob or none, whatever the labelling.
+    That is, within ``_MOST_DEFICIT`` of the usable detections. A labelling found from a wrong start may still
+    pass :func:`~fluorocal.stages.label.iterate.acceptable` with its polynomial correction bent to fit (its
+    depth and camera then wrong); one that explains the frame this well has the phantom's magnification, hence
+    its depth, right. Up to ``_MOST_DEFICIT`` of the detections, the missing beads that nearly touch another
+    (:func:`_merged_missing`) are not held against it: near a face-on view the phantom's near and far walls'
+    beads pair up so, and the detector sees each pair as one blob or none, whatever the labelling (on a
+    rendered face-on frame all 35 beads the right labelling leaves undetected; a labelling started 6 deg off
+    that passes ``acceptable`` falls short by 212, a slip by a row by 65).
     """
-    deficit = len(frame.det_xy) - model_evidence(frame, model) - _merged_missing(frame, model)
-    return deficit <= _MOST_DEFICIT * len(frame.det_xy)
+    n = len(frame.det_xy)
+    forgiven = min(_merged_missing(frame, model), _MOST_DEFICIT * n)
+    return n - model_evidence(frame, model) - forgiven <= _MOST_DEFICIT * n
 
 
 def settle(

@@ -163,7 +163,7 @@ def _polygon_centroid_area(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Area centroids ``(N, 2)`` and areas ``(N,)`` of closed polygons ``(N, M, 2)`` (shoelace).
 
     Taken about each polygon's first vertex: in image coordinates (hundreds of px) the shoelace's products of a
-    few-px polygon cancel to ~1e-9 px.
+    few-px polygon cancel to ~1e-8 px.
     """
     origin = points[:, 0, :]
     x, y = points[..., 0] - origin[:, 0, None], points[..., 1] - origin[:, 1, None]

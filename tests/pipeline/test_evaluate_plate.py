@@ -1,9 +1,9 @@
 """`fluorocal evaluate` on grid plates: a rendered simulated plate against its truth, the real ARCADIS frames, refusals.
 
-The simulated project (tests/conftest.py ``simulated_grid``: three 1024² frames, the plate moved by hand, 0.02 mm
-manufacturing errors) is evaluated end to end from its cached labels; its bounds come from the simulator's truth
-(the centroids' actual error) and issue 12's targets. The real frames (../shared/data, skipped when absent)
-carry issue 12's target: <= 0.06 px RMS on held-out holes against the self-calibrated layout.
+The simulated project (tests/conftest.py ``simulated_grid``: three 512² frames on half the detector, the plate moved
+by hand, 0.02 mm manufacturing errors) is evaluated end to end from its cached labels; its bounds come from the
+simulator's truth (the centroids' actual error) and issue 12's targets. The real frames (../shared/data, skipped
+when absent) carry issue 12's target: <= 0.06 px RMS on held-out holes against the self-calibrated layout.
 """
 
 from __future__ import annotations

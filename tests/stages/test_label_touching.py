@@ -11,6 +11,7 @@ out. Ground truth: analytic point sets, and the simulator's geometry made detect
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from fluorocal.stages.label import LabelParams, label_beads
 from fluorocal.stages.label.assign import ambiguous, told_apart
 from fluorocal.stages.simulate import SimulateParams, simulate
@@ -130,27 +131,70 @@ def test_labelled_beads_do_not_overlap_their_neighbours():
 # --------------------------------------------------------------------------------------------
 
 
-def test_a_face_on_view_labelled_from_its_markers_explains_most_of_the_frame():
-    """A rendered frame of the cube seen face-on (turntable at 0 deg): its marker labelling stands as it is.
-
-    The near and far walls' beads pair up there, a little over a diameter apart, and the detector sees each pair
-    as one blob or none: the right labelling leaves ~35 beads undetected that are clear of the ambiguity gate.
-    They are not held against it (:func:`fluorocal.stages.label.rivals.explains_most`), so the frame is not
-    searched around its markers' pose (which took 7-8 s a frame and found the same labels).
-    """
+@pytest.fixture(scope="module")
+def face_on():
+    """A rendered 512 px frame of the cube seen face-on (turntable at 0 deg): its data, truth and centroids."""
     from fluorocal.stages.centroid import CentroidParams, centroid_beads
     from fluorocal.stages.detect import DetectParams, detect_beads
 
     p = SimulateParams(n_frames=3, image_size_px=512, seed=3, turntable_step_deg=15.0)
     data = simulate(p)
-    radiograph, ft = data.frames[0][0], data.truth.frames[0][0]
+    radiograph = data.frames[0][0]
     c = centroid_beads(radiograph, detect_beads(radiograph, DetectParams()), CentroidParams())
     size = (p.image_size_px,) * 2
     params = LabelParams(
         source_image_distance_mm=p.source_image_distance_mm, pixel_pitch_mm=p.pixel_pitch_mm, image_size_px=size
     )
+    return data, data.truth.frames[0][0], c, params
+
+
+def test_a_face_on_view_labelled_from_its_markers_explains_most_of_the_frame(face_on):
+    """The face-on frame's marker labelling stands as it is: right, and it explains most of the frame.
+
+    The near and far walls' beads pair up there, 1.02-1.25 diameters apart, and the detector sees each pair
+    as one blob or none: the right labelling leaves 35 beads undetected that are clear of the ambiguity gate.
+    They are not held against it (:func:`fluorocal.stages.label.rivals.explains_most`), so the frame is not
+    searched around its markers' pose (which took 7-8 s a frame and found the same labels).
+    """
+    data, ft, c, params = face_on
     lab = label_beads(c, data.phantom, params)
     assert lab.ok and lab.pose_source == "markers" and lab.explains_most, lab.summary()
+    # each label is its nearest true outline's, within the final gate (a quarter of a diameter)
     d, i = cKDTree(ft.outline_xy_px).query(lab.xy_px)
     assert np.all(d < 0.25 * ft.diameter_px[i]) and np.array_equal(ft.ids[i], lab.bead_id)
-    assert lab.n_labelled >= 0.95 * c.ok.sum()  # measured 239 of 244
+    # every detection of a bead clear of its neighbours is labelled (measured 239 of the 244 usable detections)
+    eligible = np.intersect1d(unambiguous_ids(ft), ft.ids[cKDTree(ft.outline_xy_px).query(c.xy_px[c.ok])[1]])
+    assert np.isin(eligible, lab.bead_id).mean() >= 0.99
+
+
+@pytest.mark.parametrize(("axis", "turn_deg", "depth"), [(1, -6.0, 1.0), (0, 3.0, 1.1)])
+def test_a_wrong_labelling_of_the_face_on_view_does_not_explain_most_of_it(face_on, axis, turn_deg, depth):
+    """Started a few degrees off (and 10 % too far), a labelling converges wrong yet acceptable: it explains too little.
+
+    Its shortfall is 212-214 detections (measured), of which 73-80 missing beads nearly touch another; at most
+    10 % of the detections' worth of those are forgiven, which leaves it far outside the 10 % bound.
+    """
+    from fluorocal.stages.geometry import quat_to_matrix
+    from fluorocal.stages.label.cube_frame import make_cube_frame
+    from fluorocal.stages.label.detections import Detections, assumed_iop
+    from fluorocal.stages.label.iterate import acceptable, iterate
+    from fluorocal.stages.label.rivals import explains_most
+    from scipy.spatial.transform import Rotation
+
+    data, ft, c, params = face_on
+    det = Detections.from_centroids(c)
+    frame, _ = make_cube_frame(det, data.phantom, params, assumed_iop(det, c, params, need_c=True))
+    R0, centre = quat_to_matrix(ft.q), data.phantom.xyz_mm.mean(0)
+    R = Rotation.from_rotvec(np.radians(turn_deg) * np.eye(3)[axis]).as_matrix() @ R0
+    # the phantom's centre where the camera sees it, its depth scaled
+    seen = R0 @ (centre - ft.source_mm) * [1.0, 1.0, depth]
+    model = iterate(frame, R, centre - R.T @ seen)
+    assert model is not None and acceptable(frame, model)[0]
+    true_id = dict(zip(ft.ids.tolist(), ft.outline_xy_px))
+    right = np.linalg.norm(
+        frame.det_xy[model["det"]]
+        - np.array([true_id.get(i, (np.inf, np.inf)) for i in data.phantom.ids[model["bead"]].tolist()]),
+        axis=1,
+    )
+    assert np.mean(right < 0.25 * ft.diameter_px.mean()) < 0.9  # wrong: most labels another bead's
+    assert not explains_most(frame, model)
