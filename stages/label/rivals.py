@@ -162,9 +162,9 @@ def explains_most(frame: CubeFrame, model: dict) -> bool:
     depth and camera then wrong); one that explains the frame this well has the phantom's magnification, hence
     its depth, right. Up to ``_MOST_DEFICIT`` of the detections, the missing beads that nearly touch another
     (:func:`_merged_missing`) are not held against it: near a face-on view the phantom's near and far walls'
-    beads pair up so, and the detector sees each pair as one blob or none, whatever the labelling (on a
-    rendered face-on frame all 35 beads the right labelling leaves undetected; a labelling started 6 deg off
-    that passes ``acceptable`` falls short by 212, a slip by a row by 65).
+    beads pair up so, and the detector sees each pair as one blob or none, whatever the labelling. On a rendered
+    face-on frame, all 35 beads the right labelling leaves undetected are such; a labelling started 6 deg off
+    that passes ``acceptable`` falls short by 212, a slip by a row by 65.
     """
     n = len(frame.det_xy)
     forgiven = min(_merged_missing(frame, model), _MOST_DEFICIT * n)
