@@ -22,6 +22,7 @@ Nothing here imports more than the standard library at import time, so ``--help`
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 
@@ -39,6 +40,26 @@ def positive_int(text: str) -> int:
     if not text.isdigit() or int(text) < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer; got {text!r}")
     return int(text)
+
+
+def length_mm(text: str) -> float:
+    """An argparse type: a finite length in mm, >= 0 (``--source-image-distance``, ``--pixel-pitch``; 0: not given).
+
+    Examples
+    --------
+    >>> length_mm("1100")
+    1100.0
+    >>> length_mm("nan")
+    Traceback (most recent call last):
+    argparse.ArgumentTypeError: expected a finite length in mm, >= 0; got 'nan'
+    """
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a finite length in mm, >= 0; got {text!r}")
+    return value
 
 
 def add_overwrite(parser: argparse.ArgumentParser, what: str) -> None:
@@ -81,7 +102,9 @@ def add_geometry(parser: argparse.ArgumentParser, default_mm: tuple[float, float
         default_mm or (0.0, 0.0),
     ):
         tail = f"default: {default:g}" if default_mm else "required for a 3D phantom"
-        parser.add_argument(flag, type=float, default=default, metavar="MM", help=f"{what} in mm, approximate ({tail})")
+        parser.add_argument(
+            flag, type=length_mm, default=default, metavar="MM", help=f"{what} in mm, approximate ({tail})"
+        )
 
 
 def parse_orientation(text: str):

@@ -76,10 +76,12 @@ def test_adjust_command_reports_missing_columns(tmp_path, capsys):
 )  # --image-size: test_cli.py
 def test_adjust_command_refuses_non_finite_start_values(tmp_path, capsys, flags):
     # benchmarks/attack.py adjust_sid_inf: an infinite source-image distance ended in an OpenCV assertion's traceback
+    # now refused by the option's type, before anything is read: argparse's exit 2, one line naming the option
     _, phantom, table = _write_inputs(tmp_path)
-    rc = main(["adjust", "--observations", str(table), "--phantom", str(phantom), "--out", str(tmp_path / "o"), *flags])
+    with pytest.raises(SystemExit) as exc:
+        main(["adjust", "--observations", str(table), "--phantom", str(phantom), "--out", str(tmp_path / "o"), *flags])
     err = capsys.readouterr().err
-    assert rc == 2 and flags[0] in err and len(err.strip().splitlines()) == 1
+    assert exc.value.code == 2 and flags[0] in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()
 
 

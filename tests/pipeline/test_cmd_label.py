@@ -82,3 +82,16 @@ def test_bad_detections_name_file_line_and_column(tmp_path, capsys, text, messag
     assert main(argv) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "l").exists()
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-1100", "far"])
+def test_a_geometry_that_is_not_a_length_is_refused_before_any_file_is_read(tmp_path, capsys, value):
+    """``--source-image-distance nan``: refused naming the option, before the (here empty) detections are read."""
+    (tmp_path / "det.csv").write_text(f"{_HEADER}\n")
+    argv = ["-q", "label", str(tmp_path / "det.csv"), "--phantom", str(tmp_path / "phantom.csv")]
+    with pytest.raises(SystemExit) as exc:  # argparse's refusal
+        main([*argv, "--source-image-distance", value, "--out", str(tmp_path / "l")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("fluorocal: error: argument --source-image-distance: expected a finite length in mm")
+    assert not (tmp_path / "l").exists()
