@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import ast
 import dataclasses
+import enum
 import json
 import re
 import typing
@@ -148,6 +149,9 @@ def _default(f: dataclasses.Field):
 
 
 def _type_name(hint) -> str:
+    switches = [a for a in typing.get_args(hint) or (hint,) if isinstance(a, type) and issubclass(a, enum.Enum)]
+    if switches:  # an enumeration is written as one of its spellings
+        return "string: " + ", ".join(f'`"{m.value}"`' for m in switches[0])
     text = getattr(hint, "__name__", None) if not typing.get_args(hint) else None
     return text or str(hint).replace("typing.", "")
 

@@ -8,6 +8,7 @@ Paths in the file are relative to the config file.
 from __future__ import annotations
 
 import dataclasses
+import enum
 import glob
 import math
 import os
@@ -535,6 +536,9 @@ def _int_in_range(value: int, where: str) -> int:
 def _coerce(value, hint, where: str):
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
+        options = [o for o in typing.get_args(hint) if o is not type(None)]
+        if value is not None and len(options) == 1:  # an optional value given: its own type's message
+            return _coerce(value, options[0], where)
         for option in typing.get_args(hint):
             try:
                 return _coerce(value, option, where)
@@ -561,6 +565,10 @@ def _coerce(value, hint, where: str):
     elif hint is str:
         if isinstance(value, str):
             return value
+    elif isinstance(hint, type) and issubclass(hint, enum.Enum):
+        if isinstance(value, str) and value in hint._value2member_map_:
+            return hint(value)
+        raise ConfigError(f"{where}: expected one of {', '.join(repr(m.value) for m in hint)}; got {value!r}")
     elif origin is tuple:
         if isinstance(value, list):
             args = typing.get_args(hint)

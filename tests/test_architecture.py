@@ -175,27 +175,38 @@ def _literals(node) -> list[str]:
     return [e.value for e in elements if isinstance(e, ast.Constant) and isinstance(e.value, str)]
 
 
-def _scheme_spellings(text: str) -> list[int]:
-    """Lines where ``text`` decodes a scheme's spelling: compares a ``*scheme*`` value with a literal, or splits it."""
+#: the values spelled in the project file that the code reads as enumerations: the scheme, the learning's switches
+#: (:data:`~fluorocal.stages.learn.params.SWITCHES`) and what responds to the joint step
+SPELLED = ("scheme", "acceleration", "refine", "training", "field_gauge", "respond")
+
+
+def _scheme_spellings(text: str, words: tuple[str, ...] = ("scheme",)) -> list[int]:
+    """Lines where ``text`` decodes a spelling: compares a value named after one of ``words`` with a literal, or
+    splits it."""
     found = []
+
+    def named(node) -> bool:
+        return any(word in _names(node).lower() for word in words)
+
     for node in ast.walk(ast.parse(text)):
         if isinstance(node, ast.Compare):
             sides = [node.left, *node.comparators]
-            if any("scheme" in _names(s).lower() for s in sides) and any(_literals(s) for s in sides):
+            if any(named(s) for s in sides) and any(_literals(s) for s in sides):
                 found.append(node.lineno)
         elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
-            if node.func.attr in ("startswith", "endswith", "split") and "scheme" in _names(node.func.value).lower():
+            if node.func.attr in ("startswith", "endswith", "split") and named(node.func.value):
                 found.append(node.lineno)
     return sorted(found)
 
 
-def test_the_scheme_is_decoded_in_one_place():
-    """Only :class:`~fluorocal.stages.learn.params.Scheme` reads a scheme's spelling; the rest asks it what it does."""
+def test_the_scheme_and_the_switches_are_decoded_in_one_place():
+    """Only their enumerations (:mod:`fluorocal.stages.learn.params`) read the scheme's and the switches' spellings;
+    the rest compares members or asks the value what it does."""
     home = STAGES / "learn" / "params.py"
     found = {
         name: lines
         for name, path in MODULES.items()
-        if path != home and (lines := _scheme_spellings(path.read_text(encoding="utf-8")))
+        if path != home and (lines := _scheme_spellings(path.read_text(encoding="utf-8"), SPELLED))
     }
     assert found == {}
 
@@ -210,3 +221,5 @@ def test_the_scheme_check_sees_the_decodings_the_issue_names():
         "d = scheme.polynomial or setup.scheme.corrects or phase == 'knn'\n"
     )
     assert _scheme_spellings(decodings) == [1, 2, 3, 4]
+    switches = 'if params.refine != "none": pass\nlocal = plan.params.training == "local"\nx = params.refine is Refine.NONE\n'
+    assert _scheme_spellings(switches, SPELLED) == [1, 2]

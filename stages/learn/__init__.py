@@ -17,7 +17,8 @@ Modules, one job each
 - :mod:`~fluorocal.stages.field` (outside this package: the calibration file
   stores it): :class:`CorrectionField`, the gridded ``Δ``, and
   :class:`PointwiseField`, the unsmoothed scheme's sum of kNN models.
-- :mod:`.params`: :class:`LearnParams`, :data:`SCHEMES` and the presets
+- :mod:`.params`: :class:`LearnParams`, its switches' enumerations (:class:`Acceleration`,
+  :class:`Refine`, :class:`Training`, :class:`FieldGauge`), :data:`SCHEMES` and the presets
   (``recommended``, the default, and ``paper``, the loop as written).
 - :mod:`.nodes`: the node grid and its support rule (:class:`GridSpec`).
 - :mod:`.knn`: :class:`KnnModel`, :func:`cross_validate_k` (``k`` from shuffled
@@ -51,7 +52,16 @@ from fluorocal.stages.learn.joint import fit_grid_jointly
 from fluorocal.stages.learn.knn import CvReport, KnnModel, cross_validate_k, fit_knn_field
 from fluorocal.stages.learn.loop import calibrate
 from fluorocal.stages.learn.nodes import GridSpec
-from fluorocal.stages.learn.params import PRESETS, SCHEMES, LearnParams, Scheme
+from fluorocal.stages.learn.params import (
+    PRESETS,
+    SCHEMES,
+    Acceleration,
+    FieldGauge,
+    LearnParams,
+    Refine,
+    Scheme,
+    Training,
+)
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
 
 VERSION = 1
@@ -62,6 +72,10 @@ __all__ = [
     "Scheme",
     "PRESETS",
     "LearnParams",
+    "Acceleration",
+    "Refine",
+    "Training",
+    "FieldGauge",
     "GridSpec",
     "KnnModel",
     "CvReport",

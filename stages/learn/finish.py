@@ -7,6 +7,7 @@ import time
 
 from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.learn.knn import node_statistics
+from fluorocal.stages.learn.params import Refine
 from fluorocal.stages.learn.result import LearnResult
 from fluorocal.stages.learn.uncertainty import learned_uncertainty, with_field_std
 
@@ -28,7 +29,8 @@ def loop_result(plan, scheme: str, state, converged: bool, reason: str, t0: floa
         )
     cv = tuple(m.cv for m in state.memory) if learned else ()
     uncertainty = None
-    if learned and plan.smooth and plan.refine != "none":  # the gridded refinement's fields: σ over the joint problem
+    # the gridded refinement's fields: σ over the joint problem
+    if learned and plan.smooth and plan.refine is not Refine.NONE:
         shape = plan.adjuster.nominal_shape(state.adj)[1]
         args = (state.adj, plan.observations, plan.rows, state.trained, state.grids, state.memory, plan.params)
         uncertainty = learned_uncertainty(*args, estimate_iop=plan.estimate_iop, nominal_shape_mm=shape)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 from fluorocal.stages.errors import EstimationError, InputError
@@ -40,6 +41,13 @@ logger = logging.getLogger(__name__)
 AFFINE_STIFFNESS = 1e2
 #: ridge of the beads' coordinates in the orientation's Jacobi-scaled normal matrix (unit diagonal)
 POINT_RIDGE = 1e-8
+
+
+class Respond(StrEnum):
+    """What responds to the fields' update in the joint step: the whole orientation, or the object points alone."""
+
+    ORIENTATION = "orientation"
+    POINTS = "points"
 
 
 @dataclass(frozen=True)
@@ -89,7 +97,7 @@ def fit_grid_jointly(
     cg_tolerance: float = 1e-6,
     order: int = 2,
     start: np.ndarray | None = None,
-    respond: str = "orientation",
+    respond: Respond = Respond.ORIENTATION,
 ) -> CorrectionField:
     """One system's gridded field update estimated jointly with the orientation's response (IOP, poses, points).
 
@@ -108,7 +116,7 @@ def fit_grids_jointly(
     grid: GridSpec = DEFAULT_GRID,
     max_cg_iterations: int = 400,
     cg_tolerance: float = 1e-6,
-    respond: str = "orientation",
+    respond: Respond = Respond.ORIENTATION,
     with_response: bool = False,
 ) -> tuple[CorrectionField, ...]:
     """Every system's gridded field update, estimated jointly with the orientation's response.
@@ -141,9 +149,9 @@ def fit_grids_jointly(
     grid : GridSpec
     max_cg_iterations, cg_tolerance
         The conjugate gradients' cap and relative tolerance.
-    respond : str
-        What responds to the fields' update: ``"orientation"`` (the IOP, the poses and the points, as
-        above) or ``"points"`` (the points alone, the IOP and the poses held: no datum and no gauge
+    respond : Respond
+        What responds to the fields' update: ``Respond.ORIENTATION`` (the IOP, the poses and the points, as
+        above) or ``Respond.POINTS`` (the points alone, the IOP and the poses held: no datum and no gauge
         to hold then).
     with_response : bool
         Also return the orientation's response ``J_s dθ`` at each system's observations.
@@ -156,8 +164,9 @@ def fit_grids_jointly(
         With ``with_response``: each system's ``J_s dθ``, so that ``r_s - A_s δ_s - J_s dθ`` is what the step
         leaves of its residuals (the in-sample cost of the step's fit is that of equation 3).
     """
-    if respond not in ("orientation", "points"):
+    if respond not in tuple(Respond):
         raise InputError(f"respond must be 'orientation' or 'points'; got {respond!r}")
+    respond = Respond(respond)
     parts = [_field_part(step, grid) for step in systems]
     matvec, rhs, response = _reduced_system(parts, network, estimate_iop, respond)
     starts = [step.start for step in systems]
@@ -222,7 +231,7 @@ def _reduced_system(parts, network: Network, estimate_iop: bool, respond: str):
     the observations.
     """
     iop_cols = 0 if estimate_iop else 3 * network.n_systems
-    held = slice(network.point_col if respond == "points" else iop_cols, None)
+    held = slice(network.point_col if respond is Respond.POINTS else iop_cols, None)
     J = network.J[:, held]
     w, r = (np.concatenate([getattr(p, a) for p in parts]) for a in ("w", "r"))
     solve_theta, b_theta = _orientation_inverse(J, w, r, network, held)
@@ -235,7 +244,7 @@ def _reduced_system(parts, network: Network, estimate_iop: bool, respond: str):
     Nvv = block_diag([p.Nvv for p in parts], format="csr")
     # the gauge is held only where the orientation, which could carry it, responds
     G = None
-    if respond == "orientation":
+    if respond is Respond.ORIENTATION:
         G = dense_block_diag(
             *(np.sqrt(k) * g for g, k in (_gauge_penalty(p.A, p.xy, p.w, p.iop_px, estimate_iop) for p in parts))
         )

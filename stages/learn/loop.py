@@ -50,12 +50,12 @@ from fluorocal.stages.learn.anderson import Anderson, anderson_step
 from fluorocal.stages.learn.finish import loop_result
 from fluorocal.stages.learn.gauge import gauge_fixed
 from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
-from fluorocal.stages.learn.joint import SystemStep, fit_grids_jointly
+from fluorocal.stages.learn.joint import Respond, SystemStep, fit_grids_jointly
 from fluorocal.stages.learn.knn import fit_knn_field, pool_neighbours, restricted_k_grid
 from fluorocal.stages.learn.network import systems_network
 from fluorocal.stages.learn.nodes import image_sizes
 from fluorocal.stages.learn.order import canonical_order, taken, unpermuted_result
-from fluorocal.stages.learn.params import LearnParams, Scheme
+from fluorocal.stages.learn.params import Acceleration, FieldGauge, LearnParams, Refine, Scheme, Training
 from fluorocal.stages.learn.polynomial import calibrate_polynomial
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
 from fluorocal.stages.learn.robust import SCREEN_NEIGHBOURS, local_screen, misfit_inliers
@@ -67,7 +67,7 @@ logger = logging.getLogger(__name__)
 #: responds: the joint step is linearised afresh at every iteration, so an inexact solve is enough; the beads-alone
 #: step's convergence test reads its steps against the field's uncertainty, which a loose solve would blur
 LOOP_CG_ITERATIONS = 100
-LOOP_CG_TOLERANCE = {"orientation": 1e-3, "points": 1e-6}
+LOOP_CG_TOLERANCE = {Respond.ORIENTATION: 1e-3, Respond.POINTS: 1e-6}
 
 
 @dataclass(frozen=True)
@@ -85,9 +85,9 @@ class _Plan:
     adjuster: Adjuster
     estimate_iop: bool
     smooth: bool
-    refine: str
-    acceleration: str
-    respond: str  # the refinement's first choice of what responds to its field step: "orientation" or "points"
+    refine: Refine
+    acceleration: Acceleration
+    respond: Respond  # the refinement's first choice of what responds to its field step
 
     @property
     def xy(self) -> np.ndarray:
@@ -121,7 +121,7 @@ class _State:
     history: tuple  # of IterationRecord
     updates: tuple = ()  # the last regression's update per system
     trained: np.ndarray | None = None  # shape (N,): the observations the last regression learned from
-    respond: str = "points"  # what responds to the refinement's field step: "orientation" or "points"
+    respond: Respond = Respond.POINTS  # what responds to the refinement's field step
 
 
 def calibrate(
@@ -250,9 +250,10 @@ def _warn_capped(reason: str) -> None:
 def _plan(params: LearnParams, observations, sizes, adjuster: Adjuster, estimate_iop: bool, smooth: bool) -> _Plan:
     rows = tuple(np.flatnonzero(observations.system == s) for s in range(len(sizes)))
     # Anderson and the gridded refinement combine gridded fields: the unsmoothed schemes run without them
-    refine = params.refine if smooth else "none"
-    acceleration = "none" if params.acceleration == "anderson" and not smooth else params.acceleration
-    respond = "orientation" if params.orientation_response else "points"
+    refine = params.refine if smooth else Refine.NONE
+    anderson = params.acceleration is Acceleration.ANDERSON
+    acceleration = Acceleration.NONE if anderson and not smooth else params.acceleration
+    respond = Respond.ORIENTATION if params.orientation_response else Respond.POINTS
     return _Plan(params, observations, rows, sizes, adjuster, estimate_iop, smooth, refine, acceleration, respond)
 
 
@@ -300,7 +301,7 @@ def _iterate(plan: _Plan, state: _State) -> _State:
         step_sigma,
         ks,
     )
-    if plan.acceleration == "anderson" and cost_raised(history):
+    if plan.acceleration is Acceleration.ANDERSON and cost_raised(history):
         anderson = anderson.restarted()
     return _State(
         iteration,
@@ -333,7 +334,7 @@ def _decide(plan: _Plan, state: _State) -> tuple[str, bool, str]:
     )
     if action == "continue":
         return action, converged, reason
-    if state.phase == "knn" and plan.refine != "none":
+    if state.phase == "knn" and plan.refine is not Refine.NONE:
         return "refine", False, ""
     return "stop", converged, reason
 
@@ -350,7 +351,7 @@ def _regress(plan: _Plan, state: _State) -> tuple[tuple, tuple, float, np.ndarra
     is its field update and the orientation's response together (issue 30: read without the response, its
     equation-3 cost was hundreds of times the adjustment's, and the combined cost jumped by orders of magnitude).
     """
-    if state.phase == "grid" and plan.refine == "grid+points":
+    if state.phase == "grid" and plan.refine is Refine.GRID_POINTS:
         updates, memory, sels, responses = _regress_jointly(plan, state)
     else:
         updates, memory, sels = zip(*(_regress_system(plan, state, s) for s in range(len(plan.sizes))))
@@ -374,7 +375,7 @@ def _regress_system(plan: _Plan, state: _State, s: int):
     """
     candidates, sel, cost_cap = _screened(plan, state, s)
     model, mem = _fit(plan, state, s, sel, state.memory[s], cost_cap=cost_cap)
-    if plan.params.training != "local":
+    if plan.params.training is not Training.LOCAL:
         return model, mem, sel
     refit = _explained(plan, state, candidates, model)
     if not np.array_equal(refit, sel):
@@ -388,7 +389,7 @@ def _regress_jointly(plan: _Plan, state: _State):
     sels = [sel for _, sel, _ in screened]
     memory = tuple(_smoothness(plan, state, s, sel, state.memory[s], cap) for s, (_, sel, cap) in enumerate(screened))
     updates, responses = _fit_jointly(plan, state, sels, memory)
-    if plan.params.training == "local":
+    if plan.params.training is Training.LOCAL:
         # the misfit test reads the step's whole fit at the candidates: the field's update and the orientation's
         # response, the latter known at the training rows (and set aside, nil, at the others)
         fits = [_at_rows(c, sel, resp) for (c, _, _), sel, resp in zip(screened, sels, responses)]
@@ -408,7 +409,7 @@ def _at_rows(candidates: np.ndarray, rows: np.ndarray, values: np.ndarray) -> np
 def _screened(plan: _Plan, state: _State, s: int):
     """System ``s``'s candidate observations, those its regression learns from and their out-of-fold cost cap."""
     params, out, rows = plan.params, state.out, plan.rows[s]
-    local = params.training == "local"
+    local = params.training is Training.LOCAL
     sel = rows[state.adj.used[rows]] if local else rows[out.inlier[rows]]
     if len(sel) < params.n_folds:
         raise EstimationError(
@@ -507,7 +508,7 @@ def _fit_jointly(plan: _Plan, state: _State, sels: list, memory: tuple, start=No
     network = systems_network(adj, observations, sels, range(len(sels)), nominal)
     steps = []
     for s, (sel, mem) in enumerate(zip(sels, memory)):
-        t_weight = adj.weight[sel, None] if params.training == "inliers" else 1.0
+        t_weight = adj.weight[sel, None] if params.training is Training.INLIERS else 1.0
         w_obs = t_weight / (adj.sigma0 * observations.sigma_px[sel, :2]) ** 2
         r = state.out.residuals_px[sel]
         base, origin = state.grids[s], None if start is None else start[s].delta_px
@@ -548,7 +549,7 @@ def _update_field(plan: _Plan, state: _State, updates: tuple):
     xy, rows = plan.xy, plan.rows
     if plan.smooth:
         return _update_grids(plan, state, updates, corrections)
-    factor = plan.params.relaxation if plan.acceleration == "overrelax" else 1.0
+    factor = plan.params.relaxation if plan.acceleration is Acceleration.OVERRELAX else 1.0
     pointwise = tuple(f.add(u.scaled(factor)) for f, u in zip(state.pointwise, updates))
     for s, u in enumerate(updates):
         corrections[rows[s]] += factor * u.correction_at(xy[rows[s]])
@@ -561,15 +562,15 @@ def _update_grids(plan: _Plan, state: _State, updates: tuple, corrections: np.nd
     x = np.concatenate([g.delta_px.ravel() for g in state.grids])
     dx = np.concatenate([u.delta_px.ravel() for u in updates])
     anderson = state.anderson
-    if plan.acceleration == "anderson" and state.phase == "knn":
+    if plan.acceleration is Acceleration.ANDERSON and state.phase == "knn":
         mask = np.concatenate([np.repeat(u.support.ravel(), 2) for u in updates])
         x_new, anderson = anderson_step(anderson, x, x + dx, mask)
-    elif plan.acceleration == "overrelax":
+    elif plan.acceleration is Acceleration.OVERRELAX:
         x_new = x + params.relaxation * dx
     else:
         x_new = x + dx
     grids = _split_nodes(state.grids, updates, x_new)
-    if params.field_gauge != "none":
+    if params.field_gauge is not FieldGauge.NONE:
         grids = [gauge_fixed(g, xy[rows[s]], state.adj.iop_px[s], plan.estimate_iop) for s, g in enumerate(grids)]
     for s, g in enumerate(grids):
         corrections[rows[s]] = g.correction_at(xy[rows[s]])

@@ -79,13 +79,71 @@ class Scheme(StrEnum):
 #: the schemes' spellings
 SCHEMES = tuple(s.value for s in Scheme)
 
+
+class Acceleration(StrEnum):
+    """How the kNN phase's fixed-point iteration is stepped (``[learn] acceleration``)."""
+
+    NONE = "none"
+    OVERRELAX = "overrelax"
+    ANDERSON = "anderson"
+
+
+class Refine(StrEnum):
+    """What follows the kNN phase (``[learn] refine``): nothing, the gridded field, or it jointly with the points."""
+
+    NONE = "none"
+    GRID = "grid"
+    GRID_POINTS = "grid+points"
+
+
+class Training(StrEnum):
+    """Which observations each regression learns from (``[learn] training``)."""
+
+    INLIERS = "inliers"
+    LOCAL = "local"
+
+
+class FieldGauge(StrEnum):
+    """What is removed from the fields after every update (``[learn] field_gauge``)."""
+
+    NONE = "none"
+    ORIENTATION = "orientation"
+
+
+#: the learning's switches: each field of :class:`LearnParams` that takes one of an enumeration's values
+SWITCHES = {"acceleration": Acceleration, "refine": Refine, "training": Training, "field_gauge": FieldGauge}
+
+
+def parse_switch(name: str, value) -> StrEnum:
+    """``value`` (an enumeration member or its spelling) as the member of switch ``name``'s enumeration.
+
+    Raises
+    ------
+    InputError
+        ``value`` is none of the enumeration's spellings; the message names ``name`` and lists them.
+
+    Examples
+    --------
+    >>> parse_switch("refine", "grid+points") is Refine.GRID_POINTS
+    True
+    >>> parse_switch("training", "all")
+    Traceback (most recent call last):
+    ...
+    fluorocal.stages.errors.InputError: training must be one of 'inliers', 'local'; got 'all'
+    """
+    kind = SWITCHES[name]
+    if isinstance(value, str) and value in kind._value2member_map_:
+        return kind(value)
+    raise InputError(f"{name} must be one of {', '.join(repr(m.value) for m in kind)}; got {value!r}")
+
+
 #: the values a preset gives the fields left unset (None); explicit values always win
 PRESETS = {
     # the accelerated loop: a few kNN steps, then the gridded field refined jointly with the points
     # (its smoothness prior's order and weight chosen by cross-validation), stopped once the field stops moving
     "recommended": {
-        "acceleration": "anderson",
-        "refine": "grid+points",
+        "acceleration": Acceleration.ANDERSON,
+        "refine": Refine.GRID_POINTS,
         "orientation_response": True,
         "affine_datum": True,
         "smoothness_orders": (2, 3, 4),
@@ -93,14 +151,14 @@ PRESETS = {
         "step_tolerance": 0.05,
         "field_tolerance": 0.5,
         "stall_tolerance": 1e-3,
-        "training": "local",
-        "field_gauge": "orientation",
+        "training": Training.LOCAL,
+        "field_gauge": FieldGauge.ORIENTATION,
         "fast_intermediate": True,
     },
     # Chow et al.'s loop as written: learn from the inliers, plain fixed-point steps, every solve in full
     "paper": {
-        "acceleration": "none",
-        "refine": "none",
+        "acceleration": Acceleration.NONE,
+        "refine": Refine.NONE,
         "orientation_response": False,
         "affine_datum": False,
         "smoothness_orders": (2,),
@@ -108,8 +166,8 @@ PRESETS = {
         "step_tolerance": 0.0,
         "field_tolerance": 0.0,
         "stall_tolerance": 0.0,
-        "training": "inliers",
-        "field_gauge": "none",
+        "training": Training.INLIERS,
+        "field_gauge": FieldGauge.NONE,
         "fast_intermediate": False,
     },
 }
@@ -190,7 +248,7 @@ class LearnParams:
         less than 1 % of its σ. The cost's last changes, a few hundredths of a percent, come from
         inexact inner solves; a weighted sum of squares of ``2n`` residuals fluctuates by about
         ``1/sqrt(n)`` of itself from sample to sample (3 % at 1 000 observations), far above 1e-3.
-    acceleration : str *(preset)*
+    acceleration : Acceleration *(preset)*
         ``"none"`` (the paper's plain fixed-point loop), ``"overrelax"``
         (``Δ += relaxation δ``) or ``"anderson"`` (recommended: Anderson
         acceleration of the kNN phase's fixed-point iteration of the gridded field;
@@ -200,7 +258,7 @@ class LearnParams:
         Step factor of ``"overrelax"`` (default 1.5; 1 is the plain loop).
     anderson_depth : int
         Past iterates Anderson acceleration combines (default 10).
-    refine : str *(preset)*
+    refine : Refine *(preset)*
         ``"none"`` (paper: the kNN only), ``"grid"``: once the kNN
         alternation has converged, continue alternating with the gridded
         least-squares field of :func:`~fluorocal.stages.learn.grid.fit_grid_field`,
@@ -259,7 +317,7 @@ class LearnParams:
         :func:`~fluorocal.stages.learn.joint.fit_grids_jointly`. If a real
         phantom is stretched or sheared as a whole, that error passes into
         the result: set it False then.
-    training : str *(preset)*
+    training : Training *(preset)*
         Which observations each regression learns from. ``"inliers"``: the
         adjustment's inliers (paper). ``"local"`` (recommended): every
         observation the adjustment used, less those the fitted field itself
@@ -272,7 +330,7 @@ class LearnParams:
         shared by their neighbours, which is what the local test uses. With
         ``"local"`` the joint refinement also weights observations by their
         variances only, not their t-weights.
-    field_gauge : str *(preset)*
+    field_gauge : FieldGauge *(preset)*
         ``"orientation"`` (recommended): after every update, remove from each
         system's field its least-squares component (over the observations)
         that the orientation parameters reproduce exactly: an image rotation
@@ -318,11 +376,11 @@ class LearnParams:
 
     Examples
     --------
-    >>> LearnParams().refine, LearnParams(preset="paper").refine
+    >>> str(LearnParams().refine), str(LearnParams(preset="paper").refine)
     ('grid+points', 'none')
     >>> p = LearnParams(preset="paper", max_iterations=5)
-    >>> p.max_iterations, p.training
-    (5, 'inliers')
+    >>> p.max_iterations, p.training is Training.INLIERS
+    (5, True)
     >>> LearnParams(refine="grid").affine_datum
     False
     """
@@ -339,18 +397,18 @@ class LearnParams:
     step_tolerance: float | None = None
     field_tolerance: float | None = None
     stall_tolerance: float | None = None
-    acceleration: str | None = None
+    acceleration: Acceleration | None = None
     relaxation: float = 1.5
     anderson_depth: int = 10
-    refine: str | None = None
+    refine: Refine | None = None
     orientation_response: bool | None = None
     tau_grid_px: tuple = DEFAULT_TAU_GRID_PX
     smoothness_folds: int = 5
     smoothness_orders: tuple[int, ...] | None = None
     refine_iterations: int = 100
     affine_datum: bool | None = None
-    training: str | None = None
-    field_gauge: str | None = None
+    training: Training | None = None
+    field_gauge: FieldGauge | None = None
     outlier_chi2: float = 23.0
     screen_chi2: float = 368.0
     fast_intermediate: bool | None = None
@@ -365,30 +423,26 @@ class LearnParams:
         if self.preset not in PRESETS:
             raise InputError(f"preset must be one of {', '.join(PRESETS)}; got {self.preset!r}")
         values = PRESETS[self.preset]
+        for name in SWITCHES:  # a switch given by its spelling is held as its enumeration's member
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, parse_switch(name, getattr(self, name)))
         refine = self.refine if self.refine is not None else values["refine"]
         for name, value in values.items():
             if getattr(self, name) is None:
                 # the affine datum constrains the joint refinement's point shifts: unset, it follows refine
-                value = value and refine == "grid+points" if name == "affine_datum" else value
+                value = value and refine is Refine.GRID_POINTS if name == "affine_datum" else value
                 object.__setattr__(self, name, value)
 
     def _check_choices(self):
-        if self.acceleration not in ("none", "overrelax", "anderson"):
-            raise InputError(f"acceleration must be 'none', 'overrelax' or 'anderson'; got {self.acceleration!r}")
-        if self.refine not in ("none", "grid", "grid+points"):
-            raise InputError(f"refine must be 'none', 'grid' or 'grid+points'; got {self.refine!r}")
         if not isinstance(self.orientation_response, bool):
             raise InputError(
                 f"orientation_response must be true or false (unquoted); got {self.orientation_response!r}"
             )
-        if self.affine_datum and self.refine != "grid+points":
+        if self.affine_datum and self.refine is not Refine.GRID_POINTS:
             raise InputError(
-                f"affine_datum needs refine='grid+points' (it constrains the point shifts); got refine={self.refine!r}"
+                "affine_datum needs refine='grid+points' (it constrains the point shifts); "
+                f"got refine={self.refine.value!r}"
             )
-        if self.training not in ("inliers", "local"):
-            raise InputError(f"training must be 'inliers' or 'local'; got {self.training!r}")
-        if self.field_gauge not in ("none", "orientation"):
-            raise InputError(f"field_gauge must be 'none' or 'orientation'; got {self.field_gauge!r}")
         object.__setattr__(self, "smoothness_orders", tuple(sorted({int(m) for m in self.smoothness_orders})))
         if not self.smoothness_orders or not set(self.smoothness_orders) <= set(DIFFERENCE_STENCILS):
             raise InputError(

@@ -16,15 +16,16 @@ iteration cap.
 from __future__ import annotations
 
 import numpy as np
+from fluorocal.stages.learn.params import Refine
 
 
 def decide(
-    params, history: tuple, *, n_obs: int, iterations_in_phase: int, refine: str, stall_tolerance: float
+    params, history: tuple, *, n_obs: int, iterations_in_phase: int, refine: Refine, stall_tolerance: float
 ) -> tuple[str, bool, str]:
     """``(action, converged, reason)``: ``"continue"`` or ``"end of phase"``, and why it ended.
 
     ``history``: the :class:`~fluorocal.stages.learn.result.IterationRecord` of every iteration so far;
-    ``refine``: the loop's refinement (``"none"`` for the unsmoothed schemes, whatever ``params`` says);
+    ``refine``: the loop's refinement (``Refine.NONE`` for the unsmoothed schemes, whatever ``params`` says);
     ``stall_tolerance``: ``params.stall_tolerance`` where the loop applies it, else 0 (off).
     """
     last, phase = history[-1], history[-1].phase
@@ -33,7 +34,7 @@ def decide(
     small_step = prev is not None and last.step_px < params.step_tolerance * last.rms_px
     # the kNN phase of the recommended loop is a few steps towards the refinement: the field rules end a phase
     # only once the field has been refined, or when there is no refinement to come
-    field_phase = phase == "grid" or refine == "none"
+    field_phase = phase == "grid" or refine is Refine.NONE
     cost_tolerance = params.tolerance * max(n_obs, 1)
     running = (len(history) - 1, None)
     still_field = field_phase and all(

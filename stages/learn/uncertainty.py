@@ -70,6 +70,7 @@ from fluorocal.stages.learn.blocktri import block_cholesky
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import prior_normal
 from fluorocal.stages.learn.network import linearised_network
+from fluorocal.stages.learn.params import FieldGauge
 from scipy.linalg import blas, lapack, ldl
 from scipy.sparse import bmat, csr_matrix, diags, identity, issparse, vstack
 
@@ -414,13 +415,13 @@ def learned_uncertainty(
 ) -> tuple | None:
     """Each system's :class:`JointUncertainty` after the learning's gridded refinement, or None where undefined.
 
-    Defined when the fields are gauge-fixed (``params.field_gauge == "orientation"``) and the IOP
+    Defined when the fields are gauge-fixed (``params.field_gauge`` ``FieldGauge.ORIENTATION``) and the IOP
     estimated: the recommended loop. ``rows`` per system, ``trained`` ``(N,)`` the observations the
     fields learned from, ``memory`` per system the loop's regression memory (the smoothness prior's
     ``tau_px`` and ``cv.order``); ``nominal_shape_mm`` the design coordinates of ``adj.bead_id``
     (used when ``params.affine_datum`` held the phantom's affine shape).
     """
-    if params.field_gauge != "orientation" or not estimate_iop or any(m.tau_px is None for m in memory):
+    if params.field_gauge is not FieldGauge.ORIENTATION or not estimate_iop or any(m.tau_px is None for m in memory):
         return None
     used = trained & adj.used
     shape = nominal_shape_mm if params.affine_datum else None

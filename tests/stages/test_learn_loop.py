@@ -7,13 +7,15 @@ The field, the kNN regression and their cross-validation: ``test_learn.py``.
 
 from __future__ import annotations
 
+import re
 import warnings
 
 import numpy as np
 import pytest
-from fluorocal.config import params_from_dict
+from fluorocal.config import ConfigError, params_from_dict
 from fluorocal.stages.errors import InputError, NotConvergedWarning
 from fluorocal.stages.learn import LearnParams
+from fluorocal.stages.learn.params import SWITCHES, Acceleration, FieldGauge, Refine, Training
 
 from tests.helpers import rms_modulo_homography
 from tests.stages.ba_synthetic import NOISE_PX, rough_start, truth_observations
@@ -223,7 +225,7 @@ def test_stall_rule_ends_the_refinement_once_the_cost_stops_falling(costs, ends)
     from fluorocal.stages.learn.stopping import decide
 
     params = LearnParams(step_tolerance=0.0, field_tolerance=0.0)
-    run = dict(n_obs=1000, iterations_in_phase=len(costs), refine="grid+points")
+    run = dict(n_obs=1000, iterations_in_phase=len(costs), refine=Refine.GRID_POINTS)
     action, converged, reason = decide(params, _history(costs), stall_tolerance=1e-3, **run)
     assert (action == "end of phase" and converged and "fell by less than 0.001" in reason) == ends, reason
     # off (0, the beads-alone step's and the paper's), it never ends a phase
@@ -312,12 +314,13 @@ def test_presets_set_the_defaults_and_explicit_keys_win():
     assert LearnParams() == params_from_dict(LearnParams, {**recommended, "smoothness_orders": [2, 3, 4]})
     # the paper's loop as written
     paper = LearnParams(preset="paper")
-    assert (paper.acceleration, paper.refine, paper.training, paper.field_gauge) == ("none", "none", "inliers", "none")
+    switches = (paper.acceleration, paper.refine, paper.training, paper.field_gauge)
+    assert switches == (Acceleration.NONE, Refine.NONE, Training.INLIERS, FieldGauge.NONE)
     assert (paper.fast_intermediate, paper.smoothness_orders, paper.max_iterations) == (False, (2,), 30)
     assert (paper.step_tolerance, paper.affine_datum) == (0.0, False)
     # a key given explicitly wins over the preset, even when it equals the other preset's value
     mixed = params_from_dict(LearnParams, {"preset": "paper", "acceleration": "anderson", "max_iterations": 5})
-    assert (mixed.acceleration, mixed.max_iterations, mixed.training) == ("anderson", 5, "inliers")
+    assert (mixed.acceleration, mixed.max_iterations, mixed.training) == (Acceleration.ANDERSON, 5, Training.INLIERS)
     # the affine datum constrains the joint refinement: unset, it follows refine
     assert LearnParams(refine="grid").affine_datum is False
     with pytest.raises(InputError, match="affine_datum"):
@@ -325,6 +328,22 @@ def test_presets_set_the_defaults_and_explicit_keys_win():
     # the scheme owns the smoothing: no such key
     with pytest.raises(InputError, match="key 'smooth': unknown"):
         params_from_dict(LearnParams, {"smooth": False})
+
+
+@pytest.mark.parametrize("name", sorted(SWITCHES))
+def test_a_switch_is_held_as_its_enumerations_member_and_refused_when_misspelt(name):
+    kind = SWITCHES[name]
+    for member in kind:
+        given = params_from_dict(LearnParams, {name: member.value})
+        assert type(getattr(given, name)) is kind and getattr(given, name) is member
+    for default in (LearnParams(), LearnParams(preset="paper")):
+        assert type(getattr(default, name)) is kind
+    # one line naming the key and every spelling it takes, from Python and from the project file
+    spellings = re.escape(", ".join(repr(m.value) for m in kind))
+    with pytest.raises(InputError, match=f"^{name} must be one of {spellings}; got 'Anderson'$"):
+        LearnParams(**{name: "Anderson"})
+    with pytest.raises(ConfigError, match=f"^\\[learn\\] key '{name}': expected one of {spellings}; got 'Anderson'$"):
+        params_from_dict(LearnParams, {name: "Anderson"}, where="[learn] ")
 
 
 def test_unsmoothed_scheme_runs_with_the_default_parameters(simulated):
