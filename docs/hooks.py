@@ -53,7 +53,21 @@ def on_config(config, **kwargs):
         link = package / name
         if not link.is_symlink():
             link.symlink_to(target)
+    config["nav"] = with_benchmark_pages(config["nav"])
     return config
+
+
+def with_benchmark_pages(nav: list) -> list:
+    """``nav`` with every page a benchmark has written (``docs/benchmarks/*.md``) under "Benchmarks", by name.
+
+    The pages are written by the benchmarks themselves (``--write-docs``), so none is listed by hand.
+    """
+    pages = (ROOT / "docs" / "benchmarks").glob("*.md")
+    written = sorted(f"benchmarks/{p.name}" for p in pages if p.name != "index.md")
+    return [
+        {"Benchmarks": ["benchmarks/index.md", *written]} if isinstance(e, dict) and "Benchmarks" in e else e
+        for e in nav
+    ]
 
 
 def on_page_markdown(markdown: str, **kwargs) -> str:

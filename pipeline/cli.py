@@ -6,7 +6,7 @@ Commands:
                           inspect calibration.json: its systems and how the field changes with orientation
   cache clean CONFIG      delete the project's artifact cache
   undistort CALIBRATION INPUT...  undistort frames with a calibration, keeping format and bit depth
-  check CALIBRATION FRAME...  check a calibration with new grid-plate frames (QA: pass, or recalibrate)
+  check CALIBRATION FRAME...  check a calibration with new plate or phantom frames (QA: pass, or recalibrate)
   export CALIBRATION      the calibration for OpenCV, DLTdv/XMALab, MayaCam, mrcal or the paper's formats
   evaluate CONFIG         the paper's held-out protocol on a project: schemes x training sizes, table, plots
   simulate OUTDIR         write a synthetic data set with ground truth and a config

@@ -1,19 +1,28 @@
-r"""`fluorocal check CALIBRATION FRAME...`: does last month's calibration still hold? A grid-plate quality check.
+r"""`fluorocal check CALIBRATION FRAME...`: does last month's calibration still hold? A quality check.
 
 The routine it serves: weekly, and after any service of the C-arm (a new
 intensifier, a moved detector, a software update), take a frame of the
-calibration's grid plate at each orientation in use and check it. Each FRAME
-(a file of one or many frames, or a folder of them) is detected and labelled
-like a calibration frame, renumbered onto the calibration's plate by the
-plate's own manufacturing errors (its fingerprint), and its hole centres are
-corrected with the calibration's field at the frame's orientation (the C-arm
-angles it records, else --orientation, else the orientation named like the
-file, as `fluorocal undistort` chooses). The corrected centres are compared
-with the calibration's self-calibrated plate layout (object_points.csv beside
-the calibration: the nominal lattice plus the plate's estimated errors) by the
-best homography (the plate's pose); what remains is the residual distortion,
-per hole, in px and in mm at the detector (the config's pixel_pitch).
-Scored: the holes where the field is supported.
+calibration's grid plate (or bead phantom) at each orientation in use and check
+it. Each FRAME (a file of one or many frames, or a folder of them) is detected
+and labelled like a calibration frame (the project's [detect], [centroid] and
+[label] tables), and its centres are corrected with the calibration's field at
+the frame's orientation (the C-arm angles it records, else --orientation, else
+the orientation named like the file, as `fluorocal undistort` chooses). What
+the corrected centres are compared with is the calibration's own object
+(object_points.csv beside the calibration):
+
+  grid plate    the holes, renumbered onto the calibration's plate by the
+                plate's own manufacturing errors (its fingerprint), against
+                the self-calibrated layout (the nominal lattice plus the
+                plate's estimated errors) by the best homography (the plate's
+                pose);
+  bead phantom  the labelled beads against their adjusted positions by the
+                best pose of the phantom (a resection with the calibration's
+                principal point and distance held).
+
+What remains is the residual distortion, per hole or bead, in px and in mm at
+the detector (the config's pixel_pitch). Scored: the holes or beads where the
+field is supported.
 
 Tolerances (a frame fails when any is exceeded; override with the options):
 
@@ -27,8 +36,9 @@ Tolerances (a frame fails when any is exceeded; override with the options):
                       tenths of a px; a changed field reaches a px at the rim.
 
 A frame also fails when its plate is not recognised as the calibration's
-(another plate, or a frame of another C-arm), or when fewer than 100 of its
-holes lie where the field is supported. Each frame's row is appended to the
+(another plate, or a frame of another C-arm), when its phantom is not found,
+or when fewer than 100 of its holes (30 of its beads) lie where the field is
+supported. Each frame's row is appended to the
 QA record (--record, default qa_record.csv beside the calibration) and the
 record's trend is drawn beside it (qa_trend.png; for a record X.csv, X_trend.png). Exit 0 when every frame
 passes, 1 when one fails, 2 on bad input (nothing appended).
@@ -46,6 +56,9 @@ import numpy as np
 TOLERANCES_PX = {"rms": 0.1, "p95": 0.25, "max": 1.0}
 #: fewer scored holes than this and the check says nothing
 MIN_HOLES = 100
+#: fewer scored beads than this and the check says nothing: five times the pose's six parameters, and about a
+#: third of the labelled beads of the simulator's 512 px cube frames
+MIN_BEADS = 30
 #: a frame's plate is the calibration's when its fingerprint correlates at least this well, and by this margin
 #: over any other numbering (stages.label.lattice_sequence's own thresholds for renumbering a frame)
 MIN_CORRELATION, MIN_MARGIN = 0.3, 0.1
@@ -60,7 +73,7 @@ RECORD_COLUMNS = [
     "orientation",
     "orbit_deg",
     "tilt_deg",
-    "n_holes",
+    "n_points",
     "rms_px",
     "p95_px",
     "max_px",
@@ -79,12 +92,14 @@ def add_parser(subparsers) -> None:
     """Register the ``check`` subcommand."""
     p = subparsers.add_parser(
         "check",
-        help="check a calibration with new grid-plate frames (QA)",
+        help="check a calibration with new grid-plate or bead-phantom frames (QA)",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("calibration", type=Path, metavar="CALIBRATION", help="calibration.json of a grid-plate run")
-    p.add_argument("frames", nargs="+", type=Path, metavar="FRAME", help="grid-plate frame files or folders of them")
+    p.add_argument("calibration", type=Path, metavar="CALIBRATION", help="calibration.json of a fluorocal run")
+    p.add_argument(
+        "frames", nargs="+", type=Path, metavar="FRAME", help="frame files (or folders of them) of the plate or phantom"
+    )
     p.add_argument("--system", metavar="NAME", help="the system the frames come from (default: the only one)")
     p.add_argument(
         "--orientation",
@@ -122,7 +137,7 @@ def run(args) -> int:
         raise InputError(f"tolerances must be > 0 px; got {tolerances}")
     cal = Calibration.load(args.calibration)
     system = _system(cal, args.system, args.calibration)
-    plate = plate_setup(cal, Path(args.calibration), system)
+    setup = reference_setup(cal, Path(args.calibration), system)
     chosen = None if args.orientation is None else parse_orientation(args.orientation)
     files = expand_inputs(args.frames)
     plan = []  # (file, per-frame orientations): every input checked before any frame is measured
@@ -139,8 +154,8 @@ def run(args) -> int:
     rows = []
     for path, orientations in plan:
         for index, (frame, orientation) in enumerate(zip(_read(path), orientations)):
-            result = check_frame(frame, cal, system, orientation, plate, tolerances)
-            rows.append(_row(now, args.calibration, cal, system, path, index, orientation, result, plate, tolerances))
+            result = check_frame(frame, cal, system, orientation, setup, tolerances)
+            rows.append(_row(now, args.calibration, cal, system, path, index, orientation, result, setup, tolerances))
             (log.info if result.passed else log.warning)("%s[%d]: %s", path.name, index, result.summary())
     record = args.record or Path(args.calibration).with_name("qa_record.csv")
     append_record(record, rows)
@@ -178,109 +193,258 @@ def _describe(orientation) -> str:
 
 
 @dataclass(frozen=True)
+class Tables:
+    """The project's ``[detect]``, ``[centroid]`` and ``[label]`` tables as parameters, and the system's geometry.
+
+    A later frame is detected, centroided and labelled as the calibration's own frames were.
+    """
+
+    detect: object
+    centroid: object
+    label: object
+    pixel_pitch_mm: float
+    source_image_distance_mm: float
+
+    def labels(self, frame, phantom):
+        """The frame's labelled beads or holes (:class:`~fluorocal.stages.label.Labels`)."""
+        from dataclasses import replace
+
+        from fluorocal.stages.centroid import centroid_beads
+        from fluorocal.stages.detect import detect_beads, estimate_appearance
+        from fluorocal.stages.label import label_sequence
+
+        detect = estimate_appearance([frame], self.detect)
+        centroids = centroid_beads(frame, detect_beads(frame, detect), self.centroid)
+        size = (frame.image.shape[1], frame.image.shape[0])
+        params = replace(
+            self.label,
+            source_image_distance_mm=self.source_image_distance_mm,
+            pixel_pitch_mm=self.pixel_pitch_mm,
+            image_size_px=size,
+        )
+        return label_sequence([centroids], phantom, params)[0]
+
+
+@dataclass(frozen=True)
 class PlateSetup:
-    """What a frame is checked against: the plate (lattice, pitch), its self-calibrated layout, the geometry.
+    """What a grid-plate frame is checked against: the plate (lattice, pitch), its self-calibrated layout.
+
+    Its residual is what the best homography (the plate's pose) leaves of the corrected centres.
 
     Attributes
     ----------
+    tables : Tables
     lattice : str
         ``"hex"`` or ``"square"``.
     pitch_mm : float
-    pixel_pitch_mm : float
-        At the detector (the config's ``pixel_pitch``): px -> mm.
-    source_image_distance_mm : float
     ij : (N, 2) int64 ndarray
         Lattice index of each layout hole.
     layout_mm : (N, 2) float64 ndarray, mm
         The plate's holes as calibrated: nominal + estimated error.
     """
 
+    tables: Tables
     lattice: str
     pitch_mm: float
-    pixel_pitch_mm: float
-    source_image_distance_mm: float
     ij: np.ndarray
     layout_mm: np.ndarray
 
+    noun = "holes"
+    min_points = MIN_HOLES
+    not_found = "no grid plate found"
 
-def plate_setup(cal, calibration: Path, system: str) -> PlateSetup:
-    """The plate a calibration was made with: its config's lattice and geometry, its layout (object_points.csv).
+    def labels(self, frame):
+        from fluorocal.stages.artifacts import Phantom
+
+        empty = np.empty(0, np.int64), np.empty((0, 3)), np.empty(0), np.empty(0, str)
+        return self.tables.labels(frame, Phantom(*empty, self.lattice, self.pitch_mm))
+
+    def matched(self, labels):
+        """``(xy_px, layout_mm)`` of the holes renumbered onto the layout by the plate's fingerprint, or why not."""
+        from fluorocal.stages.label.lattice import lattice_index, lattice_xyz_mm
+        from fluorocal.stages.label.lattice_sequence import Fingerprint, fingerprint, match_fingerprints
+
+        nominal = lattice_xyz_mm(self.ij, self.lattice, self.pitch_mm)[:, :2]
+        reference = Fingerprint(self.ij, (self.layout_mm - nominal) / self.pitch_mm)
+        M, t, corr, margin = match_fingerprints(fingerprint(labels, self.lattice), reference, self.lattice)[:4]
+        if not (corr >= MIN_CORRELATION and margin >= MIN_MARGIN):
+            return (
+                f"the plate is not the calibration's (fingerprint correlation {corr:.2f}, margin {margin:.2f}; "
+                f"at least {MIN_CORRELATION} and {MIN_MARGIN} needed): another plate, or another C-arm's frame"
+            )
+        where = {tuple(v): k for k, v in enumerate(self.ij)}
+        ij = lattice_index(labels.bead_id) @ np.asarray(M).T + np.asarray(t)
+        pairs = [(i, where[key]) for i, key in enumerate(map(tuple, ij)) if key in where]
+        if len(pairs) < MIN_HOLES:
+            return f"only {len(pairs)} of the frame's holes are in the calibration's layout (at least {MIN_HOLES})"
+        mine, theirs = np.array(pairs).T
+        return labels.xy_px[mine], self.layout_mm[theirs]
+
+    def residual(self, layout_mm: np.ndarray, ideal_px: np.ndarray, iop_px) -> np.ndarray:
+        """What the best homography from the layout leaves of the corrected centres ``(n, 2)``, px."""
+        from fluorocal.stages.geometry import homography_fit
+
+        return homography_fit(layout_mm, ideal_px)[1]
+
+
+@dataclass(frozen=True)
+class PhantomSetup:
+    """What a bead-phantom frame is checked against: the phantom's beads as the calibration adjusted them.
+
+    Its residual is what the best pose of the phantom (a resection, the calibration's IOP held) leaves of the
+    corrected centres: a 3D phantom's beads at their calibrated positions fix the pose with 6 parameters, where a
+    plate's homography takes 8.
+
+    Attributes
+    ----------
+    tables : Tables
+    phantom : Phantom
+        The design (markers and beads) the frames are labelled with.
+    ids : (N,) int64 ndarray
+        Bead ids of the calibrated beads (object_points.csv).
+    xyz_mm : (N, 3) float64 ndarray, mm
+        Their adjusted positions.
+    """
+
+    tables: Tables
+    phantom: object
+    ids: np.ndarray
+    xyz_mm: np.ndarray
+
+    noun = "beads"
+    min_points = MIN_BEADS
+    not_found = "no phantom found"
+
+    def labels(self, frame):
+        return self.tables.labels(frame, self.phantom)
+
+    def matched(self, labels):
+        """``(xy_px, xyz_mm)`` of the frame's labelled beads that the calibration adjusted, or why not."""
+        where = {int(b): k for k, b in enumerate(self.ids)}
+        pairs = [(i, where[int(b)]) for i, b in enumerate(labels.bead_id) if int(b) in where]
+        if len(pairs) < MIN_BEADS:
+            return f"only {len(pairs)} of the frame's beads are among the calibration's (at least {MIN_BEADS})"
+        mine, theirs = np.array(pairs).T
+        return labels.xy_px[mine], self.xyz_mm[theirs]
+
+    def residual(self, xyz_mm: np.ndarray, ideal_px: np.ndarray, iop_px) -> np.ndarray:
+        """What the best pose leaves of the corrected centres ``(n, 2)``, px: OpenCV's resection, IOP held."""
+        return resection_residual(xyz_mm, ideal_px, iop_px)
+
+
+def resection_residual(xyz_mm: np.ndarray, ideal_px: np.ndarray, iop_px) -> np.ndarray:
+    """``ideal - projection`` ``(n, 2)`` px at the least-squares pose of points ``xyz_mm`` seen at ``ideal_px``.
+
+    The pinhole of ``iop_px`` ``(xp, yp, c)`` is held; the pose starts from OpenCV's SQPnP and is refined by
+    Levenberg-Marquardt (``cv2.solvePnPRefineLM``) on the reprojection error.
+
+    Examples
+    --------
+    >>> from fluorocal.stages.geometry import project
+    >>> rng = np.random.default_rng(0)
+    >>> xyz = rng.uniform(-50, 50, (40, 3))
+    >>> q, source, iop = np.array([0.99, 0.1, -0.05, 0.02]), np.array([5.0, -3.0, -900.0]), (256.0, 250.0, 2200.0)
+    >>> seen = project(xyz, q / np.linalg.norm(q), source, np.array(iop))
+    >>> float(np.abs(resection_residual(xyz, seen, iop)).max()) < 1e-6
+    True
+    """
+    import cv2
+    from fluorocal.stages.geometry import camera_matrix
+
+    obj, img = np.ascontiguousarray(xyz_mm, np.float64), np.ascontiguousarray(ideal_px, np.float64)
+    K = camera_matrix(iop_px)
+    _, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, None, rvec, tvec)
+    return img - cv2.projectPoints(obj, rvec, tvec, K, None)[0].reshape(-1, 2)
+
+
+def reference_setup(cal, calibration: Path, system: str):
+    """What ``system``'s later frames are checked against: a :class:`PlateSetup` or a :class:`PhantomSetup`.
+
+    Read from the calibration's project config (its phantom and tables, the system's geometry) and the object
+    points written beside the calibration.
 
     Raises
     ------
     InputError
-        Not a grid-plate calibration, or its config or layout cannot be read (naming the file).
+        A calibration without a field to check, or its config or object points cannot be read (naming the file).
     """
-    from fluorocal.config import ConfigError, load_config
+    from fluorocal.config import ConfigError, load_config, params_from_dict
+    from fluorocal.stages.centroid import CentroidParams
+    from fluorocal.stages.detect import DetectParams
     from fluorocal.stages.errors import InputError
-    from fluorocal.stages.io import OBJECT_POINTS, read_table
+    from fluorocal.stages.io import OBJECT_POINTS, read_phantom, read_table
+    from fluorocal.stages.label import LabelParams
     from fluorocal.stages.label.lattice import lattice_index
 
-    if cal.meta.get("scheme") != "plate":
-        raise InputError(
-            f"{calibration}: not a grid-plate calibration (scheme {cal.meta.get('scheme')!r}); "
-            "fluorocal check needs the plate's self-calibrated layout"
-        )
+    if cal.meta.get("scheme") == "none":
+        raise InputError(f"{calibration}: scheme 'none' has no field to check; check a calibration that corrects")
     config_path = Path(str(cal.meta.get("config", "")))
     try:
         config = load_config(config_path, writable=False)
     except (ConfigError, OSError) as exc:
-        raise InputError(f"{calibration}: cannot read its project config {config_path} for the plate ({exc})") from None
-    layout_path = calibration.with_name("object_points.csv")
-    if not layout_path.is_file():
-        raise InputError(
-            f"{layout_path}: missing; the plate's layout is written beside the calibration by fluorocal run"
-        )
-    table = read_table(layout_path, OBJECT_POINTS)
+        raise InputError(f"{calibration}: cannot read its project config {config_path} ({exc})") from None
+    points_path = calibration.with_name("object_points.csv")
+    if not points_path.is_file():
+        raise InputError(f"{points_path}: missing; fluorocal run writes the object points beside the calibration")
+    table = read_table(points_path, OBJECT_POINTS)
     geometry = next((s for s in config.systems if s.name == system), None)
     if geometry is None:
         raise InputError(f"{config_path}: has no system {system!r}, which {calibration} was calibrated with")
-    return PlateSetup(
-        config.phantom.lattice,
-        config.phantom.pitch_mm,
-        geometry.pixel_pitch_mm,
-        geometry.source_image_distance_mm,
-        lattice_index(np.asarray(table["id"], np.int64)),
-        np.column_stack([table["x"], table["y"]]),
-    )
+    where = f"{config_path.name}: "
+    params = [
+        params_from_dict(cls, config.stage_params.get(section, {}), where=f"{where}[{section}] ")
+        for cls, section in ((DetectParams, "detect"), (CentroidParams, "centroid"), (LabelParams, "label"))
+    ]
+    tables = Tables(*params, geometry.pixel_pitch_mm, geometry.source_image_distance_mm)
+    ids = np.asarray(table["id"], np.int64)
+    ph = config.phantom
+    if ph.lattice:
+        layout = np.column_stack([table["x"], table["y"]])
+        return PlateSetup(tables, ph.lattice, ph.pitch_mm, lattice_index(ids), layout)
+    xyz = np.column_stack([table["x"], table["y"], table["z"]])
+    return PhantomSetup(tables, read_phantom(ph.file), ids, xyz)
 
 
 @dataclass(frozen=True)
 class CheckResult:
     """One frame's check: residual figures (px; NaN when not measured), the verdict and why."""
 
-    n_holes: int
+    n_points: int
     rms_px: float
     p95_px: float
     max_px: float
     passed: bool
     reason: str
+    noun: str = "holes"
 
     def summary(self) -> str:
-        figures = f"{self.n_holes} holes, RMS {self.rms_px:.3f} px, P95 {self.p95_px:.3f} px, max {self.max_px:.3f} px"
+        figures = (
+            f"{self.n_points} {self.noun}, RMS {self.rms_px:.3f} px, P95 {self.p95_px:.3f} px, max {self.max_px:.3f} px"
+        )
         return (
             ("pass: " if self.passed else "FAIL: ")
-            + (figures if self.n_holes else "")
-            + (f" ({self.reason})" if self.reason and self.n_holes else self.reason)
+            + (figures if self.n_points else "")
+            + (f" ({self.reason})" if self.reason and self.n_points else self.reason)
         )
 
 
-def check_frame(frame, cal, system: str, orientation, plate: PlateSetup, tolerances: dict) -> CheckResult:
-    """Detect, label and renumber a frame's holes; correct them; the residual against the layout, judged."""
-    from fluorocal.stages.geometry import homography_fit
-
-    labels = _labels(frame, plate)
+def check_frame(frame, cal, system: str, orientation, setup, tolerances: dict) -> CheckResult:
+    """Detect and label a frame's holes or beads, match them to the calibration's; correct; the residual, judged."""
+    labels = setup.labels(frame)
     if not labels.ok:
-        return _failed(f"no grid plate found: {labels.reason}")
-    matched = _on_layout(labels, plate)
+        return _failed(f"{setup.not_found}: {labels.reason}")
+    matched = setup.matched(labels)
     if isinstance(matched, str):
         return _failed(matched)
-    xy, layout = matched
+    xy, reference = matched
     field = cal.field(system, orientation)
     supported = field.support_at(xy)
-    if supported.sum() < MIN_HOLES:
-        return _failed(f"only {int(supported.sum())} holes where the field is supported (at least {MIN_HOLES})")
-    residual = homography_fit(layout[supported], field.undistort_points(xy[supported]))[1]
+    n = int(supported.sum())
+    if n < setup.min_points:
+        return _failed(f"only {n} {setup.noun} where the field is supported (at least {setup.min_points})")
+    ideal = field.undistort_points(xy[supported])
+    residual = setup.residual(reference[supported], ideal, cal.systems[system].iop_px)
     length = np.linalg.norm(residual, axis=1)
     figures = {
         "rms": float(np.sqrt(np.mean(residual**2))),
@@ -289,7 +453,7 @@ def check_frame(frame, cal, system: str, orientation, plate: PlateSetup, toleran
     }
     over = [f"{k.upper()} {v:.3f} px > {tolerances[k]:g} px" for k, v in figures.items() if not v <= tolerances[k]]
     reason = "; ".join(over) + ("" if not over else ": the field no longer holds at this orientation")
-    return CheckResult(int(supported.sum()), figures["rms"], figures["p95"], figures["max"], not over, reason)
+    return CheckResult(n, figures["rms"], figures["p95"], figures["max"], not over, reason, setup.noun)
 
 
 def _failed(reason: str) -> CheckResult:
@@ -297,56 +461,15 @@ def _failed(reason: str) -> CheckResult:
     return CheckResult(0, nan, nan, nan, False, reason)
 
 
-def _labels(frame, plate: PlateSetup):
-    """The frame's holes, detected, centroided and labelled as a calibration frame's are."""
-    from fluorocal.stages.artifacts import Phantom
-    from fluorocal.stages.centroid import CentroidParams, centroid_beads
-    from fluorocal.stages.detect import DetectParams, detect_beads, estimate_appearance
-    from fluorocal.stages.label import LabelParams, label_sequence
-
-    detect = estimate_appearance([frame], DetectParams())
-    centroids = centroid_beads(frame, detect_beads(frame, detect), CentroidParams())
-    phantom = Phantom(
-        np.empty(0, np.int64), np.empty((0, 3)), np.empty(0), np.empty(0, str), plate.lattice, plate.pitch_mm
-    )
-    size = (frame.image.shape[1], frame.image.shape[0])
-    params = LabelParams(
-        source_image_distance_mm=plate.source_image_distance_mm, pixel_pitch_mm=plate.pixel_pitch_mm, image_size_px=size
-    )
-    return label_sequence([centroids], phantom, params)[0]
-
-
-def _on_layout(labels, plate: PlateSetup):
-    """``(xy_px, layout_mm)`` of the frame's holes renumbered onto the layout by the plate's fingerprint, or why not."""
-    from fluorocal.stages.label.lattice import lattice_index, lattice_xyz_mm
-    from fluorocal.stages.label.lattice_sequence import Fingerprint, fingerprint, match_fingerprints
-
-    nominal = lattice_xyz_mm(plate.ij, plate.lattice, plate.pitch_mm)[:, :2]
-    reference = Fingerprint(plate.ij, (plate.layout_mm - nominal) / plate.pitch_mm)
-    M, t, corr, margin = match_fingerprints(fingerprint(labels, plate.lattice), reference, plate.lattice)[:4]
-    if not (corr >= MIN_CORRELATION and margin >= MIN_MARGIN):
-        return (
-            f"the plate is not the calibration's (fingerprint correlation {corr:.2f}, margin {margin:.2f}; "
-            f"at least {MIN_CORRELATION} and {MIN_MARGIN} needed): another plate, or another C-arm's frame"
-        )
-    where = {tuple(v): k for k, v in enumerate(plate.ij)}
-    ij = lattice_index(labels.bead_id) @ np.asarray(M).T + np.asarray(t)
-    pairs = [(i, where[key]) for i, key in enumerate(map(tuple, ij)) if key in where]
-    if len(pairs) < MIN_HOLES:
-        return f"only {len(pairs)} of the frame's holes are in the calibration's layout (at least {MIN_HOLES})"
-    mine, theirs = np.array(pairs).T
-    return labels.xy_px[mine], plate.layout_mm[theirs]
-
-
 # --- the record ---------------------------------------------------------------------------------------------
 
 
-def _row(now, calibration, cal, system, path, index, orientation, result, plate, tolerances) -> list:
+def _row(now, calibration, cal, system, path, index, orientation, result, setup, tolerances) -> list:
     angles = orientation if isinstance(orientation, dict) else {}
     found = next((o for o in cal.systems[system].orientations if o.name == orientation), None)
     orbit = angles.get("orbit", getattr(found, "orbit_deg", None))
     tilt = angles.get("tilt", getattr(found, "tilt_deg", None))
-    mm = plate.pixel_pitch_mm
+    mm = setup.tables.pixel_pitch_mm
     return [
         now,
         Path(calibration).name,
@@ -357,7 +480,7 @@ def _row(now, calibration, cal, system, path, index, orientation, result, plate,
         _describe(orientation) or "the one field",
         "" if orbit is None else orbit,
         "" if tilt is None else tilt,
-        result.n_holes,
+        result.n_points,
         result.rms_px,
         result.p95_px,
         result.max_px,

@@ -181,8 +181,10 @@ SPELLED = ("scheme", "acceleration", "refine", "training", "field_gauge", "respo
 
 
 def _scheme_spellings(text: str, words: tuple[str, ...] = ("scheme",)) -> list[int]:
-    """Lines where ``text`` decodes a spelling: compares a value named after one of ``words`` with a literal, or
-    splits it."""
+    """Lines where ``text`` decodes a spelling: compares a value named after a word of ``words`` with a literal.
+
+    Or splits it, or asks whether it starts or ends with a text. ``words`` default to the scheme alone.
+    """
     found = []
 
     def named(node) -> bool:
@@ -200,8 +202,10 @@ def _scheme_spellings(text: str, words: tuple[str, ...] = ("scheme",)) -> list[i
 
 
 def test_the_scheme_and_the_switches_are_decoded_in_one_place():
-    """Only their enumerations (:mod:`fluorocal.stages.learn.params`) read the scheme's and the switches' spellings;
-    the rest compares members or asks the value what it does."""
+    """Only their enumerations (:mod:`fluorocal.stages.learn.params`) read the scheme's and the switches' spellings.
+
+    The rest compares members or asks the value what it does.
+    """
     home = STAGES / "learn" / "params.py"
     found = {
         name: lines
@@ -221,5 +225,7 @@ def test_the_scheme_check_sees_the_decodings_the_issue_names():
         "d = scheme.polynomial or setup.scheme.corrects or phase == 'knn'\n"
     )
     assert _scheme_spellings(decodings) == [1, 2, 3, 4]
-    switches = 'if params.refine != "none": pass\nlocal = plan.params.training == "local"\nx = params.refine is Refine.NONE\n'
+    switches = (
+        'if params.refine != "none": pass\nlocal = plan.params.training == "local"\nx = params.refine is Refine.NONE\n'
+    )
     assert _scheme_spellings(switches, SPELLED) == [1, 2]

@@ -1,8 +1,10 @@
-"""Issue 32, the quality check: `fluorocal check CALIBRATION FRAME...` on later grid-plate frames.
+"""Issue 32, the quality check: `fluorocal check CALIBRATION FRAME...` on later grid-plate or bead-phantom frames.
 
 On the real ARCADIS frames (the calibration's own, taken as the "later" frames: no others exist) every
 calibrated orientation passes; the tilt-60 frame checked against the centred field fails (the field changes by
-0.43 px RMS between the two orientations); a simulated frame of another C-arm and plate fails, saying why.
+0.43 px RMS between the two orientations); a simulated frame of another C-arm and plate fails, saying why. On
+the shared simulated biplanar bead project, system A's frame passes A's calibration and B's frame (another
+C-arm's distortion, the same phantom) fails it.
 """
 
 from __future__ import annotations
@@ -51,15 +53,33 @@ def test_the_record_is_appended_and_a_foreign_csv_refused(tmp_path):
     assert (tmp_path / "other.csv").read_text() == "a,b\n1,2\n"
 
 
-def test_a_calibration_without_a_plate_is_bad_input(tmp_path, capsys):
+def test_a_calibration_without_its_project_is_bad_input(tmp_path, capsys):
     calibration = tmp_path / "cal" / "calibration.json"
     calibration.parent.mkdir()
     orientation_calibration().save(calibration)
     frame = tmp_path / "f.tif"
     frame.write_bytes(b"")
     assert _check(calibration, frame, record=tmp_path / "qa.csv", options=["--system", "A"]) == 2
-    assert "not a grid-plate calibration" in capsys.readouterr().err and not (tmp_path / "qa.csv").exists()
+    assert "cannot read its project config" in capsys.readouterr().err and not (tmp_path / "qa.csv").exists()
     assert _check(calibration, frame, record=tmp_path / "qa.csv", options=["--tol-rms", "0"]) == 2
+
+
+def test_a_bead_phantom_frame_passes_its_systems_calibration_and_another_c_arms_fails(calibrated_project, tmp_path):
+    calibration, frames, record = (
+        calibrated_project / "out" / "calibration.json",
+        calibrated_project / "frames",
+        tmp_path / "qa.csv",
+    )
+    own = _check(calibration, frames / "A" / "frame_000.tif", record=record, options=["--system", "A"])
+    other = _check(calibration, frames / "B" / "frame_000.tif", record=record, options=["--system", "A"])
+    mine, theirs = _rows(record)
+    assert (own, other) == (0, 1) and (mine["result"], theirs["result"]) == ("pass", "fail")
+    # on its own frame the centroids' noise alone: measured 0.024 px RMS over 247 beads (bounds about 2x)
+    assert float(mine["rms_px"]) < 0.05 and float(mine["p95_px"]) < 0.1 and int(mine["n_points"]) > 200
+    # B's distortion is not A's: measured 0.36 px RMS, 1.52 px at most
+    assert float(theirs["rms_px"]) > 0.2 and "no longer holds" in theirs["reason"]
+    # the mm at the detector are the px at the config's pitch (0.5 mm)
+    assert float(mine["rms_mm"]) == pytest.approx(0.5 * float(mine["rms_px"]), abs=1e-6)  # the record keeps 6 decimals
 
 
 def test_the_defaults_are_stated_in_the_help(capsys):
@@ -82,7 +102,7 @@ def test_real_frames_pass_at_their_orientation_and_fail_at_the_wrong_one(arcadis
     rows = _rows(record)
     assert [r["file"] for r in rows] == sorted(GRID) and all(r["result"] == "pass" for r in rows)
     # in sample: about 0.02 px per component, well inside the 0.1 px tolerance; mm = px x 0.21 mm
-    assert all(float(r["rms_px"]) < 0.05 and int(r["n_holes"]) > 3000 for r in rows)
+    assert all(float(r["rms_px"]) < 0.05 and int(r["n_points"]) > 3000 for r in rows)
     assert all(abs(float(r["rms_mm"]) - 0.21 * float(r["rms_px"])) < 1e-5 for r in rows)
     assert (tmp_path / "qa_trend.png").stat().st_size > 0
     # the centred field on the tilt-60 frame: the field moved by 0.4 px between them, the check fails
