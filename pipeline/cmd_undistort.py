@@ -24,7 +24,9 @@ calibrated at orientations with C-arm angles, each frame's recorded angles
 choose or interpolate its field: a file's PositionerPrimaryAngle (orbit) and
 PositionerSecondaryAngle (tilt), or, for a rotational run (PositionerMotion
 DYNAMIC), each frame's from the per-frame functional groups or from
-PositionerPrimary/SecondaryAngleIncrement; the Derivation Description records
+PositionerPrimary/SecondaryAngleIncrement (one value: the change per frame;
+one per frame: each frame's offset from the start angles, as DICOM PS3.3
+C.8.7.5.1.3 says); the Derivation Description records
 the angles used, and a frame beyond the calibrated angles is refused, naming
 the frame and the calibrated range. A file without angles: the system's one
 field, or the orientation named like the file's stem.

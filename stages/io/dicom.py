@@ -75,16 +75,19 @@ def frame_angles_deg(path: Path) -> tuple:
     In order of preference: the per-frame functional groups' Positioner Position Sequence (enhanced
     XA: ``PositionerPrimaryAngle``/``PositionerSecondaryAngle`` per frame), the shared functional
     groups' (one for every frame); for a rotational run (``PositionerMotion`` ``DYNAMIC``, several
-    frames), the start angles plus the running sum of ``PositionerPrimaryAngleIncrement`` and
-    ``PositionerSecondaryAngleIncrement`` (one increment per frame, each the change since the frame
-    before; the first is usually 0), or None per frame without them; else the file's angles
-    (:func:`positioner_angles_deg`) for every frame.
+    frames), the start angles (``PositionerPrimaryAngle``, ``PositionerSecondaryAngle``) moved by
+    ``PositionerPrimaryAngleIncrement`` and ``PositionerSecondaryAngleIncrement`` as DICOM PS3.3
+    C.8.7.5.1.3 defines them: one value is the average change per frame (frame ``k`` at
+    ``start + k * increment``), one value per frame is each frame's offset from the start angles
+    (frame ``k`` at ``start + increment[k]``; a vector of absolute angles with start angles 0 reads
+    the same), or None per frame without them; else the file's angles (:func:`positioner_angles_deg`)
+    for every frame.
 
     Raises
     ------
     InputError
         The file is not readable DICOM; an angle is not a number within ±180°; increments or per-frame
-        items that are not one per frame.
+        items that are not one per frame (increments: one value, or one per frame).
     """
     import pydicom
 
@@ -109,9 +112,12 @@ def frame_angles_deg(path: Path) -> tuple:
         columns = []
         for axis, step in zip(("Primary", "Secondary"), steps):
             values = [_angle(v, f"Positioner{axis}AngleIncrement", path) for v in _values(step)]
-            if len(values) != n:
-                raise InputError(f"{path}: Positioner{axis}AngleIncrement has {len(values)} value(s) for {n} frames")
-            columns.append(np.cumsum(values))
+            if len(values) not in (1, n):
+                raise InputError(
+                    f"{path}: Positioner{axis}AngleIncrement has {len(values)} values for {n} frames; "
+                    "DICOM allows one (the change per frame) or one per frame (each frame's offset from the start)"
+                )
+            columns.append(values[0] * np.arange(n) if len(values) == 1 else np.asarray(values))
         out = [(start[0] + float(a), start[1] + float(b)) for a, b in zip(*columns)]
         for orbit, tilt in out:
             _angle(orbit, "PositionerPrimaryAngle + increments", path)

@@ -18,6 +18,7 @@ from fluorocal.cli import main
 from fluorocal.config import load_config
 from fluorocal.orientations import frame_orientations
 from fluorocal.run import frame_units
+from fluorocal.stages.errors import InputError
 from fluorocal.stages.geometry import homography_fit
 from fluorocal.stages.io import read_frames
 from fluorocal.stages.io.dicom import frame_angles_deg
@@ -98,12 +99,44 @@ def _run_file(files, path: Path, tilts, how: str) -> Path:
             item.PositionerPositionSequence = [position]
             items.append(item)
         ds.PerFrameFunctionalGroupsSequence = items
-    else:  # the start angles, then each frame's change since the one before
+    else:  # the start angles, then each frame's offset from them (DICOM PS3.3 C.8.7.5.1.3)
         ds.PositionerPrimaryAngle, ds.PositionerSecondaryAngle = 0, tilts[0]
         ds.PositionerPrimaryAngleIncrement = [0] * len(tilts)
-        ds.PositionerSecondaryAngleIncrement = [0] + list(np.diff(tilts))
+        ds.PositionerSecondaryAngleIncrement = [t - tilts[0] for t in tilts]
     ds.save_as(path, enforce_file_format=True)
     return path
+
+
+def _header(path: Path, start, primary, secondary, n: int = 4) -> Path:
+    """A header-only rotational run: ``n`` frames, start angles ``start``, the two increments as given."""
+    from pydicom.dataset import FileDataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, XRayAngiographicImageStorage, generate_uid
+
+    meta = FileMetaDataset()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = XRayAngiographicImageStorage, generate_uid()
+    ds = FileDataset(str(path), {}, file_meta=meta, preamble=b"\0" * 128)
+    ds.NumberOfFrames, ds.PositionerMotion = n, "DYNAMIC"
+    ds.PositionerPrimaryAngle, ds.PositionerSecondaryAngle = start
+    ds.PositionerPrimaryAngleIncrement, ds.PositionerSecondaryAngleIncrement = primary, secondary
+    ds.save_as(path, enforce_file_format=True)
+    return path
+
+
+def test_angle_increments_read_as_the_dicom_standard_defines_them(tmp_path):
+    """DICOM PS3.3 C.8.7.5.1.3's two forms of the increments, and the absolute angles it permits.
+
+    One value is the average change per frame; one per frame, each frame's offset from the start angles (not the
+    change since the frame before); a vector of absolute angles with start angles 0 reads the same.
+    """
+    per_frame = _header(tmp_path / "a.dcm", (10, -5), 2.5, -1.0)
+    assert frame_angles_deg(per_frame) == ((10.0, -5.0), (12.5, -6.0), (15.0, -7.0), (17.5, -8.0))
+    offsets = _header(tmp_path / "b.dcm", (10, -5), [0, 5, 10, 20], [0, 0, 1, 1])
+    assert frame_angles_deg(offsets) == ((10.0, -5.0), (15.0, -5.0), (20.0, -4.0), (30.0, -4.0))
+    absolute = _header(tmp_path / "c.dcm", (0, 0), [10, 15, 20, 30], [-5, -5, -4, -4])
+    assert frame_angles_deg(absolute) == frame_angles_deg(offsets)
+    with pytest.raises(InputError, match=r"d\.dcm: PositionerPrimaryAngleIncrement has 2 values for 4 frames"):
+        frame_angles_deg(_header(tmp_path / "d.dcm", (0, 0), [1, 2], [0, 0]))
 
 
 def test_simulate_writes_the_c_arm_angles(rotational):
