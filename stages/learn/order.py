@@ -4,11 +4,14 @@ Everything downstream of the stage's entry depends on the order of the observati
 cross-validation's shuffled folds draw from the rows' positions, KD-tree queries break distance ties
 by position, floating-point sums accumulate in row order, the local screen keeps the first of equals.
 Each is harmless alone, yet the alternation amplifies them: the same observations listed in another
-order gave another calibration (issue 30). :func:`canonical_order` sorts the rows by
-``(system, exposure, bead id)`` (then by the coordinates, so that even duplicated keys have one
-order), the learning runs on the sorted rows, and :func:`unpermuted_result` hands every per-observation
-array back in the caller's order. The systems keep their order: it is meaningful (the first system is
-the biplanar reference that the others' relative orientation is to).
+order gave another calibration (issue 30). :func:`canonical_order` sorts the rows by system, exposure
+and the measured coordinates (then by bead id, so that even duplicated coordinates have one order),
+the learning runs on the sorted rows, and :func:`unpermuted_result` hands every per-observation
+array back in the caller's order. The bead ids are names, not data: sorted by them, a phantom whose
+beads were numbered otherwise (one bead renamed) gave other rows, and the loop another stopping point
+(object points 0.01 mm apart); sorted by where the beads were seen, it gives the same calibration. The
+systems keep their order: it is meaningful (the first system is the biplanar reference that the others'
+relative orientation is to).
 """
 
 from __future__ import annotations
@@ -23,15 +26,16 @@ _ADJUSTMENT_ROWS = ("residual_px", "standardized_residual", "redundancy", "weigh
 
 
 def canonical_order(observations: Observations) -> np.ndarray:
-    """The permutation ``(N,)`` that sorts the rows by system, exposure, bead id, then x and y.
+    """The permutation ``(N,)`` that sorts the rows by system, exposure, x and y, then bead id.
 
     Examples
     --------
-    >>> obs = Observations([0, 0, 0], [2, 1, 1], [5, 9, 3], np.zeros((3, 2)), np.ones((3, 3)))
+    >>> xy = np.array([[5.0, 1.0], [2.0, 0.0], [2.0, 0.0]])
+    >>> obs = Observations([0, 0, 0], [2, 1, 1], [5, 9, 3], xy, np.ones((3, 3)))
     >>> canonical_order(obs).tolist()
     [2, 1, 0]
     """
-    keys = (observations.xy_px[:, 1], observations.xy_px[:, 0], observations.bead_id, observations.exposure)
+    keys = (observations.bead_id, observations.xy_px[:, 1], observations.xy_px[:, 0], observations.exposure)
     return np.lexsort((*keys, observations.system))
 
 
