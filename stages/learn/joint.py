@@ -224,7 +224,7 @@ def _node_vector(values) -> np.ndarray:
     return np.asarray(values, dtype=np.float64).reshape(-1, 2).T.ravel()
 
 
-def _reduced_system(parts, network: Network, estimate_iop: bool, respond: str):
+def _reduced_system(parts, network: Network, estimate_iop: bool, respond: Respond):
     """The stacked node values' system with the responding parameters eliminated: its product and right side.
 
     And ``v -> J dθ(v)`` ``(n, 2)``: the responding parameters' step given the node values' and its effect at

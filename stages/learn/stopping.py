@@ -28,6 +28,7 @@ def decide(
     ``refine``: the loop's refinement (``Refine.NONE`` for the unsmoothed schemes, whatever ``params`` says);
     ``stall_tolerance``: ``params.stall_tolerance`` where the loop applies it, else 0 (off).
     """
+    refine = Refine(refine)
     last, phase = history[-1], history[-1].phase
     prev = previous_total(history)
     small_change = prev is not None and abs(last.cost_total - prev) < params.tolerance * max(n_obs, 1)
