@@ -4,8 +4,9 @@ The routine it serves: weekly, and after any service of the C-arm (a new
 intensifier, a moved detector, a software update), take a frame of the
 calibration's grid plate (or bead phantom) at each orientation in use and check
 it. Each FRAME (a file of one or many frames, or a folder of them) is detected
-and labelled like a calibration frame (the project's [detect], [centroid] and
-[label] tables), and its centres are corrected with the calibration's field at
+and labelled like a calibration frame, with the project's [detect], [centroid]
+and [label] tables (a bead phantom from its markers: the project's seeds name
+its own frames, not later ones), and its centres are corrected with the calibration's field at
 the frame's orientation (the C-arm angles it records, else --orientation, else
 the orientation named like the file, as `fluorocal undistort` chooses). What
 the corrected centres are compared with is the calibration's own object
@@ -56,8 +57,8 @@ import numpy as np
 TOLERANCES_PX = {"rms": 0.1, "p95": 0.25, "max": 1.0}
 #: fewer scored holes than this and the check says nothing
 MIN_HOLES = 100
-#: fewer scored beads than this and the check says nothing: five times the pose's six parameters, and about a
-#: third of the labelled beads of the simulator's 512 px cube frames
+#: fewer scored beads than this and the check says nothing: five times the pose's six parameters (the simulator's
+#: 512 px cube frames show about 250)
 MIN_BEADS = 30
 #: a frame's plate is the calibration's when its fingerprint correlates at least this well, and by this margin
 #: over any other numbering (stages.label.lattice_sequence's own thresholds for renumbering a frame)
@@ -86,6 +87,8 @@ RECORD_COLUMNS = [
     "result",
     "reason",
 ]
+#: the record's columns as the grid-plate check first wrote them
+FIRST_RECORD_COLUMNS = [("n_holes" if c == "n_points" else c) for c in RECORD_COLUMNS]
 
 
 def add_parser(subparsers) -> None:
@@ -249,7 +252,7 @@ class PlateSetup:
     ij: np.ndarray
     layout_mm: np.ndarray
 
-    noun = "holes"
+    noun, thing = "holes", "plate"
     min_points = MIN_HOLES
     not_found = "no grid plate found"
 
@@ -280,11 +283,12 @@ class PlateSetup:
         mine, theirs = np.array(pairs).T
         return labels.xy_px[mine], self.layout_mm[theirs]
 
-    def residual(self, layout_mm: np.ndarray, ideal_px: np.ndarray, iop_px) -> np.ndarray:
-        """What the best homography from the layout leaves of the corrected centres ``(n, 2)``, px."""
+    def residual(self, layout_mm: np.ndarray, ideal_px: np.ndarray, iop_px) -> np.ndarray | None:
+        """What the best homography from the layout leaves of the corrected centres ``(n, 2)``, px; None without one."""
         from fluorocal.stages.geometry import homography_fit
 
-        return homography_fit(layout_mm, ideal_px)[1]
+        fit = homography_fit(layout_mm, ideal_px)
+        return None if fit is None else fit[1]
 
 
 @dataclass(frozen=True)
@@ -311,7 +315,7 @@ class PhantomSetup:
     ids: np.ndarray
     xyz_mm: np.ndarray
 
-    noun = "beads"
+    noun, thing = "beads", "phantom"
     min_points = MIN_BEADS
     not_found = "no phantom found"
 
@@ -327,7 +331,7 @@ class PhantomSetup:
         mine, theirs = np.array(pairs).T
         return labels.xy_px[mine], self.xyz_mm[theirs]
 
-    def residual(self, xyz_mm: np.ndarray, ideal_px: np.ndarray, iop_px) -> np.ndarray:
+    def residual(self, xyz_mm: np.ndarray, ideal_px: np.ndarray, iop_px) -> np.ndarray | None:
         """What the best pose leaves of the corrected centres ``(n, 2)``, px: OpenCV's resection, IOP held."""
         return resection_residual(xyz_mm, ideal_px, iop_px)
 
@@ -336,7 +340,7 @@ def resection_residual(xyz_mm: np.ndarray, ideal_px: np.ndarray, iop_px) -> np.n
     """``ideal - projection`` ``(n, 2)`` px at the least-squares pose of points ``xyz_mm`` seen at ``ideal_px``.
 
     The pinhole of ``iop_px`` ``(xp, yp, c)`` is held; the pose starts from OpenCV's SQPnP and is refined by
-    Levenberg-Marquardt (``cv2.solvePnPRefineLM``) on the reprojection error.
+    Levenberg-Marquardt (``cv2.solvePnPRefineLM``) on the reprojection error. None when SQPnP finds no pose.
 
     Examples
     --------
@@ -353,7 +357,9 @@ def resection_residual(xyz_mm: np.ndarray, ideal_px: np.ndarray, iop_px) -> np.n
 
     obj, img = np.ascontiguousarray(xyz_mm, np.float64), np.ascontiguousarray(ideal_px, np.float64)
     K = camera_matrix(iop_px)
-    _, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    found, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    if not found:
+        return None
     rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, None, rvec, tvec)
     return img - cv2.projectPoints(obj, rvec, tvec, K, None)[0].reshape(-1, 2)
 
@@ -361,15 +367,18 @@ def resection_residual(xyz_mm: np.ndarray, ideal_px: np.ndarray, iop_px) -> np.n
 def reference_setup(cal, calibration: Path, system: str):
     """What ``system``'s later frames are checked against: a :class:`PlateSetup` or a :class:`PhantomSetup`.
 
-    Read from the calibration's project config (its phantom and tables, the system's geometry) and the object
+    The kind is the calibration's own (a plate's estimates no geometry); the rest is read from its project
+    config (the phantom and the [detect]/[centroid]/[label] tables, the system's geometry) and the object
     points written beside the calibration.
 
     Raises
     ------
     InputError
-        A calibration without a field to check, or its config or object points cannot be read (naming the file).
+        A calibration that corrects nothing, a config that no longer names the calibration's kind of object, or a
+        config or object points that cannot be read (naming the file).
     """
-    from fluorocal.config import ConfigError, load_config, params_from_dict
+    from fluorocal.cli_common import load_project
+    from fluorocal.config import ConfigError, params_from_dict
     from fluorocal.stages.centroid import CentroidParams
     from fluorocal.stages.detect import DetectParams
     from fluorocal.stages.errors import InputError
@@ -377,13 +386,18 @@ def reference_setup(cal, calibration: Path, system: str):
     from fluorocal.stages.label import LabelParams
     from fluorocal.stages.label.lattice import lattice_index
 
-    if cal.meta.get("scheme") == "none":
-        raise InputError(f"{calibration}: scheme 'none' has no field to check; check a calibration that corrects")
+    s = cal.systems[system]
+    if not any(np.any(f.delta_px) for f in [s.field] + [o.field for o in s.orientations] if f is not None):
+        raise InputError(f"{calibration}: system {system} holds no correction (scheme none); nothing to check")
     config_path = Path(str(cal.meta.get("config", "")))
     try:
-        config = load_config(config_path, writable=False)
+        config = load_project(config_path, writable=False)
     except (ConfigError, OSError) as exc:
         raise InputError(f"{calibration}: cannot read its project config {config_path} ({exc})") from None
+    plate = cal.meta.get("geometry_estimated", True) is False
+    if plate != bool(config.phantom.lattice):
+        made, now = ("a grid plate", "a phantom file") if plate else ("a bead phantom", "a grid plate")
+        raise InputError(f"{calibration}: made with {made}, but its config {config_path} now names {now}")
     points_path = calibration.with_name("object_points.csv")
     if not points_path.is_file():
         raise InputError(f"{points_path}: missing; fluorocal run writes the object points beside the calibration")
@@ -399,7 +413,7 @@ def reference_setup(cal, calibration: Path, system: str):
     tables = Tables(*params, geometry.pixel_pitch_mm, geometry.source_image_distance_mm)
     ids = np.asarray(table["id"], np.int64)
     ph = config.phantom
-    if ph.lattice:
+    if plate:
         layout = np.column_stack([table["x"], table["y"]])
         return PlateSetup(tables, ph.lattice, ph.pitch_mm, lattice_index(ids), layout)
     xyz = np.column_stack([table["x"], table["y"], table["z"]])
@@ -445,6 +459,8 @@ def check_frame(frame, cal, system: str, orientation, setup, tolerances: dict) -
         return _failed(f"only {n} {setup.noun} where the field is supported (at least {setup.min_points})")
     ideal = field.undistort_points(xy[supported])
     residual = setup.residual(reference[supported], ideal, cal.systems[system].iop_px)
+    if residual is None:
+        return _failed(f"no pose of the {setup.thing} fits its {setup.noun}")
     length = np.linalg.norm(residual, axis=1)
     figures = {
         "rms": float(np.sqrt(np.mean(residual**2))),
@@ -496,7 +512,10 @@ def _row(now, calibration, cal, system, path, index, orientation, result, setup,
 
 
 def append_record(path: Path, rows: list) -> None:
-    """Append ``rows`` to the QA record CSV (created with its header), atomically; refuse a file of other columns."""
+    """Append ``rows`` to the QA record CSV (created with its header), atomically; refuse a file of other columns.
+
+    A record of the grid-plate check's first columns (``n_holes`` where ``n_points`` is) is continued under today's.
+    """
     import csv
 
     from fluorocal.stages.errors import InputError
@@ -506,7 +525,7 @@ def append_record(path: Path, rows: list) -> None:
     if path.exists():
         with open(path, newline="", encoding="utf-8") as fh:
             old = list(csv.reader(fh))
-        if old and old[0] != RECORD_COLUMNS:
+        if old and old[0] not in (RECORD_COLUMNS, FIRST_RECORD_COLUMNS):
             raise InputError(f"{path}: not a fluorocal QA record (columns {old[0][:4]}...); choose another --record")
     write_csv(path, RECORD_COLUMNS, old[1:] + rows)
 

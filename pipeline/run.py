@@ -129,11 +129,24 @@ def frame_units(config: Config) -> list[FrameUnit]:
                 units.append(FrameUnit(s, exposure, Path(path), i, key, digest, size))
                 exposure += 1
     _check_pairing(config, units)
-    first = {u.file_sha256 for u in units if u.system == 0}
-    twin = next((u for u in units if u.system and u.file_sha256 in first), None)
+    _check_distinct(config, units)
+    return units
+
+
+def _check_distinct(config: Config, units: list[FrameUnit]) -> None:
+    """Refuse a frame file whose content another file of the project holds: a copied file, not an exposure.
+
+    Found here, before any work; at learn the copy makes a rig that is no rig, and the adjustment's normal
+    equations turn singular, or not, by rounding.
+    """
+    first: dict[tuple[int, str], Path] = {}
+    for u in units:
+        other = first.setdefault((u.system, u.file_sha256), u.path)
+        if other != u.path:
+            raise InputError(f"{u.path}: the same content as {other} (a copied file?); each exposure has its own frame")
+    twin = next((u for u in units if u.system and (0, u.file_sha256) in first), None)
     if twin is not None:  # the same content: the adjustment's normal equations turn singular, found only at learn
         raise InputError(f"{twin.path}: holds a frame of system {config.systems[0].name}; give each system its own")
-    return units
 
 
 def _check_frame_size(path: Path, n_frames: int, size: tuple[int, int], first) -> None:

@@ -111,7 +111,7 @@ def frame_angles_deg(path: Path) -> tuple:
             return (None,) * n
         columns = []
         for axis, step in zip(("Primary", "Secondary"), steps):
-            values = [_angle(v, f"Positioner{axis}AngleIncrement", path) for v in _values(step)]
+            values = [_angle(v, f"Positioner{axis}AngleIncrement", path, limit=360.0) for v in _values(step)]
             if len(values) not in (1, n):
                 raise InputError(
                     f"{path}: Positioner{axis}AngleIncrement has {len(values)} values for {n} frames; "
@@ -149,13 +149,14 @@ def _angles_of(ds, path: Path):
     return angles[0], angles[1]
 
 
-def _angle(value, tag: str, path: Path) -> float:
+def _angle(value, tag: str, path: Path, limit: float = 180.0) -> float:
+    """``value`` as degrees within ``±limit`` (an angle's 180; an increment, a change or an offset, a turn's 360)."""
     try:
         angle = float(value)
     except (TypeError, ValueError):
         raise InputError(f"{path}: {tag} must be one number (degrees); got {value!r}") from None
-    if not np.isfinite(angle) or abs(angle) > 180:
-        raise InputError(f"{path}: {tag} must be an angle in -180..180 degrees; got {angle:g}")
+    if not np.isfinite(angle) or abs(angle) > limit:
+        raise InputError(f"{path}: {tag} must be within -{limit:g}..{limit:g} degrees; got {angle:g}")
     return angle
 
 

@@ -129,8 +129,11 @@ def test_angle_increments_read_as_the_dicom_standard_defines_them(tmp_path):
     One value is the average change per frame; one per frame, each frame's offset from the start angles (not the
     change since the frame before); a vector of absolute angles with start angles 0 reads the same.
     """
-    per_frame = _header(tmp_path / "a.dcm", (10, -5), 2.5, -1.0)
-    assert frame_angles_deg(per_frame) == ((10.0, -5.0), (12.5, -6.0), (15.0, -7.0), (17.5, -8.0))
+    average = _header(tmp_path / "a.dcm", (10, -5), 2.5, -1.0)
+    assert frame_angles_deg(average) == ((10.0, -5.0), (12.5, -6.0), (15.0, -7.0), (17.5, -8.0))
+    # a sweep of 200 degrees: its offsets reach beyond 180, its angles do not
+    sweep = _header(tmp_path / "s.dcm", (-100, 0), [0, 50, 150, 200], 0)
+    assert [a for a, _ in frame_angles_deg(sweep)] == [-100.0, -50.0, 50.0, 100.0]
     offsets = _header(tmp_path / "b.dcm", (10, -5), [0, 5, 10, 20], [0, 0, 1, 1])
     assert frame_angles_deg(offsets) == ((10.0, -5.0), (15.0, -5.0), (20.0, -4.0), (30.0, -4.0))
     absolute = _header(tmp_path / "c.dcm", (0, 0), [10, 15, 20, 30], [-5, -5, -4, -4])

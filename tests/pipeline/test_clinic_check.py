@@ -10,13 +10,14 @@ C-arm's distortion, the same phantom) fails it.
 from __future__ import annotations
 
 import csv
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pydicom
 import pytest
 from fluorocal.cli import main
-from fluorocal.cmd_check import RECORD_COLUMNS, TOLERANCES_PX, append_record
+from fluorocal.cmd_check import FIRST_RECORD_COLUMNS, RECORD_COLUMNS, TOLERANCES_PX, append_record
 from fluorocal.stages.errors import InputError
 
 from tests.pipeline.orientation_toys import orientation_calibration
@@ -47,6 +48,11 @@ def test_the_record_is_appended_and_a_foreign_csv_refused(tmp_path):
     append_record(record, [row])
     append_record(record, [row])
     assert [list(r.values()) for r in _rows(record)] == [row, row]
+    # a record the grid-plate check began (its count column was n_holes) is continued under today's header
+    first = tmp_path / "first.csv"
+    first.write_text(",".join(FIRST_RECORD_COLUMNS) + "\n" + ",".join(row) + "\n")
+    append_record(first, [row])
+    assert [list(r.values()) for r in _rows(first)] == [row, row] and "n_points" in first.read_text()
     (tmp_path / "other.csv").write_text("a,b\n1,2\n")
     with pytest.raises(InputError, match="not a fluorocal QA record"):
         append_record(tmp_path / "other.csv", [row])
@@ -80,6 +86,28 @@ def test_a_bead_phantom_frame_passes_its_systems_calibration_and_another_c_arms_
     assert float(theirs["rms_px"]) > 0.2 and "no longer holds" in theirs["reason"]
     # the mm at the detector are the px at the config's pitch (0.5 mm)
     assert float(mine["rms_mm"]) == pytest.approx(0.5 * float(mine["rms_px"]), abs=1e-6)  # the record keeps 6 decimals
+
+
+def test_a_frame_is_labelled_with_the_projects_own_tables_and_its_kind_is_the_calibrations(
+    calibrated_project, tmp_path
+):
+    from fluorocal.calibration import Calibration
+    from fluorocal.cmd_check import PhantomSetup, reference_setup
+
+    calibration = calibrated_project / "out" / "calibration.json"
+    cal = Calibration.load(calibration)
+    config = tmp_path / "fluorocal.toml"  # the project's config with a table of its own, beside its phantom
+    text = (calibrated_project / "fluorocal.toml").read_text().replace('"frames/', f'"{calibrated_project}/frames/')
+    config.write_text(text + "\n[detect]\nmin_snr = 12.5\n[label]\nmin_labelled = 25\n")
+    shutil.copy(calibrated_project / "phantom.csv", tmp_path / "phantom.csv")
+    cal.meta["config"] = str(config)
+    setup = reference_setup(cal, calibration, "A")
+    assert isinstance(setup, PhantomSetup)
+    assert (setup.tables.detect.min_snr, setup.tables.label.min_labelled) == (12.5, 25)
+    # a config that now names a plate does not turn a bead calibration into a plate's
+    config.write_text(text.replace('file = "phantom.csv"', 'lattice = "hex"\npitch = 3.3'))
+    with pytest.raises(InputError, match="made with a bead phantom, but its config .* now names a grid plate"):
+        reference_setup(cal, calibration, "A")
 
 
 def test_the_defaults_are_stated_in_the_help(capsys):

@@ -104,7 +104,7 @@ def test_positioner_angles_are_read_from_the_header(tmp_path):
         None,
         None,
     )
-    with pytest.raises(InputError, match=r"bad.dcm: PositionerPrimaryAngle must be an angle in -180..180"):
+    with pytest.raises(InputError, match=r"bad.dcm: PositionerPrimaryAngle must be within -180..180 degrees"):
         positioner_angles_deg(angled_dicom(tmp_path / "bad.dcm", angles=(200, 0)))
 
 

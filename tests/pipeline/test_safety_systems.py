@@ -1,4 +1,7 @@
-"""System B given system A's frames is refused before any work (issue 28), not at learn ("singular")."""
+"""System B given system A's frames, or a system given a copy of its own frame, is refused before any work (issue 28).
+
+Not at learn, where the adjustment's normal equations turn singular, or not, by rounding.
+"""
 
 from __future__ import annotations
 
@@ -26,6 +29,14 @@ def test_system_b_given_copies_of_a_s_frames_is_refused_before_any_stage(tmp_pat
     cfg = make_two_system_project(root)
     shutil.copy(root / "frames" / "A" / "f1.tif", root / "frames" / "B" / "f1.tif")  # one copy among B's own
     with pytest.raises(InputError, match=r"frames/B/f1.tif: holds a frame of system A; give each system its own"):
+        frame_units(load_config(cfg))
+
+
+def test_a_frame_file_copied_within_a_system_is_refused_naming_both(tmp_path):
+    root = tmp_path / "p"
+    cfg = make_two_system_project(root)
+    shutil.copy(root / "frames" / "A" / "f0.tif", root / "frames" / "A" / "f2.tif")
+    with pytest.raises(InputError, match=r"frames/A/f2.tif: the same content as .*frames/A/f0.tif \(a copied file\?\)"):
         frame_units(load_config(cfg))
 
 
