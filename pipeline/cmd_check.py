@@ -336,7 +336,7 @@ class PhantomSetup:
         return resection_residual(xyz_mm, ideal_px, iop_px)
 
 
-def resection_residual(xyz_mm: np.ndarray, ideal_px: np.ndarray, iop_px) -> np.ndarray:
+def resection_residual(xyz_mm: np.ndarray, ideal_px: np.ndarray, iop_px) -> np.ndarray | None:
     """``ideal - projection`` ``(n, 2)`` px at the least-squares pose of points ``xyz_mm`` seen at ``ideal_px``.
 
     The pinhole of ``iop_px`` ``(xp, yp, c)`` is held; the pose starts from OpenCV's SQPnP and is refined by

@@ -66,7 +66,7 @@ def frame_orientations(config, units, *, read_angles=_dicom_angles) -> tuple[Fra
     Parameters
     ----------
     config : fluorocal.config.Config
-    units : sequence of fluorocal.run.FrameUnit
+    units : sequence of fluorocal.units.FrameUnit
         Frames of ``config`` (``.system``: index into ``config.systems``, ``.path``, ``.index``).
     read_angles : callable (Path) -> (orbit_deg or None, tilt_deg or None), optional
         Reads a frame file's angles (default: the DICOM tags ``PositionerPrimaryAngle`` and

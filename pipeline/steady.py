@@ -1,7 +1,7 @@
 """Frames read from a file that holds still: the bytes decoded are the bytes the cache keys name.
 
 A frame's cache key is the hash of its file taken when the run was planned
-(:func:`fluorocal.run.frame_units`). A file replaced after that, or while it is
+(:func:`fluorocal.units.frame_units`). A file replaced after that, or while it is
 read, would leave another file's beads cached under that key, served to every
 later run. :func:`read_steady` hashes the file just before and just after
 decoding it and refuses the frames unless both hashes are the planned one.

@@ -17,9 +17,9 @@ import OpenImageIO as oiio
 import pytest
 from fluorocal.cli import main
 from fluorocal.config import ConfigError, load_config
-from fluorocal.run import MIN_FRAME_PX, frame_units
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io import atomic, read_phantom, tables, write_still
+from fluorocal.units import MIN_FRAME_PX, frame_units
 
 from tests.pipeline.toy import make_project, make_two_system_project
 

@@ -17,12 +17,12 @@ from fluorocal.calibration import Calibration, SystemCalibration
 from fluorocal.cli import main
 from fluorocal.config import load_config
 from fluorocal.orientations import frame_orientations
-from fluorocal.run import frame_units
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.geometry import homography_fit
 from fluorocal.stages.io import read_frames
 from fluorocal.stages.io.dicom import frame_angles_deg
 from fluorocal.stages.orientation import OrientationField
+from fluorocal.units import frame_units
 
 from tests.pipeline.orientation_toys import angled_dicom
 from tests.stages.plate_truth import truth_field

@@ -17,11 +17,11 @@ from fluorocal.calibration import Calibration
 from fluorocal.cli import main
 from fluorocal.config import ConfigError, OrientationConfig, load_config
 from fluorocal.orientations import default_orientation_name, frame_orientations, orientation_report
-from fluorocal.run import frame_units
 from fluorocal.stages.errors import ArtifactError, InputError
 from fluorocal.stages.io import read_frames, write_still
 from fluorocal.stages.io.dicom import positioner_angles_deg
 from fluorocal.stages.orientation import OrientationField, interpolate_field
+from fluorocal.units import frame_units
 
 from tests.pipeline.orientation_toys import H, W, angled_dicom, constant_field, orientation_calibration, toy_system
 from tests.pipeline.toy import make_project

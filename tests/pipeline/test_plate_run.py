@@ -190,7 +190,7 @@ def test_bead_phantom_orientation_named_in_the_calibration(calibrated_project, t
 def test_grid_plate_systems_need_not_pair_frames(tmp_path):
     """Two systems with a grid plate each are calibrated apart: unequal frame counts are not a pairing error."""
     from fluorocal.config import load_config
-    from fluorocal.run import frame_units
+    from fluorocal.units import frame_units
 
     from tests.pipeline.toy import make_two_system_project
 

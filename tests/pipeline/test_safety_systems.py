@@ -9,8 +9,8 @@ import shutil
 
 import pytest
 from fluorocal.config import ConfigError, load_config
-from fluorocal.run import frame_units
 from fluorocal.stages.errors import InputError
+from fluorocal.units import frame_units
 
 from tests.pipeline.toy import make_two_system_project
 
