@@ -32,15 +32,19 @@ def write_project(data, root: Path) -> Path:
     return root / "fluorocal.toml"
 
 
-def runner_for(config_path: Path, until: str):
-    """A :class:`~fluorocal.run.Runner` of the project at ``config_path`` up to stage ``until`` (nothing run yet)."""
+def runner_for(config_path: Path, until: str, *, cache_dir: Path | None = None, compute=None):
+    """A :class:`~fluorocal.run.Runner` of the project at ``config_path`` up to stage ``until`` (nothing run yet).
+
+    ``cache_dir`` replaces the project's cache folder; ``compute`` (a ``ComputeConfig``) its ``[compute]``.
+    """
     from fluorocal.cache import ArtifactCache
     from fluorocal.config import load_config
     from fluorocal.graph import default_stages, stage_params_classes
     from fluorocal.run import Runner
 
     config = load_config(config_path, stage_params_allowed=stage_params_classes())
-    return Runner(config, default_stages(), ArtifactCache(config.cache_dir), until=until, progress=False)
+    cache = ArtifactCache(config.cache_dir if cache_dir is None else cache_dir)
+    return Runner(config, default_stages(), cache, until=until, progress=False, compute=compute)
 
 
 def run_until(config_path: Path, until: str):
