@@ -2,9 +2,10 @@
 
 Accuracy: simulated frames (``stages.simulate``, cube phantom, strong
 distortion) at several noise scales (1 = the simulator's default, about the
-real ARCADIS frames). Our detector finds the beads once per frame; every
-method then centroids the same accepted candidates, from the same initial
-centre and radius:
+real ARCADIS frames). The frames are written as a project and detected by
+the stage graph, as ``fluorocal run`` detects them (``graph_run.py``: the
+bead appearance estimated once per system); every method then centroids the
+same accepted candidates, from the same initial centre and radius:
 
 - ``intensity``: intensity-weighted centroid of the background-subtracted
   bead (background = median of a ring around it) in a disc of 1.3 radii;
@@ -48,6 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from fluorocal.stages.artifacts import Radiograph  # noqa: E402
 from fluorocal.stages.centroid import CentroidParams, centroid_beads  # noqa: E402
 from fluorocal.stages.detect import DetectParams, detect_beads  # noqa: E402
+from graph_run import simulated_outputs  # noqa: E402
 
 PAPER_SECONDS_PER_IMAGE = 15 * 60
 
@@ -123,13 +125,13 @@ def accuracy(noise_scale: float, n_frames: int, image_size_px: int = 1024, peers
     from fluorocal.stages.simulate import SimulateParams, simulate
 
     data = simulate(SimulateParams(n_frames=n_frames, noise_scale=noise_scale, image_size_px=image_size_px, seed=3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        graph = simulated_outputs(data, "detect")  # the frames as decoded and their candidates, as `run` makes them
     out = {name: ([], []) for name in ["ours", *PEERS] if peers or name == "ours"}
     n_visible = n_found = n_detected = n_false = 0
     diameters = []
-    for frame, truth in zip(data.frames[0], data.truth.frames[0]):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            candidates = detect_beads(frame, DetectParams())
+    for frame, candidates, truth in zip(graph["frame"][0], graph["detect"][0], data.truth.frames[0]):
         beads = centroid_beads(frame, candidates, CentroidParams())
         ok_xy = beads.xy_px[beads.ok]
         found, j, false = truth.match(ok_xy)
@@ -207,21 +209,32 @@ def speed(repeat: int) -> dict:
 
 
 def real_fit_rmse() -> dict:
-    """Median ellipse-fit RMSE (px) of the accepted beads of the real ARCADIS bead frames, if present."""
-    from fluorocal.stages.io import read_frames
+    """Median ellipse-fit RMSE (px) of the accepted beads of the real ARCADIS bead frames, if present.
+
+    The frames belong to no project (no phantom file), so they go through ``fluorocal detect``, the command for
+    single frames: detect and centroid with the appearance estimated per frame.
+    """
+    import csv
+    import tempfile
+
+    from fluorocal.cli import main as fluorocal_main
 
     root = Path(__file__).resolve().parents[2] / "shared" / "data" / "arcadis"
+    names = ("beads_centered_0.dcm", "beads_tilt_15.dcm", "spine_beads_centered_0.dcm", "grid_centered_0.dcm")
+    files = [root / name for name in names if (root / name).is_file()]
+    if not files:
+        return {}
+    with tempfile.TemporaryDirectory(prefix="fluorocal-bench-") as tmp:
+        if fluorocal_main(["--quiet", "detect", *map(str, files), "--out", tmp]) != 0:
+            raise SystemExit("fluorocal detect failed on the real frames")
+        with open(Path(tmp) / "detections.csv", newline="") as fh:
+            rows = list(csv.DictReader(fh))
     out = {}
-    for name in ("beads_centered_0.dcm", "beads_tilt_15.dcm", "spine_beads_centered_0.dcm", "grid_centered_0.dcm"):
-        if (root / name).is_file():
-            frame = read_frames(root / name)[0]
-            candidates = detect_beads(frame, DetectParams())
-            beads = centroid_beads(frame, candidates, CentroidParams())
-            out[name] = (
-                int(beads.ok.sum()),
-                float(np.median(beads.fit_rmse_px[beads.ok])),
-                float(np.median(np.hypot(beads.sigma_x[beads.ok], beads.sigma_y[beads.ok]))),
-            )
+    for path in files:
+        mine = [r for r in rows if r["file"] == str(path)]
+        rmse = [float(r["fit_rmse"]) for r in mine]
+        sigma = [np.hypot(float(r["sigma_x"]), float(r["sigma_y"])) for r in mine]
+        out[path.name] = (len(mine), float(np.median(rmse)), float(np.median(sigma)))
     return out
 
 

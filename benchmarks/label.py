@@ -9,7 +9,8 @@ blob (20 % of the blobs kept, the rest rejected as stages/detect.py rejects
 'merged' blobs; this often leaves only 2-4 of the 8 markers), one spurious
 blob per frame away from the beads, beads at the field edge not detected. Rendering 300 frames
 (about 1.7 s each) would dominate the run, so a few rendered frames go through
-detect + centroid at the end as a cross-check.
+the stage graph's detect + centroid (``graph_run.py``, as ``fluorocal run``) and
+``label_beads`` at the end as a cross-check.
 
 Figures:
 - labelled: unambiguous visible beads (detected as a single bead, no other
@@ -187,19 +188,18 @@ def _print_targets(modes) -> None:
 
 
 def _rendered_check(sp: SimulateParams, n_frames: int, params: LabelParams) -> None:
-    """Rendered frames through detect + centroid + label: ids against the nearest true outline."""
-    from fluorocal.stages.centroid import CentroidParams, centroid_beads
-    from fluorocal.stages.detect import DetectParams, detect_beads
+    """Rendered frames through the graph's detect + centroid, then ``label_beads``: ids against the true outlines."""
+    from graph_run import simulated_outputs
     from scipy.spatial import cKDTree
 
     t = time.perf_counter()
     data = simulate(replace(sp, n_frames=n_frames, seed=sp.seed + 100))
     t_render = time.perf_counter() - t
+    centroids = simulated_outputs(data, "centroid", names=())["centroid"]
     n_frames_total = n_labelled = n_wrong = n_failed = n_det = 0
     t_label = 0.0
-    for per_system_frames, per_system_truth in zip(data.frames, data.truth.frames):
-        for radiograph, ft in zip(per_system_frames, per_system_truth):
-            c = centroid_beads(radiograph, detect_beads(radiograph, DetectParams()), CentroidParams())
+    for per_system_centroids, per_system_truth in zip(centroids, data.truth.frames):
+        for c, ft in zip(per_system_centroids, per_system_truth):
             t = time.process_time()
             lab = label_beads(c, data.phantom, params)
             t_label += time.process_time() - t

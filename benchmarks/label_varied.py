@@ -22,7 +22,8 @@ Figures per configuration and overall:
   end) — target 0;
 - failed: all failed frames, and their reasons.
 
-A few rendered frames go through detect + centroid + label_sequence as a cross-check (``--rendered``).
+A few rendered frames go through the stage graph's detect + centroid (``graph_run.py``, as ``fluorocal run``)
+and ``label_sequence`` as a cross-check (``--rendered``).
 
 ``--cut K`` labels each sequence in pieces of K frames, each on its own (seeds on each piece's first frame
 in the seeded configuration): short sequences, where a frame has few neighbours or none.
@@ -208,18 +209,18 @@ def run_config(
 
 
 def rendered_check(overrides: dict, n_frames: int, seed: int, tables: dict) -> tuple[str, list]:
-    """Rendered frames of one configuration through detect + centroid + label_sequence, ids against the truth.
+    """Rendered frames of one configuration through the graph's detect + centroid, then ``label_sequence``.
 
-    Returns the summary and each frame's labelling time (CPU s); ``tables`` receives the :func:`label_table`.
+    Ids against the truth. Returns the summary and each frame's labelling time (CPU s); ``tables`` receives the
+    :func:`label_table`.
     """
-    from fluorocal.stages.centroid import CentroidParams, centroid_beads
-    from fluorocal.stages.detect import DetectParams, detect_beads
+    from graph_run import simulated_outputs
 
     sp = SimulateParams(n_frames=n_frames, seed=seed, **{**MOTION, **overrides})
     t = time.perf_counter()
     data = simulate(sp)
     t_render = time.perf_counter() - t
-    cents = [centroid_beads(r, detect_beads(r, DetectParams()), CentroidParams()) for r in data.frames[0]]
+    cents = simulated_outputs(data, "centroid", names=())["centroid"][0]
     labs, seconds = timed_sequence(cents, data.phantom, label_params(sp), {})
     tables.update({f"rendered.{k}": v for k, v in label_table(labs).items()})
     n_failed = n_labels = n_wrong = n_found = n_visible = 0

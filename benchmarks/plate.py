@@ -44,23 +44,18 @@ ARCADIS = ROOT.parent / "shared" / "data" / "arcadis"
 
 
 def real_frames() -> None:
-    from fluorocal.cache import ArtifactCache
-    from fluorocal.config import load_config
-    from fluorocal.gather import observations_from_labels
-    from fluorocal.graph import default_stages, plate_orientations
-    from fluorocal.run import Runner
+    from fluorocal.graph import plate_orientations
     from fluorocal.stages.label.lattice import lattice_index
     from fluorocal.stages.plate.holdout import holdout_score
     from fluorocal.stages.plate.problem import frame_orientations, plate_problem
+    from graph_run import labelled_observations, run_until
 
     from tests.pipeline.test_plate_run import REAL_ORIENTATIONS, real_grid_config
 
     with tempfile.TemporaryDirectory() as tmp:
-        config = load_config(real_grid_config(Path(tmp), ARCADIS, list(REAL_ORIENTATIONS)))
-        runner = Runner(config, default_stages(), ArtifactCache(config.cache_dir), until="label", progress=False)
-        runner.run()
-        labels = [runner.get("label", u) for u in range(len(runner.units))]
-        obs = observations_from_labels(runner.units, labels, config)
+        runner = run_until(real_grid_config(Path(tmp), ARCADIS, list(REAL_ORIENTATIONS)), "label")
+        config = runner.config
+        obs = labelled_observations(runner)
         groups = frame_orientations(obs, plate_orientations(config, runner.units))
     problem, index = plate_problem(obs, config.phantom, 0, groups, (1024, 1024))
     row = lattice_index(index["hole_ids"])[:, 1]

@@ -55,13 +55,10 @@ ONE_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THRE
 USER_ENV = {k: v for k, v in os.environ.items() if k not in ONE_THREAD}
 os.environ.update(ONE_THREAD)  # this process's own timings: one BLAS thread (set before numpy loads)
 
-from fluorocal.cache import ArtifactCache  # noqa: E402
 from fluorocal.cli import main as fluorocal_main  # noqa: E402
 from fluorocal.cmd_simulate import write_dataset  # noqa: E402
-from fluorocal.config import load_config  # noqa: E402
-from fluorocal.graph import default_stages, stage_params_classes  # noqa: E402
-from fluorocal.run import Runner  # noqa: E402
 from fluorocal.stages.simulate import SimulateParams, simulate  # noqa: E402
+from graph_run import stage_call  # noqa: E402  (benchmarks/graph_run.py: the stage as the graph calls it)
 
 CONFIG = """[phantom]
 file = "phantom.csv"
@@ -138,18 +135,13 @@ def learn_speed(root: Path, truth: dict) -> None:
     from dataclasses import replace
 
     cfg = write_config(root, truth, "learn40", ("A",), 40)
-    if fluorocal_main(["--quiet", "run", str(cfg), "--until", "label"]) != 0:
-        raise SystemExit(f"fluorocal run {cfg} --until label failed")
-    config = load_config(cfg, stage_params_allowed=stage_params_classes())
-    runner = Runner(config, default_stages(), ArtifactCache(config.cache_dir), progress=False)
-    inputs = runner._inputs(runner.by_name["learn"], None)
-    params, extras = runner.params[("learn", None)]
+    func, inputs, params, extras = stage_call(cfg, "learn")
     print("\n2. learn stage of a 40-exposure one-system project (observations from the cached labelling)")
     for name, p in (("default", params), ("refine_iterations=15", replace(params, refine_iterations=15))):
         t0, c0 = time.perf_counter(), time.process_time()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the capped run's NotConvergedWarning: its figures say it
-            result = runner.by_name["learn"].func(*inputs, p, **extras)
+            result = func(*inputs, p, **extras)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         field_px, points_mm = learn_truth_errors(result, truth)
         print(
@@ -157,7 +149,7 @@ def learn_speed(root: Path, truth: dict) -> None:
             f"{result.converged}: {result.stop_reason}\n"
             f"  {'':<21}  field vs truth (mod a homography) {field_px:.4f} px, object points {points_mm:.4f} mm"
         )
-    learn_parts(runner.by_name["learn"].func, inputs, params, extras)
+    learn_parts(func, inputs, params, extras)
 
 
 #: the learn stage's parts timed by :func:`learn_parts`: label -> (module path suffix, function name)

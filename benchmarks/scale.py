@@ -132,17 +132,11 @@ def _descendants(pid: int) -> list[int]:
 
 def run_once(cfg: Path, cache_name: str, compute) -> tuple[float, float, float, Path]:
     """Wall, CPU and this process's CPU seconds of detect + centroid of every frame, into an empty cache."""
-    from fluorocal.cache import ArtifactCache
-    from fluorocal.config import load_config
-    from fluorocal.graph import default_stages, stage_params_classes
-    from fluorocal.run import Runner
+    from graph_run import runner_for
 
-    config = load_config(cfg, stage_params_allowed=stage_params_classes())
     cache_dir = cfg.parent / cache_name
     shutil.rmtree(cache_dir, ignore_errors=True)
-    runner = Runner(
-        config, default_stages(), ArtifactCache(cache_dir), until="centroid", progress=False, compute=compute
-    )
+    runner = runner_for(cfg, "centroid", cache_dir=cache_dir, compute=compute)
     cpu0, own0, wall0 = cpu_seconds(), _own_cpu(), time.perf_counter()
     runner.run()
     return time.perf_counter() - wall0, cpu_seconds() - cpu0, _own_cpu() - own0, cache_dir

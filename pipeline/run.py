@@ -366,7 +366,11 @@ class Runner:
             return read_phantom(ph.file, lattice=ph.lattice, pitch_mm=ph.pitch_mm)
         return Phantom([], [], [], [], ph.lattice, ph.pitch_mm)
 
-    def _inputs(self, stage: Stage, unit: int | None) -> list:
+    def inputs(self, stage: Stage, unit: int | None) -> list:
+        """What ``stage``'s function is called with for ``unit``, in its order (upstream artifacts computed if missing).
+
+        A per-project stage takes its first input gathered (``stage.gather``) and its other per-frame ones as lists.
+        """
         inputs = []
         for i, name in enumerate(stage.inputs):
             per_frame_input = name == "frame" or (name not in SOURCES and self.by_name[name].per_frame)
@@ -399,7 +403,7 @@ class Runner:
     def _compute_one(self, stage: Stage, unit: int | None):
         slot = (stage.name, unit)
         params, extras = self.params[slot]
-        inputs = self._inputs(stage, unit)
+        inputs = self.inputs(stage, unit)
         t0 = time.perf_counter()
         try:
             artifact = stage.func(*inputs, params, **extras)
