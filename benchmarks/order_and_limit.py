@@ -22,8 +22,11 @@ And the **biplanar two-ray intersection**: both systems' held-out exposures adju
 orientation estimated) with each system's learned correction and IOP held, against the oracle with the true
 distortions removed and the IOPs free (target <= 1.1x).
 
-Usage: ``python benchmarks/order_and_limit.py [--frames N] [--seeds a,b] [--noise PX] [--size PX]``
-(defaults: 20 training + 20 held-out exposures per system, seeds 0,1, 0.02 px, 1024 px).
+The same table follows for the demo's set (``make demo``'s 8 frames of 512 px per system, seed 7: 4 exposures
+train, 4 are held out) unless ``--no-demo``.
+
+Usage: ``python benchmarks/order_and_limit.py [--frames N] [--seeds a,b] [--noise PX] [--size PX] [--no-demo]
+[--write-docs]`` (defaults: 20 training + 20 held-out exposures per system, seeds 0,1, 0.02 px, 1024 px).
 """
 
 from __future__ import annotations
@@ -143,27 +146,23 @@ def two_ray(test, results, acq, nominal, true_xyz) -> tuple[float, float]:
     return ours, error_3d_mm(obs, init, nominal, true_xyz, truth, init.iop_px, True)
 
 
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=20, help="training (and held-out) exposures per system (20)")
-    ap.add_argument("--seeds", default="0,1", help="comma-separated simulation seeds (default 0,1)")
-    ap.add_argument("--noise", type=float, default=0.02, help="centre noise px (default 0.02)")
-    ap.add_argument("--size", type=int, default=1024, help="image side px (default 1024)")
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING)
-    logging.getLogger("fluorocal.stages.adjust").setLevel(logging.ERROR)
-    warnings.simplefilter("ignore")
-    bench.NOISE_PX = args.noise
+#: the demo's set (``make demo``: 8 frames of 512 px per system, seed 7): 4 exposures train, 4 are held out
+DEMO = {"frames": 4, "size": 512, "seeds": (7,)}
+
+
+def run_sets(frames: int, size: int, seeds, args) -> None:
+    """Every seed's two systems and their two-ray intersection: the table of one set."""
+    args = argparse.Namespace(**{**vars(args), "frames": frames, "size": size})
     table, biplanar = [], []
-    for seed in (int(v) for v in args.seeds.split(",")):
-        (train, test), nominal, true_xyz, acq, p = bench.simulated_sets(args.frames, 2, args.size, seed)
+    for seed in seeds:
+        (train, test), nominal, true_xyz, acq, p = bench.simulated_sets(frames, 2, size, seed)
         results = [one_system(train, test, s, acq, nominal, true_xyz, args, p, seed) for s in range(2)]
         for r in results:
             table.append((seed, r))
             bands = "; ".join(f"{b}: error {e:.4f} px vs sigma {s:.4f} px" for b, e, s in r["bands"])
             print(f"seed {seed} system {r['name']}: field error by radius (of the FOV's): {bands}", flush=True)
         biplanar.append((seed, *two_ray(test, results, acq, nominal, true_xyz)))
-    print(f"\n{args.frames} + {args.frames} exposures per system, {args.size} px, noise {args.noise} px")
+    print(f"\n{frames} + {frames} exposures per system, {size} px, noise {args.noise} px")
     print(
         "| seed | system | order: field / IOP px, points mm (max diff) | 3D ours mm | 3D oracle mm | ratio "
         "| field err mod H px (covered / inner 80 %) | iterations (kept) | learn CPU s |"
@@ -181,5 +180,25 @@ def main(argv=None) -> None:
         print(f"  seed {seed}: ours {ours:.5f} mm, oracle {oracle:.5f} mm, ratio {ours / oracle:.2f}x (target 1.1x)")
 
 
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=20, help="training (and held-out) exposures per system (20)")
+    ap.add_argument("--seeds", default="0,1", help="comma-separated simulation seeds (default 0,1)")
+    ap.add_argument("--noise", type=float, default=0.02, help="centre noise px (default 0.02)")
+    ap.add_argument("--size", type=int, default=1024, help="image side px (default 1024)")
+    ap.add_argument("--no-demo", action="store_true", help="leave out the demo's set (4 + 4 exposures of 512 px)")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    logging.getLogger("fluorocal.stages.adjust").setLevel(logging.ERROR)
+    warnings.simplefilter("ignore")
+    bench.NOISE_PX = args.noise
+    run_sets(args.frames, args.size, [int(v) for v in args.seeds.split(",")], args)
+    if not args.no_demo:
+        print("\nthe demo's set:")
+        run_sets(DEMO["frames"], DEMO["size"], DEMO["seeds"], args)
+
+
 if __name__ == "__main__":
-    main()
+    import docpage
+
+    sys.exit(docpage.run(__file__, main))
