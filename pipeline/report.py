@@ -116,7 +116,7 @@ def image_axes(ax, size_px, title):
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)  # y down, as in the image
     ax.set_aspect("equal")
-    ax.set_title(title, fontsize=10)
+    ax.set_title(title, fontsize=10, y=1.0)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
 
@@ -188,11 +188,11 @@ def convergence(path: Path, history) -> Path:
     ax1.plot(it, [h.cost_total for h in history], "o-")
     ax1.set_xlabel("iteration")
     ax1.set_ylabel("cost (eq. 2 + eq. 3)")
-    ax1.set_title("convergence", fontsize=10)
+    ax1.set_title("convergence", fontsize=10, y=1.0)
     ax2.plot(it, [h.rms_px for h in history], "o-", color="C1")
     ax2.set_xlabel("iteration")
     ax2.set_ylabel("inlier RMS (px, in-sample)")
-    ax2.set_title("residual RMS", fontsize=10)
+    ax2.set_title("residual RMS", fontsize=10, y=1.0)
     return save_figure(fig, path)
 
 
