@@ -270,7 +270,6 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=(), figures=N
             ("after: calibrated", obs.xy_px[inl], adj.residual_px[inl])
         ]
         plots.append(draw(inside(out_dir, f"residuals_{file_name}.png"), report.residual_maps, panels, size))
-        field = result.fields[s]
         plots.append(
             draw(
                 inside(out_dir, f"field_{file_name}.png"),
