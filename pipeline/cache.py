@@ -78,6 +78,8 @@ MARKER_CONTENT = {"format": "fluorocal-cache", "version": FORMAT_VERSION}
 LOCKS = ".locks"
 #: the folder of the records of which entries each project uses
 PROJECTS = ".projects"
+#: the folder of the code analyses kept between runs (:class:`fluorocal.codehash.AnalysisMemo`)
+CODE = ".code"
 
 _STAGE = re.compile(r"[a-z][a-z0-9_]*")
 _KEY = re.compile(r"[0-9a-f]{64}")
@@ -461,8 +463,16 @@ class ArtifactCache:
                 ):
                     yield stage_dir, entry
 
+    def code_memo(self):
+        """The analyses of the code digests kept in this cache (:class:`fluorocal.codehash.AnalysisMemo`)."""
+        from fluorocal.codehash import AnalysisMemo
+
+        return AnalysisMemo(self.root / CODE / "analyses.json")
+
     def _remove_skeleton(self) -> None:
-        """After a full clean: empty stage folders, lock files, and the root if only the marker is left."""
+        """After a full clean: empty stage folders, lock files, the code memo, the root if only the marker is left."""
+        if (self.root / CODE).is_dir() and not (self.root / CODE).is_symlink():
+            shutil.rmtree(self.root / CODE, ignore_errors=True)
         locks = self.root / LOCKS
         if locks.is_dir() and not locks.is_symlink():
             for path in locks.iterdir():
@@ -545,7 +555,7 @@ def _older_format(raw: bytes) -> bool:
 def _only_cache_files(root: Path) -> bool:
     """Whether ``root`` holds only what a cache (of this or the previous format) writes."""
     for child in root.iterdir():
-        if (child.name in (LOCKS, PROJECTS) and child.is_dir()) or (child.name == MARKER and child.is_file()):
+        if (child.name in (LOCKS, PROJECTS, CODE) and child.is_dir()) or (child.name == MARKER and child.is_file()):
             continue
         if child.is_symlink() or not child.is_dir() or not _STAGE.fullmatch(child.name):
             return False

@@ -16,6 +16,13 @@ The versions of the numerical libraries the code reached imports
 OpenImageIO, pydicom, tifffile) are in the digest too,
 with those of the libraries they are built on: a new SciPy recomputes the
 stages that call SciPy, and only them.
+
+Parsing the modules is most of the cost (about a second for the pipeline's
+stages). An :class:`AnalysisMemo` keeps each module's analysis in a file between
+runs, under a key that is a hash of the module's source text itself (with its
+name, this module's own source and Python's version): every source file is still
+read and hashed on each call, never trusted by its size or time, so an edited
+module is analysed anew whatever its metadata say.
 """
 
 from __future__ import annotations
@@ -24,8 +31,14 @@ import ast
 import hashlib
 import importlib
 import importlib.util
+import json
+import logging
+import re
+import sys
 from functools import lru_cache
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 #: the libraries whose version is in the digest of the code importing them -> the ones they run in turn
 LIBRARIES = {
@@ -40,7 +53,7 @@ LIBRARIES = {
 }
 
 
-def code_digest(modules) -> str:
+def code_digest(modules, memo: AnalysisMemo | None = None) -> str:
     """sha256 over the syntax trees of ``modules``, of every module of the same packages they import, and the versions.
 
     Parameters
@@ -48,6 +61,8 @@ def code_digest(modules) -> str:
     modules : iterable of str
         Dotted module names (``"fluorocal.stages.learn"``). Imports are followed
         only into modules whose top-level package is that of one of these names.
+    memo : AnalysisMemo, optional
+        Analyses kept from earlier runs (the same digest, without parsing the unchanged modules).
 
     Returns
     -------
@@ -55,7 +70,7 @@ def code_digest(modules) -> str:
         Hex digest; it changes when the code of any module reached changes, or the version
         of one of the :data:`LIBRARIES` that code imports.
     """
-    seen, libraries = reach(modules)
+    seen, libraries = reach(modules, memo)
     h = hashlib.sha256()
     for name in sorted(seen):
         h.update(f"{name}:{seen[name]}\n".encode())
@@ -64,7 +79,7 @@ def code_digest(modules) -> str:
     return h.hexdigest()
 
 
-def reach(modules) -> tuple[dict[str, str], set[str]]:
+def reach(modules, memo: AnalysisMemo | None = None) -> tuple[dict[str, str], set[str]]:
     """The modules ``modules`` execute (name -> digest of its syntax tree) and the :data:`LIBRARIES` they run.
 
     A package reached only as the parent of a module runs its body alone: its functions' imports are
@@ -83,7 +98,7 @@ def reach(modules) -> tuple[dict[str, str], set[str]]:
         source = _module_source(name)
         if source is None:
             continue
-        seen[name], body, functions = _analyse(name, *source)
+        seen[name], body, functions = memo.analyse(name, *source) if memo is not None else _analyse(name, *source)
         whole |= {name} if imported else set()
         for module in body + functions * imported:
             top = module.split(".")[0]
@@ -134,6 +149,89 @@ def _analyse(name: str, path: Path, text: str) -> tuple[str, tuple[str, ...], tu
     functions = [m for m in _imports(_executed(tree, into_functions=True), package) if m not in body]
     _drop_docstrings(tree)
     return hashlib.sha256(ast.dump(tree).encode()).hexdigest(), tuple(body), tuple(functions)
+
+
+#: a memo's key and an analysis' digest: sha256 hex
+_HEX = re.compile(r"[0-9a-f]{64}")
+
+
+class AnalysisMemo:
+    """Module analyses kept in a JSON file between runs (the cache's), each under a key of its source text.
+
+    The key (:meth:`key`) is the sha256 of this module's own source, Python's version, the module's
+    name, whether it is a package's ``__init__`` and its source text: the analysis of the same text by the
+    same code, so a hit is what :func:`_analyse` would return. An unreadable file or entry is ignored
+    (the module is parsed again); the file is written atomically, and runs writing it at once lose at most
+    each other's additions. It holds the entries of the last run and, up to :data:`MAX_ENTRIES`, older ones.
+    """
+
+    #: entries kept from earlier runs besides this run's
+    MAX_ENTRIES = 2000
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.entries = self._load()
+        self.used: set[str] = set()
+        self.added = False
+
+    def analyse(self, name: str, path: Path, text: str) -> tuple[str, tuple[str, ...], tuple[str, ...]]:
+        """:func:`_analyse` of the module, from the memo when it holds the same text's."""
+        key = self.key(name, path, text)
+        self.used.add(key)
+        if key not in self.entries:
+            self.entries[key] = _analyse(name, path, text)
+            self.added = True
+        return self.entries[key]
+
+    @staticmethod
+    def key(name: str, path: Path, text: str) -> str:
+        h = hashlib.sha256(_own_source())
+        for part in (sys.version, name, str(path.name == "__init__.py"), text):
+            h.update(hashlib.sha256(part.encode("utf-8", "surrogatepass")).digest())
+        return h.hexdigest()
+
+    def save(self) -> None:
+        """Write the memo if this run analysed a module it did not hold; a failure only loses the memo."""
+        if not self.added:
+            return
+        from fluorocal.stages.io import atomic_write
+
+        kept = self.entries if len(self.entries) <= self.MAX_ENTRIES else {k: self.entries[k] for k in self.used}
+        text = json.dumps({k: [d, list(b), list(f)] for k, (d, b, f) in sorted(kept.items())})
+        try:
+            atomic_write(self.path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+            self.added = False
+        except OSError as exc:
+            log.debug("code analyses not kept in %s: %s", self.path, exc)
+
+    def _load(self) -> dict[str, tuple[str, tuple[str, ...], tuple[str, ...]]]:
+        try:
+            raw = json.loads(self.path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return {}
+        entries = {}
+        for key, value in raw.items() if isinstance(raw, dict) else ():
+            if _valid_entry(key, value):
+                entries[key] = (value[0], tuple(value[1]), tuple(value[2]))
+        return entries
+
+
+def _valid_entry(key, value) -> bool:
+    return (
+        isinstance(key, str)
+        and _HEX.fullmatch(key) is not None
+        and isinstance(value, list)
+        and len(value) == 3
+        and isinstance(value[0], str)
+        and _HEX.fullmatch(value[0]) is not None
+        and all(isinstance(v, list) and all(isinstance(m, str) for m in v) for v in value[1:])
+    )
+
+
+@lru_cache(maxsize=1)
+def _own_source() -> bytes:
+    """The source of :mod:`fluorocal.codehash`: a change to how modules are analysed invalidates every memo entry."""
+    return Path(__file__).read_bytes()
 
 
 def _imports(nodes, package: str) -> list[str]:

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 from fluorocal.export_tables import fluorocal_version, write_object_points, write_observations
+from fluorocal.figures import Figures
 from fluorocal.outputs import check_output_dir, inside, publish, safe_name, sweep
 from fluorocal.report import rms_px
 from fluorocal.stages.io import OBSERVATIONS, atomic_write, columns_of, write_table
@@ -193,6 +194,7 @@ def export_calibration(runner, out_dir: Path | None = None) -> list[Path]:
     from fluorocal.gather import failed_frames, observations_from_labels
 
     out_dir = Path(runner.config.output_dir if out_dir is None else out_dir)
+    figures = Figures(runner.config.output_dir, getattr(runner, "code_memo", None))  # the published set's
     result = runner.get("learn", None)
     labels = [runner.get("label", u) for u in range(len(runner.units))]
     obs = observations_from_labels(runner.units, labels, runner.config)
@@ -202,7 +204,7 @@ def export_calibration(runner, out_dir: Path | None = None) -> list[Path]:
     if runner.config.phantom.lattice:
         from fluorocal.export_plate import export_plate
 
-        return export_plate(runner, result, obs, excluded, out_dir)
+        return export_plate(runner, result, obs, excluded, out_dir, figures)
     adj = result.adjustment
     cal = calibration_from_result(runner, result)
     written = cal.save(inside(out_dir, "calibration.json"))
@@ -218,14 +220,20 @@ def export_calibration(runner, out_dir: Path | None = None) -> list[Path]:
         inlier=adj.inlier,
     )
     written.append(inside(out_dir, "observations.csv"))
-    written += write_report(out_dir, runner, obs, result, cal, excluded)
+    written += write_report(out_dir, runner, obs, result, cal, excluded, figures)
     return written
 
 
-def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[Path]:
-    """``report.md`` and its plots: residuals before/after, the learned fields, convergence, per-frame RMS."""
+def write_report(out_dir: Path, runner, obs, result, cal, excluded=(), figures=None) -> list[Path]:
+    """``report.md`` and its plots: residuals before/after, the learned fields, convergence, per-frame RMS.
+
+    ``figures`` (:class:`~fluorocal.figures.Figures`) draws them, or copies those a previous set made from
+    the same content (default: draws every one).
+    """
     from fluorocal import report
 
+    figures = Figures() if figures is None else figures
+    draw = figures.draw
     adj = result.adjustment
     before = getattr(result, "initial_residual_px", None)
     lines = [
@@ -261,17 +269,17 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
         panels = ([("before: no correction", obs.xy_px[inl], before[inl])] if before is not None else []) + [
             ("after: calibrated", obs.xy_px[inl], adj.residual_px[inl])
         ]
-        plots.append(report.residual_maps(inside(out_dir, f"residuals_{file_name}.png"), panels, size))
+        plots.append(draw(inside(out_dir, f"residuals_{file_name}.png"), report.residual_maps, panels, size))
         plots.append(
-            report.field_map(
-                inside(out_dir, f"field_{file_name}.png"), result.fields[s], f"learned correction Δ, system {name}"
+            draw(
+                inside(out_dir, f"field_{file_name}.png"),
+                report.field_map,
+                field,
+                f"learned correction Δ, system {name}",
             )
         )
-        plots.append(
-            report.field_sigma_map(
-                inside(out_dir, f"field_sigma_{file_name}.png"), result.fields[s], f"σ of the correction, system {name}"
-            )
-        )
+        sigma_title = f"σ of the correction, system {name}"
+        plots.append(draw(inside(out_dir, f"field_sigma_{file_name}.png"), report.field_sigma_map, field, sigma_title))
         labels, rms_b, rms_a = [], [], []
         for u in (u for u in runner.units if u.system == s):
             f = inl & (obs.exposure == u.exposure)
@@ -279,10 +287,9 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
                 labels.append(u.path.stem)
                 rms_b.append(rms_px(before[f]) if before is not None else np.nan)
                 rms_a.append(rms_px(adj.residual_px[f]))
-        plots.append(
-            report.frame_rms(inside(out_dir, f"frames_{file_name}.png"), labels, np.array(rms_b), np.array(rms_a))
-        )
-    plots.append(report.convergence(inside(out_dir, "convergence.png"), result.history))
+        path = inside(out_dir, f"frames_{file_name}.png")
+        plots.append(draw(path, report.frame_rms, labels, np.array(rms_b), np.array(rms_a)))
+    plots.append(draw(inside(out_dir, "convergence.png"), report.convergence, result.history))
     st = cal.meta["statistics"]
     lines += [
         "",
@@ -296,4 +303,4 @@ def write_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[P
     lines += [f"![{p.stem}]({p.name})" for p in plots]
     path = inside(out_dir, "report.md")
     atomic_write(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n", encoding="utf-8"))
-    return plots + [path]
+    return plots + [path, figures.write_record(out_dir)]

@@ -84,8 +84,11 @@ def _rms_mm(error_mm: np.ndarray) -> float:
     return float(np.sqrt(np.mean(error_mm**2))) if len(error_mm) else 0.0
 
 
-def export_plate(runner, result, obs, excluded, out_dir: Path) -> list[Path]:
-    """Write a grid plate's calibration, layout, observations and report into ``out_dir``."""
+def export_plate(runner, result, obs, excluded, out_dir: Path, figures=None) -> list[Path]:
+    """Write a grid plate's calibration, layout, observations and report into ``out_dir``.
+
+    ``figures`` (:class:`~fluorocal.figures.Figures`) draws the report's figures (default: every one).
+    """
     from fluorocal.export_tables import write_object_points, write_observations
 
     cal = plate_calibration(runner, result)
@@ -104,7 +107,7 @@ def export_plate(runner, result, obs, excluded, out_dir: Path) -> list[Path]:
         inlier=result.inlier,
     )
     written.append(inside(out_dir, "observations.csv"))
-    return written + write_plate_report(out_dir, runner, obs, result, cal, excluded)
+    return written + write_plate_report(out_dir, runner, obs, result, cal, excluded, figures)
 
 
 def _corrected(result, obs) -> np.ndarray:
@@ -117,10 +120,16 @@ def _corrected(result, obs) -> np.ndarray:
     return out
 
 
-def write_plate_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> list[Path]:
-    """``report.md`` of a grid plate: RMS per orientation, fields, the plate's errors, the change with orientation."""
+def write_plate_report(out_dir: Path, runner, obs, result, cal, excluded=(), figures=None) -> list[Path]:
+    """``report.md`` of a grid plate: RMS per orientation, fields, the plate's errors, the change with orientation.
+
+    ``figures`` as for :func:`export_plate`.
+    """
     from fluorocal import report
+    from fluorocal.figures import Figures
     from fluorocal.orientations import orientation_report
+
+    figures = Figures() if figures is None else figures
 
     inl = result.inlier
     lines = [
@@ -153,7 +162,11 @@ def write_plate_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> 
             f"| {rms_px(result.residual_px[sel & inl]):.3f} | {max_delta:.2f} |"
         )
         stem = f"{safe_name(system, what='system name')}_{safe_name(name, what='orientation name')}"
-        plots.append(report.field_map(inside(out_dir, f"field_{stem}.png"), field, f"correction Δ, {system} {name}"))
+        plots.append(
+            figures.draw(
+                inside(out_dir, f"field_{stem}.png"), report.field_map, field, f"correction Δ, {system} {name}"
+            )
+        )
     for s, system in enumerate(result.system_names):
         sel = (obs.system == s) & inl
         size = cal.systems[system].image_size_px
@@ -162,16 +175,17 @@ def write_plate_report(out_dir: Path, runner, obs, result, cal, excluded=()) -> 
             ("after: fields and plate errors", obs.xy_px[sel], result.residual_px[sel]),
         ]
         name = safe_name(system, what="system name")
-        plots.append(report.residual_maps(inside(out_dir, f"residuals_{name}.png"), panels, size))
+        plots.append(figures.draw(inside(out_dir, f"residuals_{name}.png"), report.residual_maps, panels, size))
         if result.plate_estimated[result.hole_system == s].any():
-            plots.append(plate_map(inside(out_dir, f"plate_{name}.png"), result, s, runner.config.phantom.pitch_mm))
+            pitch_mm = runner.config.phantom.pitch_mm
+            plots.append(figures.draw(inside(out_dir, f"plate_{name}.png"), plate_map, result, s, pitch_mm))
         change_plots, change_lines = orientation_report(out_dir, system, cal.systems[system].orientations)
         embedded_below += change_plots
         lines += ["", *change_lines]
     lines += ["", *(f"![{p.stem}]({p.name})" for p in plots)]
     path = inside(out_dir, "report.md")
     atomic_write(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n", encoding="utf-8"))
-    return plots + embedded_below + [path]
+    return plots + embedded_below + [path, figures.write_record(out_dir)]
 
 
 def _orientation_of_obs(result, obs) -> np.ndarray:

@@ -82,11 +82,14 @@ class Stage:
         own = tuple(f.__module__ for f in (self.func, self.gather) if f is not None)
         return own + tuple(m for i in self.inputs for m in SOURCE_CODE.get(i, ()))
 
-    def code_digest(self) -> str:
-        """Digest of the code of :meth:`code_modules` and all they import (:func:`fluorocal.codehash.code_digest`)."""
+    def code_digest(self, memo=None) -> str:
+        """Digest of the code of :meth:`code_modules` and all they import (:func:`fluorocal.codehash.code_digest`).
+
+        ``memo``: a :class:`fluorocal.codehash.AnalysisMemo` of earlier runs' analyses.
+        """
         from fluorocal.codehash import code_digest
 
-        return code_digest(self.code_modules())
+        return code_digest(self.code_modules(), memo)
 
 
 def _label_context(config, unit, units) -> dict:

@@ -143,6 +143,7 @@ class Runner:
         self.memory: dict[tuple[str, int | None], object] = {}
         self.codes: dict[str, str] = {}  # stage name -> digest of the code that computes it
         self.report = RunReport()
+        self.code_memo = cache.code_memo()  # the code analyses of earlier runs: kept by run()
         self._plan()
 
     # --- keys ---------------------------------------------------------------------------------
@@ -163,7 +164,7 @@ class Runner:
 
     def _plan(self) -> None:
         for stage in self.stages:
-            code = self.codes[stage.name] = stage.code_digest()
+            code = self.codes[stage.name] = stage.code_digest(self.code_memo)
             if stage.per_system:
                 self._plan_systems(stage, code)
                 continue
@@ -214,6 +215,7 @@ class Runner:
         from tqdm import tqdm
 
         self.cache.prepare_root()
+        self.code_memo.save()
         self.cache.sweep()
         self.cache.record_use(self.config.path, {(name, key) for (name, _), key in self.keys.items()})
         todo = {}

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import importlib
+import json
+import os
 import sys
 import textwrap
 
 import pytest
 from fluorocal.cache import ArtifactCache
-from fluorocal.codehash import code_digest
+from fluorocal.codehash import AnalysisMemo, code_digest
 from fluorocal.config import load_config
 from fluorocal.graph import Stage
 from fluorocal.run import Runner
@@ -102,6 +104,66 @@ def test_docstrings_do_not_change_the_digest(package):
     before = code_digest([f"{PACKAGE}.second"])
     helper.write_text('"""Helpers."""\n\n\ndef twice(x):\n    """Twice ``x``."""\n    return 2 * x\n')
     assert code_digest([f"{PACKAGE}.second"]) == before
+
+
+# --- the analyses kept between runs ----------------------------------------------------------------------------
+
+
+def _fresh_process():
+    """Forget the analyses this process made (as a new run starts without them)."""
+    from fluorocal import codehash
+
+    codehash._analyse.cache_clear()
+
+
+def test_the_memo_gives_the_same_digest_without_parsing(package, tmp_path, monkeypatch):
+    from fluorocal import codehash
+
+    expected = code_digest([f"{PACKAGE}.second"])
+    memo = AnalysisMemo(tmp_path / "analyses.json")
+    assert code_digest([f"{PACKAGE}.second"], memo) == expected
+    memo.save()
+    _fresh_process()
+
+    def no_parsing(*args, **kwargs):
+        raise AssertionError("a module the memo holds was parsed")
+
+    monkeypatch.setattr(codehash.ast, "parse", no_parsing)
+    assert code_digest([f"{PACKAGE}.second"], AnalysisMemo(tmp_path / "analyses.json")) == expected
+
+
+def test_an_edited_module_changes_the_digest_whatever_its_size_and_time(package, tmp_path):
+    """The memo is keyed by each module's text: an edit of the same size with the file's time put back still counts."""
+    memo = AnalysisMemo(tmp_path / "analyses.json")
+    before = code_digest([f"{PACKAGE}.second"], memo)
+    memo.save()
+    helper = package / "_helper.py"
+    stat = helper.stat()
+    helper.write_text(helper.read_text().replace("2 * x", "3 * x"))
+    os.utime(helper, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert (helper.stat().st_size, helper.stat().st_mtime_ns) == (stat.st_size, stat.st_mtime_ns)
+    _fresh_process()
+    edited = code_digest([f"{PACKAGE}.second"], AnalysisMemo(tmp_path / "analyses.json"))
+    assert edited != before
+    _fresh_process()
+    assert code_digest([f"{PACKAGE}.second"]) == edited  # what parsing the edited module gives
+
+
+def test_an_unreadable_memo_or_entry_is_ignored(package, tmp_path):
+    expected = code_digest([f"{PACKAGE}.second"])
+    path = tmp_path / "analyses.json"
+    path.write_text("{not json")
+    assert code_digest([f"{PACKAGE}.second"], AnalysisMemo(path)) == expected
+    memo = AnalysisMemo(path)
+    code_digest([f"{PACKAGE}.second"], memo)
+    memo.save()
+    entries = json.loads(path.read_text())
+    key = next(iter(entries))
+    entries[key] = ["not a digest", [], []]
+    path.write_text(json.dumps(entries))
+    assert key not in AnalysisMemo(path).entries
+    _fresh_process()
+    assert code_digest([f"{PACKAGE}.second"], AnalysisMemo(path)) == expected
 
 
 # --- the project's own stages, on a copy of the package ----------------------------------------------

@@ -1,0 +1,140 @@
+"""The report's figures are drawn again only when what they show changed (issue 31).
+
+A published set records each figure's content key and its PNG's sha256 (``.fluorocal-figures.json``); the
+next set copies a figure of the same key whose file still has that checksum, and draws every other one.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import logging
+
+import numpy as np
+import pytest
+from fluorocal import report
+from fluorocal.cli import main
+from fluorocal.figures import RECORD, Figures, figure_key
+from fluorocal.outputs import publish
+from fluorocal.stages.io import write_png
+
+from tests.conftest import copy_project
+
+#: a PNG of one black pixel: what the stand-in plot below draws
+ONE_PIXEL = np.zeros((1, 1), np.uint8)
+PLOTS = ("residual_maps", "field_map", "field_sigma_map", "frame_rms", "convergence")
+
+
+def dots(path, xy, title):
+    """A stand-in plotting function: a 1-pixel PNG, whatever its content (the content is in the key)."""
+    dots.calls.append(path.name)
+    write_png(path, ONE_PIXEL)
+    return path
+
+
+dots.calls = []
+
+
+def _publish(out, xy, title="t"):
+    """Publish a set of one figure ``a.png`` made from ``xy`` and ``title``; the :class:`Figures` that made it."""
+    figures = Figures(out)
+
+    def write(staging):
+        return [figures.draw(staging / "a.png", dots, xy, title), figures.write_record(staging)]
+
+    publish(out, write)
+    return figures
+
+
+@pytest.fixture(autouse=True)
+def _no_calls():
+    dots.calls.clear()
+
+
+def test_the_same_content_is_copied_and_other_content_drawn(tmp_path):
+    out, xy = tmp_path / "out", np.arange(6.0).reshape(3, 2)
+    assert _publish(out, xy).drawn == ["a.png"]
+    first = (out / "a.png").read_bytes()
+    again = _publish(out, xy.copy())
+    assert (again.drawn, again.copied, dots.calls) == ([], ["a.png"], ["a.png"])
+    assert (out / "a.png").read_bytes() == first
+    # one number, the dtype, or the title changed: drawn again
+    assert _publish(out, xy + [[0, 0], [0, 0], [0, 1e-12]]).drawn == ["a.png"]
+    assert _publish(out, xy.astype(np.float32)).drawn == ["a.png"]
+    assert _publish(out, xy.astype(np.float32), "another title").drawn == ["a.png"]
+
+
+def test_a_published_figure_not_as_recorded_is_drawn_again(tmp_path):
+    out, xy = tmp_path / "out", np.arange(6.0).reshape(3, 2)
+    _publish(out, xy)
+    (out / "a.png").write_bytes((out / "a.png").read_bytes()[:-3])  # truncated
+    assert _publish(out, xy).drawn == ["a.png"]
+    (out / "a.png").unlink()
+    assert _publish(out, xy).drawn == ["a.png"]
+    (out / RECORD).write_text("{not json")
+    assert _publish(out, xy).drawn == ["a.png"]
+    record = json.loads((out / RECORD).read_text())
+    assert record["a.png"]["sha256"] == hashlib.sha256((out / "a.png").read_bytes()).hexdigest()
+
+
+def test_the_key_covers_the_code_and_refuses_what_it_cannot_hash():
+    args = (np.ones(3), "title")
+    assert figure_key(dots, args, "code 1") != figure_key(dots, args, "code 2")
+    assert figure_key(dots, args, "code") != figure_key(report.field_map, args, "code")
+    with pytest.raises(TypeError, match="object"):
+        figure_key(dots, (object(),), "code")
+
+
+# --- a whole run ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture()
+def project(tmp_path, calibrated_project):
+    return copy_project(calibrated_project, tmp_path / "project")
+
+
+def _count_plots(monkeypatch):
+    """Wrap the report's plotting functions; the names of the PNGs they draw.
+
+    The wrappers keep the functions' names: a figure's key holds its plotting function's.
+    """
+    drawn = []
+    for name in PLOTS:
+        real = getattr(report, name)
+
+        @functools.wraps(real)
+        def counted(path, *args, _real=real):
+            drawn.append(path.name)
+            return _real(path, *args)
+
+        monkeypatch.setattr(report, name, counted)
+    return drawn
+
+
+def _pngs(out):
+    return {p.name: p.read_bytes() for p in sorted(out.glob("*.png"))}
+
+
+def test_a_run_with_nothing_changed_draws_no_figure_and_keeps_the_set(project, monkeypatch, caplog):
+    out = project / "out"
+    before, listing = _pngs(out), sorted(p.name for p in out.iterdir())
+    drawn = _count_plots(monkeypatch)
+    with caplog.at_level(logging.INFO):
+        assert main(["run", str(project / "fluorocal.toml")]) == 0
+    assert "nothing recomputed" in caplog.text
+    assert drawn == []
+    assert _pngs(out) == before and len(before) == 9  # 4 per system (2) and the convergence
+    assert sorted(p.name for p in out.iterdir()) == listing  # the whole set, and nothing else
+    assert "9 unchanged and copied" in caplog.text
+
+
+def test_a_changed_input_redraws_the_figures_that_show_it(project, monkeypatch):
+    """A frame renamed: its name is on system A's per-frame figure; its pixels, and so every other figure, are not."""
+    (project / "frames" / "A" / "frame_000.tif").rename(project / "frames" / "A" / "frame_000a.tif")
+    before = _pngs(project / "out")
+    drawn = _count_plots(monkeypatch)
+    assert main(["--quiet", "run", str(project / "fluorocal.toml")]) == 0
+    assert drawn == ["frames_A.png"]
+    after = _pngs(project / "out")
+    assert [n for n in before if before[n] != after[n]] == ["frames_A.png"]
