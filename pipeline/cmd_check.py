@@ -214,7 +214,7 @@ class Tables:
 
         from fluorocal.stages.centroid import centroid_beads
         from fluorocal.stages.detect import detect_beads, estimate_appearance
-        from fluorocal.stages.label import label_sequence
+        from fluorocal.stages.kinds import label_sequence
 
         detect = estimate_appearance([frame], self.detect)
         centroids = centroid_beads(frame, detect_beads(frame, detect), self.centroid)
@@ -395,7 +395,7 @@ def reference_setup(cal, calibration: Path, system: str):
     except (ConfigError, OSError) as exc:
         raise InputError(f"{calibration}: cannot read its project config {config_path} ({exc})") from None
     plate = cal.meta.get("geometry_estimated", True) is False
-    if plate != bool(config.phantom.lattice):
+    if plate == config.phantom.kind.estimates_geometry:
         made, now = ("a grid plate", "a phantom file") if plate else ("a bead phantom", "a grid plate")
         raise InputError(f"{calibration}: made with {made}, but its config {config_path} now names {now}")
     points_path = calibration.with_name("object_points.csv")

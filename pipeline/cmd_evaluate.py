@@ -94,7 +94,7 @@ def run(args) -> int:
 
     config, runner = _project(args)
     out_dir = _check_out(args, config)
-    if config.phantom.lattice:
+    if not config.phantom.kind.check_points:
         return _run_plate(args, config, runner, out_dir)
     args.holdout = args.holdout or ["odd"]
     reference = _reference(args.reference, runner) if args.reference else None
@@ -244,8 +244,8 @@ def _project(args):
     from fluorocal.stages.errors import InputError
 
     config = load_project(args.config)
-    if config.phantom.lattice and args.reference:
-        raise InputError("--reference: a grid plate has no check points (its holes are scored on held-out rows)")
+    if args.reference and not config.phantom.kind.check_points:
+        raise InputError(f"--reference: {config.phantom.kind.noun} has no check points (scored on held-out rows)")
     return config, project_runner(args, config, until="label")
 
 

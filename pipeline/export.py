@@ -199,7 +199,7 @@ def export_calibration(runner, out_dir: Path | None = None) -> list[Path]:
     excluded = failed_frames(runner.units, labels, runner.config)
     if excluded:
         log.warning("%d frame(s) excluded, labelling failed: %s", len(excluded), "; ".join(excluded))
-    if runner.config.phantom.lattice:
+    if not runner.config.phantom.kind.estimates_geometry:
         from fluorocal.export_plate import export_plate
 
         return export_plate(runner, result, obs, excluded, out_dir)
