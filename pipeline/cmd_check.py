@@ -220,7 +220,7 @@ def reference_setup(cal, calibration: Path, system: str):
         raise InputError(f"{calibration}: cannot read its project config {config_path} ({exc})") from None
     plate = cal.meta.get("geometry_estimated", True) is False
     if plate == config.phantom.kind.estimates_geometry:
-        made, now = ("a grid plate", "a phantom file") if plate else ("a bead phantom", "a grid plate")
+        made, now = "a grid plate" if plate else "a bead phantom", config.phantom.kind.noun
         raise InputError(f"{calibration}: made with {made}, but its config {config_path} now names {now}")
     points_path = calibration.with_name("object_points.csv")
     if not points_path.is_file():

@@ -233,8 +233,12 @@ def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
     lattice = _expect(
         table.get("lattice"), str, 'a phantom "file", or "lattice" = "hex" | "square"', path, section, "lattice"
     )
-    if lattice not in ("hex", "square"):
-        raise ConfigError(f'{_where(path, section, "lattice")}: expected "hex" or "square"; got {lattice!r}')
+    from fluorocal.stages.kinds import KINDS
+
+    lattices = [spelling for spelling in KINDS if spelling]  # "": a phantom file alone
+    if lattice not in lattices:
+        shown = " or ".join(f'"{spelling}"' for spelling in lattices)
+        raise ConfigError(f"{_where(path, section, 'lattice')}: expected {shown}; got {lattice!r}")
     pitch = _as_float(_expect(table.get("pitch"), (int, float), "a positive number (mm)", path, section, "pitch"))
     if not (math.isfinite(pitch) and pitch > 0):
         raise ConfigError(f"{_where(path, section, 'pitch')}: expected a positive number (mm); got {pitch}")

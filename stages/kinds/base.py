@@ -69,8 +69,6 @@ class PhantomKind(Protocol):
         export with intrinsics); ``calibration.json`` says so as ``geometry_estimated``.
     check_points : bool
         Surveyed check points (``evaluate --reference``) can score it.
-    training_unit : str
-        What ``evaluate`` counts a training size in (``"epochs"``, ``"frames"``).
     """
 
     name: str
@@ -83,7 +81,6 @@ class PhantomKind(Protocol):
     several_orientations: bool
     estimates_geometry: bool
     check_points: bool
-    training_unit: str
 
     def label_frame(self, centroids, phantom, params, prior_pose=None):
         """One frame's :class:`~fluorocal.stages.label.Labels` (``prior_pose``: a neighbour's, if the kind uses it)."""

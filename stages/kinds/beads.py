@@ -28,7 +28,6 @@ class BeadPhantom:
     several_orientations = False
     estimates_geometry = True
     check_points = True
-    training_unit = "epochs"
 
     def label_frame(self, centroids, phantom, params, prior_pose=None):
         return label_bead_frame(centroids, phantom, params, prior_pose)

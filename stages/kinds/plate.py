@@ -32,7 +32,6 @@ class GridPlate:
     several_orientations = True
     estimates_geometry = False
     check_points = False
-    training_unit = "frames"
 
     def label_frame(self, centroids, phantom, params, prior_pose=None):
         return label_plate_frame(centroids, phantom, params)
