@@ -39,7 +39,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluorocal.stages.label import STATUS_AMBIGUOUS, LabelParams, label_beads, label_sequence  # noqa: E402
+from fluorocal.stages.kinds import label_beads, label_sequence  # noqa: E402
+from fluorocal.stages.label import STATUS_AMBIGUOUS, LabelParams  # noqa: E402
 from fluorocal.stages.simulate import SimulateParams, simulate  # noqa: E402
 
 from tests.stages.test_label import detections_from_truth, seeds_from_truth, unambiguous_ids, without_roles  # noqa: E402

@@ -44,7 +44,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluorocal.stages.label import LabelParams, label_sequence, sequence  # noqa: E402
+from fluorocal.stages.kinds import label_sequence  # noqa: E402
+from fluorocal.stages.label import LabelParams, sequence  # noqa: E402
 from fluorocal.stages.simulate import SimulateParams, simulate  # noqa: E402
 
 from tests.stages.test_label import detections_from_truth, seeds_from_truth, unambiguous_ids  # noqa: E402
@@ -148,12 +149,12 @@ def label_params(sp: SimulateParams) -> LabelParams:
 def timed_sequence(cents, phantom, params, seeds_by_frame) -> tuple[tuple, list]:
     """``label_sequence`` and the CPU seconds spent on each frame (its own attempt and every retry).
 
-    Every attempt at a frame goes through ``label_frame`` (alone, from its neighbours, weighed as a suspect):
+    Every attempt at a frame goes through ``label_bead_frame`` (alone, from its neighbours, weighed as a suspect):
     its calls are timed per frame; the sequence's own bookkeeping between them is shared out evenly.
     """
     per_frame = [0.0] * len(cents)
     index = {id(c): i for i, c in enumerate(cents)}
-    inner = sequence.label_frame
+    inner = sequence.label_bead_frame
 
     def timed(centroids, *args, **kwargs):
         t = time.process_time()
@@ -163,11 +164,11 @@ def timed_sequence(cents, phantom, params, seeds_by_frame) -> tuple[tuple, list]
             per_frame[index[id(centroids)]] += time.process_time() - t
 
     t0 = time.process_time()
-    sequence.label_frame = timed
+    sequence.label_bead_frame = timed
     try:
         labs = label_sequence(cents, phantom, params, seeds_by_frame)
     finally:
-        sequence.label_frame = inner
+        sequence.label_bead_frame = inner
     rest = (time.process_time() - t0 - sum(per_frame)) / max(len(cents), 1)
     return labs, [s + rest for s in per_frame]
 

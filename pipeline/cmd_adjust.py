@@ -142,7 +142,7 @@ def run(args) -> int:
 
 def _write_tables(out: Path, obs, table: dict, res) -> None:
     """``object_points.csv`` and ``observations.csv`` (the input rows with the adjustment's statistics)."""
-    from fluorocal.export import write_object_points
+    from fluorocal.export_tables import write_object_points
     from fluorocal.stages.io import OBSERVATIONS, write_table
 
     write_object_points(out / "object_points.csv", res.bead_id, res.xyz_mm, res.xyz_std_mm)

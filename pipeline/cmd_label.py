@@ -51,7 +51,10 @@ def add_parser(subparsers) -> None:
         help="phantom CSV id,x,y,z[,diameter][,role] (mm); required unless --lattice",
     )
     p.add_argument(
-        "--lattice", choices=("hex", "square"), help="grid plate lattice instead of a phantom CSV (default: none)"
+        "--lattice",
+        choices=("hex", "square"),
+        default="",
+        help="grid plate lattice instead of a phantom CSV (default: none)",
     )
     p.add_argument(
         "--pitch",
@@ -76,12 +79,14 @@ def run(args) -> int:
     from fluorocal.stages.artifacts import Phantom
     from fluorocal.stages.errors import InputError
     from fluorocal.stages.io import LABELS, columns_of, read_frames, read_phantom, write_table
-    from fluorocal.stages.label import LabelParams, label_sequence
+    from fluorocal.stages.kinds import label_sequence, phantom_kind
+    from fluorocal.stages.label import LabelParams
 
     table = args.out / "labels.csv"
     refuse_existing([table], overwrite=args.overwrite)
     frames = _read_detections(args.detections)
-    if args.lattice:
+    kind = phantom_kind(args.lattice)
+    if not kind.needs_geometry:  # a grid plate: its lattice and pitch are the whole phantom
         if not args.pitch > 0:
             raise InputError("--pitch must be > 0 mm with --lattice")
         phantom = Phantom([], [], [], [], args.lattice, args.pitch)
@@ -90,7 +95,7 @@ def run(args) -> int:
     else:
         phantom = read_phantom(args.phantom)
         if not (args.source_image_distance > 0 and args.pixel_pitch > 0):
-            raise InputError("--source-image-distance and --pixel-pitch (mm, > 0) are needed to label a 3D phantom")
+            raise InputError(f"--source-image-distance and --pixel-pitch (mm, > 0) are needed to label {kind.noun}")
     keys = sorted(frames)
     seeds = _read_seeds(args.seeds, keys) if args.seeds else {}
     params = LabelParams(

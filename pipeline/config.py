@@ -27,6 +27,7 @@ from fluorocal.stages.errors import InputError
 from fluorocal.stages.orientation import ANGLE_TOL_DEG, check_angle
 
 if typing.TYPE_CHECKING:  # imported when a configuration is made: `fluorocal --help` imports no learning
+    from fluorocal.stages.kinds import PhantomKind
     from fluorocal.stages.learn.params import Scheme
 
 
@@ -63,9 +64,21 @@ def _reject_owned(section: str, table: dict, path: Path) -> None:
 
 @dataclass(frozen=True)
 class PhantomConfig:
+    """The ``[phantom]`` table: a phantom file, or a grid plate's lattice and pitch; and the kind it names.
+
+    ``kind`` (:class:`~fluorocal.stages.kinds.PhantomKind`) is looked up once, from the table's spelling
+    (:data:`fluorocal.stages.kinds.KINDS`); what differs between kinds is asked of it.
+    """
+
     file: Path | None = None
     lattice: str = ""
     pitch_mm: float = 0.0
+    kind: PhantomKind = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        from fluorocal.stages.kinds import phantom_kind
+
+        object.__setattr__(self, "kind", phantom_kind(self.lattice))
 
 
 @dataclass(frozen=True)
@@ -220,8 +233,12 @@ def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
     lattice = _expect(
         table.get("lattice"), str, 'a phantom "file", or "lattice" = "hex" | "square"', path, section, "lattice"
     )
-    if lattice not in ("hex", "square"):
-        raise ConfigError(f'{_where(path, section, "lattice")}: expected "hex" or "square"; got {lattice!r}')
+    from fluorocal.stages.kinds import KINDS
+
+    lattices = [spelling for spelling in KINDS if spelling]  # "": a phantom file alone
+    if lattice not in lattices:
+        shown = " or ".join(f'"{spelling}"' for spelling in lattices)
+        raise ConfigError(f"{_where(path, section, 'lattice')}: expected {shown}; got {lattice!r}")
     pitch = _as_float(_expect(table.get("pitch"), (int, float), "a positive number (mm)", path, section, "pitch"))
     if not (math.isfinite(pitch) and pitch > 0):
         raise ConfigError(f"{_where(path, section, 'pitch')}: expected a positive number (mm); got {pitch}")
@@ -480,11 +497,10 @@ def _scheme(data: dict, path: Path, phantom):
         scheme = Scheme.parse(calibration.get("scheme", schema_default("calibration", "scheme")), where=where)
     except InputError as exc:
         raise ConfigError(str(exc)) from None
-    plate_schemes = (Scheme.KNN_IOP_SMOOTH, Scheme.NONE)  # the plate's own solve, or no correction
-    if phantom.lattice and scheme not in plate_schemes:
+    if scheme not in phantom.kind.schemes:
+        kind = phantom.kind
         raise ConfigError(
-            f"{where}: a grid plate is calibrated by the plate's own solve "
-            f"(a field per orientation and the plate's errors); expected one of {', '.join(plate_schemes)} "
+            f"{where}: {kind.noun} is calibrated {kind.calibrated_by}; expected one of {', '.join(kind.schemes)} "
             f"(none: no correction); got {str(scheme)!r}"
         )
     return scheme

@@ -178,8 +178,8 @@ def _system_appearance(frames: tuple, params):
 
 def _learn_extras(config, units) -> dict:
     from fluorocal.config import params_from_dict
-    from fluorocal.stages.calibrate import CalibrationSetup
     from fluorocal.stages.geometry import iop_guess
+    from fluorocal.stages.kinds import CalibrationSetup
 
     sizes, guesses = [], []
     for s, system in enumerate(config.systems):
@@ -203,20 +203,23 @@ def _learn_extras(config, units) -> dict:
 
 
 def _check_phantom_sections(config) -> None:
-    """Refuse the section of the other kind of phantom: ``[learn]`` for a grid plate, ``[plate]`` for a bead phantom."""
+    """Refuse the other kinds' sections: ``[learn]`` for a grid plate, ``[plate]`` for a bead phantom."""
     from fluorocal.stages.errors import InputError
+    from fluorocal.stages.kinds import KINDS
 
-    unused = "learn" if config.phantom.lattice else "plate"
-    if unused in config.stage_params:
-        kind, owner = ("a grid plate", "[plate]") if config.phantom.lattice else ("a 3D bead phantom", "[learn]")
+    kind = config.phantom.kind
+    unused = sorted(({k.section for k in KINDS.values()} - {kind.section}) & set(config.stage_params))
+    if unused:
         raise InputError(
-            f"{config.path.name}: [{unused}] does not apply to {kind} (its calibration's settings are in {owner}); "
-            f"remove the [{unused}] section"
+            f"{config.path.name}: [{unused[0]}] does not apply to {kind.noun} (its calibration's settings are in "
+            f"[{kind.section}]); remove the [{unused[0]}] section"
         )
 
 
 def plate_orientations(config, units) -> tuple:
-    """A grid plate's ``(system, exposure, orientation, orbit_deg, tilt_deg)`` per frame; () for a 3D phantom.
+    """``(system, exposure, orientation, orbit_deg, tilt_deg)`` per frame of a kind taken at several orientations.
+
+    () for a kind whose system is one orientation (a 3D phantom).
 
     Raises
     ------
@@ -227,11 +230,12 @@ def plate_orientations(config, units) -> tuple:
     from fluorocal.orientations import frame_orientations
     from fluorocal.stages.errors import InputError
 
-    if not config.phantom.lattice:
+    kind = config.phantom.kind
+    if not kind.several_orientations:
         several = [s.name for s in config.systems if len(s.orientations) > 1]
         if several:
             raise InputError(
-                f"{config.path.name}: [[systems]] {several[0]}: orientations: a 3D bead phantom calibrates a "
+                f"{config.path.name}: [[systems]] {several[0]}: orientations: {kind.noun} calibrates a "
                 "system at one C-arm orientation; give one project per orientation (or use a grid plate)"
             )
         return ()
@@ -250,7 +254,7 @@ REGISTRY = (
     ("centroid", "fluorocal.stages.centroid", "centroid_beads", "CentroidParams", ("frame", "detect"), {}),
     (
         "label",
-        "fluorocal.stages.label",
+        "fluorocal.stages.kinds",
         "label_sequence",
         "LabelParams",
         ("centroid", "phantom"),
@@ -258,7 +262,7 @@ REGISTRY = (
     ),
     (
         "learn",
-        "fluorocal.stages.calibrate",
+        "fluorocal.stages.kinds",
         "learn_calibration",
         "LearnParams",
         ("label", "phantom"),

@@ -127,9 +127,9 @@ def _check_frame_size(path: Path, n_frames: int, size: tuple[int, int], first) -
 def _check_pairing(config: Config, units: list[FrameUnit]) -> None:
     """Refuse biplanar systems whose frame counts differ, naming the counts and the frames left unpaired.
 
-    A grid plate's systems are calibrated each on its own (their frames are never paired): any counts.
+    A kind whose systems are calibrated each on its own (a grid plate: frames never paired) takes any counts.
     """
-    if len(config.systems) < 2 or config.phantom.lattice:
+    if len(config.systems) < 2 or not config.phantom.kind.pairs_frames:
         return
     per_system = [[u for u in units if u.system == s] for s in range(len(config.systems))]
     counts = [len(p) for p in per_system]

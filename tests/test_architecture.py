@@ -229,3 +229,78 @@ def test_the_scheme_check_sees_the_decodings_the_issue_names():
         'if params.refine != "none": pass\nlocal = plan.params.training == "local"\nx = params.refine is Refine.NONE\n'
     )
     assert _scheme_spellings(switches, SPELLED) == [1, 2]
+
+
+#: builtins whose argument a branch decides by as if it were the test itself
+TRUTH_TESTS = ("bool", "len", "any", "all")
+#: the home of the phantom kinds (issue 29): the only place that may decide anything by a phantom's ``lattice``
+KINDS_HOME = (STAGES / "kinds",)
+
+
+def _lattice_branches(text: str) -> list[int]:
+    """Lines where ``text`` branches on a ``.lattice`` attribute.
+
+    That is: an ``if``/``while``/``assert`` or conditional test, a comprehension's condition, or an operand of
+    ``and``/``or``/``not`` or of a comparison, holding it.
+
+    A call's arguments (but a truth or size test's: ``bool``, ``len``) and a subscript's key are not searched:
+    passing the value on (the lattice geometry takes it as data) or looking it up in a table is not a decision by it.
+    """
+
+    def holds(node) -> bool:
+        todo = [node]
+        while todo:
+            node = todo.pop()
+            if isinstance(node, ast.Attribute) and node.attr == "lattice":
+                return True
+            if isinstance(node, ast.Call) and not (isinstance(node.func, ast.Name) and node.func.id in TRUTH_TESTS):
+                todo.append(node.func)
+            elif isinstance(node, ast.Subscript):
+                todo.append(node.value)
+            elif not isinstance(node, (ast.Lambda, ast.FunctionDef)):
+                todo += ast.iter_child_nodes(node)
+        return False
+
+    found = set()
+    for node in ast.walk(ast.parse(text)):
+        tests = []
+        if isinstance(node, (ast.If, ast.While, ast.IfExp, ast.Assert)):
+            tests.append(node.test)
+        elif isinstance(node, ast.comprehension):
+            tests += node.ifs
+        elif isinstance(node, ast.BoolOp):
+            tests += node.values
+        elif isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.Not):
+            tests.append(node.operand)
+        elif isinstance(node, ast.Compare):
+            tests += [node.left, *node.comparators]
+        elif isinstance(node, ast.Match):
+            tests.append(node.subject)
+        found.update(t.lineno for t in tests if holds(t))
+    return sorted(found)
+
+
+def test_only_the_kinds_branch_on_the_lattice():
+    """Outside the kinds' home no module decides by ``phantom.lattice``: callers ask the phantom's kind."""
+    found = {
+        name: lines
+        for name, path in MODULES.items()
+        if not any(path.is_relative_to(home) for home in KINDS_HOME)
+        and (lines := _lattice_branches(path.read_text(encoding="utf-8")))
+    }
+    assert found == {}
+
+
+def test_the_lattice_check_sees_the_branches_the_issue_names():
+    """Each way today's code decided by the lattice (one a line) is seen; passing it on or a table lookup is not."""
+    branches = (
+        "if phantom.lattice: pass\n"
+        "alone = {} if phantom.lattice else {'search_around': False}\n"
+        "if len(systems) < 2 or config.phantom.lattice: pass\n"
+        "if plate != bool(config.phantom.lattice): pass\n"
+        "ok = [s for s in systems if not s.phantom.lattice]\n"
+        "unused = 'learn' if config.phantom.lattice else 'plate'\n"
+    )
+    assert _lattice_branches(branches) == [1, 2, 3, 4, 5, 6]
+    data = "xyz = lattice_xyz_mm(ij, phantom.lattice, phantom.pitch_mm)\nkind = KINDS[phantom.lattice]\n"
+    assert _lattice_branches(data + "if kind.pairs_frames: pass\n") == []

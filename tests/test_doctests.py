@@ -28,7 +28,6 @@ OPTIONS = doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE
 WITHOUT_EXAMPLES = {
     # split this session from modules on this list (export, learn.loop, learn/__init__), code unchanged
     "fluorocal.export_tables",
-    "fluorocal.stages.calibrate",
     "fluorocal.stages.learn.finish",
     "fluorocal.cache",
     "fluorocal.calibration_doc",

@@ -24,7 +24,6 @@ from functools import partial
 
 import numpy as np
 from fluorocal.stages.adjust import FreeParameters, adjust_bundle
-from fluorocal.stages.calibrate import CalibrationSetup, learn_calibration
 from fluorocal.stages.errors import CalibError, InputError
 from fluorocal.stages.evaluate.metrics import (
     biplanar_errors,
@@ -36,6 +35,7 @@ from fluorocal.stages.evaluate.metrics import (
     with_xy,
 )
 from fluorocal.stages.evaluate.split import training_subset
+from fluorocal.stages.kinds import CalibrationSetup, learn_calibration
 from fluorocal.stages.learn import LearnParams, start_orientation
 
 log = logging.getLogger(__name__)

@@ -1,7 +1,8 @@
 """Automatic labelling: the phantom bead id of every detection in one frame, or in a sequence of frames.
 
 Two kinds of phantom are handled (docs/concepts.md, "Conventions" for pixels, poses
-and the interior orientation):
+and the interior orientation); which one a frame or a sequence is labelled as is the phantom kind's
+choice (:func:`fluorocal.stages.kinds.label_beads`, :func:`fluorocal.stages.kinds.label_sequence`):
 
 - **3D bead phantoms** (a cube, :mod:`.cube`): an approximate pose is found from the marker
   beads (role ``marker``, recognised by their larger apparent size), from a
@@ -34,7 +35,7 @@ and the interior orientation):
   evidence (:mod:`.rivals`: detections explained, minus those left unexplained and the
   beads predicted where nothing was detected, the markers' sizes), and it stands only
   if it is clearly the best.
-- **Sequences** (:func:`label_sequence`): each frame is first labelled from its own
+- **Sequences** (:func:`label_bead_sequence`): each frame is first labelled from its own
   seeds or markers; a frame that fails, whose pose lies far from its neighbours', or whose
   labelling from its markers leaves much of it unexplained (a marker pose a few degrees off
   converges with the correction bent to fit), is then labelled from its labelled neighbours
@@ -50,8 +51,8 @@ and the interior orientation):
   the search ends as soon as a winner stands alone: its evidence within a margin of the
   most any labelling could have (every detection explained), near the prediction, so
   that nothing found later could displace it (:func:`.rivals.stands_alone`).
-- **Grid plates** (``phantom.lattice`` ``"hex"`` or ``"square"``, :mod:`.lattice`): the holes
-  are indexed on their lattice by topology, growing outward from a hole near
+- **Grid plates** (``phantom.lattice`` ``"hex"`` or ``"square"``, :mod:`.lattice`,
+  :func:`label_plate_sequence`): the holes are indexed on their lattice by topology, growing outward from a hole near
   the centre with local lattice vectors re-estimated at every hole, so that
   the distortion, missing holes and the field edge do not cause slips. The
   object coordinates are the lattice coordinates times the pitch, z = 0, and
@@ -63,9 +64,10 @@ A frame whose labelling fails is returned with ``ok = False`` and a
 The pinhole helpers (camera matrix, poses to and from OpenCV, projection, P3P) are in :mod:`.camera`.
 """
 
-from fluorocal.stages.label.frame import label_beads
+from fluorocal.stages.label.frame import label_bead_frame, label_plate_frame
 from fluorocal.stages.label.labels import Labels
 from fluorocal.stages.label.lattice import LATTICE_ID_BASE, LATTICE_ID_OFFSET, lattice_id, lattice_index, lattice_xyz_mm
+from fluorocal.stages.label.lattice_sequence import label_plate_sequence
 from fluorocal.stages.label.params import (
     STATUS_AMBIGUOUS,
     STATUS_LABELLED,
@@ -73,7 +75,7 @@ from fluorocal.stages.label.params import (
     STATUS_UNMATCHED,
     LabelParams,
 )
-from fluorocal.stages.label.sequence import label_sequence
+from fluorocal.stages.label.sequence import label_bead_sequence
 
 __all__ = [
     "LATTICE_ID_BASE",
@@ -84,8 +86,10 @@ __all__ = [
     "STATUS_UNMATCHED",
     "LabelParams",
     "Labels",
-    "label_beads",
-    "label_sequence",
+    "label_bead_frame",
+    "label_bead_sequence",
+    "label_plate_frame",
+    "label_plate_sequence",
     "lattice_id",
     "lattice_index",
     "lattice_xyz_mm",

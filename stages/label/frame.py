@@ -1,4 +1,7 @@
-"""One frame labelled: its detections and assumed interior orientation, then a cube phantom or a grid plate."""
+"""One frame labelled: its detections and assumed interior orientation, then a 3D bead phantom or a grid plate.
+
+Which of the two a frame is labelled as is the phantom kind's choice (:mod:`fluorocal.stages.kinds`).
+"""
 
 from __future__ import annotations
 
@@ -11,52 +14,31 @@ from fluorocal.stages.label.lattice import label_grid
 from fluorocal.stages.label.params import LabelParams
 
 
-def label_beads(centroids, phantom: Phantom, params: LabelParams, prior_pose: tuple | None = None) -> Labels:
-    """Give every detection of one frame its phantom bead id.
+def label_bead_frame(centroids, phantom: Phantom, params: LabelParams, prior_pose=None, **search) -> Labels:
+    """One frame of a 3D bead phantom labelled (:func:`fluorocal.stages.kinds.label_beads`).
 
-    Parameters
-    ----------
-    centroids : Centroids
-        The centroid stage's output for the frame: ``xy_px (M, 2)``, ``sigma_x``, ``sigma_y``, ``rho``,
-        ``major_px``, ``minor_px`` (semi-axes) and ``ok`` per detection.
-    phantom : Phantom
-        Nominal bead coordinates and roles, or a grid plate (``lattice``, ``pitch_mm``).
-    params : LabelParams
-        ``source_image_distance_mm`` and ``pixel_pitch_mm`` must be set for a 3D phantom.
-    prior_pose : (q, source_mm), optional
-        An approximate pose, e.g. a neighbouring frame's; tried when the markers give no acceptable
-        labelling (ignored when seeds are given). Its orientation is taken as right within a few degrees
-        (small rotations of it about any axis are searched, :mod:`.prior`), its position not: the phantom's
-        shift across the beam is searched over the whole image and its distance over a few %. The
-        labelling found is kept only if no rival explains the frame about as well (a periodic bead layout
-        one row off, a pose that a symmetry of the phantom allows), unless the beads' sizes or a much
-        nearer prior orientation rule it out; :func:`label_sequence` gives the search the sequence's
-        motion as well.
-
-    Returns
-    -------
-    Labels
-        ``ok = False`` with a ``reason`` when the frame could not be labelled reliably.
-
-    Raises
-    ------
-    InputError
-        A 3D phantom without ``source_image_distance_mm`` and ``pixel_pitch_mm``, a phantom of fewer than 4
-        beads, a grid plate without a valid lattice or pitch, or seeds naming beads the phantom lacks.
+    ``search`` holds the search options a sequence gives (:func:`~.cube.label_cube`).
     """
-    return label_frame(centroids, phantom, params, prior_pose)
-
-
-def label_frame(centroids, phantom: Phantom, params: LabelParams, prior_pose=None, **search) -> Labels:
-    """:func:`label_beads`, with the search options a sequence gives (:func:`~.cube.label_cube`)."""
-    det = Detections.from_centroids(centroids)
-    iop = assumed_iop(det, centroids, params, need_c=not phantom.lattice)
-    if phantom.lattice:
-        if phantom.lattice not in ("hex", "square"):
-            raise InputError(f"phantom.lattice must be 'hex' or 'square'; got {phantom.lattice!r}")
-        if not phantom.pitch_mm > 0:
-            raise InputError(f"phantom.pitch_mm must be > 0 for a grid plate; got {phantom.pitch_mm}")
-        return label_grid(det, phantom, params, iop)
     if phantom.n_beads < MIN_PHANTOM_BEADS:
         raise InputError(f"phantom must have at least {MIN_PHANTOM_BEADS} beads; got {phantom.n_beads}")
+    det = Detections.from_centroids(centroids)
+    iop = assumed_iop(det, centroids, params, need_c=True)
     return label_cube(det, phantom, params, iop, prior_pose, **search)
+
+
+def label_plate_frame(centroids, phantom: Phantom, params: LabelParams) -> Labels:
+    """One frame of a grid plate labelled: its holes indexed on the plate's lattice (:func:`~.lattice.label_grid`)."""
+    det = Detections.from_centroids(centroids)
+    iop = assumed_iop(det, centroids, params, need_c=False)
+    if not phantom.pitch_mm > 0:
+        raise InputError(f"phantom.pitch_mm must be > 0 for a grid plate; got {phantom.pitch_mm}")
+    return label_grid(det, phantom, params, iop)
+
+
+def checked_seed_frames(seeds_by_frame: dict | None, n_frames: int) -> dict:
+    """``seeds_by_frame`` (frame position -> seeds) as a dict, refused when it names a frame outside the sequence."""
+    seeds_by_frame = dict(seeds_by_frame or {})
+    bad = [i for i in seeds_by_frame if not 0 <= i < n_frames]
+    if bad:
+        raise InputError(f"seeds_by_frame names frames {bad} outside 0..{n_frames - 1}")
+    return seeds_by_frame

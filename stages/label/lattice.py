@@ -13,6 +13,7 @@ import logging
 
 import numpy as np
 from fluorocal.stages.artifacts import Phantom
+from fluorocal.stages.errors import InputError
 from fluorocal.stages.geometry import camera_matrix, matrix_to_quat
 from fluorocal.stages.label.camera import pose_from_cv, project_cam
 from fluorocal.stages.label.correction import fit_correction, n_terms
@@ -25,6 +26,9 @@ log = logging.getLogger(__name__)
 #: grid-plate ids: ``id = (i + LATTICE_ID_OFFSET) * LATTICE_ID_BASE + (j + LATTICE_ID_OFFSET)``
 LATTICE_ID_OFFSET = 5000
 LATTICE_ID_BASE = 10000
+
+#: the lattices a grid plate may have, by their spelling in ``[phantom] lattice``
+LATTICES = ("hex", "square")
 
 # hexagonal lattice: hole (i, j) at i*a1 + j*a2 with a2 = a1 rotated by +60 degrees
 _HEX_STEPS = np.array([[1, 0], [0, 1], [-1, 1], [-1, 0], [0, -1], [1, -1]])
@@ -65,6 +69,13 @@ def lattice_basis(lattice: str) -> np.ndarray:
     if lattice == "hex":
         return np.array([[1.0, 0.5], [0.0, np.sqrt(3.0) / 2]])
     return np.eye(2)
+
+
+def check_lattice(lattice: str, what: str) -> None:
+    """Refuse a lattice spelling of no grid plate, naming ``what`` needs one."""
+    if lattice not in LATTICES:
+        shown = " or ".join(repr(name) for name in LATTICES)
+        raise InputError(f"{what} needs a grid plate (phantom.lattice {shown}); got {lattice!r}")
 
 
 def label_grid(det: Detections, phantom: Phantom, params: LabelParams, iop: np.ndarray) -> Labels:

@@ -22,9 +22,11 @@ import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
+from fluorocal.stages.artifacts import Phantom
+from fluorocal.stages.label.frame import checked_seed_frames, label_plate_frame
 from fluorocal.stages.label.labels import Labels, failed_labels
 from fluorocal.stages.label.lattice import lattice_basis, lattice_id, lattice_index, lattice_xyz_mm
-from fluorocal.stages.label.params import STATUS_REJECTED
+from fluorocal.stages.label.params import STATUS_REJECTED, LabelParams
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +43,21 @@ _MIN_MARGIN = 0.1
 _FINGERPRINT_SPACING_PITCH = 2.0
 #: with a thin-plate prior of this standard deviation, px
 _FINGERPRINT_TAU_PX = 10.0
+
+
+def label_plate_sequence(
+    centroids_seq, phantom: Phantom, params: LabelParams, seeds_by_frame: dict | None = None
+) -> tuple[Labels, ...]:
+    """Label the frames of one system's sequence of a grid plate: each frame's lattice, then one numbering.
+
+    Seeds name frames of the sequence (refused otherwise) but do not steer a plate: its holes are indexed by
+    their lattice (:func:`~.frame.label_plate_frame`), and renumbered onto one numbering across the frames
+    (:func:`number_lattice_sequence`).
+    """
+    checked_seed_frames(seeds_by_frame, len(centroids_seq))
+    base = replace(params, seeds=())
+    out = [label_plate_frame(centroids, phantom, base) for centroids in centroids_seq]
+    return number_lattice_sequence(out, phantom.lattice, phantom.pitch_mm)
 
 
 def number_lattice_sequence(labels_seq, lattice: str, pitch_mm: float) -> tuple[Labels, ...]:

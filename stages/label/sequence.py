@@ -6,11 +6,9 @@ import logging
 from dataclasses import replace
 
 from fluorocal.stages.artifacts import Phantom
-from fluorocal.stages.errors import InputError
 from fluorocal.stages.geometry import iop_guess, quat_to_matrix
-from fluorocal.stages.label.frame import label_frame
+from fluorocal.stages.label.frame import checked_seed_frames, label_bead_frame
 from fluorocal.stages.label.labels import Labels
-from fluorocal.stages.label.lattice_sequence import number_lattice_sequence
 from fluorocal.stages.label.motion import Motion, neighbours, predict
 from fluorocal.stages.label.params import LabelParams
 
@@ -20,10 +18,10 @@ log = logging.getLogger(__name__)
 _SUSPECT_SIGMAS = 6.0
 
 
-def label_sequence(
+def label_bead_sequence(
     centroids_seq, phantom: Phantom, params: LabelParams, seeds_by_frame: dict | None = None
 ) -> tuple[Labels, ...]:
-    """Label the frames of one system's sequence, each from its own evidence, else from its neighbours.
+    """Label the frames of one system's sequence of a 3D bead phantom, each from its own evidence, else its neighbours.
 
     First every frame is labelled alone: from its seeds (``seeds_by_frame[i]``, ``(id, x_px, y_px)``
     triples) or its markers. A frame labelled from its markers whose labelling leaves much of it
@@ -52,22 +50,17 @@ def label_sequence(
     tuple of Labels
         One per frame, in order.
     """
-    seeds_by_frame = dict(seeds_by_frame or {})
     n = len(centroids_seq)
-    bad = [i for i in seeds_by_frame if not 0 <= i < n]
-    if bad:
-        raise InputError(f"seeds_by_frame names frames {bad} outside 0..{n - 1}")
+    seeds_by_frame = checked_seed_frames(seeds_by_frame, n)
     base = replace(params, seeds=())
-    alone = {} if phantom.lattice else {"search_around": False}
     out = []
     for i in range(n):
         seeds = tuple(tuple(s) for s in seeds_by_frame.get(i, ()))
         # a doubtful marker labelling is weighed against the neighbours below, not first searched around (seconds)
-        out.append(label_frame(centroids_seq[i], phantom, replace(base, seeds=seeds) if seeds else base, **alone))
-    if phantom.lattice:  # one numbering of the plate's holes across the frames
-        return number_lattice_sequence(out, phantom.lattice, phantom.pitch_mm)
+        own = replace(base, seeds=seeds) if seeds else base
+        out.append(label_bead_frame(centroids_seq[i], phantom, own, search_around=False))
     if sum(lab.ok for lab in out) < 2:  # no neighbour to weigh it against before it serves them: as alone
-        out = [label_frame(centroids_seq[i], phantom, base) if _doubtful(lab) else lab for i, lab in enumerate(out)]
+        out = [label_bead_frame(c, phantom, base) if _doubtful(lab) else lab for c, lab in zip(centroids_seq, out)]
     own_reason = [lab.reason for lab in out]
     c_assumed = float(iop_guess((1, 1), params.source_image_distance_mm, params.pixel_pitch_mm)[2])
     tried: dict[int, tuple] = {}  # frame -> the labelled neighbours it was last tried from
@@ -122,7 +115,7 @@ def _from_neighbours(
 ) -> Labels:
     """Frame ``i`` labelled from the orientation its ``labelled`` neighbours predict (with its markers: ``pool``)."""
     prior, near, _ = predict(i, {j: quat_to_matrix(lab.q) for j, lab in labelled.items()}, motion)
-    return label_frame(
+    return label_bead_frame(
         centroids,
         phantom,
         params,

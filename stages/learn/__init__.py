@@ -40,7 +40,7 @@ Modules, one job each
 - :mod:`.result`: :class:`IterationRecord`, :class:`LearnResult`.
 
 The learning stage's entry, which calibrates a bead phantom here and a grid plate by
-:mod:`fluorocal.stages.plate`, is :mod:`fluorocal.stages.calibrate` (above both packages).
+:mod:`fluorocal.stages.plate`, is the phantom kind's (:mod:`fluorocal.stages.kinds`, above both packages).
 """
 
 from __future__ import annotations

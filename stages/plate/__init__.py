@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from fluorocal.stages.errors import InputError
+from fluorocal.stages.label.lattice import check_lattice
 from fluorocal.stages.learn.nodes import GridSpec
 from fluorocal.stages.plate.problem import frame_orientations, plate_problem, stacked
 from fluorocal.stages.plate.result import PlateCalibration
@@ -150,8 +151,7 @@ def calibrate_plate(
     EstimationError
         A frame admits no homography.
     """
-    if not phantom.lattice:
-        raise InputError("calibrate_plate needs a grid plate (phantom.lattice 'hex' or 'square')")
+    check_lattice(phantom.lattice, "calibrate_plate")
     from fluorocal.stages.adjust import SolverOptions
 
     solver = SolverOptions() if solver is None else solver

@@ -92,7 +92,8 @@ def test_a_frame_is_labelled_with_the_projects_own_tables_and_its_kind_is_the_ca
     calibrated_project, tmp_path
 ):
     from fluorocal.calibration import Calibration
-    from fluorocal.cmd_check import PhantomSetup, reference_setup
+    from fluorocal.check_setups import PhantomSetup
+    from fluorocal.cmd_check import reference_setup
 
     calibration = calibrated_project / "out" / "calibration.json"
     cal = Calibration.load(calibration)

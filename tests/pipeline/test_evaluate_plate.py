@@ -14,7 +14,7 @@ import json
 import numpy as np
 import pytest
 from fluorocal.cli import main
-from fluorocal.cmd_evaluate import _SizeBars
+from fluorocal.kinds.plate import SizeBars
 from scipy.spatial import cKDTree
 
 from tests.conftest import copy_project
@@ -35,7 +35,7 @@ def evaluated(simulated_grid, tmp_path_factory):
     argv = ["--quiet", "evaluate", str(project / "fluorocal.toml"), "--train-sizes", "1,3", "--holdout", str(frame)]
     steps = []
     with pytest.MonkeyPatch.context() as mp:  # what each training size's progress bar is told
-        mp.setattr(_SizeBars, "__call__", lambda self, *step: steps.append(step))
+        mp.setattr(SizeBars, "__call__", lambda self, *step: steps.append(step))
         assert main([*argv, "--out", str(out)]) == 0
     return project, frame, out, steps
 
@@ -126,21 +126,21 @@ def test_made_by_line_of_a_plate_without_holdout():
     from argparse import Namespace
     from pathlib import Path
 
-    from fluorocal.cmd_evaluate import _argv
+    from fluorocal.evaluate_common import argv
 
     args = Namespace(config=Path("plate.toml"), holdout=None, train_sizes="1,3", schemes=None, reference=None)
-    assert _argv(args) == ["plate.toml", "--train-sizes", "1,3"]
-    assert _argv(Namespace(**{**vars(args), "holdout": ["odd"]}))[1:3] == ["--holdout", "odd"]
+    assert argv(args) == ["plate.toml", "--train-sizes", "1,3"]
+    assert argv(Namespace(**{**vars(args), "holdout": ["odd"]}))[1:3] == ["--holdout", "odd"]
 
 
 def test_size_bars_draw_only_when_shown_and_close_on_an_error(capsys):
-    from fluorocal.cmd_evaluate import _SizeBars
+    from fluorocal.kinds.plate import SizeBars
 
-    hidden = _SizeBars(False)
+    hidden = SizeBars(False)
     hidden(1, 0, 2), hidden(1, 1, 2)
     hidden.close()  # an evaluation stopped half-way: the open bar closed, nothing drawn
     assert hidden.bar is None and capsys.readouterr().err == ""
-    shown = _SizeBars(True)
+    shown = SizeBars(True)
     shown(3, 0, 2), shown(3, 1, 2)
     assert "evaluate, training size 3" in capsys.readouterr().err
     shown.close()

@@ -9,7 +9,8 @@ from types import SimpleNamespace
 import numpy as np
 from fluorocal.cli import main
 from fluorocal.cmd_adjust import _read_observations
-from fluorocal.export import _stage_tables, write_observations
+from fluorocal.export import _stage_tables
+from fluorocal.export_tables import write_observations
 from fluorocal.stages.io import PHANTOM, write_table
 
 from tests.stages.ba_synthetic import make_problem

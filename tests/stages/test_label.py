@@ -16,14 +16,13 @@ import pytest
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.geometry import project, quat_to_matrix, rotvec_to_quat
+from fluorocal.stages.kinds import label_beads, label_sequence
 from fluorocal.stages.label import (
     STATUS_AMBIGUOUS,
     STATUS_LABELLED,
     STATUS_REJECTED,
     LabelParams,
     Labels,
-    label_beads,
-    label_sequence,
     lattice_id,
     lattice_index,
     lattice_xyz_mm,

@@ -1,0 +1,61 @@
+"""The 3D bead phantom: beads labelled from their markers, seeds or neighbours; calibrated by the learning loop."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from fluorocal.stages.kinds.base import CalibrationSetup
+from fluorocal.stages.label import label_bead_frame, label_bead_sequence
+from fluorocal.stages.learn import LearnParams, LearnResult, Scheme, calibrate, start_orientation
+from fluorocal.stages.learn.order import canonical_order, taken
+
+
+@dataclass(frozen=True)
+class BeadPhantom:
+    """A 3D bead phantom (a cube; ``[phantom] file``): see :class:`~fluorocal.stages.kinds.base.PhantomKind`.
+
+    Its frames of two systems pair into epochs; a system is one C-arm orientation (the phantom moves);
+    every scheme applies; its calibration estimates the beads' positions, so check points can score it.
+    """
+
+    name = "beads"
+    noun = "a 3D bead phantom"
+    calibrated_by = "by the learning loop (a bundle adjustment alternating with a learned field)"
+    section = "learn"
+    schemes = tuple(Scheme)
+    needs_geometry = True
+    pairs_frames = True
+    several_orientations = False
+    estimates_geometry = True
+    check_points = True
+
+    def label_frame(self, centroids, phantom, params, prior_pose=None):
+        return label_bead_frame(centroids, phantom, params, prior_pose)
+
+    def label_sequence(self, centroids_seq, phantom, params, seeds_by_frame=None) -> tuple:
+        return label_bead_sequence(centroids_seq, phantom, params, seeds_by_frame)
+
+    def calibrate(
+        self,
+        observations,
+        phantom,
+        params: LearnParams,
+        *,
+        setup: CalibrationSetup,
+        solver=None,
+        selection=None,
+        plate=None,
+    ) -> LearnResult:
+        """Start values by resection, then :func:`fluorocal.stages.learn.calibrate` (``plate`` is not read)."""
+        # the resection too sees the rows in the canonical order that calibrate runs on
+        initial = start_orientation(taken(observations, canonical_order(observations)), phantom, setup.iop_guess_px)
+        return calibrate(
+            observations,
+            phantom,
+            initial,
+            image_size=setup.image_size_px,
+            scheme=setup.scheme,
+            params=params,
+            solver=solver,
+            selection=selection,
+        )
