@@ -31,16 +31,16 @@ PYTEST := PYTHONDONTWRITEBYTECODE= OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_
 test: $(STAMP)
 	$(PYTEST) -m "not check" $(ARGS)
 
-# the long checks: accuracy on larger simulated sets, long labelling sequences, the real radiographs (../shared/data)
+# the long checks: accuracy on larger simulated sets, long labelling sequences, the real radiographs (../shared/data),
+# the attack battery (tests/attack: each case a test)
 check: $(STAMP)
 	$(PYTEST) -m check $(ARGS)
 
-# the structure limits hold for tests/ and benchmarks/ too; benchmarks/attack.py (the attack battery, its
-# all_cases one table of cases) is being split in its own task (issue 29) and is until then the one file left out
+# the structure limits hold for tests/ and benchmarks/ too
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/python .ci/limits.py pipeline stages tests benchmarks --exclude benchmarks/attack.py
+	$(BIN)/python .ci/limits.py pipeline stages tests benchmarks
 
 # the documentation site (docs/, mkdocs.yml) built strictly: a broken link or reference fails
 docs: $(STAMP)

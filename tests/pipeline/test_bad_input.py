@@ -144,14 +144,14 @@ def test_config_numbers_and_names_are_checked_at_load(tmp_path, old, new, match)
 
 @pytest.mark.parametrize("section", ["output", "cache"])
 def test_nul_in_a_folder_name_is_refused_at_load(tmp_path, capsys, section):
-    # benchmarks/attack.py output_dir_nul, cache_dir_nul: a ValueError traceback from os.stat before
+    # the attack battery's output_dir_nul and cache_dir_nul: a ValueError traceback from os.stat before
     cfg = make_project(tmp_path, extra_toml=f'\n[{section}]\ndir = "out\\u0000x"\n')
     rc, err = _cli(["run", cfg], capsys)
     assert rc == 2 and f"[{section}] key 'dir'" in err and "NUL character" in err
 
 
 def test_config_nested_too_deeply_is_one_line(tmp_path, capsys):
-    # benchmarks/attack.py config_deep_nesting: tomllib's RecursionError was a traceback
+    # the attack battery's config_deep_nesting: tomllib's RecursionError was a traceback
     cfg = make_project(tmp_path, extra_toml="x = " + "[" * 5000 + "]" * 5000 + "\n")
     rc, err = _cli(["run", cfg], capsys)
     assert rc == 2 and "project.toml: not a project file (arrays or tables nested too deeply)" in err
@@ -193,7 +193,7 @@ def test_non_finite_phantom_coordinate_names_the_line(tmp_path, cell):
 
 @pytest.mark.parametrize("scale", [1000.0, 1e300])
 def test_phantom_larger_than_any_field_is_refused(tmp_path, scale):
-    # benchmarks/attack.py phantom_x1000 (singular normal equations after 78 s of work), phantom_huge_x (1e300:
+    # the attack battery's phantom_x1000 (singular normal equations after 78 s of work), phantom_huge_x (1e300:
     # scipy's k-d tree overflowed with a traceback): a phantom spanning more than 2 m is in a smaller unit
     path = tmp_path / "p.csv"
     path.write_text(f"id,x,y,z\n1,0,0,0\n2,{10 * scale:g},0,0\n3,0,{10 * scale:g},{5 * scale:g}\n")
@@ -234,7 +234,7 @@ def test_glob_matching_a_folder_is_refused(tmp_path, capsys):
 
 @pytest.mark.parametrize("listed", [False, True])
 def test_frame_that_is_a_device_is_refused_at_load(tmp_path, listed):
-    # benchmarks/attack.py frame_symlink_devzero: a frame linked to /dev/zero was hashed for ever
+    # the attack battery's frame_symlink_devzero: a frame linked to /dev/zero was hashed for ever
     cfg = make_project(tmp_path)
     (tmp_path / "frames" / "f1.tif").unlink()
     (tmp_path / "frames" / "f1.tif").symlink_to("/dev/zero")
@@ -376,7 +376,7 @@ def test_a_system_with_no_frame_labelled_is_one_line(tmp_path, capsys):
 
 @pytest.mark.parametrize("size", [10_000_000, 15])
 def test_simulate_refuses_an_image_size_beyond_memory(tmp_path, capsys, size):
-    # benchmarks/attack.py simulate_image_size_huge: --image-size 10000000 died allocating 728 TiB (traceback)
+    # the attack battery's simulate_image_size_huge: --image-size 10000000 died allocating 728 TiB (traceback)
     rc, err = _cli(["simulate", tmp_path / "sim", "--image-size", size, size], capsys)
     assert rc == 2 and "--image-size: image_size_px must lie in 16..16384" in err
     assert not (tmp_path / "sim").exists() or not any((tmp_path / "sim").iterdir())

@@ -96,7 +96,7 @@ def test_inspect_reads_no_untrusted_type(project, tmp_path, capsys):
 
 @pytest.mark.parametrize("artifact", [{"__dict__": {"value": 1}}, {"__tuple__": [1, 2]}, 7])
 def test_an_entry_decoding_into_another_type_is_recomputed(project, artifact):
-    # benchmarks/attack.py manifest_dict_payload: a label entry edited to a plain dict (checksums recomputed)
+    # the attack battery's manifest_dict_payload: a label entry edited to a plain dict (checksums recomputed)
     # decoded, and the run died on it with an AttributeError traceback
     runner = _runner(project)
     runner.run()
@@ -114,7 +114,7 @@ def test_an_entry_decoding_into_another_type_is_recomputed(project, artifact):
 
 
 def test_inspect_does_not_call_a_tampered_entry_cached(project, tmp_path):
-    # benchmarks/attack.py manifest_os_system_learn_inspect: `inspect` said "cached 1/1" for an entry `run` recomputes
+    # the attack battery's manifest_os_system_learn_inspect: `inspect` said "cached 1/1" for an entry `run` recomputes
     runner = _runner(project)
     runner.run()
     key = runner.keys[("scale", 0)]
@@ -341,7 +341,7 @@ def test_a_cache_another_process_makes_meanwhile_is_accepted(tmp_path, monkeypat
 
 
 def test_each_stage_entry_has_its_kind_including_the_per_system_label_stage():
-    # benchmarks/attack.py manifest_dict_payload: the label stage returns a tuple per system, one Labels per
+    # the attack battery's manifest_dict_payload: the label stage returns a tuple per system, one Labels per
     # frame's entry; without its kind a label entry edited into a dict still reached the run (AttributeError)
     from fluorocal.artifact_codec import stage_kinds
     from fluorocal.graph import default_stages

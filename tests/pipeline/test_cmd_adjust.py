@@ -75,7 +75,7 @@ def test_adjust_command_reports_missing_columns(tmp_path, capsys):
     "flags", [["--source-image-distance", "inf"], ["--pixel-pitch", "nan"]]
 )  # --image-size: test_cli.py
 def test_adjust_command_refuses_non_finite_start_values(tmp_path, capsys, flags):
-    # benchmarks/attack.py adjust_sid_inf: an infinite source-image distance ended in an OpenCV assertion's traceback
+    # the attack battery's adjust_sid_inf: an infinite source-image distance ended in an OpenCV assertion's traceback
     # now refused by the option's type, before anything is read: argparse's exit 2, one line naming the option
     _, phantom, table = _write_inputs(tmp_path)
     with pytest.raises(SystemExit) as exc:
@@ -97,7 +97,7 @@ def test_adjust_command_names_the_file_and_line_of_a_non_finite_observation(tmp_
 
 
 def test_adjust_command_says_in_one_line_when_the_adjustment_is_not_usable(tmp_path, capsys, monkeypatch):
-    # benchmarks/attack.py adjust_obs_latin1: start values far off (--pixel-pitch and --image-size left at their
+    # the attack battery's adjust_obs_latin1: start values far off (--pixel-pitch and --image-size left at their
     # defaults for 0.5 mm, 512 px frames) gave an unusable adjustment: exit 1 and nothing said under --quiet
     import dataclasses
 

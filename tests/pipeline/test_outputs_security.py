@@ -290,7 +290,7 @@ CORRUPTIONS = {
     "truncated npz": lambda p: _truncate(p.parent / "field_A.npz"),
     "bit-flipped npz": lambda p: _flip(p.parent / "field_A.npz"),
     "npz not a zip": lambda p: (p.parent / "field_A.npz").write_bytes(b"\x00" * 100),
-    # benchmarks/attack.py cal_deep_nesting_*: a RecursionError traceback from the JSON parser
+    # the attack battery's cal_deep_nesting_*: a RecursionError traceback from the JSON parser
     "nested too deeply": lambda p: p.write_text("[" * 100_000 + "]" * 100_000),
     # cal_iop_nan_undistort, cal_iop_negative_c_undistort, cal_system_name_traversal_*, cal_duplicate_system_*:
     # were loaded (undistort exit 0; export refused the name without naming the file)
