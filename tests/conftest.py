@@ -29,6 +29,19 @@ E2E_SIM = {"n_frames": 4, "n_systems": 2, "image_size_px": 512, "seed": 3}
 #: the grid plate moved by hand between three frames at one orientation: the 1024-px default's pixel pitch, holes
 #: and look on half the detector (512², a quarter of the holes)
 GRID_SIM = {"phantom": "grid", "n_frames": 3, "seed": 4, "image_size_px": 512, "detector_size_mm": 128.0}
+#: the grid plate at the C-arm tilts 0, 15, 30, 45 and 60° (tests/pipeline/plate_orientation.py's ANGLES_DEG), one
+#: frame each: the 1024-px default's pixel pitch, hole size and look on half the detector (a quarter of the holes);
+#: the orientation change doubled because it is quoted for the whole 1024-px image and scales with it, so that it
+#: stays the real C-arm's in px (~0.2 px at 15°, ~0.64 at 60°)
+GRID_TILTS_SIM = {
+    "phantom": "grid",
+    "n_frames": 1,
+    "orientations_deg": ((0, 0), (0, 15), (0, 30), (0, 45), (0, 60)),
+    "image_size_px": 512,
+    "detector_size_mm": 128.0,
+    "orientation_distortion_px": 1.92,
+    "seed": 0,
+}
 
 
 def built_once(tmp_path_factory, name: str, build) -> Path:
@@ -119,6 +132,24 @@ def simulated_grid(tmp_path_factory) -> Path:
     return built_once(tmp_path_factory, "grid", lambda root: _calibrate(root, GRID_SIM))
 
 
+def _simulate_dicom(root: Path, sim: dict) -> None:
+    """Simulate ``sim`` into ``root`` as `fluorocal simulate --format dicom` writes it (frames, config, truth.json)."""
+    from fluorocal.cmd_simulate import write_dataset
+    from fluorocal.stages.simulate import SimulateParams, simulate
+
+    write_dataset(simulate(SimulateParams(**sim)), root, fmt="dicom")
+
+
+@pytest.fixture(scope="session")
+def simulated_tilts(tmp_path_factory) -> Path:
+    """The grid plate's frames at five C-arm tilts (:data:`GRID_TILTS_SIM`), single-frame DICOMs; not calibrated.
+
+    Simulated once per session for the orientation tests of the plate and of `fluorocal undistort`. Modules that
+    run the pipeline on it take a copy (:func:`copy_project`). Shared by every xdist worker: never write into it.
+    """
+    return built_once(tmp_path_factory, "tilts", lambda root: _simulate_dicom(root, GRID_TILTS_SIM))
+
+
 def _calibrated_arcadis(arcadis_dir, tmp_path_factory, name: str) -> Path:
     """``fixtures/arcadis/<name>.toml`` run on the real frames from a copy of the config; its calibration.json."""
     from fluorocal.cli import main
@@ -143,7 +174,7 @@ def centred_calibration(arcadis_dir, tmp_path_factory) -> Path:
 
 
 #: the session projects that :func:`built_once` shares between the workers, in the order the workers start them
-SHARED_PROJECTS = ("calibrated_run", "simulated_grid")
+SHARED_PROJECTS = ("calibrated_run", "simulated_grid", "simulated_tilts")
 
 
 @pytest.fixture(scope="session", autouse=True)

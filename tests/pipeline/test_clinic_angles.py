@@ -7,6 +7,7 @@ degrees, so the frames at 15 and 45 degrees take an interpolated field.
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -27,11 +28,12 @@ from fluorocal.units import frame_units
 from tests.pipeline.orientation_toys import angled_dicom
 from tests.stages.plate_truth import truth_field
 
-SIZE = 256
+SIZE = 512
 TILTS = (0.0, 15.0, 30.0, 45.0, 60.0)
 CALIBRATED = {"centred": 0.0, "tilt30": 30.0, "tilt60": 60.0}
-#: corrected points against the truth modulo a homography, px: the true fields on the simulator's 16 px node grid
-#: leave 0.008 px (measured), the next orientation's field 0.023-0.037 px, the centred one at 60 deg 0.115 px
+#: corrected points against the truth modulo a homography, px: the true fields on the simulator's 8 px correction
+#: grid leave 0.0013 px at the calibrated tilts and 0.0045 px interpolated at 15 and 45 deg (measured), the next
+#: orientation's field (15 deg off) 0.090-0.149 px, the centred one at 60 deg 0.468 px
 TOL_PX = 0.05
 
 
@@ -45,27 +47,21 @@ def _residual_px(ideal_true, ideal_est) -> float:
 
 
 @pytest.fixture(scope="module")
-def rotational(tmp_path_factory):
+def rotational(simulated_tilts, tmp_path_factory):
     """Simulated frames at :data:`TILTS`, their truth, and a calibration of the true fields at :data:`CALIBRATED`.
 
-    The frames are single-frame DICOMs as `fluorocal simulate` writes them.
+    The frames are the session's (tests/conftest.py's GRID_TILTS_SIM), single-frame DICOMs as `fluorocal simulate`
+    writes them; read only, the calibration is written in this module's own folder.
     """
-    from fluorocal.cmd_simulate import write_dataset
-    from fluorocal.stages.simulate import SimulateParams, simulate, truth_to_dict
-
     root = tmp_path_factory.mktemp("rotational")
-    params = SimulateParams(
-        phantom="grid", n_frames=1, image_size_px=SIZE, seed=5, orientations_deg=tuple((0.0, t) for t in TILTS)
-    )
-    data = simulate(params)
-    write_dataset(data, root / "sim", fmt="dicom")
-    truth = truth_to_dict(data)
+    truth = json.loads((simulated_tilts / "truth.json").read_text())
+    assert truth["params"]["image_size_px"] == SIZE and [f["tilt_deg"] for f in truth["frames"]] == list(TILTS)
     fields = {o["name"]: truth_field(o["correction_grid"], SIZE, SIZE) for o in truth["systems"][0]["orientations"]}
     orientations = [OrientationField(n, 0.0, t, fields[n]) for n, t in CALIBRATED.items()]
     system = SystemCalibration(
         "A",
         (SIZE, SIZE),
-        np.array([128.0, 128.0, 4000.0]),
+        np.array([SIZE / 2, SIZE / 2, 4000.0]),
         np.zeros(3),
         np.array([1.0, 0, 0, 0]),
         np.zeros(3),
@@ -75,7 +71,7 @@ def rotational(tmp_path_factory):
     calibration = root / "cal" / "calibration.json"
     calibration.parent.mkdir()
     Calibration([system], {}, {"scheme": "truth", "geometry_estimated": False}).save(calibration)
-    files = sorted((root / "sim" / "frames" / "A").glob("*.dcm"))
+    files = sorted((simulated_tilts / "frames" / "A").glob("*.dcm"))
     return root, files, truth, calibration
 
 

@@ -21,6 +21,7 @@ import pytest
 from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.orientation import OrientationField, interpolate_field
 
+from tests.conftest import copy_project
 from tests.pipeline.plate_orientation import (
     ANGLES_DEG,
     CALIBRATED,
@@ -40,19 +41,6 @@ TARGET_PX = 0.10
 #: interpolation must recover most of the orientation's change, not only beat the copy: at most this
 #: fraction of the better neighbour's transfer (the issue's figures: <= 0.10 against >= 0.16 px)
 MAX_RATIO_TO_TRANSFER = 0.6
-
-#: a small simulated sequence: the 1024-px default's pixel pitch, hole size and look on half the detector
-#: (a quarter of the holes); the orientation change doubled because it is quoted for the whole 1024-px
-#: image and scales with it, so that it stays the real C-arm's in px (~0.2 px at 15°, ~0.64 at 60°)
-SMALL_SIM = {
-    "phantom": "grid",
-    "n_frames": 1,
-    "orientations_deg": tuple(ANGLES_DEG[n] for n in ANGLES_DEG),
-    "image_size_px": 512,
-    "detector_size_mm": 128.0,
-    "orientation_distortion_px": 1.92,
-    "seed": 0,
-}
 
 
 def _scores(seq, cal, fields, name):
@@ -89,12 +77,9 @@ def test_real_held_out_orientation_through_interpolation(real, name):
 
 
 @pytest.fixture(scope="module")
-def simulated(tmp_path_factory):
-    from fluorocal.cmd_simulate import write_dataset
-    from fluorocal.stages.simulate import SimulateParams, simulate
-
-    root = tmp_path_factory.mktemp("sim_orientations")
-    write_dataset(simulate(SimulateParams(**SMALL_SIM)), root, fmt="dicom")
+def simulated(simulated_tilts, tmp_path_factory):
+    """The session's grid frames at five tilts (conftest.py's GRID_TILTS_SIM), labelled and calibrated in a copy."""
+    root = copy_project(simulated_tilts, tmp_path_factory.mktemp("sim_orientations") / "project")
     seq = labelled_sequence(root / "fluorocal.toml")
     cal, fields = calibrate(seq, CALIBRATED)
     truth = json.loads((root / "truth.json").read_text())

@@ -2,7 +2,8 @@
 
 A frame whose markers lead to a pose a few degrees off can be labelled with its polynomial correction bent
 to fit, passing every check of its own but leaving much of the frame unexplained. A frame alone is then
-searched around that pose (``test_label_varied``); in a sequence the search is left to the sequence, which
+searched around that pose (``test_label_varied``, a `make check` test: in `make test` the sequence of that one
+frame below makes the same call); in a sequence the search is left to the sequence, which
 weighs the frame against its labelled neighbours, unless fewer than two frames are labelled on their own.
 The case is frame 17 of ``benchmarks/label_varied.py``'s first configuration (seed 1): its markers give a
 pose 9 deg off, whose labelling has 171 labels, 79 of them wrong.
