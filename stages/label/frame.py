@@ -15,7 +15,7 @@ from fluorocal.stages.label.params import LabelParams
 
 
 def label_bead_frame(centroids, phantom: Phantom, params: LabelParams, prior_pose=None, **search) -> Labels:
-    """One frame of a 3D bead phantom labelled (:func:`fluorocal.stages.kinds.label_beads`).
+    """One frame of a 3D bead phantom labelled (:func:`fluorocal.stages.kinds.labelling.label_beads`).
 
     ``search`` holds the search options a sequence gives (:func:`~.cube.label_cube`).
     """

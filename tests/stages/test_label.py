@@ -16,7 +16,7 @@ import pytest
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.geometry import project, quat_to_matrix, rotvec_to_quat
-from fluorocal.stages.kinds import label_beads, label_sequence
+from fluorocal.stages.kinds.labelling import label_beads, label_sequence
 from fluorocal.stages.label import (
     STATUS_AMBIGUOUS,
     STATUS_LABELLED,
