@@ -446,6 +446,17 @@ def test_real_grid_frames(arcadis_dir, name):
     assert rms < 1.0
 
 
+def test_a_plate_of_no_known_lattice_is_refused():
+    """A lattice spelled wrong is refused, not labelled as a square (the lattice geometry's fallback)."""
+    from fluorocal.stages.label import label_plate_frame
+
+    ij = np.array([(i, j) for i in range(-5, 6) for j in range(-5, 6)])
+    centroids = make_centroids(511.5 + 13.0 * ij, 6.0)  # a square grid a "square" plate labels
+    assert label_plate_frame(centroids, Phantom([], [], [], [], "square", 1.0), LabelParams()).ok
+    with pytest.raises(InputError, match="'tri'"):
+        label_plate_frame(centroids, Phantom([], [], [], [], "tri", 1.0), LabelParams())
+
+
 def test_square_grid_with_gaps_and_distortion():
     """A square plate seen through a pincushion with a hole-free patch and a round field: no slip across the gap."""
     rng = np.random.default_rng(9)
