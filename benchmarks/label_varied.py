@@ -44,7 +44,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluorocal.stages.kinds import label_sequence  # noqa: E402
+from fluorocal.stages.kinds.labelling import label_sequence  # noqa: E402
 from fluorocal.stages.label import LabelParams, sequence  # noqa: E402
 from fluorocal.stages.simulate import SimulateParams, simulate  # noqa: E402
 

@@ -41,7 +41,7 @@ class Tables:
 
         from fluorocal.stages.centroid import centroid_beads
         from fluorocal.stages.detect import detect_beads, estimate_appearance
-        from fluorocal.stages.kinds import label_sequence
+        from fluorocal.stages.kinds.labelling import label_sequence
 
         detect = estimate_appearance([frame], self.detect)
         centroids = centroid_beads(frame, detect_beads(frame, detect), self.centroid)

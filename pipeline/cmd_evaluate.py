@@ -92,11 +92,13 @@ def run(args) -> int:
 
 
 def _project(args):
+    from fluorocal.kinds import part_of
     from fluorocal.stages.errors import InputError
 
     config = load_project(args.config)
-    if args.reference and not config.phantom.kind.check_points:
-        raise InputError(f"--reference: {config.phantom.kind.noun} has no check points (scored on held-out rows)")
+    kind = config.phantom.kind
+    if args.reference and not kind.check_points:
+        raise InputError(f"--reference: {kind.noun} has no check points (scored on {part_of(kind).scored_on})")
     return config, project_runner(args, config, until="label")
 
 

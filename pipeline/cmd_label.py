@@ -79,7 +79,8 @@ def run(args) -> int:
     from fluorocal.stages.artifacts import Phantom
     from fluorocal.stages.errors import InputError
     from fluorocal.stages.io import LABELS, columns_of, read_frames, read_phantom, write_table
-    from fluorocal.stages.kinds import label_sequence, phantom_kind
+    from fluorocal.stages.kinds import phantom_kind
+    from fluorocal.stages.kinds.labelling import label_sequence
     from fluorocal.stages.label import LabelParams
 
     table = args.out / "labels.csv"

@@ -179,7 +179,7 @@ def _system_appearance(frames: tuple, params):
 def _learn_extras(config, units) -> dict:
     from fluorocal.config import params_from_dict
     from fluorocal.stages.geometry import iop_guess
-    from fluorocal.stages.kinds import CalibrationSetup
+    from fluorocal.stages.kinds.learning import CalibrationSetup
 
     sizes, guesses = [], []
     for s, system in enumerate(config.systems):
@@ -254,7 +254,7 @@ REGISTRY = (
     ("centroid", "fluorocal.stages.centroid", "centroid_beads", "CentroidParams", ("frame", "detect"), {}),
     (
         "label",
-        "fluorocal.stages.kinds",
+        "fluorocal.stages.kinds.labelling",
         "label_sequence",
         "LabelParams",
         ("centroid", "phantom"),
@@ -262,7 +262,7 @@ REGISTRY = (
     ),
     (
         "learn",
-        "fluorocal.stages.kinds",
+        "fluorocal.stages.kinds.learning",
         "learn_calibration",
         "LearnParams",
         ("label", "phantom"),

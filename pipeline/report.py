@@ -1,7 +1,7 @@
 """Plots of a calibration for people: residual maps, the learned field, convergence, per-frame RMS.
 
 Each function draws one PNG with matplotlib's Agg renderer and writes it atomically;
-:func:`write_report` ties them into ``report.md``.
+:func:`fluorocal.export_beads.write_report` ties them into ``report.md``.
 
 The figures are laid out once, with margins fixed in inches (:func:`new_figure`), not by a layout
 engine: matplotlib draws a figure twice to save it under one (the first draw measures every label),

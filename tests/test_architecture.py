@@ -133,6 +133,25 @@ def test_the_package_is_read_whole():
     assert "fluorocal.stages.learn" in _edges()["fluorocal.stages.plate.solve"]  # the package's __init__ counts
 
 
+def test_every_package_is_installed():
+    """Every folder of ``pipeline/`` and ``stages/`` with an ``__init__.py`` is in pyproject's ``packages``.
+
+    setuptools installs only the packages listed: one left out is missing from a wheel (not from an editable
+    install, which the tests use), and the installed tool fails on importing it.
+    """
+    import tomllib
+
+    setuptools = tomllib.loads((PIPELINE.parent / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["setuptools"]
+    assert setuptools["package-dir"] == {"fluorocal": "pipeline", "fluorocal.stages": "stages"}
+    found = {
+        ".".join((package, *init.parent.relative_to(folder).parts))
+        for folder, package in ((PIPELINE, "fluorocal"), (STAGES, "fluorocal.stages"))
+        for init in folder.rglob("__init__.py")
+    }
+    assert {"fluorocal.kinds", "fluorocal.stages.kinds", "fluorocal.stages.plate"} <= found  # not vacuous
+    assert sorted(found) == sorted(setuptools["packages"])
+
+
 def test_no_import_cycle_lazy_ones_included():
     assert _cycles(_edges()) == []
 

@@ -19,7 +19,15 @@ from fluorocal.kinds.plate import PlatePart
 
 
 class KindPart(Protocol):
-    """What the pipeline does differently for one kind of phantom."""
+    """What the pipeline does differently for one kind of phantom.
+
+    Attributes
+    ----------
+    scored_on : str
+        What ``fluorocal evaluate`` scores the calibration on, as a message says it.
+    """
+
+    scored_on: str
 
     def export(self, runner, result, obs, excluded, out_dir: Path, figures) -> list[Path]:
         """Write the learning stage's ``result`` (``calibration.json``, tables, report) into ``out_dir``."""

@@ -18,6 +18,8 @@ log = logging.getLogger("fluorocal")
 class BeadPart:
     """A bead phantom's outputs (:mod:`fluorocal.export_beads`), evaluation and check (:mod:`fluorocal.kinds`)."""
 
+    scored_on = "held-out epochs, and check points with --reference"
+
     def export(self, runner, result, obs, excluded, out_dir: Path, figures) -> list[Path]:
         """``calibration.json``, object points, observations, report (:func:`~fluorocal.export_beads.export_beads`)."""
         from fluorocal.export_beads import export_beads

@@ -19,6 +19,8 @@ log = logging.getLogger("fluorocal")
 class PlatePart:
     """A grid plate's outputs (:mod:`fluorocal.export_plate`), evaluation and check (:mod:`fluorocal.kinds`)."""
 
+    scored_on = "held-out rows of each frame"
+
     def export(self, runner, result, obs, excluded, out_dir: Path, figures) -> list[Path]:
         """``calibration.json`` (no geometry), the layout, observations, report (:mod:`fluorocal.export_plate`)."""
         from fluorocal.export_plate import export_plate

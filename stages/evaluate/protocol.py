@@ -35,7 +35,7 @@ from fluorocal.stages.evaluate.metrics import (
     with_xy,
 )
 from fluorocal.stages.evaluate.split import training_subset
-from fluorocal.stages.kinds import CalibrationSetup, learn_calibration
+from fluorocal.stages.kinds.learning import CalibrationSetup, learn_calibration
 from fluorocal.stages.learn import LearnParams, start_orientation
 
 log = logging.getLogger(__name__)

@@ -1,43 +1,15 @@
-"""What a kind of calibration object is to the stages: :class:`PhantomKind`, and what the pipeline tells it.
+"""What a kind of calibration object is to the stages: :class:`PhantomKind`.
 
 Each kind (:mod:`.beads`, :mod:`.plate`) is one frozen object that owns what differs between kinds: how
-a frame and a sequence are labelled, what calibrates, which schemes and config sections it accepts, and
-how its frames and its outputs are treated. :mod:`fluorocal.stages.kinds` looks it up by the spelling
-of the project's ``[phantom]`` table.
+a frame and a sequence are labelled, which schemes and config sections it accepts, and how its frames and
+its outputs are treated. :mod:`fluorocal.stages.kinds` looks it up by the spelling of the project's
+``[phantom]`` table. What calibrates it is :data:`fluorocal.stages.kinds.learning.CALIBRATIONS`, by its
+:attr:`~PhantomKind.name` (kept apart so that the labelling does not import the solvers).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Protocol
-
-from fluorocal.stages.learn.params import Scheme
-
-
-@dataclass(frozen=True)
-class CalibrationSetup:
-    """What the pipeline knows of the project and a kind's :meth:`PhantomKind.calibrate` needs.
-
-    Attributes
-    ----------
-    scheme : Scheme
-        Config ``[calibration] scheme``; a spelling given is parsed (:meth:`Scheme.parse`).
-    image_size_px : tuple of (int, int)
-        ``(width, height)`` of each system's frames.
-    iop_guess_px : tuple of (float, float, float)
-        Start values ``(xp, yp, c)`` per system: the image centre and source-image distance / pixel pitch.
-    orientations : tuple of (int, int, str, float or None, float or None)
-        A grid plate's frames: ``(system, exposure, orientation name, orbit_deg, tilt_deg)`` each (a
-        3D phantom's system is one orientation: empty).
-    """
-
-    scheme: Scheme = Scheme.KNN_IOP_SMOOTH
-    image_size_px: tuple = ()
-    iop_guess_px: tuple = ()
-    orientations: tuple = ()
-
-    def __post_init__(self):
-        object.__setattr__(self, "scheme", Scheme.parse(self.scheme, where="CalibrationSetup.scheme"))
 
 
 class PhantomKind(Protocol):
@@ -87,6 +59,3 @@ class PhantomKind(Protocol):
 
     def label_sequence(self, centroids_seq, phantom, params, seeds_by_frame=None) -> tuple:
         """One system's frames labelled, in exposure order: one :class:`~fluorocal.stages.label.Labels` each."""
-
-    def calibrate(self, observations, phantom, params, *, setup, solver=None, selection=None, plate=None):
-        """The calibration of the labelled ``observations`` (the learning stage's artifact)."""

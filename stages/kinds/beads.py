@@ -1,13 +1,14 @@
-"""The 3D bead phantom: beads labelled from their markers, seeds or neighbours; calibrated by the learning loop."""
+"""The 3D bead phantom: beads labelled from their markers, seeds or neighbours.
+
+Calibrated by the learning loop: :func:`fluorocal.stages.kinds.learning.calibrate_beads`.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from fluorocal.stages.kinds.base import CalibrationSetup
 from fluorocal.stages.label import label_bead_frame, label_bead_sequence
-from fluorocal.stages.learn import LearnParams, LearnResult, Scheme, calibrate, start_orientation
-from fluorocal.stages.learn.order import canonical_order, taken
+from fluorocal.stages.learn import Scheme
 
 
 @dataclass(frozen=True)
@@ -15,7 +16,8 @@ class BeadPhantom:
     """A 3D bead phantom (a cube; ``[phantom] file``): see :class:`~fluorocal.stages.kinds.base.PhantomKind`.
 
     Its frames of two systems pair into epochs; a system is one C-arm orientation (the phantom moves);
-    every scheme applies; its calibration estimates the beads' positions, so check points can score it.
+    every scheme applies; its calibration (:func:`~fluorocal.stages.kinds.learning.calibrate_beads`)
+    estimates the beads' positions, so check points can score it.
     """
 
     name = "beads"
@@ -34,28 +36,3 @@ class BeadPhantom:
 
     def label_sequence(self, centroids_seq, phantom, params, seeds_by_frame=None) -> tuple:
         return label_bead_sequence(centroids_seq, phantom, params, seeds_by_frame)
-
-    def calibrate(
-        self,
-        observations,
-        phantom,
-        params: LearnParams,
-        *,
-        setup: CalibrationSetup,
-        solver=None,
-        selection=None,
-        plate=None,
-    ) -> LearnResult:
-        """Start values by resection, then :func:`fluorocal.stages.learn.calibrate` (``plate`` is not read)."""
-        # the resection too sees the rows in the canonical order that calibrate runs on
-        initial = start_orientation(taken(observations, canonical_order(observations)), phantom, setup.iop_guess_px)
-        return calibrate(
-            observations,
-            phantom,
-            initial,
-            image_size=setup.image_size_px,
-            scheme=setup.scheme,
-            params=params,
-            solver=solver,
-            selection=selection,
-        )

@@ -2,7 +2,8 @@
 
 Two kinds of phantom are handled (docs/concepts.md, "Conventions" for pixels, poses
 and the interior orientation); which one a frame or a sequence is labelled as is the phantom kind's
-choice (:func:`fluorocal.stages.kinds.label_beads`, :func:`fluorocal.stages.kinds.label_sequence`):
+choice (:func:`fluorocal.stages.kinds.labelling.label_beads`,
+:func:`fluorocal.stages.kinds.labelling.label_sequence`):
 
 - **3D bead phantoms** (a cube, :mod:`.cube`): an approximate pose is found from the marker
   beads (role ``marker``, recognised by their larger apparent size), from a

@@ -44,7 +44,7 @@ def label_cube(
 ) -> Labels:
     """Label one frame of a 3D phantom from seeds, else from the markers and then from ``prior_pose``.
 
-    See :func:`fluorocal.stages.kinds.label_beads`. ``orientation_prior`` (optional) says how far the
+    See :func:`fluorocal.stages.kinds.labelling.label_beads`. ``orientation_prior`` (optional) says how far the
     orientation of ``prior_pose`` may be off (by default ``_PRIOR_SIGMA_DEG`` about any axis);
     ``turn_search`` lets a frame that still fails be searched over turns about its axis.
     ``from_markers=False`` skips the markers (they failed before); ``pool=True`` weighs the markers'

@@ -10,12 +10,12 @@ from fluorocal.stages.errors import InputError
 from fluorocal.stages.label.cube import label_cube
 from fluorocal.stages.label.detections import Detections, assumed_iop
 from fluorocal.stages.label.labels import Labels
-from fluorocal.stages.label.lattice import label_grid
+from fluorocal.stages.label.lattice import check_lattice, label_grid
 from fluorocal.stages.label.params import LabelParams
 
 
 def label_bead_frame(centroids, phantom: Phantom, params: LabelParams, prior_pose=None, **search) -> Labels:
-    """One frame of a 3D bead phantom labelled (:func:`fluorocal.stages.kinds.label_beads`).
+    """One frame of a 3D bead phantom labelled (:func:`fluorocal.stages.kinds.labelling.label_beads`).
 
     ``search`` holds the search options a sequence gives (:func:`~.cube.label_cube`).
     """
@@ -30,6 +30,7 @@ def label_plate_frame(centroids, phantom: Phantom, params: LabelParams) -> Label
     """One frame of a grid plate labelled: its holes indexed on the plate's lattice (:func:`~.lattice.label_grid`)."""
     det = Detections.from_centroids(centroids)
     iop = assumed_iop(det, centroids, params, need_c=False)
+    check_lattice(phantom.lattice, "label_plate_frame")  # the lattice's geometry would take any other as a square
     if not phantom.pitch_mm > 0:
         raise InputError(f"phantom.pitch_mm must be > 0 for a grid plate; got {phantom.pitch_mm}")
     return label_grid(det, phantom, params, iop)

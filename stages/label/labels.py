@@ -57,8 +57,8 @@ class Labels:
     explains_most : bool
         The labelling explains most of the frame's usable detections (a 3D phantom:
         :func:`~fluorocal.stages.label.rivals.explains_most`). One that does not may have converged from a
-        start a few degrees off with its polynomial correction bent to fit; :func:`label_sequence` checks
-        such a frame against its neighbours.
+        start a few degrees off with its polynomial correction bent to fit;
+        :func:`~fluorocal.stages.label.label_bead_sequence` checks such a frame against its neighbours.
     """
 
     det_index: np.ndarray

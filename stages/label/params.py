@@ -12,7 +12,7 @@ STATUS_LABELLED, STATUS_AMBIGUOUS, STATUS_UNMATCHED, STATUS_REJECTED = 0, 1, 2, 
 
 @dataclass(frozen=True)
 class LabelParams:
-    """Parameters of :func:`label_beads`.
+    """Parameters of :func:`fluorocal.stages.kinds.labelling.label_beads`.
 
     Distances given in bead diameters scale with each bead's apparent
     diameter in the frame (its projected diameter once a pose is known, the

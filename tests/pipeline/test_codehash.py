@@ -289,12 +289,17 @@ def test_the_issue_cases(tmp_path):
     stages = tmp_path / "fluorocal" / "stages"
     probed = [stages / "learn" / "loop.py", stages / "detect.py", tmp_path / "fluorocal" / "gather.py"]
     probed.append(tmp_path / "fluorocal" / "graph.py")
+    # the kinds' entries: the plate's solver is the learning's alone, the labelling's dispatch the label stage's
+    probed += [stages / "plate" / "solve.py", stages / "kinds" / "labelling.py", stages / "kinds" / "learning.py"]
     edits = _python(EDITS, tmp_path, json.dumps(roots), str(tmp_path / "fluorocal"), *map(str, probed))
     assert sorted(edits["modules"]) == sorted(map(str, probed))
     assert edits["modules"][str(stages / "learn" / "loop.py")] == ["label", "learn"]  # label imports learn.grid
     assert edits["modules"][str(stages / "detect.py")] == ["centroid", "detect"]  # centroid imports detect's helpers
     assert edits["modules"][str(tmp_path / "fluorocal" / "gather.py")] == ["learn"]
     assert edits["modules"][str(tmp_path / "fluorocal" / "graph.py")] == []  # the hooks' values are in the key
+    assert edits["modules"][str(stages / "plate" / "solve.py")] == ["learn"]
+    assert edits["modules"][str(stages / "kinds" / "labelling.py")] == ["label"]
+    assert edits["modules"][str(stages / "kinds" / "learning.py")] == ["learn"]
 
 
 @pytest.mark.check  # every module in turn, in a copy of the package: make test keeps the issue's own cases

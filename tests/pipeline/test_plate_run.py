@@ -130,7 +130,7 @@ def _lattice_rms_px(path: Path) -> float:
     from fluorocal.stages.centroid import CentroidParams, centroid_beads
     from fluorocal.stages.detect import DetectParams, detect_beads
     from fluorocal.stages.io import read_frames
-    from fluorocal.stages.kinds import label_beads
+    from fluorocal.stages.kinds.labelling import label_beads
     from fluorocal.stages.label import LabelParams
 
     frame = read_frames(path)[0]

@@ -13,7 +13,7 @@ from fluorocal.config import load_config
 from fluorocal.graph import default_stages, stage_params_classes
 from fluorocal.run import Runner, stage_params
 from fluorocal.stages import centroid
-from fluorocal.stages.kinds import label_beads
+from fluorocal.stages.kinds.labelling import label_beads
 from fluorocal.stages.simulate import SimulateParams, simulate
 
 PARAMS = SimulateParams(n_frames=8, n_systems=1, image_size_px=512, seed=3)

@@ -16,7 +16,7 @@ import pytest
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.geometry import project, quat_to_matrix, rotvec_to_quat
-from fluorocal.stages.kinds import label_beads, label_sequence
+from fluorocal.stages.kinds.labelling import label_beads, label_sequence
 from fluorocal.stages.label import (
     STATUS_AMBIGUOUS,
     STATUS_LABELLED,
@@ -444,6 +444,17 @@ def test_real_grid_frames(arcadis_dir, name):
     # a slip would leave residuals of a whole hole spacing (~15 px); distortion beyond radial leaves < 1 px
     rms = homography_radial_rms(lab.object_xyz_mm[:, :2], lab.xy_px, np.array([511.5, 511.5]))
     assert rms < 1.0
+
+
+def test_a_plate_of_no_known_lattice_is_refused():
+    """A lattice spelled wrong is refused, not labelled as a square (the lattice geometry's fallback)."""
+    from fluorocal.stages.label import label_plate_frame
+
+    ij = np.array([(i, j) for i in range(-5, 6) for j in range(-5, 6)])
+    centroids = make_centroids(511.5 + 13.0 * ij, 6.0)  # a square grid a "square" plate labels
+    assert label_plate_frame(centroids, Phantom([], [], [], [], "square", 1.0), LabelParams()).ok
+    with pytest.raises(InputError, match="'tri'"):
+        label_plate_frame(centroids, Phantom([], [], [], [], "tri", 1.0), LabelParams())
 
 
 def test_square_grid_with_gaps_and_distortion():

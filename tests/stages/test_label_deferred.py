@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fluorocal.stages.kinds import label_sequence
+from fluorocal.stages.kinds.labelling import label_sequence
 from fluorocal.stages.simulate import SimulateParams, simulate
 
 from tests.stages.label_truth import VARIED, detections_from_truth, params_of, unambiguous_ids

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fluorocal.stages.kinds import label_sequence
+from fluorocal.stages.kinds.labelling import label_sequence
 from fluorocal.stages.label import LabelParams
 from fluorocal.stages.label.symmetry import phantom_symmetries, turn_angle
 from fluorocal.stages.simulate import SimulateParams, simulate
@@ -97,7 +97,7 @@ def test_uniform_phantom_a_quarter_turn_from_the_prior_is_never_mislabelled():
     well, as far from the prior.
     """
     from fluorocal.stages.artifacts import Phantom
-    from fluorocal.stages.kinds import label_beads
+    from fluorocal.stages.kinds.labelling import label_beads
 
     sim = simulate(SimulateParams(n_frames=4, seed=0), render=False)
     ph = sim.phantom

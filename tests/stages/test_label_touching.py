@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fluorocal.stages.kinds import label_beads
+from fluorocal.stages.kinds.labelling import label_beads
 from fluorocal.stages.label import LabelParams
 from fluorocal.stages.label.assign import ambiguous, told_apart
 from fluorocal.stages.simulate import SimulateParams, simulate

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from fluorocal.stages.geometry import quat_to_matrix
-from fluorocal.stages.kinds import label_sequence
+from fluorocal.stages.kinds.labelling import label_sequence
 from fluorocal.stages.label.motion import OrientationPrior, predict
 from fluorocal.stages.simulate import SimulateParams, simulate
 from scipy.spatial.transform import Rotation
@@ -100,7 +100,7 @@ def test_a_frame_alone_whose_markers_give_a_pose_9_deg_off_is_searched_around_it
     neighbour to weigh it against (a sequence of one frame, or one whose other frames are labelled from
     it), the poses around it are searched, and the truth, which explains more, wins.
     """
-    from fluorocal.stages.kinds import label_beads
+    from fluorocal.stages.kinds.labelling import label_beads
 
     sp = SimulateParams(n_frames=20, seed=1, **VARIED)
     sim = simulate(sp, render=False)
