@@ -6,6 +6,11 @@ and matplotlib's version: :func:`figure_key` hashes them all. ``fluorocal run`` 
 whole set each time (:func:`fluorocal.outputs.publish`); :class:`Figures` copies into the new set each figure
 the previous set holds under the same key instead of drawing it again.
 
+Every figure is drawn under matplotlib's default settings (:func:`_default_style`), whatever the process's
+``rcParams`` (a ``matplotlibrc`` in the working folder, ``$MATPLOTLIBRC``, the user's, or code that changed
+them): the settings are no input of a figure, so its key need not hold them and a report is the same on
+every machine with the same versions.
+
 A published set records each figure's key and the sha256 of its PNG (:data:`RECORD`). A figure is taken
 over only when that record gives the same key and the previous set's file still has the recorded checksum:
 a figure edited, truncated or removed, or swapped by a run publishing at the same time, is drawn anew. The
@@ -58,7 +63,8 @@ class Figures:
         key = figure_key(plot, args, self._code(plot.__module__))
         data = self._previous_png(path.name, key)
         if data is None:
-            plot(path, *args)
+            with _default_style():
+                plot(path, *args)
             data = Path(path).read_bytes()
             self.drawn.append(path.name)
         else:
@@ -94,6 +100,13 @@ class Figures:
 
             self._codes[module] = f"{code_digest([module], self.memo)} matplotlib=={version('matplotlib')}"
         return self._codes[module]
+
+
+def _default_style():
+    """A context drawing under matplotlib's own defaults (``rcParamsDefault``, none of its rc files), restored after."""
+    import matplotlib.style
+
+    return matplotlib.style.context("default")
 
 
 def figure_key(plot, args, code: str) -> str:

@@ -6,6 +6,7 @@ next set copies a figure of the same key whose file still has that checksum, and
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import json
@@ -84,6 +85,30 @@ def test_the_key_covers_the_code_and_refuses_what_it_cannot_hash():
     assert figure_key(dots, args, "code") != figure_key(report.field_map, args, "code")
     with pytest.raises(TypeError, match="object"):
         figure_key(dots, (object(),), "code")
+
+
+def test_a_figure_is_drawn_under_matplotlibs_defaults_whatever_the_processs_settings(tmp_path):
+    """Settings changed in the process (as a matplotlibrc would) change no drawn PNG; they are left as they were."""
+    import matplotlib
+
+    history = [Step(i, 10.0 / (i + 1), 1.0 / (i + 1)) for i in range(4)]
+    plain = Figures().draw(tmp_path / "plain.png", report.convergence, history).read_bytes()
+    changed = {"axes.facecolor": "red", "lines.linewidth": 9.0, "font.size": 20.0, "figure.dpi": 30.0}
+    with matplotlib.rc_context(changed):
+        styled = Figures().draw(tmp_path / "styled.png", report.convergence, history).read_bytes()
+        assert matplotlib.rcParams["axes.facecolor"] == "red"  # the process's own settings are left as they were
+        report.convergence(tmp_path / "direct.png", history)  # drawn outside Figures: the settings do show
+    assert styled == plain
+    assert (tmp_path / "direct.png").read_bytes() != plain
+
+
+@dataclasses.dataclass(frozen=True)
+class Step:
+    """What :func:`fluorocal.report.convergence` reads of an iteration's record."""
+
+    iteration: int
+    cost_total: float
+    rms_px: float
 
 
 # --- a whole run ---------------------------------------------------------------------------------------------
