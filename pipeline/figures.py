@@ -24,7 +24,9 @@ import enum
 import hashlib
 import json
 import logging
+import os
 import re
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +53,7 @@ class Figures:
 
     def __init__(self, previous=None, memo=None):
         self.previous = None if previous is None else Path(previous)
-        self.old = {} if previous is None else _read_record(self.previous / RECORD)
+        self.old = {} if previous is None else _read_record(_read_own(self.previous, RECORD))
         self.memo = memo
         self.new: dict[str, dict[str, str]] = {}
         self.drawn: list[str] = []
@@ -86,11 +88,8 @@ class Figures:
         old = self.old.get(name)
         if self.previous is None or old is None or old["key"] != key:
             return None
-        try:
-            data = inside(self.previous, name).read_bytes()
-        except OSError:
-            return None
-        return data if hashlib.sha256(data).hexdigest() == old["sha256"] else None
+        data = _read_own(self.previous, name)
+        return data if data is not None and hashlib.sha256(data).hexdigest() == old["sha256"] else None
 
     def _code(self, module: str) -> str:
         if module not in self._codes:
@@ -154,11 +153,26 @@ def _feed(h, value) -> None:
         raise TypeError(f"cannot hash a figure's argument of type {type(value).__qualname__}")
 
 
-def _read_record(path: Path) -> dict[str, dict[str, str]]:
-    """The figures a set records (an unreadable record, or entry, records none)."""
+def _read_own(folder: Path, name: str) -> bytes | None:
+    """The bytes of the regular file ``name`` of ``folder``; None if unreadable, or not the folder's own (a symlink)."""
     try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        fd = os.open(inside(folder, name), os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except (OSError, ValueError):  # ValueError: InputError, a name resolving outside the folder
+        return None
+    with os.fdopen(fd, "rb") as fh:
+        try:
+            return fh.read() if stat.S_ISREG(os.fstat(fd).st_mode) else None
+        except OSError:
+            return None
+
+
+def _read_record(data: bytes | None) -> dict[str, dict[str, str]]:
+    """The figures a set's record ``data`` lists (no record, an unreadable one, or entry, records none)."""
+    if data is None:
+        return {}
+    try:
+        raw = json.loads(data.decode("utf-8"))
+    except ValueError:  # not UTF-8, or not JSON
         return {}
     if not isinstance(raw, dict):
         return {}

@@ -79,6 +79,19 @@ def test_a_published_figure_not_as_recorded_is_drawn_again(tmp_path):
     assert record["a.png"]["sha256"] == hashlib.sha256((out / "a.png").read_bytes()).hexdigest()
 
 
+@pytest.mark.parametrize("where", ["outside", "inside", "record"])
+def test_a_symlinked_figure_or_record_is_drawn_again(tmp_path, where):
+    """A link in the published set, to a file of the same bytes out of the set or in it, is not copied: drawn again."""
+    out, xy = tmp_path / "out", np.arange(6.0).reshape(3, 2)
+    _publish(out, xy)
+    name = RECORD if where == "record" else "a.png"
+    target = (tmp_path if where != "inside" else out) / f"copy-{name}"
+    target.write_bytes((out / name).read_bytes())
+    (out / name).unlink()
+    (out / name).symlink_to(target)
+    assert _publish(out, xy).drawn == ["a.png"]
+
+
 def test_the_key_covers_the_code_and_refuses_what_it_cannot_hash():
     args = (np.ones(3), "title")
     assert figure_key(dots, args, "code 1") != figure_key(dots, args, "code 2")
