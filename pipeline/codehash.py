@@ -212,7 +212,7 @@ class AnalysisMemo:
     def _load(self) -> dict[str, tuple[str, tuple[str, ...], tuple[str, ...]]]:
         try:
             raw = json.loads(self.path.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
+        except (OSError, ValueError, RecursionError):  # RecursionError: nested too deep to decode
             return {}
         entries = {}
         for key, value in raw.items() if isinstance(raw, dict) else ():

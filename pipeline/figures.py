@@ -172,7 +172,7 @@ def _read_record(data: bytes | None) -> dict[str, dict[str, str]]:
         return {}
     try:
         raw = json.loads(data.decode("utf-8"))
-    except ValueError:  # not UTF-8, or not JSON
+    except (ValueError, RecursionError):  # not UTF-8, not JSON, or nested too deep to decode
         return {}
     if not isinstance(raw, dict):
         return {}

@@ -155,6 +155,8 @@ def test_an_unreadable_memo_or_entry_is_ignored(package, tmp_path):
     path = tmp_path / "analyses.json"
     path.write_text("{not json")
     assert code_digest([f"{PACKAGE}.second"], AnalysisMemo(path)) == expected
+    path.write_text("[" * 200_000)  # nested too deep for the decoder
+    assert code_digest([f"{PACKAGE}.second"], AnalysisMemo(path)) == expected
     memo = AnalysisMemo(path)
     code_digest([f"{PACKAGE}.second"], memo)
     memo.save()

@@ -75,6 +75,8 @@ def test_a_published_figure_not_as_recorded_is_drawn_again(tmp_path):
     assert _publish(out, xy).drawn == ["a.png"]
     (out / RECORD).write_text("{not json")
     assert _publish(out, xy).drawn == ["a.png"]
+    (out / RECORD).write_text("[" * 200_000)  # nested too deep for the decoder
+    assert _publish(out, xy).drawn == ["a.png"]
     record = json.loads((out / RECORD).read_text())
     assert record["a.png"]["sha256"] == hashlib.sha256((out / "a.png").read_bytes()).hexdigest()
 
