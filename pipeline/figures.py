@@ -125,9 +125,12 @@ def figure_key(plot, args, code: str) -> str:
 
 def _feed(h, value) -> None:
     """Hash ``value``'s content: its type, and its arrays' dtype, shape and bytes; refuse what it cannot hash."""
-    if isinstance(value, np.ndarray):
-        if value.dtype.hasobject:
-            raise TypeError("a figure's arrays must hold numbers, not objects")
+    if isinstance(value, (np.ndarray, np.void)):
+        if type(value) is not np.ndarray or value.dtype.hasobject or value.dtype.fields is not None:
+            # a subclass' own state (a masked array's mask) and a structured dtype's fields are not in the bytes
+            raise TypeError(
+                f"a figure's arrays must be plain arrays of numbers, not {type(value).__qualname__} {value.dtype}"
+            )
         h.update(f"ndarray {value.dtype.str} {value.shape}\n".encode())
         h.update(np.ascontiguousarray(value).tobytes())
     elif isinstance(value, enum.Enum):

@@ -102,6 +102,20 @@ def test_the_key_covers_the_code_and_refuses_what_it_cannot_hash():
         figure_key(dots, (object(),), "code")
 
 
+@pytest.mark.parametrize(
+    "value",
+    [
+        np.ma.masked_array([1.0, 2.0], mask=[False, True]),  # its mask is not in its bytes
+        np.zeros(2, dtype=[("x", "f8"), ("y", "f8")]),  # its field names are not in its dtype's str ('|V16')
+        np.zeros(1, dtype=[("x", "f8")])[0],  # a structured scalar
+        np.array([object()]),
+    ],
+)
+def test_the_key_refuses_arrays_whose_bytes_do_not_hold_their_content(value):
+    with pytest.raises(TypeError, match="plain arrays of numbers"):
+        figure_key(dots, (value,), "code")
+
+
 def test_a_figure_is_drawn_under_matplotlibs_defaults_whatever_the_processs_settings(tmp_path):
     """Settings changed in the process (as a matplotlibrc would) change no drawn PNG; they are left as they were."""
     import matplotlib
