@@ -11,10 +11,12 @@ import functools
 import hashlib
 import json
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
 from fluorocal import report
+from fluorocal.cache import ArtifactCache
 from fluorocal.cli import main
 from fluorocal.figures import RECORD, Figures, figure_key
 from fluorocal.outputs import publish
@@ -181,6 +183,22 @@ def test_a_run_with_nothing_changed_draws_no_figure_and_keeps_the_set(project, m
     assert _pngs(out) == before and len(before) == 9  # 4 per system (2) and the convergence
     assert sorted(p.name for p in out.iterdir()) == listing  # the whole set, and nothing else
     assert "9 unchanged and copied" in caplog.text
+
+
+def test_a_run_keeps_the_analyses_of_the_figures_code(project):
+    """The memo the run saved before its export is saved again with the plotting modules' analyses."""
+    import importlib.util
+
+    from fluorocal.codehash import AnalysisMemo
+    from fluorocal.config import load_config
+
+    memo_path = ArtifactCache(load_config(project / "fluorocal.toml").cache_dir).code_memo().path
+    memo_path.unlink()
+    assert main(["--quiet", "run", str(project / "fluorocal.toml")]) == 0
+    path = Path(importlib.util.find_spec("fluorocal.report").origin)
+    assert (
+        AnalysisMemo.key("fluorocal.report", path, path.read_text(encoding="utf-8")) in AnalysisMemo(memo_path).entries
+    )
 
 
 def test_a_changed_input_redraws_the_figures_that_show_it(project, monkeypatch):
