@@ -201,6 +201,8 @@ class AnalysisMemo:
             return
         from fluorocal.stages.io import atomic_write
 
+        if self._linked():
+            return
         kept = self.entries if len(self.entries) <= self.MAX_ENTRIES else {k: self.entries[k] for k in self.used}
         text = json.dumps({k: [d, list(b), list(f)] for k, (d, b, f) in sorted(kept.items())})
         try:
@@ -209,7 +211,16 @@ class AnalysisMemo:
         except OSError as exc:
             log.debug("code analyses not kept in %s: %s", self.path, exc)
 
+    def _linked(self) -> bool:
+        """Whether the memo's file or folder is a symlink (which may lead out of the cache): then it is ignored."""
+        linked = self.path.is_symlink() or self.path.parent.is_symlink()
+        if linked:
+            log.debug("code analyses in %s not used: a symlink", self.path)
+        return linked
+
     def _load(self) -> dict[str, tuple[str, tuple[str, ...], tuple[str, ...]]]:
+        if self._linked():
+            return {}
         try:
             raw = json.loads(self.path.read_text(encoding="utf-8"))
         except (OSError, ValueError, RecursionError):  # RecursionError: nested too deep to decode
