@@ -555,9 +555,11 @@ def _older_format(raw: bytes) -> bool:
 def _only_cache_files(root: Path) -> bool:
     """Whether ``root`` holds only what a cache (of this or the previous format) writes."""
     for child in root.iterdir():
+        if child.is_symlink():  # may lead out of the cache
+            return False
         if (child.name in (LOCKS, PROJECTS, CODE) and child.is_dir()) or (child.name == MARKER and child.is_file()):
             continue
-        if child.is_symlink() or not child.is_dir() or not _STAGE.fullmatch(child.name):
+        if not child.is_dir() or not _STAGE.fullmatch(child.name):
             return False
         if any(
             not (_KEY.fullmatch(p.name) or _TMP.fullmatch(p.name) or _LEGACY_TMP.fullmatch(p.name))

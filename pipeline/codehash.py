@@ -160,9 +160,11 @@ class AnalysisMemo:
 
     The key (:meth:`key`) is the sha256 of this module's own source, Python's version, the module's
     name, whether it is a package's ``__init__`` and its source text: the analysis of the same text by the
-    same code, so a hit is what :func:`_analyse` would return. An unreadable file or entry is ignored
-    (the module is parsed again); the file is written atomically, and runs writing it at once lose at most
-    each other's additions. It holds the entries of the last run and, up to :data:`MAX_ENTRIES`, older ones.
+    same code, so a hit is what :func:`_analyse` would return. The file is data, never trusted to steer
+    imports: an entry is used only if it fits the source it is kept for (:func:`_fits`). An unreadable file,
+    or entry, is ignored (the module is parsed again); the file is written atomically, and runs writing it
+    at once lose at most each other's additions. It holds the entries of the last run and, up to
+    :data:`MAX_ENTRIES`, older ones.
     """
 
     #: entries kept from earlier runs besides this run's
@@ -178,9 +180,12 @@ class AnalysisMemo:
         """:func:`_analyse` of the module, from the memo when it holds the same text's."""
         key = self.key(name, path, text)
         self.used.add(key)
-        if key not in self.entries:
+        kept = self.entries.get(key)
+        if kept is None or not _fits(kept, name, path, text):
+            if kept is not None:
+                log.debug("code analysis of %s in %s does not fit its source: parsed again", name, self.path)
             self.entries[key] = _analyse(name, path, text)
-            self.added = True
+            self.added |= self.entries[key] != kept
         return self.entries[key]
 
     @staticmethod
@@ -196,6 +201,8 @@ class AnalysisMemo:
             return
         from fluorocal.stages.io import atomic_write
 
+        if self._linked():
+            return
         kept = self.entries if len(self.entries) <= self.MAX_ENTRIES else {k: self.entries[k] for k in self.used}
         text = json.dumps({k: [d, list(b), list(f)] for k, (d, b, f) in sorted(kept.items())})
         try:
@@ -204,10 +211,19 @@ class AnalysisMemo:
         except OSError as exc:
             log.debug("code analyses not kept in %s: %s", self.path, exc)
 
+    def _linked(self) -> bool:
+        """Whether the memo's file or folder is a symlink (which may lead out of the cache): then it is ignored."""
+        linked = self.path.is_symlink() or self.path.parent.is_symlink()
+        if linked:
+            log.debug("code analyses in %s not used: a symlink", self.path)
+        return linked
+
     def _load(self) -> dict[str, tuple[str, tuple[str, ...], tuple[str, ...]]]:
+        if self._linked():
+            return {}
         try:
             raw = json.loads(self.path.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
+        except (OSError, ValueError, RecursionError):  # RecursionError: nested too deep to decode
             return {}
         entries = {}
         for key, value in raw.items() if isinstance(raw, dict) else ():
@@ -226,6 +242,66 @@ def _valid_entry(key, value) -> bool:
         and _HEX.fullmatch(value[0]) is not None
         and all(isinstance(v, list) and all(isinstance(m, str) for m in v) for v in value[1:])
     )
+
+
+#: an import statement at a line's start: ``from <module> import <names>`` or ``import <names>``
+_STATED = re.compile(
+    r"^[ \t]*(?:from[ \t]+(\.*[\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n;#]*)|import[ \t]+([^\n;#]*))", re.M
+)
+_WORD = re.compile(r"[A-Za-z_]\w*")
+
+
+def _fits(analysis, name: str, path: Path, text: str) -> bool:
+    """Whether a memo's ``analysis`` can be the one of ``text``; the memo is data, never trusted to steer imports.
+
+    Each module it lists must be a dotted name whose parts are words of the text (past the part it shares
+    with the module's own package, which a relative import leaves out), and each module an import at a
+    line's start names must be listed (but in an ``if TYPE_CHECKING:`` block). Not fitting, the module is
+    parsed again: a text with an import statement in a docstring is, on every run, correctly if more slowly.
+    """
+    package = (name if path.name == "__init__.py" else name.rpartition(".")[0]).split(".")
+    listed = {*analysis[1], *analysis[2]}
+    words = set(_WORD.findall(text))
+    for module in listed:
+        parts = module.split(".")
+        if not all(part.isidentifier() for part in parts):
+            return False
+        shared = next((i for i, (a, b) in enumerate(zip(parts, package)) if a != b), min(len(parts), len(package)))
+        if not set(parts[shared:]) <= words:
+            return False
+    return _stated_imports(_without_type_checking(text), ".".join(package)) <= listed
+
+
+_TYPE_CHECKING = re.compile(r"([ \t]*)if[ \t]+(?:\w+\.)?TYPE_CHECKING[ \t]*:[ \t]*(?:#.*)?")
+
+
+def _without_type_checking(text: str) -> str:
+    """``text`` without the lines of its ``if TYPE_CHECKING:`` blocks (as laid out: the block's lines indented more)."""
+    if "TYPE_CHECKING" not in text:
+        return text
+    kept, block = [], None  # block: the indent of the ``if`` being skipped
+    for line in text.splitlines():
+        rest = line.lstrip()
+        if block is not None and (not rest or len(line) - len(rest) > block):
+            continue
+        m = _TYPE_CHECKING.fullmatch(line)
+        block = None if m is None else len(m.group(1))
+        kept += [] if m else [line]
+    return "\n".join(kept)
+
+
+def _stated_imports(text: str, package: str) -> set[str]:
+    """The modules the import statements at the start of a line of ``text`` name (as :func:`_imports` lists them)."""
+    found = set()
+    for source, names, plain in _STATED.findall(text):
+        if plain:
+            found |= {item.split()[0] for item in plain.split(",") if item.split()}
+            continue
+        level = len(source) - len(source.lstrip("."))
+        base = _absolute(source[level:], level, package)
+        items = re.sub(r"#[^\n]*", "", names.strip().strip("()")).split(",")
+        found |= {base} | {f"{base}.{i.split()[0]}" for i in items if i.split() and i.split()[0] != "*"}
+    return {m for m in found if all(part.isidentifier() for part in m.split("."))}
 
 
 @lru_cache(maxsize=1)

@@ -79,7 +79,11 @@ def export_outputs(runner) -> list[Path]:
         return written
 
     target = partial_dir(runner) if partial else runner.config.output_dir
-    return publish(target, write, owner=runner.config.path)
+    written = publish(target, write, owner=runner.config.path)
+    memo = getattr(runner, "code_memo", None)
+    if memo is not None:  # what the figures' code digests added to it (the run saved it before)
+        memo.save()
+    return written
 
 
 def partial_dir(runner) -> Path:

@@ -6,6 +6,11 @@ and matplotlib's version: :func:`figure_key` hashes them all. ``fluorocal run`` 
 whole set each time (:func:`fluorocal.outputs.publish`); :class:`Figures` copies into the new set each figure
 the previous set holds under the same key instead of drawing it again.
 
+Every figure is drawn under matplotlib's default settings (:func:`_default_style`), whatever the process's
+``rcParams`` (a ``matplotlibrc`` in the working folder, ``$MATPLOTLIBRC``, the user's, or code that changed
+them): the settings are no input of a figure, so its key need not hold them and a report is the same on
+every machine with the same versions.
+
 A published set records each figure's key and the sha256 of its PNG (:data:`RECORD`). A figure is taken
 over only when that record gives the same key and the previous set's file still has the recorded checksum:
 a figure edited, truncated or removed, or swapped by a run publishing at the same time, is drawn anew. The
@@ -19,7 +24,9 @@ import enum
 import hashlib
 import json
 import logging
+import os
 import re
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +53,7 @@ class Figures:
 
     def __init__(self, previous=None, memo=None):
         self.previous = None if previous is None else Path(previous)
-        self.old = {} if previous is None else _read_record(self.previous / RECORD)
+        self.old = {} if previous is None else _read_record(_read_own(self.previous, RECORD))
         self.memo = memo
         self.new: dict[str, dict[str, str]] = {}
         self.drawn: list[str] = []
@@ -58,7 +65,8 @@ class Figures:
         key = figure_key(plot, args, self._code(plot.__module__))
         data = self._previous_png(path.name, key)
         if data is None:
-            plot(path, *args)
+            with _default_style():
+                plot(path, *args)
             data = Path(path).read_bytes()
             self.drawn.append(path.name)
         else:
@@ -80,11 +88,8 @@ class Figures:
         old = self.old.get(name)
         if self.previous is None or old is None or old["key"] != key:
             return None
-        try:
-            data = inside(self.previous, name).read_bytes()
-        except OSError:
-            return None
-        return data if hashlib.sha256(data).hexdigest() == old["sha256"] else None
+        data = _read_own(self.previous, name)
+        return data if data is not None and hashlib.sha256(data).hexdigest() == old["sha256"] else None
 
     def _code(self, module: str) -> str:
         if module not in self._codes:
@@ -94,6 +99,13 @@ class Figures:
 
             self._codes[module] = f"{code_digest([module], self.memo)} matplotlib=={version('matplotlib')}"
         return self._codes[module]
+
+
+def _default_style():
+    """A context drawing under matplotlib's own defaults (``rcParamsDefault``, none of its rc files), restored after."""
+    import matplotlib.style
+
+    return matplotlib.style.context("default")
 
 
 def figure_key(plot, args, code: str) -> str:
@@ -113,9 +125,12 @@ def figure_key(plot, args, code: str) -> str:
 
 def _feed(h, value) -> None:
     """Hash ``value``'s content: its type, and its arrays' dtype, shape and bytes; refuse what it cannot hash."""
-    if isinstance(value, np.ndarray):
-        if value.dtype.hasobject:
-            raise TypeError("a figure's arrays must hold numbers, not objects")
+    if isinstance(value, (np.ndarray, np.void)):
+        if type(value) is not np.ndarray or value.dtype.hasobject or value.dtype.fields is not None:
+            # a subclass' own state (a masked array's mask) and a structured dtype's fields are not in the bytes
+            raise TypeError(
+                f"a figure's arrays must be plain arrays of numbers, not {type(value).__qualname__} {value.dtype}"
+            )
         h.update(f"ndarray {value.dtype.str} {value.shape}\n".encode())
         h.update(np.ascontiguousarray(value).tobytes())
     elif isinstance(value, enum.Enum):
@@ -141,11 +156,26 @@ def _feed(h, value) -> None:
         raise TypeError(f"cannot hash a figure's argument of type {type(value).__qualname__}")
 
 
-def _read_record(path: Path) -> dict[str, dict[str, str]]:
-    """The figures a set records (an unreadable record, or entry, records none)."""
+def _read_own(folder: Path, name: str) -> bytes | None:
+    """The bytes of the regular file ``name`` of ``folder``; None if unreadable, or not the folder's own (a symlink)."""
     try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        fd = os.open(inside(folder, name), os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except (OSError, ValueError):  # ValueError: InputError, a name resolving outside the folder
+        return None
+    with os.fdopen(fd, "rb") as fh:
+        try:
+            return fh.read() if stat.S_ISREG(os.fstat(fd).st_mode) else None
+        except OSError:
+            return None
+
+
+def _read_record(data: bytes | None) -> dict[str, dict[str, str]]:
+    """The figures a set's record ``data`` lists (no record, an unreadable one, or entry, records none)."""
+    if data is None:
+        return {}
+    try:
+        raw = json.loads(data.decode("utf-8"))
+    except (ValueError, RecursionError):  # not UTF-8, not JSON, or nested too deep to decode
         return {}
     if not isinstance(raw, dict):
         return {}

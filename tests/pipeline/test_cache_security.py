@@ -348,3 +348,34 @@ def test_each_stage_entry_has_its_kind_including_the_per_system_label_stage():
     from fluorocal.stages.label import Labels
 
     assert stage_kinds(default_stages())["label"] is Labels
+
+
+@pytest.mark.parametrize("linked", [".code", ".locks", ".projects"])
+def test_a_folder_with_a_symlinked_cache_file_is_no_cache(tmp_path, linked):
+    """A link in an unmarked folder may lead out of it: the folder is not taken for a cache (is_dir follows links)."""
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    root = tmp_path / ".fluorocal"
+    root.mkdir()
+    (root / linked).symlink_to(elsewhere)
+    with pytest.raises(InputError, match="holds files that are not a fluorocal cache"):
+        ArtifactCache(root).prepare_root()
+
+
+def test_a_symlinked_code_memo_folder_is_neither_read_nor_written(tmp_path):
+    """``<cache>/.code`` linked out of the cache: its analyses are not used and nothing is written through it."""
+    from fluorocal.codehash import code_digest
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "analyses.json").write_text('{"' + "0" * 64 + '": ["' + "0" * 64 + '", ["os"], []]}')
+    before = (elsewhere / "analyses.json").read_bytes()
+    cache = ArtifactCache(tmp_path / ".fluorocal")
+    cache.prepare_root()
+    (cache.root / ".code").symlink_to(elsewhere)
+    memo = cache.code_memo()
+    assert memo.entries == {}
+    code_digest(["tests.pipeline.toy"], memo)
+    memo.save()
+    assert sorted(p.name for p in elsewhere.iterdir()) == ["analyses.json"]
+    assert (elsewhere / "analyses.json").read_bytes() == before

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import logging
 import os
 import sys
 import textwrap
@@ -154,6 +155,8 @@ def test_an_unreadable_memo_or_entry_is_ignored(package, tmp_path):
     path = tmp_path / "analyses.json"
     path.write_text("{not json")
     assert code_digest([f"{PACKAGE}.second"], AnalysisMemo(path)) == expected
+    path.write_text("[" * 200_000)  # nested too deep for the decoder
+    assert code_digest([f"{PACKAGE}.second"], AnalysisMemo(path)) == expected
     memo = AnalysisMemo(path)
     code_digest([f"{PACKAGE}.second"], memo)
     memo.save()
@@ -164,6 +167,37 @@ def test_an_unreadable_memo_or_entry_is_ignored(package, tmp_path):
     assert key not in AnalysisMemo(path).entries
     _fresh_process()
     assert code_digest([f"{PACKAGE}.second"], AnalysisMemo(path)) == expected
+
+
+@pytest.mark.parametrize(
+    "tamper",
+    [
+        lambda body, functions: (body + ["codehash_toy.extra"], functions),  # a module the source never names
+        lambda body, functions: (body, functions + ["codehash_toy.extra"]),
+        lambda body, functions: ([], []),  # its imports dropped: the helper would leave the digest
+        lambda body, functions: ([m for m in body if "_helper" not in m], functions),
+        lambda body, functions: (body + ["os.system('x')"], functions),  # not a module name
+    ],
+)
+def test_a_memo_entry_not_fitting_its_source_is_ignored(package, tmp_path, tamper, caplog):
+    """The memo is data: an entry listing what the source does not import, or not what it does, is not used."""
+    (package / "extra.py").write_text("VALUE = 1\n")  # importable, imported by no module
+    expected = code_digest([f"{PACKAGE}.second"])
+    path = tmp_path / "analyses.json"
+    memo = AnalysisMemo(path)
+    code_digest([f"{PACKAGE}.second"], memo)
+    memo.save()
+    second = package / "second.py"
+    key = AnalysisMemo.key(f"{PACKAGE}.second", second, second.read_text())
+    entries = json.loads(path.read_text())
+    body, functions = tamper(*entries[key][1:])
+    assert (body, functions) != tuple(entries[key][1:])
+    entries[key] = [entries[key][0], body, functions]
+    path.write_text(json.dumps(entries))
+    _fresh_process()
+    with caplog.at_level(logging.DEBUG, logger="fluorocal.codehash"):
+        assert code_digest([f"{PACKAGE}.second"], AnalysisMemo(path)) == expected
+    assert "does not fit its source" in caplog.text
 
 
 # --- the project's own stages, on a copy of the package ----------------------------------------------

@@ -6,14 +6,17 @@ next set copies a figure of the same key whose file still has that checksum, and
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import json
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
 from fluorocal import report
+from fluorocal.cache import ArtifactCache
 from fluorocal.cli import main
 from fluorocal.figures import RECORD, Figures, figure_key
 from fluorocal.outputs import publish
@@ -74,8 +77,23 @@ def test_a_published_figure_not_as_recorded_is_drawn_again(tmp_path):
     assert _publish(out, xy).drawn == ["a.png"]
     (out / RECORD).write_text("{not json")
     assert _publish(out, xy).drawn == ["a.png"]
+    (out / RECORD).write_text("[" * 200_000)  # nested too deep for the decoder
+    assert _publish(out, xy).drawn == ["a.png"]
     record = json.loads((out / RECORD).read_text())
     assert record["a.png"]["sha256"] == hashlib.sha256((out / "a.png").read_bytes()).hexdigest()
+
+
+@pytest.mark.parametrize("where", ["outside", "inside", "record"])
+def test_a_symlinked_figure_or_record_is_drawn_again(tmp_path, where):
+    """A link in the published set, to a file of the same bytes out of the set or in it, is not copied: drawn again."""
+    out, xy = tmp_path / "out", np.arange(6.0).reshape(3, 2)
+    _publish(out, xy)
+    name = RECORD if where == "record" else "a.png"
+    target = (tmp_path if where != "inside" else out) / f"copy-{name}"
+    target.write_bytes((out / name).read_bytes())
+    (out / name).unlink()
+    (out / name).symlink_to(target)
+    assert _publish(out, xy).drawn == ["a.png"]
 
 
 def test_the_key_covers_the_code_and_refuses_what_it_cannot_hash():
@@ -84,6 +102,44 @@ def test_the_key_covers_the_code_and_refuses_what_it_cannot_hash():
     assert figure_key(dots, args, "code") != figure_key(report.field_map, args, "code")
     with pytest.raises(TypeError, match="object"):
         figure_key(dots, (object(),), "code")
+
+
+@pytest.mark.parametrize(
+    "value",
+    [
+        np.ma.masked_array([1.0, 2.0], mask=[False, True]),  # its mask is not in its bytes
+        np.zeros(2, dtype=[("x", "f8"), ("y", "f8")]),  # its field names are not in its dtype's str ('|V16')
+        np.zeros(1, dtype=[("x", "f8")])[0],  # a structured scalar
+        np.array([object()]),
+    ],
+)
+def test_the_key_refuses_arrays_whose_bytes_do_not_hold_their_content(value):
+    with pytest.raises(TypeError, match="plain arrays of numbers"):
+        figure_key(dots, (value,), "code")
+
+
+def test_a_figure_is_drawn_under_matplotlibs_defaults_whatever_the_processs_settings(tmp_path):
+    """Settings changed in the process (as a matplotlibrc would) change no drawn PNG; they are left as they were."""
+    import matplotlib
+
+    history = [Step(i, 10.0 / (i + 1), 1.0 / (i + 1)) for i in range(4)]
+    plain = Figures().draw(tmp_path / "plain.png", report.convergence, history).read_bytes()
+    changed = {"axes.facecolor": "red", "lines.linewidth": 9.0, "font.size": 20.0, "figure.dpi": 30.0}
+    with matplotlib.rc_context(changed):
+        styled = Figures().draw(tmp_path / "styled.png", report.convergence, history).read_bytes()
+        assert matplotlib.rcParams["axes.facecolor"] == "red"  # the process's own settings are left as they were
+        report.convergence(tmp_path / "direct.png", history)  # drawn outside Figures: the settings do show
+    assert styled == plain
+    assert (tmp_path / "direct.png").read_bytes() != plain
+
+
+@dataclasses.dataclass(frozen=True)
+class Step:
+    """What :func:`fluorocal.report.convergence` reads of an iteration's record."""
+
+    iteration: int
+    cost_total: float
+    rms_px: float
 
 
 # --- a whole run ---------------------------------------------------------------------------------------------
@@ -127,6 +183,22 @@ def test_a_run_with_nothing_changed_draws_no_figure_and_keeps_the_set(project, m
     assert _pngs(out) == before and len(before) == 9  # 4 per system (2) and the convergence
     assert sorted(p.name for p in out.iterdir()) == listing  # the whole set, and nothing else
     assert "9 unchanged and copied" in caplog.text
+
+
+def test_a_run_keeps_the_analyses_of_the_figures_code(project):
+    """The memo the run saved before its export is saved again with the plotting modules' analyses."""
+    import importlib.util
+
+    from fluorocal.codehash import AnalysisMemo
+    from fluorocal.config import load_config
+
+    memo_path = ArtifactCache(load_config(project / "fluorocal.toml").cache_dir).code_memo().path
+    memo_path.unlink()
+    assert main(["--quiet", "run", str(project / "fluorocal.toml")]) == 0
+    path = Path(importlib.util.find_spec("fluorocal.report").origin)
+    assert (
+        AnalysisMemo.key("fluorocal.report", path, path.read_text(encoding="utf-8")) in AnalysisMemo(memo_path).entries
+    )
 
 
 def test_a_changed_input_redraws_the_figures_that_show_it(project, monkeypatch):
