@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from fluorocal.outputs import inside
+from fluorocal.stages.errors import InputError
 from fluorocal.stages.io import atomic_write, write_png
 
 log = logging.getLogger(__name__)
@@ -61,7 +62,19 @@ class Figures:
         self._codes: dict[str, str] = {}
 
     def draw(self, path: Path, plot, *args) -> Path:
-        """``plot(path, *args)``, or the previous set's figure of the same name and key written to ``path``."""
+        """``plot(path, *args)``, or the previous set's figure of the same name and key written to ``path``.
+
+        Raises
+        ------
+        InputError
+            A figure of this report was already written under that name (a system named ``sigma_x`` beside
+            one named ``x``: ``field_sigma_x.png`` is both): one would silently replace the other.
+        """
+        if path.name in self.new:
+            raise InputError(
+                f"two of the report's figures would both be written as {path.name}: rename a system or an "
+                "orientation so that their file names differ"
+            )
         key = figure_key(plot, args, self._code(plot.__module__))
         data = self._previous_png(path.name, key)
         if data is None:

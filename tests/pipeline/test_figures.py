@@ -210,3 +210,14 @@ def test_a_changed_input_redraws_the_figures_that_show_it(project, monkeypatch):
     assert drawn == ["frames_A.png"]
     after = _pngs(project / "out")
     assert [n for n in before if before[n] != after[n]] == ["frames_A.png"]
+
+
+def test_two_figures_of_one_name_are_refused_not_overwritten(tmp_path):
+    """Systems ``x`` and ``sigma_x``: ``field_sigma_x.png`` is both the σ map of ``x`` and the field of ``sigma_x``."""
+    from fluorocal.stages.errors import InputError
+
+    figures, xy = Figures(), np.arange(6.0).reshape(3, 2)
+    figures.draw(tmp_path / "field_sigma_x.png", dots, xy, "σ of the correction, system x")
+    with pytest.raises(InputError, match="both be written as field_sigma_x.png"):
+        figures.draw(tmp_path / "field_sigma_x.png", dots, xy + 1, "learned correction Δ, system sigma_x")
+    assert dots.calls == ["field_sigma_x.png"]  # the first figure stands
