@@ -126,8 +126,8 @@ def totals(outcomes: list[Outcome], seconds: float) -> bool:
         f"tracebacks: {tracebacks}; silent wrong results: {wrong}; outside writes/deletes: {outside}; "
         f"code from data: {code}; weak messages: {weak}; good input refused: {refused_good}"
     )
-    met = tracebacks == wrong == outside == code == 0
-    print(f"targets (0 tracebacks, 0 silent wrong, 0 outside writes, 0 code from data): {'met' if met else 'NOT met'}")
+    met = not any(o.problems for o in outcomes)  # what `make check` asserts case by case
+    print(f"targets (every total 0, as the battery's tests assert): {'met' if met else 'NOT met'}")
     return met
 
 

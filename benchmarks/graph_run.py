@@ -90,7 +90,8 @@ def stage_call(config_path: Path, name: str) -> tuple:
     from fluorocal.graph import default_stages
 
     names = [s.name for s in default_stages()]
-    run_until(config_path, names[names.index(name) - 1])
+    if names.index(name) > 0:  # the first stage has nothing before it to run
+        run_until(config_path, names[names.index(name) - 1])
     runner = runner_for(config_path, name)
     stage = runner.by_name[name]
     params, extras = runner.params[(name, None)]

@@ -63,7 +63,6 @@ WITHOUT_EXAMPLES = {
     "fluorocal.stages.adjust.solver",
     "fluorocal.stages.artifacts",
     "fluorocal.stages.evaluate.protocol",
-    "fluorocal.stages.kinds.labelling",
     "fluorocal.stages.label.assign",
     "fluorocal.stages.label.correction",
     "fluorocal.stages.label.cube",

@@ -44,6 +44,21 @@ def label_beads(centroids, phantom, params: LabelParams, prior_pose: tuple | Non
     InputError
         A 3D phantom without ``source_image_distance_mm`` and ``pixel_pitch_mm``, a phantom of fewer than 4
         beads, a grid plate without a valid lattice or pitch, or seeds naming beads the phantom lacks.
+
+    Examples
+    --------
+    An 11 x 11 square grid plate seen head-on (the centroids' columns the labelling reads):
+
+    >>> from types import SimpleNamespace
+    >>> import numpy as np
+    >>> from fluorocal.stages.artifacts import Phantom
+    >>> xy = 511.5 + 13.0 * np.array([(i, j) for i in range(-5, 6) for j in range(-5, 6)], float)
+    >>> one = np.ones(len(xy))
+    >>> frame = SimpleNamespace(xy_px=xy, sigma_x=0.05 * one, sigma_y=0.05 * one, rho=0 * one,
+    ...                         major_px=3 * one, minor_px=3 * one, ok=one.astype(bool))
+    >>> labels = label_beads(frame, Phantom([], [], [], [], "square", 1.0), LabelParams())
+    >>> labels.ok, labels.n_labelled
+    (True, 121)
     """
     return kind_of(phantom).label_frame(centroids, phantom, params, prior_pose)
 
@@ -71,5 +86,20 @@ def label_sequence(
     -------
     tuple of Labels
         One per frame, in order.
+
+    Examples
+    --------
+    A grid plate's holes get one numbering across the frames (the frame of :func:`label_beads`' example, twice):
+
+    >>> from types import SimpleNamespace
+    >>> import numpy as np
+    >>> from fluorocal.stages.artifacts import Phantom
+    >>> xy = 511.5 + 13.0 * np.array([(i, j) for i in range(-5, 6) for j in range(-5, 6)], float)
+    >>> one = np.ones(len(xy))
+    >>> frame = SimpleNamespace(xy_px=xy, sigma_x=0.05 * one, sigma_y=0.05 * one, rho=0 * one,
+    ...                         major_px=3 * one, minor_px=3 * one, ok=one.astype(bool))
+    >>> first, second = label_sequence([frame, frame], Phantom([], [], [], [], "square", 1.0), LabelParams())
+    >>> first.n_labelled, bool(np.array_equal(first.bead_id, second.bead_id))
+    (121, True)
     """
     return kind_of(phantom).label_sequence(centroids_seq, phantom, params, seeds_by_frame)

@@ -153,6 +153,11 @@ class Outcome:
             if on
         ]
 
+    @property
+    def problems(self) -> list[str]:
+        """What makes the outcome fail the battery's targets (empty: it passes): its flags, and good input refused."""
+        return self.flags + (["good input refused"] if self.refused_good else [])
+
     def line(self) -> str:
         """The case's class, name, expectation, exit code, verdict, flags, message and seconds on one line."""
         return (

@@ -23,7 +23,7 @@ from tests.attack.cases import (
     phantom,
     undistort,
 )
-from tests.attack.harness import Outcome, run_case
+from tests.attack.harness import run_case
 
 pytestmark = pytest.mark.check
 
@@ -34,14 +34,9 @@ def _each_case_of(*tables):
     return pytest.mark.parametrize("case", cases, ids=[case.name for case in cases])
 
 
-def problems(outcome: Outcome) -> list[str]:
-    """What makes the outcome fail the battery's targets (empty: it passes)."""
-    return outcome.flags + (["good input refused"] if outcome.refused_good else [])
-
-
 def _passes(case, attack_base, tmp_path) -> None:
     outcome = run_case(case, attack_base, tmp_path / case.name)
-    found = problems(outcome)
+    found = outcome.problems
     assert not found, f"{', '.join(found)}: {outcome.line()}\nmessage: {outcome.message}\nnote: {case.note}"
 
 
