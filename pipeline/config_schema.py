@@ -31,8 +31,9 @@ class Key:
 
 
 def _spelled(spellings) -> str:
-    """``"hex"`` or ``"square"``, as the docs show values (code spans)."""
-    return " or ".join(f'`"{spelling}"`' for spelling in spellings)
+    """``"hex"`` or ``"square"`` (``"a", "b" or "c"`` for three), as the docs show values: code spans."""
+    shown = [f'`"{spelling}"`' for spelling in spellings]
+    return " or ".join([", ".join(shown[:-1]), shown[-1]] if len(shown) > 1 else shown)
 
 
 #: every key of the project file outside the stage tables; ``section`` "systems.orientations" is an
