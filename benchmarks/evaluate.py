@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fluorocal.compute import limit_threads  # noqa: E402
 from fluorocal.evaluation import markdown  # noqa: E402
+from fluorocal.kinds.beads import BeadPart  # noqa: E402
 from fluorocal.stages import simulate as sim  # noqa: E402
 from fluorocal.stages.evaluate import EvaluationSetup, default_train_sizes, evaluate, heldout_epochs  # noqa: E402
 from fluorocal.stages.geometry import iop_guess  # noqa: E402
@@ -85,7 +86,7 @@ def main(argv=None) -> None:
     scores = evaluate(obs, heldout, sizes, schemes, setup, progress=progress).scores
     wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     print()
-    print(markdown(scores, OURS, [f"benchmarks/evaluate.py --frames {args.frames} --seed {args.seed}"]))
+    print(markdown(scores, OURS, [f"benchmarks/evaluate.py --frames {args.frames} --seed {args.seed}"], BeadPart()))
     print(f"total wall time {wall:.1f} s, CPU time {cpu:.1f} s (target <= 600 s wall)")
     by = {(s.scheme, s.n_train): s.tworay_mean_mm for s in scores}
     worst = np.inf

@@ -332,12 +332,12 @@ class ArtifactCache:
             ``root`` is a file, or a folder holding anything but cache entries and no marker.
         """
         marker = self.root / MARKER
-        if marker.is_file():
+        if _is_marker(marker):
             return
         if self.root.exists() and not self.root.is_dir():
             raise InputError(f"cache dir {self.root} is a file, not a folder")
         # the marker looked for again after the listing: another process may have made the cache meanwhile
-        if self.root.is_dir() and not _only_cache_files(self.root) and not marker.is_file():
+        if self.root.is_dir() and not _only_cache_files(self.root) and not _is_marker(marker):
             raise InputError(
                 f"cache dir {self.root} holds files that are not a fluorocal cache (no {MARKER}); "
                 "choose a new or empty folder"
@@ -438,14 +438,14 @@ class ArtifactCache:
             try:
                 entries = json.loads(path.read_text(encoding="utf-8"))["entries"]
                 uses[path.stem] = {tuple(e.split("/", 1)) for e in entries if isinstance(e, str) and "/" in e}
-            except (OSError, ValueError, KeyError, TypeError):
+            except (OSError, ValueError, KeyError, TypeError, RecursionError):  # RecursionError: nested too deep
                 uses[path.stem] = set()  # still a project using the cache: its entries are not taken as orphans
         return uses
 
     def _check_marker(self) -> None:
         try:
-            content = json.loads((self.root / MARKER).read_text())
-        except (OSError, ValueError):
+            content = json.loads((self.root / MARKER).read_text()) if _is_marker(self.root / MARKER) else None
+        except (OSError, ValueError, RecursionError):  # RecursionError: nested too deep to decode
             content = None
         if not isinstance(content, dict) or content.get("format") != MARKER_CONTENT["format"]:
             raise InputError(f"{self.root} is not a fluorocal cache (no valid {MARKER} in it); nothing deleted")
@@ -547,9 +547,14 @@ def _older_format(raw: bytes) -> bool:
     """Whether a manifest says it is of an earlier format (read as data only, never decoded)."""
     try:
         version = json.loads(raw).get("format_version")
-    except (ValueError, AttributeError):
+    except (ValueError, AttributeError, RecursionError):  # RecursionError: nested too deep to decode
         return False
     return isinstance(version, int) and not isinstance(version, bool) and version < FORMAT_VERSION
+
+
+def _is_marker(path: Path) -> bool:
+    """Whether ``path`` is a marker file the cache can have written: a file, not a link (which may lead anywhere)."""
+    return path.is_file() and not path.is_symlink()
 
 
 def _only_cache_files(root: Path) -> bool:

@@ -218,10 +218,11 @@ def reference_setup(cal, calibration: Path, system: str):
         config = load_project(config_path, writable=False)
     except (ConfigError, OSError) as exc:
         raise InputError(f"{calibration}: cannot read its project config {config_path} ({exc})") from None
-    plate = cal.meta.get("geometry_estimated", True) is False
-    if plate == config.phantom.kind.estimates_geometry:
-        made, now = "a grid plate" if plate else "a bead phantom", config.phantom.kind.noun
-        raise InputError(f"{calibration}: made with {made}, but its config {config_path} now names {now}")
+    made = made_with(cal)
+    if config.phantom.kind not in made:
+        nouns = " or ".join(kind.noun for kind in made) or f"a kind of object named {cal.meta['phantom_kind']!r}"
+        now = config.phantom.kind.noun
+        raise InputError(f"{calibration}: made with {nouns}, but its config {config_path} now names {now}")
     points_path = calibration.with_name("object_points.csv")
     if not points_path.is_file():
         raise InputError(f"{points_path}: missing; fluorocal run writes the object points beside the calibration")
@@ -236,6 +237,21 @@ def reference_setup(cal, calibration: Path, system: str):
     ]
     tables = Tables(*params, geometry.pixel_pitch_mm, geometry.source_image_distance_mm)
     return part_of(config.phantom.kind).check_setup(tables, config, table)
+
+
+def made_with(cal) -> list:
+    """The kinds of object (:data:`~fluorocal.stages.kinds.KINDS`) a calibration can have been made with.
+
+    The one its ``phantom_kind`` names; in a calibration written before it named one, each kind whose
+    estimating the geometry or not is the calibration's (``geometry_estimated``).
+    """
+    from fluorocal.stages.kinds import KINDS
+
+    kinds = list(dict.fromkeys(KINDS.values()))  # a kind of several spellings once
+    if "phantom_kind" in cal.meta:
+        return [kind for kind in kinds if kind.name == cal.meta["phantom_kind"]]
+    estimated = cal.meta.get("geometry_estimated", True) is not False
+    return [kind for kind in kinds if kind.estimates_geometry == estimated]
 
 
 @dataclass(frozen=True)

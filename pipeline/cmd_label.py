@@ -28,6 +28,7 @@ import logging
 from pathlib import Path
 
 from fluorocal.cli_common import add_geometry, add_image_size, add_out, add_overwrite, refuse_existing
+from fluorocal.stages.kinds import LATTICE_SPELLINGS
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +53,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--lattice",
-        choices=("hex", "square"),
+        choices=LATTICE_SPELLINGS,
         default="",
         help="grid plate lattice instead of a phantom CSV (default: none)",
     )

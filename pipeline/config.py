@@ -230,14 +230,11 @@ def _phantom(table: dict, root: Path, path: Path) -> PhantomConfig:
             return PhantomConfig(file=f)
     else:
         f = None
-    lattice = _expect(
-        table.get("lattice"), str, 'a phantom "file", or "lattice" = "hex" | "square"', path, section, "lattice"
-    )
-    from fluorocal.stages.kinds import KINDS
+    from fluorocal.stages.kinds import LATTICE_SPELLINGS
 
-    lattices = [spelling for spelling in KINDS if spelling]  # "": a phantom file alone
-    if lattice not in lattices:
-        shown = " or ".join(f'"{spelling}"' for spelling in lattices)
+    shown = " or ".join(f'"{spelling}"' for spelling in LATTICE_SPELLINGS)
+    lattice = _expect(table.get("lattice"), str, f'a phantom "file", or "lattice" = {shown}', path, section, "lattice")
+    if lattice not in LATTICE_SPELLINGS:
         raise ConfigError(f"{_where(path, section, 'lattice')}: expected {shown}; got {lattice!r}")
     pitch = _as_float(_expect(table.get("pitch"), (int, float), "a positive number (mm)", path, section, "pitch"))
     if not (math.isfinite(pitch) and pitch > 0):

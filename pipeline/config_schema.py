@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from fluorocal.stages.kinds import LATTICE_SPELLINGS
+
 #: the calibration scheme when ``[calibration] scheme`` is not given (parsed with the rest: ``--help`` imports no stage)
 DEFAULT_SCHEME = "knn+iop+smooth"
 
@@ -28,11 +30,17 @@ class Key:
     required: bool = False
 
 
+def _spelled(spellings) -> str:
+    """``"hex"`` or ``"square"`` (``"a", "b" or "c"`` for three), as the docs show values: code spans."""
+    shown = [f'`"{spelling}"`' for spelling in spellings]
+    return " or ".join([", ".join(shown[:-1]), shown[-1]] if len(shown) > 1 else shown)
+
+
 #: every key of the project file outside the stage tables; ``section`` "systems.orientations" is an
 #: element of a system's ``orientations`` list
 SCHEMA = (
     Key("phantom", "file", "string (path)", None, "phantom CSV `id,x,y,z[,diameter][,role]` in mm (design values)"),
-    Key("phantom", "lattice", "string", None, 'a perforated grid plate instead: `"hex"` or `"square"`'),
+    Key("phantom", "lattice", "string", None, f"a perforated grid plate instead: {_spelled(LATTICE_SPELLINGS)}"),
     Key("phantom", "pitch", "number (mm)", None, "with `lattice`: distance between neighbouring holes (scale only)"),
     Key("systems", "name", "string", None, "1-64 letters, digits, `-`, `_`, `.`; names differ", required=True),
     Key("systems", "frames", "string or list", None, "a glob or a list of frame files", required=True),

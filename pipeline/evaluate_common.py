@@ -79,13 +79,13 @@ def progress(score) -> None:
     )
 
 
-def publish(out_dir: Path, config, result, ours: str, notes: list[str], image_size_px, t0: float) -> int:
-    """Write the evaluation's files, print its table and the headline line."""
+def publish(out_dir: Path, config, part, result, ours: str, notes: list[str], image_size_px, t0: float) -> int:
+    """Write the evaluation's files, print its table and the headline line; ``part``: the kind's, scoring it."""
     from fluorocal.evaluation import headline, publish_evaluation
 
     names = tuple(s.name for s in config.systems)
     written = publish_evaluation(
-        out_dir, result, ours, notes, systems=names, image_size_px=image_size_px, owner=config.path
+        out_dir, result, ours, notes, part=part, systems=names, image_size_px=image_size_px, owner=config.path
     )
     md = next(p for p in written if p.name == "evaluation.md")
     lines = md.read_text(encoding="utf-8").splitlines()

@@ -19,38 +19,6 @@ from fluorocal.report import new_figure, residual_maps, save_figure
 from fluorocal.stages.io import write_csv
 from fluorocal.stages.learn.params import Scheme
 
-#: the figures compared between fluorocal and its peers (all: lower is better), with their table headings
-FIGURES = {
-    "tworay_mean_mm": "two-ray mean 3D (mm)",
-    "tworay_avg_rmse_mm": "two-ray avg RMSE (mm)",
-    "out_3d_rigid_mm": "out-of-sample 3D, rigid (mm)",
-    "out_3d_similarity_mm": "out-of-sample 3D, similarity (mm)",
-    "out_rms_px": "out-of-sample reprojection RMS (px)",
-    "in_rms_px": "in-sample reprojection RMS (px)",
-}
-
-#: a grid plate's figures (:func:`fluorocal.stages.evaluate.plate.evaluate_plate`): RMS lengths after a homography
-PLATE_FIGURES = {
-    "out_rms_px": "held-out holes vs self-calibrated layout, RMS length (px)",
-    "out_nominal_rms_px": "held-out holes vs nominal lattice, RMS length (px)",
-    "in_rms_px": "in-sample holes vs self-calibrated layout, RMS length (px)",
-}
-
-
-def is_plate(scores) -> bool:
-    """Whether the scores are a grid plate's (held-out holes against the nominal lattice given)."""
-    return any(math.isfinite(s.out_nominal_rms_px) for s in scores)
-
-
-def figures(scores) -> dict:
-    """The figures of these scores and their headings: :data:`PLATE_FIGURES` for a grid plate, else :data:`FIGURES`."""
-    return PLATE_FIGURES if is_plate(scores) else FIGURES
-
-
-def size_unit(scores) -> str:
-    """What a training size counts: a plate's frames, else epochs."""
-    return "frames" if is_plate(scores) else "epochs"
-
 
 def headline(scores) -> str:
     """The out-of-sample 3D figure of these scores: two-ray mean when biplanar, else check points (rigid)."""
@@ -61,12 +29,12 @@ def headline(scores) -> str:
     return "out_rms_px"
 
 
-def peer_wins(scores, ours: str) -> list[str]:
-    """One line per (figure, training size) where a peer's figure is lower than scheme ``ours``'s."""
+def peer_wins(scores, ours: str, part) -> list[str]:
+    """One line per (figure of the kind's ``part``, training size) where a peer's is lower than scheme ``ours``'s."""
     lines = []
     by = {(s.scheme, s.n_train): s for s in scores}
-    unit = size_unit(scores)
-    for name, heading in figures(scores).items():
+    unit = part.trained_on
+    for name, heading in part.figures.items():
         for s in scores:
             mine = by.get((ours, s.n_train))
             if s.scheme == ours or mine is None:
@@ -86,14 +54,18 @@ def _cell(value) -> str:
     return str(value)
 
 
-def markdown(scores, ours: str, notes: list[str]) -> str:
-    """The table (TABLE I's columns where they apply), the improvement of each scheme over ``none``, the peers' wins."""
+def markdown(scores, ours: str, notes: list[str], part) -> str:
+    """The table (TABLE I's columns where they apply), the improvement of each scheme over ``none``, the peers' wins.
+
+    ``part``: the pipeline part of the phantom's kind (:class:`~fluorocal.kinds.KindPart`), which says the
+    figures compared, the table's RMS columns and what a training size counts.
+    """
     key = headline(scores)
-    names = figures(scores)
+    names = part.figures
     base = {s.n_train: getattr(s, key) for s in scores if s.scheme == Scheme.NONE}
     biplanar = any(s.tworay_pairs for s in scores)
     checks = any(math.isfinite(s.out_3d_rigid_mm) for s in scores)
-    head = [f"training {size_unit(scores)}", "scheme"]
+    head = [f"training {part.trained_on}", "scheme"]
     cols = []
     if biplanar:
         cols += ["tworay_x_rmse_mm", "tworay_y_rmse_mm", "tworay_z_rmse_mm", "tworay_avg_rmse_mm", "tworay_mean_mm"]
@@ -102,12 +74,8 @@ def markdown(scores, ours: str, notes: list[str]) -> str:
         cols += ["in_3d_rigid_mm", "in_3d_similarity_mm", "out_3d_rigid_mm", "out_3d_similarity_mm"]
         head += ["in-sample 3D rigid (mm)", "in-sample 3D similarity (mm)", "out-of-sample 3D rigid (mm)"]
         head += ["out-of-sample 3D similarity (mm)"]
-    if is_plate(scores):
-        cols += ["in_rms_px", "out_rms_px", "out_nominal_rms_px"]
-        head += [names[c] for c in cols]
-    else:
-        cols += ["in_rms_px", "out_rms_px"]
-        head += ["in-sample RMS (px)", "out-of-sample RMS (px)"]
+    cols += list(part.rms_columns)
+    head += list(part.rms_columns.values())
     head += [f"% improvement ({names[key]})", "wall (s)"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     previous = None
@@ -119,7 +87,7 @@ def markdown(scores, ours: str, notes: list[str]) -> str:
         shown = f"{better:.1f}" if math.isfinite(better) else "N/A"
         row = [size, s.scheme, *(_cell(getattr(s, c)) for c in cols), shown, f"{s.wall_s:.1f}"]
         lines.append("| " + " | ".join(row) + " |")
-    wins = peer_wins(scores, ours)
+    wins = peer_wins(scores, ours, part)
     lines += ["", *(wins or [f"No peer beats {ours} on any figure at any training size."])]
     return "\n".join(["# Evaluation", "", *notes, "", *lines, ""])
 
@@ -131,11 +99,11 @@ def write_csv_table(path: Path, scores) -> Path:
     return path
 
 
-def write_plots(folder: Path, scores, ours: str) -> list[Path]:
-    """Each applicable figure against the training size (a line per scheme), and the improvement over ``none``."""
+def write_plots(folder: Path, scores, ours: str, part) -> list[Path]:
+    """Each applicable figure of the kind's ``part`` against the training size, a line per scheme; gain over none."""
     from matplotlib.ticker import FixedLocator, MaxNLocator
 
-    headings = figures(scores)
+    headings = part.figures
     names = [n for n in headings if any(math.isfinite(getattr(s, n)) for s in scores)]
     schemes = list(dict.fromkeys(s.scheme for s in scores))
     sizes = sorted({s.n_train for s in scores})
@@ -150,7 +118,7 @@ def write_plots(folder: Path, scores, ours: str) -> list[Path]:
             ax.plot([s.n_train for s in rows], [getattr(s, name) for s in rows], "o-", label=scheme)
         ax.set_yscale("log")
         ax.xaxis.set_major_locator(size_ticks())
-        ax.set_xlabel(f"training {size_unit(scores)}")
+        ax.set_xlabel(f"training {part.trained_on}")
         ax.set_title(textwrap.fill(headings[name], 36), fontsize=9)  # wider than its panel on one line
     if len(schemes) > 1:
         axes[0].legend(fontsize=8)
@@ -165,7 +133,7 @@ def write_plots(folder: Path, scores, ours: str) -> list[Path]:
                 better = [100 * (1 - getattr(s, key) / base[s.n_train]) for s in rows]
                 ax.plot([s.n_train for s in rows], better, "o-", label=scheme)
         ax.xaxis.set_major_locator(size_ticks())
-        ax.set_xlabel(f"training {size_unit(scores)}")
+        ax.set_xlabel(f"training {part.trained_on}")
         ax.set_ylabel("% improvement over none")
         ax.set_title(headings[key], fontsize=9)
         ax.legend(fontsize=8)
@@ -187,19 +155,22 @@ def write_residual_maps(folder: Path, residuals, system_names, image_size_px, un
 
 
 def publish_evaluation(
-    out_dir: Path, evaluation, ours: str, notes: list[str], *, systems, image_size_px, owner
+    out_dir: Path, evaluation, ours: str, notes: list[str], *, part, systems, image_size_px, owner
 ) -> list[Path]:
-    """Write the CSV, the Markdown table and the plots into ``out_dir`` as one set, of project ``owner``."""
+    """Write the CSV, the Markdown table and the plots into ``out_dir`` as one set, of project ``owner``.
+
+    ``part``: the pipeline part of the phantom's kind (:class:`~fluorocal.kinds.KindPart`), what it scores.
+    """
     scores = evaluation.scores
 
     def write(staging: Path) -> list[Path]:
         md = inside(staging, "evaluation.md")
-        md.write_text(markdown(scores, ours, notes), encoding="utf-8")
-        maps = write_residual_maps(staging, evaluation.residuals, systems, image_size_px, size_unit(scores))
+        md.write_text(markdown(scores, ours, notes, part), encoding="utf-8")
+        maps = write_residual_maps(staging, evaluation.residuals, systems, image_size_px, part.trained_on)
         return [
             write_csv_table(inside(staging, "evaluation.csv"), scores),
             md,
-            *write_plots(staging, scores, ours),
+            *write_plots(staging, scores, ours, part),
             *maps,
         ]
 

@@ -77,6 +77,7 @@ def calibration_from_result(runner, result):
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "config": str(runner.config.path),
         "scheme": result.scheme,
+        "phantom_kind": runner.config.phantom.kind.name,
         "conventions": "docs/concepts.md#conventions: px with the top-left pixel centre at (0, 0), x right, y down; "
         "ideal = measured - Δ(measured); q (w, x, y, z) rotates object vectors into the camera frame",
         "uncertainty": uncertainty_note(result),

@@ -57,6 +57,7 @@ def plate_calibration(runner, result):
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "config": str(runner.config.path),
         "scheme": result.scheme,
+        "phantom_kind": runner.config.phantom.kind.name,
         "interior_orientation": IOP_NOTE,
         "geometry_estimated": False,
         "statistics": {

@@ -25,9 +25,19 @@ class KindPart(Protocol):
     ----------
     scored_on : str
         What ``fluorocal evaluate`` scores the calibration on, as a message says it.
+    figures : dict of str to str
+        The figures its evaluation compares (each lower is better), by
+        :class:`~fluorocal.stages.evaluate.Score` field, with their headings.
+    rms_columns : dict of str to str
+        The RMS columns of its evaluation's table, by ``Score`` field, with their headings.
+    trained_on : str
+        What a training size counts (``"epochs"``, ``"frames"``), as the table and the plots say it.
     """
 
     scored_on: str
+    figures: dict
+    rms_columns: dict
+    trained_on: str
 
     def export(self, runner, result, obs, excluded, out_dir: Path, figures) -> list[Path]:
         """Write the learning stage's ``result`` (``calibration.json``, tables, report) into ``out_dir``."""

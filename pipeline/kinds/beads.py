@@ -14,11 +14,24 @@ from fluorocal import evaluate_common as common
 
 log = logging.getLogger("fluorocal")
 
+#: the figures compared between fluorocal and its peers (all: lower is better), with their table headings
+FIGURES = {
+    "tworay_mean_mm": "two-ray mean 3D (mm)",
+    "tworay_avg_rmse_mm": "two-ray avg RMSE (mm)",
+    "out_3d_rigid_mm": "out-of-sample 3D, rigid (mm)",
+    "out_3d_similarity_mm": "out-of-sample 3D, similarity (mm)",
+    "out_rms_px": "out-of-sample reprojection RMS (px)",
+    "in_rms_px": "in-sample reprojection RMS (px)",
+}
+
 
 class BeadPart:
     """A bead phantom's outputs (:mod:`fluorocal.export_beads`), evaluation and check (:mod:`fluorocal.kinds`)."""
 
     scored_on = "held-out epochs, and check points with --reference"
+    figures = FIGURES
+    rms_columns = {"in_rms_px": "in-sample RMS (px)", "out_rms_px": "out-of-sample RMS (px)"}
+    trained_on = "epochs"
 
     def export(self, runner, result, obs, excluded, out_dir: Path, figures) -> list[Path]:
         """``calibration.json``, object points, observations, report (:func:`~fluorocal.export_beads.export_beads`)."""
@@ -49,7 +62,7 @@ class BeadPart:
         t0 = time.perf_counter()
         result = evaluate(obs, heldout, sizes, schemes, setup, progress=common.progress)
         notes = _notes(args, config, heldout, result.scores, ours, time.perf_counter() - t0)
-        return common.publish(out_dir, config, result, ours, notes, setup.image_size_px, t0)
+        return common.publish(out_dir, config, self, result, ours, notes, setup.image_size_px, t0)
 
     def check_setup(self, tables, config, table):
         """The phantom's beads as the calibration adjusted them (``table``: its object points)."""
@@ -145,7 +158,7 @@ def _setup(runner, reference):
 
 
 def _notes(args, config, heldout, scores, ours: str, seconds: float) -> list[str]:
-    from fluorocal.evaluation import FIGURES, headline
+    from fluorocal.evaluation import headline
 
     key = headline(scores)
     where = "check points" if args.reference else "the nominal phantom (no --reference)"

@@ -15,11 +15,21 @@ from fluorocal import evaluate_common as common
 
 log = logging.getLogger("fluorocal")
 
+#: a grid plate's figures (:func:`fluorocal.stages.evaluate.plate.evaluate_plate`): RMS lengths after a homography
+FIGURES = {
+    "out_rms_px": "held-out holes vs self-calibrated layout, RMS length (px)",
+    "out_nominal_rms_px": "held-out holes vs nominal lattice, RMS length (px)",
+    "in_rms_px": "in-sample holes vs self-calibrated layout, RMS length (px)",
+}
+
 
 class PlatePart:
     """A grid plate's outputs (:mod:`fluorocal.export_plate`), evaluation and check (:mod:`fluorocal.kinds`)."""
 
     scored_on = "held-out rows of each frame"
+    figures = FIGURES
+    rms_columns = {name: FIGURES[name] for name in ("in_rms_px", "out_rms_px", "out_nominal_rms_px")}
+    trained_on = "frames"
 
     def export(self, runner, result, obs, excluded, out_dir: Path, figures) -> list[Path]:
         """``calibration.json`` (no geometry), the layout, observations, report (:mod:`fluorocal.export_plate`)."""
@@ -62,7 +72,7 @@ class PlatePart:
             f"Wall time {time.perf_counter() - t0:.1f} s.",
             "Made by `fluorocal evaluate " + " ".join(common.argv(args)) + "`.",
         ]
-        return common.publish(out_dir, config, result, "plate", notes, setup.image_size_px, t0)
+        return common.publish(out_dir, config, self, result, "plate", notes, setup.image_size_px, t0)
 
     def check_setup(self, tables, config, table):
         """The plate's lattice and its layout as self-calibrated (``table``: its object points)."""

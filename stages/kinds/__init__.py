@@ -5,8 +5,10 @@ A 3D bead phantom (:class:`~.beads.BeadPhantom`) and a grid plate of each lattic
 and config sections they accept, whether two systems' frames pair, and what their outputs and evaluation
 say. The kind is looked up in :data:`KINDS` by the spelling of the project's ``[phantom]`` table (the
 ``lattice`` given, ``""`` for a phantom file alone): the data chooses from this fixed table, and every
-caller asks the kind instead of testing ``phantom.lattice``. The pipeline's share of a kind (its exports,
-its evaluation, its checks) is :mod:`fluorocal.kinds`, keyed by the kind's :attr:`~.base.PhantomKind.name`.
+caller asks the kind instead of testing ``phantom.lattice``. The table is light to import (a kind imports
+its labelling when called), so the config and the command line read their spellings from it
+(:data:`LATTICE_SPELLINGS`). The pipeline's share of a kind (its exports, its evaluation, its checks) is
+:mod:`fluorocal.kinds`, keyed by the kind's :attr:`~.base.PhantomKind.name`.
 
 The stage entries dispatch on the phantom given, each in a module of its own so that a stage's cache key
 covers only the code it runs: :func:`.labelling.label_sequence` is the label stage (it imports the
@@ -21,10 +23,13 @@ from fluorocal.stages.errors import InputError
 from fluorocal.stages.kinds.base import PhantomKind
 from fluorocal.stages.kinds.beads import BeadPhantom
 from fluorocal.stages.kinds.plate import GridPlate
-from fluorocal.stages.label.lattice import LATTICES
+from fluorocal.stages.lattices import LATTICES
 
 #: spelling of the ``[phantom]`` table (its ``lattice``; ``""``: a phantom file) -> the kind it names
 KINDS: dict[str, PhantomKind] = {"": BeadPhantom(), **dict.fromkeys(LATTICES, GridPlate())}
+
+#: the values ``[phantom] lattice`` takes: every spelling of :data:`KINDS` but a phantom file's ``""``
+LATTICE_SPELLINGS = tuple(spelling for spelling in KINDS if spelling)
 
 
 def phantom_kind(spelling: str) -> PhantomKind:
@@ -41,7 +46,7 @@ def phantom_kind(spelling: str) -> PhantomKind:
     ('plate', 'a 3D bead phantom')
     """
     if spelling not in KINDS:
-        given = ", ".join(repr(k) for k in KINDS if k)
+        given = ", ".join(map(repr, LATTICE_SPELLINGS))
         raise InputError(f"phantom.lattice must be one of {given} (or none, for a phantom file); got {spelling!r}")
     return KINDS[spelling]
 
@@ -51,4 +56,4 @@ def kind_of(phantom) -> PhantomKind:
     return phantom_kind(phantom.lattice)
 
 
-__all__ = ["KINDS", "BeadPhantom", "GridPlate", "PhantomKind", "kind_of", "phantom_kind"]
+__all__ = ["KINDS", "LATTICE_SPELLINGS", "BeadPhantom", "GridPlate", "PhantomKind", "kind_of", "phantom_kind"]

@@ -7,9 +7,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from fluorocal.stages.label import label_bead_frame, label_bead_sequence
-from fluorocal.stages.learn import Scheme
-
 
 @dataclass(frozen=True)
 class BeadPhantom:
@@ -24,15 +21,24 @@ class BeadPhantom:
     noun = "a 3D bead phantom"
     calibrated_by = "by the learning loop (a bundle adjustment alternating with a learned field)"
     section = "learn"
-    schemes = tuple(Scheme)
     needs_geometry = True
     pairs_frames = True
     several_orientations = False
     estimates_geometry = True
     check_points = True
 
+    @property
+    def schemes(self) -> tuple:
+        from fluorocal.stages.learn import Scheme
+
+        return tuple(Scheme)
+
     def label_frame(self, centroids, phantom, params, prior_pose=None):
+        from fluorocal.stages.label import label_bead_frame
+
         return label_bead_frame(centroids, phantom, params, prior_pose)
 
     def label_sequence(self, centroids_seq, phantom, params, seeds_by_frame=None) -> tuple:
+        from fluorocal.stages.label import label_bead_sequence
+
         return label_bead_sequence(centroids_seq, phantom, params, seeds_by_frame)

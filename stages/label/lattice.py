@@ -20,6 +20,7 @@ from fluorocal.stages.label.correction import fit_correction, n_terms
 from fluorocal.stages.label.detections import Detections
 from fluorocal.stages.label.labels import Labels, failed_labels
 from fluorocal.stages.label.params import STATUS_LABELLED, STATUS_REJECTED, STATUS_UNMATCHED, LabelParams
+from fluorocal.stages.lattices import LATTICES
 
 log = logging.getLogger(__name__)
 
@@ -27,8 +28,6 @@ log = logging.getLogger(__name__)
 LATTICE_ID_OFFSET = 5000
 LATTICE_ID_BASE = 10000
 
-#: the lattices a grid plate may have, by their spelling in ``[phantom] lattice``
-LATTICES = ("hex", "square")
 
 # hexagonal lattice: hole (i, j) at i*a1 + j*a2 with a2 = a1 rotated by +60 degrees
 _HEX_STEPS = np.array([[1, 0], [0, 1], [-1, 1], [-1, 0], [0, -1], [1, -1]])

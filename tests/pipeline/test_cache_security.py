@@ -379,3 +379,45 @@ def test_a_symlinked_code_memo_folder_is_neither_read_nor_written(tmp_path):
     memo.save()
     assert sorted(p.name for p in elsewhere.iterdir()) == ["analyses.json"]
     assert (elsewhere / "analyses.json").read_bytes() == before
+
+
+def test_a_symlinked_marker_does_not_make_a_folder_a_cache(tmp_path, capsys):
+    """A marker linked from elsewhere (a valid one's bytes) is none the cache wrote: no run, no clean, nothing gone."""
+    from fluorocal.cache import MARKER_CONTENT
+
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "elsewhere" / "marker").write_text(json.dumps(MARKER_CONTENT) + "\n")
+    cfg = make_project(tmp_path / "project")
+    root = cfg.parent / ".fluorocal"
+    root.mkdir()
+    (root / MARKER).symlink_to(tmp_path / "elsewhere" / "marker")
+    (root / "mean").mkdir()  # a stage's folder name: clean would delete entries under it
+    (root / "mean" / ("a" * 64)).mkdir()
+    before = _files(tmp_path)
+    with pytest.raises(InputError, match="holds files that are not a fluorocal cache"):
+        ArtifactCache(root).prepare_root()
+    assert main(["-q", "cache", "clean", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "not a fluorocal cache" in err
+    assert _files(tmp_path) == before
+
+
+def test_json_nested_too_deep_is_a_one_line_refusal_or_an_unreadable_record(project, capsys):
+    """A marker or a project record of 100 000 nested lists (RecursionError in the decoder): never a traceback.
+
+    The marker: ``cache clean`` refuses the folder in one line, deleting nothing. A project's record: read as
+    one that lists nothing (the clean goes on).
+    """
+    runner = _runner(project)
+    runner.run()
+    root = runner.cache.root
+    records = sorted((root / ".projects").glob("*.json"))
+    assert records  # not vacuous: the run recorded its entries
+    records[0].write_text("[" * 100_000 + "]" * 100_000)
+    assert ArtifactCache(root).clean() > 0
+    (root / MARKER).write_text("[" * 100_000 + "]" * 100_000)
+    before = _files(root)
+    assert main(["-q", "cache", "clean", str(project)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "not a fluorocal cache" in err
+    assert _files(root) == before

@@ -107,7 +107,16 @@ def test_a_frame_is_labelled_with_the_projects_own_tables_and_its_kind_is_the_ca
     assert (setup.tables.detect.min_snr, setup.tables.label.min_labelled) == (12.5, 25)
     # a config that now names a plate does not turn a bead calibration into a plate's
     config.write_text(text.replace('file = "phantom.csv"', 'lattice = "hex"\npitch = 3.3'))
-    with pytest.raises(InputError, match="made with a bead phantom, but its config .* now names a grid plate"):
+    with pytest.raises(InputError, match="made with a 3D bead phantom, but its config .* now names a grid plate"):
+        reference_setup(cal, calibration, "A")
+    # the kind is the one calibration.json names; one written before it named its kind: the kinds its
+    # geometry_estimated allows (with two kinds, exactly the bead phantom)
+    assert cal.meta["phantom_kind"] == "beads"
+    del cal.meta["phantom_kind"]
+    with pytest.raises(InputError, match="made with a 3D bead phantom, but its config .* now names a grid plate"):
+        reference_setup(cal, calibration, "A")
+    cal.meta["phantom_kind"] = "wand"  # a kind this version does not know
+    with pytest.raises(InputError, match="made with a kind of object named 'wand', but its config"):
         reference_setup(cal, calibration, "A")
 
 

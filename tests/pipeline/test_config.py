@@ -116,3 +116,32 @@ def test_a_key_another_setting_owns_is_refused_naming_both(tmp_path, section, ke
     with pytest.raises(ConfigError, match=rf"\[{section}\] key '{key}': set by {owner}") as info:
         load_config(path, stage_params_allowed=stage_params_classes())
     assert "\n" not in str(info.value)
+
+
+def test_the_config_schema_and_cli_take_exactly_the_kinds_spellings(tmp_path):
+    """``[phantom] lattice``, its config reference line and ``label --lattice``: each a kind's spelling, all of them.
+
+    The spellings' one home is the kinds' table; the truth is the grid plate's two lattices (hex, square).
+    """
+    import re
+
+    from fluorocal.cli import build_parser
+    from fluorocal.config_schema import SCHEMA
+    from fluorocal.stages.kinds import KINDS, phantom_kind
+
+    spellings = sorted(s for s in KINDS if s)  # "": a phantom file, spelled by no lattice
+    assert spellings == ["hex", "square"]
+    for spelling in spellings:
+        path = make_project(tmp_path / spelling)
+        path.write_text(path.read_text().replace('file = "phantom.csv"', f'lattice = "{spelling}"\npitch = 5.0'))
+        assert load_config(path).phantom.kind is phantom_kind(spelling)
+    path.write_text(path.read_text().replace('lattice = "square"', 'lattice = "triangle"'))
+    with pytest.raises(ConfigError, match=r"key 'lattice': expected \"hex\" or \"square\"; got 'triangle'"):
+        load_config(path)
+    (doc,) = [k.help for k in SCHEMA if (k.section, k.name) == ("phantom", "lattice")]
+    assert sorted(re.findall(r'`"(\w+)"`', doc)) == spellings
+    label = build_parser()._subparsers._group_actions[0].choices["label"]
+    (lattice,) = [a for a in label._actions if "--lattice" in a.option_strings]
+    assert sorted(lattice.choices) == spellings
+    args = build_parser().parse_args(["label", "d.csv", "--lattice", "hex", "--pitch", "5", "--out", "o"])
+    assert args.lattice == "hex"

@@ -146,3 +146,24 @@ def test_size_bars_draw_only_when_shown_and_close_on_an_error(capsys):
     shown.close()
     assert shown.bar is None
     shown.close()  # closing again is harmless
+
+
+def test_the_table_says_what_the_kind_scores_not_what_the_figures_suggest():
+    """A plate's scores with no finite nominal figure still make a plate's table: the kind is asked, not guessed.
+
+    (The table used to decide "plate" from a finite ``out_nominal_rms_px``.)
+    """
+    from fluorocal.evaluation import markdown
+    from fluorocal.kinds.beads import BeadPart
+    from fluorocal.kinds.plate import PlatePart
+    from fluorocal.stages.evaluate import Score
+
+    scores = [Score("none", 3, 3, 0.5, 0.6), Score("plate", 3, 3, 0.1, 0.2)]
+    plate = markdown(scores, "plate", [], PlatePart())
+    assert plate.splitlines()[3].startswith("| training frames | scheme | in-sample holes vs self-calibrated layout")
+    assert "| plate | 0.1000 | 0.2000 |  | 66.7 |" in plate  # the nominal cell empty; 1 - 0.2 / 0.6 better
+    beads = markdown(scores, "plate", [], BeadPart())
+    assert beads.splitlines()[3] == (
+        "| training epochs | scheme | in-sample RMS (px) | out-of-sample RMS (px) | "
+        "% improvement (out-of-sample reprojection RMS (px)) | wall (s) |"
+    )
