@@ -216,7 +216,7 @@ def joint_uncertainty(
     iop_cov = cov.quadratic(np.eye(len(H_cond), 3))
     # the field as the refinement learned it: with the phantom's affine shape held, if it was (the Gaussian
     # conditioned on F^T θ = 0: cov - cov F (F^T cov F)^-1 F^T cov), by rows of G = S_c^-1 M = L^-T Z:
-    # diag(G cov G^T) less that term; diag(G cov G^T) is that of (L^-T Z P L^-T) D^-1 (...)^T
+    # diag(G cov G^T) less that term; with cov = P L_H^-T D^-1 L_H^-1 P^T, each row's D^-1 form of L^-T Z P L_H^-T
     node_var = -_held_affine_variance(cov, s_inv, Z, net.affine) if net.affine is not None else np.zeros(len(Z))
     node_var += s_inv.backward_quadratic(cov.right_half(Z, overwrite=True), cov.D_inv)  # Z overwritten
     Y = s_inv.backward(V)  # S^-1 C^T (V overwritten)
