@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import blas, cholesky, lapack
+from scipy.sparse import issparse
 
 
 @dataclass(frozen=True)
@@ -37,26 +38,25 @@ class BlockCholesky:
         """``S^-1 X`` for ``X`` ``(n, m)``: a forward and a backward block substitution."""
         return self.backward(self.forward(X), overwrite=True)
 
-    def forward(self, X: np.ndarray) -> np.ndarray:
-        """``L^-1 X`` for ``X`` ``(n, m)``, block by block.
+    def forward(self, X) -> np.ndarray:
+        """``L^-1 X`` for ``X`` ``(n, m)``, dense or sparse, block by block.
 
         A column's substitution starts at its first non-zero block (the blocks above stay zero): the columns
         are taken in the order of their first non-zero row, so that each block's are a leading slice (without
-        copying them when they come in that order).
+        copying them when they come in that order). A sparse ``X`` is made dense a block of rows at a time.
         """
-        X = np.asarray(X, dtype=np.float64)
-        nonzero = X != 0
-        first = np.where(nonzero.any(axis=0), np.argmax(nonzero, axis=0), len(X)) // self.block
+        X = X.tocsr() if issparse(X) else np.asarray(X, dtype=np.float64)
+        first = first_rows(X) // self.block
         by_first = None if np.all(np.diff(first) >= 0) else np.argsort(first, kind="stable")
         if by_first is not None:
             X, first = X[:, by_first], first[by_first]
         Y = np.zeros(X.shape)
         for k in range(len(self.diagonal)):
             m, rows = int(np.searchsorted(first, k, side="right")), self._rows(k)
-            rhs = X[rows, :m]
+            rhs = X[rows, :m].toarray() if issparse(X) else X[rows, :m]
             if k > 0:
                 rhs = rhs - _tri_mul(self.below[k - 1], Y[self._rows(k - 1), :m], lower=False)
-            Y[rows, :m] = _tri_mul(self.inverse[k], rhs, lower=True, overwrite=k > 0)
+            Y[rows, :m] = _tri_mul(self.inverse[k], rhs, lower=True, overwrite=k > 0 or issparse(X))
         if by_first is None:
             return Y
         out = np.empty(X.shape)
@@ -97,6 +97,18 @@ class BlockCholesky:
         return out
 
 
+def first_rows(X) -> np.ndarray:
+    """Each column's first non-zero row ``(m,)`` of ``X`` ``(n, m)``, dense or sparse CSR; ``n`` for a zero column."""
+    if issparse(X):
+        Xc = X.tocsc()
+        first = np.full(X.shape[1], X.shape[0])
+        touched = np.diff(Xc.indptr) > 0
+        first[touched] = np.minimum.reduceat(Xc.indices, Xc.indptr[:-1][touched])
+        return first
+    nonzero = X != 0
+    return np.where(nonzero.any(axis=0), np.argmax(nonzero, axis=0), len(X))
+
+
 def _tri_mul(T: np.ndarray, X: np.ndarray, *, lower: bool, transpose: bool = False, overwrite: bool = False):
     """``T X`` (``T^T X`` with ``transpose``) for a triangular ``T`` and a C-ordered ``X``, by BLAS ``trmm``.
 
@@ -133,4 +145,4 @@ def block_cholesky(S) -> BlockCholesky:
     return BlockCholesky(block, tuple(diagonal), tuple(below), tuple(inverse))
 
 
-__all__ = ["BlockCholesky", "block_cholesky"]
+__all__ = ["BlockCholesky", "block_cholesky", "first_rows"]

@@ -40,21 +40,27 @@ network, and the field's marginal covariance is
 the diagonal of ``S^-1`` are dense block work on a block-bidiagonal Cholesky
 factor (:mod:`fluorocal.stages.learn.blocktri`); ``M`` is sparse (a bead's
 columns touch only the nodes around its observations), so the forward substitutions
-start each column at its first non-zero block. ``M^T S_c^-1 M`` is ``|Π L^-1 M|²``
-(``S = L L^T``, ``Π`` the projector of the gauge: ``S_c^-1 = L^-T Π L^-1``), one
-symmetric product; the orientation's marginal normal matrix is inverted from
-Bunch-Kaufman ``L D L^T`` factors, and the field's variance from them,
-``diag(G Cov_θ G^T)`` as ``G P L^-T`` times ``D^-1`` (a triangular product, half a
-general one's work).
+start each column at its first non-zero block, made dense a block of rows at a time.
+``M^T S_c^-1 M`` is ``|Z|²`` with ``Z = Π L^-1 M`` (``S = L L^T``, ``Π`` the projector
+of the gauge: ``S_c^-1 = L^-T Π L^-1``), one symmetric product; the orientation's
+marginal normal matrix is inverted from Bunch-Kaufman ``L_H D L_H^T`` factors
+(``P`` their permutation), and the field's variance from them: ``diag(G Cov_θ G^T)``,
+``G = L^-T Z``, is each row's ``D^-1`` quadratic form of ``L^-T (Z P L_H^-T)``, a
+triangular product and a backward substitution done in place in one array of
+``Z``'s size. The work is three products of ``Z``'s size by its width (the symmetric
+one, the triangular one, and the substitution's, by the bandwidth twice): the
+sparsity of ``M`` is spent by then (``L^-1`` fills each column below its first row).
 
-Numerics: ``J^T W J - M^T S_c^-1 M`` is nearly singular (a Jacobi-scaled
-condition ~1e14 on a 40-exposure set: a common turn of the cameras that the field
-nearly mimics), so the σ are determined in float64 only to ~1e-4 relative (the
-same problem with its parameters in another order gives σ that differ by that
-much). Its data term must be symmetric to the last bit: a symmetric factor reads
-one triangle, and the rounding asymmetry of a general product ``M^T (S_c^-1 M)``
-(~1e-12 of the scaled matrix) moved a one-triangle inverse's IOP σ by a factor of
-two there.
+Numerics: ``J^T W J - M^T S_c^-1 M`` is nearly singular (Jacobi-scaled, its smallest
+eigenvalues ~1e-15 and ~1e-12 of its largest on a 40-exposure set: a bead's
+coordinates, and a common turn of the cameras, that the field nearly mimics), so the σ
+are determined in float64 only to ~1e-4 relative (the same problem with its
+parameters in another order gives σ that differ by 1e-5 to 1e-4), and it is
+positive definite only to rounding: a Cholesky factor of it fails in some orders of
+its parameters, the symmetric indefinite factors do not. Its data term must be
+symmetric to the last bit: a symmetric factor reads one triangle, and the rounding
+asymmetry of a general product ``M^T (S_c^-1 M)`` (~1e-12 of the scaled matrix) moved a
+one-triangle inverse's IOP σ by a factor of two there.
 """
 
 from __future__ import annotations
@@ -201,21 +207,20 @@ def joint_uncertainty(
     # S_c^-1 = L^-T Π L^-1 with Π = I - V (V^T V)^-1 V^T, V = L^-1 C^T: M^T S_c^-1 M = |Π L^-1 M|², symmetric
     V = s_inv.forward(C.T)
     CY_inv = np.linalg.inv(V.T @ V)
-    Z = s_inv.forward(M)
-    Z -= V @ (CY_inv @ (V.T @ Z))
+    Z = _projected(s_inv.forward(M), V, CY_inv)
     H_cond = (net.J.T @ JW).toarray()
     scale = float(np.mean(np.diag(H_cond)))
     border = scale * net.datum @ net.datum.T
     # the IOP as the final adjustment estimates it: the phantom's shape free
     cov = _symmetric_inverse(H_cond - Z.T @ Z + border)
-    Y, G = s_inv.backward(V), s_inv.backward(Z)  # S^-1 C^T and S_c^-1 M (V and Z overwritten)
     iop_cov = cov.quadratic(np.eye(len(H_cond), 3))
-    node_var = s_inv.diagonal() - np.sum((Y @ CY_inv) * Y, axis=1)
     # the field as the refinement learned it: with the phantom's affine shape held, if it was (the Gaussian
-    # conditioned on F^T θ = 0: cov - cov F (F^T cov F)^-1 F^T cov), by rows of G: diag(G cov G^T) less that term
-    node_var += cov.quadratic_diagonal(G.T)
-    if net.affine is not None:
-        node_var -= _held_affine_variance(cov, G, net.affine)
+    # conditioned on F^T θ = 0: cov - cov F (F^T cov F)^-1 F^T cov), by rows of G = S_c^-1 M = L^-T Z:
+    # diag(G cov G^T) less that term; with cov = P L_H^-T D^-1 L_H^-1 P^T, each row's D^-1 form of L^-T Z P L_H^-T
+    node_var = -_held_affine_variance(cov, s_inv, Z, net.affine) if net.affine is not None else np.zeros(len(Z))
+    node_var += s_inv.backward_quadratic(cov.right_half(Z, overwrite=True), cov.D_inv)  # Z overwritten
+    Y = s_inv.backward(V)  # S^-1 C^T (V overwritten)
+    node_var += s_inv.diagonal() - np.sum((Y @ CY_inv) * Y, axis=1)
     # the IOP's block of the conditional covariance (the field held): three columns of the inverse
     cov_cond = np.linalg.solve(H_cond + border, np.eye(len(H_cond), 3))[:3]
     shape = (len(yn), len(xn))
@@ -223,10 +228,18 @@ def joint_uncertainty(
     return JointUncertainty(iop_cov, _std(np.diag(iop_cov)), node_std, _std(np.diag(cov_cond)))
 
 
-def _held_affine_variance(cov, G: np.ndarray, affine: np.ndarray) -> np.ndarray:
-    """``diag(G cov F (F^T cov F)^-1 F^T cov G^T)``: what holding ``F^T θ = 0`` takes from each row's variance."""
+def _projected(Z: np.ndarray, V: np.ndarray, CY_inv: np.ndarray, rows: int = 512) -> np.ndarray:
+    """``Π Z = Z - V (V^T V)^-1 V^T Z`` in place, a block of ``rows`` at a time (no second array of ``Z``'s size)."""
+    T = CY_inv @ (V.T @ Z)
+    for lo in range(0, len(Z), rows):
+        Z[lo : lo + rows] -= V[lo : lo + rows] @ T
+    return Z
+
+
+def _held_affine_variance(cov, s_inv, Z: np.ndarray, affine: np.ndarray) -> np.ndarray:
+    """``diag(G cov F (F^T cov F)^-1 F^T cov G^T)`` with ``G = L^-T Z``: what holding ``F^T θ = 0`` takes."""
     cF = cov.solve(affine)
-    GcF = G @ cF
+    GcF = s_inv.backward(Z @ cF)
     return np.sum(GcF * np.linalg.solve(affine.T @ cF, GcF.T).T, axis=1)
 
 
@@ -271,9 +284,8 @@ class _FieldInverse:
         """
         n, order = self.n_nodes, self._interleaved()
         if order is None:
-            X = _dense(X)
             return np.concatenate([f.forward(X[c * n : (c + 1) * n]) for c, f in enumerate(self.factors)])
-        return self.factors[0].forward(_dense(X.tocsr()[order] if issparse(X) else X[order]))  # rows, then dense
+        return self.factors[0].forward(X.tocsr()[order] if issparse(X) else X[order])
 
     def backward(self, Y: np.ndarray) -> np.ndarray:
         """``L^-T Y`` for ``Y`` ``(2 n_nodes, k)`` in the factors' order of rows (overwritten), in node order."""
@@ -284,6 +296,25 @@ class _FieldInverse:
             )
         out = np.empty(Y.shape)
         out[order] = self.factors[0].backward(Y, overwrite=True)
+        return out
+
+    def backward_quadratic(self, Y: np.ndarray, B) -> np.ndarray:
+        """Each row's ``g B g^T`` ``(2 n_nodes,)`` of ``L^-T Y`` (``Y`` in the factors' order, overwritten), node order.
+
+        ``B``: a :class:`_BlockDiagonal`. In place: no array of ``Y``'s size is made (the field's variance of a
+        40-exposure set: ``(8450, 1716)``, 116 MB).
+        """
+        n, order = self.n_nodes, self._interleaved()
+        if order is None:
+            for c, f in enumerate(self.factors):
+                f.backward(Y[c * n : (c + 1) * n], overwrite=True)
+        else:
+            Y = self.factors[0].backward(Y, overwrite=True)
+        values = B.row_quadratics(Y)
+        if order is None:
+            return values
+        out = np.empty(len(Y))
+        out[order] = values
         return out
 
     def diagonal(self) -> np.ndarray:
@@ -321,17 +352,12 @@ def _field_inverse(A, w: np.ndarray, w_xy: np.ndarray, DtD) -> _FieldInverse:
     return _FieldInverse(tuple(factors * (1 + same)), n_nodes)
 
 
-def _dense(X) -> np.ndarray:
-    """``X`` as a dense array."""
-    return X.toarray() if issparse(X) else np.asarray(X)
-
-
 @dataclass(frozen=True)
 class _BlockDiagonal:
     """A symmetric block diagonal matrix ``B`` of 1x1 and 2x2 blocks (the inverse of the ``D`` of ``ldl``).
 
-    The diagonal of a quadratic form in it is one pass over the operand, without the product ``B E`` (a second
-    array of the operand's size: ``(1716, 8450)``, 116 MB, for the field's variance on a 40-frame set).
+    A quadratic form's diagonal in it is one pass over the operand, without the product ``G B`` (a second
+    array of the operand's size: ``(8450, 1716)``, 116 MB, for the field's variance on a 40-frame set).
     """
 
     diagonal: np.ndarray  # (n,)
@@ -345,44 +371,54 @@ class _BlockDiagonal:
         out[self.first + 1] += self.off[:, None] * X[self.first]
         return out
 
-    def quadratic_diagonal(self, E: np.ndarray) -> np.ndarray:
-        """The diagonal ``(k,)`` of ``E^T B E`` for ``E`` ``(n, k)``, without forming ``B E``."""
-        out = np.einsum("i,ij,ij->j", self.diagonal, E, E)
-        return out + 2.0 * np.einsum("i,ij,ij->j", self.off, E[self.first], E[self.first + 1])
+    def row_quadratics(self, G: np.ndarray) -> np.ndarray:
+        """Each row's ``g B g^T`` ``(k,)`` of ``G`` ``(k, n)``: the diagonal of ``G B G^T``."""
+        out = np.einsum("j,ij,ij->i", self.diagonal, G, G)
+        return out + 2.0 * np.einsum("j,ij,ij->i", self.off, G[:, self.first], G[:, self.first + 1])
 
 
 @dataclass(frozen=True)
 class _SymmetricInverse:
     """``H^-1`` of a symmetric ``(n, n)`` ``H`` from its Bunch-Kaufman factors ``H = P L D L^T P^T``.
 
-    ``H^-1 = P L^-T D^-1 L^-1 P^T``: a quadratic form ``X^T H^-1 X`` is ``E^T D^-1 E`` with ``E = L^-1 P^T X``,
-    a product by a triangular matrix (BLAS trmm, half a general product's work), and ``D`` block diagonal
-    (1x1 and 2x2 blocks). A factor and a triangular inverse cost a third of a general inverse.
+    ``H^-1 = P L^-T D^-1 L^-1 P^T``: a quadratic form ``X H^-1 X^T`` is ``E D^-1 E^T`` with ``E = X P L^-T``,
+    a product by a triangular matrix, and ``D`` block diagonal (1x1 and 2x2 blocks). A factor and a triangular
+    inverse cost a third of a general inverse.
     """
 
     L_inv: np.ndarray  # (n, n) unit lower-triangular: the inverse of L
     D_inv: _BlockDiagonal  # the inverse of D
     perm: np.ndarray  # (n,) P^T X is X[perm]
 
-    def _half(self, X: np.ndarray) -> np.ndarray:
-        """``L^-1 P^T X`` for ``X`` ``(n, k)``; trmm on the Fortran view ``X[perm]^T``: ``(L^-1 Y)^T = Y^T L^-T``."""
-        XpT = np.asarray(X, dtype=np.float64)[self.perm].T
-        return blas.dtrmm(1.0, self.L_inv, XpT, side=1, lower=1, trans_a=1, diag=1, overwrite_b=1).T
+    def right_half(self, X: np.ndarray, *, overwrite: bool = False) -> np.ndarray:
+        """``X P L^-T`` ``(k, n)`` for ``X`` ``(k, n)``: ``X H^-1 X^T`` is its ``D^-1`` quadratic form.
+
+        BLAS trmm in place in ``X P`` (C order), on its Fortran view: ``(X P L^-T)^T = L^-1 (X P)^T``. With
+        ``overwrite``, ``X`` (C order) holds ``X P`` and then the result: its columns permuted a block of rows at
+        a time.
+        """
+        if overwrite:
+            E = X
+            for lo in range(0, len(E), 512):
+                E[lo : lo + 512] = np.take(E[lo : lo + 512], self.perm, axis=1)
+        else:
+            E = np.take(np.asarray(X, dtype=np.float64), self.perm, axis=1)
+        return blas.dtrmm(1.0, self.L_inv, E.T, side=0, lower=1, trans_a=0, diag=1, overwrite_b=1).T
 
     def quadratic(self, X: np.ndarray) -> np.ndarray:
         """``X^T H^-1 X`` ``(k, k)`` for ``X`` ``(n, k)``, symmetric."""
-        E = self._half(X)
-        Q = E.T @ (self.D_inv @ E)
+        E = self.right_half(X.T)
+        Q = E @ (self.D_inv @ E.T)
         return 0.5 * (Q + Q.T)
 
-    def quadratic_diagonal(self, X: np.ndarray) -> np.ndarray:
-        """The diagonal ``(k,)`` of ``X^T H^-1 X`` for ``X`` ``(n, k)``."""
-        return self.D_inv.quadratic_diagonal(self._half(X))
+    def row_quadratics(self, X: np.ndarray) -> np.ndarray:
+        """The diagonal ``(k,)`` of ``X H^-1 X^T`` for ``X`` ``(k, n)``."""
+        return self.D_inv.row_quadratics(self.right_half(X))
 
     def solve(self, X: np.ndarray) -> np.ndarray:
         """``H^-1 X`` for ``X`` ``(n, k)``."""
         out = np.empty(X.shape)
-        out[self.perm] = self.L_inv.T @ (self.D_inv @ self._half(X))
+        out[self.perm] = self.L_inv.T @ (self.D_inv @ self.right_half(X.T).T)
         return out
 
 

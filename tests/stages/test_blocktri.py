@@ -67,3 +67,20 @@ def test_solve_of_columns_zero_above_a_block_matches_dense():
     # a coupling dropped is off by O(1)
     np.testing.assert_allclose(factor.solve(X), inv @ X, rtol=0, atol=1e-12 * np.abs(inv @ X).max())
     assert not np.any(factor.solve(X)[:, -1])
+
+
+def test_forward_of_a_sparse_operand_matches_dense():
+    """A sparse operand, made dense a block of rows at a time: columns of every start, out of order, a zero one."""
+    S = grid_normal(3, n_x=11, n_y=13)
+    factor = block_cholesky(S)
+    n = S.shape[0]
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(n, 7)) * (rng.uniform(size=(n, 7)) < 0.1)
+    for j, start in enumerate([n // 2, 0, n - 3, factor.block + 1, n // 3, 2 * factor.block]):
+        X[:start, j] = 0  # first non-zero rows out of order
+    X[:, -1] = 0
+    inv = np.linalg.inv(S.toarray())
+    got = factor.backward(factor.forward(csr_matrix(X)), overwrite=True)
+    # condition ~1e3: round-off ~1e-14 relative to the largest entry; a block started late is off by O(1)
+    np.testing.assert_allclose(got, inv @ X, rtol=0, atol=1e-12 * np.abs(inv @ X).max())
+    assert not np.any(got[:, -1])

@@ -263,5 +263,5 @@ def test_symmetric_inverse_with_two_by_two_pivots_equals_the_dense_inverse(kind)
     # condition ~1e2-1e3: round-off ~1e-14 relative to the largest entry
     scale = np.abs(V.T @ inv @ V).max()
     np.testing.assert_allclose(got.quadratic(V), V.T @ inv @ V, rtol=0, atol=1e-12 * scale)
-    np.testing.assert_allclose(got.quadratic_diagonal(V), np.diag(V.T @ inv @ V), rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(got.row_quadratics(V.T), np.diag(V.T @ inv @ V), rtol=0, atol=1e-12 * scale)
     np.testing.assert_allclose(got.solve(V), inv @ V, rtol=0, atol=1e-12 * np.abs(inv @ V).max())
