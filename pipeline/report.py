@@ -113,7 +113,7 @@ def save_figure(fig, path: Path) -> Path:
     from PIL import Image
 
     canvas = FigureCanvasAgg(fig)
-    with _no_collection():
+    with no_collection():
         for ax in fig.axes:
             if ax.get_visible():
                 ax.apply_aspect()  # the ticks of an equal-aspect image's axes depend on its final box
@@ -200,7 +200,7 @@ def _place_label(axis, boxes, renderer) -> None:
 
 
 @contextlib.contextmanager
-def _no_collection():
+def no_collection():
     """No cyclic garbage collection meanwhile: a figure's artists trigger full passes over the whole process."""
     enabled = gc.isenabled()
     gc.disable()
