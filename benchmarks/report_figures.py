@@ -10,13 +10,17 @@ With ``--baseline REV`` the same is measured on the fluorocal of commit ``REV`` 
 ``stages`` from ``git archive``), the two in turn (A B B A ...): per figure the median CPU time of each and
 their ratio pair by pair.
 
-Usage: ``python benchmarks/report_figures.py CONFIG [--repeats N] [--baseline REV]`` (default 6 repeats;
-``run_speed.py --keep DIR --sections biplanar`` leaves ``DIR/fluorocal-biplanar.toml``, its 9 figures).
+Usage: ``python benchmarks/report_figures.py [CONFIG] [--repeats N] [--baseline REV] [--frames N]`` (default 6
+repeats). Without CONFIG, ``run_speed.py``'s biplanar set (``--frames`` per system, default 75: 9 figures) is
+simulated and run in a temporary folder first; ``run_speed.py --keep DIR --sections biplanar`` leaves that
+project as ``DIR/fluorocal-biplanar.toml``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import os
 import subprocess
@@ -70,6 +74,7 @@ def child(config: Path) -> dict:
 
 def baseline_tree(rev: str, folder: Path) -> Path:
     """The fluorocal package of commit ``rev`` in ``folder`` (``fluorocal/`` with ``stages/`` inside): a PYTHONPATH."""
+    folder.mkdir(parents=True)
     archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "pipeline", "stages"], capture_output=True)
     if archive.returncode != 0:
         raise SystemExit(f"git archive {rev}: {archive.stderr.decode().strip()}")
@@ -77,6 +82,23 @@ def baseline_tree(rev: str, folder: Path) -> Path:
     (folder / "pipeline").rename(folder / "fluorocal")
     (folder / "stages").rename(folder / "fluorocal" / "stages")
     return folder
+
+
+def simulated_project(root: Path, frames: int) -> Path:
+    """``run_speed.py``'s biplanar set of ``frames`` per system, simulated and run in ``root``: its config."""
+    import run_speed  # benchmarks/run_speed.py
+    from fluorocal.cli import main
+    from fluorocal.cmd_simulate import write_dataset
+    from fluorocal.stages.simulate import SimulateParams, simulate
+
+    params = SimulateParams(n_frames=frames, n_systems=2, image_size_px=1024, seed=11, distortion="strong")
+    write_dataset(simulate(params), root, replace=True)
+    config = run_speed.write_config(root, json.loads((root / "truth.json").read_text()), "biplanar", ("A", "B"))
+    with contextlib.redirect_stdout(io.StringIO()):  # the run's own table of results
+        code = main(["--quiet", "run", str(config)])
+    if code != 0:
+        raise SystemExit(f"fluorocal run {config} failed")
+    return config
 
 
 def measure(config: Path, pythonpath: str | None) -> dict:
@@ -129,25 +151,27 @@ def report(runs: dict[str, list[dict]]) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("config", type=Path, help="a project already run (every stage cached)")
+    ap.add_argument("config", type=Path, nargs="?", help="a project already run (default: simulate and run one)")
+    ap.add_argument("--frames", type=int, default=75, help="exposures per system without CONFIG (default 75)")
     ap.add_argument("--repeats", type=int, default=6, help="processes per variant (default 6)")
     ap.add_argument("--baseline", metavar="REV", help="also measure commit REV's fluorocal, in turn with this one")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    config = args.config.resolve()
     if args.child:
-        print(json.dumps(child(config)))
+        print(json.dumps(child(args.config.resolve())))
         return 0
     with tempfile.TemporaryDirectory() as tmp:
+        config = (args.config or simulated_project(Path(tmp) / "project", args.frames)).resolve()
         variants = {"this": None}
         if args.baseline:
-            variants = {args.baseline: str(baseline_tree(args.baseline, Path(tmp))), "this": None}
+            variants = {args.baseline: str(baseline_tree(args.baseline, Path(tmp) / "baseline")), "this": None}
         runs = {name: [] for name in variants}
         for i in range(args.repeats):
             for name in list(variants)[:: 1 if i % 2 == 0 else -1]:  # ABBA: what runs first alternates
                 runs[name].append(measure(config, variants[name]))
+    shown = args.config or f"a simulated biplanar set of {args.frames} + {args.frames} frames"
     print(
-        f"report figures of {args.config}: {args.repeats} fresh processes per variant, one BLAS thread; "
+        f"report figures of {shown}: {args.repeats} fresh processes per variant, one BLAS thread; "
         f"load {os.getloadavg()[0]:.1f} at the end"
     )
     report(runs)
