@@ -1,0 +1,75 @@
+"""The report's figures draw their ticks their own way (:func:`fluorocal.report.save_figure`), in matplotlib's pixels.
+
+The ground truth is matplotlib itself: each figure is built twice, drawn once by matplotlib's Agg canvas with
+its own tick artists and once by ``save_figure``, and the two images must be the same pixel for pixel, for
+the kinds of axes the report and the other commands' plots use. Axes that ``save_figure`` leaves to matplotlib
+(minor ticks, an offset text) must come out the same too.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fluorocal import report
+
+#: a figure's kind -> whether its first axes' x and y ticks are drawn by fluorocal (False: left to matplotlib)
+PLAIN = {
+    "image": (True, True),
+    "lines": (True, True),
+    "rotated_names": (True, True),
+    "categories": (True, True),
+    "offset": (True, False),
+    "log": (True, False),
+}
+
+
+def _build(kind: str):
+    """A figure of the report's layout (:func:`fluorocal.report.new_figure`) showing ``kind`` of axes."""
+    rng = np.random.default_rng(3)
+    if kind == "image":  # panels of an image with a colour bar beside them, one grid cell left empty
+        fig, axes = report.new_figure(3, width=4.2, height=4.0, n_cols=2, title_lines=2, colorbar=True)
+        for ax in axes:
+            im = ax.imshow(rng.random((12, 16)), extent=(-0.5, 1023.5, 767.5, -0.5))
+            report.image_axes(ax, (1024, 768), "a title\non two lines")
+        report.add_colorbar(fig, im, axes, "|Δ| (px)")
+        return fig
+    fig, (ax,) = report.new_figure(1, width=5.0, height=3.8, bottom_in=1.2)
+    if kind == "lines":
+        ax.plot(np.arange(8), 470000 / (1 + np.arange(8)), "o-")
+        ax.set_xlabel("iteration")
+        ax.set_ylabel("cost")
+    elif kind == "rotated_names":  # as fluorocal.orientations' chart
+        ax.bar(np.arange(4), [0.3, 0.1, 0.25, 0.05], 0.4)
+        ax.set_xticks(np.arange(4))
+        ax.set_xticklabels(["LAO 30", "RAO 15", "a longer name", "x"], rotation=60, ha="right", fontsize=7)
+        ax.set_ylabel("Δ (px)")
+    elif kind == "categories":  # as fluorocal.cmd_check's trend: strings along x, rotated by tick_params
+        ax.plot(["2026-01-02", "2026-02-03", "2026-03-04"], [0.2, 0.25, 0.22], "o-")
+        ax.tick_params(axis="x", labelrotation=60, labelsize=6)
+    elif kind == "offset":  # y labels need an offset text ("+1") beside them
+        ax.plot(np.arange(5), 1 + 1e-6 * np.arange(5))
+        ax.set_ylabel("value")
+    elif kind == "log":  # minor ticks
+        ax.plot(np.arange(1, 6), 10.0 ** -np.arange(5))
+        ax.set_yscale("log")
+    return fig
+
+
+@pytest.mark.parametrize("kind", PLAIN)
+def test_ticks_are_the_pixels_matplotlib_draws(tmp_path, kind):
+    import matplotlib.style
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.ticker import NullLocator
+    from PIL import Image
+
+    with matplotlib.style.context("default"):
+        canvas = FigureCanvasAgg(_build(kind))
+        canvas.draw()
+        matplotlibs = np.asarray(canvas.buffer_rgba())[..., :3]
+        fig = _build(kind)
+        ours = np.asarray(Image.open(report.save_figure(fig, tmp_path / "ours.png")).convert("RGB"))
+    assert ours.shape == matplotlibs.shape
+    differ = np.any(ours != matplotlibs, axis=-1)
+    assert not differ.any(), f"{differ.sum()} pixels differ, rows {np.nonzero(differ.any(axis=1))[0][[0, -1]]}"
+    plain = tuple(isinstance(a.get_major_locator(), NullLocator) for a in (fig.axes[0].xaxis, fig.axes[0].yaxis))
+    assert plain == PLAIN[kind]
