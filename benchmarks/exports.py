@@ -5,6 +5,9 @@ Usage::
     fluorocal simulate demo && fluorocal run demo/fluorocal.toml
     OPENBLAS_NUM_THREADS=1 python benchmarks/exports.py demo/out/calibration.json
 
+Without a calibration (as ``make bench`` runs it), the demo's set (``make demo``: 8 + 8 frames of 512 px,
+seed 7) is simulated and run in a temporary folder first.
+
 Exports the calibration with ``--format opencv`` and ``--format dlt`` into a temporary folder, then
 
 - times the OpenCV export twice, in this process (CPU and wall seconds, the whole export and per
@@ -133,7 +136,20 @@ def dlt_figures(cal: Calibration, folder: Path) -> None:
     print(f"dlt: largest difference from fluorocal's model {worst:.2e} px RMS (target 0.1 px)")
 
 
-def measure(calibration: Path) -> None:
+def demo_calibration(root: Path) -> Path:
+    """The calibration of ``make demo``'s set, simulated and run in ``root``."""
+    simulate = ["simulate", str(root), "--frames", "8", "--systems", "2", "--seed", "7", "--image-size", "512", "512"]
+    for argv in (simulate, ["--quiet", "run", str(root / "fluorocal.toml")]):
+        with contextlib.redirect_stdout(io.StringIO()):
+            if main(argv) != 0:
+                raise SystemExit(f"fluorocal {' '.join(argv)} failed")
+    return root / "out" / "calibration.json"
+
+
+def measure(calibration: Path | None) -> None:
+    if calibration is None:
+        with tempfile.TemporaryDirectory() as tmp:
+            return measure(demo_calibration(Path(tmp)))
     cal = Calibration.load(calibration)
     with tempfile.TemporaryDirectory() as tmp:
         opencv_figures(cal, opencv_timed(calibration.resolve(), Path(tmp)))
@@ -146,7 +162,12 @@ def measure(calibration: Path) -> None:
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("calibration", type=Path, help="calibration.json of `fluorocal run` (tables beside it)")
+    parser.add_argument(
+        "calibration",
+        type=Path,
+        nargs="?",
+        help="calibration.json of `fluorocal run` (tables beside it; default: the demo's set, simulated and run)",
+    )
     import docpage
 
     docpage.run(__file__, lambda: measure(parser.parse_args().calibration))
