@@ -218,7 +218,7 @@ def reference_setup(cal, calibration: Path, system: str):
         config = load_project(config_path, writable=False)
     except (ConfigError, OSError) as exc:
         raise InputError(f"{calibration}: cannot read its project config {config_path} ({exc})") from None
-    made = made_with(cal)
+    made = made_with(cal, calibration)
     if config.phantom.kind not in made:
         nouns = " or ".join(kind.noun for kind in made) or f"a kind of object named {cal.meta['phantom_kind']!r}"
         now = config.phantom.kind.noun
@@ -239,19 +239,33 @@ def reference_setup(cal, calibration: Path, system: str):
     return part_of(config.phantom.kind).check_setup(tables, config, table)
 
 
-def made_with(cal) -> list:
-    """The kinds of object (:data:`~fluorocal.stages.kinds.KINDS`) a calibration can have been made with.
+def made_with(cal, calibration: Path) -> list:
+    """The kinds of object (:data:`~fluorocal.stages.kinds.KINDS`) the calibration ``cal`` can have been made with.
 
     The one its ``phantom_kind`` names; in a calibration written before it named one, each kind whose
     estimating the geometry or not is the calibration's (``geometry_estimated``).
+
+    Raises
+    ------
+    InputError
+        ``phantom_kind`` names a kind that estimates the geometry where the calibration did not, or the
+        reverse: one of the two keys was edited (the message names both, and the file ``calibration``).
     """
+    from fluorocal.exports.common import has_geometry
+    from fluorocal.stages.errors import InputError
     from fluorocal.stages.kinds import KINDS
 
     kinds = list(dict.fromkeys(KINDS.values()))  # a kind of several spellings once
-    if "phantom_kind" in cal.meta:
-        return [kind for kind in kinds if kind.name == cal.meta["phantom_kind"]]
-    estimated = cal.meta.get("geometry_estimated", True) is not False
-    return [kind for kind in kinds if kind.estimates_geometry == estimated]
+    estimated = has_geometry(cal)
+    if "phantom_kind" not in cal.meta:
+        return [kind for kind in kinds if kind.estimates_geometry == estimated]
+    named = [kind for kind in kinds if kind.name == cal.meta["phantom_kind"]]
+    if any(kind.estimates_geometry != estimated for kind in named):
+        raise InputError(
+            f"{calibration}: its phantom_kind {cal.meta['phantom_kind']!r} contradicts its geometry_estimated "
+            f"{str(estimated).lower()}; one of them was edited"
+        )
+    return named
 
 
 @dataclass(frozen=True)

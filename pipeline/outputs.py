@@ -156,7 +156,7 @@ def published_by(out_dir: str | os.PathLike) -> str | None:
     """The config (relative to ``out_dir``) of the project whose set it holds (None: no set, or no owner)."""
     try:
         project = json.loads((Path(out_dir) / MANIFEST).read_text(encoding="utf-8")).get("project")
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, RecursionError):  # RecursionError: nested too deep to decode
         return None
     return project if isinstance(project, str) else None
 
@@ -279,7 +279,7 @@ def _carry_over(old: Path, new: Path) -> None:
     """Move the entries of ``old`` that are not a published output (and not in ``new``) into ``new``."""
     try:
         published = set(json.loads((old / MANIFEST).read_text(encoding="utf-8"))["entries"])
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError, RecursionError):  # RecursionError: nested too deep
         published = set()  # a folder written before sets were published: keep what the new set does not replace
     for entry in old.iterdir():
         if entry.name != MANIFEST and entry.name not in published and not (new / entry.name).exists():

@@ -118,6 +118,16 @@ def test_a_frame_is_labelled_with_the_projects_own_tables_and_its_kind_is_the_ca
     cal.meta["phantom_kind"] = "wand"  # a kind this version does not know
     with pytest.raises(InputError, match="made with a kind of object named 'wand', but its config"):
         reference_setup(cal, calibration, "A")
+    # a phantom_kind that contradicts geometry_estimated was edited: refused naming both, whatever the config
+    # names (a bead calibration, which estimated the geometry, is never checked as a plate's, nor said a plate's)
+    cal.meta["phantom_kind"] = "plate"
+    for named in (text, text.replace('file = "phantom.csv"', 'lattice = "hex"\npitch = 3.3')):
+        config.write_text(named)
+        with pytest.raises(InputError, match="its phantom_kind 'plate' contradicts its geometry_estimated true"):
+            reference_setup(cal, calibration, "A")
+    cal.meta.update(phantom_kind="beads", geometry_estimated=False)
+    with pytest.raises(InputError, match="its phantom_kind 'beads' contradicts its geometry_estimated false"):
+        reference_setup(cal, calibration, "A")
 
 
 def test_the_defaults_are_stated_in_the_help(capsys):

@@ -86,6 +86,30 @@ def test_publish_records_its_owner_and_refuses_another(tmp_path):
         check_output_dir(tmp_path / "out", keep_out=[], owner=tmp_path / "two.toml")
 
 
+def test_a_record_nested_too_deep_is_read_as_none_never_a_traceback(tmp_path):
+    """An output folder's record of 100 000 nested lists (RecursionError in the decoder) records nothing.
+
+    As a folder written before sets were published: no owner to refuse, the next set published over it, the
+    files the set does not replace kept (not a traceback before any work, nor a swap left half done).
+    """
+    from fluorocal.outputs import check_output_dir
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / MANIFEST).write_text("[" * 100_000 + "]" * 100_000)
+    (out / "notes.txt").write_text("mine")
+    assert check_output_dir(out, keep_out=[], owner=tmp_path / "one.toml") == out
+
+    def write(folder):
+        (folder / "a.txt").write_text("a")
+        return [folder / "a.txt"]
+
+    assert publish(out, write, owner=tmp_path / "one.toml") == [out / "a.txt"]
+    assert {p.name: p.read_text() for p in out.iterdir() if p.name != MANIFEST} == {"a.txt": "a", "notes.txt": "mine"}
+    assert json.loads((out / MANIFEST).read_text()) == {"entries": ["a.txt"], "project": "../one.toml"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # nothing left beside it
+
+
 def test_cache_clean_of_a_project_sharing_the_cache_keeps_the_first_s_entries(project):
     cache = ArtifactCache(project / ".fluorocal")
     before = {s: cache.keys(s) for s in ("detect", "centroid", "label", "learn")}
