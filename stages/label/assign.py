@@ -56,20 +56,27 @@ def assign(pred_xy: np.ndarray, gate_px: np.ndarray, det_xy: np.ndarray, det_tre
     return np.concatenate(out_r), np.concatenate(out_c)
 
 
-def ambiguous(pred_xy: np.ndarray, diam_px: np.ndarray, factor: float) -> np.ndarray:
-    """Beads whose projection lies within ``factor`` x the mean of both diameters of another's."""
+def ambiguous(pred_xy: np.ndarray, diam_px: np.ndarray, factor: float, tree=None) -> np.ndarray:
+    """Beads whose projection lies within ``factor`` x the mean of both diameters of another's.
+
+    ``tree``: a ``scipy.spatial.cKDTree`` of ``pred_xy`` if the caller has one (else it is built).
+    """
     amb = np.zeros(len(pred_xy), dtype=bool)
-    amb[overlapping(pred_xy, diam_px, factor).ravel()] = True
+    amb[overlapping(pred_xy, diam_px, factor, tree).ravel()] = True
     return amb
 
 
-def overlapping(pred_xy: np.ndarray, diam_px: np.ndarray, factor: float) -> np.ndarray:
-    """``(K, 2) int``: the pairs of beads whose projections lie within ``factor`` x their mean diameter."""
+def overlapping(pred_xy: np.ndarray, diam_px: np.ndarray, factor: float, tree=None) -> np.ndarray:
+    """``(K, 2) int``: the pairs of beads whose projections lie within ``factor`` x their mean diameter.
+
+    ``tree``: a ``scipy.spatial.cKDTree`` of ``pred_xy`` if the caller has one (else it is built).
+    """
     from scipy.spatial import cKDTree
 
     if len(pred_xy) < 2:
         return np.empty((0, 2), dtype=np.int64)
-    pairs = cKDTree(pred_xy).query_pairs(r=factor * float(np.max(diam_px)), output_type="ndarray")
+    tree = cKDTree(pred_xy) if tree is None else tree
+    pairs = tree.query_pairs(r=factor * float(np.max(diam_px)), output_type="ndarray")
     if not len(pairs):
         return np.empty((0, 2), dtype=np.int64)
     d = np.linalg.norm(pred_xy[pairs[:, 0]] - pred_xy[pairs[:, 1]], axis=1)

@@ -6,6 +6,7 @@ absorb; the labelling predicts bead positions through the pinhole plus this corr
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,8 +29,7 @@ class Correction:
         for d in range(1, self.degree + 1):
             up[d] = up[d - 1] * uv[:, 0]
             vp[d] = vp[d - 1] * uv[:, 1]
-        # shape (N, n_terms): u^(d - k) v^k, degree d by degree
-        i, k = np.array([(d - k, k) for d in range(self.degree + 1) for k in range(d + 1)]).T
+        i, k = _exponents(self.degree)
         return (up[i] * vp[k]).T
 
     def distort_points(self, xy: np.ndarray) -> np.ndarray:
@@ -43,6 +43,14 @@ class Correction:
         if not len(self.coef) or not len(measured):
             return measured
         return measured - self.basis(ideal_guess) @ self.coef
+
+
+@functools.lru_cache(maxsize=None)
+def _exponents(degree: int) -> np.ndarray:
+    """``(2, n_terms)``: the powers of u and of v of each term, u^(d - k) v^k, degree d by degree (read-only)."""
+    out = np.array([(d - k, k) for d in range(degree + 1) for k in range(d + 1)]).T
+    out.flags.writeable = False
+    return out
 
 
 def n_terms(degree: int) -> int:

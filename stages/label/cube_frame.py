@@ -147,10 +147,11 @@ def coarse_evidence(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> int:
     if len(vis) < 2:
         return -len(frame.det_xy)
     gate = frame.params.gate_bead_diameters * diam[vis]
-    d_det, k = cKDTree(xy[vis]).query(frame.det_xy)
+    tree = cKDTree(xy[vis])
+    d_det, k = tree.query(frame.det_xy)
     explained = int(np.sum(d_det <= gate[k]))
     d_pred, _ = frame.det_tree.query(xy[vis])
-    clear = ~ambiguous(xy[vis], diam[vis], frame.params.ambiguity_bead_diameters)
+    clear = ~ambiguous(xy[vis], diam[vis], frame.params.ambiguity_bead_diameters, tree)
     missing = int(np.sum(clear & (d_pred > gate) & inside_hull(frame, xy[vis], diam[vis])))
     return 2 * explained - len(frame.det_xy) - missing
 

@@ -8,6 +8,7 @@ assigned pairs, until the assignment stops changing (see :mod:`fluorocal.stages.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import replace
 
 import numpy as np
@@ -187,7 +188,6 @@ def solve_pose_and_c(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.n
     T : (3,) float64 ndarray, mm
     c : float, px
     """
-    import cv2
     from scipy.optimize import least_squares
 
     c0 = float(frame.iop[2])
@@ -196,17 +196,33 @@ def solve_pose_and_c(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.n
     if len(obj) < 30 or np.std(z) < _MIN_DEPTH_SPREAD * np.mean(z):
         return R, T, c0
     rvec, tvec = pose_to_cv(R, T)
-
-    def residuals(x):
-        Rx, _ = cv2.Rodrigues(x[:3])
-        p_cam = obj @ Rx.T + x[3:6]
-        return (project_cam(p_cam, np.array([frame.iop[0], frame.iop[1], c0 * np.exp(x[6])])) - img).ravel()
-
-    fit = least_squares(residuals, np.concatenate([rvec, tvec, [0.0]]), method="lm", x_scale="jac")
+    x0 = np.concatenate([rvec, tvec, [0.0]])
+    fit = least_squares(
+        pose_c_residuals, x0, jac=pose_c_jacobian, method="lm", x_scale="jac", args=(obj, img, frame.iop)
+    )
     c = c0 * float(np.exp(fit.x[6]))
     if not (fit.success and 0.5 * c0 < c < 2.0 * c0):
         return R, T, c0
     return (*pose_from_cv(fit.x[:3], fit.x[3:6]), c)
+
+
+def pose_c_residuals(x: np.ndarray, obj: np.ndarray, img: np.ndarray, iop: np.ndarray) -> np.ndarray:
+    """``(2N,)``: the pinhole's misfit (px) of ``obj`` on ``img`` at ``x`` = OpenCV rvec, tvec, log(c / iop[2])."""
+    import cv2
+
+    Rx, _ = cv2.Rodrigues(x[:3])
+    p_cam = obj @ Rx.T + x[3:6]
+    return (project_cam(p_cam, np.array([iop[0], iop[1], iop[2] * np.exp(x[6])])) - img).ravel()
+
+
+def pose_c_jacobian(x: np.ndarray, obj: np.ndarray, img: np.ndarray, iop: np.ndarray) -> np.ndarray:
+    """``(2N, 7)``: the derivatives of :func:`pose_c_residuals` by ``x`` (OpenCV's, by rvec, tvec and fx = fy = c)."""
+    import cv2
+
+    c = iop[2] * np.exp(x[6])
+    K = np.array([[c, 0.0, iop[0]], [0.0, c, iop[1]], [0.0, 0.0, 1.0]])
+    jac = cv2.projectPoints(obj, x[:3], x[3:6], K, None)[1]
+    return np.column_stack([jac[:, :6], c * (jac[:, 6] + jac[:, 7])])
 
 
 def ransac_pose(frame: CubeFrame, obj: np.ndarray, img: np.ndarray, R: np.ndarray, T: np.ndarray):
@@ -260,14 +276,25 @@ def size_evidence(
     known = np.isfinite(d_mm) & np.isfinite(measured) & (measured > 0)
     if known.sum() < 3:
         return None
-    spread = float(np.nanmax(frame.bead_diam_mm) / np.nanmedian(frame.bead_diam_mm))
+    median, spread = _diameter_spread(frame.bead_diam_mm.tobytes())
     if spread < 1.15:
         return None
     z = (frame.phantom.xyz_mm[beads[known]] - T) @ R[2]
     log_ratio = np.log(measured[known] / (frame.iop[2] * d_mm[known] / z))
     off = np.abs(log_ratio - np.median(log_ratio)) > 0.5 * np.log(spread)
-    distinct = np.abs(np.log(d_mm[known] / np.nanmedian(frame.bead_diam_mm))) > 0.5 * np.log(spread)
+    distinct = np.abs(np.log(d_mm[known] / median)) > 0.5 * np.log(spread)
     return int((distinct & ~off).sum()), int(off.sum()), int(distinct.sum())
+
+
+@functools.lru_cache(maxsize=4)
+def _diameter_spread(diameters_mm: bytes) -> tuple[np.float64, float]:
+    """The median bead diameter and the largest over it, of the phantom's diameters (float64 bytes, NaN ignored).
+
+    Once per phantom: :func:`size_evidence` weighs every pose searched.
+    """
+    d = np.frombuffer(diameters_mm)
+    median = np.nanmedian(d)
+    return median, float(np.nanmax(d) / median)
 
 
 def acceptable(frame: CubeFrame, result: dict) -> tuple[bool, str]:

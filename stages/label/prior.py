@@ -410,7 +410,10 @@ class _Search:
         return polish(self.frame, self.model, R, T)
 
     def score(self, R: np.ndarray, T: np.ndarray) -> float:
-        """How well pose ``(R, T)`` explains the frame (higher is better)."""
+        """How well pose ``(R, T)`` explains the frame (higher is better), once per pose (starts are scored twice)."""
+        return self.memo(("score", R.tobytes(), T.tobytes()), self._score, R, T)
+
+    def _score(self, R: np.ndarray, T: np.ndarray) -> float:
         if self.camera is None:
             return float(coarse_evidence(self.frame, R, T))
         return evidence(self.frame, self.camera, R, T)

@@ -101,11 +101,12 @@ def evidence(
     gate = p.final_gate_bead_diameters * app
     from scipy.spatial import cKDTree
 
-    d_det, k = cKDTree(pred).query(frame.det_xy)
+    tree = cKDTree(pred)
+    d_det, k = tree.query(frame.det_xy)
     explained = d_det <= gate[k]
     if bound is not None and 2 * explained.sum() - len(explained) <= bound:
         return float(2 * explained.sum() - len(explained))
-    clear = ~ambiguous(pred, app, p.ambiguity_bead_diameters)
+    clear = ~ambiguous(pred, app, p.ambiguity_bead_diameters, tree)
     d_pred, j = frame.det_tree.query(pred)
     found = d_pred <= gate
     missing = int(np.sum(_missing(frame, pred, app, clear, found)))
@@ -196,10 +197,11 @@ def settle(
     scored = sorted(((model_evidence(frame, f), i) for i, f in enumerate(found)), key=lambda e: -e[0])
     candidates = [found[i] for _, i in scored]
     scores = [sc for sc, _ in scored]
+    inside = [in_region(c) for c in candidates]
     expanded: list = []
     k = 0
     while k < len(candidates) and len(expanded) < len(found) + _MAX_EXPANSIONS:
-        level = max((sc for c, sc in zip(candidates, scores) if in_region(c)), default=max(scores))
+        level = max((sc for sc, i in zip(scores, inside) if i), default=max(scores))
         # one labelling per orientation (the best there: its slips are the others'), a fair way below the best
         if scores[k] > level - _EXPAND_MARGINS * _EVIDENCE_MARGIN and not any(
             turn_angle(candidates[k]["R"], e["R"]) < np.radians(_BASIN_DEG) for e in expanded
@@ -209,6 +211,7 @@ def settle(
                 if all(agreement(result, c) < 0.9 for c in candidates):
                     candidates.append(result)
                     scores.append(model_evidence(frame, result))
+                    inside.append(in_region(result))
         k += 1
     # only fully acceptable labellings compete; the others only brought rivals
     eligible = [k for k, c in enumerate(candidates) if c.get("eligible", True)]
