@@ -189,9 +189,9 @@ def settle(
     few degrees about the turntable axis, which a regular step predicts well; a slip has the same
     orientation, and the prior cannot tell it), and no labelling within ``_NEAR_MARGINS`` margins of its
     evidence lies that many times nearer still (two hinges of a truth the search missed); else the frame
-    fails. With ``within``, the winner must
-    lie within that many of the prior's standard deviations (the region searched): a pose far from the
-    neighbours' that explains the frame better is not taken on the frame's word.
+    fails. With ``within``, the winner must lie within that many of the prior's standard deviations (the
+    region searched): a pose far from the neighbours' that explains the frame better is not taken on the
+    frame's word.
     """
 
     def in_region(c):
