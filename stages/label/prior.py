@@ -19,7 +19,7 @@ import numpy as np
 from fluorocal.stages.label.cube_frame import CubeFrame, coarse_evidence, with_camera
 from fluorocal.stages.label.iterate import acceptable, agreement, iterate
 from fluorocal.stages.label.motion import OrientationPrior
-from fluorocal.stages.label.rivals import evidence, explains_most, polish, settle, stands_alone
+from fluorocal.stages.label.rivals import evidence, explains_most, polish, settle, stands_alone, ties
 from fluorocal.stages.label.symmetry import turn_angle
 from fluorocal.stages.label.votes import (
     N_DEPTH_DETECTIONS,
@@ -122,9 +122,10 @@ def label_from_prior(
                     # prediction; one about as good would leave the frame ambiguous, which keeps the winner
                     # found first: the search is over
                     break
-            elif winner is None or not decide:
-                # a labelling found but not singled out says more than the failures of the other starts; without
-                # the prior to decide, a narrower region's winner that a wider one's labelling ties stands no more
+            elif winner is None or not decide or ties(frame, winner, found, prior):
+                # a labelling found but not singled out says more than the failures of the other starts; a narrower
+                # region's winner that a wider one's labelling ties stands no more when the prior cannot decide
+                # between them either (without it to decide, whatever the prior says)
                 winner, reason, settled = None, why, True
         elif not settled:
             reason = why or reason

@@ -37,6 +37,8 @@ _SIZE_WEIGHT = 3.0
 _EVIDENCE_MARGIN = 6.0
 # ... unless the prior orientation is nearer one of them, by this factor (in the prior's standard deviations)
 _PRIOR_MARGIN = 3.0
+# ... and no labelling this many margins short of that one's evidence lies that much nearer still
+_NEAR_MARGINS = 2.0
 # a rival pose is polished when its screened evidence, and labelled in full when its polished evidence,
 # comes within this many margins of the best's
 _SCREEN_MARGINS = 4.0
@@ -185,9 +187,11 @@ def settle(
     if each other is at least ``_PRIOR_MARGIN`` times as far from it in the prior's standard deviations,
     a distance of one counting as one (a symmetric rival is turned by a quarter or half turn, a hinge by a
     few degrees about the turntable axis, which a regular step predicts well; a slip has the same
-    orientation, and the prior cannot tell it); else the frame fails. With ``within``, the winner must
-    lie within that many of the prior's standard deviations (the region searched): a pose far from the
-    neighbours' that explains the frame better is not taken on the frame's word.
+    orientation, and the prior cannot tell it), and no labelling within ``_NEAR_MARGINS`` margins of its
+    evidence lies that many times nearer still (two hinges of a truth the search missed); else the frame
+    fails. With ``within``, the winner must lie within that many of the prior's standard deviations (the
+    region searched): a pose far from the neighbours' that explains the frame better is not taken on the
+    frame's word.
     """
 
     def in_region(c):
@@ -226,6 +230,24 @@ def settle(
     return winner, why
 
 
+def ties(frame: CubeFrame, model: dict, others: list, prior: OrientationPrior) -> bool:
+    """True if one of ``others`` is a labelling the frame cannot tell from ``model``, nor the ``prior``.
+
+    That is, another labelling (agreeing on less than 90 % of the labels) whose :func:`evidence` comes within
+    ``_EVIDENCE_MARGIN`` of ``model``'s or above, and which lies less than ``_PRIOR_MARGIN`` times as far from
+    the prior orientation (as :func:`settle` decides).
+    """
+    level = model_evidence(frame, model) - _EVIDENCE_MARGIN
+    far = _PRIOR_MARGIN * max(prior.distance(model["R"]), 1.0)
+    return any(
+        o.get("eligible", True)
+        and model_evidence(frame, o) > level
+        and prior.distance(o["R"]) < far
+        and agreement(o, model) < 0.9
+        for o in others
+    )
+
+
 def _choose(frame: CubeFrame, candidates: list, scores: np.ndarray, prior) -> tuple[dict | None, str]:
     """The candidate of clearly the highest evidence, else the one much the nearest the prior; else none."""
     order = np.argsort(-scores, kind="stable")
@@ -235,10 +257,17 @@ def _choose(frame: CubeFrame, candidates: list, scores: np.ndarray, prior) -> tu
         return candidates[top], ""
     contenders = [top, *close]
     if prior is not None:
-        dist = np.array([prior.distance(candidates[k]["R"]) for k in contenders])
-        near = np.argsort(dist)
-        if dist[near[1]] >= _PRIOR_MARGIN * max(dist[near[0]], 1.0):
-            return candidates[contenders[near[0]]], ""
+        dist = np.array([prior.distance(c["R"]) for c in candidates])
+        near = sorted(contenders, key=lambda k: dist[k])
+        w = near[0]
+        # a labelling only a little short of the winner's evidence that the prior would pick instead: the search
+        # missed the labelling between them (a hinge of the truth each), and the prior cannot decide
+        nearer = [k for k in order if scores[k] > scores[w] - _NEAR_MARGINS * _EVIDENCE_MARGIN and k != w]
+        nearer = [k for k in nearer if _PRIOR_MARGIN * max(dist[k], 1.0) <= dist[w]]
+        if dist[near[1]] >= _PRIOR_MARGIN * max(dist[w], 1.0):
+            if not nearer:
+                return candidates[w], ""
+            top, close = w, nearer
     a, b = candidates[top], candidates[close[0]]
     return None, (
         f"ambiguous: two poses explain the frame about equally well ({a['n_labelled']} and {b['n_labelled']} labels, "
