@@ -134,8 +134,8 @@ def _plain_ticks(axis, renderer) -> None:
     times per draw: a millisecond or more a tick, and a report has a few hundred. Here one tick is made as the
     axis makes it and copied: its marks at every location in one line of markers, its labels as texts of the
     same properties at the same places (the same pixels); the axis label goes beyond the labels as the axis
-    puts it. An axis with minor ticks, a grid, an offset text (``1e-5``), no tick in view or no label on its
-    label's side is left to matplotlib.
+    puts it. An axis with minor ticks, a grid, an offset text (``1e-5``), no tick in view, no label on its
+    label's side or shared with another axes' is left to matplotlib.
     """
     formatter = axis.get_major_formatter()
     locs = np.asarray(axis.get_majorticklocs(), float)
@@ -145,6 +145,9 @@ def _plain_ticks(axis, renderer) -> None:
     shown = np.abs(to_view(locs) - (lo + hi) / 2) <= (hi - lo) / 2 * (1 + 2e-10)  # the axis' own test of "in view"
     if not (axis.get_visible() and shown.any()) or len(axis.get_minorticklocs()) or formatter.get_offset():
         return
+    ax = axis.axes
+    if len((ax.get_shared_x_axes() if axis is ax.xaxis else ax.get_shared_y_axes()).get_siblings(ax)) > 1:
+        return  # shared axes share one locator: the NullLocator set below would take the other axes' ticks too
     tick = axis.get_major_ticks(1)[0]  # the model
     near = tick.label1 if axis.get_label_position() in ("bottom", "left") else tick.label2
     if tick.gridline.get_visible() or not near.get_visible():
@@ -188,7 +191,7 @@ def _place_label(axis, boxes, renderer) -> None:
 
     side = axis.get_label_position()
     box = Bbox.union([*boxes, axis.axes.spines.get(side, axis.axes).get_window_extent(renderer)])
-    pad = axis.labelpad * axis.get_figure(root=True).dpi / 72
+    pad = axis.labelpad * axis.axes.figure.dpi / 72  # not get_figure(root=True): matplotlib 3.10 and later only
     x, y = axis.label.get_position()
     beyond = {
         "bottom": (x, box.y0 - pad),

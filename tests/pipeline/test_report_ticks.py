@@ -20,6 +20,7 @@ PLAIN = {
     "categories": (True, True),
     "offset": (True, False),
     "log": (True, False),
+    "shared": (False, False),
 }
 
 
@@ -32,6 +33,14 @@ def _build(kind: str):
             im = ax.imshow(rng.random((12, 16)), extent=(-0.5, 1023.5, 767.5, -0.5))
             report.image_axes(ax, (1024, 768), "a title\non two lines")
         report.add_colorbar(fig, im, axes, "|Δ| (px)")
+        return fig
+    if kind == "shared":  # two panels sharing both axes (one locator): each keeps its ticks
+        fig, axes = report.new_figure(2, width=4.0, height=3.6)
+        axes[1].sharex(axes[0])
+        axes[1].sharey(axes[0])
+        for ax in axes:
+            ax.plot(np.arange(8), np.arange(8) ** 2, "o-")
+            ax.set_xlabel("x")
         return fig
     fig, (ax,) = report.new_figure(1, width=5.0, height=3.8, bottom_in=1.2)
     if kind == "lines":
