@@ -163,7 +163,7 @@ def _plain_ticks(axis, renderer) -> None:
         line.update_from(mark)
         at = np.full(len(locs), (mark.get_ydata() if is_x else mark.get_xdata())[0], float)
         line.set_data((locs, at) if is_x else (at, locs))
-        _add_unclipped(axis.axes, line, mark)
+        _add_unclipped(axis, line)
     boxes = []
     for model in (m for m in (tick.label1, tick.label2) if m.get_visible()):
         for loc, label in zip(locs, labels):
@@ -171,18 +171,22 @@ def _plain_ticks(axis, renderer) -> None:
             text.update_from(model)
             text.set_rotation_mode(model.get_rotation_mode())
             text.set_position((loc, model.get_position()[1]) if is_x else (model.get_position()[0], loc))
-            _add_unclipped(axis.axes, text, model)
+            _add_unclipped(axis, text)
             if model is near:
                 boxes.append(text.get_window_extent(renderer))
     axis.set_major_locator(NullLocator())  # no tick of its own any more
     _place_label(axis, boxes, renderer)
 
 
-def _add_unclipped(ax, artist, model) -> None:
-    """Put ``artist`` on ``ax`` at the ``model`` tick part's z-order, not clipped to the axes (as ticks are)."""
-    ax.add_artist(artist)
+def _add_unclipped(axis, artist) -> None:
+    """Put ``artist`` on ``axis``' axes at the axis' z-order, not clipped to the axes (as ticks are).
+
+    The axis' z-order, not its tick parts' own (2 and 3): matplotlib draws every tick when it draws the axis
+    (1.5 by default, below lines), so that a marker drawn unclipped across the spine covers the tick marks.
+    """
+    axis.axes.add_artist(artist)
     artist.set_clip_on(False)
-    artist.set_zorder(model.get_zorder())
+    artist.set_zorder(axis.get_zorder())
 
 
 def _place_label(axis, boxes, renderer) -> None:

@@ -21,6 +21,7 @@ PLAIN = {
     "offset": (True, False),
     "log": (True, False),
     "shared": (False, False),
+    "unclipped": (True, True),
 }
 
 
@@ -55,6 +56,10 @@ def _build(kind: str):
     elif kind == "categories":  # as fluorocal.cmd_check's trend: strings along x, rotated by tick_params
         ax.plot(["2026-01-02", "2026-02-03", "2026-03-04"], [0.2, 0.25, 0.22], "o-")
         ax.tick_params(axis="x", labelrotation=60, labelsize=6)
+    elif kind == "unclipped":  # markers drawn across the spine, over the tick marks (the axis is drawn below lines)
+        ax.plot(np.arange(8), np.zeros(8), "s", markersize=12, clip_on=False)
+        ax.set_xlim(0, 7)
+        ax.set_ylim(0, 1)
     elif kind == "offset":  # y labels need an offset text ("+1") beside them
         ax.plot(np.arange(5), 1 + 1e-6 * np.arange(5))
         ax.set_ylabel("value")
