@@ -134,8 +134,8 @@ def _plain_ticks(axis, renderer) -> None:
     times per draw: a millisecond or more a tick, and a report has a few hundred. Here one tick is made as the
     axis makes it and copied: its marks at every location in one line of markers, its labels as texts of the
     same properties at the same places (the same pixels); the axis label goes beyond the labels as the axis
-    puts it. An axis with minor ticks, a grid, an offset text (``1e-5``), no tick in view or no label on its
-    label's side is left to matplotlib.
+    puts it. An axis with minor ticks, a grid, an offset text (``1e-5``), no tick in view, no label on its
+    label's side or shared with another axes' is left to matplotlib.
     """
     formatter = axis.get_major_formatter()
     locs = np.asarray(axis.get_majorticklocs(), float)
@@ -145,6 +145,9 @@ def _plain_ticks(axis, renderer) -> None:
     shown = np.abs(to_view(locs) - (lo + hi) / 2) <= (hi - lo) / 2 * (1 + 2e-10)  # the axis' own test of "in view"
     if not (axis.get_visible() and shown.any()) or len(axis.get_minorticklocs()) or formatter.get_offset():
         return
+    ax = axis.axes
+    if len((ax.get_shared_x_axes() if axis is ax.xaxis else ax.get_shared_y_axes()).get_siblings(ax)) > 1:
+        return  # shared axes share one locator: the NullLocator set below would take the other axes' ticks too
     tick = axis.get_major_ticks(1)[0]  # the model
     near = tick.label1 if axis.get_label_position() in ("bottom", "left") else tick.label2
     if tick.gridline.get_visible() or not near.get_visible():
@@ -160,7 +163,7 @@ def _plain_ticks(axis, renderer) -> None:
         line.update_from(mark)
         at = np.full(len(locs), (mark.get_ydata() if is_x else mark.get_xdata())[0], float)
         line.set_data((locs, at) if is_x else (at, locs))
-        _add_unclipped(axis.axes, line, mark)
+        _add_unclipped(axis, line)
     boxes = []
     for model in (m for m in (tick.label1, tick.label2) if m.get_visible()):
         for loc, label in zip(locs, labels):
@@ -168,18 +171,22 @@ def _plain_ticks(axis, renderer) -> None:
             text.update_from(model)
             text.set_rotation_mode(model.get_rotation_mode())
             text.set_position((loc, model.get_position()[1]) if is_x else (model.get_position()[0], loc))
-            _add_unclipped(axis.axes, text, model)
+            _add_unclipped(axis, text)
             if model is near:
                 boxes.append(text.get_window_extent(renderer))
     axis.set_major_locator(NullLocator())  # no tick of its own any more
     _place_label(axis, boxes, renderer)
 
 
-def _add_unclipped(ax, artist, model) -> None:
-    """Put ``artist`` on ``ax`` at the ``model`` tick part's z-order, not clipped to the axes (as ticks are)."""
-    ax.add_artist(artist)
+def _add_unclipped(axis, artist) -> None:
+    """Put ``artist`` on ``axis``' axes at the axis' z-order, not clipped to the axes (as ticks are).
+
+    The axis' z-order, not its tick parts' own (2 and 3): matplotlib draws every tick when it draws the axis
+    (1.5 by default, below lines), so that a marker drawn unclipped across the spine covers the tick marks.
+    """
+    axis.axes.add_artist(artist)
     artist.set_clip_on(False)
-    artist.set_zorder(model.get_zorder())
+    artist.set_zorder(axis.get_zorder())
 
 
 def _place_label(axis, boxes, renderer) -> None:
@@ -188,7 +195,7 @@ def _place_label(axis, boxes, renderer) -> None:
 
     side = axis.get_label_position()
     box = Bbox.union([*boxes, axis.axes.spines.get(side, axis.axes).get_window_extent(renderer)])
-    pad = axis.labelpad * axis.get_figure(root=True).dpi / 72
+    pad = axis.labelpad * axis.axes.figure.dpi / 72  # not get_figure(root=True): matplotlib 3.10 and later only
     x, y = axis.label.get_position()
     beyond = {
         "bottom": (x, box.y0 - pad),

@@ -20,6 +20,8 @@ PLAIN = {
     "categories": (True, True),
     "offset": (True, False),
     "log": (True, False),
+    "shared": (False, False),
+    "unclipped": (True, True),
 }
 
 
@@ -32,6 +34,14 @@ def _build(kind: str):
             im = ax.imshow(rng.random((12, 16)), extent=(-0.5, 1023.5, 767.5, -0.5))
             report.image_axes(ax, (1024, 768), "a title\non two lines")
         report.add_colorbar(fig, im, axes, "|Δ| (px)")
+        return fig
+    if kind == "shared":  # two panels sharing both axes (one locator): each keeps its ticks
+        fig, axes = report.new_figure(2, width=4.0, height=3.6)
+        axes[1].sharex(axes[0])
+        axes[1].sharey(axes[0])
+        for ax in axes:
+            ax.plot(np.arange(8), np.arange(8) ** 2, "o-")
+            ax.set_xlabel("x")
         return fig
     fig, (ax,) = report.new_figure(1, width=5.0, height=3.8, bottom_in=1.2)
     if kind == "lines":
@@ -46,6 +56,10 @@ def _build(kind: str):
     elif kind == "categories":  # as fluorocal.cmd_check's trend: strings along x, rotated by tick_params
         ax.plot(["2026-01-02", "2026-02-03", "2026-03-04"], [0.2, 0.25, 0.22], "o-")
         ax.tick_params(axis="x", labelrotation=60, labelsize=6)
+    elif kind == "unclipped":  # markers drawn across the spine, over the tick marks (the axis is drawn below lines)
+        ax.plot(np.arange(8), np.zeros(8), "s", markersize=12, clip_on=False)
+        ax.set_xlim(0, 7)
+        ax.set_ylim(0, 1)
     elif kind == "offset":  # y labels need an offset text ("+1") beside them
         ax.plot(np.arange(5), 1 + 1e-6 * np.arange(5))
         ax.set_ylabel("value")

@@ -16,7 +16,13 @@ from fluorocal.stages.learn import calibrate
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import difference_operator
 from fluorocal.stages.learn.network import camera_jacobians
-from fluorocal.stages.learn.uncertainty import _network, _symmetric_inverse, convention_truth, joint_uncertainty
+from fluorocal.stages.learn.uncertainty import (
+    _network,
+    _projected,
+    _symmetric_inverse,
+    convention_truth,
+    joint_uncertainty,
+)
 from scipy.linalg import ldl
 from scipy.sparse import diags
 
@@ -265,3 +271,25 @@ def test_symmetric_inverse_with_two_by_two_pivots_equals_the_dense_inverse(kind)
     np.testing.assert_allclose(got.quadratic(V), V.T @ inv @ V, rtol=0, atol=1e-12 * scale)
     np.testing.assert_allclose(got.row_quadratics(V.T), np.diag(V.T @ inv @ V), rtol=0, atol=1e-12 * scale)
     np.testing.assert_allclose(got.solve(V), inv @ V, rtol=0, atol=1e-12 * np.abs(inv @ V).max())
+
+
+def test_in_place_products_by_blocks_of_rows_equal_the_dense_ones():
+    """The field's variance works in place a block of rows at a time: more rows than a block, against dense products.
+
+    (The fixtures' ``Z`` have at most a few hundred rows, one block: a block's bounds are checked here.)
+    """
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(40, 40))
+    H, G = X + X.T, rng.normal(size=(1100, 40))  # 1100 rows: three blocks of 512
+    want = np.einsum("ij,jk,ik->i", G, np.linalg.inv(H), G)
+    got = _symmetric_inverse(H)
+    E = G.copy()
+    half = got.right_half(E, overwrite=True)
+    assert np.shares_memory(half, E)  # in place: no second array of the operand's size
+    # condition ~1e2-1e3: round-off ~1e-14 relative to the largest entry
+    np.testing.assert_allclose(got.D_inv.row_quadratics(half), want, rtol=0, atol=1e-12 * np.abs(want).max())
+    # the gauge's projector Π Z = Z - V (V^T V)^-1 V^T Z by blocks of 7 rows (the last one short)
+    V, Z = rng.normal(size=(1100, 4)), rng.normal(size=(1100, 6))
+    CY_inv = np.linalg.inv(V.T @ V)
+    dense = (np.eye(1100) - V @ CY_inv @ V.T) @ Z
+    np.testing.assert_allclose(_projected(Z, V, CY_inv, rows=7), dense, rtol=0, atol=1e-12 * np.abs(dense).max())
