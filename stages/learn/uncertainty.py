@@ -80,6 +80,9 @@ from fluorocal.stages.learn.params import FieldGauge
 from scipy.linalg import blas, lapack, ldl
 from scipy.sparse import bmat, csr_matrix, diags, identity, issparse, vstack
 
+# rows of the field's dense work done at a time in place (no second array of its size)
+_ROWS = 512
+
 
 @dataclass(frozen=True)
 class JointUncertainty:
@@ -228,7 +231,7 @@ def joint_uncertainty(
     return JointUncertainty(iop_cov, _std(np.diag(iop_cov)), node_std, _std(np.diag(cov_cond)))
 
 
-def _projected(Z: np.ndarray, V: np.ndarray, CY_inv: np.ndarray, rows: int = 512) -> np.ndarray:
+def _projected(Z: np.ndarray, V: np.ndarray, CY_inv: np.ndarray, rows: int = _ROWS) -> np.ndarray:
     """``Π Z = Z - V (V^T V)^-1 V^T Z`` in place, a block of ``rows`` at a time (no second array of ``Z``'s size)."""
     T = CY_inv @ (V.T @ Z)
     for lo in range(0, len(Z), rows):
@@ -399,8 +402,8 @@ class _SymmetricInverse:
         """
         if overwrite:
             E = X
-            for lo in range(0, len(E), 512):
-                E[lo : lo + 512] = np.take(E[lo : lo + 512], self.perm, axis=1)
+            for lo in range(0, len(E), _ROWS):
+                E[lo : lo + _ROWS] = np.take(E[lo : lo + _ROWS], self.perm, axis=1)
         else:
             E = np.take(np.asarray(X, dtype=np.float64), self.perm, axis=1)
         return blas.dtrmm(1.0, self.L_inv, E.T, side=0, lower=1, trans_a=0, diag=1, overwrite_b=1).T
