@@ -104,17 +104,8 @@ def test_a_narrower_searchs_hinge_tied_by_the_truth_found_later_does_not_stand()
     wider searches then found the truth (146, 2.3 sigmas), a tie the prior cannot break, and the hinge stood:
     63 of its 146 labels were a bead off.
     """
-    motion = dict(turntable_height_mm=15.0, distortion="strong", turntable_wobble_deg=5.0)
-    sp = SimulateParams(
-        n_frames=16,
-        seed=0,
-        marker_layout="random",
-        n_markers=3,
-        turntable_step_deg=12.0,
-        hidden_marker_fraction=0.8,
-        turntable_translation_mm=20.0,
-        **motion,
-    )
+    hidden = {"n_markers": 3, "turntable_step_deg": 12.0, "hidden_marker_fraction": 0.8}
+    sp = SimulateParams(n_frames=16, seed=0, distortion="strong", **{**VARIED, **hidden})
     sim = simulate(sp, render=False)
     rng = np.random.default_rng([0, 12])
     fts = sim.truth.frames[0]
