@@ -19,7 +19,7 @@ import numpy as np
 from fluorocal.stages.label.cube_frame import CubeFrame, coarse_evidence, with_camera
 from fluorocal.stages.label.iterate import acceptable, agreement, iterate
 from fluorocal.stages.label.motion import OrientationPrior
-from fluorocal.stages.label.rivals import evidence, explains_most, polish, settle, stands_alone, ties
+from fluorocal.stages.label.rivals import evidence, explains_most, polish, settle, stands_alone
 from fluorocal.stages.label.symmetry import turn_angle
 from fluorocal.stages.label.votes import (
     N_DEPTH_DETECTIONS,
@@ -78,15 +78,14 @@ def label_from_prior(
     labellings found so far are settled against each other and their rivals, the prior deciding between
     those that the frame itself cannot tell apart; a winner must lie in the region searched, and a wider
     region's winner replaces the narrower's (a hinge of the truth near the prediction gives way to the
-    truth a few sigmas out); a wider region's labelling that ties the narrower's winner, the prior unable
-    to tell them apart either (:func:`~fluorocal.stages.label.rivals.ties`), drops it: the frame is then
-    ambiguous. The search ends early once a winner stands alone
+    truth a few sigmas out); a narrower region's winner that the settling of everything found no longer
+    picks (a wider region's labelling ties it, the prior unable to tell them apart either, or beats it) is
+    dropped: the frame is then ambiguous. The search ends early once a winner stands alone
     (:func:`~fluorocal.stages.label.rivals.stands_alone`: nothing found later could beat it). With
     ``turn_search`` and no winner, turns about the prior's axis over the full circle close the search
     (:func:`_turn_starts`). Labellings found otherwise (``also``: the frame's markers') compete with them
     on their evidence alone, wherever they lie. ``decide=False``: the prior does not decide between
-    labellings the frame cannot tell apart (a prior centred on a suspect pose would favour it), and a
-    winner that a wider region's labelling ties is dropped wherever that lies.
+    labellings the frame cannot tell apart (a prior centred on a suspect pose would favour it).
 
     ``camera`` (a neighbouring frame's: its ``iop`` and polynomial ``corr``, the system's distortion)
     sharpens the search: the detections vote corrected, and the starts are ranked by their
@@ -122,12 +121,11 @@ def label_from_prior(
                 if stands_alone(frame, best, prior):
                     # a labelling found later could not beat it by a margin, nor lie much nearer the
                     # prediction: the search is over (one about as good, a few sigmas out, would have left
-                    # the frame ambiguous through ties; the early stop takes that risk)
+                    # the frame ambiguous; the early stop takes that risk)
                     break
-            elif winner is None or not decide or ties(frame, winner, found, prior):
+            else:
                 # a labelling found but not singled out says more than the failures of the other starts; a narrower
-                # region's winner that a wider one's labelling ties stands no more when the prior cannot decide
-                # between them either (without it to decide, whatever the prior says)
+                # region's winner that the settling of everything found does not pick stands no more
                 winner, reason, settled = None, why, True
         elif not settled:
             reason = why or reason

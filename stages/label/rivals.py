@@ -230,24 +230,6 @@ def settle(
     return winner, why
 
 
-def ties(frame: CubeFrame, model: dict, others: list, prior: OrientationPrior) -> bool:
-    """True if one of ``others`` is a labelling the frame cannot tell from ``model``, nor the ``prior``.
-
-    That is, another labelling (agreeing on less than 90 % of the labels) whose :func:`evidence` comes within
-    ``_EVIDENCE_MARGIN`` of ``model``'s or above, and which lies less than ``_PRIOR_MARGIN`` times as far from
-    the prior orientation (as :func:`settle` decides).
-    """
-    level = model_evidence(frame, model) - _EVIDENCE_MARGIN
-    far = _PRIOR_MARGIN * max(prior.distance(model["R"]), 1.0)
-    return any(
-        o.get("eligible", True)
-        and model_evidence(frame, o) > level
-        and prior.distance(o["R"]) < far
-        and agreement(o, model) < 0.9
-        for o in others
-    )
-
-
 def _choose(frame: CubeFrame, candidates: list, scores: np.ndarray, prior) -> tuple[dict | None, str]:
     """The candidate of clearly the highest evidence, else the one much the nearest the prior; else none."""
     order = np.argsort(-scores, kind="stable")
