@@ -14,6 +14,7 @@ marker, a bar, a tick) costs far more than its pixels: thousands of dots are dra
 from __future__ import annotations
 
 import contextlib
+import functools
 import gc
 import sys
 from pathlib import Path
@@ -138,6 +139,8 @@ def save_figure(fig, path: Path) -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     canvas = FigureCanvasAgg(fig)
+    size = canvas.get_width_height(physical=True)
+    canvas.get_renderer = lambda: _renderer(*size, fig.dpi)  # what the canvas draws with
     with no_collection():
         for ax in fig.axes:
             if ax.get_visible():
@@ -154,6 +157,19 @@ def save_figure(fig, path: Path) -> Path:
         raise InputError(f"{path}: cannot encode the figure as PNG")
     write_png(path, png.tobytes())
     return path
+
+
+@functools.lru_cache(maxsize=8)
+def _renderer(width: int, height: int, dpi: float):
+    """The Agg renderer of every figure of ``width`` x ``height`` pixels at ``dpi`` (drawn one after the other).
+
+    Matplotlib keeps the size of each text it lays out per renderer: the figures of one size share the
+    measures of their common texts (tick labels, axis labels, frame names) instead of each measuring them
+    anew. Each drawing clears the renderer's pixels first.
+    """
+    from matplotlib.backends.backend_agg import RendererAgg
+
+    return RendererAgg(width, height, dpi)
 
 
 def _plain_ticks(axis, renderer) -> None:
