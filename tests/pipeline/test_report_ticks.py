@@ -87,3 +87,26 @@ def test_ticks_are_the_pixels_matplotlib_draws(tmp_path, kind):
     assert not differ.any(), f"{differ.sum()} pixels differ, rows {np.nonzero(differ.any(axis=1))[0][[0, -1]]}"
     plain = tuple(isinstance(a.get_major_locator(), NullLocator) for a in (fig.axes[0].xaxis, fig.axes[0].yaxis))
     assert plain == PLAIN[kind]
+
+
+def test_matplotlib_imported_without_the_set_docstrings_keeps_every_setter():
+    """``import_matplotlib`` leaves out only the text of ``set``'s docstrings: signatures and setters are whole."""
+    import subprocess
+    import sys
+
+    code = (
+        "import inspect, matplotlib.artist\n"
+        "kwdoc = matplotlib.artist.kwdoc\n"
+        "from fluorocal.report import import_matplotlib\n"
+        "import_matplotlib()\n"
+        "from matplotlib.lines import Line2D\n"
+        "from matplotlib.text import Text\n"
+        "assert matplotlib.artist.kwdoc is kwdoc, 'kwdoc not restored'\n"
+        "assert 'Supported properties' in Line2D.set.__doc__ and 'antialiased' not in Line2D.set.__doc__\n"
+        "assert {'color', 'linewidth', 'marker'} <= set(inspect.signature(Line2D.set).parameters)\n"
+        "assert {'fontsize', 'rotation'} <= set(inspect.signature(Text.set).parameters)\n"
+        "line = Line2D([0, 1], [0, 1]); line.set(color='r', lw=3)\n"
+        "assert (line.get_color(), line.get_linewidth()) == ('r', 3)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
