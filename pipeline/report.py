@@ -17,6 +17,7 @@ import contextlib
 import functools
 import gc
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,8 @@ TOP_IN, TITLE_LINE_IN = 0.12, 0.2
 #: room right of the panels without a colour bar (half the last x tick label), between panels (a y axis' labels)
 #: and for a colour bar, inches
 RIGHT_IN, GAP_IN, COLORBAR_IN = 0.35, 1.1, 1.3
+# the shared renderers (:func:`_renderer`) draw one figure at a time, whichever thread draws it
+_DRAWING = threading.Lock()
 
 
 def rms_px(residual_px: np.ndarray) -> float:
@@ -141,14 +144,14 @@ def save_figure(fig, path: Path) -> Path:
     canvas = FigureCanvasAgg(fig)
     size = canvas.get_width_height(physical=True)
     canvas.get_renderer = lambda: _renderer(*size, fig.dpi)  # what the canvas draws with
-    with no_collection():
+    with _DRAWING, no_collection():
         for ax in fig.axes:
             if ax.get_visible():
                 ax.apply_aspect()  # the ticks of an equal-aspect image's axes depend on its final box
                 for axis in (ax.xaxis, ax.yaxis):
                     _plain_ticks(axis, canvas.get_renderer())
         canvas.draw()
-    bgr = cv2.cvtColor(np.asarray(canvas.buffer_rgba()), cv2.COLOR_RGBA2BGR)  # opaque: no alpha channel to encode
+        bgr = cv2.cvtColor(np.asarray(canvas.buffer_rgba()), cv2.COLOR_RGBA2BGR)  # opaque: no alpha channel to encode
     # zlib's level 3 on the rows as they are: PNG's prediction filters take twice the time for files about as large
     # (a plot is mostly areas of flat colour; the report's PNGs are 0.8 to 1.1 times the size of filtered ones)
     params = [cv2.IMWRITE_PNG_COMPRESSION, 3, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
@@ -165,7 +168,7 @@ def _renderer(width: int, height: int, dpi: float):
 
     Matplotlib keeps the size of each text it lays out per renderer: the figures of one size share the
     measures of their common texts (tick labels, axis labels, frame names) instead of each measuring them
-    anew. Each drawing clears the renderer's pixels first; fluorocal draws its figures one at a time.
+    anew. Each drawing clears the renderer's pixels first, one figure at a time (``_DRAWING``).
     """
     from matplotlib.backends.backend_agg import RendererAgg
 
