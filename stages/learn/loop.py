@@ -63,18 +63,11 @@ from fluorocal.stages.learn.stopping import cost_raised, decide, field_step_sigm
 
 logger = logging.getLogger(__name__)
 
-#: conjugate-gradient cap of the refinement's field step inside the loop, and its tolerances per what responds.
-#: The joint step is linearised afresh at every iteration, so an inexact solve is enough: it stops once the step's
-#: model decrease is within about 1e-3 of its whole (the truncated-Newton rule, :func:`fit_grids_jointly`'s
-#: ``model_tolerance``). A residual test (1e-3 of the right side, until issue 31) waited out the near-null modes,
-#: the field changes the orientation almost reproduces, whose share of the decrease is far below that: twice the
-#: iterations for nothing the next adjustment keeps. The beads-alone step's convergence test reads its steps
-#: against the field's uncertainty, which a loose solve would blur: a residual tolerance of 1e-6.
+#: conjugate-gradient cap of the refinement's field step inside the loop, and its relative tolerance per what
+#: responds: the joint step is linearised afresh at every iteration, so an inexact solve is enough; the beads-alone
+#: step's convergence test reads its steps against the field's uncertainty, which a loose solve would blur
 LOOP_CG_ITERATIONS = 100
-LOOP_CG_TOLERANCE = {
-    Respond.ORIENTATION: {"cg_tolerance": 0.0, "model_tolerance": 1e-3},
-    Respond.POINTS: {"cg_tolerance": 1e-6},
-}
+LOOP_CG_TOLERANCE = {Respond.ORIENTATION: 1e-3, Respond.POINTS: 1e-6}
 
 
 @dataclass(frozen=True)
@@ -533,7 +526,7 @@ def _fit_jointly(plan: _Plan, state: _State, sels: list, memory: tuple, start=No
                 origin,
             )
         )
-    cg = dict(max_cg_iterations=LOOP_CG_ITERATIONS, **LOOP_CG_TOLERANCE[state.respond])
+    cg = dict(max_cg_iterations=LOOP_CG_ITERATIONS, cg_tolerance=LOOP_CG_TOLERANCE[state.respond])
     return fit_grids_jointly(
         steps,
         network,
