@@ -126,7 +126,8 @@ def fit_grids_jointly(
     the node values' updates ``δ_s`` of every system and ``dθ``, every system's IOP and poses and
     the beads, which the systems share; ``dθ`` is eliminated (its normal matrix is small and dense:
     a Cholesky factor) and the reduced system in the stacked ``δ`` solved by conjugate gradients
-    preconditioned with the field-only normal matrix and the gauge holds (sparse factors per system). One system's
+    preconditioned with the field-only normal matrix and the gauge holds (sparse factors per system),
+    deflated by the smooth fields the orientation nearly reproduces (:func:`_deflated`). One system's
     step is the system's Gauss-Newton step, several systems' the whole problem's: the shared
     beads tie their fields, which one system's step at a time (the others' orientation held)
     could only approach by a slow block iteration. What no data fix is held: the network's
@@ -435,7 +436,7 @@ def _solve_reduced(parts, matvec, rhs, gauge, max_cg_iterations: int, cg_toleran
 
     The preconditioner is the field-only normal matrix plus the gauge penalty ``G^T G`` (``gauge``, rank a few per
     system, by Woodbury's identity): left out, the gauge modes' eigenvalues stood apart several times above the
-    rest, each costing the conjugate gradients iterations of its own.
+    rest, each costing the conjugate gradients iterations of its own; and deflated (:func:`_deflated`).
     """
     # one factorisation per system, of the mean of its components' data terms (their weights differ by the
     # centroids' σx / σy alone: the mean preconditions both about as well as each its own, at half the factorisations)
