@@ -173,9 +173,10 @@ def test_field_tolerance_stops_before_the_cap_as_accurate_as_running_to_it(simul
     assert stopped.converged and "its own uncertainty" in stopped.stop_reason, stopped.stop_reason
     assert len(grid) < 15 and not capped.converged
     # the rule as stated: at each of the last two refinement steps no supported node moved by half its sigma and
-    # the adjustment's cost was not below the refinement's best before it by 1e-4 per observation (the default
-    # tolerance); no earlier pair of steps did so
-    tol = 1e-4 * len(obs)
+    # the adjustment's cost was not below the refinement's best before it by the cost tolerance per observation
+    # (``tolerance``, 0 here: with the default 1e-4 this read a creep of the cost by < 0.3 as settled where the loop,
+    # as told, did not); no earlier pair of steps did so
+    tol = LearnParams(**base).tolerance * len(obs)
     settled = [
         i >= 2 and grid[i].step_sigma < 0.5 and grid[i].cost_adjust > min(h.cost_adjust for h in grid[:i]) - tol
         for i in range(len(grid))
