@@ -148,12 +148,23 @@ def coarse_evidence(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> int:
         return -len(frame.det_xy)
     gate = frame.params.gate_bead_diameters * diam[vis]
     tree = cKDTree(xy[vis])
-    d_det, k = tree.query(frame.det_xy)
-    explained = int(np.sum(d_det <= gate[k]))
-    d_pred, _ = frame.det_tree.query(xy[vis])
+    explained = int(np.sum(within_gates(tree, frame.det_xy, gate)))
+    d_pred, _ = frame.det_tree.query(xy[vis], distance_upper_bound=float(gate.max()))
     clear = ~ambiguous(xy[vis], diam[vis], frame.params.ambiguity_bead_diameters, tree)
     missing = int(np.sum(clear & (d_pred > gate) & inside_hull(frame, xy[vis], diam[vis])))
     return 2 * explained - len(frame.det_xy) - missing
+
+
+def within_gates(tree, xy: np.ndarray, gate_px: np.ndarray) -> np.ndarray:
+    """``(N,) bool``: points ``xy`` within the gate ``gate_px`` of the nearest point of ``tree`` (a cKDTree).
+
+    The nearest point's own gate decides. The query stops at the widest gate: a point farther from every
+    tree point is within none (its distance is then inf, its index the tree's size).
+    """
+    d, k = tree.query(xy, distance_upper_bound=float(np.max(gate_px)))
+    out = np.isfinite(d)
+    out[out] = d[out] <= gate_px[k[out]]
+    return out
 
 
 def marker_mask(frame: CubeFrame) -> np.ndarray:

@@ -47,13 +47,12 @@ def iterate(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> dict | None:
         if len(vis) < 4:
             return None
         pred = corr.distort_points(ideal[vis])
-        amb = ambiguous(pred, diam[vis], p.ambiguity_bead_diameters)
         i_pred, i_det = assign(pred, p.gate_bead_diameters * diam[vis], frame.det_xy, frame.det_tree)
         key = (vis[i_pred].tobytes(), i_det.tobytes())
         if key == previous and corr.degree >= target_degree:
             break
         previous = key
-        use = ~amb[i_pred]
+        use = ~ambiguous(pred, diam[vis], p.ambiguity_bead_diameters)[i_pred]
         beads, dets = vis[i_pred[use]], i_det[use]
         if len(beads) < 6:
             return None

@@ -105,8 +105,8 @@ def label_from_prior(
         tried += starts
         new, why = _label_starts(view, starts)
         # a labelling found again (from a start a little off one tried before) is not its own rival: of the
-        # two, the one with more evidence stays
-        found = _merged(frame, found, new)
+        # two, the one with more evidence stays (in place: the searches ask whether anything is found yet)
+        found[:] = _merged(frame, found, new)
         if found:
             # every region is searched: a labelling found in a narrower one may be a hinge or slip of the
             # truth, which lies a few sigmas out when the axis wobbles; the wider search replaces the narrower's

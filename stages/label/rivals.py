@@ -19,7 +19,7 @@ from dataclasses import replace
 
 import numpy as np
 from fluorocal.stages.label.assign import ambiguous
-from fluorocal.stages.label.cube_frame import CubeFrame, inside_hull, visible, with_camera
+from fluorocal.stages.label.cube_frame import CubeFrame, inside_hull, visible, with_camera, within_gates
 from fluorocal.stages.label.iterate import (
     acceptable,
     agreement,
@@ -104,12 +104,12 @@ def evidence(
     from scipy.spatial import cKDTree
 
     tree = cKDTree(pred)
-    d_det, k = tree.query(frame.det_xy)
-    explained = d_det <= gate[k]
+    explained = within_gates(tree, frame.det_xy, gate)
     if bound is not None and 2 * explained.sum() - len(explained) <= bound:
         return float(2 * explained.sum() - len(explained))
     clear = ~ambiguous(pred, app, p.ambiguity_bead_diameters, tree)
-    d_pred, j = frame.det_tree.query(pred)
+    # nothing beyond the widest gate is found: the query stops there (j of a point not found is not used)
+    d_pred, j = frame.det_tree.query(pred, distance_upper_bound=float(gate.max()))
     found = d_pred <= gate
     missing = int(np.sum(_missing(frame, pred, app, clear, found)))
     pairs = clear & found

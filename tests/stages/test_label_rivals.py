@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from fluorocal.stages.label.correction import Correction
-from fluorocal.stages.label.cube_frame import make_cube_frame
+from fluorocal.stages.label.cube_frame import make_cube_frame, within_gates
 from fluorocal.stages.label.detections import Detections, assumed_iop
 from fluorocal.stages.label.iterate import agreement, iterate
 from fluorocal.stages.label.markers import marker_poses
@@ -134,3 +134,22 @@ def test_a_labelling_found_again_keeps_the_better_of_the_two(monkeypatch):
     better_a, worse_b, c = {"family": "a", "evidence": 101.0}, {"family": "b", "evidence": 80.0}, {"family": "c"}
     assert prior._merged(None, [a, b], [better_a, worse_b, c]) == [better_a, b, c]
     assert prior._merged(None, [a], [{"family": "a", "evidence": 100.0}]) == [a]  # a tie keeps the first found
+
+
+def test_within_gates_is_the_nearest_points_own_gate():
+    """Against brute force: a point is within the gate of the tree point nearest it (all distances computed).
+
+    Gates of a few px around points a few px apart: some points lie within their nearest point's gate, some
+    within another's only (which does not count), some beyond every gate.
+    """
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        centres = rng.uniform(0.0, 100.0, (rng.integers(2, 60), 2))
+        gate = rng.uniform(0.5, 6.0, len(centres))
+        xy = rng.uniform(-10.0, 110.0, (200, 2))
+        d = np.linalg.norm(xy[:, None] - centres[None], axis=2)
+        nearest = d.argmin(1)
+        expected = d[np.arange(len(xy)), nearest] <= gate[nearest]
+        assert np.array_equal(within_gates(cKDTree(centres), xy, gate), expected)

@@ -88,6 +88,26 @@ def test_small_turn_with_hidden_markers_is_labelled_from_the_neighbour():
     assert lab.n_labelled >= 0.8 * len(ids)
 
 
+def test_a_frame_found_from_the_prediction_is_not_searched_over_turns(monkeypatch):
+    """A turntable's frame without markers, between labelled ones, is found from the prediction: no turn searched.
+
+    The turns about the axis are the search's last resort, and before the rotations around the prediction
+    only when the prediction itself finds nothing; every frame's labelling is still the truth.
+    """
+    from fluorocal.stages.label import prior
+
+    turns = []
+    search = prior._turn_starts
+    monkeypatch.setattr(prior, "_turn_starts", lambda *a: turns.append(1) or search(*a))
+    sim = simulate(SimulateParams(n_frames=8, seed=3, turntable_step_deg=10.0), render=False)
+    dets = sequence_with_hidden_markers(sim, 4, np.random.default_rng(3))
+    labs = label_sequence([c for c, _ in dets], sim.phantom, params_of(sim))
+    assert labs[4].ok and labs[4].pose_source == "prior", labs[4].summary()
+    for lab, (_, ids) in zip(labs, dets):
+        assert lab.ok and np.array_equal(ids[lab.det_index], lab.bead_id), lab.summary()
+    assert not turns
+
+
 @pytest.mark.check  # the prior search over a 1024 px frame; make test refuses a periodic patch's prior (test_label)
 def test_uniform_phantom_a_quarter_turn_from_the_prior_is_never_mislabelled():
     """Beads all of one size, the prior pose a quarter turn away: the frame fails (or is right).
