@@ -8,6 +8,8 @@ import numpy as np
 _MAX_CANDIDATES = 4
 # cost of a forbidden pair in the assignment: larger than any sum of gated distances
 _FORBIDDEN = 1e9
+# a cKDTree query's bound is strict and compares squared distances: it is set this fraction above the widest gate
+_BOUND_SLACK = 1e-9
 
 
 def assign(pred_xy: np.ndarray, gate_px: np.ndarray, det_xy: np.ndarray, det_tree) -> tuple[np.ndarray, np.ndarray]:
@@ -30,7 +32,7 @@ def assign(pred_xy: np.ndarray, gate_px: np.ndarray, det_xy: np.ndarray, det_tre
     if not len(pred_xy) or not len(det_xy):
         return np.empty(0, np.int64), np.empty(0, np.int64)
     k = min(_MAX_CANDIDATES, len(det_xy))
-    d, j = det_tree.query(pred_xy, k=k, distance_upper_bound=float(np.max(gate_px)))
+    d, j = det_tree.query(pred_xy, k=k, distance_upper_bound=gate_bound(gate_px))
     d, j = d.reshape(len(pred_xy), k), j.reshape(len(pred_xy), k)
     inside = d <= gate_px[:, None]
     rows = np.nonzero(inside)[0]
@@ -54,6 +56,15 @@ def assign(pred_xy: np.ndarray, gate_px: np.ndarray, det_xy: np.ndarray, det_tre
         out_r.append(ur[a[good]])
         out_c.append(uc[b[good]])
     return np.concatenate(out_r), np.concatenate(out_c)
+
+
+def gate_bound(gate_px: np.ndarray) -> float:
+    """The ``distance_upper_bound`` of a cKDTree query that finds every point within the widest of ``gate_px``.
+
+    The tree finds only points strictly nearer than its bound (to rounding of their squares): a point at
+    the gate itself, within it as the gates are read (``d <= gate``), would be lost at the gate.
+    """
+    return float(np.max(gate_px)) * (1.0 + _BOUND_SLACK)
 
 
 def ambiguous(pred_xy: np.ndarray, diam_px: np.ndarray, factor: float, tree=None) -> np.ndarray:

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from fluorocal.stages.artifacts import Phantom
 from fluorocal.stages.geometry import camera_matrix
+from fluorocal.stages.label.assign import ambiguous, gate_bound
 from fluorocal.stages.label.camera import project_cam
 from fluorocal.stages.label.detections import Detections
 from fluorocal.stages.label.params import LabelParams
@@ -140,7 +141,6 @@ def coarse_evidence(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> int:
     the true one (a row missing at one end, one unexplained at the other). The distortion, not modelled
     here, costs every pose of one orientation alike.
     """
-    from fluorocal.stages.label.assign import ambiguous
     from scipy.spatial import cKDTree
 
     vis, xy, diam = visible(frame, R, T)
@@ -149,7 +149,7 @@ def coarse_evidence(frame: CubeFrame, R: np.ndarray, T: np.ndarray) -> int:
     gate = frame.params.gate_bead_diameters * diam[vis]
     tree = cKDTree(xy[vis])
     explained = int(np.sum(within_gates(tree, frame.det_xy, gate)))
-    d_pred, _ = frame.det_tree.query(xy[vis], distance_upper_bound=float(gate.max()))
+    d_pred, _ = frame.det_tree.query(xy[vis], distance_upper_bound=gate_bound(gate))
     clear = ~ambiguous(xy[vis], diam[vis], frame.params.ambiguity_bead_diameters, tree)
     missing = int(np.sum(clear & (d_pred > gate) & inside_hull(frame, xy[vis], diam[vis])))
     return 2 * explained - len(frame.det_xy) - missing
@@ -161,7 +161,7 @@ def within_gates(tree, xy: np.ndarray, gate_px: np.ndarray) -> np.ndarray:
     The nearest point's own gate decides. The query stops at the widest gate: a point farther from every
     tree point is within none (its distance is then inf, its index the tree's size).
     """
-    d, k = tree.query(xy, distance_upper_bound=float(np.max(gate_px)))
+    d, k = tree.query(xy, distance_upper_bound=gate_bound(gate_px))
     out = np.isfinite(d)
     out[out] = d[out] <= gate_px[k[out]]
     return out

@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from fluorocal.stages.label.assign import ambiguous
+from fluorocal.stages.label.assign import ambiguous, gate_bound
 from fluorocal.stages.label.cube_frame import CubeFrame, inside_hull, visible, with_camera, within_gates
 from fluorocal.stages.label.iterate import (
     acceptable,
@@ -109,7 +109,7 @@ def evidence(
         return float(2 * explained.sum() - len(explained))
     clear = ~ambiguous(pred, app, p.ambiguity_bead_diameters, tree)
     # nothing beyond the widest gate is found: the query stops there (j of a point not found is not used)
-    d_pred, j = frame.det_tree.query(pred, distance_upper_bound=float(gate.max()))
+    d_pred, j = frame.det_tree.query(pred, distance_upper_bound=gate_bound(gate))
     found = d_pred <= gate
     missing = int(np.sum(_missing(frame, pred, app, clear, found)))
     pairs = clear & found

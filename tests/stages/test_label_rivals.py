@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fluorocal.stages.label.assign import assign, gate_bound
 from fluorocal.stages.label.correction import Correction
 from fluorocal.stages.label.cube_frame import make_cube_frame, within_gates
 from fluorocal.stages.label.detections import Detections, assumed_iop
@@ -153,3 +154,54 @@ def test_within_gates_is_the_nearest_points_own_gate():
         nearest = d.argmin(1)
         expected = d[np.arange(len(xy)), nearest] <= gate[nearest]
         assert np.array_equal(within_gates(cKDTree(centres), xy, gate), expected)
+
+
+def test_within_gates_counts_a_point_at_the_gate_itself():
+    """Against brute force on an integer lattice: many distances equal to the gates, the widest too.
+
+    A point at its nearest point's gate is within it (``d <= gate``, as the evidence reads a gate), though the
+    tree's bounded query finds only points strictly nearer than its bound. Points with two nearest points
+    (a tie, either one's gate may decide) are left out.
+    """
+    from scipy.spatial import cKDTree
+
+    at_gate = np.array([[3.0, 0.0], [0.0, 3.0]])
+    assert within_gates(cKDTree([[0.0, 0.0], [10.0, 0.0]]), at_gate, np.array([3.0, 1.0])).all()
+    rng = np.random.default_rng(6)
+    for _ in range(50):
+        centres = np.unique(rng.integers(0, 20, (rng.integers(2, 40), 2)), axis=0).astype(float)
+        gate = rng.integers(1, 6, len(centres)).astype(float)
+        xy = rng.integers(-3, 23, (300, 2)).astype(float)
+        d = np.linalg.norm(xy[:, None] - centres[None], axis=2)
+        nearest = d.argmin(1)
+        expected = d[np.arange(len(xy)), nearest] <= gate[nearest]
+        single = np.sort(d, axis=1)[:, 1] > d.min(1)
+        assert np.array_equal(within_gates(cKDTree(centres), xy, gate)[single], expected[single])
+
+
+def test_a_gated_query_finds_every_point_at_the_gate():
+    """Points at the gate's distance (to rounding) in many directions, found by a query bounded by :func:`gate_bound`.
+
+    Each one that the unbounded query puts within the gate is found (as the evidence and the assignment read a gate).
+    """
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(7)
+    gate = rng.uniform(0.5, 60.0, 2000)
+    angle = rng.uniform(0.0, 2 * np.pi, len(gate))
+    xy = gate[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+    tree = cKDTree([[0.0, 0.0]])
+    d, _ = tree.query(xy)
+    at_gate = d <= gate
+    assert at_gate.sum() > 500  # about half of them, the others a rounding beyond
+    for g, p in zip(gate[at_gate], xy[at_gate]):
+        assert np.isfinite(tree.query(p, distance_upper_bound=gate_bound(np.array([0.5 * g, g])))[0])
+
+
+def test_a_detection_at_the_widest_gate_is_assigned():
+    """A detection 5 px (a 3-4-5 triangle, exact) from a prediction whose gate is 5 px, the widest: they pair."""
+    from scipy.spatial import cKDTree
+
+    det = np.array([[3.0, 4.0], [52.0, 0.0]])
+    i_pred, i_det = assign(np.array([[0.0, 0.0], [50.0, 0.0]]), np.array([5.0, 1.0]), det, cKDTree(det))
+    assert sorted(zip(i_pred.tolist(), i_det.tolist())) == [(0, 0)]
