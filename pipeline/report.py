@@ -21,6 +21,7 @@ import threading
 from pathlib import Path
 
 import numpy as np
+from fluorocal.stages.errors import InputError
 from fluorocal.stages.io import write_png
 
 #: resolution of the PNGs, dots per inch
@@ -163,7 +164,11 @@ def save_figure(fig, path: Path) -> Path:
         bgr = cv2.cvtColor(np.asarray(canvas.buffer_rgba()), cv2.COLOR_RGBA2BGR)  # opaque: no alpha channel to encode
     # zlib's level 3 on the rows as they are: PNG's prediction filters take twice the time for files about as large
     # (a plot is mostly areas of flat colour; the report's PNGs are 0.8 to 1.1 times the size of filtered ones)
-    write_png(path, bgr, compression=3, filtered=False)
+    params = [cv2.IMWRITE_PNG_COMPRESSION, 3, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
+    ok, png = cv2.imencode(".png", bgr, params)
+    if not ok:
+        raise InputError(f"{path}: cannot encode the figure as PNG")
+    write_png(path, png.tobytes())
     return path
 
 

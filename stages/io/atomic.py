@@ -49,9 +49,7 @@ def atomic_write(path: str | os.PathLike, writer) -> None:
         raise
 
 
-def write_png(
-    path: str | os.PathLike, image: np.ndarray | bytes, *, compression: int | None = None, filtered: bool = True
-) -> None:
+def write_png(path: str | os.PathLike, image: np.ndarray | bytes, *, compression: int | None = None) -> None:
     """Write a PNG atomically: an image array encoded with OpenCV, or bytes already encoded as PNG.
 
     Parameters
@@ -63,9 +61,6 @@ def write_png(
         matplotlib's ``savefig(..., format="png")``), written as given.
     compression : int, optional
         zlib level 0-9 for arrays (default: OpenCV's).
-    filtered : bool
-        False: an array's rows compressed as they are, without PNG's prediction filters (twice as fast for
-        images of flat colours, such as plots, and about as small).
 
     Raises
     ------
@@ -88,7 +83,6 @@ def write_png(
         import cv2
 
         params = [] if compression is None else [cv2.IMWRITE_PNG_COMPRESSION, int(compression)]
-        params += [] if filtered else [cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
         ok, encoded = cv2.imencode(".png", np.asarray(image), params)
         if not ok:
             raise InputError(f"{path}: cannot encode the image as PNG")
