@@ -110,3 +110,52 @@ def test_matplotlib_imported_without_the_set_docstrings_keeps_every_setter():
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
+
+
+def _python(code: str) -> None:
+    """Run ``code`` in a fresh interpreter (matplotlib not imported yet); its assertions must hold."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_modules_imported_later_keep_their_property_lists():
+    """The property lists matplotlib keeps for later docstrings (pyplot's) are whole, as ``kwdoc`` gives them."""
+    _python(
+        "from fluorocal.report import import_matplotlib\n"
+        "import_matplotlib()\n"
+        "import matplotlib.pyplot as plt\n"
+        "from matplotlib.artist import kwdoc\n"
+        "from matplotlib.axes import Axes\n"
+        "assert {'adjustable', 'alpha'} <= set(kwdoc(Axes).replace(':', ' ').split())\n"
+        "assert 'adjustable' in plt.axes.__doc__ and 'alpha' in plt.axes.__doc__, plt.axes.__doc__\n"
+    )
+
+
+def test_two_threads_importing_leave_kwdoc_as_it_was():
+    """A second thread's import while the first one's is under way does not keep the first's stand-in for kwdoc.
+
+    The first thread's import of the Agg canvas is held (an import hook) until the second thread has called
+    ``import_matplotlib`` too, or for a second when that call waits for the first (as it must).
+    """
+    _python(
+        "import sys, threading\n"
+        "import matplotlib.artist\n"
+        "from fluorocal import report\n"
+        "kwdoc, held, second = matplotlib.artist.kwdoc, threading.Event(), threading.Event()\n"
+        "class Hold:\n"
+        "    def find_spec(self, name, path, target=None):\n"
+        "        if name == 'matplotlib.backends.backend_agg' and threading.current_thread().name == 'first':\n"
+        "            held.set()\n"
+        "            second.wait(1)\n"
+        "sys.meta_path.insert(0, Hold())\n"
+        "first = threading.Thread(target=report.import_matplotlib, name='first')\n"
+        "first.start()\n"
+        "held.wait()\n"
+        "other = threading.Thread(target=lambda: (report.import_matplotlib(), second.set()))\n"
+        "other.start()\n"
+        "first.join(); other.join()\n"
+        "assert matplotlib.artist.kwdoc is kwdoc, 'kwdoc left replaced'\n"
+    )
