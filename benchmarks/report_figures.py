@@ -2,8 +2,7 @@
 
 Each repeat is a fresh process, as a ``fluorocal run`` draws its figures once: it loads the project's
 artifacts from the cache (nothing may be computed: run the project first), times matplotlib's import
-(``matplotlib.figure`` and the Agg canvas, what every figure needs, imported as the figures import them:
-:func:`fluorocal.report.import_matplotlib`), then writes the calibration's outputs
+(``matplotlib.figure`` and the Agg canvas, what every figure needs), then writes the calibration's outputs
 into a temporary folder with every figure drawn (none copied from the published set), timing each figure's
 :meth:`fluorocal.figures.Figures.draw` (its key, the plot and the PNG written) and the export as a whole.
 
@@ -60,14 +59,10 @@ def child(config: Path) -> dict:
     computed = {k: v for k, v in runner.run().computed.items() if v}
     if computed:
         raise SystemExit(f"{config}: stages not cached ({computed}); run the project first")
-    from fluorocal import report
-
     c0, t0 = time.process_time(), time.perf_counter()
-    if hasattr(report, "import_matplotlib"):  # the way the figures import it (a commit before: plain imports)
-        report.import_matplotlib()
-    else:
-        import matplotlib.backends.backend_agg  # noqa: F401
-        import matplotlib.figure  # noqa: F401
+    import matplotlib.backends.backend_agg  # noqa: F401
+    import matplotlib.figure  # noqa: F401
+
     imported = (time.process_time() - c0, time.perf_counter() - t0)
     export.Figures = TimedFigures  # the export's figures (of any commit's fluorocal) all drawn, and timed
     with tempfile.TemporaryDirectory() as out:

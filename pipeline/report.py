@@ -14,10 +14,7 @@ marker, a bar, a tick) costs far more than its pixels: thousands of dots are dra
 from __future__ import annotations
 
 import contextlib
-import functools
 import gc
-import sys
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -35,45 +32,11 @@ TOP_IN, TITLE_LINE_IN = 0.12, 0.2
 #: room right of the panels without a colour bar (half the last x tick label), between panels (a y axis' labels)
 #: and for a colour bar, inches
 RIGHT_IN, GAP_IN, COLORBAR_IN = 0.35, 1.1, 1.3
-# the shared renderers (:func:`_renderer`) draw one figure at a time, whichever thread draws it
-_DRAWING = threading.Lock()
-# matplotlib imported by one thread at a time (:func:`import_matplotlib`)
-_IMPORTING = threading.Lock()
 
 
 def rms_px(residual_px: np.ndarray) -> float:
     """RMS per coordinate of ``(N, 2)`` residuals, px (NaN when empty)."""
     return float(np.sqrt(np.mean(residual_px**2))) if len(residual_px) else float("nan")
-
-
-def import_matplotlib() -> None:
-    """Import matplotlib's figures and Agg canvas (what every figure needs) without its artists' ``set`` docstrings.
-
-    As matplotlib defines each artist class, it writes the docstring of the class' ``set`` method: every property
-    with its accepted values, found by inspecting all the setters. That is a quarter of the import's time (~80 ms)
-    for text only ``help()`` shows: the docstrings written by this import leave the properties out (nothing reads
-    them: no property, signature or drawing depends on them). The property lists matplotlib keeps for the
-    docstrings of modules imported later (``%(Axes:kwdoc)s``, e.g. pyplot's) are not kept from this import, so
-    those come out whole. Nothing changes once ``matplotlib.figure`` is imported (by this or by other code).
-    """
-    with _IMPORTING:  # two threads: the second would keep the first's stand-in for kwdoc as the original
-        if "matplotlib.figure" in sys.modules:
-            return
-        import matplotlib.artist
-
-        kwdoc = matplotlib.artist.kwdoc
-        # matplotlib's table of the property lists (private: a version without it keeps none to clean)
-        lists = getattr(getattr(sys.modules.get("matplotlib._docstring"), "interpd", None), "params", None)
-        known = set(lists or ())
-        matplotlib.artist.kwdoc = lambda artist: ""
-        try:
-            import matplotlib.backends.backend_agg  # noqa: F401
-            import matplotlib.figure  # noqa: F401
-        finally:
-            matplotlib.artist.kwdoc = kwdoc
-            for key in set(lists or ()) - known:  # the empty lists looked up meanwhile
-                if key.endswith(":kwdoc"):
-                    del lists[key]
 
 
 def new_figure(
@@ -93,7 +56,6 @@ def new_figure(
     :func:`text_height_in`: the figure grows by the extra room, the panels keep their height). The figure is
     matplotlib's own (no pyplot: no global state, nothing to close).
     """
-    import_matplotlib()
     from matplotlib.figure import Figure
 
     n_cols = n_cols or n_panels
@@ -136,7 +98,6 @@ def add_colorbar(fig, mappable, axes, label: str) -> None:
 
 def text_height_in(labels, *, fontsize: float, rotation: float = 90.0) -> float:
     """Height of the tallest of ``labels`` rotated by ``rotation`` degrees, inches: room for rotated tick labels."""
-    import_matplotlib()
     from matplotlib.backends.backend_agg import RendererAgg
     from matplotlib.font_manager import FontProperties
 
@@ -152,16 +113,14 @@ def save_figure(fig, path: Path) -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     canvas = FigureCanvasAgg(fig)
-    renderer = _renderer(tuple(fig.get_size_inches()), fig.dpi)
-    canvas.get_renderer = lambda: renderer  # what the canvas draws with
-    with _DRAWING, no_collection():
+    with no_collection():
         for ax in fig.axes:
             if ax.get_visible():
                 ax.apply_aspect()  # the ticks of an equal-aspect image's axes depend on its final box
                 for axis in (ax.xaxis, ax.yaxis):
-                    _plain_ticks(axis, renderer)
+                    _plain_ticks(axis, canvas.get_renderer())
         canvas.draw()
-        bgr = cv2.cvtColor(np.asarray(canvas.buffer_rgba()), cv2.COLOR_RGBA2BGR)  # opaque: no alpha channel to encode
+    bgr = cv2.cvtColor(np.asarray(canvas.buffer_rgba()), cv2.COLOR_RGBA2BGR)  # opaque: no alpha channel to encode
     # zlib's level 3 on the rows as they are: PNG's prediction filters take twice the time for files about as large
     # (a plot is mostly areas of flat colour; the report's PNGs are 0.8 to 1.1 times the size of filtered ones)
     params = [cv2.IMWRITE_PNG_COMPRESSION, 3, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
@@ -170,24 +129,6 @@ def save_figure(fig, path: Path) -> Path:
         raise InputError(f"{path}: cannot encode the figure as PNG")
     write_png(path, png.tobytes())
     return path
-
-
-@functools.lru_cache(maxsize=8)
-def _renderer(size_in: tuple[float, float], dpi: float):
-    """The Agg renderer of every figure of ``size_in`` inches at ``dpi`` (drawn one after the other).
-
-    Matplotlib keeps the size of each text it lays out per renderer: the figures of one size share the
-    measures of their common texts (tick labels, axis labels, frame names) instead of each measuring them
-    anew. Each drawing clears the renderer's pixels first, one figure at a time (``_DRAWING``). Each renderer holds
-    4 bytes a pixel while the process lives: a run's figures take 4 sizes or so, 4 MB in all (a biplanar project of
-    8 frames), the frames' chart 15 kB more per frame (10 MB for 720 frames). The renderer is
-    the one matplotlib's canvas makes for such a figure: its height places every text, and matplotlib 3.8 and
-    before keep it unrounded (a figure 4.6 inches high at 90 dpi: 413.99999999999994 pixels, 413 drawn).
-    """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    return FigureCanvasAgg(Figure(figsize=size_in, dpi=dpi)).get_renderer()
 
 
 def _plain_ticks(axis, renderer) -> None:
