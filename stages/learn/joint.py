@@ -477,9 +477,11 @@ def _coarse_space(parts) -> np.ndarray:
 
 
 def _deflated(precondition, matvec, W: np.ndarray):
-    """The two-level preconditioner: ``precondition`` with the span of ``W`` solved exactly (A-DEF2, Tang et al. [1]).
+    """The two-level preconditioner: ``precondition`` with the span of ``W`` solved exactly (BNN, Tang et al. [1]).
 
-    ``x -> Q x + (I - Q A) M (I - A Q) x``, ``Q = W (W^T A W)^-1 W^T``, ``M`` = ``precondition``. The joint step's
+    ``x -> Q x + (I - Q A) M (I - A Q) x``, ``Q = W (W^T A W)^-1 W^T``, ``M`` = ``precondition``: symmetric positive
+    definite, as the conjugate gradients need from any start (the one-sided A-DEF2, ``Q + (I - Q A) M``, is not; it
+    needs a start of its own, and the loop's steps start from the last one's). The joint step's
     slowest modes are fields the orientation nearly reproduces and the prior does not see: smooth, of degree 2 over
     the image (the projective terms of a tilt, measured: eigenvalues of the preconditioned system 1e-4 of the
     others'). Left to the conjugate gradients, each stalled them for a dozen iterations; in the coarse space their
