@@ -126,8 +126,8 @@ def fit_grids_jointly(
     the node values' updates ``δ_s`` of every system and ``dθ``, every system's IOP and poses and
     the beads, which the systems share; ``dθ`` is eliminated (its normal matrix is small and dense:
     a Cholesky factor) and the reduced system in the stacked ``δ`` solved by conjugate gradients
-    preconditioned with the field-only normal matrix and the gauge holds (sparse factors per system),
-    deflated by the smooth fields the orientation nearly reproduces (:func:`_deflated`). One system's
+    preconditioned with the field-only normal matrix (sparse factors per system), deflated by the
+    smooth fields the orientation nearly reproduces (:func:`_deflated`). One system's
     step is the system's Gauss-Newton step, several systems' the whole problem's: the shared
     beads tie their fields, which one system's step at a time (the others' orientation held)
     could only approach by a slow block iteration. What no data fix is held: the network's
@@ -169,10 +169,10 @@ def fit_grids_jointly(
         raise InputError(f"respond must be 'orientation' or 'points'; got {respond!r}")
     respond = Respond(respond)
     parts = [_field_part(step, grid) for step in systems]
-    matvec, rhs, response, gauge = _reduced_system(parts, network, estimate_iop, respond)
+    matvec, rhs, response = _reduced_system(parts, network, estimate_iop, respond)
     starts = [step.start for step in systems]
     x0 = None if any(s is None for s in starts) else np.concatenate([_node_vector(s) for s in starts])
-    v = _solve_reduced(parts, matvec, rhs, gauge, max_cg_iterations, cg_tolerance, x0)
+    v = _solve_reduced(parts, matvec, rhs, max_cg_iterations, cg_tolerance, x0)
     bounds = np.cumsum([0] + [2 * p.n_nodes for p in parts])
     updates = tuple(
         grid_result(p.xn, p.yn, v[a:b].reshape(2, -1).T, p.A, p.xy, step.cv_rms_px, grid, p.size)
@@ -229,7 +229,7 @@ def _reduced_system(parts, network: Network, estimate_iop: bool, respond: Respon
     """The stacked node values' system with the responding parameters eliminated: its product and right side.
 
     And ``v -> J dθ(v)`` ``(n, 2)``: the responding parameters' step given the node values' and its effect at
-    the observations; and the gauge penalty's ``G`` (``G^T G`` is the product's gauge term; None without one).
+    the observations.
     """
     iop_cols = 0 if estimate_iop else 3 * network.n_systems
     held = slice(network.point_col if respond is Respond.POINTS else iop_cols, None)
@@ -258,7 +258,7 @@ def _reduced_system(parts, network: Network, estimate_iop: bool, respond: Respon
     def response(v):
         return (J @ solve_theta(b_theta - Ntv @ v)).reshape(2, n_obs).T
 
-    return matvec, np.concatenate([p.bv for p in parts]) - Nvt @ solve_theta(b_theta), response, G
+    return matvec, np.concatenate([p.bv for p in parts]) - Nvt @ solve_theta(b_theta), response
 
 
 def _field_normal(A, w, r, reg, base_v):
@@ -431,12 +431,12 @@ def _gauge_penalty(A, xy, w, iop_px, with_iop: bool):
     return G, float(np.mean(w)) / max(len(xy), 1)
 
 
-def _solve_reduced(parts, matvec, rhs, gauge, max_cg_iterations: int, cg_tolerance: float, x0=None):
-    """The stacked node values of the reduced system, by CG preconditioned with each field block's factor.
+def _solve_reduced(parts, matvec, rhs, max_cg_iterations: int, cg_tolerance: float, x0=None):
+    """The stacked node values of the reduced system, by CG preconditioned with each field block's factor, deflated.
 
-    The preconditioner is the field-only normal matrix plus the gauge penalty ``G^T G`` (``gauge``, rank a few per
-    system, by Woodbury's identity): left out, the gauge modes' eigenvalues stood apart several times above the
-    rest, each costing the conjugate gradients iterations of its own; and deflated (:func:`_deflated`).
+    The product's gauge penalty is not in the preconditioner: its fields (:mod:`fluorocal.stages.learn.gauge`) are
+    of degree <= 2 about the principal point, which the deflation (:func:`_deflated`) solves outright; added by
+    Woodbury's identity, it left the iterations as they were.
     """
     # one factorisation per system, of the mean of its components' data terms (their weights differ by the
     # centroids' σx / σy alone: the mean preconditions both about as well as each its own, at half the factorisations)
@@ -449,8 +449,7 @@ def _solve_reduced(parts, matvec, rhs, gauge, max_cg_iterations: int, cg_toleran
     def field_solve(v):
         return np.concatenate([_solve_components(lu, v[at]) for at, lu in blocks], axis=0)
 
-    precondition = field_solve if gauge is None else _low_rank_updated(field_solve, gauge)
-    precondition = _deflated(precondition, matvec, _coarse_space(parts))
+    precondition = _deflated(field_solve, matvec, _coarse_space(parts))
     op = LinearOperator((start, start), matvec=matvec, dtype=np.float64)
     pre = LinearOperator((start, start), matvec=precondition, dtype=np.float64)
     v, info = cg(op, rhs, x0=x0, rtol=cg_tolerance, maxiter=max_cg_iterations, M=pre)
@@ -477,9 +476,11 @@ def _coarse_space(parts) -> np.ndarray:
 
 
 def _deflated(precondition, matvec, W: np.ndarray):
-    """The two-level preconditioner: ``precondition`` with the span of ``W`` solved exactly (A-DEF2, Tang et al. [1]).
+    """The two-level preconditioner: ``precondition`` with the span of ``W`` solved exactly (BNN, Tang et al. [1]).
 
-    ``x -> Q x + (I - Q A) M (I - A Q) x``, ``Q = W (W^T A W)^-1 W^T``, ``M`` = ``precondition``. The joint step's
+    ``x -> Q x + (I - Q A) M (I - A Q) x``, ``Q = W (W^T A W)^-1 W^T``, ``M`` = ``precondition``: symmetric positive
+    definite, as the conjugate gradients need from any start (the one-sided A-DEF2, ``Q + (I - Q A) M``, is not; it
+    needs a start of its own, and the loop's steps start from the last one's). The joint step's
     slowest modes are fields the orientation nearly reproduces and the prior does not see: smooth, of degree 2 over
     the image (the projective terms of a tilt, measured: eigenvalues of the preconditioned system 1e-4 of the
     others'). Left to the conjugate gradients, each stalled them for a dozen iterations; in the coarse space their
@@ -505,18 +506,6 @@ def _solve_components(lu, v: np.ndarray) -> np.ndarray:
     n = v.shape[0] // 2
     columns = v.reshape(2, n, -1).transpose(1, 0, 2).reshape(n, -1)  # shape (n, 2 k)
     return lu.solve(columns).reshape(n, 2, -1).transpose(1, 0, 2).reshape(v.shape)
-
-
-def _low_rank_updated(solve, G: np.ndarray):
-    """``x -> (M + G^T G)^-1 x`` given ``solve: x -> M^-1 x`` and ``G`` ``(k, n)`` of small rank (Woodbury)."""
-    MiGt = solve(G.T)
-    core = cho_factor(np.eye(len(G)) + G @ MiGt)
-
-    def updated(x):
-        y = solve(x)
-        return y - MiGt @ cho_solve(core, G @ y, check_finite=False)
-
-    return updated
 
 
 __all__ = ["SystemStep", "fit_grid_jointly", "fit_grids_jointly"]

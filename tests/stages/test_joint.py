@@ -323,3 +323,21 @@ def test_second_system_alone_network_datum_projects_to_nothing(biplanar_linearis
     net = linearised_network(adj, obs, rows[1], 1)
     scale = np.sqrt(net.J.multiply(net.J).sum())
     assert np.linalg.norm(net.J @ net.datum, axis=0).max() < 1e-9 * scale
+
+
+def test_deflated_preconditioner_is_symmetric_positive_definite_and_exact_on_its_coarse_space():
+    # the conjugate gradients need a symmetric positive definite preconditioner, from any start (the loop's steps
+    # start from the last one's); Q + (I - QA) M (I - AQ) (Tang et al.'s BNN) is one, for A and M so, and it inverts
+    # A exactly on span(W): analytic, on random matrices (the one-sided A-DEF2, Q + (I - QA) M, is not symmetric)
+    from fluorocal.stages.learn.joint import _deflated
+
+    rng = np.random.default_rng(12)
+    n, k = 40, 6
+    X, Y = rng.normal(size=(n, n)), rng.normal(size=(n, n))
+    A, M = X @ X.T + 1e-2 * np.eye(n), np.linalg.inv(Y @ Y.T + 1e-2 * np.eye(n))
+    W, _ = np.linalg.qr(rng.normal(size=(n, k)))
+    apply = _deflated(lambda x: M @ x, lambda x: A @ x, W)
+    P = np.column_stack([apply(e) for e in np.eye(n)])
+    np.testing.assert_allclose(P, P.T, atol=1e-10 * np.abs(P).max())
+    assert np.linalg.eigvalsh((P + P.T) / 2).min() > 0
+    np.testing.assert_allclose(apply(A @ W), W, atol=1e-8)
