@@ -28,8 +28,8 @@ from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import factor_sum, grid_result, prior_normal, prior_term
 from fluorocal.stages.learn.network import Network
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.linalg import block_diag as dense_block_diag
-from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import block_diag, diags, vstack
 from scipy.sparse.linalg import LinearOperator, cg
 
@@ -492,7 +492,10 @@ def _deflated(precondition, matvec, W: np.ndarray):
        decomposition and multigrid methods", J. Sci. Comput. 39 (2009).
     """
     AW = matvec(W)
-    coarse = cho_factor(W.T @ AW)
+    try:
+        coarse = cho_factor(W.T @ AW)
+    except LinAlgError:  # not positive definite to rounding: the conjugate gradients without the coarse solve
+        return precondition
 
     def apply(x):
         y = precondition(x - AW @ cho_solve(coarse, W.T @ x, check_finite=False))

@@ -341,3 +341,15 @@ def test_deflated_preconditioner_is_symmetric_positive_definite_and_exact_on_its
     np.testing.assert_allclose(P, P.T, atol=1e-10 * np.abs(P).max())
     assert np.linalg.eigvalsh((P + P.T) / 2).min() > 0
     np.testing.assert_allclose(apply(A @ W), W, atol=1e-8)
+
+
+def test_a_coarse_space_the_product_does_not_see_leaves_the_preconditioner_undeflated():
+    # W^T A W singular (A nil on a direction of W): no coarse solve, the plain preconditioner, not a LinAlgError
+    from fluorocal.stages.learn.joint import _deflated
+
+    n = 10
+    W = np.eye(n)[:, :2]
+    A = np.diag(np.r_[0.0, np.ones(n - 1)])
+    apply = _deflated(lambda x: 2.0 * x, lambda x: A @ x, W)
+    x = np.arange(n, dtype=float)
+    np.testing.assert_array_equal(apply(x), 2.0 * x)
