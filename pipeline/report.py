@@ -107,9 +107,10 @@ def text_height_in(labels, *, fontsize: float, rotation: float = 90.0) -> float:
 
 def _text_settings() -> tuple:
     """The settings a text's size depends on: matplotlib's ``font.*`` and ``text.*`` rcParams, as a hashable key."""
-    import matplotlib
+    from matplotlib import rcParams
 
-    return tuple((k, repr(v)) for k, v in sorted(matplotlib.rcParams.items()) if k.startswith(("font.", "text.")))
+    # by key: reading every value would read ``backend``, and resolving that imports pyplot
+    return tuple((k, repr(rcParams[k])) for k in sorted(rcParams) if k.startswith(("font.", "text.")))
 
 
 @functools.lru_cache(maxsize=4096)
@@ -118,11 +119,17 @@ def _text_size_px(text: str, fontsize: float, settings: tuple) -> tuple[float, f
 
     Kept: a text costs ~0.2 ms to measure, and a report's figures of each system name the same frames.
     """
+    renderer, font = _measurer(fontsize, settings)
+    return renderer.get_text_width_height_descent(text, font, ismath=False)[:2]
+
+
+@functools.lru_cache(maxsize=8)
+def _measurer(fontsize: float, settings: tuple):
+    """A renderer at the PNGs' dpi (glyphs are hinted) and the font of ``fontsize`` points under ``settings``."""
     from matplotlib.backends.backend_agg import RendererAgg
     from matplotlib.font_manager import FontProperties
 
-    renderer = RendererAgg(1, 1, DPI)  # at the PNGs' dpi: glyphs are hinted
-    return renderer.get_text_width_height_descent(text, FontProperties(size=fontsize), ismath=False)[:2]
+    return RendererAgg(1, 1, DPI), FontProperties(size=fontsize)
 
 
 def save_figure(fig, path: Path) -> Path:
