@@ -14,6 +14,7 @@ marker, a bar, a tick) costs far more than its pixels: thousands of dots are dra
 from __future__ import annotations
 
 import contextlib
+import functools
 import gc
 from pathlib import Path
 
@@ -98,13 +99,37 @@ def add_colorbar(fig, mappable, axes, label: str) -> None:
 
 def text_height_in(labels, *, fontsize: float, rotation: float = 90.0) -> float:
     """Height of the tallest of ``labels`` rotated by ``rotation`` degrees, inches: room for rotated tick labels."""
+    settings = _text_settings()
+    sizes = [_text_size_px(str(s), fontsize, settings) for s in labels]
+    a = np.deg2rad(rotation)
+    return max((abs(w * np.sin(a)) + abs(h * np.cos(a)) for w, h in sizes), default=0.0) / DPI
+
+
+def _text_settings() -> tuple:
+    """The settings a text's size depends on: matplotlib's ``font.*`` and ``text.*`` rcParams, as a hashable key."""
+    from matplotlib import rcParams
+
+    # by key: reading every value would read ``backend``, and resolving that imports pyplot
+    return tuple((k, repr(rcParams[k])) for k in sorted(rcParams) if k.startswith(("font.", "text.")))
+
+
+@functools.lru_cache(maxsize=4096)
+def _text_size_px(text: str, fontsize: float, settings: tuple) -> tuple[float, float]:
+    """Width and height of ``text`` at ``fontsize`` points, pixels at the PNGs' dpi, under ``settings``.
+
+    Kept: a text costs ~0.2 ms to measure, and a report's figures of each system name the same frames.
+    """
+    renderer, font = _measurer(fontsize, settings)
+    return renderer.get_text_width_height_descent(text, font, ismath=False)[:2]
+
+
+@functools.lru_cache(maxsize=8)
+def _measurer(fontsize: float, settings: tuple):
+    """A renderer at the PNGs' dpi (glyphs are hinted) and the font of ``fontsize`` points under ``settings``."""
     from matplotlib.backends.backend_agg import RendererAgg
     from matplotlib.font_manager import FontProperties
 
-    renderer, font = RendererAgg(1, 1, DPI), FontProperties(size=fontsize)  # at the PNGs' dpi: glyphs are hinted
-    sizes = [renderer.get_text_width_height_descent(str(s), font, ismath=False)[:2] for s in labels]
-    a = np.deg2rad(rotation)
-    return max((abs(w * np.sin(a)) + abs(h * np.cos(a)) for w, h in sizes), default=0.0) / DPI
+    return RendererAgg(1, 1, DPI), FontProperties(size=fontsize)
 
 
 def save_figure(fig, path: Path) -> Path:

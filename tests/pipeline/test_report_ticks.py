@@ -87,3 +87,25 @@ def test_ticks_are_the_pixels_matplotlib_draws(tmp_path, kind):
     assert not differ.any(), f"{differ.sum()} pixels differ, rows {np.nonzero(differ.any(axis=1))[0][[0, -1]]}"
     plain = tuple(isinstance(a.get_major_locator(), NullLocator) for a in (fig.axes[0].xaxis, fig.axes[0].yaxis))
     assert plain == PLAIN[kind]
+
+
+def test_the_room_for_rotated_labels_is_matplotlibs_measure_under_the_font_in_force():
+    """:func:`fluorocal.report.text_height_in` keeps its measures between figures, but not across font settings."""
+    import matplotlib.style
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    def matplotlibs(label):  # the height of the label drawn rotated by matplotlib at the PNGs' dpi, inches
+        fig = Figure(dpi=report.DPI)
+        text = fig.text(0.5, 0.5, label, rotation=90, fontsize=6)
+        return text.get_window_extent(FigureCanvasAgg(fig).get_renderer()).height / report.DPI
+
+    labels = ["frame_000", "a longer frame name"]
+    with matplotlib.style.context("default"):
+        default = report.text_height_in(labels, fontsize=6)
+        assert default == pytest.approx(matplotlibs(labels[1]), abs=1e-9)
+        with matplotlib.rc_context({"font.family": "monospace"}):
+            mono = report.text_height_in(labels, fontsize=6)
+            assert mono == pytest.approx(matplotlibs(labels[1]), abs=1e-9)
+        assert report.text_height_in(labels, fontsize=6) == default
+    assert mono > default * 1.05  # a monospace font's letters are wider: measured anew, not taken from before
