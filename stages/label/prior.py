@@ -271,33 +271,26 @@ def _ball_starts(search: "_Search", prior: OrientationPrior, p_centre: np.ndarra
     starts: list = []
     for k in kept:
         dz = depths[int(np.argmax(strength[k]))]
-        basin = search.memo(("basin", cells[k], dz), _basin, search, *pose(k, dz))
-        # a start has its basin's orientation: a basin of a start's orientation is not searched for its slips
-        if basin is None or any(turn_angle(basin[0], s[0]) < np.radians(_SAME_ORIENTATION_DEG) for s in starts):
+        start = search.memo(("start", cells[k], dz), _basin_start, search, *pose(k, dz))
+        if start is None or any(turn_angle(start[0], s[0]) < np.radians(_SAME_ORIENTATION_DEG) for s in starts):
             continue
-        starts.append(search.memo(("start", cells[k], dz), _basin_start, search, *basin))
+        starts.append(start)
     return starts
 
 
-def _basin(search: "_Search", R: np.ndarray, T: np.ndarray) -> tuple | None:
-    """The basin ``(R, T, votes)`` that pose ``(R, T)``'s vote leads to; None without a peak.
+def _basin_start(search: "_Search", R: np.ndarray, T: np.ndarray) -> tuple | None:
+    """The start ``(R, T, votes)`` of the basin that pose ``(R, T)``'s vote leads to; None without a peak.
 
     The strongest peak of its full vote (:func:`~fluorocal.stages.label.votes.shift_peaks`) is polished:
     whichever slip it is, its orientation is then its basin's, where the vote is sharp and its peaks are the
-    slips.
+    slips; the one that explains the frame best (:meth:`_Search.score`) is the basin's start.
     """
-    peaks = shift_peaks(search.vote_frame, R, T, search.rays, N_PEAKS)
+    frame, rays = search.vote_frame, search.rays
+    peaks = shift_peaks(frame, R, T, rays, N_PEAKS)
     if not peaks:
         return None
-    return (*search.polish(*peaks[0][:2]), peaks[0][2])
-
-
-def _basin_start(search: "_Search", R: np.ndarray, T: np.ndarray, votes: float) -> tuple:
-    """The start ``(R, T, votes)`` of basin ``(R, T, votes)`` (:func:`_basin`), its orientation ``R``.
-
-    Of the basin's pose and its slips, the one that explains the frame best (:meth:`_Search.score`).
-    """
-    slips = [(R, T, votes), *shift_peaks(search.vote_frame, R, T, search.rays, N_PEAKS)]
+    R, T = search.polish(*peaks[0][:2])
+    slips = [(R, T, peaks[0][2]), *shift_peaks(frame, R, T, rays, N_PEAKS)]
     return max(slips, key=lambda s: search.score(s[0], s[1]))
 
 
