@@ -28,7 +28,7 @@ and ``label_sequence`` as a cross-check (``--rendered``).
 ``--cut K`` labels each sequence in pieces of K frames, each on its own (seeds on each piece's first frame
 in the seeded configuration): short sequences, where a frame has few neighbours or none.
 
-Run: .venv/bin/python benchmarks/label_varied.py [--frames 40] [--seeds 3] [--rendered 6] [--cut K]
+Run: .venv/bin/python benchmarks/label_varied.py [--frames 40] [--seeds 3] [--rendered 6] [--cut K] [--slowest N]
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ import argparse
 import re
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +92,8 @@ class Tally:
     wrong: int = 0
     seconds: float = 0.0
     slowest: float = 0.0
+    # (CPU s, seed, frame, how it was labelled) of every frame: where the slowest frames are
+    timings: list = field(default_factory=list)
 
     def add_sequence(self, labs, dets, fts, seconds: list, reasons: dict) -> None:
         self.seconds += sum(seconds)
@@ -204,6 +206,10 @@ def run_config(
             frame_seeds = {0: seeds_from_truth(fts[a], rng)} if seeded else {}
             labs, seconds = timed_sequence([c for c, _ in dets[piece]], data.phantom, label_params(sp), frame_seeds)
             tally.add_sequence(labs, dets[piece], fts[piece], seconds, reasons)
+            tally.timings += [
+                (s, seed, a + i, lab.pose_source if lab.ok else "failed")
+                for i, (s, lab) in enumerate(zip(seconds, labs))
+            ]
             if tables is not None:
                 tables.update({f"{seed}.{a}.{k}": v for k, v in label_table(labs).items()})
     return tally
@@ -253,6 +259,12 @@ def compare_tables(tables: dict, reference: dict) -> str:
     return "yes" if not differ else f"no ({len(differ)} frames differ: {shown})"
 
 
+def slowest_frames(tally: Tally, n: int) -> str:
+    """The ``n`` slowest frames of ``tally``: seed, frame, CPU ms and how each was labelled (or failed)."""
+    top = sorted(tally.timings, key=lambda t: -t[0])[:n]
+    return ", ".join(f"seed {seed} frame {i} {1e3 * s:.0f} ms ({how})" for s, seed, i, how in top)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=40, help="exposures per sequence (default: 40)")
@@ -267,6 +279,7 @@ def main(argv=None) -> int:
         help="cut each sequence into sequences of this many frames, labelled each on its own (default: 0 = uncut)",
     )
     ap.add_argument("--configs", type=int, nargs="*", help="configurations to run, by index (default: all)")
+    ap.add_argument("--slowest", type=int, default=0, help="list each configuration's N slowest frames (default: 0)")
     ap.add_argument("--save-labels", metavar="NPZ", help="write every frame's labels here (for --reference)")
     ap.add_argument("--reference", metavar="NPZ", help="compare every frame's labels with those saved by --save-labels")
     args = ap.parse_args(argv)
@@ -291,6 +304,8 @@ def main(argv=None) -> int:
         tally = run_config(overrides, seeded, seeds, args.frames, reasons, args.cut, config_tables)
         tables.update({f"{name}.{k}": v for k, v in config_tables.items()})
         print(tally.row(name), flush=True)
+        if args.slowest:
+            print(f"  slowest: {slowest_frames(tally, args.slowest)}", flush=True)
         total.merge(tally)
         all_reasons += [(name, r, n) for r, n in reasons.items()]
     print(total.row("overall"))
