@@ -119,7 +119,7 @@ def lower_band(M) -> np.ndarray:
     lower = (coo.row >= coo.col) & (coo.data != 0)
     row, col = coo.row[lower], coo.col[lower]
     band = int(np.max(row - col, initial=0))
-    ab = np.zeros((band + 1, M.shape[0]))
+    ab = np.zeros((band + 1, M.shape[0]), order="F")  # as factor_sum lays out the sum: its additions contiguous
     ab[row - col, col] = coo.data[lower]
     return ab
 
