@@ -353,3 +353,35 @@ def test_a_coarse_space_the_product_does_not_see_leaves_the_preconditioner_undef
     apply = _deflated(lambda x: 2.0 * x, lambda x: A @ x, W)
     x = np.arange(n, dtype=float)
     np.testing.assert_array_equal(apply(x), 2.0 * x)
+
+
+def test_coupling_products_are_those_of_the_formed_matrix():
+    # the fields' coupling to the orientation, N_vθ = [A_s^T W_sc J_sc] stacked by system s and component c, applied
+    # through its factors: its products and its transpose's against the matrix formed (two systems, J's x rows then
+    # y rows, system by system in each; the node vector each system's x components, then its y ones)
+    from types import SimpleNamespace
+
+    from fluorocal.stages.learn.joint import _coupling
+    from scipy.sparse import random as sparse_random
+    from scipy.sparse import vstack
+
+    rng = np.random.default_rng(5)
+    nodes = np.arange(6) * 16.0
+    n_obs, n_theta = (30, 20), 15
+    parts = []
+    for n in n_obs:
+        xy = rng.uniform(0, nodes[-1], (n, 2))
+        A = bilinear_design(nodes, nodes, xy)
+        w = rng.uniform(0.5, 2.0, (n, 2))
+        parts.append(SimpleNamespace(xy=xy, n_nodes=A.shape[1], AtW=[A.T.multiply(w[:, c]).tocsr() for c in range(2)]))
+    J = sparse_random(2 * sum(n_obs), n_theta, density=0.3, random_state=7, format="csr")
+    total = sum(n_obs)
+    starts = (0, n_obs[0], total)
+    blocks = [p.AtW[c] @ J[c * total + a : c * total + b] for p, a, b in zip(parts, starts, starts[1:]) for c in (0, 1)]
+    N = vstack(blocks).toarray()
+    to_fields, to_orientation = _coupling(parts, J)
+    y, v = rng.normal(size=(n_theta, 3)), rng.normal(size=(N.shape[0], 3))
+    np.testing.assert_allclose(to_fields(y), N @ y, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(to_fields(y[:, 0]), N @ y[:, 0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(to_orientation(v), N.T @ v, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(to_orientation(v[:, 0]), N.T @ v[:, 0], rtol=1e-12, atol=1e-12)

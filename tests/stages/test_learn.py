@@ -247,6 +247,39 @@ def test_factor_sum_is_the_factor_of_the_sparse_sum(n_side):
     np.testing.assert_allclose(split.solve(b), exact, atol=1e-7 * np.abs(exact).max())
 
 
+def test_factor_sum_drops_a_diagonal_its_terms_cancel():
+    # diag(3) + offdiag(1) and diag(1) - offdiag(1) sum to 4 I: the cancelled off-diagonal leaves the band, as it
+    # leaves a sparse sum's pattern, and the factor is 2 on the diagonal alone
+    from fluorocal.stages.learn.grid import factor_sum, lower_band
+    from scipy.sparse import diags
+
+    n = 7
+    plus = diags([np.ones(n - 1), np.full(n, 3.0), np.ones(n - 1)], [-1, 0, 1])
+    minus = diags([-np.ones(n - 1), np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    factor = factor_sum((plus, lower_band(minus)), 0.0)
+    np.testing.assert_array_equal(factor.factor, np.full((1, n), 2.0))
+    np.testing.assert_allclose(factor.solve(np.arange(n, dtype=float)), np.arange(n) / 4.0, rtol=1e-15)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_factor_sum_leaves_its_band_terms_as_they_were(order):
+    # the sum is factored in place, and a cross-validation lays each term out once for every fold and candidate: the
+    # terms come out bit for bit as they went in, the data's band the wider (order 1) or the prior's (order 2), and a
+    # second factorisation of them is the first's
+    from fluorocal.stages.field import bilinear_design
+    from fluorocal.stages.learn.grid import factor_sum, lower_band, prior_normal
+
+    rng = np.random.default_rng(3)
+    nodes = np.arange(9) * 16.0 - 0.5
+    A = bilinear_design(nodes, nodes, rng.uniform(0, nodes[-1], (300, 2)))
+    terms = (lower_band((A.T.multiply(rng.uniform(0.5, 2.0, 300)) @ A).tocsr()), lower_band(prior_normal(9, 9, order)))
+    before = [t.copy() for t in terms]
+    first = factor_sum(terms, 1e-6).factor.copy()
+    for t, b in zip(terms, before):
+        np.testing.assert_array_equal(t, b)
+    np.testing.assert_array_equal(factor_sum(terms, 1e-6).factor, first)
+
+
 def test_factor_spd_sums_duplicate_entries_and_refuses_a_singular_matrix():
     # a matrix given with an entry split in two (COO duplicates) is their sum; [[2+2, 1], [1, 2]] x = [1, 0]
     from fluorocal.stages.errors import EstimationError
