@@ -6,6 +6,7 @@ import importlib
 import json
 import logging
 import os
+import pathlib
 import sys
 import textwrap
 
@@ -342,3 +343,49 @@ def test_a_library_version_changes_the_key_of_exactly_the_stages_that_call_it(pr
     for library, changed in edits["libraries"].items():
         assert changed == sorted(stage for stage, run in runs.items() if library in run["libraries"]), library
     assert edits["libraries"]["scipy"]  # not vacuous: some stage calls SciPy
+
+
+NESTED = """
+import a
+try:
+    import b
+except ImportError:
+    import c
+else:
+    from . import d
+finally:
+    import e
+with open(x) as fh:
+    import f
+match x:
+    case 1:
+        import g
+class K:
+    import h
+
+    def method(self):
+        import i
+if TYPE_CHECKING:
+    import j
+else:
+    import k
+for _ in ():
+    if y:
+        def late():
+            try:
+                pass
+            except* ValueError:
+                import m
+            return lambda: __import__("n")
+while z:
+    import o
+"""
+
+
+def test_imports_in_every_kind_of_block_are_followed():
+    """Only statements hold imports and functions: each block's are found, a function's apart from the body's."""
+    from fluorocal.codehash import _analyse
+
+    _, body, functions = _analyse("pkg.mod", pathlib.Path("mod.py"), NESTED)
+    assert sorted(body) == ["a", "b", "c", "e", "f", "g", "h", "k", "o", "pkg", "pkg.d"]
+    assert sorted(functions) == ["i", "m"]
