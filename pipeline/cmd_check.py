@@ -51,8 +51,6 @@ import argparse
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 #: the default tolerances, px (the module docstring gives their reasons)
 TOLERANCES_PX = {"rms": 0.1, "p95": 0.25, "max": 1.0}
 #: the QA record's columns
@@ -200,6 +198,7 @@ def reference_setup(cal, calibration: Path, system: str):
         A calibration that corrects nothing, a config that no longer names the calibration's kind of object, or a
         config or object points that cannot be read (naming the file).
     """
+    import numpy as np
     from fluorocal.check_setups import Tables
     from fluorocal.cli_common import load_project
     from fluorocal.config import ConfigError, params_from_dict
@@ -293,6 +292,8 @@ class CheckResult:
 
 def check_frame(frame, cal, system: str, orientation, setup, tolerances: dict) -> CheckResult:
     """Detect and label a frame's holes or beads, match them to the calibration's; correct; the residual, judged."""
+    import numpy as np
+
     labels = setup.labels(frame)
     if not labels.ok:
         return _failed(f"{setup.not_found}: {labels.reason}")

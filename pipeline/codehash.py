@@ -145,8 +145,9 @@ def _analyse(name: str, path: Path, text: str) -> tuple[str, tuple[str, ...], tu
     """
     tree = ast.parse(text, filename=str(path))
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    body = _imports(_executed(tree, into_functions=False), package)
-    functions = [m for m in _imports(_executed(tree, into_functions=True), package) if m not in body]
+    statements = list(_executed(tree))
+    body = _imports((node for node, in_function in statements if not in_function), package)
+    functions = [m for m in _imports((node for node, _ in statements), package) if m not in body]
     _drop_docstrings(tree)
     return hashlib.sha256(ast.dump(tree).encode()).hexdigest(), tuple(body), tuple(functions)
 
@@ -322,16 +323,26 @@ def _imports(nodes, package: str) -> list[str]:
     return found
 
 
-def _executed(tree: ast.AST, *, into_functions: bool):
-    """The nodes of ``tree`` but those of ``if TYPE_CHECKING:`` blocks (``else`` kept), and of functions if asked."""
-    todo = [tree]
+#: the nodes that hold statements: an import, a class or a function is a statement, never inside an expression
+_HOLDS_STATEMENTS = (ast.mod, ast.stmt, ast.excepthandler, ast.match_case)
+
+
+def _statements(node: ast.AST) -> list[ast.AST]:
+    """The children of ``node`` that are or hold statements (its expressions, arguments, aliases... hold none)."""
+    return [child for child in ast.iter_child_nodes(node) if isinstance(child, _HOLDS_STATEMENTS)]
+
+
+def _executed(tree: ast.AST):
+    """``(node, in a function)`` of each statement of ``tree`` that runs (not ``if TYPE_CHECKING:``, but its else)."""
+    todo = [(tree, False)]
     while todo:
-        node = todo.pop()
-        yield node
+        node, in_function = todo.pop()
+        yield node, in_function
         if isinstance(node, ast.If) and _is_type_checking(node.test):
-            todo += node.orelse
-        elif into_functions or not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
-            todo += ast.iter_child_nodes(node)
+            todo += [(child, in_function) for child in node.orelse]
+        else:
+            inner = in_function or isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+            todo += [(child, inner) for child in _statements(node)]
 
 
 def _is_type_checking(test: ast.expr) -> bool:
@@ -342,7 +353,10 @@ def _is_type_checking(test: ast.expr) -> bool:
 
 def _drop_docstrings(tree: ast.AST) -> None:
     """Remove the docstring of the module and of every class and function (a body left empty becomes ``pass``)."""
-    for node in ast.walk(tree):
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        todo += _statements(node)
         if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
             first = node.body[0]
             if (

@@ -116,9 +116,12 @@ def test_a_calibration_file_is_the_first_positional(command):
 
 
 def test_version(capsys):
+    """``--version``: the installed distribution's version, looked up when asked."""
+    from importlib.metadata import version
+
     with pytest.raises(SystemExit) as exc:
         main(["--version"])
-    assert exc.value.code == 0 and capsys.readouterr().out.startswith("fluorocal ")
+    assert exc.value.code == 0 and capsys.readouterr().out == f"fluorocal {version('fluorocal')}\n"
 
 
 @pytest.mark.parametrize("where", ["before", "after"])

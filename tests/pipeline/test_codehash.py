@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import importlib
+import itertools
 import json
 import logging
 import os
+import pathlib
+import re
 import sys
 import textwrap
 
@@ -342,3 +345,147 @@ def test_a_library_version_changes_the_key_of_exactly_the_stages_that_call_it(pr
     for library, changed in edits["libraries"].items():
         assert changed == sorted(stage for stage, run in runs.items() if library in run["libraries"]), library
     assert edits["libraries"]["scipy"]  # not vacuous: some stage calls SciPy
+
+
+NESTED = """
+import a
+try:
+    import b
+except ImportError:
+    import c
+else:
+    from . import d
+finally:
+    import e
+with open(x) as fh:
+    import f
+match x:
+    case 1:
+        import g
+class K:
+    import h
+
+    def method(self):
+        import i
+if TYPE_CHECKING:
+    import j
+else:
+    import k
+for _ in ():
+    if y:
+        def late():
+            try:
+                pass
+            except* ValueError:
+                import m
+            return lambda: __import__("n")
+while z:
+    import o
+async def coro():
+    async with x:
+        import p
+    async for _ in y:
+        import q
+    class Local:
+        import r
+
+        def method(self):
+            import s
+    if typing.TYPE_CHECKING:
+        import t
+    else:
+        import u
+@decorate
+class Outer:
+    if TYPE_CHECKING:
+        import v
+    elif w:
+        import w
+"""
+
+
+def test_imports_in_every_kind_of_block_are_followed():
+    """Only statements hold imports and functions: each block's are found, a function's apart from the body's."""
+    from fluorocal.codehash import _analyse
+
+    _, body, functions = _analyse("pkg.mod", pathlib.Path("mod.py"), NESTED)
+    assert sorted(body) == ["a", "b", "c", "e", "f", "g", "h", "k", "o", "pkg", "pkg.d", "w"]
+    assert sorted(functions) == ["i", "m", "p", "q", "r", "s", "u"]  # a class in a function runs with it
+
+
+#: ``<C>`` where code is, in every kind of block; ``<D>`` in the docstrings of the module, classes and functions
+BLOCKS = '''
+"""Module <D>."""
+import a
+x = <C>
+"a string statement that is not a docstring <C>"
+@decorate(<C>)
+class K(Base, key=<C>):
+    """Class <D>."""
+
+    y: int = <C>
+
+    @staticmethod
+    def method(z=<C>, *, w: "<C>" = None) -> "<C>":
+        """Method <D>."""
+        "a second string <C>"
+        return [lambda v=<C>: v + <C> for _ in range(<C>) if _ > <C>], {k: <C> for k in ()}
+async def coro():
+    """Coroutine <D>."""
+    async with a(<C>) as b:
+        <C>
+    async for _ in b:
+        await b(<C>)
+    def inner():
+        class Local:
+            """Local <D>."""
+
+            w = <C>
+        return Local
+    return inner
+if TYPE_CHECKING:
+    "the first statement of a block <C>"
+    T = <C>
+else:
+    T = <C>
+try:
+    "the first statement of a try <C>"
+except* ValueError:
+    x = <C>
+else:
+    x = <C>
+finally:
+    x = <C>
+match x:
+    case {"k": <C>} if x > <C>:
+        x = <C>
+    case [<C>, *rest]:
+        pass
+while x:
+    "the first statement of a loop <C>"
+else:
+    del x, y[<C>]
+for x in ():
+    pass
+else:
+    with a(<C>):
+        assert x, <C>
+'''
+
+
+def _variant(text: str, edited: int | None) -> str:
+    """``text`` with every marker ``0`` but the ``edited``-th, ``1``."""
+    count = itertools.count()
+    return re.sub(r"<[CD]>", lambda m: "1" if next(count) == edited else "0", text)
+
+
+def test_a_change_in_any_block_changes_the_digest_and_one_in_a_docstring_none():
+    """Only docstrings are left out: a change anywhere else gives its own digest (a cache entry never served stale)."""
+    from fluorocal.codehash import _analyse
+
+    markers = re.findall(r"<[CD]>", BLOCKS)
+    variants = [_variant(BLOCKS, i) for i in [None, *range(len(markers))]]
+    base, *edited = [_analyse("pkg.mod", pathlib.Path("mod.py"), text)[0] for text in variants]
+    code = [digest for digest, marker in zip(edited, markers) if marker == "<C>"]
+    assert len(set(code)) == len(code) == 33 and base not in code
+    assert [digest for digest, marker in zip(edited, markers) if marker == "<D>"] == [base] * 5

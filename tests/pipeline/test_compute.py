@@ -103,6 +103,23 @@ def test_fluorocal_threads_wins_over_the_config(clean_thread_env):
             limit_threads(2)
 
 
+@pytest.mark.parametrize("command", [["inspect"], ["cache", "clean"]])
+def test_the_thread_limits_are_set_before_numpy_loads(tmp_path, command):
+    """The limits reach BLAS only if set before numpy loads it: nothing ``main`` imports first (its parser) loads it.
+
+    (A command module importing numpy at its top left the main process's BLAS at every core, whatever the limits.)
+    """
+    path = make_project(tmp_path)
+    code = (
+        "import sys; import fluorocal.compute as c; seen = []; limit = c.limit_threads; "
+        "c.limit_threads = lambda *a: (seen.append('numpy' in sys.modules), limit(*a))[1]; "
+        f"from fluorocal.cli import main; assert main(['--quiet', *{command!r}, {str(path)!r}]) == 0; print(seen)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split("\n")[-2] == "[False]"
+
+
 @pytest.mark.parametrize(
     "section, env, expected", [("", {}, "1 1"), ("threads = 2", {}, "2 2"), ("threads = 2", {THREADS_ENV: "3"}, "3 3")]
 )
