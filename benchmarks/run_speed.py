@@ -27,7 +27,7 @@ with README-style minimal configs, and measures:
    time outside the stages).
 
 ``--profile`` adds a cProfile of the biplanar run (in process, fresh cache): the top functions by
-cumulative and by own time.
+cumulative and by own time, of the main process only (the pool's workers compute detect and centroid).
 
 Usage: ``python benchmarks/run_speed.py [--frames N] [--detect-frames N] [--sections a,b,...]
 [--profile] [--serial] [--repeats N] [--keep DIR]`` (defaults: 75 exposures per system, 20 frames for
@@ -273,12 +273,6 @@ def biplanar(root: Path, truth: dict, n_frames: int, profile: bool, serial: bool
         f"  {wall:.1f} s wall, {cpu['total']:.1f} s CPU ({cpu_parts(cpu)}) (target <= 30 s wall on a quiet "
         f"machine); load {os.getloadavg()[0]:.1f}"
     )
-    if serial:  # a check of the CPU figure: no pool, every stage in the main process
-        wall_1, cpu_1, _ = run_subprocess(cfg, {**USER_ENV, **ONE_THREAD}, "--jobs", "1")
-        print(
-            f"  the same serial (--jobs 1): {wall_1:.1f} s wall, {cpu_1['total']:.1f} s CPU ({cpu_parts(cpu_1)}); "
-            f"load {os.getloadavg()[0]:.1f}"
-        )
     stages = 0.0
     for line in log.splitlines():
         if re.search(r"computed|stopped|converged|reached|after \d+ iterations", line):
@@ -288,6 +282,12 @@ def biplanar(root: Path, truth: dict, n_frames: int, profile: bool, serial: bool
     # understates the time outside the stages by up to what the workers ran side by side
     outside = wall - stages
     print(f"  wall less the stages' logged times (start-up, code digests, cache, outputs, report): {outside:.1f} s")
+    if serial:  # a check of the CPU figure: no pool, every stage in the main process
+        wall_1, cpu_1, _ = run_subprocess(cfg, {**USER_ENV, **ONE_THREAD}, "--jobs", "1")
+        print(
+            f"  the same serial (--jobs 1): {wall_1:.1f} s wall, {cpu_1['total']:.1f} s CPU ({cpu_parts(cpu_1)}); "
+            f"load {os.getloadavg()[0]:.1f}"
+        )
     if profile:
         write_config(root, truth, "biplanar", ("A", "B"))
         profiler = cProfile.Profile()
