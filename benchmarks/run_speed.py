@@ -11,7 +11,8 @@ with README-style minimal configs, and measures:
 2. **the learn stage** of a 40-exposure one-system project (system A's first 40 frames): CPU and wall
    time of the stage alone (detection, centroiding and labelling run first, cached), its iterations and
    why it stopped (target: converged, no cap reached, <= 5 s CPU), and where its time goes (a second run
-   under cProfile: the cumulative time of each part);
+   under cProfile: the cumulative time of each part); section ``learn-biplanar`` (not run by default): the
+   same for the learn stage of both systems' every frame (the project of section 4);
 3. **a full ``fluorocal run``** of system A's frames, in subprocesses with fresh caches: with the
    environment's default BLAS/OpenMP threads and forced to one (``OPENBLAS_NUM_THREADS=1
    OMP_NUM_THREADS=1 MKL_NUM_THREADS=1``), ``--repeats`` times each in ABBA order: the median CPU time
@@ -31,7 +32,7 @@ cumulative and by own time, of the main process only (the pool's workers compute
 
 Usage: ``python benchmarks/run_speed.py [--frames N] [--detect-frames N] [--sections a,b,...]
 [--profile] [--serial] [--repeats N] [--keep DIR]`` (defaults: 75 exposures per system, 20 frames for
-the detection, every section: detect,learn,threads,biplanar; ``--keep``: the data set is written there,
+the detection, sections detect,learn,threads,biplanar; ``--keep``: the data set is written there,
 and reused when it is the same).
 """
 
@@ -154,6 +155,22 @@ def learn_speed(root: Path, truth: dict) -> None:
             f"{result.converged}: {result.stop_reason}\n"
             f"  {'':<21}  field vs truth (mod a homography) {field_px:.4f} px, object points {points_mm:.4f} mm"
         )
+    learn_parts(func, inputs, params, extras)
+
+
+def learn_biplanar(root: Path, truth: dict, n_frames: int) -> None:
+    """The learn stage of the biplanar set (both systems, every frame): its CPU, and where it goes."""
+    cfg = write_config(root, truth, "learnbi", ("A", "B"))
+    func, inputs, params, extras = stage_call(cfg, "learn")
+    print(f"\n2b. learn stage of the biplanar {n_frames} + {n_frames} project (observations from the cached labelling)")
+    c0 = time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = func(*inputs, params, **extras)
+    print(
+        f"  {time.process_time() - c0:.1f} s CPU; {len(result.history) - 1} iterations; converged "
+        f"{result.converged}: {result.stop_reason}"
+    )
     learn_parts(func, inputs, params, extras)
 
 
@@ -334,6 +351,8 @@ def main(argv=None) -> int:
         detect_speed(root, args.detect_frames)
     if "learn" in sections:
         learn_speed(root, truth)
+    if "learn-biplanar" in sections:
+        learn_biplanar(root, truth, params.n_frames)
     if "threads" in sections:
         thread_ratio(root, truth, params.n_frames, args.repeats)
     if "biplanar" in sections:
