@@ -238,7 +238,8 @@ def run_subprocess(cfg: Path, env: dict, *options: str) -> tuple[float, dict, st
     """``fluorocal run`` of ``cfg`` in a fresh process and cache: (wall s, CPU s, its log).
 
     The CPU (user + system, from :mod:`tree_cpu`): ``main``, the main process; ``fork server``, the pool's
-    fork server itself (its imports); ``workers``, the pool's workers; ``total``, their sum.
+    fork server itself (its imports) and multiprocessing's resource tracker; ``workers``, the pool's workers;
+    ``total``, their sum.
     """
     shutil.rmtree(cfg.parent / cfg.stem.replace("fluorocal-", "cache-"), ignore_errors=True)
     command = [sys.executable, "-m", "fluorocal.cli", "run", str(cfg), *options]

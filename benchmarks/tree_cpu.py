@@ -10,8 +10,8 @@ while it is a zombie: its own, and its reaped children's (a fork server's worker
 
 Usage: ``python benchmarks/tree_cpu.py OUT.json COMMAND [ARG ...]``: the command's output and exit
 status pass through; OUT.json gets ``main_s`` (the main process, with any children it waited for),
-``orphans_own_s`` (the fork server's own: its imports) and ``orphans_children_s`` (the workers), in
-CPU seconds, user + system.
+``orphans_own_s`` (the orphans' own: the fork server's imports, and multiprocessing's resource tracker)
+and ``orphans_children_s`` (what they reaped: the workers), in CPU seconds, user + system.
 """
 
 from __future__ import annotations
