@@ -11,25 +11,29 @@ with README-style minimal configs, and measures:
 2. **the learn stage** of a 40-exposure one-system project (system A's first 40 frames): CPU and wall
    time of the stage alone (detection, centroiding and labelling run first, cached), its iterations and
    why it stopped (target: converged, no cap reached, <= 5 s CPU), and where its time goes (a second run
-   under cProfile: the cumulative time of each part);
+   under cProfile: the cumulative time of each part); section ``learn-biplanar`` (not run by default): the
+   same for the learn stage of both systems' every frame (the project of section 4);
 3. **a full ``fluorocal run``** of system A's frames, in subprocesses with fresh caches: with the
    environment's default BLAS/OpenMP threads and forced to one (``OPENBLAS_NUM_THREADS=1
    OMP_NUM_THREADS=1 MKL_NUM_THREADS=1``), ``--repeats`` times each in ABBA order: the median CPU time
-   (children's user + system) and wall of each, and the ratio of the medians. ``fluorocal`` sets one thread
+   (user + system of the main process, the pool's fork server and its workers: :mod:`tree_cpu`, Linux only)
+   and wall of each, and the ratio of the medians. ``fluorocal`` sets one thread
    per library itself unless ``FLUOROCAL_THREADS`` or ``[compute] threads`` say otherwise, so the two
    settings run alike and the ratio shows whether anything still starts threads of its own;
 4. **biplanar end to end**: ``fluorocal run`` of both systems, fresh cache, one BLAS thread: wall and CPU
-   (target: <= 30 s wall on a quiet machine), with each stage's time from the run's log and the wall
+   (target: <= 30 s wall on a quiet machine; the CPU of the main process, the fork server and the workers,
+   and their total; ``--serial`` adds the same run with ``--jobs 1``, whose CPU is all the main process's:
+   a check of the total), with each stage's time from the run's log and the wall
    time less those (the per-frame stages' times are summed over the pool's workers, so it understates the
    time outside the stages).
 
 ``--profile`` adds a cProfile of the biplanar run (in process, fresh cache): the top functions by
-cumulative and by own time.
+cumulative and by own time, of the main process only (the pool's workers compute detect and centroid).
 
 Usage: ``python benchmarks/run_speed.py [--frames N] [--detect-frames N] [--sections a,b,...]
-[--profile] [--repeats N] [--keep DIR]`` (defaults: 75 exposures per system, 20 frames for the detection, every
-section: detect,learn,threads,biplanar; ``--keep``: the data set is written there, and reused when
-it is the same).
+[--profile] [--serial] [--repeats N] [--keep DIR]`` (defaults: 75 exposures per system, 20 frames for
+the detection, sections detect,learn,threads,biplanar; ``--keep``: the data set is written there,
+and reused when it is the same).
 """
 
 from __future__ import annotations
@@ -50,6 +54,8 @@ import warnings
 from dataclasses import asdict
 from pathlib import Path
 
+#: runs a command and measures its pool's workers too (Linux only)
+TREE_CPU = Path(__file__).with_name("tree_cpu.py")
 ONE_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 #: the environment as a user's shell gives it, without the thread limits set below for this process
 USER_ENV = {k: v for k, v in os.environ.items() if k not in ONE_THREAD}
@@ -152,6 +158,22 @@ def learn_speed(root: Path, truth: dict) -> None:
     learn_parts(func, inputs, params, extras)
 
 
+def learn_biplanar(root: Path, truth: dict, n_frames: int) -> None:
+    """The learn stage of the biplanar set (both systems, every frame): its CPU, and where it goes."""
+    cfg = write_config(root, truth, "learnbi", ("A", "B"))
+    func, inputs, params, extras = stage_call(cfg, "learn")
+    print(f"\n2b. learn stage of the biplanar {n_frames} + {n_frames} project (observations from the cached labelling)")
+    c0 = time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = func(*inputs, params, **extras)
+    print(
+        f"  {time.process_time() - c0:.1f} s CPU; {len(result.history) - 1} iterations; converged "
+        f"{result.converged}: {result.stop_reason}"
+    )
+    learn_parts(func, inputs, params, extras)
+
+
 #: the learn stage's parts timed by :func:`learn_parts`: label -> (module path suffix, function name)
 LEARN_PARTS = {
     "start values (resection)": ("learn/adjuster.py", "start_orientation"),
@@ -212,20 +234,31 @@ def learn_truth_errors(result, truth: dict) -> tuple[float, float]:
     return field_px, float(np.sqrt(np.mean(np.sum((s * est @ R.T + t - ref) ** 2, axis=1))))
 
 
-def run_subprocess(cfg: Path, env: dict) -> tuple[float, float, str]:
-    """``fluorocal run`` of ``cfg`` in a fresh process and cache: (wall s, CPU s of the child, its log)."""
+def run_subprocess(cfg: Path, env: dict, *options: str) -> tuple[float, dict, str]:
+    """``fluorocal run`` of ``cfg`` in a fresh process and cache: (wall s, CPU s, its log).
+
+    The CPU (user + system, from :mod:`tree_cpu`): ``main``, the main process; ``fork server``, the pool's
+    fork server itself (its imports) and multiprocessing's resource tracker; ``workers``, the pool's workers;
+    ``total``, their sum.
+    """
     shutil.rmtree(cfg.parent / cfg.stem.replace("fluorocal-", "cache-"), ignore_errors=True)
-    before = os.times()
-    t0 = time.perf_counter()
-    proc = subprocess.run(
-        [sys.executable, "-m", "fluorocal.cli", "run", str(cfg)], env=env, capture_output=True, text=True
-    )
-    wall = time.perf_counter() - t0
-    after = os.times()
-    if proc.returncode != 0:
-        raise SystemExit(f"fluorocal run {cfg} exited {proc.returncode}: {proc.stderr[-2000:]}")
-    cpu = (after.children_user - before.children_user) + (after.children_system - before.children_system)
-    return wall, cpu, proc.stdout + proc.stderr
+    command = [sys.executable, "-m", "fluorocal.cli", "run", str(cfg), *options]
+    with tempfile.TemporaryDirectory() as tmp:
+        measured = Path(tmp) / "cpu.json"
+        t0 = time.perf_counter()
+        proc = subprocess.run(
+            [sys.executable, str(TREE_CPU), str(measured), *command], env=env, capture_output=True, text=True
+        )
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            raise SystemExit(f"fluorocal run {cfg} exited {proc.returncode}: {proc.stderr[-2000:]}")
+        parts = json.loads(measured.read_text())
+    cpu = {"main": parts["main_s"], "fork server": parts["orphans_own_s"], "workers": parts["orphans_children_s"]}
+    return wall, {**cpu, "total": sum(cpu.values())}, proc.stdout + proc.stderr
+
+
+def cpu_parts(cpu: dict) -> str:
+    return ", ".join(f"{name} {seconds:.1f}" for name, seconds in cpu.items() if name != "total")
 
 
 def thread_ratio(root: Path, truth: dict, n_frames: int, repeats: int) -> None:
@@ -237,7 +270,8 @@ def thread_ratio(root: Path, truth: dict, n_frames: int, repeats: int) -> None:
     runs = {name: [] for name in envs}
     for i in range(repeats):
         for name in list(envs)[:: 1 if i % 2 == 0 else -1]:  # ABBA: what runs first, on a warmer machine, alternates
-            runs[name].append(run_subprocess(cfg, envs[name])[:2])
+            wall, took, _ = run_subprocess(cfg, envs[name])
+            runs[name].append((wall, took["total"]))
     print(f"\n3. fluorocal run of {n_frames} frames (one system), fresh cache, in a subprocess, {repeats} runs each")
     cpu = {}
     for name, times in runs.items():
@@ -249,12 +283,13 @@ def thread_ratio(root: Path, truth: dict, n_frames: int, repeats: int) -> None:
     print(f"  CPU ratio default / one thread (medians): {ratio:.3f}x (target <= 1.05x)")
 
 
-def biplanar(root: Path, truth: dict, n_frames: int, profile: bool) -> None:
+def biplanar(root: Path, truth: dict, n_frames: int, profile: bool, serial: bool) -> None:
     cfg = write_config(root, truth, "biplanar", ("A", "B"))
     wall, cpu, log = run_subprocess(cfg, {**USER_ENV, **ONE_THREAD})
     print(f"\n4. biplanar {n_frames} + {n_frames} end to end (fluorocal run, fresh cache, one BLAS thread)")
     print(
-        f"  {wall:.1f} s wall, {cpu:.1f} s CPU (target <= 30 s wall on a quiet machine); load {os.getloadavg()[0]:.1f}"
+        f"  {wall:.1f} s wall, {cpu['total']:.1f} s CPU ({cpu_parts(cpu)}) (target <= 30 s wall on a quiet "
+        f"machine); load {os.getloadavg()[0]:.1f}"
     )
     stages = 0.0
     for line in log.splitlines():
@@ -265,6 +300,12 @@ def biplanar(root: Path, truth: dict, n_frames: int, profile: bool) -> None:
     # understates the time outside the stages by up to what the workers ran side by side
     outside = wall - stages
     print(f"  wall less the stages' logged times (start-up, code digests, cache, outputs, report): {outside:.1f} s")
+    if serial:  # a check of the CPU figure: no pool, every stage in the main process
+        wall_1, cpu_1, _ = run_subprocess(cfg, {**USER_ENV, **ONE_THREAD}, "--jobs", "1")
+        print(
+            f"  the same serial (--jobs 1): {wall_1:.1f} s wall, {cpu_1['total']:.1f} s CPU ({cpu_parts(cpu_1)}); "
+            f"load {os.getloadavg()[0]:.1f}"
+        )
     if profile:
         write_config(root, truth, "biplanar", ("A", "B"))
         profiler = cProfile.Profile()
@@ -283,6 +324,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sections", default="detect,learn,threads,biplanar", help="comma-separated (default: all)")
     ap.add_argument("--seed", type=int, default=11, help="simulation seed (default 11)")
     ap.add_argument("--profile", action="store_true", help="also profile the biplanar run with cProfile")
+    ap.add_argument("--serial", action="store_true", help="also run the biplanar set with --jobs 1 (a CPU check)")
     ap.add_argument(
         "--repeats", type=int, default=4, help="runs of each thread setting in section 3, ABBA: even (default 4)"
     )
@@ -310,10 +352,12 @@ def main(argv=None) -> int:
         detect_speed(root, args.detect_frames)
     if "learn" in sections:
         learn_speed(root, truth)
+    if "learn-biplanar" in sections:
+        learn_biplanar(root, truth, params.n_frames)
     if "threads" in sections:
         thread_ratio(root, truth, params.n_frames, args.repeats)
     if "biplanar" in sections:
-        biplanar(root, truth, params.n_frames, args.profile)
+        biplanar(root, truth, params.n_frames, args.profile, args.serial)
     if args.keep is None:
         shutil.rmtree(root, ignore_errors=True)
     return 0
