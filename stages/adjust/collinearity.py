@@ -127,6 +127,20 @@ def residuals(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     return _residuals_from_camera(state, problem, p)
 
 
+@dataclass(frozen=True)
+class Projection:
+    """A state's :func:`camera_points` and whitened residuals ``e`` (N, 2): what :func:`linearize` can reuse."""
+
+    camera: tuple
+    e: np.ndarray
+
+
+def project(state: State, problem: Problem) -> Projection:
+    """:func:`residuals`' whitened residuals with the camera points they came from (raises as it does)."""
+    camera = camera_points(state, problem)
+    return Projection(camera, _residuals_from_camera(state, problem, camera[0])[1])
+
+
 def _residuals_from_camera(
     state: State, problem: Problem, p: np.ndarray, ap_basis: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -171,8 +185,12 @@ def _ap_columns(state: State, problem: Problem, basis: tuple, J_glob: np.ndarray
     J_glob[:, :, 1] += whiten(problem.linv, np.einsum("nij,nj->ni", dB_dv, a) * inv_r0)
 
 
-def linearize(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def linearize(
+    state: State, problem: Problem, projection: Projection | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Whitened residuals and their analytic Jacobians for every observation.
+
+    ``projection``: :func:`project` of the same ``state``, if already evaluated (not evaluated again).
 
     Returns
     -------
@@ -186,9 +204,12 @@ def linearize(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarray, n
         ``∂e/∂(xp, yp, c, δφ, b, APs)`` of the observation's system, the columns of
         :attr:`Problem.gcol` (``δφ, b`` only with several systems, the APs only when estimated).
     """
-    p, p_ref, R_pose, R_rop = camera_points(state, problem)
     basis = _ap_basis(state, problem, derivatives=True) if problem.n_ap else None
-    _, e = _residuals_from_camera(state, problem, p, None if basis is None else basis[0])
+    if projection is None:
+        p, p_ref, R_pose, R_rop = camera_points(state, problem)
+        _, e = _residuals_from_camera(state, problem, p, None if basis is None else basis[0])
+    else:
+        (p, p_ref, R_pose, R_rop), e = projection.camera, projection.e
     l11, l21, l22 = (problem.linv[:, i] for i in range(3))
     iz = 1.0 / p[:, 2]
     u, v = p[:, 0] * iz, p[:, 1] * iz
