@@ -75,8 +75,11 @@ def weighted_jacobian(problem: Problem, e, J_point, J_pose, J_glob, w) -> tuple[
     """``sqrt(w)``-weighted stacked Jacobian ``[J_eliminated | J_kept | J_globals]`` (N, 2, nt) and residuals (N, 2)."""
     JE, JK = (J_point, J_pose) if problem.eliminate == "points" else (J_pose, J_point)
     sw = np.sqrt(w)[:, None, None]
-    J = np.concatenate([JE, JK, J_glob], axis=2)
-    J *= sw
+    J = np.empty(JE.shape[:2] + (JE.shape[2] + JK.shape[2] + J_glob.shape[2],))
+    at = 0
+    for part in (JE, JK, J_glob):  # weighted in place of the copy a concatenation makes
+        np.multiply(part, sw, out=J[:, :, at : at + part.shape[2]])
+        at += part.shape[2]
     return J, e * sw[:, :, 0]
 
 
@@ -106,7 +109,10 @@ def triggs_corrected(J: np.ndarray, ew: np.ndarray, t: np.ndarray, nu: float) ->
     n_dir = ew / np.maximum(np.linalg.norm(ew, axis=1, keepdims=True), 1e-300)
     n0, n1 = n_dir[:, :1], n_dir[:, 1:]
     along = (J[:, 0] * n0 + J[:, 1] * n1) * alpha[:, None]
-    return np.stack([J[:, 0] - n0 * along, J[:, 1] - n1 * along], axis=1)
+    out = np.empty_like(J)
+    np.subtract(J[:, 0], n0 * along, out=out[:, 0])
+    np.subtract(J[:, 1], n1 * along, out=out[:, 1])
+    return out
 
 
 def gradient(problem: Problem, J: np.ndarray, ew: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
