@@ -26,7 +26,7 @@ def _outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _segment_grams(J: np.ndarray, starts: np.ndarray, first: int) -> np.ndarray:
-    """``Σ J_n^T J_n`` of columns ``first:`` over each run ``starts[i]:starts[i+1]`` of ``J (N, 2, c)`` -> ``(runs, k, k)``.
+    """``Σ J_n^T J_n`` of columns ``first:`` over each run ``starts[i]:starts[i+1]`` of ``J (N, 2, c)``.
 
     One BLAS product per run: the runs (one per kept block and system) are few
     and long, where a batched per-observation product would be memory bound. The
