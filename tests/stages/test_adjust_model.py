@@ -296,3 +296,47 @@ def test_polynomial_distortion_is_recovered_by_the_adjustment(mono):
     H, _ = cv2.findHomography(ideal, obs.xy_px - true_corr, 0)
     assert rms(cv2.perspectiveTransform(ideal[None], H)[0] - (obs.xy_px - true_corr)) < 0.01 * rms(true_corr)
     assert res.n_parameters == 3 * len(mono.ids) + 6 * len(mono.initial.exposure) + 3 + 7
+
+
+@pytest.mark.parametrize("eliminate", ["points", "poses"])
+def test_linearizing_from_the_cost_evaluations_projection_changes_nothing(biplanar, eliminate):
+    """The solver linearises from the camera points and residuals of its cost evaluation: the same arrays to the bit.
+
+    Biplanar, with nonzero APs on both systems (the AP basis enters the residuals), at the perturbed start.
+    """
+    from dataclasses import replace
+
+    from fluorocal.stages.adjust.collinearity import project
+
+    obs, _ = _polynomially_distorted(biplanar)
+    free = FreeParameters(additional_parameters="polynomial", fixed_additional_parameters=())
+    prep = prepare(
+        obs, (biplanar.ids, biplanar.nominal_mm), biplanar.initial, None, free=free, solver=SolverOptions(schur=eliminate)
+    )
+    state = replace(prep.state, ap_px=np.array([AP_TRUE, -0.5 * AP_TRUE[::-1]]))
+    fresh = linearize(state, prep.problem)
+    reused = linearize(state, prep.problem, project(state, prep.problem))
+    assert np.array_equal(residuals(state, prep.problem)[1], fresh[0])
+    for a, b in zip(fresh, reused, strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_triggs_correction_scales_only_the_rows_along_the_residual():
+    """Per observation, ``n^T J_h = sqrt(D) n^T J`` with ``D = (ν - t)/(ν + t)`` clipped to [0, 1], ``m^T J_h = m^T J``.
+
+    ``n`` the residual's direction, ``m`` its normal: the corrected Jacobian's curvature along the
+    residual is the Student-t one and unchanged across it (random J, residuals on both sides of ν).
+    """
+    from fluorocal.stages.adjust.normal import triggs_corrected
+
+    rng = np.random.default_rng(3)
+    J, ew = rng.normal(size=(50, 2, 7)), rng.normal(size=(50, 2))
+    nu, t = 4.0, rng.uniform(0.0, 12.0, 50)
+    Jh = triggs_corrected(J, ew, t, nu)
+    n = ew / np.linalg.norm(ew, axis=1, keepdims=True)
+    m = np.column_stack([-n[:, 1], n[:, 0]])
+    along = lambda A, d: np.einsum("ni,nij->nj", d, A)  # noqa: E731
+    root_d = np.sqrt(np.clip((nu - t) / (nu + t), 0.0, 1.0))[:, None]
+    assert np.allclose(along(Jh, n), root_d * along(J, n), rtol=0, atol=1e-13)
+    assert np.allclose(along(Jh, m), along(J, m), rtol=0, atol=1e-13)
+    assert (t > nu).any() and (t < nu).any()
