@@ -310,9 +310,8 @@ def test_linearizing_from_the_cost_evaluations_projection_changes_nothing(biplan
 
     obs, _ = _polynomially_distorted(biplanar)
     free = FreeParameters(additional_parameters="polynomial", fixed_additional_parameters=())
-    prep = prepare(
-        obs, (biplanar.ids, biplanar.nominal_mm), biplanar.initial, None, free=free, solver=SolverOptions(schur=eliminate)
-    )
+    nominal, solver = (biplanar.ids, biplanar.nominal_mm), SolverOptions(schur=eliminate)
+    prep = prepare(obs, nominal, biplanar.initial, None, free=free, solver=solver)
     state = replace(prep.state, ap_px=np.array([AP_TRUE, -0.5 * AP_TRUE[::-1]]))
     fresh = linearize(state, prep.problem)
     reused = linearize(state, prep.problem, project(state, prep.problem))
