@@ -226,9 +226,10 @@ def linearize(
         K = Jp
         R_full = R_pose[problem.pose_idx]
     else:
-        R_s = R_rop[problem.sys_idx]
-        K = Jp @ R_s
-        R_full = R_s @ R_pose[problem.pose_idx]
+        K = Jp @ R_rop[problem.sys_idx]
+        # R_s R_j of each (epoch, system) pair once, then gathered: far fewer pairs than observations
+        R_pairs = (R_rop[None, :] @ R_pose[:, None]).reshape(-1, 3, 3)
+        R_full = R_pairs[problem.pose_idx * problem.n_systems + problem.sys_idx]
     J_point = Jp @ R_full
     J_pose = np.empty((len(a), 2, 6))
     # ∂p/∂δθ = -R_s [p_ref]x, so each row k of K maps to p_ref x k

@@ -108,10 +108,14 @@ def triggs_corrected(J: np.ndarray, ew: np.ndarray, t: np.ndarray, nu: float) ->
     alpha = 1.0 - np.sqrt(np.clip(d, 0.0, 1.0))
     n_dir = ew / np.maximum(np.linalg.norm(ew, axis=1, keepdims=True), 1e-300)
     n0, n1 = n_dir[:, :1], n_dir[:, 1:]
-    along = (J[:, 0] * n0 + J[:, 1] * n1) * alpha[:, None]
+    # in place wherever possible: the arrays are large, and fresh temporaries cost page faults
+    along = J[:, 0] * n0
+    along += J[:, 1] * n1
+    along *= alpha[:, None]
     out = np.empty_like(J)
-    np.subtract(J[:, 0], n0 * along, out=out[:, 0])
-    np.subtract(J[:, 1], n1 * along, out=out[:, 1])
+    for row, n_row in ((0, n0), (1, n1)):
+        np.multiply(n_row, along, out=out[:, row])
+        np.subtract(J[:, row], out[:, row], out=out[:, row])
     return out
 
 
