@@ -75,11 +75,8 @@ def weighted_jacobian(problem: Problem, e, J_point, J_pose, J_glob, w) -> tuple[
     """``sqrt(w)``-weighted stacked Jacobian ``[J_eliminated | J_kept | J_globals]`` (N, 2, nt) and residuals (N, 2)."""
     JE, JK = (J_point, J_pose) if problem.eliminate == "points" else (J_pose, J_point)
     sw = np.sqrt(w)[:, None, None]
-    J = np.empty(JE.shape[:2] + (JE.shape[2] + JK.shape[2] + J_glob.shape[2],))
-    at = 0
-    for part in (JE, JK, J_glob):  # weighted in place of the copy a concatenation makes
-        np.multiply(part, sw, out=J[:, :, at : at + part.shape[2]])
-        at += part.shape[2]
+    J = np.concatenate([JE, JK, J_glob], axis=2)
+    J *= sw
     return J, e * sw[:, :, 0]
 
 
@@ -107,16 +104,8 @@ def triggs_corrected(J: np.ndarray, ew: np.ndarray, t: np.ndarray, nu: float) ->
     d = (nu - t) / (nu + t)
     alpha = 1.0 - np.sqrt(np.clip(d, 0.0, 1.0))
     n_dir = ew / np.maximum(np.linalg.norm(ew, axis=1, keepdims=True), 1e-300)
-    n0, n1 = n_dir[:, :1], n_dir[:, 1:]
-    # in place wherever possible: the arrays are large, and fresh temporaries cost page faults
-    along = J[:, 0] * n0
-    along += J[:, 1] * n1
-    along *= alpha[:, None]
-    out = np.empty_like(J)
-    for row, n_row in ((0, n0), (1, n1)):
-        np.multiply(n_row, along, out=out[:, row])
-        np.subtract(J[:, row], out[:, row], out=out[:, row])
-    return out
+    along = np.einsum("nij,ni->nj", J, n_dir) * alpha[:, None]
+    return J - np.einsum("ni,nj->nij", n_dir, along)
 
 
 def gradient(problem: Problem, J: np.ndarray, ew: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
