@@ -154,6 +154,40 @@ def test_analytic_jacobian_matches_central_differences(biplanar, eliminate):
         np.testing.assert_allclose(analytic, numeric, rtol=0, atol=1e-6 * scale + 1e-5)
 
 
+
+def test_three_systems_jacobian_with_a_missing_epoch_and_shuffled_observations():
+    """``∂e/∂P`` and ``∂e/∂(δθ, T)`` of three systems against central differences (as above).
+
+    An epoch left out and the observations in random order: each observation's ``R_s R_j`` must be
+    that of its own (epoch, system) pair whatever the pairs' numbering.
+    """
+    syn = make_problem(n_beads=40, n_exposures=7, n_systems=3, seed=2, visible_fraction=0.8)
+    o = syn.observations
+    keep = np.random.default_rng(1).permutation(np.flatnonzero(o.exposure != np.unique(o.exposure)[2]))
+    obs = Observations(o.system[keep], o.exposure[keep], o.bead_id[keep], o.xy_px[keep], o.sigma_px[keep], o.system_names)
+    prep = prepare(obs, (syn.ids, syn.nominal_mm), syn.initial)
+    problem, state, h = prep.problem, prep.state, 1e-6
+    _, J_point, J_pose, _ = linearize(state, problem)
+    zp, zc, zg = np.zeros((problem.n_points, 3)), np.zeros((problem.n_poses, 6)), np.zeros(problem.n_globals)
+    for j in range(problem.n_poses):
+        sel = problem.pose_idx == j
+        assert len(np.unique(problem.sys_idx[sel])) == 3
+        for k in range(6):
+            d = zc.copy()
+            d[j, k] = h
+            ep = residuals(apply_step(state, problem, zp, d, zg), problem)[1]
+            em = residuals(apply_step(state, problem, zp, -d, zg), problem)[1]
+            scale = np.abs(J_pose[sel, :, k]).max()
+            np.testing.assert_allclose(J_pose[sel, :, k], ((ep - em) / (2 * h))[sel], rtol=0, atol=1e-6 * scale + 1e-5)
+    for i in (0, 17):
+        d = zp.copy()
+        d[i, 2] = h
+        ep = residuals(apply_step(state, problem, d, zc, zg), problem)[1]
+        em = residuals(apply_step(state, problem, -d, zc, zg), problem)[1]
+        sel = problem.point_idx == i
+        scale = np.abs(J_point[sel, :, 2]).max()
+        np.testing.assert_allclose(J_point[sel, :, 2], ((ep - em) / (2 * h))[sel], rtol=0, atol=1e-6 * scale + 1e-5)
+
 # --------------------------------------------------------------------------- additional parameters (polynomial)
 
 #: a polynomial distortion in px at the reference radius 700 px (k1, k2, k3, p1, p2, b1, b2): a few px radial,
