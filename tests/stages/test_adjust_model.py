@@ -154,7 +154,6 @@ def test_analytic_jacobian_matches_central_differences(biplanar, eliminate):
         np.testing.assert_allclose(analytic, numeric, rtol=0, atol=1e-6 * scale + 1e-5)
 
 
-
 def test_three_systems_jacobian_with_a_missing_epoch_and_shuffled_observations():
     """``∂e/∂P`` and ``∂e/∂(δθ, T)`` of three systems against central differences (as above).
 
@@ -164,7 +163,8 @@ def test_three_systems_jacobian_with_a_missing_epoch_and_shuffled_observations()
     syn = make_problem(n_beads=40, n_exposures=7, n_systems=3, seed=2, visible_fraction=0.8)
     o = syn.observations
     keep = np.random.default_rng(1).permutation(np.flatnonzero(o.exposure != np.unique(o.exposure)[2]))
-    obs = Observations(o.system[keep], o.exposure[keep], o.bead_id[keep], o.xy_px[keep], o.sigma_px[keep], o.system_names)
+    columns = (o.system, o.exposure, o.bead_id, o.xy_px, o.sigma_px)
+    obs = Observations(*(c[keep] for c in columns), o.system_names)
     prep = prepare(obs, (syn.ids, syn.nominal_mm), syn.initial)
     problem, state, h = prep.problem, prep.state, 1e-6
     _, J_point, J_pose, _ = linearize(state, problem)
@@ -187,6 +187,7 @@ def test_three_systems_jacobian_with_a_missing_epoch_and_shuffled_observations()
         sel = problem.point_idx == i
         scale = np.abs(J_point[sel, :, 2]).max()
         np.testing.assert_allclose(J_point[sel, :, 2], ((ep - em) / (2 * h))[sel], rtol=0, atol=1e-6 * scale + 1e-5)
+
 
 # --------------------------------------------------------------------------- additional parameters (polynomial)
 
