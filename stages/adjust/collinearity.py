@@ -127,6 +127,20 @@ def residuals(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     return _residuals_from_camera(state, problem, p)
 
 
+@dataclass(frozen=True)
+class Projection:
+    """A state's :func:`camera_points` and whitened residuals ``e`` (N, 2): what :func:`linearize` can reuse."""
+
+    camera: tuple
+    e: np.ndarray
+
+
+def project(state: State, problem: Problem) -> Projection:
+    """:func:`residuals`' whitened residuals with the camera points they came from (raises as it does)."""
+    camera = camera_points(state, problem)
+    return Projection(camera, _residuals_from_camera(state, problem, camera[0])[1])
+
+
 def _residuals_from_camera(
     state: State, problem: Problem, p: np.ndarray, ap_basis: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -171,8 +185,12 @@ def _ap_columns(state: State, problem: Problem, basis: tuple, J_glob: np.ndarray
     J_glob[:, :, 1] += whiten(problem.linv, np.einsum("nij,nj->ni", dB_dv, a) * inv_r0)
 
 
-def linearize(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def linearize(
+    state: State, problem: Problem, projection: Projection | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Whitened residuals and their analytic Jacobians for every observation.
+
+    ``projection``: :func:`project` of the same ``state``, if already evaluated (not evaluated again).
 
     Returns
     -------
@@ -186,9 +204,12 @@ def linearize(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarray, n
         ``∂e/∂(xp, yp, c, δφ, b, APs)`` of the observation's system, the columns of
         :attr:`Problem.gcol` (``δφ, b`` only with several systems, the APs only when estimated).
     """
-    p, p_ref, R_pose, R_rop = camera_points(state, problem)
     basis = _ap_basis(state, problem, derivatives=True) if problem.n_ap else None
-    _, e = _residuals_from_camera(state, problem, p, None if basis is None else basis[0])
+    if projection is None:
+        p, p_ref, R_pose, R_rop = camera_points(state, problem)
+        _, e = _residuals_from_camera(state, problem, p, None if basis is None else basis[0])
+    else:
+        (p, p_ref, R_pose, R_rop), e = projection.camera, projection.e
     l11, l21, l22 = (problem.linv[:, i] for i in range(3))
     iz = 1.0 / p[:, 2]
     u, v = p[:, 0] * iz, p[:, 1] * iz
@@ -205,9 +226,10 @@ def linearize(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarray, n
         K = Jp
         R_full = R_pose[problem.pose_idx]
     else:
-        R_s = R_rop[problem.sys_idx]
-        K = Jp @ R_s
-        R_full = R_s @ R_pose[problem.pose_idx]
+        K = Jp @ R_rop[problem.sys_idx]
+        # R_s R_j of each (epoch, system) pair once, then gathered: far fewer pairs than observations
+        R_pairs = (R_rop[None, :] @ R_pose[:, None]).reshape(-1, 3, 3)
+        R_full = R_pairs[problem.pose_idx * problem.n_systems + problem.sys_idx]
     J_point = Jp @ R_full
     J_pose = np.empty((len(a), 2, 6))
     # ∂p/∂δθ = -R_s [p_ref]x, so each row k of K maps to p_ref x k

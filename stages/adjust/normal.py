@@ -25,17 +25,20 @@ def _outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.matmul(a.transpose(0, 2, 1), b)
 
 
-def _segment_grams(J: np.ndarray, starts: np.ndarray) -> np.ndarray:
-    """``Σ J_n^T J_n`` over each run of observations ``starts[i]:starts[i+1]`` of ``J (N, 2, c)`` -> ``(runs, c, c)``.
+def _segment_grams(J: np.ndarray, starts: np.ndarray, first: int) -> np.ndarray:
+    """``Σ J_n^T J_n`` of columns ``first:`` over each run ``starts[i]:starts[i+1]`` of ``J (N, 2, c)``.
 
     One BLAS product per run: the runs (one per kept block and system) are few
-    and long, where a batched per-observation product would be memory bound.
+    and long, where a batched per-observation product would be memory bound. The
+    columns are sliced in the product (a strided operand BLAS reads in place), so
+    that ``J`` is gathered in whole rows, which is cheaper than gathering a slice.
     """
     flat = J.reshape(-1, J.shape[2])
     bounds = 2 * np.r_[starts, len(J)]
-    out = np.empty((len(starts), J.shape[2], J.shape[2]))
+    k = J.shape[2] - first
+    out = np.empty((len(starts), k, k))
     for i in range(len(starts)):
-        seg = flat[bounds[i] : bounds[i + 1]]
+        seg = flat[bounds[i] : bounds[i + 1], first:]
         out[i] = seg.T @ seg
     return out
 
@@ -111,7 +114,7 @@ def gradient(problem: Problem, J: np.ndarray, ew: np.ndarray) -> tuple[np.ndarra
     bj = -_atb(J, ew)  # shape (N, nt)
     b_e = np.add.reduceat(bj[:, :be], problem.e_starts, axis=0)
     b_y = np.zeros(nk * bk + G + 1)
-    bk_sorted = bj[problem.k_order, be:]
+    bk_sorted = bj.take(problem.k_order, axis=0)[:, be:]  # whole rows gather faster than a slice
     b_y[: nk * bk] = np.add.reduceat(bk_sorted[:, :bk], problem.k_starts, axis=0).reshape(-1)
     bg = np.add.reduceat(bk_sorted[:, bk:], problem.ks_starts, axis=0)
     gcols = _gcols(problem, nk * bk, nk * bk + G + 1)
@@ -157,7 +160,7 @@ def assemble(problem: Problem, J: np.ndarray, ew: np.ndarray, J_hessian: np.ndar
 
     rg = r + 1  # the extra last column collects fixed globals and is dropped
     Hyy = np.zeros((rg, rg))
-    KS = _segment_grams(J[problem.k_order, :, be:], problem.ks_starts)  # shape (n_ks, bk + ng, bk + ng)
+    KS = _segment_grams(J.take(problem.k_order, axis=0), problem.ks_starts, be)  # shape (n_ks, bk + ng, bk + ng)
     KK = np.add.reduceat(KS[:, :bk, :bk], segment_starts(problem.ks_k), axis=0)
     blk = np.arange(nk)[:, None] * bk + np.arange(bk)
     Hyy[blk[:, :, None], blk[:, None, :]] = KK

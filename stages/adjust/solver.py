@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from fluorocal.stages.adjust.collinearity import State, linearize, residuals
+from fluorocal.stages.adjust.collinearity import Projection, State, linearize, project
 from fluorocal.stages.adjust.normal import (
     Normal,
     SingularStep,
@@ -59,6 +59,7 @@ class _Progress:
     mu: float
     history: list = field(default_factory=list)
     growth: float = 2.0
+    projection: Projection | None = None  # camera points and residuals at ``state``, kept for its linearisation
     normal: Normal | None = None  # the linearisation at ``state``; None after a move
     settled: bool = False  # σ² changed by < 5 % at the last accepted step
     iteration: int = 0
@@ -69,13 +70,14 @@ class _Progress:
         self.stop, self.converged = stop, converged
 
 
-def _cost_at(state: State, problem: Problem, nu: float, scale2: float) -> tuple[float, np.ndarray]:
+def _cost_at(state: State, problem: Problem, nu: float, scale2: float) -> tuple[float, np.ndarray, Projection | None]:
+    """The cost at ``state``, the squared norms ``s`` of its residuals and its projection (None: behind a source)."""
     try:
-        _, e = residuals(state, problem)
+        projection = project(state, problem)
     except FloatingPointError:
-        return math.inf, np.empty(0)
-    s = (e * e).sum(1)
-    return t_cost(s, nu, scale2), s
+        return math.inf, np.empty(0), None
+    s = (projection.e * projection.e).sum(1)
+    return t_cost(s, nu, scale2), s, projection
 
 
 def _hyper(s: np.ndarray, nu: float, scale2: float, options: SolverOptions) -> tuple[float, float]:
@@ -107,11 +109,12 @@ def solve(state: State, problem: Problem, options: SolverOptions) -> SolverResul
         system stays singular at the largest damping.
     """
     nu = float(options.nu)
-    cost, s = _cost_at(state, problem, nu, 1.0)
+    cost, s, projection = _cost_at(state, problem, nu, 1.0)
     if not math.isfinite(cost):
         raise EstimationError("the initial orientation puts observed points at or behind the X-ray source")
     nu, scale2 = _hyper(s, nu, 1.0, options)
     run = _Progress(state=state, nu=nu, scale2=scale2, cost=t_cost(s, nu, scale2), mu=options.initial_damping)
+    run.projection = projection
     run.history.append(run.cost)
     while run.iteration < options.max_iterations and run.stop is None:
         run.iteration += 1
@@ -139,7 +142,7 @@ def solve(state: State, problem: Problem, options: SolverOptions) -> SolverResul
 
 def _linearised(run: _Progress, problem: Problem) -> Normal:
     """The normal equations at ``run.state`` with the current t-weights."""
-    e, J_point, J_pose, J_glob = linearize(run.state, problem)
+    e, J_point, J_pose, J_glob = linearize(run.state, problem, run.projection)
     s_now = (e * e).sum(1)
     J, ew = weighted_jacobian(problem, e, J_point, J_pose, J_glob, t_weights(s_now, run.nu, run.scale2))
     # near the optimum (σ² settled) the IRLS curvature overstates the t's: correct it there only,
@@ -166,7 +169,7 @@ def _iterate(run: _Progress, problem: Problem, options: SolverOptions) -> None:
         run.mu = min(max(mu, _MU_MIN) * 10.0, _MU_MAX)
         return
     trial = apply_step(run.state, problem, *split_step(problem, de, dy))
-    new_cost, s_new = _cost_at(trial, problem, run.nu, run.scale2)
+    new_cost, s_new, projection = _cost_at(trial, problem, run.nu, run.scale2)
     step = np.concatenate([de.ravel(), dy])
     # decrease predicted by the quadratic model, in cost units (H and b are without 1/σ²):
     # (H + μ diag H) δ = b on the constraint surface gives ½ (b·δ + μ δ^T diag(H) δ)
@@ -177,7 +180,7 @@ def _iterate(run: _Progress, problem: Problem, options: SolverOptions) -> None:
     x_norm = math.sqrt(float((state.points_mm**2).sum() + (state.source_mm**2).sum() + (state.iop_px**2).sum()))
     small_step = float(np.linalg.norm(step)) <= options.parameter_tolerance * (x_norm + options.parameter_tolerance)
     if math.isfinite(new_cost) and actual > 0 and predicted > 0:
-        _accept(run, trial, s_new, actual / predicted, small_step, options)
+        _accept(run, trial, projection, s_new, actual / predicted, small_step, options)
     elif (
         small_step
         or 0 <= predicted <= options.function_tolerance
@@ -191,9 +194,9 @@ def _iterate(run: _Progress, problem: Problem, options: SolverOptions) -> None:
             run.finish(f"damping exceeded {_MU_MAX:g} without decrease", False)
 
 
-def _accept(run: _Progress, trial: State, s_new: np.ndarray, rho: float, small_step: bool, options) -> None:
+def _accept(run: _Progress, trial: State, projection, s_new: np.ndarray, rho: float, small_step: bool, options) -> None:
     """Move to ``trial`` (gain ratio ``rho``), update the damping, σ² and ν, and test the stopping rules."""
-    run.state = trial
+    run.state, run.projection = trial, projection
     run.normal = None
     run.mu = max(run.mu * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), _MU_MIN)
     run.growth = 2.0

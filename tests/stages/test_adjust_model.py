@@ -154,6 +154,41 @@ def test_analytic_jacobian_matches_central_differences(biplanar, eliminate):
         np.testing.assert_allclose(analytic, numeric, rtol=0, atol=1e-6 * scale + 1e-5)
 
 
+def test_three_systems_jacobian_with_a_missing_epoch_and_shuffled_observations():
+    """``∂e/∂P`` and ``∂e/∂(δθ, T)`` of three systems against central differences (as above).
+
+    An epoch left out and the observations in random order: each observation's ``R_s R_j`` must be
+    that of its own (epoch, system) pair whatever the pairs' numbering.
+    """
+    syn = make_problem(n_beads=40, n_exposures=7, n_systems=3, seed=2, visible_fraction=0.8)
+    o = syn.observations
+    keep = np.random.default_rng(1).permutation(np.flatnonzero(o.exposure != np.unique(o.exposure)[2]))
+    columns = (o.system, o.exposure, o.bead_id, o.xy_px, o.sigma_px)
+    obs = Observations(*(c[keep] for c in columns), o.system_names)
+    prep = prepare(obs, (syn.ids, syn.nominal_mm), syn.initial)
+    problem, state, h = prep.problem, prep.state, 1e-6
+    _, J_point, J_pose, _ = linearize(state, problem)
+    zp, zc, zg = np.zeros((problem.n_points, 3)), np.zeros((problem.n_poses, 6)), np.zeros(problem.n_globals)
+    for j in range(problem.n_poses):
+        sel = problem.pose_idx == j
+        assert len(np.unique(problem.sys_idx[sel])) == 3
+        for k in range(6):
+            d = zc.copy()
+            d[j, k] = h
+            ep = residuals(apply_step(state, problem, zp, d, zg), problem)[1]
+            em = residuals(apply_step(state, problem, zp, -d, zg), problem)[1]
+            scale = np.abs(J_pose[sel, :, k]).max()
+            np.testing.assert_allclose(J_pose[sel, :, k], ((ep - em) / (2 * h))[sel], rtol=0, atol=1e-6 * scale + 1e-5)
+    for i in (0, 17):
+        d = zp.copy()
+        d[i, 2] = h
+        ep = residuals(apply_step(state, problem, d, zc, zg), problem)[1]
+        em = residuals(apply_step(state, problem, -d, zc, zg), problem)[1]
+        sel = problem.point_idx == i
+        scale = np.abs(J_point[sel, :, 2]).max()
+        np.testing.assert_allclose(J_point[sel, :, 2], ((ep - em) / (2 * h))[sel], rtol=0, atol=1e-6 * scale + 1e-5)
+
+
 # --------------------------------------------------------------------------- additional parameters (polynomial)
 
 #: a polynomial distortion in px at the reference radius 700 px (k1, k2, k3, p1, p2, b1, b2): a few px radial,
@@ -296,3 +331,46 @@ def test_polynomial_distortion_is_recovered_by_the_adjustment(mono):
     H, _ = cv2.findHomography(ideal, obs.xy_px - true_corr, 0)
     assert rms(cv2.perspectiveTransform(ideal[None], H)[0] - (obs.xy_px - true_corr)) < 0.01 * rms(true_corr)
     assert res.n_parameters == 3 * len(mono.ids) + 6 * len(mono.initial.exposure) + 3 + 7
+
+
+@pytest.mark.parametrize("eliminate", ["points", "poses"])
+def test_linearizing_from_the_cost_evaluations_projection_changes_nothing(biplanar, eliminate):
+    """The solver linearises from the camera points and residuals of its cost evaluation: the same arrays to the bit.
+
+    Biplanar, with nonzero APs on both systems (the AP basis enters the residuals), at the perturbed start.
+    """
+    from dataclasses import replace
+
+    from fluorocal.stages.adjust.collinearity import project
+
+    obs, _ = _polynomially_distorted(biplanar)
+    free = FreeParameters(additional_parameters="polynomial", fixed_additional_parameters=())
+    nominal, solver = (biplanar.ids, biplanar.nominal_mm), SolverOptions(schur=eliminate)
+    prep = prepare(obs, nominal, biplanar.initial, None, free=free, solver=solver)
+    state = replace(prep.state, ap_px=np.array([AP_TRUE, -0.5 * AP_TRUE[::-1]]))
+    fresh = linearize(state, prep.problem)
+    reused = linearize(state, prep.problem, project(state, prep.problem))
+    assert np.array_equal(residuals(state, prep.problem)[1], fresh[0])
+    for a, b in zip(fresh, reused, strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_triggs_correction_scales_only_the_rows_along_the_residual():
+    """Per observation, ``n^T J_h = sqrt(D) n^T J`` with ``D = (ν - t)/(ν + t)`` clipped to [0, 1], ``m^T J_h = m^T J``.
+
+    ``n`` the residual's direction, ``m`` its normal: the corrected Jacobian's curvature along the
+    residual is the Student-t one and unchanged across it (random J, residuals on both sides of ν).
+    """
+    from fluorocal.stages.adjust.normal import triggs_corrected
+
+    rng = np.random.default_rng(3)
+    J, ew = rng.normal(size=(50, 2, 7)), rng.normal(size=(50, 2))
+    nu, t = 4.0, rng.uniform(0.0, 12.0, 50)
+    Jh = triggs_corrected(J, ew, t, nu)
+    n = ew / np.linalg.norm(ew, axis=1, keepdims=True)
+    m = np.column_stack([-n[:, 1], n[:, 0]])
+    along = lambda A, d: np.einsum("ni,nij->nj", d, A)  # noqa: E731
+    root_d = np.sqrt(np.clip((nu - t) / (nu + t), 0.0, 1.0))[:, None]
+    assert np.allclose(along(Jh, n), root_d * along(J, n), rtol=0, atol=1e-13)
+    assert np.allclose(along(Jh, m), along(J, m), rtol=0, atol=1e-13)
+    assert (t > nu).any() and (t < nu).any()
