@@ -28,12 +28,19 @@ and ``label_sequence`` as a cross-check (``--rendered``).
 ``--cut K`` labels each sequence in pieces of K frames, each on its own (seeds on each piece's first frame
 in the seeded configuration): short sequences, where a frame has few neighbours or none.
 
+``--steps`` shares each configuration's labelling time (CPU) out among its costly steps (:data:`STEPS`), over all
+frames and on the slowest: where the time goes.
+
 Run: .venv/bin/python benchmarks/label_varied.py [--frames 40] [--seeds 3] [--rendered 6] [--cut K] [--slowest N]
+[--steps]
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
+import contextlib
+import functools
 import re
 import sys
 import time
@@ -45,7 +52,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fluorocal.stages.kinds.labelling import label_sequence  # noqa: E402
-from fluorocal.stages.label import LabelParams, sequence  # noqa: E402
+from fluorocal.stages.label import LabelParams, cube, prior, rivals, sequence, votes  # noqa: E402
 from fluorocal.stages.simulate import SimulateParams, simulate  # noqa: E402
 
 from tests.stages.test_label import detections_from_truth, seeds_from_truth, unambiguous_ids  # noqa: E402
@@ -76,6 +83,44 @@ CONFIGS = (
     # a right labelling leaves beads undetected that are clear of the ambiguity gate
     ("8 fixed markers, 15 deg steps from face-on", dict(turntable_step_deg=15.0), False),
 )
+#: the labelling's steps that ``--steps`` times: (step, function, the modules whose calls of it are timed). None of
+#: them calls another, so their times add up; the rest is the searches' own work (grids, turn scans, settling).
+STEPS = (
+    ("full labellings", "iterate", (cube, prior, rivals)),
+    ("evidence", "evidence", (prior, rivals)),
+    ("coarse evidence", "coarse_evidence", (prior,)),
+    ("polish", "polish", (prior, rivals)),
+    ("shift strengths", "shift_strengths", (prior, votes)),
+    ("shift peaks", "shift_peaks", (prior, rivals, votes)),
+)
+#: CPU seconds of each step while :func:`steps_timed` is on
+STEP_SECONDS: collections.Counter = collections.Counter()
+
+
+@contextlib.contextmanager
+def steps_timed():
+    """While inside, the :data:`STEPS` add their CPU seconds to :data:`STEP_SECONDS` (the functions restored after)."""
+
+    def timed(step, inner):
+        @functools.wraps(inner)
+        def call(*args, **kwargs):
+            t = time.process_time()
+            try:
+                return inner(*args, **kwargs)
+            finally:
+                STEP_SECONDS[step] += time.process_time() - t
+
+        return call
+
+    saved = [(module, name, getattr(module, name)) for _, name, modules in STEPS for module in modules]
+    for step, name, modules in STEPS:
+        for module in modules:
+            setattr(module, name, timed(step, getattr(module, name)))
+    try:
+        yield
+    finally:
+        for module, name, inner in saved:
+            setattr(module, name, inner)
 
 
 @dataclass
@@ -92,7 +137,7 @@ class Tally:
     wrong: int = 0
     seconds: float = 0.0
     slowest: float = 0.0
-    # (CPU s, seed, frame, how it was labelled) of every frame: where the slowest frames are
+    # (CPU s, seed, frame, how it was labelled, CPU s per step) of every frame: where the slowest frames are
     timings: list = field(default_factory=list)
 
     def add_sequence(self, labs, dets, fts, seconds: list, reasons: dict) -> None:
@@ -148,22 +193,25 @@ def label_params(sp: SimulateParams) -> LabelParams:
     )
 
 
-def timed_sequence(cents, phantom, params, seeds_by_frame) -> tuple[tuple, list]:
-    """``label_sequence`` and the CPU seconds spent on each frame (its own attempt and every retry).
+def timed_sequence(cents, phantom, params, seeds_by_frame) -> tuple[tuple, list, list]:
+    """``label_sequence``, the CPU seconds spent on each frame (its own attempt and every retry), and their steps'.
 
     Every attempt at a frame goes through ``label_bead_frame`` (alone, from its neighbours, weighed as a suspect):
-    its calls are timed per frame; the sequence's own bookkeeping between them is shared out evenly.
+    its calls are timed per frame; the sequence's own bookkeeping between them is shared out evenly. The steps'
+    seconds (a Counter per frame) are those :func:`steps_timed` counts, empty without it.
     """
     per_frame = [0.0] * len(cents)
+    steps = [collections.Counter() for _ in cents]
     index = {id(c): i for i, c in enumerate(cents)}
     inner = sequence.label_bead_frame
 
     def timed(centroids, *args, **kwargs):
-        t = time.process_time()
+        t, before = time.process_time(), STEP_SECONDS.copy()
         try:
             return inner(centroids, *args, **kwargs)
         finally:
             per_frame[index[id(centroids)]] += time.process_time() - t
+            steps[index[id(centroids)]].update(STEP_SECONDS - before)
 
     t0 = time.process_time()
     sequence.label_bead_frame = timed
@@ -172,7 +220,7 @@ def timed_sequence(cents, phantom, params, seeds_by_frame) -> tuple[tuple, list]
     finally:
         sequence.label_bead_frame = inner
     rest = (time.process_time() - t0 - sum(per_frame)) / max(len(cents), 1)
-    return labs, [s + rest for s in per_frame]
+    return labs, [s + rest for s in per_frame], steps
 
 
 def label_table(labs) -> dict:
@@ -204,11 +252,13 @@ def run_config(
         for a in range(0, n_frames, step):
             piece = slice(a, a + step)
             frame_seeds = {0: seeds_from_truth(fts[a], rng)} if seeded else {}
-            labs, seconds = timed_sequence([c for c, _ in dets[piece]], data.phantom, label_params(sp), frame_seeds)
+            labs, seconds, steps = timed_sequence(
+                [c for c, _ in dets[piece]], data.phantom, label_params(sp), frame_seeds
+            )
             tally.add_sequence(labs, dets[piece], fts[piece], seconds, reasons)
             tally.timings += [
-                (s, seed, a + i, lab.pose_source if lab.ok else "failed")
-                for i, (s, lab) in enumerate(zip(seconds, labs))
+                (s, seed, a + i, lab.pose_source if lab.ok else "failed", st)
+                for i, (s, lab, st) in enumerate(zip(seconds, labs, steps))
             ]
             if tables is not None:
                 tables.update({f"{seed}.{a}.{k}": v for k, v in label_table(labs).items()})
@@ -228,7 +278,7 @@ def rendered_check(overrides: dict, n_frames: int, seed: int, tables: dict) -> t
     data = simulate(sp)
     t_render = time.perf_counter() - t
     cents = simulated_outputs(data, "centroid", names=())["centroid"][0]
-    labs, seconds = timed_sequence(cents, data.phantom, label_params(sp), {})
+    labs, seconds, _ = timed_sequence(cents, data.phantom, label_params(sp), {})
     tables.update({f"rendered.{k}": v for k, v in label_table(labs).items()})
     n_failed = n_labels = n_wrong = n_found = n_visible = 0
     for lab, ft, c in zip(labs, data.truth.frames[0], cents):
@@ -262,7 +312,17 @@ def compare_tables(tables: dict, reference: dict) -> str:
 def slowest_frames(tally: Tally, n: int) -> str:
     """The ``n`` slowest frames of ``tally``: seed, frame, CPU ms and how each was labelled (or failed)."""
     top = sorted(tally.timings, key=lambda t: -t[0])[:n]
-    return ", ".join(f"seed {seed} frame {i} {1e3 * s:.0f} ms ({how})" for s, seed, i, how in top)
+    return ", ".join(f"seed {seed} frame {i} {1e3 * s:.0f} ms ({how})" for s, seed, i, how, _ in top)
+
+
+def step_shares(tally: Tally) -> str:
+    """The share of ``tally``'s CPU time in each of the :data:`STEPS`, over all frames and on the slowest one."""
+    total = sum(t[0] for t in tally.timings)
+    steps = sum((t[4] for t in tally.timings), collections.Counter())
+    s, seed, i, _, slow = max(tally.timings, key=lambda t: t[0])
+    shares = ", ".join(f"{step} {100 * steps[step] / max(total, 1e-9):.0f} %" for step, _, _ in STEPS)
+    ms = ", ".join(f"{step} {1e3 * slow[step]:.0f}" for step, _, _ in STEPS)
+    return f"{shares}; slowest frame (seed {seed} frame {i}, {1e3 * s:.0f} ms): {ms} ms"
 
 
 def main(argv=None) -> int:
@@ -280,6 +340,7 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--configs", type=int, nargs="*", help="configurations to run, by index (default: all)")
     ap.add_argument("--slowest", type=int, default=0, help="list each configuration's N slowest frames (default: 0)")
+    ap.add_argument("--steps", action="store_true", help="share each configuration's time out among the steps")
     ap.add_argument("--save-labels", metavar="NPZ", help="write every frame's labels here (for --reference)")
     ap.add_argument("--reference", metavar="NPZ", help="compare every frame's labels with those saved by --save-labels")
     args = ap.parse_args(argv)
@@ -301,11 +362,14 @@ def main(argv=None) -> int:
     for name, overrides, seeded in configs:
         reasons: dict = {}
         config_tables: dict = {}
-        tally = run_config(overrides, seeded, seeds, args.frames, reasons, args.cut, config_tables)
+        with steps_timed() if args.steps else contextlib.nullcontext():
+            tally = run_config(overrides, seeded, seeds, args.frames, reasons, args.cut, config_tables)
         tables.update({f"{name}.{k}": v for k, v in config_tables.items()})
         print(tally.row(name), flush=True)
         if args.slowest:
             print(f"  slowest: {slowest_frames(tally, args.slowest)}", flush=True)
+        if args.steps:
+            print(f"  steps (CPU): {step_shares(tally)}", flush=True)
         total.merge(tally)
         all_reasons += [(name, r, n) for r, n in reasons.items()]
     print(total.row("overall"))
