@@ -125,6 +125,7 @@ def test_a_figure_is_drawn_under_matplotlibs_defaults_whatever_the_processs_sett
     history = [Step(i, 10.0 / (i + 1), 1.0 / (i + 1)) for i in range(4)]
     plain = Figures().draw(tmp_path / "plain.png", report.convergence, history).read_bytes()
     changed = {"axes.facecolor": "red", "lines.linewidth": 9.0, "font.size": 20.0, "figure.dpi": 30.0}
+    changed["text.hinting"] = "force_autohint"  # the report's own text setting (figures.STYLE) is not the process's
     with matplotlib.rc_context(changed):
         styled = Figures().draw(tmp_path / "styled.png", report.convergence, history).read_bytes()
         assert matplotlib.rcParams["axes.facecolor"] == "red"  # the process's own settings are left as they were

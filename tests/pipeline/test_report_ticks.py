@@ -109,3 +109,23 @@ def test_the_room_for_rotated_labels_is_matplotlibs_measure_under_the_font_in_fo
             assert mono == pytest.approx(matplotlibs(labels[1]), abs=1e-9)
         assert report.text_height_in(labels, fontsize=6) == default
     assert mono > default * 1.05  # a monospace font's letters are wider: measured anew, not taken from before
+
+
+def test_frames_are_named_without_their_shared_start_written_once_below_the_names(tmp_path, monkeypatch):
+    """75 frames ``frame_000`` ...: each named ``000`` ... below its bars, ``frame_`` once, below them all."""
+    drawn = []
+    save = report.save_figure
+    monkeypatch.setattr(report, "save_figure", lambda fig, path: save(drawn.append(fig) or fig, path))
+    labels = [f"frame_{i:03d}" for i in range(75)]
+    rms = np.linspace(0.5, 1.5, 75)
+    report.frame_rms(tmp_path / "frames.png", labels, rms, rms / 10)
+    (fig,) = drawn
+    ax, renderer = fig.axes[0], fig.canvas.get_renderer()
+    names = [t for t in ax.texts if t.get_rotation() == 90]
+    assert [t.get_text() for t in names] == [label.removeprefix("frame_") for label in labels]
+    assert ax.xaxis.label.get_text() == "frames (frame_…)"
+    boxes = [t.get_window_extent(renderer) for t in names]
+    label = ax.xaxis.label.get_window_extent(renderer)
+    assert 0 <= label.y0 and label.y1 < min(b.y0 for b in boxes)  # in the figure, below the names, over none
+    assert all(a.x1 < b.x0 for a, b in zip(boxes, boxes[1:]))  # the names, left to right, overlap no other
+    assert min(b.y0 for b in boxes) > 0
