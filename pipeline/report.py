@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import gc
+import unicodedata
 from pathlib import Path
 
 import numpy as np
@@ -299,6 +300,7 @@ def residual_maps(path: Path, panels: list[tuple[str, np.ndarray, np.ndarray]], 
     """Residual vectors over the image on one colour scale; a panel per ``(title, xy (N, 2), residual (N, 2))``, px."""
     fig, axes = new_figure(len(panels), title_lines=2, colorbar=True)
     vmax = max((np.percentile(np.linalg.norm(r, axis=1), 99) for _, _, r in panels if len(r)), default=1.0)
+    vmax = vmax if vmax > 0 else 1.0  # residuals all 0 (or nan): no scale of their own, no arrow of length 0 / 0
     from matplotlib import colormaps
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
@@ -415,9 +417,10 @@ def frame_rms(path: Path, labels: list[str], before: np.ndarray, after: np.ndarr
 
 
 def common_prefix(labels) -> tuple[str, list[str]]:
-    """``(prefix, rest)``: the start all ``labels`` share up to a separator (not a letter or digit), and their rests.
+    """``(prefix, rest)``: the start all ``labels`` share up to a separator (:func:`_separates`), and their rests.
 
-    Every label keeps at least one character; labels sharing no such start are returned whole.
+    Every label keeps at least one character, and every number and word its whole; labels sharing no such start
+    are returned whole.
 
     Examples
     --------
@@ -425,12 +428,30 @@ def common_prefix(labels) -> tuple[str, list[str]]:
     ('frame_', ['008', '010', '011'])
     >>> common_prefix(["A-LAO 30", "A-RAO 15"]), common_prefix(["exp1", "exp2"]), common_prefix(["a_", "a_1"])
     (('A-', ['LAO 30', 'RAO 15']), ('', ['exp1', 'exp2']), ('', ['a_', 'a_1']))
+    >>> common_prefix(["tilt_1.5", "tilt_1.7"]), common_prefix(["dx_-1", "dx_-2"])
+    (('tilt_', ['1.5', '1.7']), ('dx_', ['-1', '-2']))
     """
     labels = [str(s) for s in labels]
     shortest = min(labels, key=len, default="")
     shared = next((i for i, c in enumerate(shortest[:-1]) if any(s[i] != c for s in labels)), len(shortest) - 1)
-    cut = max((i + 1 for i, c in enumerate(shortest[:shared]) if not c.isalnum()), default=0)
+    cut = max((i + 1 for i in range(shared) if all(_separates(s, i) for s in labels)), default=0)
     return shortest[:cut], [s[cut:] for s in labels]
+
+
+def _separates(s: str, i: int) -> bool:
+    """Whether ``s[i]`` ends a word: not a letter, digit or combining accent, nor a number's point or sign.
+
+    >>> [_separates(s, 4) for s in ("tilt_1", "tilt.5", "tilt-5", "cafe\u0301", "abc1.5", "dx__-1", "p_1e-3")]
+    [True, True, True, False, False, False, False]
+    """
+    c, before, after = s[i], s[i - 1 : i], s[i + 1 : i + 2]
+    if c.isalnum() or unicodedata.category(c).startswith("M"):  # an accent decomposed ("e\u0301") is of its word
+        return False
+    if after.isdigit() and c in ".,":
+        return not before.isdigit()  # "1.5": a decimal point
+    if after.isdigit() and c in "+-":
+        return before.isalnum() and not (before in "eE" and s[i - 2 : i - 1].isdigit())  # "_-1", "1e-3": a sign
+    return True
 
 
 def _down(fig, inches: float):

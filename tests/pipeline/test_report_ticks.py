@@ -129,3 +129,27 @@ def test_frames_are_named_without_their_shared_start_written_once_below_the_name
     assert 0 <= label.y0 and label.y1 < min(b.y0 for b in boxes)  # in the figure, below the names, over none
     assert all(a.x1 < b.x0 for a, b in zip(boxes, boxes[1:]))  # the names, left to right, overlap no other
     assert min(b.y0 for b in boxes) > 0
+
+
+@pytest.mark.parametrize(
+    ("labels", "prefix", "names"),
+    [
+        (["frame_000"], "frame_", ["000"]),  # one frame
+        (["a_1", "a_1"], "a_", ["1", "1"]),
+        (["", "x"], "", ["", "x"]),
+        (["001", "002"], "", ["001", "002"]),  # all digits: no separator
+        (["frame1_0", "frame1_1"], "frame1_", ["0", "1"]),
+        (["frame_01", "frame_010"], "frame_", ["01", "010"]),
+        (["A_001", "B_001"], "", ["A_001", "B_001"]),
+        (["frame_", "frame_1"], "", ["frame_", "frame_1"]),  # no name left empty
+        (["tilt_1.5", "tilt_1.7"], "tilt_", ["1.5", "1.7"]),  # not "5", "7": a number is kept whole
+        (["run_1.x", "run_1.55"], "run_", ["1.x", "1.55"]),  # not "x", "55"
+        (["dx_-1", "dx_-2"], "dx_", ["-1", "-2"]),  # its sign
+        (["p_1e-3", "p_1e-4"], "p_", ["1e-3", "1e-4"]),  # its exponent
+        (["frame-001", "frame-002"], "frame-", ["001", "002"]),  # a dash between words separates them
+        (["é_1", "é_2"], "é_", ["1", "2"]),
+        (["Pra\u0308p1", "Pra\u0308p2"], "", ["Pra\u0308p1", "Pra\u0308p2"]),  # a decomposed accent is of its word
+    ],
+)
+def test_the_shared_start_of_frame_names_leaves_each_name_and_number_whole(labels, prefix, names):
+    assert report.common_prefix(labels) == (prefix, names)
