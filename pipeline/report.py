@@ -384,7 +384,10 @@ def frame_rms(path: Path, labels: list[str], before: np.ndarray, after: np.ndarr
     below_names = text_height_in(names, fontsize=6) + 0.15  # the names, rotated, below their ticks
     axis_label = f"frames ({prefix}…)" if prefix else ""
     label_in = text_height_in([axis_label], fontsize=10, rotation=0) + 0.05 if prefix else 0.0
-    fig, (ax,) = new_figure(1, width=max(5.0, 0.12 * len(names) + 2), height=3.6, bottom_in=below_names + label_in)
+    # the panel as wide as that label at least (a long shared start, centred below it, cut off by the figure's sides)
+    label_w = text_height_in([axis_label], fontsize=10, rotation=90) + LEFT_IN + RIGHT_IN if prefix else 0.0
+    width = max(5.0, 0.12 * len(names) + 2, label_w)
+    fig, (ax,) = new_figure(1, width=width, height=3.6, bottom_in=below_names + label_in)
     from matplotlib.collections import PolyCollection
     from matplotlib.markers import TICKDOWN
     from matplotlib.patches import Patch

@@ -153,3 +153,16 @@ def test_frames_are_named_without_their_shared_start_written_once_below_the_name
 )
 def test_the_shared_start_of_frame_names_leaves_each_name_and_number_whole(labels, prefix, names):
     assert report.common_prefix(labels) == (prefix, names)
+
+
+def test_a_long_shared_start_of_few_frames_is_written_whole_inside_the_figure(tmp_path, monkeypatch):
+    drawn = []
+    save = report.save_figure
+    monkeypatch.setattr(report, "save_figure", lambda fig, path: save(drawn.append(fig) or fig, path))
+    start = "calibration_session_2026-12-04_morning_biplanar_system_A_orbit_30_tilt_15_exposure_"
+    report.frame_rms(tmp_path / "frames.png", [f"{start}{i:03d}" for i in range(3)], np.ones(3), np.ones(3) / 10)
+    (fig,) = drawn
+    label = fig.axes[0].xaxis.label
+    assert label.get_text() == f"frames ({start}…)"
+    box = label.get_window_extent(fig.canvas.get_renderer())
+    assert 0 <= box.x0 and box.x1 <= fig.bbox.width  # not cut off by the figure's sides
