@@ -6,10 +6,10 @@ and matplotlib's version: :func:`figure_key` hashes them all. ``fluorocal run`` 
 whole set each time (:func:`fluorocal.outputs.publish`); :class:`Figures` copies into the new set each figure
 the previous set holds under the same key instead of drawing it again.
 
-Every figure is drawn under matplotlib's default settings (:func:`_default_style`), whatever the process's
-``rcParams`` (a ``matplotlibrc`` in the working folder, ``$MATPLOTLIBRC``, the user's, or code that changed
-them): the settings are no input of a figure, so its key need not hold them and a report is the same on
-every machine with the same versions.
+Every figure is drawn under matplotlib's default settings and the report's own (:data:`STYLE`, in the key through
+the plots' code: :func:`_default_style`), whatever the process's ``rcParams`` (a ``matplotlibrc`` in the working
+folder, ``$MATPLOTLIBRC``, the user's, or code that changed them): the process' settings are no input of a
+figure, so its key need not hold them and a report is the same on every machine with the same versions.
 
 A published set records each figure's key and the sha256 of its PNG (:data:`RECORD`). A figure is taken
 over only when that record gives the same key and the previous set's file still has the recorded checksum:
@@ -37,6 +37,10 @@ from fluorocal.stages.io import atomic_write, write_png
 
 log = logging.getLogger(__name__)
 
+#: the report's settings over matplotlib's defaults. Text unhinted: FreeType's hinting (the font's own
+#: instructions, run again each time matplotlib 3.11 sets a glyph's size) cost a third of the figures' text time;
+#: unhinted letters are as legible at the report's sizes, their shapes a little softer
+STYLE = {"text.hinting": "no_hinting"}
 #: the file of a published set that records its figures: name -> {"key": ..., "sha256": ...}
 RECORD = ".fluorocal-figures.json"
 _HEX = re.compile(r"[0-9a-f]{64}")
@@ -116,15 +120,16 @@ class Figures:
 
             from fluorocal.codehash import code_digest
 
-            self._codes[module] = f"{code_digest([module], self.memo)} matplotlib=={version('matplotlib')}"
+            digest = code_digest([module], self.memo)
+            self._codes[module] = f"{digest} matplotlib=={version('matplotlib')} style={sorted(STYLE.items())}"
         return self._codes[module]
 
 
 def _default_style():
-    """A context drawing under matplotlib's own defaults (``rcParamsDefault``, none of its rc files), restored after."""
+    """A context drawing under matplotlib's defaults (``rcParamsDefault``, none of its rc files) and :data:`STYLE`."""
     import matplotlib.style
 
-    return matplotlib.style.context("default")
+    return matplotlib.style.context(["default", STYLE])
 
 
 def figure_key(plot, args, code: str) -> str:

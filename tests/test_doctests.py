@@ -45,7 +45,6 @@ WITHOUT_EXAMPLES = {
     "fluorocal.inspect",
     "fluorocal.overlay",
     "fluorocal.parallel",
-    "fluorocal.report",
     "fluorocal.run",
     "fluorocal.stages._edges",
     "fluorocal.stages._ellipse",

@@ -125,12 +125,46 @@ def test_a_figure_is_drawn_under_matplotlibs_defaults_whatever_the_processs_sett
     history = [Step(i, 10.0 / (i + 1), 1.0 / (i + 1)) for i in range(4)]
     plain = Figures().draw(tmp_path / "plain.png", report.convergence, history).read_bytes()
     changed = {"axes.facecolor": "red", "lines.linewidth": 9.0, "font.size": 20.0, "figure.dpi": 30.0}
+    changed["text.hinting"] = "force_autohint"  # the report's own text setting (figures.STYLE) is not the process's
     with matplotlib.rc_context(changed):
         styled = Figures().draw(tmp_path / "styled.png", report.convergence, history).read_bytes()
         assert matplotlib.rcParams["axes.facecolor"] == "red"  # the process's own settings are left as they were
         report.convergence(tmp_path / "direct.png", history)  # drawn outside Figures: the settings do show
     assert styled == plain
     assert (tmp_path / "direct.png").read_bytes() != plain
+
+
+def test_a_figure_is_drawn_under_the_reports_settings_and_the_processs_come_back_even_when_it_fails(tmp_path):
+    import matplotlib
+    from fluorocal.figures import STYLE
+
+    seen = []
+
+    def failing(path, xy):
+        seen.append(matplotlib.rcParams.copy())
+        raise ValueError("drawing failed")
+
+    with matplotlib.rc_context({"axes.facecolor": "red", "text.hinting": "auto", "font.size": 3.0}):
+        before = matplotlib.rcParams.copy()
+        with pytest.raises(ValueError, match="drawing failed"):
+            Figures().draw(tmp_path / "a.png", failing, np.ones(2))
+        # every setting as it was (the backend, first chosen when needed, is no setting of the figures)
+        assert {k: v for k, v in dict.items(matplotlib.rcParams) if k != "backend"} == {
+            k: v for k, v in dict.items(before) if k != "backend"
+        }
+    (inside,) = seen
+    assert {k: inside[k] for k in STYLE} == STYLE
+    assert (inside["axes.facecolor"], inside["font.size"]) == ("white", 10.0)  # matplotlib's defaults
+
+
+def test_a_figure_drawn_under_other_settings_of_the_report_is_drawn_again(tmp_path, monkeypatch):
+    from fluorocal import figures
+
+    out, xy = tmp_path / "out", np.arange(6.0).reshape(3, 2)
+    _publish(out, xy)
+    monkeypatch.setattr(figures, "STYLE", {**figures.STYLE, "text.hinting": "auto"})
+    assert _publish(out, xy).drawn == ["a.png"]
+    assert _publish(out, xy).copied == ["a.png"]
 
 
 @dataclasses.dataclass(frozen=True)

@@ -109,3 +109,60 @@ def test_the_room_for_rotated_labels_is_matplotlibs_measure_under_the_font_in_fo
             assert mono == pytest.approx(matplotlibs(labels[1]), abs=1e-9)
         assert report.text_height_in(labels, fontsize=6) == default
     assert mono > default * 1.05  # a monospace font's letters are wider: measured anew, not taken from before
+
+
+def test_frames_are_named_without_their_shared_start_written_once_below_the_names(tmp_path, monkeypatch):
+    """75 frames ``frame_000`` ...: each named ``000`` ... below its bars, ``frame_`` once, below them all."""
+    drawn = []
+    save = report.save_figure
+    monkeypatch.setattr(report, "save_figure", lambda fig, path: save(drawn.append(fig) or fig, path))
+    labels = [f"frame_{i:03d}" for i in range(75)]
+    rms = np.linspace(0.5, 1.5, 75)
+    report.frame_rms(tmp_path / "frames.png", labels, rms, rms / 10)
+    (fig,) = drawn
+    ax, renderer = fig.axes[0], fig.canvas.get_renderer()
+    names = [t for t in ax.texts if t.get_rotation() == 90]
+    assert [t.get_text() for t in names] == [label.removeprefix("frame_") for label in labels]
+    assert ax.xaxis.label.get_text() == "frames (frame_…)"
+    boxes = [t.get_window_extent(renderer) for t in names]
+    label = ax.xaxis.label.get_window_extent(renderer)
+    assert 0 <= label.y0 and label.y1 < min(b.y0 for b in boxes)  # in the figure, below the names, over none
+    assert all(a.x1 < b.x0 for a, b in zip(boxes, boxes[1:]))  # the names, left to right, overlap no other
+    assert min(b.y0 for b in boxes) > 0
+
+
+@pytest.mark.parametrize(
+    ("labels", "prefix", "names"),
+    [
+        (["frame_000"], "frame_", ["000"]),  # one frame
+        (["a_1", "a_1"], "a_", ["1", "1"]),
+        (["", "x"], "", ["", "x"]),
+        (["001", "002"], "", ["001", "002"]),  # all digits: no separator
+        (["frame1_0", "frame1_1"], "frame1_", ["0", "1"]),
+        (["frame_01", "frame_010"], "frame_", ["01", "010"]),
+        (["A_001", "B_001"], "", ["A_001", "B_001"]),
+        (["frame_", "frame_1"], "", ["frame_", "frame_1"]),  # no name left empty
+        (["tilt_1.5", "tilt_1.7"], "tilt_", ["1.5", "1.7"]),  # not "5", "7": a number is kept whole
+        (["run_1.x", "run_1.55"], "run_", ["1.x", "1.55"]),  # not "x", "55"
+        (["dx_-1", "dx_-2"], "dx_", ["-1", "-2"]),  # its sign
+        (["p_1e-3", "p_1e-4"], "p_", ["1e-3", "1e-4"]),  # its exponent
+        (["frame-001", "frame-002"], "frame-", ["001", "002"]),  # a dash between words separates them
+        (["é_1", "é_2"], "é_", ["1", "2"]),
+        (["Pra\u0308p1", "Pra\u0308p2"], "", ["Pra\u0308p1", "Pra\u0308p2"]),  # a decomposed accent is of its word
+    ],
+)
+def test_the_shared_start_of_frame_names_leaves_each_name_and_number_whole(labels, prefix, names):
+    assert report.common_prefix(labels) == (prefix, names)
+
+
+def test_a_long_shared_start_of_few_frames_is_written_whole_inside_the_figure(tmp_path, monkeypatch):
+    drawn = []
+    save = report.save_figure
+    monkeypatch.setattr(report, "save_figure", lambda fig, path: save(drawn.append(fig) or fig, path))
+    start = "calibration_session_2026-12-04_morning_biplanar_system_A_orbit_30_tilt_15_exposure_"
+    report.frame_rms(tmp_path / "frames.png", [f"{start}{i:03d}" for i in range(3)], np.ones(3), np.ones(3) / 10)
+    (fig,) = drawn
+    label = fig.axes[0].xaxis.label
+    assert label.get_text() == f"frames ({start}…)"
+    box = label.get_window_extent(fig.canvas.get_renderer())
+    assert 0 <= box.x0 and box.x1 <= fig.bbox.width  # not cut off by the figure's sides
