@@ -67,7 +67,7 @@ class Normal:
 
 
 def weighted_jacobian(e: np.ndarray, J: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``sqrt(w)``-weighted Jacobian (N, 2, nt) and residuals (N, 2) (``J`` from :func:`stages.adjust.collinearity.jacobian`)."""
+    """``sqrt(w)``-weighted Jacobian (N, 2, nt) and residuals (N, 2); ``J`` from :func:`collinearity.jacobian`."""
     sw = np.sqrt(w)[:, None]
     return J * sw[:, :, None], e * sw
 
@@ -127,9 +127,9 @@ def assemble(problem: Problem, J: np.ndarray, ew: np.ndarray, J_hessian: np.ndar
 
     ``J, ew`` from :func:`weighted_jacobian` (the gradient); ``J_hessian``
     replaces ``J`` in ``H`` if given (:func:`triggs_corrected`). Batched products of the
-    per-observation Jacobians are accumulated by segment sums
-    (``np.add.reduceat``) over observations pre-sorted by the eliminated block
-    (and, through ``k_order``, by the kept block).
+    per-observation Jacobians are accumulated by segment sums over observations
+    pre-sorted by the eliminated block (:attr:`Problem.es_summer`) and, through
+    ``k_order``, by the kept block (:attr:`Problem.ks_summer`).
     """
     ne, nk, be, bk, G = problem.ne, problem.nk, problem.be, problem.bk, problem.n_globals
     r = nk * bk + G

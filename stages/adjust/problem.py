@@ -28,7 +28,7 @@ class Problem:
     """Everything about the problem that does not change during a solve.
 
     Observations are stored sorted by (eliminated block, system) so that the
-    eliminated blocks' sums are contiguous segments (``np.add.reduceat``).
+    eliminated blocks' sums are contiguous segments (:attr:`es_summer`).
 
     Attributes
     ----------
@@ -90,17 +90,17 @@ class Problem:
 
     @cached_property
     def es_summer(self) -> scipy.sparse.csr_matrix:
-        """``(n_es, N)`` 0/1 matrix: ``es_summer @ X`` sums the rows of ``X (N, k)`` over each (eliminated block, system)."""
+        """``(n_es, N)`` 0/1 matrix: ``es_summer @ X`` sums ``X (N, k)`` over each (eliminated block, system)."""
         return segment_summer(self.es_starts, self.n_obs)
 
     @cached_property
     def ks_summer(self) -> scipy.sparse.csr_matrix:
-        """``(n_ks, N)`` 0/1 matrix: ``ks_summer @ X`` sums the rows of ``X (N, k)`` over each (kept block, system)."""
+        """``(n_ks, N)`` 0/1 matrix: ``ks_summer @ X`` sums ``X (N, k)`` over each (kept block, system)."""
         return segment_summer(self.ks_starts, self.n_obs, self.k_order)
 
     @cached_property
     def coupling_index(self) -> np.ndarray:
-        """``(N * be * bk,)`` flat index of each observation's ``be x bk`` coupling block in ``B`` laid out ``(ne, be, r)``.
+        """``(N * be * bk,)`` flat index of each observation's ``be x bk`` coupling block in ``B`` ``(ne, be, r)``.
 
         In a system each (eliminated, kept) pair is seen at most once; with several
         systems a pair can be seen once in each, and the blocks add up.
