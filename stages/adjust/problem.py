@@ -47,10 +47,10 @@ class Problem:
         ``"points"`` or ``"poses"``: the block type removed by the Schur complement.
     e_idx, k_idx : (N,) int64 ndarray
         Eliminated and kept block of each observation.
-    e_starts, es_starts : int64 ndarray
-        Segment starts of the eliminated blocks and of (eliminated block, system).
-    k_order, k_starts, ks_starts : int64 ndarray
-        Observation order sorted by (kept block, system) and its segment starts.
+    es_starts, es_e, es_s : int64 ndarray
+        Segment starts of each (eliminated block, system), and its block and system.
+    k_order, ks_starts, ks_k, ks_s : int64 ndarray
+        Observation order sorted by (kept block, system), its segment starts, and their block and system.
     ap_xy_px : (N, 2) float64 ndarray or None, px
         Measured coordinates (before any correction), where the APs are evaluated; None without APs.
     ap_radius_px : (S,) float64 ndarray or None, px
@@ -72,12 +72,10 @@ class Problem:
     # derived sort structures
     e_idx: np.ndarray
     k_idx: np.ndarray
-    e_starts: np.ndarray
     es_starts: np.ndarray
     es_e: np.ndarray
     es_s: np.ndarray
     k_order: np.ndarray
-    k_starts: np.ndarray
     ks_starts: np.ndarray
     ks_k: np.ndarray
     ks_s: np.ndarray
@@ -253,7 +251,6 @@ def build_problem(
 def _sort_structures(e_idx: np.ndarray, k_idx: np.ndarray, sys_idx: np.ndarray, n_systems: int) -> dict:
     """The segment starts and kept-block order of :class:`Problem` for observations sorted by (eliminated, system)."""
     n_sys_keys = max(n_systems, 1)
-    e_starts = segment_starts(e_idx)
     es_starts = segment_starts(e_idx * n_sys_keys + sys_idx)
     k_order = np.lexsort((sys_idx, k_idx))
     k_sorted = k_idx[k_order]
@@ -261,12 +258,10 @@ def _sort_structures(e_idx: np.ndarray, k_idx: np.ndarray, sys_idx: np.ndarray, 
     return {
         "e_idx": e_idx,
         "k_idx": k_idx,
-        "e_starts": e_starts,
         "es_starts": es_starts,
         "es_e": e_idx[es_starts],
         "es_s": sys_idx[es_starts],
         "k_order": k_order,
-        "k_starts": segment_starts(k_sorted),
         "ks_starts": ks_starts,
         "ks_k": k_sorted[ks_starts],
         "ks_s": sys_idx[k_order][ks_starts],
