@@ -15,7 +15,7 @@ from fluorocal.stages.adjust import FreeParameters, SolverOptions, adjust_bundle
 from fluorocal.stages.adjust.bundle import prepare
 from fluorocal.stages.adjust.collinearity import State, jacobian, jacobian_blocks, linearize, residuals
 from fluorocal.stages.adjust.normal import assemble, triggs_corrected, weighted_jacobian
-from fluorocal.stages.adjust.problem import apply_step, build_problem
+from fluorocal.stages.adjust.problem import apply_step, build_problem, segment_starts, segment_summer
 from fluorocal.stages.artifacts import Observations
 
 from tests.stages.ba_synthetic import BIPLANAR, MONO, aligned_error_mm, make_problem, rms, with_xy
@@ -204,18 +204,23 @@ def _dense_jacobian(problem, J):
     return dense
 
 
-@pytest.mark.parametrize("eliminate", ["points", "poses"])
-def test_schur_blocks_are_the_dense_normal_equations(eliminate):
+@pytest.mark.parametrize(
+    ("eliminate", "n_systems", "aps"),
+    [("points", 3, False), ("poses", 3, False), ("points", 1, True), ("poses", 1, True)],
+)
+def test_schur_blocks_are_the_dense_normal_equations(eliminate, n_systems, aps):
     """``assemble``'s blocks against ``Σ J_h^T J_h`` and ``-Σ J^T e`` of the dense Jacobian.
 
-    Three systems (pairs seen by several systems add up), an epoch left out, the observations shuffled,
-    random weights, and a Hessian Jacobian (Triggs') other than the gradient's.
+    Three systems (pairs seen by several systems add up) or one with its additional parameters (the
+    globals' columns of the stacked Jacobian), an epoch left out, the observations shuffled, random
+    weights, and a Hessian Jacobian (Triggs') other than the gradient's.
     """
-    syn = make_problem(n_beads=40, n_exposures=7, n_systems=3, seed=2, visible_fraction=0.8)
+    syn = make_problem(n_beads=40, n_exposures=7, n_systems=n_systems, seed=2, visible_fraction=0.8)
     o = syn.observations
     keep = np.random.default_rng(3).permutation(np.flatnonzero(o.exposure != np.unique(o.exposure)[2]))
     obs = Observations(*(c[keep] for c in (o.system, o.exposure, o.bead_id, o.xy_px, o.sigma_px)), o.system_names)
-    prep = prepare(obs, (syn.ids, syn.nominal_mm), syn.initial, solver=SolverOptions(schur=eliminate))
+    free = FreeParameters(additional_parameters="polynomial" if aps else "none")
+    prep = prepare(obs, (syn.ids, syn.nominal_mm), syn.initial, free=free, solver=SolverOptions(schur=eliminate))
     problem = prep.problem
     assert problem.eliminate == eliminate
     e, J = jacobian(prep.state, problem)
@@ -234,6 +239,23 @@ def test_schur_blocks_are_the_dense_normal_equations(eliminate):
     np.testing.assert_allclose(normal.Hyy, H[ne_be:, ne_be:], rtol=0, atol=tol)
     np.testing.assert_allclose(normal.b_e.ravel(), b[:ne_be], rtol=0, atol=1e-12 * np.abs(b).max())
     np.testing.assert_allclose(normal.b_y, b[ne_be:], rtol=0, atol=1e-12 * np.abs(b).max())
+
+
+@pytest.mark.parametrize("ordered", [True, False])
+def test_segment_summer_sums_every_segment_in_any_row_order(ordered):
+    """``segment_summer`` against ``np.add.at``: keys with gaps (blocks seen nowhere), rows sorted or in an order."""
+    rng = np.random.default_rng(5)
+    keys = rng.choice(np.array([0, 2, 3, 7, 8, 11]), size=300)  # 1, 4-6, 9, 10: no rows
+    X = rng.normal(size=(300, 5))
+    order = np.argsort(keys, kind="stable")
+    if ordered:
+        keys, X, order = keys[order], X[order], None
+    sorted_keys = keys if order is None else keys[order]
+    starts = segment_starts(sorted_keys)
+    expected = np.zeros((12, 5))
+    np.add.at(expected, keys, X)
+    np.testing.assert_array_equal(sorted_keys[starts], [0, 2, 3, 7, 8, 11])
+    np.testing.assert_allclose(segment_summer(starts, len(keys), order) @ X, expected[sorted_keys[starts]], atol=1e-12)
 
 
 # --------------------------------------------------------------------------- additional parameters (polynomial)
