@@ -99,12 +99,13 @@ def camera_points(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarra
     """
     R_pose = quat_to_matrix(state.q)
     R_rop = quat_to_matrix(state.rop_q)
-    d = state.points_mm[problem.point_idx] - state.source_mm[problem.pose_idx]
-    p_ref = np.einsum("nij,nj->ni", R_pose[problem.pose_idx], d)
+    # gathers by take: several times faster than fancy indexing
+    d = state.points_mm.take(problem.point_idx, axis=0) - state.source_mm.take(problem.pose_idx, axis=0)
+    p_ref = np.einsum("nij,nj->ni", R_pose.take(problem.pose_idx, axis=0), d)
     if problem.n_systems == 1:
         return p_ref, p_ref, R_pose, R_rop
     s = problem.sys_idx
-    p = np.einsum("nij,nj->ni", R_rop[s], p_ref - state.rop_source_mm[s])
+    p = np.einsum("nij,nj->ni", R_rop.take(s, axis=0), p_ref - state.rop_source_mm.take(s, axis=0))
     return p, p_ref, R_pose, R_rop
 
 
@@ -147,9 +148,10 @@ def _residuals_from_camera(
     z = p[:, 2]
     if not np.all(z > 1e-6):
         raise FloatingPointError("point at or behind the source")
-    iop = state.iop_px[problem.sys_idx]
-    f = iop[:, :2] + iop[:, 2:3] * p[:, :2] / z[:, None]
-    r = problem.meas_px - f
+    iop = state.iop_px.take(problem.sys_idx, axis=0)
+    r = np.empty_like(problem.meas_px)
+    for i in range(2):  # column by column: (N, 2) arrays' short rows are slow to broadcast
+        r[:, i] = problem.meas_px[:, i] - (iop[:, i] + iop[:, 2] * p[:, i] / z)
     if problem.n_ap:
         B = _ap_basis(state, problem) if ap_basis is None else ap_basis
         r -= np.einsum("nij,nj->ni", B, ap_values(state, problem)[problem.sys_idx])
@@ -204,6 +206,24 @@ def linearize(
         ``∂e/∂(xp, yp, c, δφ, b, APs)`` of the observation's system, the columns of
         :attr:`Problem.gcol` (``δφ, b`` only with several systems, the APs only when estimated).
     """
+    e, J = jacobian(state, problem, projection)
+    return (e, *jacobian_blocks(problem, J))
+
+
+def jacobian_blocks(problem: Problem, J: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Views ``(J_point, J_pose, J_glob)`` of :func:`jacobian`'s ``J``."""
+    point, pose = (0, 3) if problem.eliminate == "points" else (6, 0)
+    return J[:, :, point : point + 3], J[:, :, pose : pose + 6], J[:, :, 9:]
+
+
+def jacobian(state: State, problem: Problem, projection: Projection | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`linearize`'s residuals ``e`` (N, 2) and Jacobians in one array ``J`` (N, 2, 9 + G_o).
+
+    The columns of ``J`` are the eliminated block's, the kept block's (points
+    or poses, :attr:`Problem.eliminate`), then the globals': the order of the
+    normal equations' Schur blocks (:func:`stages.adjust.normal.assemble`),
+    written in place, so that no copy stacks them.
+    """
     basis = _ap_basis(state, problem, derivatives=True) if problem.n_ap else None
     if projection is None:
         p, p_ref, R_pose, R_rop = camera_points(state, problem)
@@ -224,19 +244,18 @@ def linearize(
     Jp[:, 1, 2] = a * (l21 * u + l22 * v)
     if problem.n_systems == 1:
         K = Jp
-        R_full = R_pose[problem.pose_idx]
+        R_full = R_pose.take(problem.pose_idx, axis=0)
     else:
-        K = Jp @ R_rop[problem.sys_idx]
+        K = Jp @ R_rop.take(problem.sys_idx, axis=0)
         # R_s R_j of each (epoch, system) pair once, then gathered: far fewer pairs than observations
         R_pairs = (R_rop[None, :] @ R_pose[:, None]).reshape(-1, 3, 3)
-        R_full = R_pairs[problem.pose_idx * problem.n_systems + problem.sys_idx]
-    J_point = Jp @ R_full
-    J_pose = np.empty((len(a), 2, 6))
+        R_full = R_pairs.take(problem.pose_idx * problem.n_systems + problem.sys_idx, axis=0)
+    J = np.empty((len(a), 2, 9 + problem.gcol.shape[1]))
+    J_point, J_pose, J_glob = jacobian_blocks(problem, J)
+    np.matmul(Jp, R_full, out=J_point)
     # ∂p/∂δθ = -R_s [p_ref]x, so each row k of K maps to p_ref x k
     _cross_rows(p_ref, K, J_pose[:, :, :3])
     np.negative(J_point, out=J_pose[:, :, 3:])
-    n_g = problem.gcol.shape[1]
-    J_glob = np.empty((len(a), 2, n_g))
     # -L^-1 ∂(projection)/∂(xp, yp, c) with ∂/∂iop = [[1, 0, u], [0, 1, v]]
     J_glob[:, 0, 0] = -l11
     J_glob[:, 0, 1] = 0.0
@@ -249,7 +268,7 @@ def linearize(
         np.negative(K, out=J_glob[:, :, 6:9])
     if basis is not None:
         _ap_columns(state, problem, basis, J_glob)
-    return e, J_point, J_pose, J_glob
+    return e, J
 
 
 def _cross_rows(a: np.ndarray, K: np.ndarray, out: np.ndarray) -> None:

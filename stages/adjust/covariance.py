@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-from fluorocal.stages.adjust.collinearity import State, linearize
+from fluorocal.stages.adjust.collinearity import State, jacobian, jacobian_blocks
 from fluorocal.stages.adjust.normal import assemble, reduced_system, weighted_jacobian
 from fluorocal.stages.adjust.problem import Problem
 from fluorocal.stages.errors import EstimationError
@@ -50,8 +50,9 @@ def covariance(state: State, problem: Problem, w: np.ndarray) -> Covariance:
     ``Z = C - B^T A^-1 B``, the inverse is ``A^-1 + F Z^-1 F^T`` on the
     eliminated, ``-F Z^-1`` across and ``Z^-1`` on the kept part, ``F = A^-1 B``.
     """
-    e, J_point, J_pose, J_glob = linearize(state, problem)
-    normal = assemble(problem, *weighted_jacobian(problem, e, J_point, J_pose, J_glob, w))
+    e, J = jacobian(state, problem)
+    J_point, J_pose, J_glob = jacobian_blocks(problem, J)
+    normal = assemble(problem, *weighted_jacobian(e, J, w))
     Z, (Linv, Gm, LD) = reduced_system(problem, normal, 0.0)
     ne, be, bk, nk = problem.ne, problem.be, problem.bk, problem.nk
     r = normal.Hyy.shape[0]

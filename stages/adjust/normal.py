@@ -43,11 +43,6 @@ def _segment_grams(J: np.ndarray, starts: np.ndarray, first: int) -> np.ndarray:
     return out
 
 
-def _atb(a: np.ndarray, e: np.ndarray) -> np.ndarray:
-    """Per observation ``a^T e`` for ``(N, 2, I)`` and ``(N, 2)`` -> ``(N, I)``."""
-    return a[:, 0, :] * e[:, :1] + a[:, 1, :] * e[:, 1:]
-
-
 @dataclass(frozen=True)
 class Normal:
     """The normal equations ``H δ = b`` (``b = -gradient``) in Schur-ready blocks.
@@ -71,13 +66,10 @@ class Normal:
     b_y: np.ndarray
 
 
-def weighted_jacobian(problem: Problem, e, J_point, J_pose, J_glob, w) -> tuple[np.ndarray, np.ndarray]:
-    """``sqrt(w)``-weighted stacked Jacobian ``[J_eliminated | J_kept | J_globals]`` (N, 2, nt) and residuals (N, 2)."""
-    JE, JK = (J_point, J_pose) if problem.eliminate == "points" else (J_pose, J_point)
-    sw = np.sqrt(w)[:, None, None]
-    J = np.concatenate([JE, JK, J_glob], axis=2)
-    J *= sw
-    return J, e * sw[:, :, 0]
+def weighted_jacobian(e: np.ndarray, J: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``sqrt(w)``-weighted Jacobian (N, 2, nt) and residuals (N, 2); ``J`` from :func:`collinearity.jacobian`."""
+    sw = np.sqrt(w)[:, None]
+    return J * sw[:, :, None], e * sw
 
 
 def triggs_corrected(J: np.ndarray, ew: np.ndarray, t: np.ndarray, nu: float) -> np.ndarray:
@@ -104,23 +96,30 @@ def triggs_corrected(J: np.ndarray, ew: np.ndarray, t: np.ndarray, nu: float) ->
     d = (nu - t) / (nu + t)
     alpha = 1.0 - np.sqrt(np.clip(d, 0.0, 1.0))
     n_dir = ew / np.maximum(np.linalg.norm(ew, axis=1, keepdims=True), 1e-300)
-    along = np.einsum("nij,ni->nj", J, n_dir) * alpha[:, None]
-    return J - np.einsum("ni,nj->nij", n_dir, along)
+    # (I - α n n^T) per observation, a 2 x 2 applied to J's rows
+    M = (-alpha[:, None] * n_dir)[:, :, None] * n_dir[:, None, :]
+    M[:, 0, 0] += 1.0
+    M[:, 1, 1] += 1.0
+    return np.matmul(M, J)
 
 
 def gradient(problem: Problem, J: np.ndarray, ew: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``b = -Σ w J^T e`` split into the eliminated ``(ne, be)`` and kept ``(r,)`` parts."""
     be, bk, nk, G = problem.be, problem.bk, problem.nk, problem.n_globals
-    bj = -_atb(J, ew)  # shape (N, nt)
-    b_e = np.add.reduceat(bj[:, :be], problem.e_starts, axis=0)
+    bj = np.einsum("nij,ni->nj", J, ew)  # shape (N, nt)
+    b_e = -_per_block(problem.es_summer @ bj, problem.es_e)[:, :be]
     b_y = np.zeros(nk * bk + G + 1)
-    bk_sorted = bj.take(problem.k_order, axis=0)[:, be:]  # whole rows gather faster than a slice
-    b_y[: nk * bk] = np.add.reduceat(bk_sorted[:, :bk], problem.k_starts, axis=0).reshape(-1)
-    bg = np.add.reduceat(bk_sorted[:, bk:], problem.ks_starts, axis=0)
+    bk_sums = problem.ks_summer @ bj[:, be:]  # shape (n_ks, bk + ng): per (kept block, system)
+    b_y[: nk * bk] = -_per_block(bk_sums[:, :bk], problem.ks_k).reshape(-1)
     gcols = _gcols(problem, nk * bk, nk * bk + G + 1)
     for s in range(problem.n_systems):
-        np.add.at(b_y, gcols[s], bg[problem.ks_s == s].sum(0))
+        np.add.at(b_y, gcols[s], -bk_sums[problem.ks_s == s, bk:].sum(0))
     return b_e, b_y[:-1]
+
+
+def _per_block(sums: np.ndarray, block: np.ndarray) -> np.ndarray:
+    """Per-(block, system) ``sums`` (sorted by block, every block present) added over the systems of each block."""
+    return np.add.reduceat(sums, segment_starts(block), axis=0)
 
 
 def assemble(problem: Problem, J: np.ndarray, ew: np.ndarray, J_hessian: np.ndarray | None = None) -> Normal:
@@ -128,9 +127,9 @@ def assemble(problem: Problem, J: np.ndarray, ew: np.ndarray, J_hessian: np.ndar
 
     ``J, ew`` from :func:`weighted_jacobian` (the gradient); ``J_hessian``
     replaces ``J`` in ``H`` if given (:func:`triggs_corrected`). Batched products of the
-    per-observation Jacobians are accumulated by segment sums
-    (``np.add.reduceat``) over observations pre-sorted by the eliminated block
-    (and, through ``k_order``, by the kept block).
+    per-observation Jacobians are accumulated by segment sums over observations
+    pre-sorted by the eliminated block (:attr:`Problem.es_summer`) and, through
+    ``k_order``, by the kept block (:attr:`Problem.ks_summer`).
     """
     ne, nk, be, bk, G = problem.ne, problem.nk, problem.be, problem.bk, problem.n_globals
     r = nk * bk + G
@@ -139,17 +138,13 @@ def assemble(problem: Problem, J: np.ndarray, ew: np.ndarray, J_hessian: np.ndar
         J = J_hessian
     kk = be + bk
     OE = _outer(J[:, :, :be], J)  # shape (N, be, nt): eliminated rows
-    A = np.add.reduceat(OE[:, :, :be], problem.e_starts, axis=0)
-    EK = OE[:, :, be:kk].reshape(len(J), -1)
-    B = np.zeros(ne * be * r)
-    for i, (sel, flat) in enumerate(problem.ek_flat):
-        # within one system each (eliminated, kept) pair is observed at most once
-        if i == 0:
-            B[flat] = EK[sel].ravel() if sel is not None else EK.ravel()
-        else:
-            B[flat] += EK[sel].ravel()
+    # shape (n_es, be, nt): per (eliminated block, system)
+    ES = (problem.es_summer @ OE.reshape(len(J), -1)).reshape(-1, be, OE.shape[2])
+    A = _per_block(ES[:, :, :be], problem.es_e)
+    # in observation order: a pair seen by two systems gets 0 + x0 + x1, as when added system by system
+    B = np.bincount(problem.coupling_index, weights=OE[:, :, be:kk].ravel(), minlength=ne * be * r)
     B = B.reshape(ne, be, r)
-    Eg = np.add.reduceat(OE[:, :, kk:], problem.es_starts, axis=0)
+    Eg = ES[:, :, kk:]
     gcols = _gcols(problem, nk * bk, r + 1)
     valid = gcols[problem.es_s] < r  # fixed globals point past the end
     e_rows = np.broadcast_to(problem.es_e[:, None, None], Eg.shape)
@@ -161,7 +156,7 @@ def assemble(problem: Problem, J: np.ndarray, ew: np.ndarray, J_hessian: np.ndar
     rg = r + 1  # the extra last column collects fixed globals and is dropped
     Hyy = np.zeros((rg, rg))
     KS = _segment_grams(J.take(problem.k_order, axis=0), problem.ks_starts, be)  # shape (n_ks, bk + ng, bk + ng)
-    KK = np.add.reduceat(KS[:, :bk, :bk], segment_starts(problem.ks_k), axis=0)
+    KK = _per_block(KS[:, :bk, :bk], problem.ks_k)
     blk = np.arange(nk)[:, None] * bk + np.arange(bk)
     Hyy[blk[:, :, None], blk[:, None, :]] = KK
     KS = KS[:, :, bk:]
@@ -225,9 +220,9 @@ def reduced_system(problem: Problem, normal: Normal, mu: float) -> tuple:
     Linv = _block_chol_inv(A)
     r = normal.Hyy.shape[0]
     # G = blockdiag(L^-1) B, shape (ne * be, r)
-    Gm = np.einsum("nab,nbr->nar", Linv, normal.B.reshape(ne, be, r)).reshape(ne * be, r)
+    Gm = np.matmul(Linv, normal.B.reshape(ne, be, r)).reshape(ne * be, r)
     D_e, D_y = _datum_split(problem)
-    LD = np.einsum("nab,nbk->nak", Linv, D_e).reshape(ne * be, 7)
+    LD = np.matmul(Linv, D_e).reshape(ne * be, 7)
     S = Hyy - _gram(Gm)
     Q = D_y - Gm.T @ LD
     # scale the constraints (κ D^T δ = 0 is the same constraint) to S's magnitude: keeps the

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from fluorocal.stages.adjust.collinearity import Projection, State, linearize, project
+from fluorocal.stages.adjust.collinearity import Projection, State, jacobian, project
 from fluorocal.stages.adjust.normal import (
     Normal,
     SingularStep,
@@ -142,9 +142,9 @@ def solve(state: State, problem: Problem, options: SolverOptions) -> SolverResul
 
 def _linearised(run: _Progress, problem: Problem) -> Normal:
     """The normal equations at ``run.state`` with the current t-weights."""
-    e, J_point, J_pose, J_glob = linearize(run.state, problem, run.projection)
+    e, J = jacobian(run.state, problem, run.projection)
     s_now = (e * e).sum(1)
-    J, ew = weighted_jacobian(problem, e, J_point, J_pose, J_glob, t_weights(s_now, run.nu, run.scale2))
+    J, ew = weighted_jacobian(e, J, t_weights(s_now, run.nu, run.scale2))
     # near the optimum (σ² settled) the IRLS curvature overstates the t's: correct it there only,
     # since far away the corrected model oversteps
     J_h = triggs_corrected(J, ew, s_now / run.scale2, run.nu) if run.settled else None

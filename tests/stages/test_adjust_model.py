@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 from fluorocal.stages.adjust import FreeParameters, SolverOptions, adjust_bundle, polynomial
 from fluorocal.stages.adjust.bundle import prepare
-from fluorocal.stages.adjust.collinearity import State, linearize, residuals
-from fluorocal.stages.adjust.problem import apply_step, build_problem
+from fluorocal.stages.adjust.collinearity import State, jacobian, jacobian_blocks, linearize, residuals
+from fluorocal.stages.adjust.normal import assemble, triggs_corrected, weighted_jacobian
+from fluorocal.stages.adjust.problem import apply_step, build_problem, segment_starts, segment_summer
 from fluorocal.stages.artifacts import Observations
 
 from tests.stages.ba_synthetic import BIPLANAR, MONO, aligned_error_mm, make_problem, rms, with_xy
@@ -187,6 +188,74 @@ def test_three_systems_jacobian_with_a_missing_epoch_and_shuffled_observations()
         sel = problem.point_idx == i
         scale = np.abs(J_point[sel, :, 2]).max()
         np.testing.assert_allclose(J_point[sel, :, 2], ((ep - em) / (2 * h))[sel], rtol=0, atol=1e-6 * scale + 1e-5)
+
+
+def _dense_jacobian(problem, J):
+    """The Jacobian ``(N, 2, n_free)`` with every block in its own columns: eliminated, kept, globals."""
+    J_point, J_pose, J_glob = jacobian_blocks(problem, J)
+    n_p, n_c = 3 * problem.n_points, 6 * problem.n_poses
+    point_at, pose_at = (0, n_p) if problem.eliminate == "points" else (n_c, 0)
+    dense = np.zeros((problem.n_obs, 2, n_p + n_c + problem.n_globals))
+    for n in range(problem.n_obs):
+        i, j, cols = problem.point_idx[n], problem.pose_idx[n], problem.gcol[problem.sys_idx[n]]
+        dense[n, :, point_at + 3 * i : point_at + 3 * i + 3] = J_point[n]
+        dense[n, :, pose_at + 6 * j : pose_at + 6 * j + 6] = J_pose[n]
+        dense[n][:, n_p + n_c + cols[cols >= 0]] = J_glob[n][:, cols >= 0]
+    return dense
+
+
+@pytest.mark.parametrize(
+    ("eliminate", "n_systems", "aps"),
+    [("points", 3, False), ("poses", 3, False), ("points", 1, True), ("poses", 1, True)],
+)
+def test_schur_blocks_are_the_dense_normal_equations(eliminate, n_systems, aps):
+    """``assemble``'s blocks against ``Σ J_h^T J_h`` and ``-Σ J^T e`` of the dense Jacobian.
+
+    Three systems (pairs seen by several systems add up) or one with its additional parameters (the
+    globals' columns of the stacked Jacobian), an epoch left out, the observations shuffled, random
+    weights, and a Hessian Jacobian (Triggs') other than the gradient's.
+    """
+    syn = make_problem(n_beads=40, n_exposures=7, n_systems=n_systems, seed=2, visible_fraction=0.8)
+    o = syn.observations
+    keep = np.random.default_rng(3).permutation(np.flatnonzero(o.exposure != np.unique(o.exposure)[2]))
+    obs = Observations(*(c[keep] for c in (o.system, o.exposure, o.bead_id, o.xy_px, o.sigma_px)), o.system_names)
+    free = FreeParameters(additional_parameters="polynomial" if aps else "none")
+    prep = prepare(obs, (syn.ids, syn.nominal_mm), syn.initial, free=free, solver=SolverOptions(schur=eliminate))
+    problem = prep.problem
+    assert problem.eliminate == eliminate
+    e, J = jacobian(prep.state, problem)
+    Jw, ew = weighted_jacobian(e, J, np.random.default_rng(4).uniform(0.2, 1.5, problem.n_obs))
+    Jh = triggs_corrected(Jw, ew, (e * e).sum(1), 4.0)
+    normal = assemble(problem, Jw, ew, Jh)
+    dense_h = _dense_jacobian(problem, Jh).reshape(2 * problem.n_obs, -1)
+    H = dense_h.T @ dense_h
+    b = -np.einsum("nij,ni->j", _dense_jacobian(problem, Jw), ew)
+    ne_be = problem.ne * problem.be
+    tol = 1e-12 * np.abs(H).max()
+    blocks = H[:ne_be, :ne_be].reshape(problem.ne, problem.be, problem.ne, problem.be)
+    ar = np.arange(problem.ne)
+    np.testing.assert_allclose(normal.A, blocks[ar, :, ar, :], rtol=0, atol=tol)
+    np.testing.assert_allclose(normal.B, H[:ne_be, ne_be:], rtol=0, atol=tol)
+    np.testing.assert_allclose(normal.Hyy, H[ne_be:, ne_be:], rtol=0, atol=tol)
+    np.testing.assert_allclose(normal.b_e.ravel(), b[:ne_be], rtol=0, atol=1e-12 * np.abs(b).max())
+    np.testing.assert_allclose(normal.b_y, b[ne_be:], rtol=0, atol=1e-12 * np.abs(b).max())
+
+
+@pytest.mark.parametrize("ordered", [True, False])
+def test_segment_summer_sums_every_segment_in_any_row_order(ordered):
+    """``segment_summer`` against ``np.add.at``: keys with gaps (blocks seen nowhere), rows sorted or in an order."""
+    rng = np.random.default_rng(5)
+    keys = rng.choice(np.array([0, 2, 3, 7, 8, 11]), size=300)  # 1, 4-6, 9, 10: no rows
+    X = rng.normal(size=(300, 5))
+    order = np.argsort(keys, kind="stable")
+    if ordered:
+        keys, X, order = keys[order], X[order], None
+    sorted_keys = keys if order is None else keys[order]
+    starts = segment_starts(sorted_keys)
+    expected = np.zeros((12, 5))
+    np.add.at(expected, keys, X)
+    np.testing.assert_array_equal(sorted_keys[starts], [0, 2, 3, 7, 8, 11])
+    np.testing.assert_allclose(segment_summer(starts, len(keys), order) @ X, expected[sorted_keys[starts]], atol=1e-12)
 
 
 # --------------------------------------------------------------------------- additional parameters (polynomial)
