@@ -4,7 +4,8 @@ One small simulated biplanar project (4 + 4 frames of 512 px, as the end-to-end 
 configs that differ only in their cache and output folders: the serial run of the session's
 ``calibrated_project`` is the reference; runs through the pool and a loopback ``LocalCluster`` must give the
 same cache keys and, per entry, the same files (arrays, tables) and the same artifact structure, for detect and centroid
-(computed by the workers) and for label (computed in the main process from what the workers returned).
+(computed by the workers) and for label (on the pool, one worker per system; on a cluster, in the main process from
+what the workers returned).
 The runs stop after label: everything downstream reads only labels.
 """
 
@@ -73,6 +74,7 @@ def test_pool_run_equals_serial_run(project, calibrated_project, monkeypatch, ca
     with caplog.at_level(logging.INFO, logger="fluorocal"):
         assert main(["run", str(project / "pool.toml"), "--jobs", "2", "--until", "label"]) == 0
     assert "detect, centroid: 8 frames on 2 local processes" in caplog.text  # the pool did run them
+    assert "label: 2 systems on 2 local processes" in caplog.text  # and each system's labelling
     _same_as_serial(project, "pool", calibrated_project)
 
 
@@ -98,6 +100,13 @@ def test_small_projects_stay_serial(project, caplog):
         argv = ["run", str(project / "pool.toml"), "--jobs", "2", "--until", "centroid", "--force", "detect"]
         assert main(argv) == 0
     assert "local processes" not in caplog.text and "detect: 8 computed" in caplog.text
+
+
+def test_small_projects_label_serially(project, caplog):
+    """Fewer frames than MIN_POOL_FRAMES: the systems' labellings stay in this process too."""
+    with caplog.at_level(logging.INFO, logger="fluorocal"):
+        assert main(["run", str(project / "pool.toml"), "--jobs", "2", "--until", "label", "--force", "label"]) == 0
+    assert "local processes" not in caplog.text and "label: 8 computed" in caplog.text
 
 
 def test_unreachable_scheduler_is_one_line(project, monkeypatch, capsys):
