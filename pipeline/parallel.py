@@ -258,11 +258,24 @@ def run_tasks(tasks: list[FrameTask], compute: ComputeConfig, *, preload: tuple[
     yield from on_local_pool(run_task, tasks, compute, preload=preload)
 
 
+def start_fork_server(compute: ComputeConfig, preload: tuple[str, ...] = ()) -> None:
+    """Start the local pool's fork server now, importing ``preload``: its start-up then overlaps this process's work.
+
+    The server imports its libraries and stages for about a second; started before a run plans its keys (code
+    digests, frame hashes), the pool's workers are ready when the first frame is handed out.
+    """
+    from multiprocessing import forkserver
+
+    limit_threads(compute.threads)  # the fork server inherits these before it loads the libraries
+    multiprocessing.get_context("forkserver").set_forkserver_preload([*WORKER_PRELOAD, *preload])
+    forkserver.ensure_running()
+
+
 def on_local_pool(function, tasks: list, compute: ComputeConfig, *, preload: tuple[str, ...] = ()):
     """Yield ``function(task)`` of each task as it completes, on a local pool of ``compute.workers`` processes at most.
 
-    The workers are forked from the process's one fork server, started on first use with ``preload`` imported;
-    a later pool's workers are forked from that same server (and import what else their tasks need).
+    The workers are forked from the process's one fork server, started on first use (or by
+    :func:`start_fork_server`) with ``preload`` imported; a later pool's workers are forked from that same server.
     """
     limit_threads(compute.threads)  # the fork server inherits these before it loads the libraries
     context = multiprocessing.get_context("forkserver")

@@ -110,6 +110,9 @@ class Runner:
         Show progress bars (on a terminal).
     compute : ComputeConfig, optional
         Where the per-frame stages run (default: the config's ``[compute]``).
+    start_pool : bool
+        Start the local pool's fork server before planning when the cache holds no entry of the first
+        per-frame stage (a first run): its imports overlap the planning (``fluorocal run``).
     """
 
     def __init__(
@@ -122,6 +125,7 @@ class Runner:
         until=None,
         progress=True,
         compute: ComputeConfig | None = None,
+        start_pool: bool = False,
     ):
         check_graph(stages)
         names = [s.name for s in stages]
@@ -137,6 +141,8 @@ class Runner:
         self.force = downstream(stages, set(force)) if force else set()
         self.progress = progress
         self.compute = compute if compute is not None else config.compute
+        if start_pool:
+            self._start_pool_early()
         self.units = frame_units(config)
         self.phantom_key = self._phantom_key()
         self.keys: dict[tuple[str, int | None], str] = {}
@@ -252,6 +258,22 @@ class Runner:
 
     # --- the per-frame stages on workers ------------------------------------------------------
 
+    def pool_modules(self) -> tuple[str, ...]:
+        """The modules of the stages the local pool may run (the frame chain's, the per-system ones'): its preload."""
+        chain = self.frame_chain()
+        return tuple(dict.fromkeys(s.func.__module__ for s in self.stages if s in chain or s.per_system))
+
+    def _start_pool_early(self) -> None:
+        """Start the pool's fork server if this run will certainly use it: a first run of enough frame files."""
+        from fluorocal.parallel import MIN_POOL_FRAMES, start_fork_server
+
+        chain = self.frame_chain()
+        files = sum(len(system.frames) for system in self.config.systems)
+        if self.compute.scheduler or self.compute.workers < 2 or files < MIN_POOL_FRAMES or not chain:
+            return
+        if not self.cache.keys(chain[0].name):
+            start_fork_server(self.compute, self.pool_modules())
+
     def frame_chain(self) -> list[Stage]:
         """The per-frame stages whose inputs are the frame and each other: what workers can compute alone."""
         chain: list[Stage] = []
@@ -279,8 +301,7 @@ class Runner:
         tasks = self._frame_tasks(chain, todo, units)
         where = self.compute.scheduler or f"{min(self.compute.workers, len(tasks))} local processes"
         log.info("%s: %d frames on %s", ", ".join(s.name for s in chain), len(units), where)
-        preload = tuple(dict.fromkeys(s.func.__module__ for s in chain))
-        for results in run_tasks(tasks, self.compute, preload=preload):
+        for results in run_tasks(tasks, self.compute, preload=self.pool_modules()):
             for result in results:
                 self._accept(result)
         for stage in chain:
@@ -352,7 +373,7 @@ class Runner:
             tasks = [self._system_task(stage, group) for group in groups.values()]
             workers = min(self.compute.workers, len(tasks))
             log.info("%s: %d systems on %d local processes", stage.name, len(tasks), workers)
-            for result in on_local_pool(run_system_task, tasks, self.compute, preload=(stage.func.__module__,)):
+            for result in on_local_pool(run_system_task, tasks, self.compute, preload=self.pool_modules()):
                 for message, category in result.warnings:
                     warnings.warn(message, category, stacklevel=2)
                 artifacts = [decode(tree, arrays, self.cache.types) for tree, arrays in result.outputs]

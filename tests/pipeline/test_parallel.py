@@ -192,3 +192,28 @@ def test_a_task_on_a_multi_frame_file_computes_its_own_frames(project, tmp_path)
         got = decode(tree, arrays, artifact_types([stage]))
         want = detect_beads(read_frames(multi)[index], params)
         assert got.n_accepted > 10 and np.array_equal(got.xy_px, want.xy_px)  # frame `index`, found as a serial run
+
+
+def _runner(project, cache_dir, jobs: int):
+    from fluorocal.cache import ArtifactCache
+    from fluorocal.config import load_config
+    from fluorocal.graph import stage_params_classes
+    from fluorocal.run import Runner
+
+    config = load_config(project / "pool.toml", stage_params_allowed=stage_params_classes())
+    cache = ArtifactCache(cache_dir)
+    return Runner(config, default_stages(), cache, progress=False, compute=ComputeConfig(jobs=jobs), start_pool=True)
+
+
+def test_fork_server_started_before_planning_on_first_runs_only(project, monkeypatch, tmp_path):
+    """A run whose cache holds no detect entry starts the pool's fork server at once, with the pool's stages."""
+    started = []
+    monkeypatch.setattr(parallel, "start_fork_server", lambda compute, preload: started.append(preload))
+    monkeypatch.setattr(parallel, "MIN_POOL_FRAMES", 1)
+    _runner(project, tmp_path / "fresh", 2)  # a first run
+    assert started == [("fluorocal.stages.detect", "fluorocal.stages.centroid", "fluorocal.stages.kinds.labelling")]
+    _runner(project, project / ".fluorocal", 2)  # the serial run's cache: every detect entry there
+    _runner(project, tmp_path / "fresh", 1)  # --jobs 1: no pool
+    monkeypatch.setattr(parallel, "MIN_POOL_FRAMES", 2 * E2E_SIM["n_frames"] + 1)
+    _runner(project, tmp_path / "fresh", 2)  # fewer frame files than a pool is worth
+    assert len(started) == 1
