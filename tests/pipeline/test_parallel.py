@@ -217,3 +217,17 @@ def test_fork_server_started_before_planning_on_first_runs_only(project, monkeyp
     monkeypatch.setattr(parallel, "MIN_POOL_FRAMES", 2 * E2E_SIM["n_frames"] + 1)
     _runner(project, tmp_path / "fresh", 2)  # fewer frame files than a pool is worth
     assert len(started) == 1
+
+
+def test_a_systems_labelling_failing_on_the_pool_names_the_system(project):
+    """A per-system stage's error in a worker ends the run with that error, naming the system as a serial run does."""
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.label import LabelParams
+
+    runner = _runner(project, project / ".fluorocal", 1)
+    label = runner.by_name["label"]
+    inputs = ([runner.get("centroid", 0)], runner.get("phantom", None))
+    step = parallel.Step(label, LabelParams())  # no geometry: a 3D phantom cannot be labelled
+    task = parallel.SystemTask(0, "A", step, inputs)
+    with pytest.raises(InputError, match="^system A: label: params.source_image_distance_mm"):
+        list(parallel.on_local_pool(parallel.run_system_task, [task], ComputeConfig(jobs=2)))
