@@ -24,8 +24,8 @@ with README-style minimal configs, and measures:
    (target: <= 30 s wall on a quiet machine; the CPU of the main process, the fork server and the workers,
    and their total; ``--serial`` adds the same run with ``--jobs 1``, whose CPU is all the main process's:
    a check of the total), with each stage's time from the run's log and the wall
-   time less those (the per-frame stages' times are summed over the pool's workers, so it understates the
-   time outside the stages).
+   time less those (the pool's stages' times are summed over its workers, so it understates the time
+   outside the stages, below zero when the systems' labellings ran side by side: ``--profile`` times the phases).
 
 ``--profile`` adds a cProfile of the biplanar run (in process, fresh cache): the wall time of its phases
 (:data:`RUN_PHASES`: planning, the pool's stages as the main process waits for them, learn, cache writes,
@@ -298,10 +298,14 @@ def biplanar(root: Path, truth: dict, n_frames: int, profile: bool, serial: bool
         if re.search(r"computed|stopped|converged|reached|after \d+ iterations", line):
             print(f"    | {line.strip()}")
         stages += sum(float(t) for t in re.findall(r"computed in ([0-9.]+) s", line))
-    # the per-frame stages' times are their frames' times summed over the pool's workers: the difference
-    # understates the time outside the stages by up to what the workers ran side by side
+    # the pool's stages' times (detect and centroid per frame, label per system) are summed over its workers:
+    # the difference understates the time outside the stages by what the workers ran side by side (--profile
+    # times the phases themselves)
     outside = wall - stages
-    print(f"  wall less the stages' logged times (start-up, code digests, cache, outputs, report): {outside:.1f} s")
+    print(
+        f"  wall less the stages' logged times (start-up, code digests, cache, outputs, report; the pool's stages "
+        f"summed over its workers): {outside:.1f} s"
+    )
     if serial:  # a check of the CPU figure: no pool, every stage in the main process
         wall_1, cpu_1, _ = run_subprocess(cfg, {**USER_ENV, **ONE_THREAD}, "--jobs", "1")
         print(
