@@ -26,6 +26,7 @@ import logging
 import multiprocessing
 import signal
 import socket
+import threading
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -268,7 +269,15 @@ def start_fork_server(compute: ComputeConfig, preload: tuple[str, ...] = ()) -> 
 
     limit_threads(compute.threads)  # the fork server inherits these before it loads the libraries
     multiprocessing.get_context("forkserver").set_forkserver_preload([*WORKER_PRELOAD, *preload])
-    forkserver.ensure_running()
+    # Ctrl-C goes to the whole process group: the server, until it has imported its libraries, would die of it
+    # (a traceback on the terminal). It inherits SIGINT ignored (not blocked: starting the resource tracker unblocks it).
+    here = threading.current_thread() is threading.main_thread()  # where signal handlers can be set
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if here else None
+    try:
+        forkserver.ensure_running()
+    finally:
+        if here:
+            signal.signal(signal.SIGINT, previous)
 
 
 def on_local_pool(function, tasks: list, compute: ComputeConfig, *, preload: tuple[str, ...] = ()):
@@ -277,9 +286,8 @@ def on_local_pool(function, tasks: list, compute: ComputeConfig, *, preload: tup
     The workers are forked from the process's one fork server, started on first use (or by
     :func:`start_fork_server`) with ``preload`` imported; a later pool's workers are forked from that same server.
     """
-    limit_threads(compute.threads)  # the fork server inherits these before it loads the libraries
+    start_fork_server(compute, preload)
     context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload([*WORKER_PRELOAD, *preload])
     level = logging.getLogger().getEffectiveLevel()
     workers = min(compute.workers, len(tasks))
     with ProcessPoolExecutor(

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import json
 import logging
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -231,3 +233,24 @@ def test_a_systems_labelling_failing_on_the_pool_names_the_system(project):
     task = parallel.SystemTask(0, "A", step, inputs)
     with pytest.raises(InputError, match="^system A: label: params.source_image_distance_mm"):
         list(parallel.on_local_pool(parallel.run_system_task, [task], ComputeConfig(jobs=2)))
+
+
+def test_ctrl_c_while_the_fork_server_starts_leaves_it_quiet(tmp_path):
+    """Ctrl-C reaches the whole process group: the fork server, still importing, must not die with a traceback.
+
+    `fluorocal run` starts it before planning, when a user is likely to press Ctrl-C; the main process alone
+    answers it ("fluorocal: interrupted").
+    """
+    script = (
+        "import os, signal, time\n"
+        "from multiprocessing import forkserver\n"
+        "from fluorocal import parallel\n"
+        "from fluorocal.compute import ComputeConfig\n"
+        "parallel.start_fork_server(ComputeConfig(jobs=2), ('fluorocal.stages.detect',))\n"
+        "pid = forkserver._forkserver._forkserver_pid\n"
+        "os.kill(pid, signal.SIGINT)\n"  # at once: the server has not imported its libraries yet
+        "time.sleep(3)\n"
+        "assert os.waitpid(pid, os.WNOHANG) == (0, 0)\n"  # still serving
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert done.returncode == 0 and "KeyboardInterrupt" not in done.stderr, done.stderr[-2000:]
