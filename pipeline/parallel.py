@@ -270,7 +270,7 @@ def start_fork_server(compute: ComputeConfig, preload: tuple[str, ...] = ()) -> 
     limit_threads(compute.threads)  # the fork server inherits these before it loads the libraries
     multiprocessing.get_context("forkserver").set_forkserver_preload([*WORKER_PRELOAD, *preload])
     # Ctrl-C goes to the whole process group: the server, until it has imported its libraries, would die of it
-    # (a traceback on the terminal). It inherits SIGINT ignored (not blocked: starting the resource tracker unblocks it).
+    # (a traceback on the terminal). It inherits SIGINT ignored (not blocked: the resource tracker's start unblocks it).
     here = threading.current_thread() is threading.main_thread()  # where signal handlers can be set
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if here else None
     try:
