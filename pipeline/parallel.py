@@ -283,8 +283,8 @@ def start_fork_server(compute: ComputeConfig, preload: tuple[str, ...] = ()) -> 
 def on_local_pool(function, tasks: list, compute: ComputeConfig, *, preload: tuple[str, ...] = ()):
     """Yield ``function(task)`` of each task as it completes, on a local pool of ``compute.workers`` processes at most.
 
-    The workers are forked from the process's one fork server, started on first use (or by
-    :func:`start_fork_server`) with ``preload`` imported; a later pool's workers are forked from that same server.
+    The workers are forked from the process's one fork server (:func:`start_fork_server`, here on first use or
+    earlier) with ``preload`` imported; a later pool's workers are forked from that same server.
     """
     start_fork_server(compute, preload)
     context = multiprocessing.get_context("forkserver")
