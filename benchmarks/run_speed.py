@@ -24,11 +24,13 @@ with README-style minimal configs, and measures:
    (target: <= 30 s wall on a quiet machine; the CPU of the main process, the fork server and the workers,
    and their total; ``--serial`` adds the same run with ``--jobs 1``, whose CPU is all the main process's:
    a check of the total), with each stage's time from the run's log and the wall
-   time less those (the per-frame stages' times are summed over the pool's workers, so it understates the
-   time outside the stages).
+   time less those (the pool's stages' times are summed over its workers, so it understates the time
+   outside the stages, below zero when the systems' labellings ran side by side: ``--profile`` times the phases).
 
-``--profile`` adds a cProfile of the biplanar run (in process, fresh cache): the top functions by
-cumulative and by own time, of the main process only (the pool's workers compute detect and centroid).
+``--profile`` adds a cProfile of the biplanar run (in process, fresh cache): the wall time of its phases
+(:data:`RUN_PHASES`: planning, the pool's stages as the main process waits for them, learn, cache writes,
+exports), then the top functions by cumulative and by own time, of the main process only (the pool's workers
+compute detect, centroid and each system's labelling).
 
 Usage: ``python benchmarks/run_speed.py [--frames N] [--detect-frames N] [--sections a,b,...]
 [--profile] [--serial] [--repeats N] [--keep DIR]`` (defaults: 75 exposures per system, 20 frames for
@@ -296,10 +298,14 @@ def biplanar(root: Path, truth: dict, n_frames: int, profile: bool, serial: bool
         if re.search(r"computed|stopped|converged|reached|after \d+ iterations", line):
             print(f"    | {line.strip()}")
         stages += sum(float(t) for t in re.findall(r"computed in ([0-9.]+) s", line))
-    # the per-frame stages' times are their frames' times summed over the pool's workers: the difference
-    # understates the time outside the stages by up to what the workers ran side by side
+    # the pool's stages' times (detect and centroid per frame, label per system) are summed over its workers:
+    # the difference understates the time outside the stages by what the workers ran side by side (--profile
+    # times the phases themselves)
     outside = wall - stages
-    print(f"  wall less the stages' logged times (start-up, code digests, cache, outputs, report): {outside:.1f} s")
+    print(
+        f"  wall less the stages' logged times (start-up, code digests, cache, outputs, report; the pool's stages "
+        f"summed over its workers): {outside:.1f} s"
+    )
     if serial:  # a check of the CPU figure: no pool, every stage in the main process
         wall_1, cpu_1, _ = run_subprocess(cfg, {**USER_ENV, **ONE_THREAD}, "--jobs", "1")
         print(
@@ -309,12 +315,37 @@ def biplanar(root: Path, truth: dict, n_frames: int, profile: bool, serial: bool
     if profile:
         write_config(root, truth, "biplanar", ("A", "B"))
         profiler = cProfile.Profile()
+        t0 = time.perf_counter()
         profiler.runcall(fluorocal_main, ["--quiet", "run", str(cfg)])
+        run_phases(pstats.Stats(profiler).stats, time.perf_counter() - t0)
         for key in ("cumulative", "tottime"):
             out = io.StringIO()
             pstats.Stats(profiler, stream=out).sort_stats(key).print_stats(30)
             print(f"\n  cProfile of the biplanar run, by {key}:")
             print("\n".join("    " + line for line in out.getvalue().splitlines()[6:40]))
+
+
+#: the phases of ``fluorocal run`` timed by :func:`run_phases`: label -> (module path suffix, function name)
+RUN_PHASES = {
+    "config (with the stages' imports)": ("pipeline/cli_common.py", "load_project"),
+    "plan: frame hashes": ("pipeline/units.py", "frame_units"),
+    "plan: code digests": ("pipeline/graph.py", "code_digest"),
+    "plan: keys (with the code digests)": ("pipeline/run.py", "_plan"),
+    "detect + centroid (pool)": ("pipeline/run.py", "_run_frame_stages"),
+    "label, systems side by side (pool)": ("pipeline/run.py", "_run_system_stages"),
+    "label in this process": ("pipeline/run.py", "_compute_system_now"),
+    "learn": ("stages/kinds/learning.py", "learn_calibration"),
+    "cache writes (all stages)": ("pipeline/cache.py", "store"),
+    "exports (tables, calibration, report)": ("pipeline/export.py", "export_outputs"),
+}
+
+
+def run_phases(stats: dict, wall: float) -> None:
+    """Where the profiled run's wall time goes in the main process (cProfile's clock: wall), phase by phase."""
+    print(f"\n  the run's phases in the main process (wall, under cProfile: {wall:.1f} s in all)")
+    for label, (suffix, name) in RUN_PHASES.items():
+        hits = [v for (file, _, fn), v in stats.items() if fn == name and file.replace(os.sep, "/").endswith(suffix)]
+        print(f"    {label:<38}: {sum(v[3] for v in hits):6.2f} s in {sum(v[1] for v in hits)} call(s)")
 
 
 def main(argv=None) -> int:

@@ -192,7 +192,7 @@ def cmd_run(args) -> int:
 
     config = load_project(args.config)
     out_dir = check_outputs(config)  # before any work: names, the output folder, leftovers of a killed run
-    runner = project_runner(args, config, force=args.force, until=args.until)
+    runner = project_runner(args, config, force=args.force, until=args.until, start_pool=True)
     report = runner.run()
     if "label" in report.outcomes:
         from fluorocal.gather import labelling_line

@@ -1,4 +1,4 @@
-"""The per-frame stages on a local process pool or on a Dask cluster.
+"""The per-frame stages on a local process pool or on a Dask cluster; a per-system stage's systems on the pool.
 
 The main process plans every key (:class:`fluorocal.run.Runner`) and hands out
 :class:`FrameTask` s: a frame file's path and content hash, which of its frames,
@@ -12,6 +12,9 @@ one writer and holds what a serial run would have written.
 The local pool starts its workers from a fork server (a clean, single-threaded
 process that has imported the stages once), so forking never copies a parent's
 threads or locks; each worker is set to :attr:`ComputeConfig.threads` threads.
+A per-system stage (the labelling of a sequence) of several systems runs one :class:`SystemTask` per
+system on the local pool: its inputs travel (the system's centroids, the phantom), and its artifacts come
+back encoded as the frames' do.
 Dask is imported only when a scheduler is given. On a cluster, a worker whose libraries
 (:data:`WORKER_PACKAGES`) or fluorocal stage code differ from the main process's is refused
 before it computes anything: its artifacts would be cached under keys made from other code.
@@ -23,6 +26,7 @@ import logging
 import multiprocessing
 import signal
 import socket
+import threading
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -110,6 +114,29 @@ class FrameResult:
     warnings: tuple = ()
 
 
+@dataclass(frozen=True)
+class SystemTask:
+    """One system's frames for a per-system stage: what the stage is called with (the per-frame inputs as lists).
+
+    ``unit``: the system's first frame (in exposure order), naming the task; ``system``: its name in messages.
+    """
+
+    unit: int
+    system: str
+    step: Step
+    inputs: tuple
+
+
+@dataclass(frozen=True)
+class SystemResult:
+    """A system's artifacts, one per frame in exposure order, encoded: ``(tree, arrays)``; seconds; warnings."""
+
+    unit: int
+    outputs: tuple
+    seconds: float
+    warnings: tuple = ()
+
+
 def run_task(task: FrameTask) -> list[FrameResult]:
     """Compute a task's frames (in a worker); the artifacts come back encoded as the cache stores them.
 
@@ -173,6 +200,29 @@ def _run_frame(job: FrameJob, frame) -> FrameResult:
     return FrameResult(job.unit, tuple(outputs), tuple((str(w.message), w.category) for w in caught))
 
 
+def compute_sequence(stage, inputs, params, extras: dict, system: str) -> tuple[tuple, float]:
+    """A per-system stage's artifacts of one system and the seconds they took; its errors name the system."""
+    t0 = time.perf_counter()
+    try:
+        artifacts = tuple(stage.func(*inputs, params, **extras))
+    except CalibError as exc:
+        raise type(exc)(f"system {system}: {stage.name}: {exc}") from exc
+    return artifacts, time.perf_counter() - t0
+
+
+def run_system_task(task: SystemTask) -> SystemResult:
+    """Compute a per-system stage on one system's frames (in a worker); the artifacts come back encoded."""
+    stage = task.step.stage
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        artifacts, took = compute_sequence(stage, task.inputs, task.step.params, task.step.extras, task.system)
+    outputs = []
+    for artifact in artifacts:
+        arrays: dict = {}
+        outputs.append((encode(artifact, arrays, "artifact", _stage_types(stage)), arrays))
+    return SystemResult(task.unit, tuple(outputs), took, tuple((str(w.message), w.category) for w in caught))
+
+
 @lru_cache(maxsize=16)
 def _stage_types(stage) -> dict:
     """The artifact classes ``stage`` returns, found once per worker (resolving the type hints took ~10 ms a frame)."""
@@ -206,15 +256,44 @@ def run_tasks(tasks: list[FrameTask], compute: ComputeConfig, *, preload: tuple[
     if compute.scheduler:
         yield from _on_cluster(tasks, compute.scheduler)
         return
+    yield from on_local_pool(run_task, tasks, compute, preload=preload)
+
+
+def start_fork_server(compute: ComputeConfig, preload: tuple[str, ...] = ()) -> None:
+    """Start the local pool's fork server now, importing ``preload``: its start-up then overlaps this process's work.
+
+    The server imports its libraries and stages for about a second; started before a run plans its keys (code
+    digests, frame hashes), the pool's workers are ready when the first frame is handed out.
+    """
+    from multiprocessing import forkserver
+
     limit_threads(compute.threads)  # the fork server inherits these before it loads the libraries
+    multiprocessing.get_context("forkserver").set_forkserver_preload([*WORKER_PRELOAD, *preload])
+    # Ctrl-C goes to the whole process group: the server, until it has imported its libraries, would die of it
+    # (a traceback on the terminal). It inherits SIGINT ignored (not blocked: the resource tracker's start unblocks it).
+    here = threading.current_thread() is threading.main_thread()  # where signal handlers can be set
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if here else None
+    try:
+        forkserver.ensure_running()
+    finally:
+        if here:
+            signal.signal(signal.SIGINT, previous)
+
+
+def on_local_pool(function, tasks: list, compute: ComputeConfig, *, preload: tuple[str, ...] = ()):
+    """Yield ``function(task)`` of each task as it completes, on a local pool of ``compute.workers`` processes at most.
+
+    The workers are forked from the process's one fork server (:func:`start_fork_server`, here on first use or
+    earlier) with ``preload`` imported; a later pool's workers are forked from that same server.
+    """
+    start_fork_server(compute, preload)
     context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload([*WORKER_PRELOAD, *preload])
     level = logging.getLogger().getEffectiveLevel()
     workers = min(compute.workers, len(tasks))
     with ProcessPoolExecutor(
         workers, mp_context=context, initializer=_init_worker, initargs=(compute.threads, level)
     ) as pool:
-        futures = [pool.submit(run_task, task) for task in tasks]
+        futures = [pool.submit(function, task) for task in tasks]
         try:
             for future in as_completed(futures):
                 yield future.result()

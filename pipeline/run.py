@@ -9,8 +9,9 @@ frames in exposure order, and stores one artifact per frame.
 
 The per-frame stages that need only the frame and each other (detect,
 centroid) run first, on a local process pool or a Dask cluster when
-``[compute]`` asks for one (:mod:`fluorocal.parallel`); the main process
-alone writes their entries.
+``[compute]`` asks for one (:mod:`fluorocal.parallel`); then a per-system
+stage's systems side by side on the local pool, one process per system; the
+main process alone writes their entries.
 """
 
 from __future__ import annotations
@@ -109,6 +110,9 @@ class Runner:
         Show progress bars (on a terminal).
     compute : ComputeConfig, optional
         Where the per-frame stages run (default: the config's ``[compute]``).
+    start_pool : bool
+        Start the local pool's fork server before planning when the cache holds no entry of the first
+        per-frame stage (a first run): its imports overlap the planning (``fluorocal run``).
     """
 
     def __init__(
@@ -121,6 +125,7 @@ class Runner:
         until=None,
         progress=True,
         compute: ComputeConfig | None = None,
+        start_pool: bool = False,
     ):
         check_graph(stages)
         names = [s.name for s in stages]
@@ -136,6 +141,8 @@ class Runner:
         self.force = downstream(stages, set(force)) if force else set()
         self.progress = progress
         self.compute = compute if compute is not None else config.compute
+        if start_pool:
+            self._start_pool_early()
         self.units = frame_units(config)
         self.phantom_key = self._phantom_key()
         self.keys: dict[tuple[str, int | None], str] = {}
@@ -231,6 +238,7 @@ class Runner:
             self.report.record(stage.name, [u for u in units if u not in missing], "cached")
             self.report.outcomes.setdefault(stage.name, {})
         self._run_frame_stages(todo)
+        self._run_system_stages(todo)
         for stage in self.stages:
             units = todo[stage.name]
             if stage.per_system:  # one computation per system with a frame to do
@@ -249,6 +257,22 @@ class Runner:
         return self.report
 
     # --- the per-frame stages on workers ------------------------------------------------------
+
+    def pool_modules(self) -> tuple[str, ...]:
+        """The modules of the stages the local pool may run (the frame chain's, the per-system ones'): its preload."""
+        chain = self.frame_chain()
+        return tuple(dict.fromkeys(s.func.__module__ for s in self.stages if s in chain or s.per_system))
+
+    def _start_pool_early(self) -> None:
+        """Start the pool's fork server if this run will certainly use it: a first run of enough frame files."""
+        from fluorocal.parallel import MIN_POOL_FRAMES, start_fork_server
+
+        chain = self.frame_chain()
+        files = sum(len(system.frames) for system in self.config.systems)
+        if self.compute.scheduler or self.compute.workers < 2 or files < MIN_POOL_FRAMES or not chain:
+            return
+        if not self.cache.keys(chain[0].name):
+            start_fork_server(self.compute, self.pool_modules())
 
     def frame_chain(self) -> list[Stage]:
         """The per-frame stages whose inputs are the frame and each other: what workers can compute alone."""
@@ -277,8 +301,7 @@ class Runner:
         tasks = self._frame_tasks(chain, todo, units)
         where = self.compute.scheduler or f"{min(self.compute.workers, len(tasks))} local processes"
         log.info("%s: %d frames on %s", ", ".join(s.name for s in chain), len(units), where)
-        preload = tuple(dict.fromkeys(s.func.__module__ for s in chain))
-        for results in run_tasks(tasks, self.compute, preload=preload):
+        for results in run_tasks(tasks, self.compute, preload=self.pool_modules()):
             for result in results:
                 self._accept(result)
         for stage in chain:
@@ -330,6 +353,43 @@ class Runner:
             for path, jobs in by_file.items()
             for i in range(0, len(jobs), chunk)
         ]
+
+    # --- the per-system stages' systems side by side -------------------------------------------
+
+    def _run_system_stages(self, todo: dict[str, list]) -> None:
+        """Compute each per-system stage's missing systems on the local pool, one task per system.
+
+        In this process (as :meth:`run` goes on), on a cluster, with ``jobs = 1``, for a single system to do
+        and for fewer than :data:`~fluorocal.parallel.MIN_POOL_FRAMES` frames.
+        """
+        from fluorocal.parallel import MIN_POOL_FRAMES, on_local_pool, run_system_task
+
+        if self.compute.scheduler or self.compute.workers < 2:
+            return
+        for stage in (s for s in self.stages if s.per_system):
+            groups = {g[0]: g for g in self._systems() if set(g) & set(todo[stage.name])}
+            if len(groups) < 2 or sum(map(len, groups.values())) < MIN_POOL_FRAMES:
+                continue
+            tasks = [self._system_task(stage, group) for group in groups.values()]
+            workers = min(self.compute.workers, len(tasks))
+            log.info("%s: %d systems on %d local processes", stage.name, len(tasks), workers)
+            for result in on_local_pool(run_system_task, tasks, self.compute, preload=self.pool_modules()):
+                for message, category in result.warnings:
+                    warnings.warn(message, category, stacklevel=2)
+                artifacts = [decode(tree, arrays, self.cache.types) for tree, arrays in result.outputs]
+                self._keep_system(stage, groups[result.unit], artifacts, result.seconds)
+            todo[stage.name] = []
+
+    def _system_task(self, stage: Stage, group: list[int]):
+        """The task of a per-system stage on the system of units ``group``: its parameters and inputs travel."""
+        from fluorocal.parallel import Step, SystemTask
+
+        step = Step(stage, *self.params[(stage.name, group[0])], code=self.codes[stage.name])
+        inputs = tuple(self._group_input(name, group) for name in stage.inputs)
+        return SystemTask(group[0], self._system_name(group), step, inputs)
+
+    def _system_name(self, group: list[int]) -> str:
+        return self.config.systems[self.units[group[0]].system].name
 
     def _accept(self, result) -> None:
         """Decode, store and keep a worker's artifacts of one frame; re-raise its warnings here."""
@@ -452,17 +512,19 @@ class Runner:
             self._compute_system_now(stage, group)
 
     def _compute_system_now(self, stage: Stage, group: list[int]) -> None:
+        from fluorocal.parallel import compute_sequence
+
         params, extras = self.params[(stage.name, group[0])]
         inputs = [self._group_input(name, group) for name in stage.inputs]
-        system = self.config.systems[self.units[group[0]].system].name
-        t0 = time.perf_counter()
-        try:
-            artifacts = tuple(stage.func(*inputs, params, **extras))
-        except CalibError as exc:
-            raise type(exc)(f"system {system}: {stage.name}: {exc}") from exc
-        took = time.perf_counter() - t0
+        artifacts, took = compute_sequence(stage, inputs, params, extras, self._system_name(group))
+        self._keep_system(stage, group, artifacts, took)
+
+    def _keep_system(self, stage: Stage, group: list[int], artifacts, took: float) -> None:
+        """Store a per-system stage's ``artifacts`` (one per frame) of the units ``group``, computed in ``took`` s."""
+        system = self._system_name(group)
         if len(artifacts) != len(group):
             raise CalibError(f"system {system}: {stage.name} gave {len(artifacts)} artifacts for {len(group)} frames")
+        params, _ = self.params[(stage.name, group[0])]
         for position, (unit, artifact) in enumerate(zip(group, artifacts)):
             provenance = self._provenance(stage, unit, params, took)
             provenance["sequence"] = {"system": system, "position": position, "n_frames": len(group)}

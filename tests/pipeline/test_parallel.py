@@ -4,7 +4,8 @@ One small simulated biplanar project (4 + 4 frames of 512 px, as the end-to-end 
 configs that differ only in their cache and output folders: the serial run of the session's
 ``calibrated_project`` is the reference; runs through the pool and a loopback ``LocalCluster`` must give the
 same cache keys and, per entry, the same files (arrays, tables) and the same artifact structure, for detect and centroid
-(computed by the workers) and for label (computed in the main process from what the workers returned).
+(computed by the workers) and for label (on the pool, one worker per system; on a cluster, in the main process from
+what the workers returned).
 The runs stop after label: everything downstream reads only labels.
 """
 
@@ -12,6 +13,8 @@ from __future__ import annotations
 
 import json
 import logging
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -73,6 +76,7 @@ def test_pool_run_equals_serial_run(project, calibrated_project, monkeypatch, ca
     with caplog.at_level(logging.INFO, logger="fluorocal"):
         assert main(["run", str(project / "pool.toml"), "--jobs", "2", "--until", "label"]) == 0
     assert "detect, centroid: 8 frames on 2 local processes" in caplog.text  # the pool did run them
+    assert "label: 2 systems on 2 local processes" in caplog.text  # and each system's labelling
     _same_as_serial(project, "pool", calibrated_project)
 
 
@@ -98,6 +102,13 @@ def test_small_projects_stay_serial(project, caplog):
         argv = ["run", str(project / "pool.toml"), "--jobs", "2", "--until", "centroid", "--force", "detect"]
         assert main(argv) == 0
     assert "local processes" not in caplog.text and "detect: 8 computed" in caplog.text
+
+
+def test_small_projects_label_serially(project, caplog):
+    """Fewer frames than MIN_POOL_FRAMES: the systems' labellings stay in this process too."""
+    with caplog.at_level(logging.INFO, logger="fluorocal"):
+        assert main(["run", str(project / "pool.toml"), "--jobs", "2", "--until", "label", "--force", "label"]) == 0
+    assert "local processes" not in caplog.text and "label: 8 computed" in caplog.text
 
 
 def test_unreachable_scheduler_is_one_line(project, monkeypatch, capsys):
@@ -183,3 +194,63 @@ def test_a_task_on_a_multi_frame_file_computes_its_own_frames(project, tmp_path)
         got = decode(tree, arrays, artifact_types([stage]))
         want = detect_beads(read_frames(multi)[index], params)
         assert got.n_accepted > 10 and np.array_equal(got.xy_px, want.xy_px)  # frame `index`, found as a serial run
+
+
+def _runner(project, cache_dir, jobs: int):
+    from fluorocal.cache import ArtifactCache
+    from fluorocal.config import load_config
+    from fluorocal.graph import stage_params_classes
+    from fluorocal.run import Runner
+
+    config = load_config(project / "pool.toml", stage_params_allowed=stage_params_classes())
+    cache = ArtifactCache(cache_dir)
+    return Runner(config, default_stages(), cache, progress=False, compute=ComputeConfig(jobs=jobs), start_pool=True)
+
+
+def test_fork_server_started_before_planning_on_first_runs_only(project, monkeypatch, tmp_path):
+    """A run whose cache holds no detect entry starts the pool's fork server at once, with the pool's stages."""
+    started = []
+    monkeypatch.setattr(parallel, "start_fork_server", lambda compute, preload: started.append(preload))
+    monkeypatch.setattr(parallel, "MIN_POOL_FRAMES", 1)
+    _runner(project, tmp_path / "fresh", 2)  # a first run
+    assert started == [("fluorocal.stages.detect", "fluorocal.stages.centroid", "fluorocal.stages.kinds.labelling")]
+    _runner(project, project / ".fluorocal", 2)  # the serial run's cache: every detect entry there
+    _runner(project, tmp_path / "fresh", 1)  # --jobs 1: no pool
+    monkeypatch.setattr(parallel, "MIN_POOL_FRAMES", 2 * E2E_SIM["n_frames"] + 1)
+    _runner(project, tmp_path / "fresh", 2)  # fewer frame files than a pool is worth
+    assert len(started) == 1
+
+
+def test_a_systems_labelling_failing_on_the_pool_names_the_system(project):
+    """A per-system stage's error in a worker ends the run with that error, naming the system as a serial run does."""
+    from fluorocal.stages.errors import InputError
+    from fluorocal.stages.label import LabelParams
+
+    runner = _runner(project, project / ".fluorocal", 1)
+    label = runner.by_name["label"]
+    inputs = ([runner.get("centroid", 0)], runner.get("phantom", None))
+    step = parallel.Step(label, LabelParams())  # no geometry: a 3D phantom cannot be labelled
+    task = parallel.SystemTask(0, "A", step, inputs)
+    with pytest.raises(InputError, match="^system A: label: params.source_image_distance_mm"):
+        list(parallel.on_local_pool(parallel.run_system_task, [task], ComputeConfig(jobs=2)))
+
+
+def test_ctrl_c_while_the_fork_server_starts_leaves_it_quiet(tmp_path):
+    """Ctrl-C reaches the whole process group: the fork server, still importing, must not die with a traceback.
+
+    `fluorocal run` starts it before planning, when a user is likely to press Ctrl-C; the main process alone
+    answers it ("fluorocal: interrupted").
+    """
+    script = (
+        "import os, signal, time\n"
+        "from multiprocessing import forkserver\n"
+        "from fluorocal import parallel\n"
+        "from fluorocal.compute import ComputeConfig\n"
+        "parallel.start_fork_server(ComputeConfig(jobs=2), ('fluorocal.stages.detect',))\n"
+        "pid = forkserver._forkserver._forkserver_pid\n"
+        "os.kill(pid, signal.SIGINT)\n"  # at once: the server has not imported its libraries yet
+        "time.sleep(3)\n"
+        "assert os.waitpid(pid, os.WNOHANG) == (0, 0)\n"  # still serving
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert done.returncode == 0 and "KeyboardInterrupt" not in done.stderr, done.stderr[-2000:]
