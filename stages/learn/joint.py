@@ -268,22 +268,23 @@ def _coupling(parts, J):
     """
     n_obs = J.shape[0] // 2
     bounds = np.cumsum([0] + [len(p.xy) for p in parts])
-    # (rows of J, rows of the node vector, A^T W) per system and component, in the node vector's order
+    # (rows of J, rows of the node vector, A^T W, W A) per system and component, in the node vector's order
     blocks, start = [], 0
     for p, a, b in zip(parts, bounds[:-1], bounds[1:]):
         for c in (0, 1):
-            blocks.append((slice(c * n_obs + a, c * n_obs + b), slice(start, start + p.n_nodes), p.AtW[c]))
+            rows, nodes = slice(c * n_obs + a, c * n_obs + b), slice(start, start + p.n_nodes)
+            blocks.append((rows, nodes, p.AtW[c], p.AtW[c].T))
             start += p.n_nodes
     Jt = J.T.tocsr()
 
     def to_fields(y):
         Jy = J @ y
-        return np.concatenate([AtW @ Jy[rows] for rows, _, AtW in blocks], axis=0)
+        return np.concatenate([AtW @ Jy[rows] for rows, _, AtW, _ in blocks], axis=0)
 
     def to_orientation(v):
         z = np.empty((J.shape[0],) + v.shape[1:])
-        for rows, nodes, AtW in blocks:
-            z[rows] = AtW.T @ v[nodes]
+        for rows, nodes, _, WA in blocks:
+            z[rows] = WA @ v[nodes]
         return Jt @ z
 
     return to_fields, to_orientation

@@ -198,3 +198,36 @@ def test_pool_neighbours_of_a_subset_thinned_in_one_half_equal_a_kd_tree(monkeyp
     np.testing.assert_array_equal(near, expected[:, 1:])
     # only the points whose whole row falls short (left of x = 20, about one in a hundred) go to a KD-tree
     assert 0 < sum(asked) < 0.02 * len(sel)
+
+
+def test_gridded_knn_from_the_node_table_equals_its_own_kd_tree():
+    """Subsets of a pool, their grid nodes' neighbours and support counts read from the cache's node table.
+
+    The same field, uncertainty and support as the nodes' neighbours from the subset's own KD-tree give, bit for
+    bit (distinct random points: no ties). Left of x = 40 one point in twenty is kept: nodes there fall short of
+    neighbours in their table rows (queried instead); right of it the rows end inside the support radius at some
+    nodes (counted by the KD-tree instead) and reach beyond it at others (the table's count). The second subset
+    (fewer points, refitted with the first's k) reuses the node table.
+    """
+    from fluorocal.stages.learn.knn import fit_knn_field
+    from fluorocal.stages.learn.nodes import GridSpec
+
+    rng = np.random.default_rng(8)
+    pool = rng.uniform(0, 200, (3000, 2))
+    r = 0.01 * pool + rng.normal(0, 0.05, pool.shape)
+    var = np.full(pool.shape, 0.05**2)
+    grid = GridSpec(spacing_px=8.0, support_radius_px=16.0, min_support=3)
+    cache, i, tables, cv = {}, np.arange(len(pool)), [], None
+    for step in (3, 4):
+        sel = np.flatnonzero(((pool[:, 0] > 40) & (i % step != 0)) | (i % 20 == 0))
+        args = (pool[sel], r[sel], var[sel])
+        options = dict(image_size=(200, 200), grid=grid, neighbour_cache=cache, neighbour_pool_px=pool, cv=cv)
+        cached, cv = fit_knn_field(*args, **options)
+        fresh, _ = fit_knn_field(*args, image_size=(200, 200), grid=grid, cv=cv)
+        tables.append(cache["nodes"])
+        for name in ("delta_px", "sigma_px", "support"):
+            np.testing.assert_array_equal(getattr(cached, name), getattr(fresh, name))
+        dist = tables[-1].dist[:, -1]
+        assert np.any(dist <= grid.support_radius_px) and np.any(dist > grid.support_radius_px)
+        assert 0 < np.sum(~fresh.support) < fresh.support.size
+    assert tables[1] is tables[0]
