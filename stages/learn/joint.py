@@ -25,7 +25,7 @@ import numpy as np
 from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.field import CorrectionField, bilinear_design
 from fluorocal.stages.learn.gauge import gauge_basis
-from fluorocal.stages.learn.grid import factor_sum, grid_result, prior_normal, prior_term
+from fluorocal.stages.learn.grid import factor_sum, grid_result, scaled_prior
 from fluorocal.stages.learn.network import Network
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
@@ -214,10 +214,10 @@ def _field_part(step: SystemStep, grid: GridSpec) -> _FieldPart:
     size = tuple(int(s) for s in step.image_size)
     xn, yn = grid.nodes(size)
     A = bilinear_design(xn, yn, xy)
-    reg = prior_normal(len(yn), len(xn), int(step.order)) / step.tau_px**2
-    Nvv, bv, AtW, data, ridge = _field_normal(A, w, r, reg, step.base.delta_px.reshape(-1, 2))
+    prior = scaled_prior(len(yn), len(xn), int(step.order), step.tau_px)
+    Nvv, bv, AtW, data, ridge = _field_normal(A, w, r, prior.reg, step.base.delta_px.reshape(-1, 2))
     iop = np.asarray(step.iop_px, dtype=np.float64)
-    return _FieldPart(xn, yn, A, xy, w, r, iop, size, Nvv, bv, AtW, data, prior_term(reg, A.shape[1]), ridge)
+    return _FieldPart(xn, yn, A, xy, w, r, iop, size, Nvv, bv, AtW, data, prior.term, ridge)
 
 
 def _node_vector(values) -> np.ndarray:
