@@ -320,10 +320,21 @@ class _NeighbourTable:
             return None
         if len(xy) == len(self.xy) and np.array_equal(xy, self.xy):
             return np.arange(len(xy))
-        dist, rows = self.tree.query(xy, k=1) if len(xy) else (np.empty(0), np.empty(0, np.int64))
-        if np.any(dist != 0) or len(np.unique(rows)) != len(rows):
+        # equal coordinates by a binary search of the base points' sorted keys (the KD-tree's nearest at distance 0)
+        keys, order = self.sorted_keys
+        query = _point_keys(xy)
+        at = np.minimum(np.searchsorted(keys, query), len(keys) - 1)
+        rows = order[at]
+        if not np.array_equal(keys[at], query) or np.bincount(rows, minlength=1).max() > 1:
             return None
         return rows
+
+    @cached_property
+    def sorted_keys(self) -> tuple[np.ndarray, np.ndarray]:
+        """The base points' :func:`_point_keys` in increasing order, and their rows."""
+        keys = _point_keys(self.xy)
+        order = np.argsort(keys, kind="stable")
+        return keys[order], order
 
     def positions(self, rows: np.ndarray) -> np.ndarray:
         """Each base point's position among the points at base ``rows`` (-1: not among them)."""
@@ -366,6 +377,11 @@ class _NeighbourTable:
         return idx
 
 
+def _point_keys(xy: np.ndarray) -> np.ndarray:
+    """Each point ``(x, y)`` as one ordered key, ``x + i y`` (complex numbers sort by their real parts first)."""
+    return np.ascontiguousarray(xy, dtype=np.float64).view(np.complex128).ravel()
+
+
 def _other_points(position: np.ndarray, table_rows: np.ndarray, own: np.ndarray, m: int):
     """The first ``m`` of each table row ``table_rows`` among the points at ``position``, each row's own ``own`` not."""
     cand = position[table_rows]
@@ -381,11 +397,8 @@ def _first_valid(cand: np.ndarray, valid: np.ndarray, k: int) -> tuple[np.ndarra
     count = np.cumsum(valid, axis=1, dtype=np.int16 if valid.shape[1] < 2**15 else np.int64)
     ok = count[:, -1] >= k if count.shape[1] else np.zeros(len(cand), bool)
     first = valid & (count <= k)
-    idx = np.empty((len(cand), k), np.int32)
-    if ok.all():
-        idx[:] = cand[first].reshape(-1, k)
-    else:
-        idx[ok] = cand[ok][first[ok]].reshape(-1, k)
+    idx, rows = np.empty((len(cand), k), np.int32), slice(None) if ok.all() else ok  # a view, no copy, if all
+    idx[rows] = cand[rows][first[rows]].reshape(-1, k)
     return idx, ok
 
 
@@ -419,11 +432,7 @@ def node_statistics(model: KnnModel, nodes_px: np.ndarray, cv_rms_px: float, gri
 
 @dataclass(frozen=True)
 class _NodeTable:
-    """The grid nodes' nearest points of a neighbour table's pool, to serve the kNN of any subset of it at the nodes.
-
-    ``idx`` ``(n_nodes, K)`` and ``dist`` ``(n_nodes, K)``: each node's ``K`` nearest pool points, nearest first;
-    ``k_max``: the most neighbours of a subset it was sized for.
-    """
+    """The nodes' ``K`` nearest pool points ``idx``, ``dist`` ``(n_nodes, K)``: any subset's ``k <= k_max`` nearest."""
 
     nodes: np.ndarray
     idx: np.ndarray
@@ -438,11 +447,9 @@ class _NodeTable:
         return cls(nodes.copy(), idx.reshape(len(nodes), k).astype(np.int32), dist.reshape(len(nodes), k), k_max)
 
     def neighbours(self, model: KnnModel, position: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-        """The nodes' ``model.k_used`` nearest training points (indices into them) and the counts within ``radius``.
+        """``model.neighbours`` of the nodes and its tree's counts within ``radius`` (training points at ``position``).
 
-        ``position``: each pool point's index among the training points (-1: not one). The same neighbours as
-        ``model.neighbours`` of the nodes, the same counts as its KD-tree's; the nodes short of neighbours in their
-        row, or whose ball may reach beyond it, are queried from that KD-tree.
+        Nodes short of neighbours in their row, or whose ball may pass its end, are queried from the tree.
         """
         cand = np.take(position, self.idx)
         valid = cand >= 0
@@ -457,11 +464,7 @@ class _NodeTable:
 
 
 def _node_neighbours(cache: dict | None, model: KnnModel, nodes: np.ndarray, radius: float):
-    """``(idx, counts)`` of :meth:`_NodeTable.neighbours` from the node table in ``cache``, or None.
-
-    The node table is built there when missing or too small; None when ``cache`` holds no neighbour table with
-    every training point of ``model``.
-    """
+    """:meth:`_NodeTable.neighbours` from ``cache``'s node table (built if need be), None if its table lacks a point."""
     table = None if cache is None else cache.get("table")
     if table is None:
         return None
