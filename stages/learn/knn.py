@@ -438,28 +438,31 @@ class _NodeTable:
     idx: np.ndarray
     dist: np.ndarray
     k_max: int
+    tied: np.ndarray  # (n_nodes,): two of the node's K + 1 nearest at one distance (in the KD-tree's own order)
 
     @classmethod
     def build(cls, table: _NeighbourTable, nodes: np.ndarray, k_max: int, n_used: int) -> "_NodeTable":
         # as _NeighbourTable's margin: a node short of neighbours in the subset costs a query of its own
         k = min(len(table.xy), int(np.ceil(1.05 * k_max * len(table.xy) / max(n_used, 1))) + 16)
-        dist, idx = table.tree.query(nodes, k=k)
-        return cls(nodes.copy(), idx.reshape(len(nodes), k).astype(np.int32), dist.reshape(len(nodes), k), k_max)
+        dist, idx = (a.reshape(len(nodes), -1) for a in table.tree.query(nodes, k=min(k + 1, len(table.xy))))
+        tied = np.any(dist[:, 1:] == dist[:, :-1], axis=1)
+        return cls(nodes.copy(), idx[:, :k].astype(np.int32), dist[:, :k], k_max, tied)
 
     def neighbours(self, model: KnnModel, position: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """``model.neighbours`` of the nodes and its tree's counts within ``radius`` (training points at ``position``).
 
-        Nodes short of neighbours in their row, or whose ball may pass its end, are queried from the tree.
+        Nodes short of neighbours in their row, or tied, are queried from the tree; the counts too where the ball may
+        pass the row's end or has a point at its edge (a root may round onto the radius; the tree compares squares).
         """
         cand = np.take(position, self.idx)
         valid = cand >= 0
         idx, ok = _first_valid(cand, valid, model.k_used)
-        if not ok.all():
+        if not (ok := ok & ~self.tied).all():
             idx[~ok] = model.neighbours(self.nodes[~ok])[1]
         counts = np.sum(valid & (self.dist <= radius), axis=1)
-        beyond = self.dist[:, -1] <= radius  # the row may not hold the whole ball
-        if beyond.any():
-            counts[beyond] = model.tree.query_ball_point(self.nodes[beyond], r=radius, return_length=True)
+        unsure = (self.dist[:, -1] <= radius) | np.any(np.abs(self.dist - radius) <= 1e-9 * radius, axis=1)
+        if unsure.any():
+            counts[unsure] = model.tree.query_ball_point(self.nodes[unsure], r=radius, return_length=True)
         return idx, counts
 
 
