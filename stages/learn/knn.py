@@ -432,7 +432,7 @@ def node_statistics(model: KnnModel, nodes_px: np.ndarray, cv_rms_px: float, gri
 
 @dataclass(frozen=True)
 class _NodeTable:
-    """The nodes' ``K`` nearest pool points ``idx``, ``dist`` ``(n_nodes, K)``: any subset's ``k <= k_max`` nearest."""
+    """The nodes' ``K`` nearest pool points ``idx``, ``dist`` ``(n_nodes, K)``, nearest first (a subset's nearest)."""
 
     nodes: np.ndarray
     idx: np.ndarray
@@ -454,13 +454,13 @@ class _NodeTable:
         Nodes short of neighbours in their row, or tied, are queried from the tree; the counts too where the ball may
         pass the row's end or has a point at its edge (a root may round onto the radius; the tree compares squares).
         """
-        cand = np.take(position, self.idx)
-        valid = cand >= 0
+        valid = (cand := np.take(position, self.idx)) >= 0
         idx, ok = _first_valid(cand, valid, model.k_used)
         if not (ok := ok & ~self.tied).all():
             idx[~ok] = model.neighbours(self.nodes[~ok])[1]
-        counts = np.sum(valid & (self.dist <= radius), axis=1)
-        unsure = (self.dist[:, -1] <= radius) | np.any(np.abs(self.dist - radius) <= 1e-9 * radius, axis=1)
+        counts = np.sum(valid & (inside := self.dist <= radius), axis=1)
+        edge = np.take_along_axis(self.dist, np.minimum(inside.sum(1)[:, None] + [-1, 0], inside.shape[1] - 1), 1)
+        unsure = inside[:, -1] | np.any(np.abs(edge - radius) <= 1e-9 * radius, axis=1)
         if unsure.any():
             counts[unsure] = model.tree.query_ball_point(self.nodes[unsure], r=radius, return_length=True)
         return idx, counts
