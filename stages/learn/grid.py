@@ -94,7 +94,14 @@ def factor_sum(terms, ridge: float):
     if n > BANDED_MAX_NODES:
         return _sparse_factor(sum(terms[1:], terms[0]) + diags(np.full(n, ridge)))
     bands = [lower_band(t) if issparse(t) else t for t in terms]
-    ab = np.zeros((max(len(b) for b in bands), n), order="F")
+    widest = max(range(len(bands)), key=lambda i: len(bands[i]))
+    if len(bands) <= 2:
+        # a copy of the wider band plus the other: a pass less than zeros plus each, the same sum (two terms
+        # add alike in either order)
+        ab = np.array(bands[widest], order="F")
+        bands = bands[:widest] + bands[widest + 1 :]
+    else:
+        ab = np.zeros((len(bands[widest]), n), order="F")
     for b in bands:
         ab[: len(b)] += b
     ab[0] += ridge
@@ -184,6 +191,24 @@ class _Prior:
     def of(cls, DtD, tau_px: float, n: int) -> "_Prior":
         reg = DtD / tau_px**2
         return cls(reg, prior_term(reg, n))
+
+
+def scaled_prior(n_y: int, n_x: int, order: int, tau_px: float) -> _Prior:
+    """The prior ``D^T D / τ²`` of :func:`prior_normal`'s grid and order, laid out for :func:`factor_sum`.
+
+    Its band is that of ``D^T D`` scaled (laid out once per grid and order: the same numbers as the scaled
+    matrix's band, a fraction of its cost).
+    """
+    scale = 1 / tau_px**2  # as the sparse matrix's division multiplies by it
+    reg = prior_normal(n_y, n_x, order) / tau_px**2
+    return _Prior(reg, reg if n_y * n_x > BANDED_MAX_NODES else _prior_band(n_y, n_x, order) * scale)
+
+
+@lru_cache(maxsize=8)
+def _prior_band(n_y: int, n_x: int, order: int) -> np.ndarray:
+    band = lower_band(prior_normal(n_y, n_x, order))
+    band.flags.writeable = False
+    return band
 
 
 def prior_term(reg, n: int):
@@ -317,9 +342,8 @@ def cross_validate_smoothness(
     tests = [(A[test], w[test], r[test]) for test in folds]
     evaluated = []  # (order, tau, cost, RMS)
     for order in orders:
-        DtD = prior_normal(len(yn), len(xn), order)
         for tau in sorted(tau_grid_px):
-            cost, rms = _out_of_fold(normals, tests, DtD, tau, base, cost_cap)
+            cost, rms = _out_of_fold(normals, tests, scaled_prior(len(yn), len(xn), order, tau), base, cost_cap)
             rising = bool(evaluated) and evaluated[-1][0] == order and cost > evaluated[-1][2]
             evaluated.append((order, tau, cost, rms))
             if rising:
@@ -341,14 +365,13 @@ def _folds(n: int, n_folds: int, seed: int, groups) -> list[np.ndarray]:
     return [np.flatnonzero(fold_of_group[member] == k) for k in range(min(n_folds, len(unique)))]
 
 
-def _out_of_fold(normals, tests, DtD, tau_px, base, cost_cap):
+def _out_of_fold(normals, tests, prior: _Prior, base, cost_cap):
     """Mean out-of-fold equation-3 cost (each observation's bounded at ``cost_cap``) and RMS per component.
 
     With ``cost_cap`` the RMS is that of the observations below it.
     """
     cost = sq = 0.0
     n = n_sq = 0
-    prior = _Prior.of(DtD, tau_px, normals[0][1].shape[0])
     for normal, (A_test, w_test, r_test) in zip(normals, tests):
         err = r_test - A_test @ _solve_regularised(normal, prior, base)
         n += len(err)
@@ -478,5 +501,6 @@ __all__ = [
     "grid_result",
     "prior_normal",
     "prior_term",
+    "scaled_prior",
     "lower_band",
 ]

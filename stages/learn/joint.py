@@ -25,12 +25,12 @@ import numpy as np
 from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.field import CorrectionField, bilinear_design
 from fluorocal.stages.learn.gauge import gauge_basis
-from fluorocal.stages.learn.grid import factor_sum, grid_result, prior_normal, prior_term
+from fluorocal.stages.learn.grid import factor_sum, grid_result, scaled_prior
 from fluorocal.stages.learn.network import Network
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.linalg import block_diag as dense_block_diag
-from scipy.sparse import block_diag, diags
+from scipy.sparse import block_diag, csr_matrix, diags
 from scipy.sparse.linalg import LinearOperator, cg
 
 logger = logging.getLogger(__name__)
@@ -214,10 +214,10 @@ def _field_part(step: SystemStep, grid: GridSpec) -> _FieldPart:
     size = tuple(int(s) for s in step.image_size)
     xn, yn = grid.nodes(size)
     A = bilinear_design(xn, yn, xy)
-    reg = prior_normal(len(yn), len(xn), int(step.order)) / step.tau_px**2
-    Nvv, bv, AtW, data, ridge = _field_normal(A, w, r, reg, step.base.delta_px.reshape(-1, 2))
+    prior = scaled_prior(len(yn), len(xn), int(step.order), step.tau_px)
+    Nvv, bv, AtW, data, ridge = _field_normal(A, w, r, prior.reg, step.base.delta_px.reshape(-1, 2))
     iop = np.asarray(step.iop_px, dtype=np.float64)
-    return _FieldPart(xn, yn, A, xy, w, r, iop, size, Nvv, bv, AtW, data, prior_term(reg, A.shape[1]), ridge)
+    return _FieldPart(xn, yn, A, xy, w, r, iop, size, Nvv, bv, AtW, data, prior.term, ridge)
 
 
 def _node_vector(values) -> np.ndarray:
@@ -235,9 +235,10 @@ def _reduced_system(parts, network: Network, estimate_iop: bool, respond: Respon
     held = slice(network.point_col if respond is Respond.POINTS else iop_cols, None)
     J = network.J[:, held]
     w, r = (np.concatenate([getattr(p, a) for p in parts]) for a in ("w", "r"))
-    solve_theta, b_theta = _orientation_inverse(J, w, r, network, held)
+    Jt = J.T.tocsr()
+    solve_theta, b_theta = _orientation_inverse(J, w, r, network, held, Jt)
     n_obs = len(w)
-    Nvt, Ntv = _coupling(parts, J)
+    Nvt, Ntv = _coupling(parts, J, Jt)
     Nvv = block_diag([p.Nvv for p in parts], format="csr")
     # the gauge is held only where the orientation, which could carry it, responds
     G = None
@@ -257,7 +258,7 @@ def _reduced_system(parts, network: Network, estimate_iop: bool, respond: Respon
     return matvec, np.concatenate([p.bv for p in parts]) - Nvt(solve_theta(b_theta)), response
 
 
-def _coupling(parts, J):
+def _coupling(parts, J, Jt=None):
     """The products ``y -> N_vθ y`` and ``v -> N_θv v`` of the fields' coupling to the orientation, ``Σ A^T W J``.
 
     Through ``J`` and each system's ``A^T W`` per component, never formed: the coupling matrix has a row per node
@@ -265,25 +266,27 @@ def _coupling(parts, J):
     the ``A^T W`` together, measured on 40 exposures), so its products cost about twice the factors' and its
     assembly more than the conjugate gradients' products with it. ``J``'s rows are the observations' x rows, then
     their y rows, system by system in each; the node vector is each system's x components, then its y ones.
+    ``Jt``: ``J^T`` in CSR, when at hand.
     """
     n_obs = J.shape[0] // 2
+    Jt = J.T.tocsr() if Jt is None else Jt
     bounds = np.cumsum([0] + [len(p.xy) for p in parts])
-    # (rows of J, rows of the node vector, A^T W) per system and component, in the node vector's order
+    # (rows of J, rows of the node vector, A^T W, W A) per system and component, in the node vector's order
     blocks, start = [], 0
     for p, a, b in zip(parts, bounds[:-1], bounds[1:]):
         for c in (0, 1):
-            blocks.append((slice(c * n_obs + a, c * n_obs + b), slice(start, start + p.n_nodes), p.AtW[c]))
+            rows, nodes = slice(c * n_obs + a, c * n_obs + b), slice(start, start + p.n_nodes)
+            blocks.append((rows, nodes, p.AtW[c], p.AtW[c].T))
             start += p.n_nodes
-    Jt = J.T.tocsr()
 
     def to_fields(y):
         Jy = J @ y
-        return np.concatenate([AtW @ Jy[rows] for rows, _, AtW in blocks], axis=0)
+        return np.concatenate([AtW @ Jy[rows] for rows, _, AtW, _ in blocks], axis=0)
 
     def to_orientation(v):
         z = np.empty((J.shape[0],) + v.shape[1:])
-        for rows, nodes, AtW in blocks:
-            z[rows] = AtW.T @ v[nodes]
+        for rows, nodes, _, WA in blocks:
+            z[rows] = WA @ v[nodes]
         return Jt @ z
 
     return to_fields, to_orientation
@@ -303,20 +306,21 @@ def _field_normal(A, w, r, reg, base_v):
     return Nvv, bv, AtW, data, ridge
 
 
-def _orientation_inverse(J, w, r, network: Network, held: slice):
+def _orientation_inverse(J, w, r, network: Network, held: slice, Jt=None):
     """``(x, refine) -> N_θθ^-1 x`` (``refine``: with a step of iterative refinement) and ``J^T W r``.
 
     ``N_θθ = J^T W J`` plus the datum (a unit curvature along each similarity mode, in the
     Jacobi-scaled problem: the data's gradient along them is nil, so they stay put) and
     the affine hold ``κ |B^T (P + dP) - B^T P_nominal|²``.
     With the points alone responding, ``N_θθ`` is the beads' 3x3 blocks and the hold's rank-5 term
-    (:func:`_points_inverse`).
+    (:func:`_points_inverse`). ``Jt``: ``J^T`` in CSR, when at hand.
     """
+    Jt = J.T.tocsr() if Jt is None else Jt
     if held.start == network.point_col:
-        return _points_inverse(J, w, r, network)
+        return _points_inverse(J, Jt, w, r, network)
     wf, rf = w.T.ravel(), r.T.ravel()
-    JW = J.multiply(wf[:, None]).tocsr()
-    N = (J.T @ JW).tocsr()
+    JW = _row_scaled(J, wf)
+    N = _normal_matrix(Jt, JW)
     b = JW.T @ rf
     # the Jacobi scaling of the data's normal matrix (the stiff affine hold would swamp the points' diagonal)
     d = np.sqrt(np.maximum(N.diagonal(), 1e-300))
@@ -328,8 +332,7 @@ def _orientation_inverse(J, w, r, network: Network, held: slice):
     E = E / np.linalg.norm(E, axis=0)
     # the low-rank terms of the Jacobi-scaled matrix: the datum, and the affine hold (on the beads' columns)
     U = E if network.affine is None else np.hstack([E, np.sqrt(kappa) * F / d[:, None]])
-    scaling = diags(1.0 / d)
-    solve = _bordered_inverse((scaling @ N @ scaling).tocsr(), U, network.point_col - held.start)
+    solve = _bordered_inverse(_jacobi_scaled(N, 1.0 / d), U, network.point_col - held.start)
 
     def solve_theta(x, refine=True):
         scale = d.reshape(d.shape + (1,) * (np.ndim(x) - 1))
@@ -398,7 +401,7 @@ def _singular_orientation() -> EstimationError:
     )
 
 
-def _points_inverse(J, w, r, network: Network):
+def _points_inverse(J, Jt, w, r, network: Network):
     """:func:`_orientation_inverse` when the points alone respond: their 3x3 blocks, less a Woodbury term.
 
     Each observation sees one bead, so ``J^T W J`` is block diagonal;
@@ -407,9 +410,9 @@ def _points_inverse(J, w, r, network: Network):
     the points move the image), at a cost linear in the beads instead of a dense Cholesky.
     """
     wf, rf = w.T.ravel(), r.T.ravel()
-    JW = J.multiply(wf[:, None]).tocsr()
+    JW = _row_scaled(J, wf)
     b = JW.T @ rf
-    blocks = _bead_blocks(J.T @ JW)
+    blocks = _bead_blocks(Jt @ JW)
     diag = np.einsum("bii->bi", blocks)
     d2 = np.maximum(diag, 1e-300)
     kappa = AFFINE_STIFFNESS * float(np.max(diag)) if network.affine is not None else 0.0
@@ -427,6 +430,35 @@ def _points_inverse(J, w, r, network: Network):
     NiF = block_solve(F)
     core = np.linalg.inv(np.eye(F.shape[1]) / kappa + F.T @ NiF)
     return (lambda x, refine=True: block_solve(x) - NiF @ (core @ (NiF.T @ x))), b
+
+
+def _row_scaled(M, s: np.ndarray) -> csr_matrix:
+    """``diag(s) M`` of a CSR ``M``: the numbers and layout of ``M.multiply(s[:, None]).tocsr()``, unconverted."""
+    return csr_matrix((M.data * s[_row_of_entries(M)], M.indices, M.indptr), shape=M.shape)
+
+
+def _normal_matrix(Jt, JW) -> csr_matrix:
+    """``J^T W J`` from ``J^T`` and ``W J`` in CSR, with sorted indices: the same matrix as ``(J.T @ JW).tocsr()``.
+
+    Each entry sums its products over the observations in the same order; a CSR product skips converting ``JW`` to
+    CSC, and its unsorted rows are sorted as the CSC product's conversion would have them.
+    """
+    N = Jt @ JW
+    N.sort_indices()
+    return N
+
+
+def _jacobi_scaled(N, s: np.ndarray) -> csr_matrix:
+    """``diag(s) N diag(s)`` of a CSR ``N`` with sorted indices: the numbers and layout of the two sparse products.
+
+    Each entry ``(s_i N_ij) s_j``, rounded as the products round it, in ``N``'s layout (the second product restores
+    the order the first reversed).
+    """
+    return csr_matrix(((s[_row_of_entries(N)] * N.data) * s[N.indices], N.indices, N.indptr), shape=N.shape)
+
+
+def _row_of_entries(M) -> np.ndarray:
+    return np.repeat(np.arange(M.shape[0]), np.diff(M.indptr))
 
 
 def _bead_blocks(N) -> np.ndarray:

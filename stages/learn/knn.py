@@ -41,7 +41,8 @@ def weighted_neighbour_means(values, weights, idx, ks):
     (M, len(ks), 2) float64 ndarray
     """
     ks = np.asarray(ks)
-    both = np.concatenate([weights, weights * values], axis=1)[idx[:, : ks[-1]]]  # shape (M, k_max, 4): w, w r
+    # shape (M, k_max, 4): w, w r (np.take: the same gather, faster than fancy indexing)
+    both = np.take(np.concatenate([weights, weights * values], axis=1), idx[:, : ks[-1]], axis=0)
     # the sums between consecutive candidates, then their running sums: one pass over the neighbours
     sums = np.cumsum(np.add.reduceat(both, np.concatenate([[0], ks[:-1]]), axis=1), axis=1)
     return sums[..., 2:] / sums[..., :2]
@@ -274,13 +275,16 @@ def _fill_neighbour_cache(cache: dict, xy: np.ndarray, folds: list, seed: int, k
         rows = table.rows_of(xy)
     if rows is None:  # xy is not drawn from the pool
         table, rows = _NeighbourTable.build(xy, k_max, n_folds, len(xy)), np.arange(len(xy))
+    nodes = cache.get("nodes") if cache.get("table") is table else None
     cache.clear()
     cache.update(
+        nodes=nodes,
         xy=xy.copy(),
         n_folds=n_folds,
         seed=seed,
         k=k_max,
         table=table,
+        rows=rows,
         idx=table.fold_neighbours(xy, rows, folds, k_max),
     )
 
@@ -316,10 +320,21 @@ class _NeighbourTable:
             return None
         if len(xy) == len(self.xy) and np.array_equal(xy, self.xy):
             return np.arange(len(xy))
-        dist, rows = self.tree.query(xy, k=1) if len(xy) else (np.empty(0), np.empty(0, np.int64))
-        if np.any(dist != 0) or len(np.unique(rows)) != len(rows):
+        # equal coordinates by a binary search of the base points' sorted keys (the KD-tree's nearest at distance 0)
+        keys, order = self.sorted_keys
+        query = _point_keys(xy)
+        at = np.minimum(np.searchsorted(keys, query), len(keys) - 1)
+        rows = order[at]
+        if not np.array_equal(keys[at], query) or np.bincount(rows, minlength=1).max() > 1:
             return None
         return rows
+
+    @cached_property
+    def sorted_keys(self) -> tuple[np.ndarray, np.ndarray]:
+        """The base points' :func:`_point_keys` in increasing order, and their rows."""
+        keys = _point_keys(self.xy)
+        order = np.argsort(keys, kind="stable")
+        return keys[order], order
 
     def positions(self, rows: np.ndarray) -> np.ndarray:
         """Each base point's position among the points at base ``rows`` (-1: not among them)."""
@@ -329,17 +344,17 @@ class _NeighbourTable:
 
     def fold_neighbours(self, xy: np.ndarray, rows: np.ndarray, folds: list, k_max: int) -> list:
         """Per fold, ``(n_test, k_max)`` int32 indices into its training points (``xy`` less the fold, in order)."""
-        position = self.positions(rows)
         fold_of = np.empty(len(xy), np.int64)
         for f, test in enumerate(folds):
             fold_of[test] = f
         out = []
         for f, test in enumerate(folds):
-            cand = position[self.idx[rows[test]]]  # shape (n_test, K)
-            valid = (cand >= 0) & (fold_of[np.maximum(cand, 0)] != f)  # the test point itself is in fold f
-            rank = np.cumsum(fold_of != f) - 1  # a training point's index among the fold's training points
-            idx, ok = _first_valid(cand, valid, k_max)
-            idx[ok] = rank[idx[ok]]
+            train = fold_of != f
+            # each base point's index among the fold's training points (-1: not one; the test point itself is not)
+            rank = np.full(len(self.xy), -1, np.int32)
+            rank[rows[train]] = np.arange(np.count_nonzero(train), dtype=np.int32)
+            cand = np.take(rank, np.take(self.idx, rows[test], axis=0))  # shape (n_test, K)
+            idx, ok = _first_valid(cand, cand >= 0, k_max)
             if not ok.all():
                 train = np.flatnonzero(fold_of != f)
                 _, missing = KDTree(xy[train]).query(xy[test[~ok]], k=k_max)
@@ -362,6 +377,11 @@ class _NeighbourTable:
         return idx
 
 
+def _point_keys(xy: np.ndarray) -> np.ndarray:
+    """Each point ``(x, y)`` as one ordered key, ``x + i y`` (complex numbers sort by their real parts first)."""
+    return np.ascontiguousarray(xy, dtype=np.float64).view(np.complex128).ravel()
+
+
 def _other_points(position: np.ndarray, table_rows: np.ndarray, own: np.ndarray, m: int):
     """The first ``m`` of each table row ``table_rows`` among the points at ``position``, each row's own ``own`` not."""
     cand = position[table_rows]
@@ -373,10 +393,12 @@ def _first_valid(cand: np.ndarray, valid: np.ndarray, k: int) -> tuple[np.ndarra
 
     The rows short of ``k`` are left unset.
     """
-    ok = valid.sum(axis=1) >= k
-    first = valid & (np.cumsum(valid, axis=1) <= k)
-    idx = np.empty((len(cand), k), np.int32)
-    idx[ok] = cand[ok][first[ok]].reshape(-1, k)
+    # the running count in the narrowest type that holds a row's length: the same counts, less memory to pass
+    count = np.cumsum(valid, axis=1, dtype=np.int16 if valid.shape[1] < 2**15 else np.int64)
+    ok = count[:, -1] >= k if count.shape[1] else np.zeros(len(cand), bool)
+    first = valid & (count <= k)
+    idx, rows = np.empty((len(cand), k), np.int32), slice(None) if ok.all() else ok  # a view, no copy, if all
+    idx[rows] = cand[rows][first[rows]].reshape(-1, k)
     return idx, ok
 
 
@@ -392,18 +414,72 @@ def pool_neighbours(cache: dict, xy_px: np.ndarray, m: int) -> np.ndarray | None
     return None if rows is None else table.nearest_others(xy, rows, m)
 
 
-def node_statistics(model: KnnModel, nodes_px: np.ndarray, cv_rms_px: float, grid: GridSpec, idx=None):
+def node_statistics(model: KnnModel, nodes_px: np.ndarray, cv_rms_px: float, grid: GridSpec, idx=None, counts=None):
     """Per-node uncertainty ``cv_rms / sqrt(n_eff)`` and support mask, both ``(n_nodes,)``.
 
-    ``idx``: the nodes' neighbours from ``model.neighbours(nodes_px)``, when already at hand.
+    ``idx``: the nodes' neighbours from ``model.neighbours(nodes_px)``, ``counts``: the training points within
+    ``grid.support_radius_px`` of each node, when already at hand.
     """
     if idx is None:
         _, idx = model.neighbours(nodes_px)
     w = model.weights[idx].mean(axis=2)  # shape (n_nodes, k)
     n_eff = w.sum(1) ** 2 / np.sum(w**2, axis=1)
     sigma = cv_rms_px / np.sqrt(n_eff)
-    counts = model.tree.query_ball_point(nodes_px, r=grid.support_radius_px, return_length=True)
+    if counts is None:
+        counts = model.tree.query_ball_point(nodes_px, r=grid.support_radius_px, return_length=True)
     return sigma, counts >= grid.min_support
+
+
+@dataclass(frozen=True)
+class _NodeTable:
+    """The nodes' ``K`` nearest pool points ``idx``, ``dist`` ``(n_nodes, K)``, nearest first (a subset's nearest)."""
+
+    nodes: np.ndarray
+    idx: np.ndarray
+    dist: np.ndarray
+    k_max: int
+    tied: np.ndarray  # (n_nodes,): two of the node's K + 1 nearest at one distance (in the KD-tree's own order)
+
+    @classmethod
+    def build(cls, table: _NeighbourTable, nodes: np.ndarray, k_max: int, n_used: int) -> "_NodeTable":
+        # as _NeighbourTable's margin: a node short of neighbours in the subset costs a query of its own
+        k = min(len(table.xy), int(np.ceil(1.05 * k_max * len(table.xy) / max(n_used, 1))) + 16)
+        dist, idx = (a.reshape(len(nodes), -1) for a in table.tree.query(nodes, k=min(k + 1, len(table.xy))))
+        tied = np.any(dist[:, 1:] == dist[:, :-1], axis=1)
+        return cls(nodes.copy(), idx[:, :k].astype(np.int32), dist[:, :k], k_max, tied)
+
+    def neighbours(self, model: KnnModel, position: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """``model.neighbours`` of the nodes and its tree's counts within ``radius`` (training points at ``position``).
+
+        Nodes short of neighbours in their row, or tied, are queried from the tree; the counts too where the ball may
+        pass the row's end or has a point at its edge (a root may round onto the radius; the tree compares squares).
+        """
+        valid = (cand := np.take(position, self.idx)) >= 0
+        idx, ok = _first_valid(cand, valid, model.k_used)
+        if not (ok := ok & ~self.tied).all():
+            idx[~ok] = model.neighbours(self.nodes[~ok])[1]
+        counts = np.sum(valid & (inside := self.dist <= radius), axis=1)
+        edge = np.take_along_axis(self.dist, np.minimum(inside.sum(1)[:, None] + [-1, 0], inside.shape[1] - 1), 1)
+        unsure = inside[:, -1] | np.any(np.abs(edge - radius) <= 1e-9 * radius, axis=1)
+        if unsure.any():
+            counts[unsure] = model.tree.query_ball_point(self.nodes[unsure], r=radius, return_length=True)
+        return idx, counts
+
+
+def _node_neighbours(cache: dict | None, model: KnnModel, nodes: np.ndarray, radius: float):
+    """:meth:`_NodeTable.neighbours` from ``cache``'s node table (built if need be), None if its table lacks a point."""
+    table = None if cache is None else cache.get("table")
+    if table is None:
+        return None
+    # the cross-validation's training points' rows, when these are they (the refit's are a few less)
+    same = np.array_equal(cache.get("xy"), model.points_px)
+    rows = cache["rows"] if same else table.rows_of(model.points_px)
+    if rows is None:
+        return None
+    near = cache.get("nodes")
+    if near is None or near.k_max < model.k_used or not np.array_equal(near.nodes, nodes):
+        near = cache["nodes"] = _NodeTable.build(table, nodes, model.k_used, len(rows))
+    return near.neighbours(model, table.positions(rows), radius)
 
 
 def fit_knn_field(
@@ -448,7 +524,7 @@ def fit_knn_field(
         ``k`` and out-of-fold RMS are used and none is run (the refit after
         the local outlier test, which drops a few observations).
     neighbour_cache, neighbour_pool_px, cost_cap : optional
-        Passed to :func:`cross_validate_k`.
+        Passed to :func:`cross_validate_k`; the cache's table also serves the nodes' neighbours (``cv`` given too).
 
     Returns
     -------
@@ -485,16 +561,21 @@ def fit_knn_field(
     model = KnnModel(xy, r, 1.0 / var, cv.k)
     if not smooth:
         return model, cv
-    return _gridded(model, cv.cv_rms_px, grid, (width, height)), cv
+    return _gridded(model, cv.cv_rms_px, grid, (width, height), neighbour_cache), cv
 
 
-def _gridded(model: KnnModel, cv_rms_px: float, grid: GridSpec, size: tuple[int, int]) -> CorrectionField:
-    """The kNN prediction at the nodes of ``grid`` over an image of ``size``, with its uncertainty and support."""
+def _gridded(model: KnnModel, cv_rms_px: float, grid: GridSpec, size: tuple[int, int], cache=None) -> CorrectionField:
+    """The kNN prediction at the nodes of ``grid`` over an image of ``size``, with its uncertainty and support.
+
+    ``cache``: a neighbour cache of :func:`cross_validate_k` whose table holds the training points: the nodes'
+    neighbours are then read from its node table (the same ones; built there on first use).
+    """
     xn, yn = grid.nodes(size)
     nodes = node_coordinates(xn, yn)
-    _, idx = model.neighbours(nodes)
+    near = _node_neighbours(cache, model, nodes, grid.support_radius_px)
+    idx, counts = (model.neighbours(nodes)[1], None) if near is None else near
     delta = model.mean_over(idx).reshape(len(yn), len(xn), 2)
-    sigma, support = node_statistics(model, nodes, cv_rms_px, grid, idx=idx)
+    sigma, support = node_statistics(model, nodes, cv_rms_px, grid, idx=idx, counts=counts)
     shape = delta.shape[:2]
     return CorrectionField(xn, yn, delta, sigma.reshape(shape), support.reshape(shape), *size)
 

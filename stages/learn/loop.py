@@ -451,7 +451,7 @@ def _fit(plan: _Plan, state: _State, s: int, sel: np.ndarray, mem: _Memory, refi
     r, var = state.out.residuals_px[sel], state.out.residual_var_px2[sel]
     knn = dict(image_size=plan.sizes[s], grid=params.grid, smooth=plan.smooth, n_folds=params.n_folds, seed=params.seed)
     if refit is not None:
-        model, _ = fit_knn_field(plan.xy[sel], r, var, cv=mem.cv, **knn)
+        model, _ = fit_knn_field(plan.xy[sel], r, var, cv=mem.cv, neighbour_cache=mem.neighbour_cache, **knn)
         return model, mem
     k_grid = restricted_k_grid(params.k_grid, mem.k_prev)
     model, cv = fit_knn_field(

@@ -385,3 +385,26 @@ def test_coupling_products_are_those_of_the_formed_matrix():
     np.testing.assert_allclose(to_fields(y[:, 0]), N @ y[:, 0], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(to_orientation(v), N.T @ v, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(to_orientation(v[:, 0]), N.T @ v[:, 0], rtol=1e-12, atol=1e-12)
+
+
+def test_normal_matrix_and_its_scalings_are_the_sparse_products_bit_for_bit():
+    # the orientation's normal matrix J^T W J and its Jacobi scaling, formed without the sparse products'
+    # conversions: the same numbers in the same layout, so every later product sums alike (a Jacobian of 12
+    # entries per row, like the network's, with its own rows' order unsorted before canonicalisation)
+    from fluorocal.stages.learn.joint import _jacobi_scaled, _normal_matrix, _row_scaled
+    from scipy.sparse import csr_matrix, diags
+
+    rng = np.random.default_rng(9)
+    n_rows, n_cols = 400, 90
+    cols = np.array([rng.choice(n_cols, 12, replace=False) for _ in range(n_rows)])
+    J = csr_matrix((rng.normal(size=cols.size), (np.repeat(np.arange(n_rows), 12), cols.ravel())), (n_rows, n_cols))
+    w = rng.uniform(0.5, 2.0, n_rows)
+    expected_jw = J.multiply(w[:, None]).tocsr()
+    expected_n = (J.T @ expected_jw).tocsr()
+    s = 1.0 / np.sqrt(expected_n.diagonal())
+    expected_scaled = (diags(s) @ expected_n @ diags(s)).tocsr()
+    jw = _row_scaled(J, w)
+    n = _normal_matrix(J.T.tocsr(), jw)
+    for got, expected in ((jw, expected_jw), (n, expected_n), (_jacobi_scaled(n, s), expected_scaled)):
+        for name in ("indptr", "indices", "data"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))

@@ -280,6 +280,23 @@ def test_factor_sum_leaves_its_band_terms_as_they_were(order):
     np.testing.assert_array_equal(factor_sum(terms, 1e-6).factor, first)
 
 
+@pytest.mark.parametrize("n_side", [9, 101])  # 101 x 101 nodes: past the band's limit, the sparse matrix itself
+def test_scaled_prior_is_the_prior_normal_over_tau_squared(n_side):
+    """``D^T D / τ²`` as :func:`factor_sum` takes it, at two τ of one grid (its band laid out once, scaled per τ)."""
+    from fluorocal.stages.learn.grid import prior_normal, prior_term, scaled_prior
+    from scipy.sparse import issparse
+
+    for order in (1, 2):
+        for tau in (0.3, 7.0):
+            expected = prior_normal(n_side, n_side, order) / tau**2
+            prior, want = scaled_prior(n_side, n_side, order, tau), prior_term(expected, n_side**2)
+            assert (prior.reg != expected).nnz == 0
+            if issparse(want):
+                assert issparse(prior.term) and (prior.term != want).nnz == 0
+            else:
+                np.testing.assert_array_equal(prior.term, want)
+
+
 def test_factor_spd_sums_duplicate_entries_and_refuses_a_singular_matrix():
     # a matrix given with an entry split in two (COO duplicates) is their sum; [[2+2, 1], [1, 2]] x = [1, 0]
     from fluorocal.stages.errors import EstimationError

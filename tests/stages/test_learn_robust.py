@@ -198,3 +198,120 @@ def test_pool_neighbours_of_a_subset_thinned_in_one_half_equal_a_kd_tree(monkeyp
     np.testing.assert_array_equal(near, expected[:, 1:])
     # only the points whose whole row falls short (left of x = 20, about one in a hundred) go to a KD-tree
     assert 0 < sum(asked) < 0.02 * len(sel)
+
+
+def test_gridded_knn_from_the_node_table_equals_its_own_kd_tree():
+    """Subsets of a pool, their grid nodes' neighbours and support counts read from the cache's node table.
+
+    The same field, uncertainty and support as the nodes' neighbours from the subset's own KD-tree give, bit for
+    bit (distinct random points: no ties). Left of x = 40 one point in twenty is kept: nodes there fall short of
+    neighbours in their table rows (queried instead); right of it the rows end inside the support radius at some
+    nodes (counted by the KD-tree instead) and reach beyond it at others (the table's count). The second subset
+    (fewer points, refitted with the first's k) reuses the node table.
+    """
+    from fluorocal.stages.learn.knn import fit_knn_field
+    from fluorocal.stages.learn.nodes import GridSpec
+
+    rng = np.random.default_rng(8)
+    pool = rng.uniform(0, 200, (3000, 2))
+    r = 0.01 * pool + rng.normal(0, 0.05, pool.shape)
+    var = np.full(pool.shape, 0.05**2)
+    grid = GridSpec(spacing_px=8.0, support_radius_px=16.0, min_support=3)
+    cache, i, tables, cv = {}, np.arange(len(pool)), [], None
+    for step in (3, 4):
+        sel = np.flatnonzero(((pool[:, 0] > 40) & (i % step != 0)) | (i % 20 == 0))
+        args = (pool[sel], r[sel], var[sel])
+        options = dict(image_size=(200, 200), grid=grid, neighbour_cache=cache, neighbour_pool_px=pool, cv=cv)
+        cached, cv = fit_knn_field(*args, **options)
+        fresh, _ = fit_knn_field(*args, image_size=(200, 200), grid=grid, cv=cv)
+        tables.append(cache["nodes"])
+        for name in ("delta_px", "sigma_px", "support"):
+            np.testing.assert_array_equal(getattr(cached, name), getattr(fresh, name))
+        dist = tables[-1].dist[:, -1]
+        assert np.any(dist <= grid.support_radius_px) and np.any(dist > grid.support_radius_px)
+        assert 0 < np.sum(~fresh.support) < fresh.support.size
+    assert tables[1] is tables[0]
+
+
+def _gridded_pair(pool, sel, grid, cache, cv=None):
+    """A subset's field from the cache's node table and from its own KD-tree (the refit's ``cv`` when given)."""
+    from fluorocal.stages.learn.knn import fit_knn_field
+
+    rng = np.random.default_rng(3)
+    r = 0.01 * pool + rng.normal(0, 0.05, pool.shape)
+    args, var = (pool[sel], r[sel]), np.full((len(sel), 2), 0.05**2)
+    cached, cv = fit_knn_field(
+        *args, var, image_size=(200, 200), grid=grid, neighbour_cache=cache, neighbour_pool_px=pool, cv=cv
+    )
+    fresh, _ = fit_knn_field(*args, var, image_size=(200, 200), grid=grid, cv=cv)
+    return cached, fresh, cv
+
+
+def test_gridded_knn_from_the_node_table_with_ties_equals_its_own_kd_tree():
+    """Points on a 4 px lattice, each observed twice (duplicate positions), and grid nodes between them.
+
+    Many nodes have neighbours at one distance; the KD-tree orders such ties its own way (not by row, and not
+    alike for different k), so the node table leaves those nodes to it: the same field as the subset's own tree.
+    """
+    from fluorocal.stages.learn.nodes import GridSpec
+
+    g = np.arange(0.0, 200.0, 4.0)
+    lattice = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+    pool = np.vstack([lattice, lattice])
+    i = np.arange(len(pool))
+    sel = np.flatnonzero((i % 3 != 0) & (i < len(lattice)) | (i % 7 == 0))
+    cache, grid, cv = {}, GridSpec(spacing_px=8.0, support_radius_px=16.0, min_support=3), None
+    for _ in range(2):  # the cross-validation's subset, then a few less refitted with its k
+        cached, fresh, cv = _gridded_pair(pool, sel, grid, cache, cv)
+        assert cache["nodes"] is not None and cache["nodes"].tied.any()
+        for name in ("delta_px", "sigma_px", "support"):
+            np.testing.assert_array_equal(getattr(cached, name), getattr(fresh, name))
+        sel = sel[sel % 11 != 0]
+
+
+def test_node_table_support_counts_a_point_at_the_radius_as_the_kd_tree_does():
+    """A point whose distance from a node rounds to the support radius, its square just above the radius's.
+
+    The KD-tree's ball leaves it out; the table's count must too: that node has two points within the radius,
+    one short of the support it needs (ground truth: the squared distance exceeds the squared radius).
+    """
+    from fluorocal.stages.learn.nodes import GridSpec
+
+    grid = GridSpec(spacing_px=8.0, support_radius_px=16.0, min_support=3)
+    node, radius = np.array([47.5, 47.5]), grid.support_radius_px
+    edge = next(
+        e
+        for e in node + [radius, 0] + np.outer(np.linspace(1e-8, 1e-6, 5000), [0, 1])
+        if _rounds_onto(e - node, radius)
+    )
+    assert KDTree([edge]).query(node)[0] == radius  # the case: the tree's distance is the radius
+    rng = np.random.default_rng(2)
+    dense = rng.uniform([100, 0], [200, 200], (1500, 2))
+    pool = np.vstack([dense, node + [[3.0, 4.0], [-5.0, 2.0]], [edge]])
+    cached, fresh, _ = _gridded_pair(pool, np.arange(len(pool)), grid, {})
+    at = (np.abs(cached.x_nodes_px - node[0]) < 1e-9)[None, :] & (np.abs(cached.y_nodes_px - node[1]) < 1e-9)[:, None]
+    assert not fresh.support[at].item()
+    np.testing.assert_array_equal(cached.support, fresh.support)
+
+
+def _rounds_onto(d, radius):
+    """Whether the offset ``d``'s length rounds to ``radius`` while its square exceeds the radius's."""
+    return d @ d > radius**2 and np.sqrt(d @ d) == radius
+
+
+def test_node_table_follows_its_cache_to_a_new_grid_and_a_set_not_from_the_pool():
+    """One cache through a pool's subset, the same subset on a coarser grid, then points not in the pool.
+
+    Each field equals the one from the set's own KD-tree: the node table is rebuilt for new nodes, and dropped
+    with the neighbour table it indexes (rebuilt from the set itself when the set is not drawn from the pool).
+    """
+    from fluorocal.stages.learn.nodes import GridSpec
+
+    rng = np.random.default_rng(4)
+    pool = rng.uniform(0, 200, (2000, 2))
+    sel, cache = np.flatnonzero(np.arange(len(pool)) % 4 != 0), {}
+    for grid, points in ((8.0, pool), (12.0, pool), (12.0, pool + 0.25)):
+        cached, fresh, _ = _gridded_pair(points, sel, GridSpec(spacing_px=grid, support_radius_px=16.0), cache)
+        assert cache["nodes"] is not None
+        for name in ("delta_px", "sigma_px", "support"):
+            np.testing.assert_array_equal(getattr(cached, name), getattr(fresh, name))
