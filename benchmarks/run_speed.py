@@ -200,8 +200,7 @@ def learn_parts(func, inputs, params, extras) -> None:
     print(f"  where the default's CPU time goes (a second run under cProfile, {cpu:.1f} s CPU there):")
     total = 0.0
     for label, (suffix, name) in LEARN_PARTS.items():
-        hits = [v for (file, _, fn), v in stats.items() if fn == name and file.replace(os.sep, "/").endswith(suffix)]
-        calls, seconds = sum(v[1] for v in hits), sum(v[3] for v in hits)
+        calls, seconds = profiled(stats, suffix, name)
         total += seconds
         print(f"    {label:<29}: {seconds:5.2f} s in {calls} call(s)")
     print(f"    {'the rest':<29}: {cpu - total:5.2f} s")
@@ -344,8 +343,14 @@ def run_phases(stats: dict, wall: float) -> None:
     """Where the profiled run's wall time goes in the main process (cProfile's clock: wall), phase by phase."""
     print(f"\n  the run's phases in the main process (wall, under cProfile: {wall:.1f} s in all)")
     for label, (suffix, name) in RUN_PHASES.items():
-        hits = [v for (file, _, fn), v in stats.items() if fn == name and file.replace(os.sep, "/").endswith(suffix)]
-        print(f"    {label:<38}: {sum(v[3] for v in hits):6.2f} s in {sum(v[1] for v in hits)} call(s)")
+        calls, seconds = profiled(stats, suffix, name)
+        print(f"    {label:<38}: {seconds:6.2f} s in {calls} call(s)")
+
+
+def profiled(stats: dict, suffix: str, name: str) -> tuple[int, float]:
+    """Calls and cumulative seconds in ``stats`` (``pstats.Stats(...).stats``) of function ``name`` in ``suffix``."""
+    hits = [v for (file, _, fn), v in stats.items() if fn == name and file.replace(os.sep, "/").endswith(suffix)]
+    return sum(v[1] for v in hits), sum(v[3] for v in hits)
 
 
 def main(argv=None) -> int:
