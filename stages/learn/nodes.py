@@ -40,10 +40,42 @@ class GridSpec:
         width, height = (int(s) for s in image_size)
         return grid_nodes(width, height, self.spacing_px)
 
-    def support_mask(self, xy_px: np.ndarray, nodes_px: np.ndarray) -> np.ndarray:
-        """``(n_nodes,)`` True where at least ``min_support`` points lie within ``support_radius_px`` of a node."""
-        counts = KDTree(xy_px).query_ball_point(nodes_px, r=self.support_radius_px, return_length=True)
+    def support_mask(self, xy_px: np.ndarray, x_nodes_px: np.ndarray, y_nodes_px: np.ndarray) -> np.ndarray:
+        """``(H_g * W_g,)`` True where at least ``min_support`` points lie within ``support_radius_px`` of a node.
+
+        The nodes are the grid of ``x_nodes_px`` ``(W_g,)`` and ``y_nodes_px`` ``(H_g,)``, row-major (x fastest).
+        Each point is tested against the nodes of its window, the columns and rows within the radius along each
+        axis (one more each side for the rounding), as a KD-tree tests it: its squared distance against the
+        squared radius, a tenth of the KD-tree's time. When one is within rounding of the radius (where the order
+        of the KD-tree's sums could decide it), the KD-tree counts.
+        """
+        xy = np.asarray(xy_px, dtype=np.float64).reshape(-1, 2)
+        xn, yn = (np.asarray(a, dtype=np.float64) for a in (x_nodes_px, y_nodes_px))
+        r2 = self.support_radius_px**2
+        cols, dx2 = _axis_window(xn, xy[:, 0], self.support_radius_px)
+        rows, dy2 = _axis_window(yn, xy[:, 1], self.support_radius_px)
+        d2 = dx2[:, None, :] + dy2[:, :, None]  # shape (n, rows, columns), inf outside the grid
+        if np.any(np.abs(d2 - r2) <= 1e-9 * r2):
+            nodes = node_coordinates(xn, yn)
+            counts = KDTree(xy).query_ball_point(nodes, r=self.support_radius_px, return_length=True)
+            return counts >= self.min_support
+        node = rows[:, :, None] * len(xn) + cols[:, None, :]
+        counts = np.bincount(node[d2 <= r2], minlength=len(xn) * len(yn))
         return counts >= self.min_support
+
+
+def _axis_window(nodes: np.ndarray, v: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each value's window of node indices ``(n, w)`` along one axis and its squared distances (inf past the ends).
+
+    The window holds every node within ``radius`` of the value and one more each side.
+    """
+    lo = np.searchsorted(nodes, v - radius, side="left") - 1
+    hi = np.searchsorted(nodes, v + radius, side="right") + 1
+    idx = lo[:, None] + np.arange(max(int(np.max(hi - lo, initial=0)), 0))
+    inside = (idx >= 0) & (idx < len(nodes))
+    idx = np.clip(idx, 0, len(nodes) - 1)
+    d2 = np.where(inside, (v[:, None] - nodes[idx]) ** 2, np.inf)
+    return idx, d2
 
 
 #: the default grid: 16 px spacing, support within 32 px from 3 observations
