@@ -183,15 +183,20 @@ class _Prior:
     term: object
 
 
+@lru_cache(maxsize=4)
 def scaled_prior(n_y: int, n_x: int, order: int, tau_px: float) -> _Prior:
-    """The prior ``D^T D / τ²`` of :func:`prior_normal`'s grid and order, laid out for :func:`factor_sum`.
+    """The prior ``D^T D / τ²`` of :func:`prior_normal`'s grid and order, laid out for :func:`factor_sum`; read-only.
 
     Its band is that of ``D^T D`` scaled (laid out once per grid and order: the same numbers as the scaled
-    matrix's band, a fraction of its cost).
+    matrix's band, a fraction of its cost). Kept for the last few grids, orders and ``τ``: the refinement's
+    joint steps take a system's prior again at every step.
     """
     scale = 1 / tau_px**2  # one factor for the matrix and its band: a sparse matrix's division multiplies by it
     reg = prior_normal(n_y, n_x, order) * scale
-    return _Prior(reg, reg if n_y * n_x > BANDED_MAX_NODES else _prior_band(n_y, n_x, order) * scale)
+    term = reg if n_y * n_x > BANDED_MAX_NODES else _prior_band(n_y, n_x, order) * scale
+    for a in (reg.data, reg.indices, reg.indptr) + (() if term is reg else (term,)):
+        a.flags.writeable = False
+    return _Prior(reg, term)
 
 
 @lru_cache(maxsize=8)
