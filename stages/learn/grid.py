@@ -15,7 +15,7 @@ import numpy as np
 from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.errors import EstimationError
 from fluorocal.stages.field import CorrectionField, bilinear_design
-from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec, check_training, node_coordinates
+from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec, check_training
 from fluorocal.stages.learn.robust import capped_cost
 
 #: forward-difference stencils of the smoothness prior's orders
@@ -154,14 +154,14 @@ def _singular(exc) -> EstimationError:
     return EstimationError(f"the field's normal equations are singular ({exc}): too few observations for its nodes")
 
 
-def _grid_solve(A, DtD, w, r, tau_px, base=None):
+def _grid_solve(A, prior: "_Prior", w, r, base=None):
     """Node values ``v`` minimising ``Σ w (r - A v)² + |D (base + v)|² / τ²`` per component; ``(n_nodes, 2)``.
 
-    ``base`` ``(n_nodes, 2)`` is the field already accumulated: the prior acts
-    on the total field, so the alternation's fixed point is the regularised
-    fit, not a pure least-squares one.
+    ``prior``: the prior's ``D^T D / τ²`` (:func:`scaled_prior`). ``base`` ``(n_nodes, 2)`` is the field already
+    accumulated: the prior acts on the total field, so the alternation's fixed point is the regularised fit, not a
+    pure least-squares one.
     """
-    return solve_normal(grid_normal(A, w, r), DtD, tau_px, base)
+    return _solve_regularised(grid_normal(A, w, r), prior, base)
 
 
 def grid_normal(A, w, r):
@@ -175,11 +175,6 @@ def grid_normal(A, w, r):
     return N, np.column_stack([AtW[c] @ r[:, c] for c in range(2)]), float(w.max())
 
 
-def solve_normal(normal, DtD, tau_px, base=None):
-    """Solve the normal equations of :func:`_grid_normal` with the prior ``DtD / τ²`` on ``base + v``."""
-    return _solve_regularised(normal, _Prior.of(DtD, tau_px, normal[1].shape[0]), base)
-
-
 @dataclass(frozen=True)
 class _Prior:
     """The prior's ``D^T D / τ²`` (sparse) and the term :func:`factor_sum` adds (its band, up to the band's limit)."""
@@ -187,21 +182,21 @@ class _Prior:
     reg: object
     term: object
 
-    @classmethod
-    def of(cls, DtD, tau_px: float, n: int) -> "_Prior":
-        reg = DtD / tau_px**2
-        return cls(reg, prior_term(reg, n))
 
-
+@lru_cache(maxsize=4)
 def scaled_prior(n_y: int, n_x: int, order: int, tau_px: float) -> _Prior:
-    """The prior ``D^T D / τ²`` of :func:`prior_normal`'s grid and order, laid out for :func:`factor_sum`.
+    """The prior ``D^T D / τ²`` of :func:`prior_normal`'s grid and order, laid out for :func:`factor_sum`; read-only.
 
     Its band is that of ``D^T D`` scaled (laid out once per grid and order: the same numbers as the scaled
-    matrix's band, a fraction of its cost).
+    matrix's band, a fraction of its cost). Kept for the last few grids, orders and ``τ``: the refinement's
+    joint steps take a system's prior again at every step.
     """
-    scale = 1 / tau_px**2  # as the sparse matrix's division multiplies by it
-    reg = prior_normal(n_y, n_x, order) / tau_px**2
-    return _Prior(reg, reg if n_y * n_x > BANDED_MAX_NODES else _prior_band(n_y, n_x, order) * scale)
+    scale = 1 / tau_px**2  # one factor for the matrix and its band: a sparse matrix's division multiplies by it
+    reg = prior_normal(n_y, n_x, order) * scale
+    term = reg if n_y * n_x > BANDED_MAX_NODES else _prior_band(n_y, n_x, order) * scale
+    for a in (reg.data, reg.indices, reg.indptr) + (() if term is reg else (term,)):
+        a.flags.writeable = False
+    return _Prior(reg, term)
 
 
 @lru_cache(maxsize=8)
@@ -226,7 +221,7 @@ def _in_band_form(normal):
 
 
 def _solve_regularised(normal, prior: _Prior, base=None):
-    """:func:`solve_normal` with the prior laid out (:class:`_Prior`); ``normal``'s matrices sparse or in band form."""
+    """:func:`_grid_solve` of the data part ``normal`` (:func:`grid_normal`'s, its matrices sparse or in band form)."""
     N, b, w_max = normal
     # a tiny ridge keeps nodes far from all data (fixed only through the prior's null space) determined
     ridge = 1e-10 * max(w_max, 1.0)
@@ -458,14 +453,8 @@ def fit_grid_field(
     width, height = (int(s) for s in image_size)
     xn, yn = grid.nodes((width, height))
     A = bilinear_design(xn, yn, xy)
-    v = _grid_solve(
-        A,
-        prior_normal(len(yn), len(xn), order),
-        1.0 / var,
-        r,
-        float(tau_px),
-        None if base is None else base.delta_px.reshape(-1, 2),
-    )
+    prior = scaled_prior(len(yn), len(xn), order, float(tau_px))
+    v = _grid_solve(A, prior, 1.0 / var, r, None if base is None else base.delta_px.reshape(-1, 2))
     if cv_rms_px is None:
         cv_rms_px = float(np.sqrt(np.mean((r - A @ v) ** 2)))
     return grid_result(xn, yn, v, A, xy, cv_rms_px, grid, (width, height), support)
@@ -485,7 +474,7 @@ def grid_result(xn, yn, values, A, xy, cv_rms_px, grid: GridSpec, image_size, su
         yn,
         values.reshape(shape + (2,)),
         sigma.reshape(shape),
-        (grid.support_mask(xy, node_coordinates(xn, yn)) if support is None else support).reshape(shape),
+        (grid.support_mask(xy, xn, yn) if support is None else support).reshape(shape),
         *image_size,
     )
 

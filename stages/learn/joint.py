@@ -30,7 +30,7 @@ from fluorocal.stages.learn.network import Network
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.linalg import block_diag as dense_block_diag
-from scipy.sparse import block_diag, csr_matrix, diags
+from scipy.sparse import csr_matrix, diags
 from scipy.sparse.linalg import LinearOperator, cg
 
 logger = logging.getLogger(__name__)
@@ -197,7 +197,7 @@ class _FieldPart:
     r: np.ndarray
     iop_px: np.ndarray
     size: tuple
-    Nvv: object  # (2 n_nodes, 2 n_nodes) sparse
+    Nvv: tuple  # per component, (n_nodes, n_nodes) CSR: A^T W_c A + the prior + the ridge on the diagonal
     bv: np.ndarray
     AtW: list
     data: list  # per component, (n_nodes, n_nodes) sparse: A^T W_c A
@@ -239,7 +239,7 @@ def _reduced_system(parts, network: Network, estimate_iop: bool, respond: Respon
     solve_theta, b_theta = _orientation_inverse(J, w, r, network, held, Jt)
     n_obs = len(w)
     Nvt, Ntv = _coupling(parts, J, Jt)
-    Nvv = block_diag([p.Nvv for p in parts], format="csr")
+    Nvv = [M for p in parts for M in p.Nvv]  # the field blocks, in the node vector's order
     # the gauge is held only where the orientation, which could carry it, responds
     G = None
     if respond is Respond.ORIENTATION:
@@ -249,7 +249,7 @@ def _reduced_system(parts, network: Network, estimate_iop: bool, respond: Respon
 
     def matvec(v):
         # unrefined: the refinement changes the product by parts in 1e-9, far below the conjugate gradients' tolerance
-        reduced = Nvv @ v - Nvt(solve_theta(Ntv(v), refine=False))
+        reduced = _block_product(Nvv, v) - Nvt(solve_theta(Ntv(v), refine=False))
         return reduced if G is None else reduced + G.T @ (G @ v)
 
     def response(v):
@@ -292,6 +292,23 @@ def _coupling(parts, J, Jt=None):
     return to_fields, to_orientation
 
 
+def _block_product(blocks, v: np.ndarray) -> np.ndarray:
+    """The block-diagonal matrix of the square CSR ``blocks`` times ``v`` ``(n, ...)``, block by block.
+
+    Each row sums its entries in their stored order, as the block-diagonal matrix's product would: the same numbers
+    without assembling it.
+    """
+    bounds = np.cumsum([0] + [M.shape[0] for M in blocks])
+    return np.concatenate([M @ v[a:b] for M, a, b in zip(blocks, bounds[:-1], bounds[1:])], axis=0)
+
+
+def _sorted(M) -> csr_matrix:
+    """``M`` in CSR with each row's entries in increasing columns (as a conversion from CSC would leave them)."""
+    M = M.tocsr()
+    M.sort_indices()
+    return M
+
+
 def _field_normal(A, w, r, reg, base_v):
     """The field's block of the joint normal equations, its right-hand side, ``A^T W`` and ``A^T W A`` per component.
 
@@ -301,7 +318,7 @@ def _field_normal(A, w, r, reg, base_v):
     ridge = 1e-10 * max(float(w.max()), 1.0)
     AtW = [A.T.multiply(w[:, c]).tocsr() for c in range(2)]
     data = [AtW[c] @ A for c in range(2)]
-    Nvv = block_diag([data[0] + reg, data[1] + reg], format="csc") + diags(np.full(2 * n_nodes, ridge))
+    Nvv = tuple(_sorted(data[c] + reg + diags(np.full(n_nodes, ridge), format="csr")) for c in range(2))
     bv = np.concatenate([AtW[c] @ r[:, c] - reg @ base_v[:, c] for c in range(2)])
     return Nvv, bv, AtW, data, ridge
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from fluorocal.stages.geometry import quat_to_matrix, similarity_fit
-from scipy.sparse import csr_matrix, vstack
+from scipy.sparse import csr_matrix
 
 
 def camera_jacobians(iop_px, R, T_mm, xyz_mm):
@@ -199,19 +199,27 @@ def _sparse_jacobian(values, cols, with_rop: np.ndarray, n_theta: int) -> csr_ma
     """``J`` (x rows, then y rows) from the per-observation blocks ``(n, 2, 3)`` and their columns.
 
     ``values``: by the IOP, the reference rotation and source, the point, then (rows ``with_rop``) the ROP's
-    rotation and offset; ``cols``: the IOP's, the reference pose's, the point's and the ROP's.
+    rotation and offset; ``cols``: the IOP's, the reference pose's, the point's and the ROP's. Laid out in CSR
+    directly, each row's entries in increasing columns (the IOP's, the pose's, the ROP's, the point's): the
+    matrix a COO of the blocks converts to, without the conversion's sort.
     """
     n = len(with_rop)
-    blocks = []
-    for comp in range(2):
-        main = np.concatenate([v[:, comp] for v in values[:4]], axis=1)
-        main_cols = np.concatenate(cols[:3], axis=1)
-        rop = np.concatenate([v[with_rop, comp] for v in values[4:]], axis=1)
-        data = np.concatenate([main.ravel(), rop.ravel()])
-        r = np.concatenate([np.repeat(np.arange(n), 12), np.repeat(np.flatnonzero(with_rop), 6)])
-        c = np.concatenate([main_cols.ravel(), cols[3][with_rop].ravel()])
-        blocks.append(csr_matrix((data, (r, c)), shape=(n, n_theta)))
-    return vstack(blocks).tocsr()
+    iop, psi, src, point, rot, src_ref = values
+    groups = [(iop, cols[0]), (np.concatenate([psi, src], axis=2), cols[1]), (point, cols[2])]
+    if with_rop.any():
+        groups.insert(2, (np.concatenate([rot, src_ref], axis=2), cols[3]))
+    data = [np.concatenate([v[:, c] for v, _ in groups], axis=1) for c in range(2)]
+    row_cols = np.concatenate([c for _, c in groups], axis=1)
+    if with_rop.any() and not with_rop.all():
+        # the rows without an ROP (the reference system's) leave out its 6 entries
+        keep = np.ones(row_cols.shape, bool)
+        keep[~with_rop, 9:15] = False
+        data, row_cols = [d[keep] for d in data], row_cols[keep]
+    ends = np.cumsum(np.where(with_rop, 18, 12))
+    dtype = np.int32 if max(n_theta, 2 * row_cols.size) < 2**31 else np.int64
+    indptr = np.concatenate([[0], ends, ends[-1:] + ends]).astype(dtype)
+    indices = np.concatenate([row_cols.ravel()] * 2).astype(dtype)
+    return csr_matrix((np.concatenate([d.ravel() for d in data]), indices, indptr), shape=(2 * n, n_theta))
 
 
 def _bead_index(adj, observations, rows) -> np.ndarray:

@@ -40,10 +40,50 @@ class GridSpec:
         width, height = (int(s) for s in image_size)
         return grid_nodes(width, height, self.spacing_px)
 
-    def support_mask(self, xy_px: np.ndarray, nodes_px: np.ndarray) -> np.ndarray:
-        """``(n_nodes,)`` True where at least ``min_support`` points lie within ``support_radius_px`` of a node."""
-        counts = KDTree(xy_px).query_ball_point(nodes_px, r=self.support_radius_px, return_length=True)
+    def support_mask(self, xy_px: np.ndarray, x_nodes_px: np.ndarray, y_nodes_px: np.ndarray) -> np.ndarray:
+        """``(H_g * W_g,)`` True where at least ``min_support`` points lie within ``support_radius_px`` of a node.
+
+        The nodes are the grid of ``x_nodes_px`` ``(W_g,)`` and ``y_nodes_px`` ``(H_g,)``, row-major (x fastest).
+        Each point is tested against the nodes of its window, the columns and rows within the radius along each
+        axis (one more each side for the rounding), as a KD-tree tests it: its squared distance against the
+        squared radius, a tenth of the KD-tree's time. When one is within rounding of the radius (where the order
+        of the KD-tree's sums could decide it), or the windows are large, the KD-tree counts. Raises
+        :class:`~fluorocal.stages.errors.InputError` on a position that is not finite.
+        """
+        xy = np.asarray(xy_px, dtype=np.float64).reshape(-1, 2)
+        if not np.all(np.isfinite(xy)):
+            raise InputError("support_mask: xy_px must be finite")
+        xn, yn = (np.asarray(a, dtype=np.float64) for a in (x_nodes_px, y_nodes_px))
+        r2 = self.support_radius_px**2
+        cols, dx2 = _axis_window(xn, xy[:, 0], self.support_radius_px)
+        rows, dy2 = _axis_window(yn, xy[:, 1], self.support_radius_px)
+        # a radius of many spacings (the user's) would make the windows' arrays large: the KD-tree counts
+        if len(xy) * dx2.shape[1] * dy2.shape[1] <= WINDOW_MAX_ENTRIES:
+            d2 = dx2[:, None, :] + dy2[:, :, None]  # shape (n, rows, columns), inf outside the grid
+            if not np.any(np.abs(d2 - r2) <= 1e-9 * r2):
+                node = rows[:, :, None] * len(xn) + cols[:, None, :]
+                return np.bincount(node[d2 <= r2], minlength=len(xn) * len(yn)) >= self.min_support
+        counts = KDTree(xy).query_ball_point(node_coordinates(xn, yn), r=self.support_radius_px, return_length=True)
         return counts >= self.min_support
+
+
+#: most point-node pairs :meth:`GridSpec.support_mask` tests in its windows (22 bytes each at its peak, measured:
+#: 180 MB); 30 000 observations on the default grid take 1.5 million
+WINDOW_MAX_ENTRIES = 2**23
+
+
+def _axis_window(nodes: np.ndarray, v: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each value's window of node indices ``(n, w)`` along one axis and its squared distances (inf past the ends).
+
+    The window holds every node within ``radius`` of the value and one more each side.
+    """
+    lo = np.searchsorted(nodes, v - radius, side="left") - 1
+    hi = np.searchsorted(nodes, v + radius, side="right") + 1
+    idx = lo[:, None] + np.arange(max(int(np.max(hi - lo, initial=0)), 0))
+    inside = (idx >= 0) & (idx < len(nodes))
+    idx = np.clip(idx, 0, len(nodes) - 1)
+    d2 = np.where(inside, (v[:, None] - nodes[idx]) ** 2, np.inf)
+    return idx, d2
 
 
 #: the default grid: 16 px spacing, support within 32 px from 3 observations

@@ -61,7 +61,9 @@ def calibrate_polynomial(
             grid.with_delta(
                 adj.polynomial_correction(s, nodes).reshape(grid.delta_px.shape),
                 sigma_px=np.sqrt(var).reshape(grid.sigma_px.shape),
-                support=spec.support_mask(xy[rows[adj.used[rows]]], nodes).reshape(grid.support.shape),
+                support=spec.support_mask(xy[rows[adj.used[rows]]], grid.x_nodes_px, grid.y_nodes_px).reshape(
+                    grid.support.shape
+                ),
             )
         )
     step = float(np.abs(corrections).max(initial=0.0))

@@ -44,7 +44,7 @@ from fluorocal.stages.adjust.robust import t_weights
 from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.field import CorrectionField
 from fluorocal.stages.learn.grid import cross_validate_smoothness, fit_grid_field
-from fluorocal.stages.learn.nodes import GridSpec, node_coordinates
+from fluorocal.stages.learn.nodes import GridSpec
 from fluorocal.stages.plate.homography import Normaliser, homography_modes
 
 log = logging.getLogger(__name__)
@@ -428,13 +428,13 @@ def _supports(problem: PlateProblem, settings: SolveSettings) -> tuple:
 
     The centres do not move in the alternation: the masks are found once, not at every field fit.
     """
-    base = settings.grid.support_mask(problem.xy_px, node_coordinates(*settings.grid.nodes(problem.image_size)))
+    base = settings.grid.support_mask(problem.xy_px, *settings.grid.nodes(problem.image_size))
     if problem.n_orientations == 1:
         return base, ()  # no deviation is fitted
     grid = _deviation_grid(settings)
-    nodes = node_coordinates(*grid.nodes(problem.image_size))
+    nodes = grid.nodes(problem.image_size)
     return base, tuple(
-        grid.support_mask(problem.xy_px[problem.orientation == o], nodes) for o in range(problem.n_orientations)
+        grid.support_mask(problem.xy_px[problem.orientation == o], *nodes) for o in range(problem.n_orientations)
     )
 
 

@@ -19,6 +19,7 @@ from fluorocal.stages.learn.grid import fit_grid_field
 from fluorocal.stages.learn.joint import SystemStep, fit_grid_jointly, fit_grids_jointly
 from fluorocal.stages.learn.network import linearised_network, systems_network
 from fluorocal.stages.learn.nodes import GridSpec
+from scipy.sparse import csr_matrix
 
 from tests.stages.ba_synthetic import simulated_set
 
@@ -313,6 +314,12 @@ def test_two_systems_network_is_the_rigs_jacobian(biplanar_linearised):
     np.testing.assert_allclose((plus - minus) / (2 * h), linear, atol=6e-10 * np.abs(linear).max())
     scale = np.sqrt(net.J.multiply(net.J).sum())
     assert np.linalg.norm(net.J @ net.datum, axis=0).max() < 1e-9 * scale
+    # laid out as the canonical CSR a conversion from COO gives (each row's columns increasing, none twice), so that
+    # every product with it sums in that order
+    coo = net.J.tocoo()
+    canonical = csr_matrix((coo.data, (coo.row, coo.col)), shape=net.J.shape)
+    for name in ("indptr", "indices", "data"):
+        np.testing.assert_array_equal(getattr(net.J, name), getattr(canonical, name))
 
 
 def test_second_system_alone_network_datum_projects_to_nothing(biplanar_linearised):
@@ -408,3 +415,25 @@ def test_normal_matrix_and_its_scalings_are_the_sparse_products_bit_for_bit():
     for got, expected in ((jw, expected_jw), (n, expected_n), (_jacobi_scaled(n, s), expected_scaled)):
         for name in ("indptr", "indices", "data"):
             np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))
+
+
+def test_field_blocks_multiply_as_their_block_diagonal_matrix_bit_for_bit():
+    # the joint step's field blocks (A^T W_c A + the prior + the ridge, per system and component), multiplied block
+    # by block: the numbers of the block-diagonal matrix's product, for a vector and for a block of vectors
+    from fluorocal.stages.learn.grid import prior_normal
+    from fluorocal.stages.learn.joint import _block_product, _field_normal
+    from scipy.sparse import block_diag, diags
+
+    rng = np.random.default_rng(13)
+    nodes = np.arange(7) * 16.0
+    blocks, expected = [], []
+    for n in (60, 90):
+        A = bilinear_design(nodes, nodes, rng.uniform(0, nodes[-1], (n, 2)))
+        w = rng.uniform(0.5, 2.0, (n, 2))
+        reg = prior_normal(7, 7, 2) / 0.3**2
+        Nvv, _, _, data, ridge = _field_normal(A, w, rng.normal(size=(n, 2)), reg, np.zeros((49, 2)))
+        blocks += list(Nvv)
+        expected.append(block_diag([data[0] + reg, data[1] + reg], format="csc") + diags(np.full(98, ridge)))
+    formed = block_diag(expected, format="csr")
+    for v in (rng.normal(size=formed.shape[0]), rng.normal(size=(formed.shape[0], 4))):
+        np.testing.assert_array_equal(_block_product(blocks, v), formed @ v)

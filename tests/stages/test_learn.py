@@ -297,6 +297,19 @@ def test_scaled_prior_is_the_prior_normal_over_tau_squared(n_side):
                 np.testing.assert_array_equal(prior.term, want)
 
 
+@pytest.mark.parametrize("n_side", [9, 101])
+def test_scaled_prior_is_kept_read_only(n_side):
+    """The prior is kept and handed to every joint step: a write into it, which would change the next step's, raises."""
+    from fluorocal.stages.learn.grid import scaled_prior
+
+    prior = scaled_prior(n_side, n_side, 2, 0.3)
+    assert scaled_prior(n_side, n_side, 2, 0.3) is prior and scaled_prior(n_side, n_side, 2, 0.31) is not prior
+    term = prior.term.data if prior.term is prior.reg else prior.term
+    for a in (prior.reg.data, prior.reg.indices, prior.reg.indptr, term):
+        with pytest.raises(ValueError, match="read-only"):
+            a[0] += 1
+
+
 def test_factor_spd_sums_duplicate_entries_and_refuses_a_singular_matrix():
     # a matrix given with an entry split in two (COO duplicates) is their sum; [[2+2, 1], [1, 2]] x = [1, 0]
     from fluorocal.stages.errors import EstimationError
