@@ -240,6 +240,12 @@ def display(stored: np.ndarray, layout: _Layout) -> np.ndarray:
     Colour is Rec. 601 luma; an alpha channel is dropped (grey + alpha: the grey); MinIsWhite is
     inverted; signed integers are offset by their type's smallest value. Floats are kept as stored.
     """
+    if layout.n_channels == 1 and layout.dtype.kind in "iu" and layout.dtype.itemsize <= 2:
+        # values, offset and result are integers below 2**24, exact in float32: the float64 route's result, at
+        # a quarter of its memory traffic (4 of the 5 ms of a 1024 px frame)
+        low, high = _int_range(layout)
+        values = stored.astype(np.float32)
+        return np.subtract(high, values, out=values) if layout.min_is_white else np.subtract(values, low, out=values)
     values = stored.astype(np.float64)
     if layout.n_channels == 2:
         values = values[..., 0]

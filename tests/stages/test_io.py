@@ -79,3 +79,24 @@ def test_phantom_csv(tmp_path):
     p.write_text("id,x,y,z\n1,0,zero,0\n")
     with pytest.raises(InputError, match=r"p.csv:2: not a number"):
         read_phantom(p)
+
+
+@pytest.mark.parametrize(
+    "stored, photometric",
+    [
+        (np.array([[-32768, -1, 0, 1, 32767]], np.int16), "minisblack"),
+        (np.array([[0, 1, 4095, 65534, 65535]], np.uint16), "miniswhite"),
+        (np.array([[-128, -1, 0, 5, 127]], np.int8), "miniswhite"),
+        (np.array([[0, 1, 2, 65534, 65535]], np.uint16), "minisblack"),
+    ],
+)
+def test_integer_tiff_displays_exact_steps_above_the_darkest_value(tmp_path, stored, photometric):
+    """Displayed = stored steps above the darkest value the type holds (inverted for MinIsWhite), exactly."""
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "f.tif", stored, photometric=photometric)
+    (frame,) = read_frames(tmp_path / "f.tif")
+    info = np.iinfo(stored.dtype)
+    steps = [(info.max - v if photometric == "miniswhite" else v - info.min) for v in stored.ravel().tolist()]
+    assert frame.image.dtype == np.float32
+    assert frame.image.ravel().tolist() == [float(s) for s in steps]
