@@ -41,6 +41,7 @@ import contextlib
 import dataclasses
 import errno
 import hashlib
+import io
 import json
 import logging
 import os
@@ -285,18 +286,20 @@ class ArtifactCache:
     def _write(self, tmp: Path, stage: str, key: str, artifact, provenance, overlay) -> None:
         arrays: dict[str, np.ndarray] = {}
         tree = encode(artifact, arrays, "artifact", self.types)
-        np.savez(tmp / ARRAYS, **arrays)
+        files = {ARRAYS: _npz_bytes(arrays)}  # each file's bytes made in memory: written once, hashed there
         if hasattr(artifact, "to_table"):
-            _write_table(tmp / TABLE, *artifact.to_table())
+            files[TABLE] = _table_bytes(*artifact.to_table())
         if overlay is not None:
-            (tmp / OVERLAY).write_bytes(overlay)
+            files[OVERLAY] = bytes(overlay)
+        for name, data in files.items():
+            (tmp / name).write_bytes(data)
         manifest = {
             "format_version": FORMAT_VERSION,
             "key": key,
             "stage": stage,
             "summary": _summary(artifact),
             "provenance": {**_environment(), **(provenance or {})},
-            "files": {p.name: file_sha256(p) for p in sorted(tmp.iterdir())},
+            "files": {name: hashlib.sha256(files[name]).hexdigest() for name in sorted(files)},
             "artifact": tree,
         }
         # the manifest and its checksum are written last: an entry without them is never trusted
@@ -578,10 +581,17 @@ def _warn_unreadable(stage: str, key: str, exc: Exception) -> None:
     warnings.warn(f"cache entry {stage}/{key[:12]} unreadable ({exc}); recomputing", CacheWarning, stacklevel=4)
 
 
-def _write_table(path: Path, header: list[str], rows) -> None:
-    from fluorocal.stages.io import write_csv
+def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    """The ``.npz`` file :func:`numpy.savez` writes of ``arrays``."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
 
-    write_csv(path, header, rows)
+
+def _table_bytes(header: list[str], rows) -> bytes:
+    from fluorocal.stages.io import csv_text
+
+    return csv_text(header, rows).encode("utf-8")
 
 
 def _environment() -> dict:
