@@ -439,7 +439,8 @@ def csv_text(header: list[str], rows) -> str:
         line = lines.get(kinds)
         if line is None:
             plain = kinds and all(k in _PLAIN_CELL for k in kinds)
-            line = lines[kinds] = ",".join(_PLAIN_CELL[k] for k in kinds) + writer.dialect.lineterminator if plain else ""
+            line = ",".join(_PLAIN_CELL[k] for k in kinds) + writer.dialect.lineterminator if plain else ""
+            lines[kinds] = line
         if line:
             out.write(line % tuple(row))
         else:
