@@ -286,9 +286,13 @@ class ArtifactCache:
     def _write(self, tmp: Path, stage: str, key: str, artifact, provenance, overlay) -> None:
         arrays: dict[str, np.ndarray] = {}
         tree = encode(artifact, arrays, "artifact", self.types)
-        files = {ARRAYS: _npz_bytes(arrays)}  # each file's bytes made in memory: written once, hashed there
+        buffer = io.BytesIO()  # each file's bytes made in memory: written once, hashed there
+        np.savez(buffer, **arrays)
+        files = {ARRAYS: buffer.getvalue()}
         if hasattr(artifact, "to_table"):
-            files[TABLE] = _table_bytes(*artifact.to_table())
+            from fluorocal.stages.io import csv_text
+
+            files[TABLE] = csv_text(*artifact.to_table()).encode("utf-8")
         if overlay is not None:
             files[OVERLAY] = bytes(overlay)
         for name, data in files.items():
@@ -579,19 +583,6 @@ def _only_cache_files(root: Path) -> bool:
 
 def _warn_unreadable(stage: str, key: str, exc: Exception) -> None:
     warnings.warn(f"cache entry {stage}/{key[:12]} unreadable ({exc}); recomputing", CacheWarning, stacklevel=4)
-
-
-def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
-    """The ``.npz`` file :func:`numpy.savez` writes of ``arrays``."""
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    return buffer.getvalue()
-
-
-def _table_bytes(header: list[str], rows) -> bytes:
-    from fluorocal.stages.io import csv_text
-
-    return csv_text(header, rows).encode("utf-8")
 
 
 def _environment() -> dict:
