@@ -435,6 +435,7 @@ def csv_text(header: list[str], rows) -> str:
     writer.writerow(header)
     lines: dict[tuple, str] = {}
     for row in rows:
+        row = tuple(row)  # an iterator read once: its types, then its cells
         kinds = tuple(map(type, row))
         line = lines.get(kinds)
         if line is None:
@@ -442,7 +443,7 @@ def csv_text(header: list[str], rows) -> str:
             line = ",".join(_PLAIN_CELL[k] for k in kinds) + writer.dialect.lineterminator if plain else ""
             lines[kinds] = line
         if line:
-            out.write(line % tuple(row))
+            out.write(line % row)
         else:
             writer.writerow([fmt(v) for v in row])
     return out.getvalue()

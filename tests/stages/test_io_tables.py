@@ -144,3 +144,11 @@ def test_csv_text_is_what_the_csv_module_writes_cell_by_cell():
     for row in rows:
         writer.writerow([f"{v:.6f}" if isinstance(v, (float, np.floating)) else str(v) for v in row])
     assert csv_text(["id", "x", "y"], iter(rows)) == expected.getvalue()
+
+
+def test_csv_text_rows_may_be_any_iterable_as_for_the_csv_module():
+    """A row given as an iterator or generator is written whole, not as an empty line (or a format error)."""
+    from fluorocal.stages.io import csv_text
+
+    rows = [iter([1, 0.5]), (str(v) for v in ["a", "b,c"]), iter([])]
+    assert csv_text(["id", "x"], rows) == 'id,x\r\n1,0.500000\r\na,"b,c"\r\n\r\n'
