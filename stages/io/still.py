@@ -227,8 +227,10 @@ def _decode(path: Path, inp, subimage: int, layout: _Layout) -> np.ndarray:
         raise InputError(f"{path}: cannot decode subimage {subimage} ({inp.geterror()})")
     pixels = np.asarray(pixels).reshape(layout.size_px[1], layout.size_px[0], layout.n_channels)
     if layout.maxval is not None and layout.maxval != np.iinfo(layout.dtype).max:
-        # OpenImageIO scales a PNM's 0..maxval to its word's full range; the stored values are exact multiples
-        pixels = np.rint(pixels * (layout.maxval / np.iinfo(layout.dtype).max)).astype(layout.dtype)
+        # OpenImageIO scales a PNM's 0..maxval to its word's full range, floor(v * top / maxval): the stored v is
+        # the smallest reaching the word, ceil(word * maxval / top) (rounding is off by one when top < 2 maxval)
+        top = int(np.iinfo(layout.dtype).max)
+        pixels = ((pixels.astype(np.int64) * layout.maxval + top - 1) // top).astype(layout.dtype)
     elif layout.dtype.kind == "u" and layout.bits < layout.dtype.itemsize * 8:
         pixels = np.rint(pixels * ((2**layout.bits - 1) / np.iinfo(layout.dtype).max)).astype(layout.dtype)
     return pixels[..., 0] if layout.n_channels == 1 else pixels

@@ -134,6 +134,7 @@ def test_csv_text_is_what_the_csv_module_writes_cell_by_cell():
         [0, -0.0, 1e300],
         [3, 1e-9, 123456.7890125],
         [True, np.float32(0.1), np.int64(5)],  # not plain: bool, numpy scalars
+        [False, 7, 0.5],  # a bool among plain cells: "False", not "0"
         ["a,b", 'say "hi"', "line\nbreak"],  # quoted as csv quotes them
         [],
         [2, 0.25, -1.0],
