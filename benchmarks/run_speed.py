@@ -341,7 +341,10 @@ RUN_PHASES = {
 
 def run_phases(stats: dict, wall: float) -> None:
     """Where the profiled run's wall time goes in the main process (cProfile's clock: wall), phase by phase."""
-    print(f"\n  the run's phases in the main process (wall, under cProfile: {wall:.1f} s in all)")
+    print(
+        f"\n  the run's phases in the main process (wall, under cProfile: {wall:.1f} s in all; the profiler's cost "
+        "per call weighs most on phases of many small calls: cache writes, code digests)"
+    )
     for label, (suffix, name) in RUN_PHASES.items():
         calls, seconds = profiled(stats, suffix, name)
         print(f"    {label:<38}: {seconds:6.2f} s in {calls} call(s)")

@@ -41,6 +41,7 @@ import contextlib
 import dataclasses
 import errno
 import hashlib
+import io
 import json
 import logging
 import os
@@ -285,18 +286,24 @@ class ArtifactCache:
     def _write(self, tmp: Path, stage: str, key: str, artifact, provenance, overlay) -> None:
         arrays: dict[str, np.ndarray] = {}
         tree = encode(artifact, arrays, "artifact", self.types)
-        np.savez(tmp / ARRAYS, **arrays)
+        buffer = io.BytesIO()  # each file's bytes made in memory: written once, hashed there
+        np.savez(buffer, **arrays)
+        files = {ARRAYS: buffer.getvalue()}
         if hasattr(artifact, "to_table"):
-            _write_table(tmp / TABLE, *artifact.to_table())
+            from fluorocal.stages.io import csv_text
+
+            files[TABLE] = csv_text(*artifact.to_table()).encode("utf-8")
         if overlay is not None:
-            (tmp / OVERLAY).write_bytes(overlay)
+            files[OVERLAY] = bytes(overlay)
+        for name, data in files.items():
+            (tmp / name).write_bytes(data)
         manifest = {
             "format_version": FORMAT_VERSION,
             "key": key,
             "stage": stage,
             "summary": _summary(artifact),
             "provenance": {**_environment(), **(provenance or {})},
-            "files": {p.name: file_sha256(p) for p in sorted(tmp.iterdir())},
+            "files": {name: hashlib.sha256(files[name]).hexdigest() for name in sorted(files)},
             "artifact": tree,
         }
         # the manifest and its checksum are written last: an entry without them is never trusted
@@ -576,12 +583,6 @@ def _only_cache_files(root: Path) -> bool:
 
 def _warn_unreadable(stage: str, key: str, exc: Exception) -> None:
     warnings.warn(f"cache entry {stage}/{key[:12]} unreadable ({exc}); recomputing", CacheWarning, stacklevel=4)
-
-
-def _write_table(path: Path, header: list[str], rows) -> None:
-    from fluorocal.stages.io import write_csv
-
-    write_csv(path, header, rows)
 
 
 def _environment() -> dict:

@@ -227,8 +227,10 @@ def _decode(path: Path, inp, subimage: int, layout: _Layout) -> np.ndarray:
         raise InputError(f"{path}: cannot decode subimage {subimage} ({inp.geterror()})")
     pixels = np.asarray(pixels).reshape(layout.size_px[1], layout.size_px[0], layout.n_channels)
     if layout.maxval is not None and layout.maxval != np.iinfo(layout.dtype).max:
-        # OpenImageIO scales a PNM's 0..maxval to its word's full range; the stored values are exact multiples
-        pixels = np.rint(pixels * (layout.maxval / np.iinfo(layout.dtype).max)).astype(layout.dtype)
+        # OpenImageIO scales a PNM's 0..maxval to its word's full range, floor(v * top / maxval): the stored v is
+        # the smallest reaching the word, ceil(word * maxval / top) (rounding is off by one when top < 2 maxval)
+        top = int(np.iinfo(layout.dtype).max)
+        pixels = ((pixels.astype(np.int64) * layout.maxval + top - 1) // top).astype(layout.dtype)
     elif layout.dtype.kind == "u" and layout.bits < layout.dtype.itemsize * 8:
         pixels = np.rint(pixels * ((2**layout.bits - 1) / np.iinfo(layout.dtype).max)).astype(layout.dtype)
     return pixels[..., 0] if layout.n_channels == 1 else pixels
@@ -240,6 +242,12 @@ def display(stored: np.ndarray, layout: _Layout) -> np.ndarray:
     Colour is Rec. 601 luma; an alpha channel is dropped (grey + alpha: the grey); MinIsWhite is
     inverted; signed integers are offset by their type's smallest value. Floats are kept as stored.
     """
+    if layout.n_channels == 1 and layout.dtype.kind in "iu" and layout.dtype.itemsize <= 2:
+        # values, offset and result are integers below 2**24, exact in float32: the float64 route's result, at
+        # a quarter of its memory traffic (4 of the 5 ms of a 1024 px frame)
+        low, high = _int_range(layout)
+        values = stored.astype(np.float32)
+        return np.subtract(high, values, out=values) if layout.min_is_white else np.subtract(values, low, out=values)
     values = stored.astype(np.float64)
     if layout.n_channels == 2:
         values = values[..., 0]

@@ -12,6 +12,7 @@ x right, y down; mm in the phantom's frame.
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -405,19 +406,47 @@ def columns_of(header: Sequence[str], rows) -> dict[str, tuple]:
 
 
 def write_csv(path: str | os.PathLike, header: list[str], rows) -> None:
-    """Write a CSV table without a schema atomically (floats with 6 decimals), e.g. a cache entry's table."""
+    """Write a CSV table without a schema atomically (:func:`csv_text`), e.g. a cache entry's table."""
+    data = csv_text(header, rows).encode("utf-8")
+    atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
+
+
+#: the text of a cell of these exact types (floats with 6 decimals), as ``csv`` writes it: never quoted
+_PLAIN_CELL = {int: "%d", float: "%.6f"}
+
+
+def csv_text(header: list[str], rows) -> str:
+    r"""A CSV table without a schema as text (``csv``'s default dialect): floats with 6 decimals, the rest ``str``.
+
+    A row of plain ints and floats is formatted in one step, by a format string made once per row layout
+    (the same text as the cell by cell ``csv`` writer gives: such cells need no quoting).
+
+    Examples
+    --------
+    >>> csv_text(["id", "x", "name"], [[1, 0.5, "a,b"], [2, 1.25, "c"], [3, 2.0]])
+    'id,x,name\r\n1,0.500000,"a,b"\r\n2,1.250000,c\r\n3,2.000000\r\n'
+    """
 
     def fmt(v):
         return f"{v:.6f}" if isinstance(v, (float, np.floating)) else str(v)
 
-    def _write(tmp):
-        with open(tmp, "w", newline="", encoding="utf-8") as fh:
-            w = csv.writer(fh)
-            w.writerow(header)
-            for row in rows:
-                w.writerow([fmt(v) for v in row])
-
-    atomic_write(path, _write)
+    out = io.StringIO()
+    writer = csv.writer(out)
+    writer.writerow(header)
+    lines: dict[tuple, str] = {}
+    for row in rows:
+        row = tuple(row)  # an iterator read once: its types, then its cells
+        kinds = tuple(map(type, row))
+        line = lines.get(kinds)
+        if line is None:
+            plain = kinds and all(k in _PLAIN_CELL for k in kinds)
+            line = ",".join(_PLAIN_CELL[k] for k in kinds) + writer.dialect.lineterminator if plain else ""
+            lines[kinds] = line
+        if line:
+            out.write(line % row)
+        else:
+            writer.writerow([fmt(v) for v in row])
+    return out.getvalue()
 
 
 def read_phantom(path: str | os.PathLike, *, lattice: str = "", pitch_mm: float = 0.0):

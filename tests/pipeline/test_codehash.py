@@ -153,6 +153,35 @@ def test_an_edited_module_changes_the_digest_whatever_its_size_and_time(package,
     assert code_digest([f"{PACKAGE}.second"]) == edited  # what parsing the edited module gives
 
 
+def test_a_kept_memo_sees_a_module_edited_while_the_process_runs(package, tmp_path):
+    """One memo kept by a long-lived process (a notebook, a server): an edit between two digests is seen."""
+    memo = AnalysisMemo(tmp_path / "analyses.json")
+    before = code_digest([f"{PACKAGE}.second"], memo)
+    helper = package / "_helper.py"
+    helper.write_text(helper.read_text().replace("2 * x", "3 * x"))
+    edited = code_digest([f"{PACKAGE}.second"], memo)
+    assert edited != before
+    _fresh_process()
+    assert code_digest([f"{PACKAGE}.second"]) == edited  # what parsing the edited module gives
+    helper.write_text(helper.read_text().replace("3 * x", "2 * x"))
+    assert code_digest([f"{PACKAGE}.second"], memo) == before
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_the_cycle_collector_is_left_as_it_was_even_by_a_syntax_error(package, enabled):
+    import gc
+
+    (package / "_helper.py").write_text("def twice(x):\n    return 2 *\n")
+    _fresh_process()
+    gc.enable() if enabled else gc.disable()
+    try:
+        with pytest.raises(SyntaxError):
+            code_digest([f"{PACKAGE}.second"])
+        assert gc.isenabled() == enabled
+    finally:
+        gc.enable()
+
+
 def test_an_unreadable_memo_or_entry_is_ignored(package, tmp_path):
     expected = code_digest([f"{PACKAGE}.second"])
     path = tmp_path / "analyses.json"

@@ -79,3 +79,52 @@ def test_phantom_csv(tmp_path):
     p.write_text("id,x,y,z\n1,0,zero,0\n")
     with pytest.raises(InputError, match=r"p.csv:2: not a number"):
         read_phantom(p)
+
+
+@pytest.mark.parametrize(
+    "stored, photometric",
+    [
+        (np.array([[-32768, -1, 0, 1, 32767]], np.int16), "minisblack"),
+        (np.array([[0, 1, 4095, 65534, 65535]], np.uint16), "miniswhite"),
+        (np.array([[-128, -1, 0, 5, 127]], np.int8), "miniswhite"),
+        (np.array([[0, 1, 2, 65534, 65535]], np.uint16), "minisblack"),
+    ],
+)
+def test_integer_tiff_displays_exact_steps_above_the_darkest_value(tmp_path, stored, photometric):
+    """Displayed = stored steps above the darkest value the type holds (inverted for MinIsWhite), exactly."""
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "f.tif", stored, photometric=photometric)
+    (frame,) = read_frames(tmp_path / "f.tif")
+    info = np.iinfo(stored.dtype)
+    steps = [(info.max - v if photometric == "miniswhite" else v - info.min) for v in stored.ravel().tolist()]
+    assert frame.image.dtype == np.float32
+    assert frame.image.ravel().tolist() == [float(s) for s in steps]
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.int16])
+@pytest.mark.parametrize("photometric", ["minisblack", "miniswhite"])
+def test_every_16_bit_value_displays_as_its_exact_step(tmp_path, dtype, photometric):
+    """All 65536 stored values of a 16-bit TIFF: displayed = steps above the darkest value, exact in float32."""
+    import tifffile
+
+    info = np.iinfo(dtype)
+    stored = np.arange(info.min, info.max + 1, dtype=np.int64)
+    tifffile.imwrite(tmp_path / "f.tif", stored.astype(dtype).reshape(256, 256), photometric=photometric)
+    (frame,) = read_frames(tmp_path / "f.tif")
+    steps = info.max - stored if photometric == "miniswhite" else stored - info.min
+    assert frame.image.dtype == np.float32
+    np.testing.assert_array_equal(frame.image.ravel().astype(np.int64), steps)
+    np.testing.assert_array_equal(frame.image.ravel(), steps.astype(np.float64))
+
+
+@pytest.mark.parametrize("maxval", [100, 200, 254, 1000, 4095, 40000, 65534])
+def test_every_pgm_value_up_to_a_maxval_displays_as_itself(tmp_path, maxval):
+    """A PGM's 0..maxval (not 2^n - 1; the decoder's scaled words less than 2 apart too) displayed as stored."""
+    stored = np.zeros(-(-(maxval + 1) // 256) * 256, np.int64)
+    stored[: maxval + 1] = np.arange(maxval + 1)
+    dtype = ">u2" if maxval > 255 else "u1"
+    header = f"P5\n256 {stored.size // 256}\n{maxval}\n".encode()
+    (tmp_path / "f.pgm").write_bytes(header + stored.astype(dtype).tobytes())
+    (frame,) = read_frames(tmp_path / "f.pgm")
+    np.testing.assert_array_equal(frame.image.ravel(), stored.astype(np.float64))

@@ -119,3 +119,37 @@ def test_phantom_and_seeds_readers(tmp_path):
     s = tmp_path / "s.csv"
     s.write_text("id,x,y,file,frame\n4,1.5,2.5,,\n5,3,4,dir/a.dcm,2\n")
     assert read_seeds(s) == {("", 0): ((4.0, 1.5, 2.5),), ("a.dcm", 2): ((5.0, 3.0, 4.0),)}
+
+
+def test_csv_text_is_what_the_csv_module_writes_cell_by_cell():
+    """Rows of plain ints and floats (one format per row layout) and the rest: the text of the documented rule."""
+    import csv
+    import io
+
+    from fluorocal.stages.io import csv_text
+
+    rows = [
+        [1, 0.5, -2.25],
+        [-7, float("nan"), float("inf")],
+        [0, -0.0, 1e300],
+        [3, 1e-9, 123456.7890125],
+        [True, np.float32(0.1), np.int64(5)],  # not plain: bool, numpy scalars
+        [False, 7, 0.5],  # a bool among plain cells: "False", not "0"
+        ["a,b", 'say "hi"', "line\nbreak"],  # quoted as csv quotes them
+        [],
+        [2, 0.25, -1.0],
+    ]
+    expected = io.StringIO()
+    writer = csv.writer(expected)
+    writer.writerow(["id", "x", "y"])
+    for row in rows:
+        writer.writerow([f"{v:.6f}" if isinstance(v, (float, np.floating)) else str(v) for v in row])
+    assert csv_text(["id", "x", "y"], iter(rows)) == expected.getvalue()
+
+
+def test_csv_text_rows_may_be_any_iterable_as_for_the_csv_module():
+    """A row given as an iterator or generator is written whole, not as an empty line (or a format error)."""
+    from fluorocal.stages.io import csv_text
+
+    rows = [iter([1, 0.5]), (str(v) for v in ["a", "b,c"]), iter([])]
+    assert csv_text(["id", "x"], rows) == 'id,x\r\n1,0.500000\r\na,"b,c"\r\n\r\n'
