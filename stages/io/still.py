@@ -226,37 +226,17 @@ def _decode(path: Path, inp, subimage: int, layout: _Layout) -> np.ndarray:
     if pixels is None:
         raise InputError(f"{path}: cannot decode subimage {subimage} ({inp.geterror()})")
     pixels = np.asarray(pixels).reshape(layout.size_px[1], layout.size_px[0], layout.n_channels)
-    if layout.min_is_white and layout.type_name == "uint8" and _oiio_inverts_min_is_white():
-        pixels = np.subtract(255, pixels, out=pixels)  # back to the stored values, alpha too (inverted alike)
+    if layout.min_is_white and layout.type_name == "uint8":
+        # OpenImageIO's TIFF reader (every version's invert_photometric; no open hint turns it off) gives a
+        # MinIsWhite file's samples read as uint8 (1-, 4-, 8-bit, alpha too) inverted, wider ones as stored:
+        # back to the stored values (tests/stages/test_io_roundtrip.py holds this against tifffile's truth)
+        pixels = np.subtract(255, pixels, out=pixels)
     if layout.maxval is not None and layout.maxval != np.iinfo(layout.dtype).max:
         # OpenImageIO scales a PNM's 0..maxval to its word's full range; the stored values are exact multiples
         pixels = np.rint(pixels * (layout.maxval / np.iinfo(layout.dtype).max)).astype(layout.dtype)
     elif layout.dtype.kind == "u" and layout.bits < layout.dtype.itemsize * 8:
         pixels = np.rint(pixels * ((2**layout.bits - 1) / np.iinfo(layout.dtype).max)).astype(layout.dtype)
     return pixels[..., 0] if layout.n_channels == 1 else pixels
-
-
-@lru_cache(maxsize=1)
-def _oiio_inverts_min_is_white() -> bool:
-    """Whether OpenImageIO gives a MinIsWhite TIFF's samples of 8 bits or fewer inverted (to 255 - stored).
-
-    Its TIFF reader inverts every uint8 read of one (1-, 4- and 8-bit, alpha too; 3.2.2 measured, and every
-    version's ``invert_photometric``), uint16 and wider not, and no open hint turns it off ("oiio:RawColor"
-    does not): asked once per process, of a one-pixel file whose stored 0 is known.
-    """
-    import tempfile
-
-    import OpenImageIO as oiio
-    import tifffile
-
-    with tempfile.TemporaryDirectory() as folder:
-        path = os.path.join(folder, "white.tif")
-        tifffile.imwrite(path, np.zeros((1, 1), np.uint8), photometric="miniswhite")
-        inp = oiio.ImageInput.open(path)
-        try:
-            return int(np.asarray(inp.read_image("uint8")).ravel()[0]) == 255
-        finally:
-            inp.close()
 
 
 def display(stored: np.ndarray, layout: _Layout) -> np.ndarray:
