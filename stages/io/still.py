@@ -226,6 +226,11 @@ def _decode(path: Path, inp, subimage: int, layout: _Layout) -> np.ndarray:
     if pixels is None:
         raise InputError(f"{path}: cannot decode subimage {subimage} ({inp.geterror()})")
     pixels = np.asarray(pixels).reshape(layout.size_px[1], layout.size_px[0], layout.n_channels)
+    if layout.min_is_white and layout.type_name == "uint8":
+        # OpenImageIO's TIFF reader (every version's invert_photometric; no open hint turns it off) gives a
+        # MinIsWhite file's samples read as uint8 (1-, 4-, 8-bit, alpha too) inverted, wider ones as stored:
+        # back to the stored values (tests/stages/test_io_roundtrip.py holds this against tifffile's truth)
+        pixels = np.subtract(255, pixels, out=pixels)
     if layout.maxval is not None and layout.maxval != np.iinfo(layout.dtype).max:
         # OpenImageIO scales a PNM's 0..maxval to its word's full range, floor(v * top / maxval): the stored v is
         # the smallest reaching the word, ceil(word * maxval / top) (rounding is off by one when top < 2 maxval)

@@ -17,7 +17,7 @@ import pytest
 import tifffile
 from fluorocal.stages.detect import DetectParams, detect_beads
 from fluorocal.stages.errors import InputError
-from fluorocal.stages.io import open_stored, probe_frames, read_frames
+from fluorocal.stages.io import open_stored, probe_frames, read_frames, write_stored_like
 from pydicom import uid
 
 
@@ -133,3 +133,76 @@ def test_pages_of_two_sizes_are_refused_by_every_reader(tmp_path):
     for call in (probe_frames, read_frames, open_stored):
         with pytest.raises(InputError, match=r"two.tif: pages differ \(48x32 px uint16 x1, 64x64 px uint16 x1\)"):
             call(tmp_path / "two.tif")
+
+
+_WHITE = np.array([[0, 1, 2, 100, 200, 250], [255, 254, 7, 128, 3, 60]], np.uint8)
+#: MinIsWhite frames as tifffile stores them: (stored pages, the type's brightest-when-MinIsBlack value, options)
+_MIN_IS_WHITE = {
+    "uint8": ([_WHITE], 255, {}),
+    "uint8 zlib, 2 pages": ([_WHITE, _WHITE[::-1]], 255, {"compression": "zlib"}),
+    "uint16, 2 pages": ([_WHITE.astype(np.uint16) * 257, _WHITE.astype(np.uint16)], 65535, {}),
+    "uint8 grey + alpha": ([np.stack([_WHITE, _WHITE[::-1]], axis=-1)], 255, {"extrasamples": ["unassalpha"]}),
+    "1-bit": ([_WHITE % 2 == 1], 1, {}),
+}
+
+
+def _write_pages(path, pages, photometric, options) -> None:
+    with tifffile.TiffWriter(path) as tif:
+        for page in pages:
+            tif.write(page, photometric=photometric, **options)
+
+
+@pytest.mark.parametrize("case", list(_MIN_IS_WHITE))
+def test_min_is_white_displays_as_min_is_black_of_the_inverted_values(tmp_path, case):
+    """Stored 0 is white at every depth: the frame reads as the MinIsBlack file of ``high - stored`` does."""
+    pages, high, options = _MIN_IS_WHITE[case]
+    _write_pages(tmp_path / "w.tif", pages, "miniswhite", options)
+    _write_pages(tmp_path / "b.tif", [~p if p.dtype == bool else high - p for p in pages], "minisblack", options)
+    white, black = read_frames(tmp_path / "w.tif"), read_frames(tmp_path / "b.tif")
+    assert len(white) == len(pages)
+    for page, w, b in zip(pages, white, black, strict=True):
+        grey = page[..., 0] if page.ndim == 3 else page
+        np.testing.assert_array_equal(w.image, high - grey.astype(np.float32))  # exact: integers below 2**24
+        np.testing.assert_array_equal(w.image, b.image)
+
+
+@pytest.mark.parametrize("case", [c for c in _MIN_IS_WHITE if c != "1-bit"])
+def test_min_is_white_is_written_back_as_stored(tmp_path, case):
+    """open_stored gives tifffile's stored values; written back they are the same values, type and photometric."""
+    pages, high, options = _MIN_IS_WHITE[case]
+    _write_pages(tmp_path / "w.tif", pages, "miniswhite", options)
+    stored = open_stored(tmp_path / "w.tif")
+    assert stored.black == high
+    frames = list(stored.frames)
+    for page, frame in zip(pages, frames, strict=True):
+        np.testing.assert_array_equal(frame, page)
+    write_stored_like(tmp_path / "w.tif", iter(frames), tmp_path / "out.tif", len(frames))
+    with tifffile.TiffFile(tmp_path / "out.tif", mode="r+b") as tif:  # LZW: tifffile cannot decode it here
+        assert [p.photometric for p in tif.pages] == [tifffile.PHOTOMETRIC.MINISWHITE] * len(pages)
+        assert [p.dtype for p in tif.pages] == [page.dtype for page in pages]
+        for written in tif.pages:
+            written.tags["PhotometricInterpretation"].overwrite(1)  # MinIsBlack: its bytes read as they are
+    for page, written in zip(pages, open_stored(tmp_path / "out.tif").frames, strict=True):
+        np.testing.assert_array_equal(written, page)
+
+
+def test_min_is_white_4_bit_displays_inverted(tmp_path):
+    """4-bit samples (tifffile cannot write them here): OpenImageIO's MinIsBlack file, its nibbles checked, retagged."""
+    import OpenImageIO as oiio
+
+    nibbles = np.array([[0, 1, 2, 7, 8, 15]], np.uint8)
+    path = str(tmp_path / "w.tif")
+    spec = oiio.ImageSpec(6, 1, 1, "uint8")
+    spec.attribute("oiio:BitsPerSample", 4)
+    spec.attribute("compression", "none")
+    out = oiio.ImageOutput.create(path)
+    assert out.open(path, spec) and out.write_image((nibbles * 17).reshape(1, 6, 1)) and out.close()
+    with tifffile.TiffFile(path, mode="r+b") as tif:
+        page = tif.pages[0]
+        assert page.bitspersample == 4
+        tif.filehandle.seek(page.dataoffsets[0])
+        assert tif.filehandle.read(3) == bytes([0x01, 0x27, 0x8F])  # the stored nibbles, packed
+        page.tags["PhotometricInterpretation"].overwrite(0)
+    (frame,) = read_frames(tmp_path / "w.tif")
+    assert frame.bit_depth == 4
+    np.testing.assert_array_equal(frame.image, 15.0 - nibbles)
