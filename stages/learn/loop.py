@@ -60,7 +60,6 @@ from fluorocal.stages.learn.polynomial import calibrate_polynomial
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
 from fluorocal.stages.learn.robust import SCREEN_NEIGHBOURS, local_screen, misfit_inliers
 from fluorocal.stages.learn.stopping import cost_raised, decide, field_step_sigma
-from fluorocal.stages.learn.threads import each_system
 
 logger = logging.getLogger(__name__)
 
@@ -89,7 +88,7 @@ class _Plan:
     refine: Refine
     acceleration: Acceleration
     respond: Respond  # the refinement's first choice of what responds to its field step
-    workers: int = 1  # threads for the systems' own work (:func:`each_system`)
+    workers: int = 1  # threads for the systems' own work (:mod:`fluorocal.stages.learn.threads`)
 
     @property
     def xy(self) -> np.ndarray:
@@ -169,8 +168,8 @@ def calibrate(
         Which parameters it estimates is the scheme's: the IOP for ``"iop"`` schemes and
         ``"none"``, the polynomial model's for ``"polynomial"``.
     workers : int
-        The systems' own work (their regressions, their joint uncertainty) side by side in up to this many
-        threads (:mod:`fluorocal.stages.learn.threads`); the result is the serial one's. Default 1: serial.
+        The systems' joint uncertainties side by side in up to this many threads
+        (:mod:`fluorocal.stages.learn.threads`); the result is the serial one's. Default 1: serial.
 
     Returns
     -------
@@ -360,9 +359,7 @@ def _regress(plan: _Plan, state: _State) -> tuple[tuple, tuple, float, np.ndarra
     if state.phase == "grid" and plan.refine is Refine.GRID_POINTS:
         updates, memory, sels, responses = _regress_jointly(plan, state)
     else:
-        updates, memory, sels = zip(
-            *each_system(lambda s: _regress_system(plan, state, s), len(plan.sizes), plan.workers)
-        )
+        updates, memory, sels = zip(*(_regress_system(plan, state, s) for s in range(len(plan.sizes))))
         responses = (0.0,) * len(updates)
     fit_cost, trained = 0.0, np.zeros(len(plan.xy), bool)
     for model, sel, response in zip(updates, sels, responses):

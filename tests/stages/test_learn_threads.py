@@ -7,13 +7,12 @@ gridded refinement and joint uncertainty included).
 
 from __future__ import annotations
 
-import logging
 import threading
 
 import numpy as np
 import pytest
 from fluorocal.stages.errors import EstimationError, InputError
-from fluorocal.stages.learn import LearnParams, calibrate
+from fluorocal.stages.learn import LearnParams, calibrate, uncertainty
 from fluorocal.stages.learn.threads import each_system
 from fluorocal.stages.learn.trmm import trmm
 from scipy.linalg import blas
@@ -29,19 +28,21 @@ def two_systems():
     return train, nominal
 
 
-def _threads_used(records) -> set:
-    return {r.threadName for r in records if r.threadName.startswith("fluorocal-system")}
-
-
-def test_threads_give_the_serial_calibration_bit_for_bit(two_systems, caplog):
+def test_threads_give_the_serial_calibration_bit_for_bit(two_systems, monkeypatch):
     (obs, initial), nominal = two_systems
-    before = threading.active_count()
-    caplog.set_level(logging.DEBUG, logger="fluorocal.stages.learn")
+    before, threads = threading.active_count(), []
+    computed = uncertainty.joint_uncertainty
+
+    def watched(*args, **kw):  # the real computation, and the thread it ran in
+        threads.append(threading.current_thread())
+        return computed(*args, **kw)
+
+    monkeypatch.setattr(uncertainty, "joint_uncertainty", watched)
     serial = calibrate(obs, nominal, initial, image_size=(SIZE, SIZE), workers=1)
-    assert not _threads_used(caplog.records)  # workers=1: the caller's thread alone
-    caplog.clear()
+    assert threads == [threading.current_thread()] * 2  # workers=1: the caller's thread alone
+    threads.clear()
     threaded = calibrate(obs, nominal, initial, image_size=(SIZE, SIZE), workers=2)
-    assert _threads_used(caplog.records)  # the kNN regressions logged from the systems' threads
+    assert len(set(threads)) == 2 and threading.current_thread() not in threads  # two threads of their own
     assert serial.uncertainty is not None and serial.history[-1].phase == "grid"  # the refinement ran, σ too
     # each system's work reads only its own data and writes nothing shared: the same operations on the same
     # numbers, so the same bits (no tolerance)
