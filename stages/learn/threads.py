@@ -25,6 +25,11 @@ def each_system(function: Callable, n_systems: int, workers: int = 1) -> tuple:
     An exception of ``function`` is raised as the serial loop would raise it: the first system's (in system
     order) that fails. The threads end before this returns or raises (a Ctrl-C included: after the systems
     being computed finish, the others are not started).
+
+    Examples
+    --------
+    >>> each_system(lambda s: s * s, 3, workers=2)
+    (0, 1, 4)
     """
     if workers < 2 or n_systems < 2:
         return tuple(function(s) for s in range(n_systems))

@@ -45,6 +45,12 @@ def trmm(a: np.ndarray, b: np.ndarray, *, side: int, lower: int, trans_a: int, d
     ``b`` ``(m, n)`` float64, Fortran-contiguous and writeable (the result); ``a`` is read in Fortran order
     (copied to it if given otherwise, as SciPy's wrapper copies it). Falls back to :func:`blas.dtrmm` (the GIL
     held) where SciPy's BLAS pointer is not found.
+
+    Examples
+    --------
+    >>> a = np.asfortranarray([[2.0, 0.0], [1.0, 3.0]])  # lower triangular
+    >>> trmm(a, np.asfortranarray([[1.0], [1.0]]), side=0, lower=1, trans_a=0).ravel()
+    array([2., 4.])
     """
     function = _dtrmm()
     if function is None:
