@@ -33,13 +33,12 @@ def each_system(function: Callable, n_systems: int, workers: int = 1) -> tuple:
     """
     if workers < 2 or n_systems < 2:
         return tuple(function(s) for s in range(n_systems))
-    with ThreadPoolExecutor(min(workers, n_systems), thread_name_prefix="fluorocal-system") as pool:
+    pool = ThreadPoolExecutor(min(workers, n_systems), thread_name_prefix="fluorocal-system")
+    try:
         futures = [pool.submit(function, s) for s in range(n_systems)]
-        try:
-            return tuple(future.result() for future in futures)
-        finally:
-            for future in futures:
-                future.cancel()
+        return tuple(future.result() for future in futures)
+    finally:  # a Ctrl-C while submitting too: the systems not yet started never are, the running ones end
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 __all__ = ["each_system"]

@@ -7,12 +7,16 @@ gridded refinement and joint uncertainty included).
 
 from __future__ import annotations
 
+import ctypes
+import signal
 import threading
+import time
 
 import numpy as np
 import pytest
 from fluorocal.stages.errors import EstimationError, InputError
-from fluorocal.stages.learn import LearnParams, calibrate, uncertainty
+from fluorocal.stages.learn import LearnParams, calibrate, threads, uncertainty
+from fluorocal.stages.learn import trmm as trmm_module
 from fluorocal.stages.learn.threads import each_system
 from fluorocal.stages.learn.trmm import trmm
 from scipy.linalg import blas
@@ -117,3 +121,116 @@ def test_trmm_refuses_what_blas_would_misread():
         trmm(a, np.ones((3, 4)), side=0, lower=1, trans_a=0)  # C order: BLAS would read its transpose
     with pytest.raises(ValueError, match=r"\(4, 4\)"):
         trmm(a, np.ones((3, 4), order="F"), side=1, lower=1, trans_a=0)
+
+
+FLAGS = [(side, lower, trans_a, diag) for side in (0, 1) for lower in (0, 1) for trans_a in (0, 1) for diag in (0, 1)]
+
+
+@pytest.mark.parametrize("side, lower, trans_a, diag", FLAGS)
+@pytest.mark.parametrize("k, other", [(1, 1), (0, 3), (3, 0), (0, 0), (5, 1), (1, 6), (19, 11)])
+def test_trmm_is_scipys_dtrmm_for_every_flag_and_shape(side, lower, trans_a, diag, k, other):
+    rng = np.random.default_rng(k * 100 + other)
+    a = rng.normal(size=(k, k))
+    a = np.tril(a) if lower else np.triu(a)
+    b = np.asfortranarray(rng.normal(size=(k, other) if side == 0 else (other, k)))
+    flags = dict(side=side, lower=lower, trans_a=trans_a, diag=diag)
+    want = blas.dtrmm(1.0, np.asfortranarray(a), b, **flags)
+    # a read through a reversed, strided view (copied for BLAS); b a Fortran view into a wider array (its ldb)
+    wide_a = np.zeros((k, 2 * k))
+    wide_a[:, ::-2] = a
+    wide_b = np.zeros((b.shape[0], b.shape[1] + 4), order="F")
+    wide_b[:, 2 : 2 + b.shape[1]] = b
+    view = wide_b[:, 2 : 2 + b.shape[1]]
+    got = trmm(wide_a[:, ::-2], view, **flags)
+    np.testing.assert_array_equal(got, want)  # the same routine: the same bits
+    assert np.shares_memory(got, wide_b) or got.size == 0  # in place
+    assert not wide_b[:, :2].any() and not wide_b[:, 2 + b.shape[1] :].any()  # nothing written beside the view
+
+
+def test_trmm_refuses_what_blas_would_misread_on_either_path(monkeypatch):
+    """A C-ordered, unaligned, read-only or 1-d ``b``: a ValueError, with SciPy's pointer or without it."""
+    a = np.asfortranarray(np.eye(3))
+    raw = np.zeros(3 * 4 * 8 + 1, dtype=np.uint8)[1:]  # 8-byte values one byte off their alignment
+    unaligned = raw.view(np.float64).reshape((3, 4), order="F")
+    assert unaligned.flags.f_contiguous and not unaligned.flags.aligned
+    read_only = np.ones((3, 4), order="F")
+    read_only.flags.writeable = False
+    for pointer in (trmm_module._dtrmm(), None):
+        monkeypatch.setattr(trmm_module, "_dtrmm", lambda p=pointer: p)
+        for b in (np.ones((3, 4)), unaligned, read_only, np.ones(3)):
+            with pytest.raises(ValueError, match="^trmm: b must be 2-d, writeable, aligned Fortran float64"):
+                trmm(a, b, side=0, lower=1, trans_a=0)
+        with pytest.raises(ValueError, match=r"^trmm: a must be \(4, 4\)"):
+            trmm(a, np.ones((3, 4), order="F"), side=1, lower=1, trans_a=0)
+
+
+def _capsule_named(name: bytes, of):
+    """A capsule with ``of``'s pointer under ``name`` (what another build of SciPy would publish)."""
+    new = ctypes.PYFUNCTYPE(ctypes.py_object, ctypes.c_void_p, ctypes.c_char_p, ctypes.c_void_p)(
+        ("PyCapsule_New", ctypes.pythonapi)
+    )
+    return new(trmm_module._POINTER_OF(of, trmm_module._NAME_OF(of)), name, None)
+
+
+def test_trmm_calls_scipys_pointer_only_with_the_expected_signature(monkeypatch):
+    """Today's SciPy's pointer is taken; an ILP64 build's (``int`` -> ``int64_t``) or an unknown one is not."""
+    from scipy.linalg import cython_blas
+
+    trmm_module._dtrmm.cache_clear()
+    assert trmm_module._dtrmm() is not None  # this SciPy's: its typedef of double accepted
+    real = cython_blas.__pyx_capi__["dtrmm"]
+    d = b"__pyx_t_5scipy_6linalg_11cython_blas_d *"
+    ilp64 = b"void (char *, char *, char *, char *, int64_t *, int64_t *, %s, %s, int64_t *, %s, int64_t *)" % (d, d, d)
+    names = [ilp64, b"void (char *, char *, char *, char *, int *, int *, double *, double *, int *, double *)"]
+    a, b = np.asfortranarray(np.tril(np.ones((3, 3)))), np.asfortranarray(np.arange(6.0).reshape(3, 2))
+    for name in names:
+        monkeypatch.setitem(cython_blas.__pyx_capi__, "dtrmm", _capsule_named(name, real))
+        trmm_module._dtrmm.cache_clear()
+        try:
+            assert trmm_module._dtrmm() is None
+            got = trmm(a, b.copy(order="F"), side=0, lower=1, trans_a=0)  # SciPy's wrapper instead
+        finally:
+            trmm_module._dtrmm.cache_clear()
+        np.testing.assert_array_equal(got, [[0.0, 1.0], [2.0, 4.0], [6.0, 9.0]])  # running sums of the columns
+
+
+def test_ctrl_c_while_the_systems_run_starts_no_other_and_leaves_no_thread():
+    """SIGINT to the waiting main thread: KeyboardInterrupt once the running systems end; the rest never start."""
+    before, started = threading.active_count(), []
+    main = threading.main_thread()
+    assert threading.current_thread() is main
+
+    def system(s: int) -> int:
+        started.append(s)
+        if s == 0:
+            time.sleep(0.1)  # the main thread waiting for the results by now
+            signal.pthread_kill(main.ident, signal.SIGINT)
+        time.sleep(0.3)
+        return s
+
+    with pytest.raises(KeyboardInterrupt):
+        each_system(system, 4, workers=2)
+    assert 0 in started and set(started) <= {0, 1}  # the running ones finished; systems 2 and 3 never started
+    assert threading.active_count() == before
+
+
+def test_ctrl_c_while_the_systems_are_handed_out_starts_no_queued_one(monkeypatch):
+    """KeyboardInterrupt in ``submit`` of system 3: system 2, queued behind the two running, never starts."""
+    before, started = threading.active_count(), []
+
+    class Interrupted(threads.ThreadPoolExecutor):
+        def submit(self, function, s):
+            if s == 3:
+                raise KeyboardInterrupt
+            return super().submit(function, s)
+
+    def system(s: int) -> int:
+        started.append(s)
+        time.sleep(0.3)  # both threads busy while the main thread submits and is interrupted
+        return s
+
+    monkeypatch.setattr(threads, "ThreadPoolExecutor", Interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        each_system(system, 4, workers=2)
+    assert sorted(started) == [0, 1]
+    assert threading.active_count() == before
