@@ -23,6 +23,8 @@ from fluorocal.cache import file_sha256
 from fluorocal.cli import main
 from fluorocal.compute import ComputeConfig
 from fluorocal.graph import Stage, default_stages
+from fluorocal.stages.learn import uncertainty
+from fluorocal.stages.learn.threads import each_system
 
 from tests.conftest import E2E_SIM, copy_project
 
@@ -80,17 +82,26 @@ def test_pool_run_equals_serial_run(project, calibrated_project, monkeypatch, ca
     _same_as_serial(project, "pool", calibrated_project)
 
 
-def test_learn_threads_store_what_a_serial_learn_stores(project, calibrated_project, caplog):
+def test_learn_threads_store_what_a_serial_learn_stores(project, calibrated_project, caplog, monkeypatch):
     """``--jobs 2``: the learn stage's two systems side by side in threads; the same key and bytes as ``--jobs 1``.
 
     The worker count is how the stage runs, not what it computes: it is in no key. The session's run (every core)
     stored the reference.
     """
     reference = _entries(project / ".fluorocal", calibrated_project, ("learn",))
+    given = []  # the worker counts the joint uncertainties were given
+
+    def watched(function, n_systems, workers=1):
+        given.append((n_systems, workers))
+        return each_system(function, n_systems, workers)
+
+    monkeypatch.setattr(uncertainty, "each_system", watched)
     for jobs in ("1", "2"):
         with caplog.at_level(logging.INFO, logger="fluorocal"):
             assert main(["run", str(project / "pool.toml"), "--jobs", jobs, "--force", "learn"]) == 0
         assert "learn: 1 computed" in caplog.text
+        assert given == [(2, int(jobs))]  # the run's worker count reached the learning
+        given.clear()
         caplog.clear()
         stored = _entries(project / ".cache_pool", project, ("learn",))
         assert sorted(stored) == sorted(reference) and len(stored) == 1
