@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pytest
 from fluorocal.stages.errors import EstimationError, InputError
-from fluorocal.stages.learn import LearnParams, calibrate, threads, uncertainty
+from fluorocal.stages.learn import calibrate, threads, uncertainty
 from fluorocal.stages.learn import trmm as trmm_module
 from fluorocal.stages.learn.threads import each_system
 from fluorocal.stages.learn.trmm import trmm
@@ -63,14 +63,21 @@ def test_threads_give_the_serial_calibration_bit_for_bit(two_systems, monkeypatc
     assert threading.active_count() == before  # no thread outlives the calibration
 
 
-def test_an_error_in_the_threads_is_the_serial_ones(two_systems):
-    """Every system too small for the cross-validation's folds: the first system's error, whether threaded or not."""
+def test_an_error_in_the_threads_is_the_serial_ones(two_systems, monkeypatch):
+    """Both systems' uncertainties fail, system B's at once and A's after its whole computation: A's error raised."""
     (obs, initial), nominal = two_systems
-    params = LearnParams(n_folds=10_000)
+    computed = uncertainty.joint_uncertainty
+
+    def failing(adj, observations, rows, system, *args, **kw):
+        if system == 0:
+            computed(adj, observations, rows, system, *args, **kw)
+        raise EstimationError(f"system {'AB'[system]}: no uncertainty")
+
+    monkeypatch.setattr(uncertainty, "joint_uncertainty", failing)
     before, messages = threading.active_count(), []
     for workers in (1, 2):
-        with pytest.raises(EstimationError, match="system A has") as caught:
-            calibrate(obs, nominal, initial, image_size=(SIZE, SIZE), params=params, workers=workers)
+        with pytest.raises(EstimationError, match="^system A: no uncertainty$") as caught:
+            calibrate(obs, nominal, initial, image_size=(SIZE, SIZE), workers=workers)
         messages.append(str(caught.value))
     assert messages[0] == messages[1]
     assert threading.active_count() == before
