@@ -85,7 +85,8 @@ def stage_call(config_path: Path, name: str) -> tuple:
     """``(func, inputs, params, extras)`` of the per-project stage ``name``: ``func(*inputs, params, **extras)``.
 
     Every stage before it is run first (and cached), as ``fluorocal run --until`` the one before would run it;
-    the inputs are what the graph hands the stage.
+    the inputs are what the graph hands the stage, and ``extras`` its hashed extras with the run's options (the
+    worker count of a stage that takes one, :meth:`~fluorocal.run.Runner.run_options`).
     """
     from fluorocal.graph import default_stages
 
@@ -95,4 +96,4 @@ def stage_call(config_path: Path, name: str) -> tuple:
     runner = runner_for(config_path, name)
     stage = runner.by_name[name]
     params, extras = runner.params[(name, None)]
-    return stage.func, runner.inputs(stage, None), params, extras
+    return stage.func, runner.inputs(stage, None), params, {**extras, **runner.run_options(stage)}

@@ -165,12 +165,13 @@ def learn_biplanar(root: Path, truth: dict, n_frames: int) -> None:
     cfg = write_config(root, truth, "learnbi", ("A", "B"))
     func, inputs, params, extras = stage_call(cfg, "learn")
     print(f"\n2b. learn stage of the biplanar {n_frames} + {n_frames} project (observations from the cached labelling)")
-    c0 = time.process_time()
+    t0, c0 = time.perf_counter(), time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         result = func(*inputs, params, **extras)
     print(
-        f"  {time.process_time() - c0:.1f} s CPU; {len(result.history) - 1} iterations; converged "
+        f"  {time.process_time() - c0:.1f} s CPU, {time.perf_counter() - t0:.1f} s wall ({extras.get('workers', 1)} "
+        f"workers); {len(result.history) - 1} iterations; converged "
         f"{result.converged}: {result.stop_reason}"
     )
     learn_parts(func, inputs, params, extras)

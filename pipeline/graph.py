@@ -60,6 +60,9 @@ class Stage:
         ``extras(config, units) -> dict`` of further frozen parameter objects
         passed to ``func`` as keyword arguments (and hashed into the key);
         ``units`` as for ``context``.
+    takes_workers : bool
+        ``func`` takes ``workers=``, the run's worker count (``--jobs``, ``[compute] jobs``), to run
+        independent parts side by side in threads. How it runs, not what it computes: not in the key.
     """
 
     name: str
@@ -71,6 +74,7 @@ class Stage:
     gather: Callable | None = None
     context: Callable | None = None
     extras: Callable | None = None
+    takes_workers: bool = False
 
     def code_modules(self) -> tuple[str, ...]:
         """The modules whose code, with all they import, makes the stage's artifact.
@@ -266,7 +270,12 @@ REGISTRY = (
         "learn_calibration",
         "LearnParams",
         ("label", "phantom"),
-        {"per_frame": False, "gather": "fluorocal.gather:observations_from_labels", "extras": _learn_extras},
+        {
+            "per_frame": False,
+            "gather": "fluorocal.gather:observations_from_labels",
+            "extras": _learn_extras,
+            "takes_workers": True,
+        },
     ),
 )
 

@@ -468,7 +468,7 @@ class Runner:
         inputs = self.inputs(stage, unit)
         t0 = time.perf_counter()
         try:
-            artifact = stage.func(*inputs, params, **extras)
+            artifact = stage.func(*inputs, params, **extras, **self.run_options(stage))
         except CalibError as exc:
             where = f"{self.units[unit].label}: " if unit is not None else ""
             raise type(exc)(f"{where}{stage.name}: {exc}") from exc
@@ -476,6 +476,13 @@ class Runner:
         self._keep(stage, unit, artifact, params, took)
         self.report.seconds[stage.name] = self.report.seconds.get(stage.name, 0.0) + took
         return artifact
+
+    def run_options(self, stage: Stage) -> dict:
+        """What ``stage``'s function is given besides its inputs, parameters and extras: not hashed into its key.
+
+        A stage that takes it (:attr:`~fluorocal.graph.Stage.takes_workers`) gets the run's worker count.
+        """
+        return {"workers": self.compute.workers} if stage.takes_workers else {}
 
     def _keep(self, stage: Stage, unit: int | None, artifact, params, took: float) -> None:
         """Store ``artifact`` (computed in ``took`` s) with its provenance, keep it in memory and count it."""

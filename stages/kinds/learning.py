@@ -49,7 +49,15 @@ class CalibrationSetup:
 
 
 def calibrate_beads(
-    observations, phantom, params: LearnParams, *, setup: CalibrationSetup, solver=None, selection=None, plate=None
+    observations,
+    phantom,
+    params: LearnParams,
+    *,
+    setup: CalibrationSetup,
+    solver=None,
+    selection=None,
+    plate=None,
+    workers=1,
 ) -> LearnResult:
     """A 3D bead phantom: start values by resection, then :func:`fluorocal.stages.learn.calibrate`.
 
@@ -66,16 +74,17 @@ def calibrate_beads(
         params=params,
         solver=solver,
         selection=selection,
+        workers=workers,
     )
 
 
 def calibrate_grid_plate(
-    observations, phantom, params, *, setup: CalibrationSetup, solver=None, selection=None, plate=None
+    observations, phantom, params, *, setup: CalibrationSetup, solver=None, selection=None, plate=None, workers=1
 ) -> PlateCalibration:
     """A grid plate: :func:`fluorocal.stages.plate.calibrate_plate` with ``plate`` (default ``PlateParams()``).
 
     A field per orientation and the plate's errors; scheme ``none`` fits homographies only (no field).
-    ``params`` and ``selection`` (the learning's) are not read.
+    ``params``, ``selection`` (the learning's) and ``workers`` are not read.
     """
     return calibrate_plate(
         observations,
@@ -93,7 +102,15 @@ CALIBRATIONS = {"beads": calibrate_beads, "plate": calibrate_grid_plate}
 
 
 def learn_calibration(
-    observations, phantom, params: LearnParams, *, setup: CalibrationSetup, solver=None, selection=None, plate=None
+    observations,
+    phantom,
+    params: LearnParams,
+    *,
+    setup: CalibrationSetup,
+    solver=None,
+    selection=None,
+    plate=None,
+    workers=1,
 ) -> LearnResult | PlateCalibration:
     """The learning stage: calibrate from labelled observations, as the phantom's kind is calibrated.
 
@@ -115,6 +132,9 @@ def learn_calibration(
         The adjustment's settings from ``[adjust]`` (the free parameters are the scheme's).
     plate : PlateParams, optional
         A grid plate's settings from ``[plate]`` (default ``PlateParams()``).
+    workers : int
+        Threads for a bead phantom's systems' own work, side by side (the pipeline's worker count; default 1,
+        serial): the result is the serial one's, so it is no parameter of the calibration.
 
     Raises
     ------
@@ -122,4 +142,5 @@ def learn_calibration(
         No frame could be resected, or the adjustment failed as a whole.
     """
     calibration = CALIBRATIONS[kind_of(phantom).name]
-    return calibration(observations, phantom, params, setup=setup, solver=solver, selection=selection, plate=plate)
+    settings = dict(setup=setup, solver=solver, selection=selection, plate=plate, workers=workers)
+    return calibration(observations, phantom, params, **settings)

@@ -18,7 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import blas, cholesky, lapack
+from fluorocal.stages.learn.trmm import trmm
+from scipy.linalg import cholesky, lapack
 from scipy.sparse import issparse
 
 
@@ -110,15 +111,17 @@ def first_rows(X) -> np.ndarray:
 
 
 def _tri_mul(T: np.ndarray, X: np.ndarray, *, lower: bool, transpose: bool = False, overwrite: bool = False):
-    """``T X`` (``T^T X`` with ``transpose``) for a triangular ``T`` and a C-ordered ``X``, by BLAS ``trmm``.
+    """``T X`` (``T^T X`` with ``transpose``) for a triangular ``T`` and a C-ordered ``X``, by BLAS ``trmm`` (GIL free).
 
     ``trmm`` works in Fortran order: ``X^T`` is ``X``'s Fortran view, and ``(T X)^T = X^T T^T``. With ``overwrite``,
     a contiguous ``X`` may hold the result.
     """
     if X.shape[1] == 0 or T.shape[0] != T.shape[1]:  # the last block's coupling may be rectangular
         return (T.T if transpose else T) @ X
-    Xt = np.asarray(X).T
-    return blas.dtrmm(1.0, T, Xt, side=1, lower=int(lower), trans_a=int(not transpose), overwrite_b=int(overwrite)).T
+    Xt = np.asarray(X, dtype=np.float64).T
+    if not (overwrite and Xt.flags.f_contiguous and Xt.flags.writeable):
+        Xt = np.array(Xt, order="F")
+    return trmm(T, Xt, side=1, lower=int(lower), trans_a=int(not transpose)).T
 
 
 def block_cholesky(S) -> BlockCholesky:

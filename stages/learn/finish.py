@@ -33,7 +33,8 @@ def loop_result(plan, scheme: str, state, converged: bool, reason: str, t0: floa
     if learned and plan.smooth and plan.refine is not Refine.NONE:
         shape = plan.adjuster.nominal_shape(state.adj)[1]
         args = (state.adj, plan.observations, plan.rows, state.trained, state.grids, state.memory, plan.params)
-        uncertainty = learned_uncertainty(*args, estimate_iop=plan.estimate_iop, nominal_shape_mm=shape)
+        options = dict(estimate_iop=plan.estimate_iop, nominal_shape_mm=shape, workers=plan.workers)
+        uncertainty = learned_uncertainty(*args, **options)
         fields = fields if uncertainty is None else tuple(map(with_field_std, fields, uncertainty))
     return LearnResult(
         scheme=scheme,

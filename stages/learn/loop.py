@@ -88,6 +88,7 @@ class _Plan:
     refine: Refine
     acceleration: Acceleration
     respond: Respond  # the refinement's first choice of what responds to its field step
+    workers: int = 1  # threads for the systems' own work (:mod:`fluorocal.stages.learn.threads`)
 
     @property
     def xy(self) -> np.ndarray:
@@ -134,6 +135,7 @@ def calibrate(
     params: LearnParams | None = None,
     solver=None,
     selection=None,
+    workers: int = 1,
 ) -> LearnResult:
     """Alternate the robust adjustment and the kNN regression of its residuals (paper, section IV).
 
@@ -165,6 +167,9 @@ def calibrate(
         Which observations enter the adjustment (``[adjust]``; default ``DataSelection()``).
         Which parameters it estimates is the scheme's: the IOP for ``"iop"`` schemes and
         ``"none"``, the polynomial model's for ``"polynomial"``.
+    workers : int
+        The systems' joint uncertainties side by side in up to this many threads
+        (:mod:`fluorocal.stages.learn.threads`); the result is the serial one's. Default 1: serial.
 
     Returns
     -------
@@ -177,11 +182,11 @@ def calibrate(
     (:mod:`fluorocal.stages.learn.order`), and the per-observation arrays are returned in the caller's.
     """
     order = canonical_order(observations)
-    args = (taken(observations, order), phantom, initial, image_size, scheme, params, solver, selection)
+    args = (taken(observations, order), phantom, initial, image_size, scheme, params, solver, selection, workers)
     return unpermuted_result(_calibrate_sorted(*args), order)
 
 
-def _calibrate_sorted(observations, phantom, initial, image_size, scheme, params, solver, selection):
+def _calibrate_sorted(observations, phantom, initial, image_size, scheme, params, solver, selection, workers):
     """:func:`calibrate` of observations in canonical order."""
     t0 = time.perf_counter()
     params = LearnParams() if params is None else params
@@ -193,7 +198,7 @@ def _calibrate_sorted(observations, phantom, initial, image_size, scheme, params
         return calibrate_polynomial(observations, phantom, initial, sizes, params.grid, fixed=fixed, **settings)
     free = FreeParameters(estimate_iop=scheme.estimate_iop)
     adjuster = Adjuster(observations, phantom, initial, free=free, fast=params.fast_intermediate, **settings)
-    plan = _plan(params, observations, sizes, adjuster, scheme.estimate_iop, scheme.smooth)
+    plan = replace(_plan(params, observations, sizes, adjuster, scheme.estimate_iop, scheme.smooth), workers=workers)
     adj = adjuster(np.zeros((len(observations.xy_px), 2)), None, final=not scheme.learn_field)
     out = adjustment_outcome(adj, observations.sigma_px)
     logger.debug("scheme %s: initial adjustment cost %.6g, inlier RMS %.4f px", scheme, out.cost, out.rms_px)

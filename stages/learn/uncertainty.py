@@ -77,7 +77,9 @@ from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import prior_normal
 from fluorocal.stages.learn.network import linearised_network
 from fluorocal.stages.learn.params import FieldGauge
-from scipy.linalg import blas, lapack, ldl
+from fluorocal.stages.learn.threads import each_system
+from fluorocal.stages.learn.trmm import trmm
+from scipy.linalg import lapack, ldl
 from scipy.sparse import bmat, csr_matrix, diags, identity, issparse, vstack
 
 # rows of the field's dense work done at a time in place (no second array of its size)
@@ -406,7 +408,7 @@ class _SymmetricInverse:
                 E[lo : lo + _ROWS] = np.take(E[lo : lo + _ROWS], self.perm, axis=1)
         else:
             E = np.take(np.asarray(X, dtype=np.float64), self.perm, axis=1)
-        return blas.dtrmm(1.0, self.L_inv, E.T, side=0, lower=1, trans_a=0, diag=1, overwrite_b=1).T
+        return trmm(self.L_inv, E.T, side=0, lower=1, trans_a=0, diag=1).T
 
     def quadratic(self, X: np.ndarray) -> np.ndarray:
         """``X^T H^-1 X`` ``(k, k)`` for ``X`` ``(n, k)``, symmetric."""
@@ -450,7 +452,7 @@ def _block_diagonal_inverse(d: np.ndarray) -> _BlockDiagonal:
 
 
 def learned_uncertainty(
-    adj, observations, rows, trained, grids, memory, params, *, estimate_iop: bool, nominal_shape_mm
+    adj, observations, rows, trained, grids, memory, params, *, estimate_iop: bool, nominal_shape_mm, workers: int = 1
 ) -> tuple | None:
     """Each system's :class:`JointUncertainty` after the learning's gridded refinement, or None where undefined.
 
@@ -458,25 +460,21 @@ def learned_uncertainty(
     estimated: the recommended loop. ``rows`` per system, ``trained`` ``(N,)`` the observations the
     fields learned from, ``memory`` per system the loop's regression memory (the smoothness prior's
     ``tau_px`` and ``cv.order``); ``nominal_shape_mm`` the design coordinates of ``adj.bead_id``
-    (used when ``params.affine_datum`` held the phantom's affine shape).
+    (used when ``params.affine_datum`` held the phantom's affine shape). The systems side by side in up to
+    ``workers`` threads (:func:`~fluorocal.stages.learn.threads.each_system`).
     """
     if params.field_gauge is not FieldGauge.ORIENTATION or not estimate_iop or any(m.tau_px is None for m in memory):
         return None
     used = trained & adj.used
     shape = nominal_shape_mm if params.affine_datum else None
-    return tuple(
-        joint_uncertainty(
-            adj,
-            observations,
-            r[used[r]],
-            s,
-            grid,
-            tau_px=m.tau_px,
-            order=m.cv.order,
-            shape_nominal_mm=shape,
+
+    def system(s: int) -> JointUncertainty:
+        r, m = rows[s], memory[s]
+        return joint_uncertainty(
+            adj, observations, r[used[r]], s, grids[s], tau_px=m.tau_px, order=m.cv.order, shape_nominal_mm=shape
         )
-        for s, (r, grid, m) in enumerate(zip(rows, grids, memory))
-    )
+
+    return each_system(system, len(rows), workers)
 
 
 def with_field_std(field, uncertainty: JointUncertainty):

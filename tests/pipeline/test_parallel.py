@@ -23,6 +23,8 @@ from fluorocal.cache import file_sha256
 from fluorocal.cli import main
 from fluorocal.compute import ComputeConfig
 from fluorocal.graph import Stage, default_stages
+from fluorocal.stages.learn import uncertainty
+from fluorocal.stages.learn.threads import each_system
 
 from tests.conftest import E2E_SIM, copy_project
 
@@ -45,13 +47,13 @@ def project(calibrated_project, tmp_path_factory):
     return root
 
 
-def _entries(cache, folder) -> dict:
-    """(stage, key) -> (the files' bytes, the artifact's structure) of every entry of STAGES.
+def _entries(cache, folder, stages=STAGES) -> dict:
+    """(stage, key) -> (the files' bytes, the artifact's structure) of every entry of ``stages``.
 
     The structure names each frame by its path: the project's ``folder`` in it is written ``<project>``.
     """
     out = {}
-    for stage in STAGES:
+    for stage in stages:
         for entry in sorted((cache / stage).iterdir()):
             manifest = json.loads((entry / "manifest.json").read_text())
             files = {name: (entry / name).read_bytes() for name in manifest["files"]}
@@ -78,6 +80,41 @@ def test_pool_run_equals_serial_run(project, calibrated_project, monkeypatch, ca
     assert "detect, centroid: 8 frames on 2 local processes" in caplog.text  # the pool did run them
     assert "label: 2 systems on 2 local processes" in caplog.text  # and each system's labelling
     _same_as_serial(project, "pool", calibrated_project)
+
+
+def test_learn_threads_store_what_a_serial_learn_stores(project, calibrated_project, caplog, monkeypatch):
+    """``--jobs 2``: the learn stage's two systems side by side in threads; the same key and bytes as ``--jobs 1``.
+
+    The worker count is how the stage runs, not what it computes: it is in no key. The session's run (every core)
+    stored the reference.
+    """
+    reference = _entries(project / ".fluorocal", calibrated_project, ("learn",))
+    given = []  # the worker counts the joint uncertainties were given
+
+    def watched(function, n_systems, workers=1):
+        given.append((n_systems, workers))
+        return each_system(function, n_systems, workers)
+
+    monkeypatch.setattr(uncertainty, "each_system", watched)
+    for jobs in ("1", "2"):
+        with caplog.at_level(logging.INFO, logger="fluorocal"):
+            assert main(["run", str(project / "pool.toml"), "--jobs", jobs, "--force", "learn"]) == 0
+        assert "learn: 1 computed" in caplog.text
+        assert given == [(2, int(jobs))]  # the run's worker count reached the learning
+        given.clear()
+        caplog.clear()
+        stored = _entries(project / ".cache_pool", project, ("learn",))
+        assert sorted(stored) == sorted(reference) and len(stored) == 1
+        for slot, (files, tree) in reference.items():
+            assert stored[slot][0] == files  # arrays.npz: byte for byte
+            assert _untimed(stored[slot][1]) == _untimed(tree)  # all but the seconds the run took
+
+
+def _untimed(tree):
+    """An artifact's structure without the seconds its computation took (``wall_time_s``, ``adjust_time_s``)."""
+    if isinstance(tree, dict):
+        return {k: _untimed(v) for k, v in tree.items() if not k.endswith("_time_s")}
+    return [_untimed(v) for v in tree] if isinstance(tree, list) else tree
 
 
 # the scheduler serves HTTP even without a dashboard, on port 8787 when free: another cluster on this machine moves
