@@ -28,8 +28,6 @@ module is analysed anew whatever its metadata say.
 from __future__ import annotations
 
 import ast
-import contextlib
-import gc
 import hashlib
 import importlib
 import importlib.util
@@ -39,6 +37,8 @@ import re
 import sys
 from functools import lru_cache
 from pathlib import Path
+
+from fluorocal.compute import no_collection
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +145,7 @@ def _analyse(name: str, path: Path, text: str) -> tuple[str, tuple[str, ...], tu
     Cached by the source text itself, so the stages' shared modules are parsed once per process and an
     edited file is parsed anew. The imports of an ``if TYPE_CHECKING:`` block are never run and not listed.
     """
-    with _collector_paused():
+    with no_collection():  # a syntax tree holds no reference cycles
         tree = ast.parse(text, filename=str(path))
         package = name if path.name == "__init__.py" else name.rpartition(".")[0]
         statements = list(_executed(tree))
@@ -153,23 +153,6 @@ def _analyse(name: str, path: Path, text: str) -> tuple[str, tuple[str, ...], tu
         functions = [m for m in _imports((node for node, _ in statements), package) if m not in body]
         _drop_docstrings(tree)
         return hashlib.sha256(ast.dump(tree).encode()).hexdigest(), tuple(body), tuple(functions)
-
-
-@contextlib.contextmanager
-def _collector_paused():
-    """Python's cycle collector off for a while (back on after, if it was on).
-
-    A syntax tree holds no reference cycles (its nodes are freed as their counts drop), but its hundreds of
-    thousands of nodes would start a collection every few hundred allocations: ~15 % of the code digests'
-    time on a first run.
-    """
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
 
 
 #: a memo's key and an analysis' digest: sha256 hex

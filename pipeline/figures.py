@@ -83,7 +83,7 @@ class Figures:
         key = figure_key(plot, args, self._code(plot.__module__))
         data = self._previous_png(path.name, key)
         if data is None:
-            from fluorocal.report import no_collection
+            from fluorocal.compute import no_collection
 
             with _default_style(), no_collection():
                 plot(path, *args)

@@ -13,13 +13,12 @@ marker, a bar, a tick) costs far more than its pixels: thousands of dots are dra
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import gc
 import unicodedata
 from pathlib import Path
 
 import numpy as np
+from fluorocal.compute import no_collection
 from fluorocal.stages.errors import InputError
 from fluorocal.stages.io import write_png
 
@@ -234,18 +233,6 @@ def _place_label(axis, boxes, renderer) -> None:
         "right": (box.x1 + pad, y),
     }
     axis.set_label_coords(*beyond[side], transform=axis.label.get_transform())
-
-
-@contextlib.contextmanager
-def no_collection():
-    """No cyclic garbage collection meanwhile: a figure's artists trigger full passes over the whole process."""
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
 
 
 def dot_image(ax, xy: np.ndarray, rgba: np.ndarray, diameter_px: float) -> np.ndarray:
