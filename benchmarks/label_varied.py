@@ -386,6 +386,17 @@ def outcome_summary(tally: Tally) -> str:
     )
 
 
+def print_config(name: str, tally: Tally, args) -> None:
+    """One configuration's row, and the lines its options ask for (slowest frames, steps, outcomes)."""
+    print(tally.row(name), flush=True)
+    if args.slowest:
+        print(f"  slowest: {slowest_frames(tally, args.slowest)}", flush=True)
+    if args.steps:
+        print(f"  steps (CPU): {step_shares(tally)}", flush=True)
+    if args.outcomes:
+        print(f"  outcomes: {outcome_summary(tally)}", flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=40, help="exposures per sequence (default: 40)")
@@ -430,13 +441,7 @@ def main(argv=None) -> int:
             with outcomes_recorded() if args.outcomes else contextlib.nullcontext():
                 tally = run_config(overrides, seeded, seeds, args.frames, reasons, args.cut, config_tables)
         tables.update({f"{name}.{k}": v for k, v in config_tables.items()})
-        print(tally.row(name), flush=True)
-        if args.slowest:
-            print(f"  slowest: {slowest_frames(tally, args.slowest)}", flush=True)
-        if args.steps:
-            print(f"  steps (CPU): {step_shares(tally)}", flush=True)
-        if args.outcomes:
-            print(f"  outcomes: {outcome_summary(tally)}", flush=True)
+        print_config(name, tally, args)
         total.merge(tally)
         all_reasons += [(name, r, n) for r, n in reasons.items()]
     print(total.row("overall"))
