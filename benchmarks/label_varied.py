@@ -31,8 +31,11 @@ in the seeded configuration): short sequences, where a frame has few neighbours 
 ``--steps`` shares each configuration's labelling time (CPU) out among its costly steps (:data:`STEPS`), over all
 frames and on the slowest: where the time goes.
 
+``--outcomes`` counts the searches' full labellings (from their starts, from rivals) and the distinct labellings they
+reach: how many of them a search could have spared.
+
 Run: .venv/bin/python benchmarks/label_varied.py [--frames 40] [--seeds 3] [--rendered 6] [--cut K] [--slowest N]
-[--steps]
+[--steps] [--outcomes]
 """
 
 from __future__ import annotations
@@ -53,6 +56,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fluorocal.stages.kinds.labelling import label_sequence  # noqa: E402
 from fluorocal.stages.label import LabelParams, cube, prior, rivals, sequence, votes  # noqa: E402
+from fluorocal.stages.label.iterate import agreement  # noqa: E402
 from fluorocal.stages.simulate import SimulateParams, simulate  # noqa: E402
 
 from tests.stages.test_label import detections_from_truth, seeds_from_truth, unambiguous_ids  # noqa: E402
@@ -121,6 +125,48 @@ def steps_timed():
     finally:
         for module, name, inner in saved:
             setattr(module, name, inner)
+
+
+#: every full labelling while :func:`outcomes_recorded` is on: (where it started, its result or None)
+OUTCOMES: list = []
+
+
+@contextlib.contextmanager
+def outcomes_recorded():
+    """While inside, the searches' full labellings (from starts, from rivals) are appended to :data:`OUTCOMES`."""
+
+    def recorded(site, inner):
+        @functools.wraps(inner)
+        def call(*args, **kwargs):
+            result = inner(*args, **kwargs)
+            OUTCOMES.append((site, result))
+            return result
+
+        return call
+
+    saved = [(prior, prior.iterate), (rivals, rivals.iterate)]
+    prior.iterate, rivals.iterate = recorded("start", prior.iterate), recorded("rival", rivals.iterate)
+    try:
+        yield
+    finally:
+        for module, inner in saved:
+            module.iterate = inner
+
+
+def outcome_counts(calls: list) -> collections.Counter:
+    """Full labellings in ``calls`` (of :data:`OUTCOMES`) by where they started, and how many distinct ones they reach.
+
+    Two labellings are one outcome when each gives 90 % of its labelled detections the other's bead (as the search
+    merges them).
+    """
+    distinct: list = []
+    for _, result in calls:
+        if result is not None and not any(
+            agreement(result, d) >= 0.9 and agreement(d, result) >= 0.9 for d in distinct
+        ):
+            distinct.append(result)
+    sites = collections.Counter(f"{site} labellings" for site, _ in calls)
+    return sites + collections.Counter({"distinct outcomes": len(distinct)})
 
 
 @dataclass
@@ -206,12 +252,14 @@ def timed_sequence(cents, phantom, params, seeds_by_frame) -> tuple[tuple, list,
     inner = sequence.label_bead_frame
 
     def timed(centroids, *args, **kwargs):
-        t, before = time.process_time(), STEP_SECONDS.copy()
+        t, before, n_outcomes = time.process_time(), STEP_SECONDS.copy(), len(OUTCOMES)
         try:
             return inner(centroids, *args, **kwargs)
         finally:
             per_frame[index[id(centroids)]] += time.process_time() - t
             steps[index[id(centroids)]].update(STEP_SECONDS - before)
+            steps[index[id(centroids)]].update(outcome_counts(OUTCOMES[n_outcomes:]))
+            del OUTCOMES[n_outcomes:]
 
     t0 = time.process_time()
     sequence.label_bead_frame = timed
@@ -325,6 +373,30 @@ def step_shares(tally: Tally) -> str:
     return f"{shares}; slowest frame (seed {seed} frame {i}, {1e3 * s:.0f} ms): {ms} ms"
 
 
+def outcome_summary(tally: Tally) -> str:
+    """The full labellings of ``tally``'s frames and the distinct labellings they reach, overall and per frame."""
+    counts = [t[4] for t in tally.timings]
+    total = sum(counts, collections.Counter())
+    n, d = total["start labellings"] + total["rival labellings"], total["distinct outcomes"]
+    most = max(counts, key=lambda c: c["start labellings"] + c["rival labellings"])
+    return (
+        f"{n} full labellings ({total['start labellings']} from starts, {total['rival labellings']} from rivals) reach "
+        f"{d} distinct labellings ({n / max(d, 1):.2f} per distinct one); the frame with the most: "
+        f"{most['start labellings']} + {most['rival labellings']} reach {most['distinct outcomes']}"
+    )
+
+
+def print_config(name: str, tally: Tally, args) -> None:
+    """One configuration's row, and the lines its options ask for (slowest frames, steps, outcomes)."""
+    print(tally.row(name), flush=True)
+    if args.slowest:
+        print(f"  slowest: {slowest_frames(tally, args.slowest)}", flush=True)
+    if args.steps:
+        print(f"  steps (CPU): {step_shares(tally)}", flush=True)
+    if args.outcomes:
+        print(f"  outcomes: {outcome_summary(tally)}", flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=40, help="exposures per sequence (default: 40)")
@@ -341,6 +413,9 @@ def main(argv=None) -> int:
     ap.add_argument("--configs", type=int, nargs="*", help="configurations to run, by index (default: all)")
     ap.add_argument("--slowest", type=int, default=0, help="list each configuration's N slowest frames (default: 0)")
     ap.add_argument("--steps", action="store_true", help="share each configuration's time out among the steps")
+    ap.add_argument(
+        "--outcomes", action="store_true", help="count the full labellings and the distinct labellings they reach"
+    )
     ap.add_argument("--save-labels", metavar="NPZ", help="write every frame's labels here (for --reference)")
     ap.add_argument("--reference", metavar="NPZ", help="compare every frame's labels with those saved by --save-labels")
     args = ap.parse_args(argv)
@@ -363,13 +438,10 @@ def main(argv=None) -> int:
         reasons: dict = {}
         config_tables: dict = {}
         with steps_timed() if args.steps else contextlib.nullcontext():
-            tally = run_config(overrides, seeded, seeds, args.frames, reasons, args.cut, config_tables)
+            with outcomes_recorded() if args.outcomes else contextlib.nullcontext():
+                tally = run_config(overrides, seeded, seeds, args.frames, reasons, args.cut, config_tables)
         tables.update({f"{name}.{k}": v for k, v in config_tables.items()})
-        print(tally.row(name), flush=True)
-        if args.slowest:
-            print(f"  slowest: {slowest_frames(tally, args.slowest)}", flush=True)
-        if args.steps:
-            print(f"  steps (CPU): {step_shares(tally)}", flush=True)
+        print_config(name, tally, args)
         total.merge(tally)
         all_reasons += [(name, r, n) for r, n in reasons.items()]
     print(total.row("overall"))
