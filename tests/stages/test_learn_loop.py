@@ -264,6 +264,7 @@ def test_remaining_is_the_tail_of_a_geometric_series():
     # nothing left to fall; steps that do not contract have no finite tail (nor does an undefined step)
     assert remaining(1.0, 0.0) == 0.0 and remaining(1.0, -2.0) == 0.0
     assert remaining(1.0, 1.0) == np.inf and remaining(1.0, 2.0) == np.inf and remaining(np.nan, 1.0) == np.inf
+    assert remaining(1.0, np.nan) == np.inf
 
 
 def _first_end(costs, steps_sigma, params, n_obs):
@@ -293,12 +294,22 @@ def test_a_geometric_contraction_stops_where_the_rest_of_the_way_is_below_the_to
         j >= 2 and steps[j + 1 :].sum() < params.field_tolerance and costs[j] - 1000.0 < costs[j] / np.sqrt(n_obs)
         for j in i
     ]
-    assert converged and "the steps contract" in reason, reason
+    assert converged is True and "the steps contract" in reason, (converged, reason)
     assert k == near.index(True) + 1, (k, near)
     # the stall rule alone ends it later, at the first fall below 1e-3 of the cost (the iterations saved)
     stall_only = LearnParams(step_tolerance=0.0, field_tolerance=0.0)
     later, _, stall_reason = _first_end(list(costs), list(steps), stall_only, n_obs)
     assert later > k and "fell by less than" in stall_reason, (later, k)
+
+
+def test_one_small_step_after_a_large_one_is_not_read_as_a_contraction():
+    # the field's steps go 0.5, 4, 0.05 sigma while the cost's falls halve: 0.05 after 4 read as a contraction by
+    # 0.0125 would promise 0.0006 sigma still to go after a step that had just grown eightfold; the rule waits for
+    # steps shrunk twice running, and ends at the fifth, 0.01 after 0.04 and 0.05 (0.0033 sigma to go)
+    steps, costs = [0.5, 4.0, 0.05, 0.04, 0.01], [1000.0 + 0.5**j for j in range(5)]
+    params = LearnParams(tolerance=0.0, step_tolerance=0.0, stall_tolerance=0.0)
+    k, converged, reason = _first_end(costs, steps, params, n_obs=1000)
+    assert (k, converged) == (5, True) and "the steps contract" in reason, (k, reason)
 
 
 def test_wandering_steps_stop_by_the_stall_rule_once_the_cost_stops_falling():
