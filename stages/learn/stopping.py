@@ -5,15 +5,20 @@ cost changes by less than ``tolerance`` per observation, when the correction
 moves by less than ``step_tolerance`` times the inlier RMS, when (smoothed
 schemes, in the refinement or when there is none) the gridded field moves by
 less than ``field_tolerance`` times its own uncertainty with the adjustment's
-cost stalled, or, in a refinement whose steps move the orientation too (Gauss-Newton
-steps of the joint problem, or steps of the beads alone), at the first iteration
-whose adjustment cost is not below the phase's best by ``stall_tolerance`` of it
-(the loop keeps its best iterate, never the last, so one such iteration is enough:
-issue 31). The field rule holds for two iterations running. Otherwise at its
-iteration cap.
+cost stalled (two iterations running), or when the steps contract so fast that the
+rest of the way to their fixed point, a geometric series, moves the field by less
+than ``field_tolerance`` times its uncertainty and lowers the adjustment's cost by
+less than its own noise (issue 31: converged by the measures a user cares about,
+the field and the cost). In a refinement whose steps move the orientation too
+(Gauss-Newton steps of the joint problem, or steps of the beads alone), it also ends
+at the first iteration whose adjustment cost is not below the phase's best by
+``stall_tolerance`` of it (the loop keeps its best iterate, never the last, so one
+such iteration is enough). Otherwise at its iteration cap.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from fluorocal.stages.learn.params import Refine
@@ -43,7 +48,8 @@ def decide(
     )
     # the loop keeps its best iterate: one iteration that does not improve on it ends the refinement
     stalled = phase == "grid" and _cost_stalled(history, stall_tolerance)
-    done = small_change or small_step or still_field or stalled
+    near = field_phase and _near_fixed_point(history, params.field_tolerance, n_obs)
+    done = small_change or small_step or still_field or stalled or near
     cap = params.max_iterations if phase == "knn" else params.refine_iterations
     if not done and iterations_in_phase < cap:
         return "continue", False, ""
@@ -63,6 +69,11 @@ def decide(
         )
     elif stalled:
         reason = f"the adjustment's cost fell by less than {stall_tolerance:g} of itself below its best"
+    elif near:
+        reason = (
+            f"the steps contract: the field is within {params.field_tolerance} x its own uncertainty of the fixed "
+            f"point and the adjustment's cost within its noise (1/sqrt({n_obs} observations) of itself)"
+        )
     elif phase == "grid":
         reason = f"maximum number of refinement iterations ({params.refine_iterations}) reached"
     else:
@@ -92,6 +103,46 @@ def _cost_stalled(history: tuple, stall_tolerance: float) -> bool:
     """Whether the adjustment's cost at the last iteration is not below its phase's best by that fraction of it."""
     phase = _phase_costs(history)
     return stall_tolerance > 0 and len(phase) > 2 and phase[-1] > min(phase[:-1]) * (1 - stall_tolerance)
+
+
+def _near_fixed_point(history: tuple, field_tolerance: float, n_obs: int) -> bool:
+    """Whether the steps contract so fast that the rest of the way, estimated, changes nothing the data can tell.
+
+    Steps that contract by ``ρ`` leave ``s ρ / (1 - ρ)`` of the way to the fixed point after a step ``s``, a
+    geometric series (:func:`remaining`). The field's rest of the way, in units of each node's own uncertainty,
+    is below ``field_tolerance`` (its steps having shrunk twice running, so that one small step after a large
+    one is not read as a contraction), and the adjustment's cost's rest of the way down is below one standard
+    deviation of the cost itself: a weighted sum of squares of ``2n`` residuals, about ``χ²`` with ``2n``
+    degrees of freedom, fluctuates by ``sqrt(2 · 2n)``, ``1/sqrt(n)`` of itself. An estimate, and an optimistic
+    one where the contraction slows near the fixed point: on ``benchmarks/run_speed.py``'s sets it ends the
+    refinement with 0.039 σ (40 frames) and 0.046 σ (biplanar, 75 + 75) estimated still to go where the later
+    steps add up to 0.20 σ and 0.39 σ, and the cost's estimated 80 still to fall where 202 did (its noise 130;
+    biplanar: 127 fell, noise 294); the field against the truth is the same as after 11 more iterations
+    (0.01636 px; biplanar 0.01541 against 0.01544 px). The extrapolation from the slower of the last two
+    ratios would have run the biplanar set two iterations more for nothing (its steps contracted by 0.29,
+    then 0.08).
+    """
+    phase = [h for h in history if h.phase == history[-1].phase][-3:]
+    if len(phase) < 3:
+        return False
+    steps = [h.step_sigma for h in phase]
+    falls = [a.cost_adjust - b.cost_adjust for a, b in zip(phase[:-1], phase[1:])]
+    shrinking = steps[0] > steps[1] > steps[2]
+    cost_noise = phase[-1].cost_adjust / math.sqrt(max(n_obs, 1))
+    return bool(shrinking and remaining(*steps[1:]) < field_tolerance and remaining(*falls) < cost_noise)
+
+
+def remaining(before: float, last: float) -> float:
+    """The sum of the steps still to come after ``last`` if each is ``last / before`` of the one before it.
+
+    0 when ``last`` is not positive (nothing left to fall), infinite when the steps do not contract.
+    """
+    if last <= 0:
+        return 0.0
+    if not before > last:
+        return float("inf")
+    rho = last / before
+    return last * rho / (1 - rho)
 
 
 def previous_total(history: tuple) -> float | None:
@@ -124,4 +175,4 @@ def field_step_sigma(before: tuple, after: tuple) -> float:
     return worst
 
 
-__all__ = ["cost_raised", "decide", "field_step_sigma", "previous_total"]
+__all__ = ["cost_raised", "decide", "field_step_sigma", "previous_total", "remaining"]
