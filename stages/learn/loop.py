@@ -60,6 +60,7 @@ from fluorocal.stages.learn.polynomial import calibrate_polynomial
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
 from fluorocal.stages.learn.robust import SCREEN_NEIGHBOURS, local_screen, misfit_inliers
 from fluorocal.stages.learn.stopping import cost_raised, decide, field_step_sigma
+from fluorocal.stages.learn.threads import each_system
 
 logger = logging.getLogger(__name__)
 
@@ -392,7 +393,9 @@ def _regress_jointly(plan: _Plan, state: _State):
     """The refinement's joint step (:func:`_regress_system`'s, every system's field at once): updates, memory, rows."""
     screened = [_screened(plan, state, s) for s in range(len(plan.sizes))]
     sels = [sel for _, sel, _ in screened]
-    memory = tuple(_smoothness(plan, state, s, sel, state.memory[s], cap) for s, (_, sel, cap) in enumerate(screened))
+    # the systems' cross-validations side by side in threads (their LAPACK calls release the GIL)
+    cv = [(sel, state.memory[s], cap) for s, (_, sel, cap) in enumerate(screened)]
+    memory = each_system(lambda s: _smoothness(plan, state, s, *cv[s]), len(cv), plan.workers)
     updates, responses = _fit_jointly(plan, state, sels, memory)
     if plan.params.training is Training.LOCAL:
         # the misfit test reads the step's whole fit at the candidates: the field's update and the orientation's
