@@ -1,4 +1,4 @@
-"""Tests of the learning's systems side by side in threads (stages/learn/threads.py, stages/learn/trmm.py).
+"""Tests of the learning's systems side by side in threads (stages/learn/threads.py, trmm.py; lapack.py: its own).
 
 The calibration's data: ``simulated_sets`` (``tests/stages/ba_synthetic.py``), two systems with the simulator's
 strong distortion, true outline centres + 0.05 px noise, 8 + 8 epochs at 512 px; the recommended loop (its
@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pytest
 from fluorocal.stages.errors import EstimationError, InputError
-from fluorocal.stages.learn import calibrate, threads, uncertainty
+from fluorocal.stages.learn import calibrate, loop, threads, uncertainty
 from fluorocal.stages.learn import trmm as trmm_module
 from fluorocal.stages.learn.threads import each_system
 from fluorocal.stages.learn.trmm import trmm
@@ -32,21 +32,31 @@ def two_systems():
     return train, nominal
 
 
+#: each system's own work run in threads: (module, function, the index of its system argument)
+PER_SYSTEM = [(uncertainty, "joint_uncertainty", 3), (loop, "_smoothness", 2)]
+
+
 def test_threads_give_the_serial_calibration_bit_for_bit(two_systems, monkeypatch):
     (obs, initial), nominal = two_systems
-    before, threads = threading.active_count(), []
-    computed = uncertainty.joint_uncertainty
+    before, threads = threading.active_count(), {name: [] for _, name, _ in PER_SYSTEM}
 
-    def watched(*args, **kw):  # the real computation, and the thread it ran in
-        threads.append(threading.current_thread())
-        return computed(*args, **kw)
+    def watched(computed, name):  # the real computation, and the thread it ran in
+        def run(*args, **kw):
+            threads[name].append(threading.current_thread())
+            return computed(*args, **kw)
 
-    monkeypatch.setattr(uncertainty, "joint_uncertainty", watched)
+        return run
+
+    for module, name, _ in PER_SYSTEM:
+        monkeypatch.setattr(module, name, watched(getattr(module, name), name))
     serial = calibrate(obs, nominal, initial, image_size=(SIZE, SIZE), workers=1)
-    assert threads == [threading.current_thread()] * 2  # workers=1: the caller's thread alone
-    threads.clear()
+    calls = {name: len(ran) for name, ran in threads.items()}  # per system, per refinement step for the CV's
+    for ran in threads.values():  # workers=1: the caller's thread alone
+        assert set(ran) == {threading.current_thread()} and len(ran) % 2 == 0
+        ran.clear()
     threaded = calibrate(obs, nominal, initial, image_size=(SIZE, SIZE), workers=2)
-    assert len(set(threads)) == 2 and threading.current_thread() not in threads  # two threads of their own
+    for name, ran in threads.items():  # threads of their own (a pool per step), as many calls
+        assert len(set(ran)) >= 2 and threading.current_thread() not in ran and len(ran) == calls[name]
     assert serial.uncertainty is not None and serial.history[-1].phase == "grid"  # the refinement ran, σ too
     # each system's work reads only its own data and writes nothing shared: the same operations on the same
     # numbers, so the same bits (no tolerance)
@@ -60,23 +70,28 @@ def test_threads_give_the_serial_calibration_bit_for_bit(two_systems, monkeypatc
     np.testing.assert_array_equal(serial.adjustment.iop_px, threaded.adjustment.iop_px)
     np.testing.assert_array_equal(serial.corrections_px, threaded.corrections_px)
     assert repr(serial.history) == repr(threaded.history)
+    assert [cv.order for cv in serial.cv] == [cv.order for cv in threaded.cv] and len(serial.cv) == 2
+    for a, b in zip(serial.cv, threaded.cv):  # the refinement's smoothness CVs, each in its thread
+        np.testing.assert_array_equal(a.cv_cost, b.cv_cost)
     assert threading.active_count() == before  # no thread outlives the calibration
 
 
-def test_an_error_in_the_threads_is_the_serial_ones(two_systems, monkeypatch):
-    """Both systems' uncertainties fail, system B's at once and A's after its whole computation: A's error raised."""
+@pytest.mark.parametrize("module, name, at", PER_SYSTEM)
+def test_an_error_in_the_threads_is_the_serial_ones(two_systems, monkeypatch, module, name, at):
+    """Both systems' uncertainties (or CVs) fail, B's at once and A's after its whole computation: A's error raised."""
     (obs, initial), nominal = two_systems
-    computed = uncertainty.joint_uncertainty
+    computed = getattr(module, name)
 
-    def failing(adj, observations, rows, system, *args, **kw):
+    def failing(*args, **kw):
+        system = args[at]
         if system == 0:
-            computed(adj, observations, rows, system, *args, **kw)
-        raise EstimationError(f"system {'AB'[system]}: no uncertainty")
+            computed(*args, **kw)
+        raise EstimationError(f"system {'AB'[system]}: failed")
 
-    monkeypatch.setattr(uncertainty, "joint_uncertainty", failing)
+    monkeypatch.setattr(module, name, failing)
     before, messages = threading.active_count(), []
     for workers in (1, 2):
-        with pytest.raises(EstimationError, match="^system A: no uncertainty$") as caught:
+        with pytest.raises(EstimationError, match="^system A: failed$") as caught:
             calibrate(obs, nominal, initial, image_size=(SIZE, SIZE), workers=workers)
         messages.append(str(caught.value))
     assert messages[0] == messages[1]
