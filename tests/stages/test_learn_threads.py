@@ -33,7 +33,7 @@ def two_systems():
 
 
 #: each system's own work run in threads: (module, function, the index of its system argument)
-PER_SYSTEM = [(uncertainty, "joint_uncertainty", 3), (loop, "_smoothness", 2)]
+PER_SYSTEM = [(uncertainty, "joint_uncertainty", 3), (loop, "_smoothness", 2), (loop, "_regress_system", 2)]
 
 
 def test_threads_give_the_serial_calibration_bit_for_bit(two_systems, monkeypatch):
@@ -78,7 +78,7 @@ def test_threads_give_the_serial_calibration_bit_for_bit(two_systems, monkeypatc
 
 @pytest.mark.parametrize("module, name, at", PER_SYSTEM)
 def test_an_error_in_the_threads_is_the_serial_ones(two_systems, monkeypatch, module, name, at):
-    """Both systems' uncertainties (or CVs) fail, B's at once and A's after its whole computation: A's error raised."""
+    """Both systems' work (uncertainty, CV, regression) fails, B's at once, A's after computing it: A's error raised."""
     (obs, initial), nominal = two_systems
     computed = getattr(module, name)
 
