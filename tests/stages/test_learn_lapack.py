@@ -124,8 +124,10 @@ def test_a_pointer_of_another_signature_is_not_called(monkeypatch, name):
     real = cython_lapack.__pyx_capi__[name]
     assert lapack._routine(name) is not None  # this SciPy's: its typedef of double accepted
     expected = lapack._ROUTINES[name][0]
-    for other in (expected.replace("int *", "int64_t *"), expected.replace("double *", "float *")):
-        monkeypatch.setitem(cython_lapack.__pyx_capi__, name, _capsule_named(other.encode(), real))
+    # the names alive through the test: a capsule keeps a pointer to its name, not a copy
+    others = [expected.replace("int *", "int64_t *").encode(), expected.replace("double *", "float *").encode()]
+    for other in others:
+        monkeypatch.setitem(cython_lapack.__pyx_capi__, name, _capsule_named(other, real))
         lapack._routine.cache_clear()
         try:
             assert lapack._routine(name) is None
