@@ -79,7 +79,7 @@ def cholesky_band(ab: np.ndarray) -> np.ndarray:
     if info > 0:
         raise np.linalg.LinAlgError(f"{info}-th leading minor not positive definite")
     if info < 0:
-        raise ValueError(f"illegal value in {info}-th argument of internal pbtrf")
+        raise ValueError(f"illegal value in {-info}-th argument of internal pbtrf")
     return ab
 
 

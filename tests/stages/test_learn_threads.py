@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import ctypes
 import signal
+import sys
 import threading
 import time
+from concurrent.futures import Future
 
 import numpy as np
 import pytest
@@ -216,31 +218,81 @@ def test_trmm_calls_scipys_pointer_only_with_the_expected_signature(monkeypatch)
         np.testing.assert_array_equal(got, [[0.0, 1.0], [2.0, 4.0], [6.0, 9.0]])  # running sums of the columns
 
 
-def test_ctrl_c_while_the_systems_run_starts_no_other_and_leaves_no_thread():
-    """SIGINT to the waiting main thread: KeyboardInterrupt once the running systems end; the rest never start."""
-    before, started = threading.active_count(), []
-    main = threading.main_thread()
+class _Recorded(threads.ThreadPoolExecutor):
+    """each_system's pool, its futures kept (:func:`_until` waits for the queued ones' cancellation)."""
+
+    futures: list = []
+
+    def submit(self, function, s):
+        future = super().submit(function, s)
+        self.futures.append(future)
+        return future
+
+
+def _until(condition, timeout: float = 20.0) -> bool:
+    """Wait for ``condition()`` (a state of the other threads, not a duration); False after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.005)
+    return True
+
+
+def _waiting_for_a_result(thread: threading.Thread) -> bool:
+    """``thread`` blocked in ``Future.result()`` (a signal there interrupts the wait: no other code runs)."""
+    frame = sys._current_frames().get(thread.ident)
+    return (
+        frame is not None
+        and frame.f_code is threading.Condition.wait.__code__
+        and frame.f_back.f_code is Future.result.__code__
+    )
+
+
+def test_ctrl_c_while_the_systems_run_starts_no_other_and_leaves_no_thread(monkeypatch):
+    """SIGINT to the waiting main thread: KeyboardInterrupt once the running systems end; the rest never start.
+
+    Ordered by events, not sleeps: system 0 interrupts the main thread once system 1 runs and the main thread
+    waits for the results; the running systems end once the queued ones are cancelled. SIGINT's handler (it
+    records that it ran) and mask are the test's own: another test's leave nothing here.
+    """
+    main, before, started, finished, handled = threading.main_thread(), threading.active_count(), [], [], []
     assert threading.current_thread() is main
+    monkeypatch.setattr(_Recorded, "futures", [])
+    monkeypatch.setattr(threads, "ThreadPoolExecutor", _Recorded)
+
+    def interrupt(signum, frame):
+        handled.append(threading.current_thread())
+        raise KeyboardInterrupt
 
     def system(s: int) -> int:
         started.append(s)
         if s == 0:
-            time.sleep(0.1)  # the main thread waiting for the results by now
+            assert _until(lambda: 1 in started) and _until(lambda: _waiting_for_a_result(main))
             signal.pthread_kill(main.ident, signal.SIGINT)
-        time.sleep(0.3)
+        _until(lambda: len(_Recorded.futures) == 4 and all(f.cancelled() for f in _Recorded.futures[2:]))
+        finished.append(s)
         return s
 
-    with pytest.raises(KeyboardInterrupt):
-        each_system(system, 4, workers=2)
-    assert 0 in started and set(started) <= {0, 1}  # the running ones finished; systems 2 and 3 never started
+    previous = signal.signal(signal.SIGINT, interrupt)
+    mask = signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            each_system(system, 4, workers=2)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        signal.signal(signal.SIGINT, previous)
+    assert handled == [main]
+    # the running ones finished before it was raised; systems 2 and 3 never started
+    assert sorted(started) == sorted(finished) == [0, 1]
     assert threading.active_count() == before
 
 
 def test_ctrl_c_while_the_systems_are_handed_out_starts_no_queued_one(monkeypatch):
     """KeyboardInterrupt in ``submit`` of system 3: system 2, queued behind the two running, never starts."""
-    before, started = threading.active_count(), []
+    before, started, finished = threading.active_count(), [], []
 
-    class Interrupted(threads.ThreadPoolExecutor):
+    class Interrupted(_Recorded):
         def submit(self, function, s):
             if s == 3:
                 raise KeyboardInterrupt
@@ -248,11 +300,14 @@ def test_ctrl_c_while_the_systems_are_handed_out_starts_no_queued_one(monkeypatc
 
     def system(s: int) -> int:
         started.append(s)
-        time.sleep(0.3)  # both threads busy while the main thread submits and is interrupted
+        # both threads busy while the main thread submits and is interrupted: until system 2 is cancelled
+        _until(lambda: len(Interrupted.futures) == 3 and Interrupted.futures[2].cancelled())
+        finished.append(s)
         return s
 
+    monkeypatch.setattr(_Recorded, "futures", [])
     monkeypatch.setattr(threads, "ThreadPoolExecutor", Interrupted)
     with pytest.raises(KeyboardInterrupt):
         each_system(system, 4, workers=2)
-    assert sorted(started) == [0, 1]
+    assert sorted(started) == sorted(finished) == [0, 1]
     assert threading.active_count() == before
