@@ -190,15 +190,18 @@ LEARN_PARTS = {
 
 
 def learn_parts(func, inputs, params, extras) -> None:
-    """Where the default learn stage's time goes: a second run under cProfile (CPU time), cumulative time per part."""
+    """Where the default learn stage's time goes: a second run under cProfile (CPU time), cumulative time per part.
+
+    The second run is serial (one worker): cProfile sees only the thread it started in, not the systems' threads.
+    """
     profiler = cProfile.Profile(time.process_time)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         c0 = time.process_time()
-        profiler.runcall(func, *inputs, params, **extras)
+        profiler.runcall(func, *inputs, params, **{**extras, **({"workers": 1} if "workers" in extras else {})})
         cpu = time.process_time() - c0
     stats = pstats.Stats(profiler).stats  # (file, line, name) -> (primitive calls, calls, own, cumulative, callers)
-    print(f"  where the default's CPU time goes (a second run under cProfile, {cpu:.1f} s CPU there):")
+    print(f"  where the default's CPU time goes (a second run under cProfile, serial, {cpu:.1f} s CPU there):")
     total = 0.0
     for label, (suffix, name) in LEARN_PARTS.items():
         calls, seconds = profiled(stats, suffix, name)

@@ -18,8 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from fluorocal.stages.learn.lapack import cholesky_lower, inverse_lower
 from fluorocal.stages.learn.trmm import trmm
-from scipy.linalg import cholesky, lapack
 from scipy.sparse import issparse
 
 
@@ -142,9 +142,9 @@ def block_cholesky(S) -> BlockCholesky:
             C = np.triu(S[lo:hi, lo - block : lo].toarray() @ inverse[-1].T)
             S_kk -= C @ C.T
             below.append(C)
-        L = cholesky(S_kk, lower=True)
+        L = cholesky_lower(S_kk)
         diagonal.append(L)
-        inverse.append(np.asfortranarray(lapack.dtrtri(L, lower=1)[0]))
+        inverse.append(inverse_lower(L))
     return BlockCholesky(block, tuple(diagonal), tuple(below), tuple(inverse))
 
 

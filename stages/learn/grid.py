@@ -15,6 +15,7 @@ import numpy as np
 from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.errors import EstimationError
 from fluorocal.stages.field import CorrectionField, bilinear_design
+from fluorocal.stages.learn.lapack import cholesky_band, solve_band
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec, check_training
 from fluorocal.stages.learn.robust import capped_cost
 
@@ -62,9 +63,7 @@ class BandedCholesky:
     factor: np.ndarray  # shape (bandwidth + 1, n), Fortran order
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        from scipy.linalg import cho_solve_banded
-
-        return cho_solve_banded((self.factor, True), rhs, check_finite=False)
+        return solve_band(self.factor, rhs)
 
 
 def factor_spd(M):
@@ -141,11 +140,9 @@ def _sparse_factor(M):
 
 
 def _banded_factor(ab: np.ndarray) -> BandedCholesky:
-    """The banded Cholesky factor of the lower band ``ab`` (Fortran order; overwritten)."""
-    from scipy.linalg import cholesky_banded
-
+    """The banded Cholesky factor of the lower band ``ab`` (Fortran order; overwritten), the GIL released."""
     try:
-        return BandedCholesky(cholesky_banded(ab, overwrite_ab=True, lower=True, check_finite=False))
+        return BandedCholesky(cholesky_band(ab))
     except np.linalg.LinAlgError as exc:
         raise _singular(exc) from None
 

@@ -61,6 +61,7 @@ from fluorocal.stages.learn.polynomial import calibrate_polynomial
 from fluorocal.stages.learn.result import IterationRecord, LearnResult
 from fluorocal.stages.learn.robust import SCREEN_NEIGHBOURS, local_screen, misfit_inliers
 from fluorocal.stages.learn.stopping import cost_raised, decide, field_step_sigma
+from fluorocal.stages.learn.threads import each_system
 
 logger = logging.getLogger(__name__)
 
@@ -169,7 +170,7 @@ def calibrate(
         Which parameters it estimates is the scheme's: the IOP for ``"iop"`` schemes and
         ``"none"``, the polynomial model's for ``"polynomial"``.
     workers : int
-        The systems' joint uncertainties side by side in up to this many threads
+        The systems' regressions and joint uncertainties side by side in up to this many threads
         (:mod:`fluorocal.stages.learn.threads`); the result is the serial one's. Default 1: serial.
 
     Returns
@@ -360,7 +361,8 @@ def _regress(plan: _Plan, state: _State) -> tuple[tuple, tuple, float, np.ndarra
     if state.phase == "grid" and plan.refine is Refine.GRID_POINTS:
         updates, memory, sels, responses = _regress_jointly(plan, state)
     else:
-        updates, memory, sels = zip(*(_regress_system(plan, state, s) for s in range(len(plan.sizes))))
+        n_systems = len(plan.sizes)  # the systems side by side in threads (:mod:`.threads`)
+        updates, memory, sels = zip(*each_system(lambda s: _regress_system(plan, state, s), n_systems, plan.workers))
         responses = (0.0,) * len(updates)
     fit_cost, trained = 0.0, np.zeros(len(plan.xy), bool)
     for model, sel, response in zip(updates, sels, responses):
@@ -393,7 +395,8 @@ def _regress_jointly(plan: _Plan, state: _State):
     """The refinement's joint step (:func:`_regress_system`'s, every system's field at once): updates, memory, rows."""
     screened = [_screened(plan, state, s) for s in range(len(plan.sizes))]
     sels = [sel for _, sel, _ in screened]
-    memory = tuple(_smoothness(plan, state, s, sel, state.memory[s], cap) for s, (_, sel, cap) in enumerate(screened))
+    cv = [(sel, state.memory[s], cap) for s, (_, sel, cap) in enumerate(screened)]
+    memory = each_system(lambda s: _smoothness(plan, state, s, *cv[s]), len(cv), plan.workers)
     updates, responses = _fit_jointly(plan, state, sels, memory)
     if plan.params.training is Training.LOCAL:
         # the misfit test reads the step's whole fit at the candidates: the field's update and the orientation's

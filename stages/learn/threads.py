@@ -1,16 +1,17 @@
 """Each system's independent work in the learning: one system after the other, or side by side in threads.
 
-A biplanar project's two systems share the loop's adjustment, but its joint uncertainty
-(:func:`~fluorocal.stages.learn.uncertainty.learned_uncertainty`) is each system's own: given ``workers`` > 1 by
+A biplanar project's two systems share the loop's adjustment, but their regressions (the kNN's, the refinement's
+smoothness cross-validations) and their joint uncertainties
+(:func:`~fluorocal.stages.learn.uncertainty.learned_uncertainty`) are each system's own: given ``workers`` > 1 by
 the caller (the pipeline passes its worker count, ``--jobs``), :func:`each_system` runs the systems in up to that
 many threads, with one BLAS thread each as the process was started with; the numbers are those of the serial
 run (each system's work reads only its own data and writes nothing shared). One system, or ``workers=1`` (the
 default, as a library call and the tests get it), starts no thread at all.
 
-Threads, not processes: that work is BLAS-3 products, which release the GIL (:mod:`.trmm`), on arrays that would
-otherwise be copied to another process. The loop's own per-system work stays serial: its kNN regressions (many
-small NumPy calls) and its smoothness cross-validation (SciPy's banded Cholesky holds the GIL) gained nothing in
-two threads when measured (a kNN iteration of a 75 + 75 set: 0.59 s serial, 0.62 s threaded, load 4).
+Threads, not processes: that work is mostly compiled code that releases the GIL, on arrays that would otherwise
+be copied to another process: BLAS-3 products (:mod:`.trmm`), LAPACK's Cholesky factorizations and solves
+(:mod:`.lapack`: SciPy's own wrappers hold the GIL) and the KD-tree's queries. The refinement's joint field step
+couples the systems and stays serial.
 """
 
 from __future__ import annotations

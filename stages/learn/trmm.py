@@ -41,23 +41,38 @@ def _c_signature(capsule_name: bytes | None) -> str:
     return re.sub(r"\b__pyx_t_\w+?_d\b", "double", (capsule_name or b"").decode("ascii", "replace"))
 
 
-@lru_cache(maxsize=1)
-def _dtrmm():
-    """SciPy's BLAS ``dtrmm`` as a :mod:`ctypes` function (which releases the GIL), or None where not found.
+def capsule_function(module, routine: str, c_signature: str, prototype):
+    """``module``'s (``cython_blas``, ``cython_lapack``) ``routine`` as a ctypes ``prototype``, or None if not found.
 
-    None also where the pointer's C signature is not :data:`_CAPSULE_NAME`: called with the wrong types it would
-    crash or write wrong numbers.
+    The :mod:`ctypes` function releases the GIL for the call. None also where the pointer's C signature (its
+    capsule's name, :func:`_c_signature`) is not ``c_signature``: called with the wrong types it would crash or
+    write wrong numbers.
     """
     try:
-        from scipy.linalg import cython_blas
-
-        capsule = cython_blas.__pyx_capi__["dtrmm"]
+        capsule = module.__pyx_capi__[routine]
         name = _NAME_OF(capsule)
-        if _c_signature(name) != _CAPSULE_NAME:
+        if _c_signature(name) != c_signature:
             return None
-        return _SIGNATURE(_POINTER_OF(capsule, name))
-    except (ImportError, AttributeError, KeyError, TypeError, ValueError):
+        return prototype(_POINTER_OF(capsule, name))
+    except (AttributeError, KeyError, TypeError, ValueError):
         return None
+
+
+def int_refs(*values: int) -> tuple:
+    """Each of ``values`` as the ``int *`` a Fortran routine takes (LP64), alive as long as the tuple."""
+    if max(values, default=0) > _INT_MAX:  # ctypes would wrap a larger one silently
+        raise ValueError(f"a dimension beyond BLAS's int: {max(values)}")
+    return tuple(ctypes.byref(ctypes.c_int(v)) for v in values)
+
+
+@lru_cache(maxsize=1)
+def _dtrmm():
+    """SciPy's BLAS ``dtrmm`` as a :mod:`ctypes` function, or None (:func:`capsule_function`)."""
+    try:
+        from scipy.linalg import cython_blas
+    except ImportError:
+        return None
+    return capsule_function(cython_blas, "dtrmm", _CAPSULE_NAME, _SIGNATURE)
 
 
 def trmm(a: np.ndarray, b: np.ndarray, *, side: int, lower: int, trans_a: int, diag: int = 0) -> np.ndarray:
@@ -87,9 +102,9 @@ def trmm(a: np.ndarray, b: np.ndarray, *, side: int, lower: int, trans_a: int, d
         return blas.dtrmm(1.0, a, b, side=side, lower=lower, trans_a=trans_a, diag=diag, overwrite_b=1)
     a = np.require(a, np.float64, ["F_CONTIGUOUS", "ALIGNED"])  # a copy where needed, alive through the call
     flags = (b"R" if side else b"L", b"L" if lower else b"U", b"T" if trans_a else b"N", b"U" if diag else b"N")
-    m_, n_, lda, ldb = (ctypes.byref(ctypes.c_int(v)) for v in (m, n, max(k, 1), max(m, 1)))
+    m_, n_, lda, ldb = int_refs(m, n, max(k, 1), max(m, 1))
     function(*flags, m_, n_, ctypes.byref(ctypes.c_double(1.0)), a.ctypes.data, lda, b.ctypes.data, ldb)
     return b
 
 
-__all__ = ["trmm"]
+__all__ = ["capsule_function", "int_refs", "trmm"]

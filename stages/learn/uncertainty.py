@@ -75,11 +75,12 @@ from fluorocal.stages.field import bilinear_design
 from fluorocal.stages.learn.blocktri import block_cholesky
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import prior_normal
+from fluorocal.stages.learn.lapack import inverse_lower
 from fluorocal.stages.learn.network import linearised_network
 from fluorocal.stages.learn.params import FieldGauge
 from fluorocal.stages.learn.threads import each_system
 from fluorocal.stages.learn.trmm import trmm
-from scipy.linalg import lapack, ldl
+from scipy.linalg import ldl
 from scipy.sparse import bmat, csr_matrix, diags, identity, issparse, vstack
 
 # rows of the field's dense work done at a time in place (no second array of its size)
@@ -430,7 +431,7 @@ class _SymmetricInverse:
 def _symmetric_inverse(H: np.ndarray) -> _SymmetricInverse:
     """:class:`_SymmetricInverse` of a symmetric ``H``."""
     lu, d, perm = ldl(H, lower=True)
-    L_inv, _ = lapack.dtrtri(lu[perm], lower=1, unitdiag=1)  # lu[perm] is unit lower triangular
+    L_inv = inverse_lower(lu[perm], unit=True)  # lu[perm] is unit lower triangular
     return _SymmetricInverse(np.asfortranarray(L_inv), _block_diagonal_inverse(d), perm)
 
 

@@ -1,4 +1,4 @@
-"""Tests of the learning's systems side by side in threads (stages/learn/threads.py, stages/learn/trmm.py).
+"""Tests of the learning's systems side by side in threads (stages/learn/threads.py, trmm.py; lapack.py: its own).
 
 The calibration's data: ``simulated_sets`` (``tests/stages/ba_synthetic.py``), two systems with the simulator's
 strong distortion, true outline centres + 0.05 px noise, 8 + 8 epochs at 512 px; the recommended loop (its
@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import ctypes
 import signal
+import sys
 import threading
 import time
+from concurrent.futures import Future
 
 import numpy as np
 import pytest
 from fluorocal.stages.errors import EstimationError, InputError
-from fluorocal.stages.learn import calibrate, threads, uncertainty
+from fluorocal.stages.learn import calibrate, loop, threads, uncertainty
 from fluorocal.stages.learn import trmm as trmm_module
 from fluorocal.stages.learn.threads import each_system
 from fluorocal.stages.learn.trmm import trmm
@@ -32,21 +34,31 @@ def two_systems():
     return train, nominal
 
 
+#: each system's own work run in threads: (module, function, the index of its system argument)
+PER_SYSTEM = [(uncertainty, "joint_uncertainty", 3), (loop, "_smoothness", 2), (loop, "_regress_system", 2)]
+
+
 def test_threads_give_the_serial_calibration_bit_for_bit(two_systems, monkeypatch):
     (obs, initial), nominal = two_systems
-    before, threads = threading.active_count(), []
-    computed = uncertainty.joint_uncertainty
+    before, threads = threading.active_count(), {name: [] for _, name, _ in PER_SYSTEM}
 
-    def watched(*args, **kw):  # the real computation, and the thread it ran in
-        threads.append(threading.current_thread())
-        return computed(*args, **kw)
+    def watched(computed, name):  # the real computation, and the thread it ran in
+        def run(*args, **kw):
+            threads[name].append(threading.current_thread())
+            return computed(*args, **kw)
 
-    monkeypatch.setattr(uncertainty, "joint_uncertainty", watched)
+        return run
+
+    for module, name, _ in PER_SYSTEM:
+        monkeypatch.setattr(module, name, watched(getattr(module, name), name))
     serial = calibrate(obs, nominal, initial, image_size=(SIZE, SIZE), workers=1)
-    assert threads == [threading.current_thread()] * 2  # workers=1: the caller's thread alone
-    threads.clear()
+    calls = {name: len(ran) for name, ran in threads.items()}  # per system, per refinement step for the CV's
+    for ran in threads.values():  # workers=1: the caller's thread alone
+        assert set(ran) == {threading.current_thread()} and len(ran) % 2 == 0
+        ran.clear()
     threaded = calibrate(obs, nominal, initial, image_size=(SIZE, SIZE), workers=2)
-    assert len(set(threads)) == 2 and threading.current_thread() not in threads  # two threads of their own
+    for name, ran in threads.items():  # threads of their own (a pool per step), as many calls
+        assert len(set(ran)) >= 2 and threading.current_thread() not in ran and len(ran) == calls[name]
     assert serial.uncertainty is not None and serial.history[-1].phase == "grid"  # the refinement ran, σ too
     # each system's work reads only its own data and writes nothing shared: the same operations on the same
     # numbers, so the same bits (no tolerance)
@@ -60,23 +72,28 @@ def test_threads_give_the_serial_calibration_bit_for_bit(two_systems, monkeypatc
     np.testing.assert_array_equal(serial.adjustment.iop_px, threaded.adjustment.iop_px)
     np.testing.assert_array_equal(serial.corrections_px, threaded.corrections_px)
     assert repr(serial.history) == repr(threaded.history)
+    assert [cv.order for cv in serial.cv] == [cv.order for cv in threaded.cv] and len(serial.cv) == 2
+    for a, b in zip(serial.cv, threaded.cv):  # the refinement's smoothness CVs, each in its thread
+        np.testing.assert_array_equal(a.cv_cost, b.cv_cost)
     assert threading.active_count() == before  # no thread outlives the calibration
 
 
-def test_an_error_in_the_threads_is_the_serial_ones(two_systems, monkeypatch):
-    """Both systems' uncertainties fail, system B's at once and A's after its whole computation: A's error raised."""
+@pytest.mark.parametrize("module, name, at", PER_SYSTEM)
+def test_an_error_in_the_threads_is_the_serial_ones(two_systems, monkeypatch, module, name, at):
+    """Both systems' work (uncertainty, CV, regression) fails, B's at once, A's after computing it: A's error raised."""
     (obs, initial), nominal = two_systems
-    computed = uncertainty.joint_uncertainty
+    computed = getattr(module, name)
 
-    def failing(adj, observations, rows, system, *args, **kw):
+    def failing(*args, **kw):
+        system = args[at]
         if system == 0:
-            computed(adj, observations, rows, system, *args, **kw)
-        raise EstimationError(f"system {'AB'[system]}: no uncertainty")
+            computed(*args, **kw)
+        raise EstimationError(f"system {'AB'[system]}: failed")
 
-    monkeypatch.setattr(uncertainty, "joint_uncertainty", failing)
+    monkeypatch.setattr(module, name, failing)
     before, messages = threading.active_count(), []
     for workers in (1, 2):
-        with pytest.raises(EstimationError, match="^system A: no uncertainty$") as caught:
+        with pytest.raises(EstimationError, match="^system A: failed$") as caught:
             calibrate(obs, nominal, initial, image_size=(SIZE, SIZE), workers=workers)
         messages.append(str(caught.value))
     assert messages[0] == messages[1]
@@ -201,31 +218,81 @@ def test_trmm_calls_scipys_pointer_only_with_the_expected_signature(monkeypatch)
         np.testing.assert_array_equal(got, [[0.0, 1.0], [2.0, 4.0], [6.0, 9.0]])  # running sums of the columns
 
 
-def test_ctrl_c_while_the_systems_run_starts_no_other_and_leaves_no_thread():
-    """SIGINT to the waiting main thread: KeyboardInterrupt once the running systems end; the rest never start."""
-    before, started = threading.active_count(), []
-    main = threading.main_thread()
+class _Recorded(threads.ThreadPoolExecutor):
+    """each_system's pool, its futures kept (:func:`_until` waits for the queued ones' cancellation)."""
+
+    futures: list = []
+
+    def submit(self, function, s):
+        future = super().submit(function, s)
+        self.futures.append(future)
+        return future
+
+
+def _until(condition, timeout: float = 20.0) -> bool:
+    """Wait for ``condition()`` (a state of the other threads, not a duration); False after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.005)
+    return True
+
+
+def _waiting_for_a_result(thread: threading.Thread) -> bool:
+    """``thread`` blocked in ``Future.result()`` (a signal there interrupts the wait: no other code runs)."""
+    frame = sys._current_frames().get(thread.ident)
+    return (
+        frame is not None
+        and frame.f_code is threading.Condition.wait.__code__
+        and frame.f_back.f_code is Future.result.__code__
+    )
+
+
+def test_ctrl_c_while_the_systems_run_starts_no_other_and_leaves_no_thread(monkeypatch):
+    """SIGINT to the waiting main thread: KeyboardInterrupt once the running systems end; the rest never start.
+
+    Ordered by events, not sleeps: system 0 interrupts the main thread once system 1 runs and the main thread
+    waits for the results; the running systems end once the queued ones are cancelled. SIGINT's handler (it
+    records that it ran) and mask are the test's own: another test's leave nothing here.
+    """
+    main, before, started, finished, handled = threading.main_thread(), threading.active_count(), [], [], []
     assert threading.current_thread() is main
+    monkeypatch.setattr(_Recorded, "futures", [])
+    monkeypatch.setattr(threads, "ThreadPoolExecutor", _Recorded)
+
+    def interrupt(signum, frame):
+        handled.append(threading.current_thread())
+        raise KeyboardInterrupt
 
     def system(s: int) -> int:
         started.append(s)
         if s == 0:
-            time.sleep(0.1)  # the main thread waiting for the results by now
+            assert _until(lambda: 1 in started) and _until(lambda: _waiting_for_a_result(main))
             signal.pthread_kill(main.ident, signal.SIGINT)
-        time.sleep(0.3)
+        _until(lambda: len(_Recorded.futures) == 4 and all(f.cancelled() for f in _Recorded.futures[2:]))
+        finished.append(s)
         return s
 
-    with pytest.raises(KeyboardInterrupt):
-        each_system(system, 4, workers=2)
-    assert 0 in started and set(started) <= {0, 1}  # the running ones finished; systems 2 and 3 never started
+    previous = signal.signal(signal.SIGINT, interrupt)
+    mask = signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            each_system(system, 4, workers=2)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        signal.signal(signal.SIGINT, previous)
+    assert handled == [main]
+    # the running ones finished before it was raised; systems 2 and 3 never started
+    assert sorted(started) == sorted(finished) == [0, 1]
     assert threading.active_count() == before
 
 
 def test_ctrl_c_while_the_systems_are_handed_out_starts_no_queued_one(monkeypatch):
     """KeyboardInterrupt in ``submit`` of system 3: system 2, queued behind the two running, never starts."""
-    before, started = threading.active_count(), []
+    before, started, finished = threading.active_count(), [], []
 
-    class Interrupted(threads.ThreadPoolExecutor):
+    class Interrupted(_Recorded):
         def submit(self, function, s):
             if s == 3:
                 raise KeyboardInterrupt
@@ -233,11 +300,14 @@ def test_ctrl_c_while_the_systems_are_handed_out_starts_no_queued_one(monkeypatc
 
     def system(s: int) -> int:
         started.append(s)
-        time.sleep(0.3)  # both threads busy while the main thread submits and is interrupted
+        # both threads busy while the main thread submits and is interrupted: until system 2 is cancelled
+        _until(lambda: len(Interrupted.futures) == 3 and Interrupted.futures[2].cancelled())
+        finished.append(s)
         return s
 
+    monkeypatch.setattr(_Recorded, "futures", [])
     monkeypatch.setattr(threads, "ThreadPoolExecutor", Interrupted)
     with pytest.raises(KeyboardInterrupt):
         each_system(system, 4, workers=2)
-    assert sorted(started) == [0, 1]
+    assert sorted(started) == sorted(finished) == [0, 1]
     assert threading.active_count() == before
