@@ -269,6 +269,12 @@ def _checked_inputs(observations, initial: Orientation, corrections_px) -> np.nd
             f"initial orientation has {initial.n_systems} system(s); "
             f"observations name {len(observations.system_names)}: {observations.system_names}"
         )
+    if not (np.array_equal(np.abs(initial.rop_q[0]), [1.0, 0, 0, 0]) and not np.any(initial.rop_source_mm[0])):
+        # the model takes system 0's camera as the reference frame (its observations skip the ROP)
+        raise InputError(
+            f"initial.rop_q[0] must be the identity and rop_source_mm[0] zero (system 0 is the reference); "
+            f"got {initial.rop_q[0].tolist()}, {initial.rop_source_mm[0].tolist()}"
+        )
     if np.any(observations.sigma_px[:, :2] <= 0) or np.any(np.abs(observations.sigma_px[:, 2]) >= 1):
         raise InputError("sigma_px must have σx, σy > 0 and |ρ| < 1")
     return corrections_px

@@ -104,8 +104,12 @@ def camera_points(state: State, problem: Problem) -> tuple[np.ndarray, np.ndarra
     p_ref = np.einsum("nij,nj->ni", R_pose.take(problem.pose_idx, axis=0), d)
     if problem.n_systems == 1:
         return p_ref, p_ref, R_pose, R_rop
-    s = problem.sys_idx
-    p = np.einsum("nij,nj->ni", R_rop.take(s, axis=0), p_ref - state.rop_source_mm.take(s, axis=0))
+    # the reference system's observations come first: their relative orientation is the identity
+    m = problem.n_reference
+    s = problem.sys_idx[m:]
+    p = np.empty_like(p_ref)
+    p[:m] = p_ref[:m]
+    np.einsum("nij,nj->ni", R_rop.take(s, axis=0), p_ref[m:] - state.rop_source_mm.take(s, axis=0), out=p[m:])
     return p, p_ref, R_pose, R_rop
 
 
@@ -242,11 +246,13 @@ def jacobian(state: State, problem: Problem, projection: Projection | None = Non
     Jp[:, 1, 0] = -l21 * a
     Jp[:, 1, 1] = -l22 * a
     Jp[:, 1, 2] = a * (l21 * u + l22 * v)
+    m = problem.n_reference  # the first observations, the reference system's (relative orientation the identity)
     if problem.n_systems == 1:
         K = Jp
         R_full = R_pose.take(problem.pose_idx, axis=0)
     else:
-        K = Jp @ R_rop.take(problem.sys_idx, axis=0)
+        K = Jp.copy()
+        np.matmul(Jp[m:], R_rop.take(problem.sys_idx[m:], axis=0), out=K[m:])
         # R_s R_j of each (epoch, system) pair once, then gathered: far fewer pairs than observations
         R_pairs = (R_rop[None, :] @ R_pose[:, None]).reshape(-1, 3, 3)
         R_full = R_pairs.take(problem.pose_idx * problem.n_systems + problem.sys_idx, axis=0)
@@ -264,8 +270,9 @@ def jacobian(state: State, problem: Problem, projection: Projection | None = Non
     J_glob[:, 1, 1] = -l22
     J_glob[:, 1, 2] = -(l21 * u + l22 * v)
     if problem.n_systems > 1:
-        _cross_rows(p, Jp, J_glob[:, :, 3:6])
-        np.negative(K, out=J_glob[:, :, 6:9])
+        J_glob[:m, :, 3:9] = 0.0  # the reference system has no relative orientation (its columns are dropped)
+        _cross_rows(p[m:], Jp[m:], J_glob[m:, :, 3:6])
+        np.negative(K[m:], out=J_glob[m:, :, 6:9])
     if basis is not None:
         _ap_columns(state, problem, basis, J_glob)
     return e, J

@@ -1,7 +1,7 @@
 """Normal equations of the bundle adjustment in Schur blocks, and the datum-constrained (bordered) damped step.
 
 ``H δ = b`` with ``H = Σ w J^T J`` and ``b = -Σ w J^T e`` is accumulated by
-segment sums over the observations pre-sorted by the eliminated block
+segment sums over the observations pre-sorted by system and kept block
 (:class:`stages.adjust.problem.Problem`), the eliminated blocks (points or
 poses) are removed by a Schur complement, and the 7 inner constraints border
 the reduced system (:func:`reduced_system`). :func:`factorize` and
@@ -30,8 +30,8 @@ def _segment_grams(J: np.ndarray, starts: np.ndarray, first: int) -> np.ndarray:
 
     One BLAS product per run: the runs (one per kept block and system) are few
     and long, where a batched per-observation product would be memory bound. The
-    columns are sliced in the product (a strided operand BLAS reads in place), so
-    that ``J`` is gathered in whole rows, which is cheaper than gathering a slice.
+    columns are sliced in the product (a strided operand BLAS reads in place), and
+    the observations are stored in runs (:class:`stages.adjust.problem.Problem`): no copy of ``J``.
     """
     flat = J.reshape(-1, J.shape[2])
     bounds = 2 * np.r_[starts, len(J)]
@@ -66,9 +66,16 @@ class Normal:
     b_y: np.ndarray
 
 
-def weighted_jacobian(e: np.ndarray, J: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``sqrt(w)``-weighted Jacobian (N, 2, nt) and residuals (N, 2); ``J`` from :func:`collinearity.jacobian`."""
+def weighted_jacobian(
+    e: np.ndarray, J: np.ndarray, w: np.ndarray, *, overwrite_j: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """``sqrt(w)``-weighted Jacobian (N, 2, nt) and residuals (N, 2); ``J`` from :func:`collinearity.jacobian`.
+
+    ``overwrite_j``: scale ``J`` in place (a solver's own Jacobian: no second array of its size).
+    """
     sw = np.sqrt(w)[:, None]
+    if overwrite_j:
+        return np.multiply(J, sw[:, :, None], out=J), e * sw
     return J * sw[:, :, None], e * sw
 
 
@@ -110,7 +117,7 @@ def gradient(problem: Problem, J: np.ndarray, ew: np.ndarray) -> tuple[np.ndarra
     b_e = -_per_block(problem.es_summer @ bj, problem.es_e)[:, :be]
     b_y = np.zeros(nk * bk + G + 1)
     bk_sums = problem.ks_summer @ bj[:, be:]  # shape (n_ks, bk + ng): per (kept block, system)
-    b_y[: nk * bk] = -_per_block(bk_sums[:, :bk], problem.ks_k).reshape(-1)
+    b_y[: nk * bk] = -_per_kept_block(bk_sums[:, :bk], problem).reshape(-1)
     gcols = _gcols(problem, nk * bk, nk * bk + G + 1)
     for s in range(problem.n_systems):
         np.add.at(b_y, gcols[s], -bk_sums[problem.ks_s == s, bk:].sum(0))
@@ -122,14 +129,20 @@ def _per_block(sums: np.ndarray, block: np.ndarray) -> np.ndarray:
     return np.add.reduceat(sums, segment_starts(block), axis=0)
 
 
+def _per_kept_block(sums: np.ndarray, problem: Problem) -> np.ndarray:
+    """Per-(system, kept block) ``sums`` added over the systems of each kept block."""
+    order = problem.ks_by_block
+    return _per_block(sums[order], problem.ks_k[order])
+
+
 def assemble(problem: Problem, J: np.ndarray, ew: np.ndarray, J_hessian: np.ndarray | None = None) -> Normal:
     """Weighted normal equations ``Σ w J^T J`` and ``-Σ w J^T e`` in Schur blocks (no loops over observations).
 
     ``J, ew`` from :func:`weighted_jacobian` (the gradient); ``J_hessian``
     replaces ``J`` in ``H`` if given (:func:`triggs_corrected`). Batched products of the
     per-observation Jacobians are accumulated by segment sums over observations
-    pre-sorted by the eliminated block (:attr:`Problem.es_summer`) and, through
-    ``k_order``, by the kept block (:attr:`Problem.ks_summer`).
+    pre-sorted by system and kept block (:attr:`Problem.ks_starts`) and, through
+    ``e_order``, by the eliminated block (:attr:`Problem.es_summer`).
     """
     ne, nk, be, bk, G = problem.ne, problem.nk, problem.be, problem.bk, problem.n_globals
     r = nk * bk + G
@@ -137,14 +150,15 @@ def assemble(problem: Problem, J: np.ndarray, ew: np.ndarray, J_hessian: np.ndar
     if J_hessian is not None:
         J = J_hessian
     kk = be + bk
-    OE = _outer(J[:, :, :be], J)  # shape (N, be, nt): eliminated rows
-    # shape (n_es, be, nt): per (eliminated block, system)
-    ES = (problem.es_summer @ OE.reshape(len(J), -1)).reshape(-1, be, OE.shape[2])
-    A = _per_block(ES[:, :, :be], problem.es_e)
+    J_e = J[:, :, :be]
+    # per (eliminated block, system) sums of the eliminated rows against themselves and the globals:
+    # the coupling with the kept block is per observation and goes to B whole
+    EA = problem.es_summer @ _outer(J_e, J_e).reshape(len(J), -1)
+    A = _per_block(EA.reshape(-1, be, be), problem.es_e)
     # in observation order: a pair seen by two systems gets 0 + x0 + x1, as when added system by system
-    B = np.bincount(problem.coupling_index, weights=OE[:, :, be:kk].ravel(), minlength=ne * be * r)
+    B = np.bincount(problem.coupling_index, weights=_outer(J_e, J[:, :, be:kk]).ravel(), minlength=ne * be * r)
     B = B.reshape(ne, be, r)
-    Eg = ES[:, :, kk:]
+    Eg = (problem.es_summer @ _outer(J_e, J[:, :, kk:]).reshape(len(J), -1)).reshape(len(EA), be, -1)
     gcols = _gcols(problem, nk * bk, r + 1)
     valid = gcols[problem.es_s] < r  # fixed globals point past the end
     e_rows = np.broadcast_to(problem.es_e[:, None, None], Eg.shape)
@@ -155,8 +169,8 @@ def assemble(problem: Problem, J: np.ndarray, ew: np.ndarray, J_hessian: np.ndar
 
     rg = r + 1  # the extra last column collects fixed globals and is dropped
     Hyy = np.zeros((rg, rg))
-    KS = _segment_grams(J.take(problem.k_order, axis=0), problem.ks_starts, be)  # shape (n_ks, bk + ng, bk + ng)
-    KK = _per_block(KS[:, :bk, :bk], problem.ks_k)
+    KS = _segment_grams(J, problem.ks_starts, be)  # shape (n_ks, bk + ng, bk + ng)
+    KK = _per_kept_block(KS[:, :bk, :bk], problem)
     blk = np.arange(nk)[:, None] * bk + np.arange(bk)
     Hyy[blk[:, :, None], blk[:, None, :]] = KK
     KS = KS[:, :, bk:]

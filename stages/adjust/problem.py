@@ -1,7 +1,7 @@
 """The problem builder of the bundle adjustment: indices and whitening, free/fixed parameters, gauge, packing, sparsity.
 
 :func:`build_problem` sorts the observations for the Schur complement (by
-eliminated block, then system), maps every system's free IOP, ROP and AP
+system, then kept block), maps every system's free IOP, ROP and AP
 parameters to columns of the globals vector (:attr:`Problem.gcol`), and sets
 the datum (the inner constraints of the object points at their nominal
 coordinates). :func:`split_step` and :func:`apply_step` unpack a step of the
@@ -27,8 +27,13 @@ N_GLOBAL_COLS = 9  # per observation: IOP (3) + ROP rotation (3) + ROP translati
 class Problem:
     """Everything about the problem that does not change during a solve.
 
-    Observations are stored sorted by (eliminated block, system) so that the
-    eliminated blocks' sums are contiguous segments (:attr:`es_summer`).
+    Observations are stored sorted by (system, kept block, eliminated block):
+    the kept blocks' Gram matrices are products of contiguous runs of the
+    Jacobian (no gathered copy per linearisation), and the reference system's
+    observations, whose relative orientation is the identity, come first
+    (:attr:`n_reference`). The eliminated blocks' sums go through ``e_order``
+    (:attr:`es_summer`), in the same order as if the observations were sorted
+    by eliminated block.
 
     Attributes
     ----------
@@ -47,10 +52,13 @@ class Problem:
         ``"points"`` or ``"poses"``: the block type removed by the Schur complement.
     e_idx, k_idx : (N,) int64 ndarray
         Eliminated and kept block of each observation.
-    es_starts, es_e, es_s : int64 ndarray
-        Segment starts of each (eliminated block, system), and its block and system.
-    k_order, ks_starts, ks_k, ks_s : int64 ndarray
-        Observation order sorted by (kept block, system), its segment starts, and their block and system.
+    e_order, es_starts, es_e, es_s : int64 ndarray
+        Observation order sorted by (eliminated block, system, kept block), the segment starts of each
+        (eliminated block, system) in it, and their block and system.
+    ks_starts, ks_k, ks_s : int64 ndarray
+        Segment starts of each (system, kept block) and their block and system.
+    n_reference : int
+        Number of observations of the reference system (system 0), the first ones.
     ap_xy_px : (N, 2) float64 ndarray or None, px
         Measured coordinates (before any correction), where the APs are evaluated; None without APs.
     ap_radius_px : (S,) float64 ndarray or None, px
@@ -72,13 +80,14 @@ class Problem:
     # derived sort structures
     e_idx: np.ndarray
     k_idx: np.ndarray
+    e_order: np.ndarray
     es_starts: np.ndarray
     es_e: np.ndarray
     es_s: np.ndarray
-    k_order: np.ndarray
     ks_starts: np.ndarray
     ks_k: np.ndarray
     ks_s: np.ndarray
+    n_reference: int
     ap_xy_px: np.ndarray | None = None
     ap_radius_px: np.ndarray | None = None
 
@@ -89,12 +98,17 @@ class Problem:
     @cached_property
     def es_summer(self) -> scipy.sparse.csr_matrix:
         """``(n_es, N)`` 0/1 matrix: ``es_summer @ X`` sums ``X (N, k)`` over each (eliminated block, system)."""
-        return segment_summer(self.es_starts, self.n_obs)
+        return segment_summer(self.es_starts, self.n_obs, self.e_order)
 
     @cached_property
     def ks_summer(self) -> scipy.sparse.csr_matrix:
         """``(n_ks, N)`` 0/1 matrix: ``ks_summer @ X`` sums ``X (N, k)`` over each (kept block, system)."""
-        return segment_summer(self.ks_starts, self.n_obs, self.k_order)
+        return segment_summer(self.ks_starts, self.n_obs)
+
+    @cached_property
+    def ks_by_block(self) -> np.ndarray:
+        """The (system, kept block) segments in kept-block order (the systems of a block in turn), for :attr:`ks_k`."""
+        return np.argsort(self.ks_k, kind="stable")
 
     @cached_property
     def coupling_index(self) -> np.ndarray:
@@ -223,9 +237,9 @@ def build_problem(
     if eliminate == "auto":
         eliminate = "points" if 6 * n_poses < 3 * n_points else "poses"
     e_all, k_all = (point_idx, pose_idx) if eliminate == "points" else (pose_idx, point_idx)
-    perm = np.lexsort((k_all, sys_idx, e_all))
+    perm = np.lexsort((e_all, k_all, sys_idx))
     sys_idx = sys_idx[perm]
-    order = _sort_structures(e_all[perm], k_all[perm], sys_idx, n_systems)
+    order = _sort_structures(e_all[perm], k_all[perm], sys_idx)
     n_ap = 0 if ap_radius_px is None else polynomial.N_AP
     gcol, n_globals = _global_columns(n_systems, iop_free, n_ap, ap_free)
     problem = Problem(
@@ -248,23 +262,24 @@ def build_problem(
     return problem, perm
 
 
-def _sort_structures(e_idx: np.ndarray, k_idx: np.ndarray, sys_idx: np.ndarray, n_systems: int) -> dict:
-    """The segment starts and kept-block order of :class:`Problem` for observations sorted by (eliminated, system)."""
-    n_sys_keys = max(n_systems, 1)
-    es_starts = segment_starts(e_idx * n_sys_keys + sys_idx)
-    k_order = np.lexsort((sys_idx, k_idx))
-    k_sorted = k_idx[k_order]
-    ks_starts = segment_starts(k_sorted * n_sys_keys + sys_idx[k_order])
+def _sort_structures(e_idx: np.ndarray, k_idx: np.ndarray, sys_idx: np.ndarray) -> dict:
+    """The segment starts and eliminated-block order of :class:`Problem` for observations sorted by (system, kept)."""
+    ks_starts = segment_starts(sys_idx * (int(k_idx.max(initial=0)) + 1) + k_idx)
+    # within an (eliminated block, system) by kept block, as the observations were ordered before
+    e_order = np.lexsort((k_idx, sys_idx, e_idx))
+    e_sorted = e_idx[e_order]
+    es_starts = segment_starts(e_sorted * (int(sys_idx.max(initial=0)) + 1) + sys_idx[e_order])
     return {
         "e_idx": e_idx,
         "k_idx": k_idx,
+        "e_order": e_order,
         "es_starts": es_starts,
-        "es_e": e_idx[es_starts],
-        "es_s": sys_idx[es_starts],
-        "k_order": k_order,
+        "es_e": e_sorted[es_starts],
+        "es_s": sys_idx[e_order][es_starts],
         "ks_starts": ks_starts,
-        "ks_k": k_sorted[ks_starts],
-        "ks_s": sys_idx[k_order][ks_starts],
+        "ks_k": k_idx[ks_starts],
+        "ks_s": sys_idx[ks_starts],
+        "n_reference": int(np.count_nonzero(sys_idx == 0)),
     }
 
 

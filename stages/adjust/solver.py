@@ -144,7 +144,7 @@ def _linearised(run: _Progress, problem: Problem) -> Normal:
     """The normal equations at ``run.state`` with the current t-weights."""
     e, J = jacobian(run.state, problem, run.projection)
     s_now = (e * e).sum(1)
-    J, ew = weighted_jacobian(e, J, t_weights(s_now, run.nu, run.scale2))
+    J, ew = weighted_jacobian(e, J, t_weights(s_now, run.nu, run.scale2), overwrite_j=True)
     # near the optimum (σ² settled) the IRLS curvature overstates the t's: correct it there only,
     # since far away the corrected model oversteps
     J_h = triggs_corrected(J, ew, s_now / run.scale2, run.nu) if run.settled else None

@@ -313,6 +313,17 @@ def test_input_errors(mono):
         adjust_bundle(obs.xy_px, nominal, start)
 
 
+def test_reference_system_with_a_relative_orientation_is_refused(biplanar):
+    """System 0 is the reference frame (its observations skip the ROP): a rotated or shifted one is an input error."""
+    i = biplanar.initial
+    for rop_q, rop_t in (([np.cos(0.05), np.sin(0.05), 0, 0], [0, 0, 0]), ([1, 0, 0, 0], [5.0, 0, 0])):
+        q, t = i.rop_q.copy(), i.rop_source_mm.copy()
+        q[0], t[0] = rop_q, rop_t
+        start = Orientation(i.iop_px, i.exposure, i.q_cam_from_obj, i.source_mm, q, t, i.system_names)
+        with pytest.raises(InputError, match=r"rop_q\[0\] must be the identity"):
+            adjust_bundle(biplanar.observations, (biplanar.ids, biplanar.nominal_mm), start)
+
+
 def test_empty_and_too_few_exposures(mono):
     obs = mono.observations
     nominal = (mono.ids, mono.nominal_mm)
