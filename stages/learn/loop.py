@@ -28,11 +28,10 @@ The refinement's joint steps are Gauss-Newton steps of the joint problem: they a
 taken as they are (extrapolated by Anderson, they overshot the fixed point and
 raised the adjustment's cost near it, issue 30).
 
-The loop keeps its best iterate, the lowest adjustment cost (equation 2) of its
-last phase, and stops once the steps' contraction leaves less than
-``field_tolerance`` of the field's σ and less than the cost's noise to go, or at the
-first refinement step that does not lower the cost by ``stall_tolerance`` of itself:
-either way a restart from the result moves the field by a small fraction of its σ.
+The loop keeps its best iterate, the lowest adjustment cost (equation 2) of its last phase, and stops once the
+steps' contraction leaves less than ``field_tolerance`` of the field's σ and less than the cost's noise to go, or at
+the first refinement step that does not lower the cost by ``stall_tolerance`` of itself: either way a restart from
+the result moves the field by a small fraction of its σ.
 """
 
 from __future__ import annotations
