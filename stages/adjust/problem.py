@@ -102,7 +102,7 @@ class Problem:
 
     @cached_property
     def ks_summer(self) -> scipy.sparse.csr_matrix:
-        """``(n_ks, N)`` 0/1 matrix: ``ks_summer @ X`` sums ``X (N, k)`` over each (kept block, system)."""
+        """``(n_ks, N)`` 0/1 matrix: ``ks_summer @ X`` sums ``X (N, k)`` over each (system, kept block) run."""
         return segment_summer(self.ks_starts, self.n_obs)
 
     @cached_property
