@@ -18,8 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from fluorocal.stages.learn.lapack import cholesky_lower, inverse_lower
-from fluorocal.stages.learn.trmm import trmm
+from fluorocal.stages.learn.nogil import cholesky_lower, inverse_lower, trmm
 from scipy.sparse import issparse
 
 

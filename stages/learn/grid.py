@@ -15,8 +15,8 @@ import numpy as np
 from fluorocal.stages.artifacts import freeze
 from fluorocal.stages.errors import EstimationError
 from fluorocal.stages.field import CorrectionField, bilinear_design
-from fluorocal.stages.learn.lapack import cholesky_band, solve_band
 from fluorocal.stages.learn.nodes import DEFAULT_GRID, GridSpec, check_training
+from fluorocal.stages.learn.nogil import cholesky_band, solve_band
 from fluorocal.stages.learn.robust import capped_cost
 
 #: forward-difference stencils of the smoothness prior's orders

@@ -9,8 +9,8 @@ run (each system's work reads only its own data and writes nothing shared). One 
 default, as a library call and the tests get it), starts no thread at all.
 
 Threads, not processes: that work is mostly compiled code that releases the GIL, on arrays that would otherwise
-be copied to another process: BLAS-3 products (:mod:`.trmm`), LAPACK's Cholesky factorizations and solves
-(:mod:`.lapack`: SciPy's own wrappers hold the GIL) and the KD-tree's queries. The refinement's joint field step
+be copied to another process: BLAS-3 products and LAPACK's Cholesky factorizations and solves
+(:mod:`.nogil`: SciPy's own wrappers hold the GIL) and the KD-tree's queries. The refinement's joint field step
 couples the systems and stays serial.
 """
 

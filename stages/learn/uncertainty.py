@@ -75,11 +75,10 @@ from fluorocal.stages.field import bilinear_design
 from fluorocal.stages.learn.blocktri import block_cholesky
 from fluorocal.stages.learn.gauge import gauge_basis
 from fluorocal.stages.learn.grid import prior_normal
-from fluorocal.stages.learn.lapack import inverse_lower
 from fluorocal.stages.learn.network import linearised_network
+from fluorocal.stages.learn.nogil import inverse_lower, trmm
 from fluorocal.stages.learn.params import FieldGauge
 from fluorocal.stages.learn.threads import each_system
-from fluorocal.stages.learn.trmm import trmm
 from scipy.linalg import ldl
 from scipy.sparse import bmat, csr_matrix, diags, identity, issparse, vstack
 

@@ -1,4 +1,4 @@
-"""Tests of LAPACK's Cholesky routines called through SciPy's cython_lapack pointers (stages/learn/lapack.py).
+"""Tests of LAPACK's Cholesky routines called through SciPy's cython_lapack pointers (stages/learn/nogil.py).
 
 The reference is SciPy's own wrapper of the same routine of the same library: the same numbers to the bit (no
 tolerance), the same errors; and, to a tolerance, the factorisation's definition (``L L^T = M``, ``M x = b``).
@@ -10,8 +10,8 @@ import ctypes
 
 import numpy as np
 import pytest
-from fluorocal.stages.learn import lapack
-from fluorocal.stages.learn.lapack import cholesky_band, cholesky_lower, inverse_lower, solve_band
+from fluorocal.stages.learn import nogil as lapack
+from fluorocal.stages.learn.nogil import cholesky_band, cholesky_lower, inverse_lower, solve_band
 from scipy.linalg import cho_solve_banded, cholesky, cholesky_banded
 from scipy.linalg import lapack as scipy_lapack
 

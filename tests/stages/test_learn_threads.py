@@ -1,4 +1,4 @@
-"""Tests of the learning's systems side by side in threads (stages/learn/threads.py, trmm.py; lapack.py: its own).
+"""Tests of the learning's systems side by side in threads (stages/learn/threads.py, and nogil.py's trmm).
 
 The calibration's data: ``simulated_sets`` (``tests/stages/ba_synthetic.py``), two systems with the simulator's
 strong distortion, true outline centres + 0.05 px noise, 8 + 8 epochs at 512 px; the recommended loop (its
@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 from fluorocal.stages.errors import EstimationError, InputError
 from fluorocal.stages.learn import calibrate, loop, threads, uncertainty
-from fluorocal.stages.learn import trmm as trmm_module
+from fluorocal.stages.learn import nogil as trmm_module
+from fluorocal.stages.learn.nogil import trmm
 from fluorocal.stages.learn.threads import each_system
-from fluorocal.stages.learn.trmm import trmm
 from scipy.linalg import blas
 
 from tests.stages.ba_synthetic import simulated_sets
